@@ -1,0 +1,100 @@
+"""Curvature of level sets from the gradient and Hessian of ``phi`` (SPEC §4).
+
+Pure functions of tensors: ``gradient`` is ``(B, 3, D, H, W)`` in ``(x, y, z)`` order,
+``hessian`` is ``(B, 6, D, H, W)`` in the order ``xx, yy, zz, xy, xz, yz`` and ``grad_norm``
+is the regularised ``|grad phi|`` ``(B, 1, D, H, W)``. Curvatures are in inverse world units,
+positive for a sphere with the outward normal (``H = 2 / R``, ``K = 1 / R^2``).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+
+def _matrix(hessian: Tensor) -> Tensor:
+    """``(B, 6, ...)`` packed Hessian to ``(B, 3, 3, ...)``."""
+    xx, yy, zz, xy, xz, yz = hessian.unbind(dim=1)
+    rows = ((xx, xy, xz), (xy, yy, yz), (xz, yz, zz))
+    return torch.stack([torch.stack(row, dim=1) for row in rows], dim=1)
+
+
+def _quadratic(matrix: Tensor, a: Tensor, b: Tensor) -> Tensor:
+    """``a^T M b`` per voxel: ``M`` ``(B, 3, 3, ...)``, ``a``, ``b`` ``(B, 3, ...)`` -> ``(B, 1, ...)``."""
+    return torch.einsum("bi...,bij...,bj...->b...", a, matrix, b)[:, None]
+
+
+def mean_curvature(gradient: Tensor, hessian: Tensor, grad_norm: Tensor) -> Tensor:
+    """``H = div(grad phi / |grad phi|) = (|g|^2 tr(Hess) - g^T Hess g) / |g|^3``; ``(B, 1, ...)``."""
+    trace = hessian[:, 0:1] + hessian[:, 1:2] + hessian[:, 2:3]
+    normal_part = _quadratic(_matrix(hessian), gradient, gradient)
+    return (grad_norm**2 * trace - normal_part) / grad_norm**3
+
+
+def gaussian_curvature(gradient: Tensor, hessian: Tensor, grad_norm: Tensor) -> Tensor:
+    """``K = g^T adj(Hess) g / |g|^4``; ``(B, 1, ...)``."""
+    xx, yy, zz, xy, xz, yz = hessian.unbind(dim=1)
+    adjugate = _matrix(
+        torch.stack(
+            (
+                yy * zz - yz**2,
+                xx * zz - xz**2,
+                xx * yy - xy**2,
+                xz * yz - zz * xy,
+                xy * yz - yy * xz,
+                xy * xz - xx * yz,
+            ),
+            dim=1,
+        )
+    )
+    return _quadratic(adjugate, gradient, gradient) / grad_norm**4
+
+
+def tangent_basis(normal: Tensor) -> tuple[Tensor, Tensor]:
+    """Two unit tangents ``(t1, t2)`` with ``(t1, t2, n)`` right-handed; each ``(B, 3, ...)``.
+
+    ``t1`` is ``n`` crossed with the coordinate axis least aligned with ``n``, so the cross
+    product never has norm below ``sqrt(2/3)`` for a unit normal: values and gradients stay
+    finite everywhere (the choice jumps where the least-aligned axis changes).
+    """
+    least = normal.abs().argmin(dim=1, keepdim=True)
+    axis = torch.zeros_like(normal).scatter_(1, least, 1.0)
+    t1 = torch.linalg.cross(normal, axis, dim=1)
+    t1 = t1 / t1.norm(dim=1, keepdim=True)
+    t2 = torch.linalg.cross(normal, t1, dim=1)
+    return t1, t2
+
+
+def principal(
+    hessian: Tensor, normal: Tensor, grad_norm: Tensor, eps: float
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Principal curvatures and directions from the shape operator ``P Hess P / |grad phi|``.
+
+    The shape operator is written in the tangent basis of :func:`tangent_basis` as a symmetric
+    2x2 matrix ``[[m11, m12], [m12, m22]]`` and diagonalised in closed form, with the
+    eigenvalue gap regularised as ``r = sqrt((m11 - m22)^2 + 4 m12^2 + eps^2)``.
+
+    At an umbilic (``m11 = m22``, ``m12 = 0``; every point of a sphere) the directions are not
+    defined: the first direction returned is ``t1`` and the curvatures are ``mean ± eps / 2``,
+    all finite with finite gradients.
+
+    Returns:
+        ``k1, k2`` ``(B, 1, ...)`` with ``k1 >= k2``, and unit directions ``e1, e2``
+        ``(B, 3, ...)`` with ``(e1, e2, n)`` right-handed.
+    """
+    t1, t2 = tangent_basis(normal)
+    matrix = _matrix(hessian)
+    m11 = _quadratic(matrix, t1, t1) / grad_norm
+    m22 = _quadratic(matrix, t2, t2) / grad_norm
+    m12 = _quadratic(matrix, t1, t2) / grad_norm
+    half_trace = 0.5 * (m11 + m22)
+    a = m11 - m22
+    b = 2.0 * m12
+    gap = torch.sqrt(a**2 + b**2 + eps**2)
+    # Two expressions of the same eigenvector; each is used where its norm is at least eps.
+    along_t1 = torch.where(a >= 0, a + gap, b)
+    along_t2 = torch.where(a >= 0, b, gap - a)
+    e1 = along_t1 * t1 + along_t2 * t2
+    e1 = e1 / e1.norm(dim=1, keepdim=True)
+    e2 = torch.linalg.cross(normal, e1, dim=1)
+    return half_trace + 0.5 * gap, half_trace - 0.5 * gap, e1, e2

@@ -1,0 +1,237 @@
+"""Finite-difference stencils, defined once, and the two ways of applying them.
+
+A :class:`Stencil` is a list of taps (offset, weight) in index units on a 3x3x3 neighbourhood.
+Each stencil exists as a conv3d kernel (:meth:`Stencil.kernel`) and as shifted slices; both
+paths read the same taps, so they give the same numbers (tests check it).
+
+Padding is a separate step (:func:`pad`, :func:`pad_flux`): a stencil is applied to a volume
+that already carries a halo of one node on every side, and returns the interior. A later
+narrow-band layout supplies its own halos and reuses the stencil step unchanged.
+
+Axis conventions: a volume is ``(..., D, H, W)``; offsets are ``(dz, dy, dx)`` in that order;
+vector components (and stencil banks of first derivatives) are in ``(x, y, z)`` order.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from ._checks import check_choice
+
+Offset = tuple[int, int, int]
+
+PATHS = ("auto", "slicing", "conv3d")
+PAD_MODES = ("replicate", "linear", "zeros")
+
+
+@dataclass(frozen=True)
+class Stencil:
+    """A finite-difference stencil: taps ``((dz, dy, dx), weight)`` within one node of the centre.
+
+    Weights are in index units: divide the result by ``spacing ** order``.
+    """
+
+    name: str
+    taps: tuple[tuple[Offset, float], ...]
+
+    def kernel(self, dtype: torch.dtype | None = None, device: torch.device | str | None = None
+               ) -> Tensor:
+        """The stencil as a ``(3, 3, 3)`` conv3d kernel (cross-correlation, centre at ``[1,1,1]``)."""
+        kernel = torch.zeros(3, 3, 3, dtype=dtype, device=device)
+        for (dz, dy, dx), weight in self.taps:
+            kernel[1 + dz, 1 + dy, 1 + dx] += weight
+        return kernel
+
+
+def _unit(axis: int, step: int = 1) -> Offset:
+    """Offset ``(dz, dy, dx)`` of ``step`` nodes along world axis ``axis`` (0 = x, 1 = y, 2 = z)."""
+    offset = [0, 0, 0]
+    offset[2 - axis] = step
+    return tuple(offset)
+
+
+def _add(a: Offset, b: Offset) -> Offset:
+    return tuple(p + q for p, q in zip(a, b, strict=True))
+
+
+_AXES = "xyz"
+_CENTRE: Offset = (0, 0, 0)
+
+FORWARD: tuple[Stencil, ...] = tuple(
+    Stencil(f"forward_{_AXES[a]}", ((_CENTRE, -1.0), (_unit(a), 1.0))) for a in range(3)
+)
+"""Forward differences ``u[i+1] - u[i]`` along x, y, z."""
+
+BACKWARD: tuple[Stencil, ...] = tuple(
+    Stencil(f"backward_{_AXES[a]}", ((_unit(a, -1), -1.0), (_CENTRE, 1.0))) for a in range(3)
+)
+"""Backward differences ``u[i] - u[i-1]`` along x, y, z."""
+
+CENTRAL: tuple[Stencil, ...] = tuple(
+    Stencil(f"central_{_AXES[a]}", ((_unit(a, -1), -0.5), (_unit(a), 0.5))) for a in range(3)
+)
+"""Central differences ``(u[i+1] - u[i-1]) / 2`` along x, y, z."""
+
+SECOND: tuple[Stencil, ...] = tuple(
+    Stencil(f"second_{_AXES[a] * 2}", ((_unit(a, -1), 1.0), (_CENTRE, -2.0), (_unit(a), 1.0)))
+    for a in range(3)
+)
+"""Second differences ``u[i+1] - 2 u[i] + u[i-1]`` along x, y, z."""
+
+_PAIRS = ((0, 1), (0, 2), (1, 2))
+
+MIXED: tuple[Stencil, ...] = tuple(
+    Stencil(
+        f"mixed_{_AXES[a]}{_AXES[b]}",
+        tuple(
+            (_add(_unit(a, sa), _unit(b, sb)), 0.25 * sa * sb) for sa in (1, -1) for sb in (1, -1)
+        ),
+    )
+    for a, b in _PAIRS
+)
+"""Central mixed differences for xy, xz, yz."""
+
+HESSIAN: tuple[Stencil, ...] = SECOND + MIXED
+"""Second derivatives in the order xx, yy, zz, xy, xz, yz."""
+
+
+def one_sided(side: int) -> tuple[Stencil, ...]:
+    """Forward differences for ``side = +1``, backward for ``side = -1``."""
+    if side not in (1, -1):
+        raise ValueError(f"side must be +1 or -1, got {side!r}")
+    return FORWARD if side == 1 else BACKWARD
+
+
+def pad(volume: Tensor, mode: str = "replicate") -> Tensor:
+    """Add a halo of one node on every side of the last three axes.
+
+    Args:
+        volume: ``(B, C, D, H, W)``.
+        mode: ``"replicate"`` copies the edge (zero normal derivative: the data's default),
+            ``"linear"`` extrapolates ``2 u[0] - u[1]`` (exact for affine fields: the default
+            for ``phi``), ``"zeros"`` fills zeros.
+
+    Returns:
+        ``(B, C, D + 2, H + 2, W + 2)``.
+    """
+    check_choice(mode, "mode", PAD_MODES)
+    halo = (1, 1, 1, 1, 1, 1)
+    if mode == "zeros":
+        return F.pad(volume, halo)
+    replicated = F.pad(volume, halo, mode="replicate")
+    if mode == "replicate":
+        return replicated
+    return 2.0 * replicated - F.pad(volume, halo, mode="reflect")
+
+
+def pad_flux(flux: Tensor, side: int) -> Tensor:
+    """Halo a face-centred flux so that nothing flows through the faces of the grid's box.
+
+    A one-sided gradient of side ``+1`` puts component ``x`` of node ``i`` on the face
+    ``i + 1/2``; the face beyond the last node lies outside the box and carries no flux
+    (side ``-1``: the face before the first node). Those values are zeroed and the halo is
+    zero, which makes the divergence applied next the exact negative adjoint of the
+    replicate-padded one-sided gradient.
+
+    Args:
+        flux: ``(B, C, 3, D, H, W)``, components in ``(x, y, z)`` order.
+        side: ``+1`` or ``-1``, the side of the differences that produced the flux.
+
+    Returns:
+        ``(B, C, 3, D + 2, H + 2, W + 2)``.
+    """
+    one_sided(side)
+    components = []
+    for axis in range(3):
+        component = flux[:, :, axis]
+        dim = component.dim() - 1 - axis
+        length = component.shape[dim]
+        if side == 1:
+            inner = component.narrow(dim, 0, length - 1)
+            low, high = 1, 2
+        else:
+            inner = component.narrow(dim, 1, length - 1)
+            low, high = 2, 1
+        widths = [1, 1, 1, 1, 1, 1]
+        widths[2 * axis], widths[2 * axis + 1] = low, high
+        components.append(F.pad(inner, widths))
+    return torch.stack(components, dim=2)
+
+
+def resolve_path(path: str, volume: Tensor) -> str:
+    """Choose how stencils are applied: ``"auto"`` is slicing on CPU, conv3d elsewhere.
+
+    On CPU, conv3d with few channels falls back to an im2col kernel that measured 3-6x slower
+    than shifted slices (docs/benchmarks.md).
+    """
+    check_choice(path, "path", PATHS)
+    if path != "auto":
+        return path
+    return "slicing" if volume.device.type == "cpu" else "conv3d"
+
+
+def _shifted(padded: Tensor, offset: Offset) -> Tensor:
+    """The interior of a halo-1 volume shifted by ``offset``: ``u[k + dz, j + dy, i + dx]``."""
+    dz, dy, dx = offset
+    depth, height, width = (n - 2 for n in padded.shape[-3:])
+    return padded[..., 1 + dz: 1 + dz + depth, 1 + dy: 1 + dy + height, 1 + dx: 1 + dx + width]
+
+
+def _sliced(padded: Tensor, stencil: Stencil) -> Tensor:
+    result = None
+    for offset, weight in stencil.taps:
+        term = weight * _shifted(padded, offset)
+        result = term if result is None else result + term
+    return result
+
+
+def _bank_kernel(bank: Sequence[Stencil], like: Tensor) -> Tensor:
+    return torch.stack([s.kernel(dtype=like.dtype, device=like.device) for s in bank])
+
+
+def apply(padded: Tensor, bank: Sequence[Stencil], path: str = "auto") -> Tensor:
+    """Apply every stencil of ``bank`` to every channel of a haloed volume.
+
+    Args:
+        padded: ``(B, C, D + 2, H + 2, W + 2)``, e.g. from :func:`pad`.
+        bank: ``K`` stencils.
+        path: ``"slicing"``, ``"conv3d"`` or ``"auto"`` (see :func:`resolve_path`).
+
+    Returns:
+        ``(B, C, K, D, H, W)`` in index units.
+    """
+    path = resolve_path(path, padded)
+    if path == "slicing":
+        return torch.stack([_sliced(padded, stencil) for stencil in bank], dim=2)
+    batch, channels = padded.shape[:2]
+    weight = _bank_kernel(bank, padded)[:, None]
+    out = F.conv3d(padded.reshape(batch * channels, 1, *padded.shape[2:]), weight)
+    return out.view(batch, channels, len(bank), *out.shape[2:])
+
+
+def contract(padded: Tensor, bank: Sequence[Stencil], path: str = "auto") -> Tensor:
+    """Apply stencil ``k`` of ``bank`` to component ``k`` and sum: a divergence-like contraction.
+
+    Args:
+        padded: ``(B, C, K, D + 2, H + 2, W + 2)``, e.g. from :func:`pad_flux`.
+        bank: ``K`` stencils.
+        path: as in :func:`apply`.
+
+    Returns:
+        ``(B, C, D, H, W)`` in index units.
+    """
+    path = resolve_path(path, padded)
+    if path == "slicing":
+        result = _sliced(padded[:, :, 0], bank[0])
+        for k in range(1, len(bank)):
+            result = result + _sliced(padded[:, :, k], bank[k])
+        return result
+    batch, channels, components = padded.shape[:3]
+    weight = _bank_kernel(bank, padded)[None]
+    out = F.conv3d(padded.reshape(batch * channels, components, *padded.shape[3:]), weight)
+    return out.view(batch, channels, *out.shape[2:])
