@@ -1,17 +1,42 @@
-"""torchsurf: variational problems and PDEs on implicit surfaces, as PyTorch modules."""
+"""torchsurf: variational problems and PDEs on implicit surfaces, as PyTorch modules.
 
-from . import sdf, stencils
+Bertalmío, Cheng, Osher & Sapiro (2001): data on the zero level set of ``phi`` is extended
+to a band around it and every intrinsic operator is computed on the Cartesian grid.
+"""
+
+from . import exact, operators, sdf, stencils
 from .grid import Grid
-from .operators import LaplaceBeltrami, laplace_beltrami
+from .operators import (
+    AnisotropicDiffusion,
+    DirectionalDiffusion,
+    IntrinsicDivergence,
+    IntrinsicGradient,
+    LaplaceBeltrami,
+    anisotropic_diffusion,
+    directional_diffusion,
+    intrinsic_divergence,
+    intrinsic_gradient,
+    laplace_beltrami,
+)
 from .surface import ImplicitSurface
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "AnisotropicDiffusion",
+    "DirectionalDiffusion",
     "Grid",
     "ImplicitSurface",
+    "IntrinsicDivergence",
+    "IntrinsicGradient",
     "LaplaceBeltrami",
+    "anisotropic_diffusion",
+    "directional_diffusion",
+    "exact",
+    "intrinsic_divergence",
+    "intrinsic_gradient",
     "laplace_beltrami",
+    "operators",
     "sdf",
     "stencils",
 ]

@@ -50,19 +50,26 @@ def gaussian_curvature(gradient: Tensor, hessian: Tensor, grad_norm: Tensor) -> 
     return _quadratic(adjugate, gradient, gradient) / grad_norm**4
 
 
-def tangent_basis(normal: Tensor) -> tuple[Tensor, Tensor]:
-    """Two unit tangents ``(t1, t2)`` with ``(t1, t2, n)`` right-handed; each ``(B, 3, ...)``.
+def _unit_vectors(normal: Tensor, index: Tensor) -> Tensor:
+    return torch.zeros_like(normal).scatter_(1, index, 1.0)
 
-    ``t1`` is ``n`` crossed with the coordinate axis least aligned with ``n``, so the cross
-    product never has norm below ``sqrt(2/3)`` for a unit normal: values and gradients stay
-    finite everywhere (the choice jumps where the least-aligned axis changes).
+
+def tangent_basis(normal: Tensor) -> tuple[Tensor, Tensor]:
+    """Two orthonormal tangents ``(t1, t2)`` to ``normal``; each ``(B, 3, ...)``.
+
+    Gram–Schmidt of the two coordinate axes least aligned with ``n``: their parts orthogonal to
+    ``n`` never fall below ``sqrt(2/3)`` and ``1/sqrt(3)`` of unit length for a unit normal, and
+    where ``n`` vanishes (the medial axis) the axes themselves are returned, so values and
+    gradients stay finite everywhere (the choice jumps where the ordering of ``|n_i|`` changes).
     """
-    least = normal.abs().argmin(dim=1, keepdim=True)
-    axis = torch.zeros_like(normal).scatter_(1, least, 1.0)
-    t1 = torch.linalg.cross(normal, axis, dim=1)
+    order = normal.abs().argsort(dim=1)
+    first = _unit_vectors(normal, order[:, 0:1])
+    second = _unit_vectors(normal, order[:, 1:2])
+    t1 = first - (first * normal).sum(dim=1, keepdim=True) * normal
     t1 = t1 / t1.norm(dim=1, keepdim=True)
-    t2 = torch.linalg.cross(normal, t1, dim=1)
-    return t1, t2
+    t2 = second - (second * normal).sum(dim=1, keepdim=True) * normal
+    t2 = t2 - (t2 * t1).sum(dim=1, keepdim=True) * t1
+    return t1, t2 / t2.norm(dim=1, keepdim=True)
 
 
 def principal(
@@ -80,7 +87,7 @@ def principal(
 
     Returns:
         ``k1, k2`` ``(B, 1, ...)`` with ``k1 >= k2``, and unit directions ``e1, e2``
-        ``(B, 3, ...)`` with ``(e1, e2, n)`` right-handed.
+        ``(B, 3, ...)``, orthonormal and tangent.
     """
     t1, t2 = tangent_basis(normal)
     matrix = _matrix(hessian)
@@ -94,7 +101,7 @@ def principal(
     # Two expressions of the same eigenvector; each is used where its norm is at least eps.
     along_t1 = torch.where(a >= 0, a + gap, b)
     along_t2 = torch.where(a >= 0, b, gap - a)
-    e1 = along_t1 * t1 + along_t2 * t2
-    e1 = e1 / e1.norm(dim=1, keepdim=True)
-    e2 = torch.linalg.cross(normal, e1, dim=1)
+    length = torch.sqrt(along_t1**2 + along_t2**2)
+    e1 = (along_t1 * t1 + along_t2 * t2) / length
+    e2 = (along_t1 * t2 - along_t2 * t1) / length
     return half_trace + 0.5 * gap, half_trace - 0.5 * gap, e1, e2

@@ -131,9 +131,9 @@ class ImplicitSurface(nn.Module):
         """Unit principal directions ``(e1, e2)`` of ``k1`` and ``k2``, each ``(B, 3, D, H, W)``.
 
         Tangent eigenvectors of the shape operator ``P Hess(phi) P / |grad phi|``, defined up
-        to sign, with ``(e1, e2, n)`` right-handed. At umbilic points (every point of a sphere)
-        no direction is preferred: ``e1`` is then a fixed tangent (``n`` crossed with the
-        coordinate axis least aligned with it) and the curvatures differ by ``eps`` =
+        to sign, orthonormal. At umbilic points (every point of a sphere) no direction is
+        preferred: ``e1`` is then a fixed tangent (the coordinate axis least aligned with ``n``,
+        made orthogonal to it) and the curvatures differ by ``eps`` =
         ``1e-6 / spacing``; values and gradients stay finite.
         """
         _, _, e1, e2 = self._principal()

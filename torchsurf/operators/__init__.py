@@ -1,5 +1,33 @@
 """Intrinsic differential operators on implicit surfaces: functions and their modules."""
 
+from .differential import (
+    IntrinsicDivergence,
+    IntrinsicGradient,
+    intrinsic_divergence,
+    intrinsic_gradient,
+)
+from .diffusion import (
+    AnisotropicDiffusion,
+    DirectionalDiffusion,
+    anisotropic_diffusion,
+    directional_diffusion,
+)
+from .diffusivity import DIFFUSIVITIES, charbonnier, perona_malik, total_variation
 from .laplace_beltrami import LaplaceBeltrami, laplace_beltrami
 
-__all__ = ["LaplaceBeltrami", "laplace_beltrami"]
+__all__ = [
+    "DIFFUSIVITIES",
+    "AnisotropicDiffusion",
+    "DirectionalDiffusion",
+    "IntrinsicDivergence",
+    "IntrinsicGradient",
+    "LaplaceBeltrami",
+    "anisotropic_diffusion",
+    "charbonnier",
+    "directional_diffusion",
+    "intrinsic_divergence",
+    "intrinsic_gradient",
+    "laplace_beltrami",
+    "perona_malik",
+    "total_variation",
+]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import torch
 from torch import Tensor, nn
 
 from .. import stencils
@@ -22,6 +23,38 @@ def _divergence_form(
     u: Tensor, normal: Tensor, grad_norm: Tensor, spacing: float, scheme: str, path: str
 ) -> Tensor:
     return flux_form(u, normal, grad_norm, spacing, _identity, scheme, path)
+
+
+def _adjoint(
+    g: Tensor, normal: Tensor, grad_norm: Tensor, spacing: float, scheme: str, path: str
+) -> Tensor:
+    """``L^T g = W L(g / W)``: the divergence-form schemes are ``W^-1 A`` with ``A`` symmetric."""
+    return grad_norm * _divergence_form(g / grad_norm, normal, grad_norm, spacing, scheme, path)
+
+
+class _WeightedSelfAdjoint(torch.autograd.Function):
+    """Backward of a divergence-form scheme w.r.t. ``u`` by its adjoint, one forward-sized pass.
+
+    Used when the surface is fixed (no gradient to ``phi``): backpropagating through the
+    stencil composition instead costs about twice as much (docs/benchmarks.md).
+    """
+
+    @staticmethod
+    def forward(ctx, u, normal, grad_norm, spacing, scheme, path):  # noqa: ANN001, ANN205
+        ctx.save_for_backward(normal, grad_norm)
+        ctx.settings = (spacing, scheme, path, u.shape[0])
+        return _paths.run(_divergence_form, path, u, u, normal, grad_norm, spacing, scheme)
+
+    @staticmethod
+    def backward(ctx, grad_output):  # noqa: ANN001, ANN205
+        normal, grad_norm = ctx.saved_tensors
+        spacing, scheme, path, batch = ctx.settings
+        grad_u = _paths.run(
+            _adjoint, path, grad_output, grad_output, normal, grad_norm, spacing, scheme
+        )
+        if grad_u.shape[0] != batch:
+            grad_u = grad_u.sum(dim=0, keepdim=True)
+        return grad_u, None, None, None, None, None
 
 
 def _central(
@@ -85,8 +118,12 @@ def laplace_beltrami(
         return _paths.run(
             _central, path, u, u, surface.normal, surface.mean_curvature(), surface.spacing
         )
-    return _paths.run(
-        _divergence_form, path, u, u, surface.normal, surface.grad_norm, surface.spacing, scheme
+    if surface.normal.requires_grad or surface.grad_norm.requires_grad:
+        return _paths.run(
+            _divergence_form, path, u, u, surface.normal, surface.grad_norm, surface.spacing, scheme
+        )
+    return _WeightedSelfAdjoint.apply(
+        u, surface.normal, surface.grad_norm, surface.spacing, scheme, path
     )
 
 

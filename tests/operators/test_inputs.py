@@ -1,0 +1,110 @@
+"""Batching, dtypes, modules, and the errors bad inputs raise."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+import torchsurf as ts
+from torchsurf.exact import torus_function
+
+CASE = torus_function(13)
+SURFACE = ts.ImplicitSurface(CASE.phi, CASE.grid)
+
+
+def test_batch_of_signals_over_one_surface_and_batch_of_surfaces():
+    generator = torch.Generator().manual_seed(5)
+    u = torch.randn(3, 2, 13, 13, 13, dtype=torch.float64, generator=generator)
+    batched = ts.laplace_beltrami(u, SURFACE)
+    for b in range(3):
+        torch.testing.assert_close(batched[b: b + 1], ts.laplace_beltrami(u[b: b + 1], SURFACE))
+    phis = torch.cat([CASE.phi, CASE.phi * 1.3 + 0.05, CASE.phi - 0.1])
+    surfaces = ts.ImplicitSurface(phis, CASE.grid)
+    per_surface = ts.laplace_beltrami(u, surfaces, scheme="central")
+    for b in range(3):
+        single = ts.ImplicitSurface(phis[b: b + 1], CASE.grid)
+        torch.testing.assert_close(
+            per_surface[b: b + 1], ts.laplace_beltrami(u[b: b + 1], single, scheme="central")
+        )
+    broadcast = ts.laplace_beltrami(u[:1], surfaces)
+    assert broadcast.shape == (3, 2, 13, 13, 13)
+
+
+def test_float32_matches_float64():
+    surface32 = ts.ImplicitSurface(CASE.phi.float(), CASE.grid)
+    for operator in (ts.laplace_beltrami, ts.anisotropic_diffusion, ts.intrinsic_gradient):
+        value32 = operator(CASE.u.float(), surface32)
+        value64 = operator(CASE.u, SURFACE)
+        assert value32.dtype == torch.float32
+        torch.testing.assert_close(value32.double(), value64, rtol=1e-4, atol=1e-3)
+
+
+def test_inputs_are_not_modified():
+    u = CASE.u.clone()
+    phi = CASE.phi.clone()
+    surface = ts.ImplicitSurface(phi, CASE.grid)
+    ts.laplace_beltrami(u, surface).sum()
+    ts.anisotropic_diffusion(u, surface)
+    surface.principal_directions()
+    assert torch.equal(u, CASE.u) and torch.equal(phi, CASE.phi)
+
+
+def test_modules_match_functions():
+    u = CASE.u
+    torch.testing.assert_close(
+        ts.LaplaceBeltrami("central")(u, SURFACE), ts.laplace_beltrami(u, SURFACE, "central")
+    )
+    torch.testing.assert_close(ts.IntrinsicGradient()(u, SURFACE), ts.intrinsic_gradient(u, SURFACE))
+    v = ts.intrinsic_gradient(u, SURFACE)
+    torch.testing.assert_close(
+        ts.IntrinsicDivergence()(v, SURFACE), ts.intrinsic_divergence(v, SURFACE)
+    )
+    contrast = torch.nn.Parameter(torch.tensor(0.5, dtype=torch.float64))
+    module = ts.AnisotropicDiffusion("perona_malik", contrast=contrast)
+    assert any(p is contrast for p in module.parameters())
+    torch.testing.assert_close(
+        module(u, SURFACE), ts.anisotropic_diffusion(u, SURFACE, "perona_malik", contrast=0.5)
+    )
+    direction = SURFACE.principal_directions()[0]
+    torch.testing.assert_close(
+        ts.DirectionalDiffusion()(u, SURFACE, direction),
+        ts.directional_diffusion(u, SURFACE, direction),
+    )
+
+
+@pytest.mark.parametrize(
+    "call,match",
+    [
+        (
+            lambda: ts.laplace_beltrami(CASE.u[0], SURFACE),
+            r"u must be a volume .*got shape \(1, 13, 13, 13\)",
+        ),
+        (lambda: ts.laplace_beltrami(CASE.u[..., :-1], SURFACE), "u has spatial shape"),
+        (lambda: ts.laplace_beltrami(CASE.u.float(), SURFACE), "u has dtype torch.float32"),
+        (lambda: ts.laplace_beltrami(CASE.u.long(), SURFACE), "u must be a floating-point"),
+        (lambda: ts.laplace_beltrami(CASE.u, CASE.phi), "surface must be a torchsurf"),
+        (lambda: ts.laplace_beltrami(CASE.u, SURFACE, scheme="upwind"), "scheme must be one of"),
+        (lambda: ts.laplace_beltrami(CASE.u, SURFACE, path="gpu"), "path must be one of"),
+        (lambda: ts.LaplaceBeltrami(scheme="nope"), "scheme must be one of"),
+        (
+            lambda: ts.laplace_beltrami(
+                CASE.u.expand(2, 1, 13, 13, 13),
+                ts.ImplicitSurface(CASE.phi.expand(3, 1, 13, 13, 13), CASE.grid),
+            ),
+            "u has batch size 2 but surface has 3",
+        ),
+        (lambda: ts.intrinsic_divergence(CASE.u.expand(1, 2, 13, 13, 13), SURFACE), "3C channels"),
+        (lambda: ts.anisotropic_diffusion(CASE.u, SURFACE, "gaussian"), "diffusivity must be"),
+        (lambda: ts.anisotropic_diffusion(CASE.u, SURFACE, contrast=-1.0), "contrast must be"),
+        (
+            lambda: ts.anisotropic_diffusion(CASE.u, SURFACE, contrast=torch.ones(4).double()),
+            r"contrast must be .* \(C,\) = \(1,\)",
+        ),
+        (lambda: ts.anisotropic_diffusion(CASE.u, SURFACE, eps=0.0), "eps must be"),
+        (lambda: ts.anisotropic_diffusion(CASE.u, SURFACE, scheme="central"), "scheme must be"),
+        (lambda: ts.directional_diffusion(CASE.u, SURFACE, CASE.u), "direction must have 3"),
+    ],
+)
+def test_bad_inputs_raise_naming_the_argument(call, match):
+    with pytest.raises((ValueError, TypeError), match=match):
+        call()

@@ -1,0 +1,143 @@
+"""Laplace–Beltrami schemes: exact cases with measured orders, reference stencil, adjointness."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+import torchsurf as ts
+from torchsurf.exact import max_error, near, sphere_harmonic, torus_function
+
+SCHEMES = ("symmetric", "conservative", "central")
+
+
+def _order(errors: list[float]) -> float:
+    return math.log2(errors[0] / errors[1])
+
+
+def _errors(make_case, sizes, scheme):
+    errors = []
+    for n in sizes:
+        case = make_case(n)
+        surface = ts.ImplicitSurface(case.phi, case.grid)
+        value = ts.laplace_beltrami(case.u, surface, scheme=scheme, path="slicing")
+        errors.append(max_error(value, case.exact, near(case)))
+    return errors
+
+
+@pytest.mark.parametrize("degree", [1, 2, 3, 4])
+@pytest.mark.parametrize("scheme", ["symmetric", "central"])
+def test_sphere_harmonics_second_order(degree, scheme):
+    errors = _errors(lambda n: sphere_harmonic(degree, n), (33, 65), scheme)
+    assert _order(errors) > 1.8, errors
+
+
+@pytest.mark.parametrize("scheme,low,high", [
+    ("symmetric", 1.8, 3.0), ("central", 1.8, 3.2), ("conservative", 0.7, 1.6),
+])
+def test_torus_measured_order(scheme, low, high):
+    errors = _errors(torus_function, (33, 65), scheme)
+    assert low < _order(errors) < high, errors
+
+
+def test_default_scheme_accuracy_on_torus_at_129():
+    case = torus_function(129)
+    surface = ts.ImplicitSurface(case.phi, case.grid)
+    value = ts.laplace_beltrami(case.u, surface, path="slicing")
+    mask = near(case)
+    relative = max_error(value, case.exact, mask) / float(case.exact[mask].abs().max())
+    assert relative < 7e-3, relative
+
+
+def _appendix_b_reference(u: np.ndarray, phi: np.ndarray, h: float) -> np.ndarray:
+    """The paper's Appendix B written out with numpy, valid two nodes away from the faces."""
+    def shift(a, axis, step):
+        return np.roll(a, -step, axis=axis)
+
+    axes = (2, 1, 0)
+    grad_phi = [(shift(phi, a, 1) - shift(phi, a, -1)) / (2 * h) for a in axes]
+    norm = np.sqrt(sum(g**2 for g in grad_phi) + 1e-12)
+    normal = [g / norm for g in grad_phi]
+    forward = [(shift(u, a, 1) - u) / h for a in axes]
+    along = sum(f * n for f, n in zip(forward, normal, strict=True))
+    flux = [norm * (f - along * n) for f, n in zip(forward, normal, strict=True)]
+    return sum((f - shift(f, a, -1)) / h for f, a in zip(flux, axes, strict=True)) / norm
+
+
+def test_conservative_equals_plain_appendix_b():
+    grid = ts.Grid.cube(21, bound=1.2)
+    generator = torch.Generator().manual_seed(0)
+    phi = ts.sdf.torus(grid, 0.7, 0.3, dtype=torch.float64)
+    phi = phi * (1.0 + 0.3 * grid.points(dtype=torch.float64)[..., 0])  # not a distance function
+    u = torch.randn(1, 1, 21, 21, 21, dtype=torch.float64, generator=generator)
+    surface = ts.ImplicitSurface(phi, grid, eps=1e-6)
+    value = ts.laplace_beltrami(u, surface, scheme="conservative")[0, 0].numpy()
+    reference = _appendix_b_reference(u[0, 0].numpy(), phi[0, 0].numpy(), grid.spacing)
+    inner = (slice(2, -2),) * 3
+    np.testing.assert_allclose(value[inner], reference[inner], rtol=1e-10, atol=1e-9)
+
+
+def _weighted_pair(scheme: str):
+    grid = ts.Grid.cube(13, bound=1.0)
+    generator = torch.Generator().manual_seed(1)
+    points = grid.points(dtype=torch.float64)
+    phi = (points**2 / torch.tensor([0.6, 0.4, 0.5], dtype=torch.float64) ** 2).sum(-1) - 1
+    surface = ts.ImplicitSurface(phi[None, None], grid)
+    u, v = torch.randn(2, 2, 1, 13, 13, 13, dtype=torch.float64, generator=generator)
+    weight = surface.grad_norm
+    lu = ts.laplace_beltrami(u, surface, scheme=scheme)
+    lv = ts.laplace_beltrami(v, surface, scheme=scheme)
+    return float((v * weight * lu).sum()), float((u * weight * lv).sum()), float((u * weight * lu).sum())
+
+
+@pytest.mark.parametrize("scheme", ["symmetric", "conservative"])
+def test_weighted_symmetric_negative_semidefinite(scheme):
+    vlu, ulv, ulu = _weighted_pair(scheme)
+    assert vlu == pytest.approx(ulv, rel=1e-12)
+    assert ulu < 0
+
+
+def test_central_scheme_is_not_symmetric():
+    vlu, ulv, _ = _weighted_pair("central")
+    assert abs(vlu - ulv) > 1e-3 * abs(vlu)
+
+
+@pytest.mark.parametrize("scheme", SCHEMES)
+def test_embedding_invariance(scheme):
+    """phi and g(phi) = phi + phi^3 / 2 (g' > 0) give the same operator on S, to O(h^p)."""
+    differences = []
+    for n in (33, 65):
+        case = torus_function(n)
+        stretched = case.phi + 0.5 * case.phi**3
+        values = [
+            ts.laplace_beltrami(case.u, ts.ImplicitSurface(p, case.grid), scheme=scheme)
+            for p in (case.phi, stretched)
+        ]
+        differences.append(max_error(values[0], values[1], near(case, 0.5)))
+    assert differences[1] < differences[0] / 1.8, differences
+
+
+@pytest.mark.parametrize("scheme", SCHEMES)
+def test_paths_agree(scheme):
+    case = torus_function(17)
+    surface = ts.ImplicitSurface(case.phi, case.grid)
+    u = torch.randn_like(case.u)
+    reference = ts.laplace_beltrami(u, surface, scheme=scheme, path="slicing")
+    conv = ts.laplace_beltrami(u, surface, scheme=scheme, path="conv3d")
+    torch.testing.assert_close(conv, reference, rtol=1e-12, atol=1e-9)
+
+
+def test_compiled_path_matches_eager_forward_and_backward():
+    case = sphere_harmonic(2, 17, dtype=torch.float32)
+    surface = ts.ImplicitSurface(case.phi, case.grid)
+    results = []
+    for path in ("slicing", "compiled"):
+        u = case.u.clone().requires_grad_(True)
+        value = ts.laplace_beltrami(u, surface, path=path)
+        value.square().sum().backward()
+        results.append((value.detach(), u.grad))
+    torch.testing.assert_close(results[1][0], results[0][0], rtol=1e-5, atol=1e-4)
+    torch.testing.assert_close(results[1][1], results[0][1], rtol=1e-5, atol=1e-2)

@@ -1,0 +1,101 @@
+"""Exact validation cases for the intrinsic operators (SPEC §5), evaluated band-wide.
+
+Used by the tests and by ``examples/convergence.py``; each case is a grid, a distance function
+``phi`` ``(1, 1, D, H, W)``, data ``u`` ``(1, 1, D, H, W)`` and the exact ``Lap_S u``.
+
+Data constant along the normals of a distance function is a function on every level set at
+once, so each node can be compared with the exact operator on the level set through it: the
+concentric sphere of radius ``|x - c|``, or the torus with the same core circle and tube radius
+``rho``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from . import sdf
+from .grid import Grid
+
+SPHERE_CENTER = (0.04, -0.03, 0.02)
+SPHERE_RADIUS = 0.9
+TORUS_RADII = (1.0, 0.4)
+
+
+@dataclass
+class Case:
+    """One exact case: ``exact`` is ``Lap_S u`` on the level set through each node."""
+
+    grid: Grid
+    phi: Tensor
+    u: Tensor
+    exact: Tensor
+
+
+def _sphere_frame(points: Tensor) -> tuple[Tensor, Tensor]:
+    """Unit direction from the sphere's centre and the distance to it."""
+    local = points - points.new_tensor(SPHERE_CENTER)
+    radius = local.norm(dim=-1).clamp(min=1e-9)
+    return local / radius[..., None], radius
+
+
+def sphere_harmonic(degree: int, n: int, dtype: torch.dtype = torch.float64) -> Case:
+    """Spherical harmonic of ``degree`` 1..4 (SPEC §5): ``Lap_S u = -l(l+1) u / r^2``."""
+    grid = Grid.cube(n, bound=1.4)
+    points = grid.points(dtype=dtype)
+    direction, r = _sphere_frame(points)
+    x, y, z = direction.unbind(-1)
+    harmonics = {1: z, 2: 3 * z**2 - 1, 3: x * y * z, 4: 35 * z**4 - 30 * z**2 + 3}
+    u = harmonics[degree]
+    exact = -degree * (degree + 1) * u / r**2
+    phi = sdf.sphere(grid, SPHERE_RADIUS, center=SPHERE_CENTER, dtype=dtype)
+    return Case(grid, phi, u[None, None], exact[None, None])
+
+
+def torus_coordinates(points: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """``(theta, v, rho, ring)``: azimuth, tube angle, tube radius, distance from the z axis."""
+    x, y, z = points.unbind(-1)
+    ring = torch.sqrt(x**2 + y**2)
+    radial = ring - TORUS_RADII[0]
+    return torch.atan2(y, x), torch.atan2(z, radial), torch.sqrt(radial**2 + z**2), ring
+
+
+def torus_function(n: int, dtype: torch.dtype = torch.float64) -> Case:
+    """``u = cos v + sin(2 theta) sin v`` on the torus ``R = 1, r = 0.4``.
+
+    On a torus ``Lap f = f_tt / ring^2 + f_vv / rho^2 - sin v f_v / (rho ring)``.
+    """
+    grid = Grid.cube(n, bound=1.6)
+    theta, v, rho, ring = torus_coordinates(grid.points(dtype=dtype))
+    u = torch.cos(v) + torch.sin(2 * theta) * torch.sin(v)
+    u_tt = -4 * torch.sin(2 * theta) * torch.sin(v)
+    u_v = -torch.sin(v) + torch.sin(2 * theta) * torch.cos(v)
+    u_vv = -u
+    exact = u_tt / ring**2 + u_vv / rho**2 - torch.sin(v) * u_v / (rho * ring)
+    phi = sdf.torus(grid, *TORUS_RADII, dtype=dtype)
+    return Case(grid, phi, u[None, None], exact[None, None])
+
+
+def polar_angle_frame(points: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """For the sphere case: ``(cos theta, sin theta, e_theta, r)``, ``e_theta`` ``(..., 3)``.
+
+    ``theta`` is the polar angle from +z about the sphere's centre and ``e_theta`` the unit
+    tangent pointing towards increasing ``theta`` (southwards).
+    """
+    direction, r = _sphere_frame(points)
+    cos = direction[..., 2]
+    sin = torch.sqrt((1 - cos**2).clamp(min=1e-12))
+    e_theta = (cos[..., None] * direction - points.new_tensor((0.0, 0.0, 1.0))) / sin[..., None]
+    return cos, sin, e_theta, r
+
+
+def near(case: Case, cells: float = 1.0) -> Tensor:
+    """Boolean ``(1, 1, D, H, W)``: nodes within ``cells`` grid spacings of the surface."""
+    return case.phi.abs() <= cells * case.grid.spacing
+
+
+def max_error(value: Tensor, exact: Tensor, mask: Tensor) -> float:
+    """Largest ``|value - exact|`` over the nodes of ``mask``."""
+    return float((value - exact).abs()[mask.expand_as(value)].max())
