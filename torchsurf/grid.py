@@ -10,6 +10,13 @@ from torch import Tensor
 from ._checks import check_positive, check_tensor
 
 
+def _check_points(points: object, name: str) -> Tensor:
+    points = check_tensor(points, name)
+    if points.dim() == 0 or points.shape[-1] != 3:
+        raise ValueError(f"{name} must have shape (..., 3) (x, y, z), got {tuple(points.shape)}")
+    return points
+
+
 @dataclass(frozen=True)
 class Grid:
     """A uniform grid of nodes with equal spacing along x, y and z.
@@ -33,9 +40,12 @@ class Grid:
     origin: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def __post_init__(self) -> None:
-        shape = tuple(int(n) for n in self.shape)
-        if len(shape) != 3 or any(n < 3 for n in shape):
-            raise ValueError(f"shape must be three sizes (D, H, W), each >= 3, got {self.shape!r}")
+        shape = tuple(self.shape)
+        if len(shape) != 3 or any(isinstance(n, bool) or int(n) != n or n < 3 for n in shape):
+            raise ValueError(
+                f"shape must be three whole sizes (D, H, W), each >= 3, got {self.shape!r}"
+            )
+        shape = tuple(int(n) for n in shape)
         origin = tuple(float(x) for x in self.origin)
         if len(origin) != 3:
             raise ValueError(f"origin must be three coordinates (x0, y0, z0), got {self.origin!r}")
@@ -46,6 +56,8 @@ class Grid:
     @classmethod
     def cube(cls, n: int, bound: float) -> Grid:
         """An ``n^3`` grid whose nodes span ``[-bound, bound]^3`` (spacing ``2 bound / (n - 1)``)."""
+        if isinstance(n, bool) or not isinstance(n, int) or n < 3:
+            raise ValueError(f"n must be a whole number of nodes >= 3, got {n!r}")
         check_positive(bound, "bound")
         return cls(shape=(n, n, n), spacing=2.0 * bound / (n - 1), origin=(-bound,) * 3)
 
@@ -72,13 +84,13 @@ class Grid:
 
     def world_to_index(self, points: Tensor) -> Tensor:
         """World ``(..., 3)`` ``(x, y, z)`` to continuous node indices ``(..., 3)`` ``(i, j, k)``."""
-        points = check_tensor(points, "points")
+        points = _check_points(points, "points")
         origin = points.new_tensor(self.origin)
         return (points - origin) / self.spacing
 
     def index_to_world(self, index: Tensor) -> Tensor:
         """Continuous node indices ``(..., 3)`` ``(i, j, k)`` to world ``(..., 3)`` ``(x, y, z)``."""
-        index = check_tensor(index, "index")
+        index = _check_points(index, "index")
         return index * self.spacing + index.new_tensor(self.origin)
 
     def world_to_normalized(self, points: Tensor) -> Tensor:
@@ -93,12 +105,17 @@ class Grid:
 
     def normalized_to_world(self, normalized: Tensor) -> Tensor:
         """Inverse of :meth:`world_to_normalized`."""
-        normalized = check_tensor(normalized, "normalized")
+        normalized = _check_points(normalized, "normalized")
         last = normalized.new_tensor([n - 1 for n in reversed(self.shape)])
         return self.index_to_world((normalized + 1.0) * 0.5 * last)
 
     def contains(self, points: Tensor) -> Tensor:
-        """Boolean ``(...)``: whether each world point ``(..., 3)`` lies inside the grid's box."""
+        """Boolean ``(...)``: whether each world point ``(..., 3)`` lies inside the grid's box.
+
+        Points on the box's faces count as inside, with a tolerance of a few rounding errors of
+        the index computation, so that every node of the grid is contained.
+        """
         index = self.world_to_index(points)
         last = index.new_tensor([n - 1 for n in reversed(self.shape)])
-        return ((index >= 0) & (index <= last)).all(dim=-1)
+        slack = 8 * torch.finfo(index.dtype).eps * last
+        return ((index >= -slack) & (index <= last + slack)).all(dim=-1)

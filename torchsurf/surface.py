@@ -104,13 +104,15 @@ class ImplicitSurface(nn.Module):
         """Mean curvature ``H = div n`` of the level set through each node; ``(B, 1, D, H, W)``.
 
         The sum of the principal curvatures (sphere of radius R: ``2 / R``), second order in the
-        spacing. Computed once and kept.
+        spacing. Computed once and kept (except when computed without autograd from a ``phi``
+        that requires grad, so that a later call still carries the graph).
         """
-        if self._mean_curvature is None:
-            self._mean_curvature = curvature.mean_curvature(
-                self._gradient(), self.hessian(), self.grad_norm
-            )
-        return self._mean_curvature
+        if self._mean_curvature is not None:
+            return self._mean_curvature
+        value = curvature.mean_curvature(self._gradient(), self.hessian(), self.grad_norm)
+        if torch.is_grad_enabled() or not self.phi.requires_grad:
+            self._mean_curvature = value
+        return value
 
     def gaussian_curvature(self) -> Tensor:
         """Gaussian curvature ``K`` of the level set through each node; ``(B, 1, D, H, W)``.

@@ -1,0 +1,108 @@
+"""Shared helpers for the tests: exact geometry of the validation cases (SPEC §5) and orders.
+
+Everything here takes and returns tensors; points are ``(..., 3)`` world ``(x, y, z)`` as
+:meth:`torchsurf.Grid.points` gives them, and :func:`channels` turns such a field into the
+``(1, C, D, H, W)`` layout the library uses.
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from torch import Tensor
+
+
+def channels(field: Tensor) -> Tensor:
+    """``(D, H, W)`` or ``(D, H, W, C)`` to ``(1, C, D, H, W)``."""
+    if field.dim() == 3:
+        return field[None, None]
+    return field.permute(3, 0, 1, 2)[None]
+
+
+def interior(shape, margin: int = 1) -> Tensor:
+    """Boolean ``(1, 1, D, H, W)``: nodes at least ``margin`` nodes away from the grid's faces."""
+    mask = torch.zeros(shape, dtype=torch.bool)
+    mask[tuple(slice(margin, n - margin) for n in shape)] = True
+    return mask[None, None]
+
+
+def near_surface(phi: Tensor, width: float, margin: int = 1) -> Tensor:
+    """Boolean mask like ``phi``: ``|phi| <= width`` away from the grid's faces."""
+    return (phi.abs() <= width) & interior(phi.shape[-3:], margin)
+
+
+def observed_order(error_coarse: float, error_fine: float, h_coarse: float, h_fine: float
+                   ) -> float:
+    """Convergence order ``log(e_coarse / e_fine) / log(h_coarse / h_fine)``."""
+    return math.log(error_coarse / error_fine) / math.log(h_coarse / h_fine)
+
+
+def sphere_curvatures(radius: Tensor | float) -> tuple[Tensor | float, Tensor | float]:
+    """Mean and Gaussian curvature ``(2 / R, 1 / R^2)`` of a sphere with outward normal."""
+    return 2.0 / radius, 1.0 / radius**2
+
+
+def torus_angles(points: Tensor, major_radius: float, minor_radius: float | None = None
+                 ) -> tuple[Tensor, Tensor, Tensor]:
+    """Torus coordinates of world points, torus centred at the origin around the z axis.
+
+    Returns ``(theta, v, rho)``: the angle around the z axis, the tube angle (``v = 0`` on the
+    outer equator, ``pi / 2`` on top) and the distance to the core circle, i.e. the tube radius
+    of the torus (same ``major_radius``) whose surface passes through the point. A torus SDF
+    with minor radius ``r`` has ``phi = rho - r``; pass ``rho`` as the minor radius of the other
+    torus helpers to get the exact geometry of the level set through each point.
+    ``minor_radius`` does not enter (the angles do not depend on it); it is accepted so that
+    calls read ``torus_angles(points, R, r)``.
+    """
+    del minor_radius
+    x, y, z = points.unbind(dim=-1)
+    theta = torch.atan2(y, x)
+    radial = torch.sqrt(x**2 + y**2) - major_radius
+    return theta, torch.atan2(z, radial), torch.sqrt(radial**2 + z**2)
+
+
+def torus_principal_curvatures(v: Tensor, major_radius: float, minor_radius: Tensor | float
+                               ) -> tuple[Tensor, Tensor]:
+    """``(k1, k2) = (1 / r, cos v / (R + r cos v))``: meridian (tube) and parallel curvature."""
+    k1 = torch.ones_like(v) / minor_radius
+    k2 = torch.cos(v) / (major_radius + minor_radius * torch.cos(v))
+    return k1, k2
+
+
+def torus_curvatures(v: Tensor, major_radius: float, minor_radius: Tensor | float
+                     ) -> tuple[Tensor, Tensor]:
+    """SPEC §5: ``H = (R + 2 r cos v) / (r (R + r cos v))``, ``K = cos v / (r (R + r cos v))``."""
+    R, r, c = major_radius, minor_radius, torch.cos(v)
+    mean = (R + 2 * r * c) / (r * (R + r * c))
+    gaussian = c / (r * (R + r * c))
+    return mean, gaussian
+
+
+def torus_directions(theta: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
+    """Unit meridian (increasing ``v``) and parallel (increasing ``theta``) directions, ``(..., 3)``.
+
+    The meridian carries the curvature ``1 / r`` (``k1``), the parallel ``cos v / (R + r cos v)``.
+    """
+    meridian = torch.stack(
+        (-torch.sin(v) * torch.cos(theta), -torch.sin(v) * torch.sin(theta), torch.cos(v)), dim=-1
+    )
+    parallel = torch.stack((-torch.sin(theta), torch.cos(theta), torch.zeros_like(theta)), dim=-1)
+    return meridian, parallel
+
+
+def ellipsoid_gaussian_curvature(points: Tensor, a: Tensor | float, b: Tensor | float,
+                                 c: Tensor | float) -> Tensor:
+    """SPEC §5: ``K = 1 / (a^2 b^2 c^2 (x^2/a^4 + y^2/b^4 + z^2/c^4)^2)`` at a point on it.
+
+    ``a, b, c`` may be tensors broadcasting against ``points[..., 0]`` (one ellipsoid per point).
+    """
+    x, y, z = points.unbind(dim=-1)
+    return 1.0 / ((a * b * c) ** 2 * (x**2 / a**4 + y**2 / b**4 + z**2 / c**4) ** 2)
+
+
+@pytest.fixture
+def generator() -> torch.Generator:
+    """A seeded generator, so that random inputs are the same on every run."""
+    return torch.Generator().manual_seed(0)

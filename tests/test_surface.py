@@ -1,0 +1,497 @@
+"""ImplicitSurface: normals, band, curvature and principal directions against exact geometry.
+
+Exact values are those of the level set through each node (a sphere of radius ``|x|``, a torus
+of tube radius ``rho``, an ellipsoid scaled by the node's value), so what remains is the
+discretisation error alone; it is measured on the nodes within one spacing of S.
+"""
+
+import math
+
+import pytest
+import torch
+from conftest import (
+    channels,
+    ellipsoid_gaussian_curvature,
+    near_surface,
+    observed_order,
+    sphere_curvatures,
+    torus_angles,
+    torus_curvatures,
+    torus_directions,
+    torus_principal_curvatures,
+)
+
+from torchsurf import Grid, ImplicitSurface, sdf
+
+BOUND = 1.5
+MAJOR, MINOR = 1.0, 0.35
+
+
+def _max(error, mask):
+    return float(error.abs().masked_select(mask).max())
+
+
+def _dot(a, b):
+    return (a * b).sum(dim=1, keepdim=True)
+
+
+# ---------------------------------------------------------------- construction and shapes
+
+
+def test_shapes_and_attributes():
+    grid = Grid.cube(17, BOUND)
+    surface = ImplicitSurface(sdf.sphere(grid, 1.0), grid)
+    volume = (1, 17, 17, 17)
+    assert surface.phi.shape == (1, *volume)
+    assert surface.grad_norm.shape == (1, *volume)
+    assert surface.normal.shape == (1, 3, *volume[1:])
+    assert surface.hessian().shape == (1, 6, *volume[1:])
+    assert surface.mean_curvature().shape == (1, *volume)
+    assert surface.gaussian_curvature().shape == (1, *volume)
+    k1, k2 = surface.principal_curvatures()
+    e1, e2 = surface.principal_directions()
+    assert k1.shape == k2.shape == (1, *volume)
+    assert e1.shape == e2.shape == (1, 3, *volume[1:])
+    assert surface.batch_size == 1
+    assert surface.spacing == grid.spacing
+    assert surface.band_width == 3 * grid.spacing
+    near = near_surface(surface.phi, surface.band_width)
+    assert _max(surface.normal.norm(dim=1, keepdim=True) - 1, near) < 1e-6
+    # at the centre grad phi vanishes by symmetry: the regularised normal is 0, not NaN
+    assert bool(torch.isfinite(surface.normal).all())
+    assert "batch_size=1" in repr(surface)
+
+
+def test_batch_of_two():
+    grid = Grid.cube(17, BOUND)
+    phis = [sdf.sphere(grid, 1.0, dtype=torch.float64),
+            sdf.torus(grid, MAJOR, MINOR, dtype=torch.float64)]
+    batch = ImplicitSurface(torch.cat(phis), grid)
+    assert batch.batch_size == 2
+    assert batch.normal.shape == (2, 3, 17, 17, 17)
+    for b, phi in enumerate(phis):
+        single = ImplicitSurface(phi, grid)
+        torch.testing.assert_close(batch.normal[b:b + 1], single.normal, rtol=0, atol=0)
+        torch.testing.assert_close(batch.mean_curvature()[b:b + 1], single.mean_curvature(),
+                                   rtol=0, atol=1e-12)
+        torch.testing.assert_close(batch.gaussian_curvature()[b:b + 1],
+                                   single.gaussian_curvature(), rtol=0, atol=1e-12)
+        for got, expected in zip(batch.principal_directions(), single.principal_directions(),
+                                 strict=True):
+            torch.testing.assert_close(got[b:b + 1], expected, rtol=0, atol=1e-12)
+
+
+def test_band():
+    grid = Grid.cube(17, BOUND)
+    phi = sdf.sphere(grid, 1.0, dtype=torch.float64)
+    surface = ImplicitSurface(phi, grid)
+    assert torch.equal(surface.band(), phi.abs() <= 3 * grid.spacing)
+    assert torch.equal(surface.band(0.2), phi.abs() <= 0.2)
+    assert surface.band().dtype == torch.bool
+    narrow = ImplicitSurface(phi, grid, band_width=0.1)
+    assert torch.equal(narrow.band(), phi.abs() <= 0.1)
+    assert 0 < int(narrow.band().sum()) < int(surface.band().sum())
+    with pytest.raises(ValueError, match="width"):
+        surface.band(0.0)
+
+
+def test_to_float64_moves_buffers():
+    grid = Grid.cube(17, BOUND)
+    surface = ImplicitSurface(sdf.sphere(grid, 1.0), grid)
+    mean32 = surface.mean_curvature()
+    assert surface.normal.dtype == torch.float32
+    moved = surface.to(torch.float64)
+    for name in ("phi", "grad_norm", "normal"):
+        assert getattr(moved, name).dtype == torch.float64, name
+    assert moved.hessian().dtype == torch.float64
+    assert moved.mean_curvature().dtype == torch.float64
+    assert moved.gaussian_curvature().dtype == torch.float64
+    assert moved.principal_directions()[0].dtype == torch.float64
+    torch.testing.assert_close(moved.mean_curvature().float(), mean32)
+    moved_again = ImplicitSurface(sdf.sphere(grid, 1.0), grid).to(torch.float64)
+    assert moved_again.mean_curvature().dtype == torch.float64
+
+
+def test_plane_exact_at_every_node():
+    """An affine ``phi`` (a plane): ``phi`` is extrapolated linearly beyond the grid, so the
+    normal is exact and the Hessian and curvatures vanish on every node, faces included."""
+    grid = Grid((5, 6, 7), spacing=0.25, origin=(-0.8, -0.6, -0.4))
+    direction = torch.tensor([2.0, -1.0, 2.0], dtype=torch.float64) / 3
+    phi = sdf.from_function(grid, lambda p: p @ direction - 0.1, dtype=torch.float64)
+    surface = ImplicitSurface(phi, grid)
+    torch.testing.assert_close(surface.normal, direction.view(1, 3, 1, 1, 1).expand(1, 3, 5, 6, 7),
+                               rtol=0, atol=1e-12)
+    torch.testing.assert_close(surface.hessian(), torch.zeros(1, 6, 5, 6, 7, dtype=torch.float64),
+                               rtol=0, atol=1e-12)
+    zero = torch.zeros(1, 1, 5, 6, 7, dtype=torch.float64)
+    torch.testing.assert_close(surface.mean_curvature(), zero, rtol=0, atol=1e-12)
+    torch.testing.assert_close(surface.gaussian_curvature(), zero, rtol=0, atol=1e-12)
+
+
+# ---------------------------------------------------------------------------- bad inputs
+
+
+SMALL = Grid.cube(9, BOUND)
+
+
+def _phi(grid=SMALL):
+    return sdf.sphere(grid, 1.0)
+
+
+@pytest.mark.parametrize(
+    ("make", "error", "match"),
+    [
+        (lambda: _phi().numpy(), TypeError, "phi"),
+        (lambda: _phi().to(torch.int64), TypeError, "phi"),
+        (lambda: _phi()[0], ValueError, "phi"),  # 4-D
+        (lambda: _phi()[None], ValueError, "phi"),  # 6-D
+        (lambda: _phi().expand(1, 2, 9, 9, 9), ValueError, "phi.*channel"),
+        (lambda: _phi().expand(1, 3, 9, 9, 9), ValueError, "phi.*channel"),
+        (lambda: _phi().index_put((torch.tensor([0]),) * 5, torch.tensor(float("nan"))),
+         ValueError, "phi.*finite"),
+        (lambda: _phi().index_put((torch.tensor([0]),) * 5, torch.tensor(float("inf"))),
+         ValueError, "phi.*finite"),
+        (lambda: _phi().abs() + 0.1, ValueError, "phi.*zero crossing"),
+        (lambda: -_phi().abs() - 0.1, ValueError, "phi.*zero crossing"),
+        (lambda: torch.zeros(1, 1, 9, 9, 9), ValueError, "phi.*zero crossing"),
+        (lambda: torch.cat((_phi(), _phi().abs() + 0.1)), ValueError, r"phi.*\[1\]"),
+        (lambda: _phi(Grid.cube(11, BOUND)), ValueError, "phi.*grid"),
+        (lambda: _phi(Grid((9, 9, 10), 0.3)), ValueError, "phi.*grid"),
+    ],
+    ids=["numpy", "int", "4d", "6d", "2-channels", "3-channels", "nan", "inf", "positive",
+         "negative", "zero", "batch-entry", "shape", "shape-w"],
+)
+def test_invalid_phi(make, error, match):
+    with pytest.raises(error, match=match):
+        ImplicitSurface(make(), SMALL)
+
+
+@pytest.mark.parametrize("grid", [None, (9, 9, 9), {"shape": (9, 9, 9), "spacing": 0.375}])
+def test_invalid_grid(grid):
+    with pytest.raises(TypeError, match="grid"):
+        ImplicitSurface(_phi(), grid)
+
+
+@pytest.mark.parametrize(("kwargs", "match"), [
+    ({"band_width": 0.0}, "band_width"),
+    ({"band_width": -1.0}, "band_width"),
+    ({"eps": 0.0}, "eps"),
+    ({"eps": float("nan")}, "eps"),
+])
+def test_invalid_parameters(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        ImplicitSurface(_phi(), SMALL, **kwargs)
+
+
+# ------------------------------------------------------------------- sphere: normals, H, K
+
+
+def _sphere_errors(n):
+    grid = Grid.cube(n, BOUND)
+    phi = sdf.sphere(grid, 1.0, dtype=torch.float64)
+    surface = ImplicitSurface(phi, grid)
+    near = near_surface(phi, grid.spacing)
+    points = channels(grid.points(dtype=torch.float64))
+    radius = points.norm(dim=1, keepdim=True)
+    mean, gaussian = sphere_curvatures(radius)
+    return grid.spacing, {
+        "normal": _max((surface.normal - points / radius).norm(dim=1, keepdim=True), near),
+        "mean": _max(surface.mean_curvature() - mean, near),
+        "gaussian": _max(surface.gaussian_curvature() - gaussian, near),
+    }
+
+
+def test_sphere_second_order():
+    """Normals ``x / |x|``, ``H = 2 / R``, ``K = 1 / R^2``: errors fall as ``h^2``."""
+    h_coarse, coarse = _sphere_errors(33)
+    h_fine, fine = _sphere_errors(65)
+    for name in coarse:
+        order = observed_order(coarse[name], fine[name], h_coarse, h_fine)
+        assert order >= 1.8, (name, coarse[name], fine[name], order)
+    assert fine["normal"] < 1e-3
+    assert fine["mean"] < 0.01 * 2.0  # 1% of H on the unit sphere
+    assert fine["gaussian"] < 0.01 * 1.0
+
+
+def test_sphere_radius_and_center():
+    grid = Grid.cube(65, BOUND)
+    center = (0.2, -0.1, 0.15)
+    phi = sdf.sphere(grid, 0.7, center=center, dtype=torch.float64)
+    surface = ImplicitSurface(phi, grid)
+    near = near_surface(phi, grid.spacing)
+    radius = (channels(grid.points(dtype=torch.float64)) - torch.tensor(center).view(1, 3, 1, 1, 1)
+              ).norm(dim=1, keepdim=True)
+    mean, gaussian = sphere_curvatures(radius)
+    assert _max(surface.mean_curvature() / mean - 1, near) < 0.005
+    assert _max(surface.gaussian_curvature() / gaussian - 1, near) < 0.005
+
+
+# ------------------------------------------------------------------------------- torus
+
+
+class Torus:
+    """A torus SDF on an ``n^3`` grid with its surface and the exact geometry at every node."""
+
+    def __init__(self, n, dtype=torch.float64):
+        self.grid = Grid.cube(n, BOUND)
+        self.phi = sdf.torus(self.grid, MAJOR, MINOR, dtype=dtype)
+        self.surface = ImplicitSurface(self.phi, self.grid)
+        self.near = near_surface(self.phi, self.grid.spacing)
+        theta, v, rho = torus_angles(self.grid.points(dtype=torch.float64), MAJOR, MINOR)
+        mean, gaussian = torus_curvatures(v, MAJOR, rho)
+        k1, k2 = torus_principal_curvatures(v, MAJOR, rho)
+        meridian, parallel = torus_directions(theta, v)
+        self.exact = {
+            name: channels(value) for name, value in {
+                "mean": mean, "gaussian": gaussian, "k1": k1, "k2": k2,
+                "meridian": meridian, "parallel": parallel,
+            }.items()
+        }
+
+    def errors(self):
+        """Max errors near S: H relative, K relative to max |K|, k1, k2 absolute, angles."""
+        exact, surface, near = self.exact, self.surface, self.near
+        k1, k2 = surface.principal_curvatures()
+        e1, e2 = surface.principal_directions()
+        scale = float(exact["gaussian"].abs().masked_select(near).max())
+        return {
+            "mean": _max(surface.mean_curvature().double() / exact["mean"] - 1, near),
+            "gaussian": _max(surface.gaussian_curvature().double() - exact["gaussian"], near)
+            / scale,
+            "k1": _max(k1 - exact["k1"], near),
+            "k2": _max(k2 - exact["k2"], near),
+            "e1": _max(torch.linalg.cross(e1, exact["meridian"], dim=1).norm(dim=1), near),
+            "e2": _max(torch.linalg.cross(e2, exact["parallel"], dim=1).norm(dim=1), near),
+        }
+
+
+@pytest.fixture(scope="module")
+def torus33():
+    return Torus(33)
+
+
+@pytest.fixture(scope="module")
+def torus65():
+    return Torus(65)
+
+
+def test_torus_curvature_second_order(torus33, torus65):
+    """H, K, k1, k2 and the principal directions (sine of the angle) all converge as ``h^2``."""
+    coarse, fine = torus33.errors(), torus65.errors()
+    h_coarse, h_fine = torus33.grid.spacing, torus65.grid.spacing
+    for name in coarse:
+        order = observed_order(coarse[name], fine[name], h_coarse, h_fine)
+        assert order >= 1.8, (name, coarse[name], fine[name], order)
+    assert fine["mean"] < 0.01
+    assert fine["gaussian"] < 0.03
+    assert fine["e1"] < 0.01 and fine["e2"] < 0.01
+
+
+def test_torus_curvature_within_one_percent_at_129():
+    """Float32 at 129^3: H within 1% relative, K within 1% of max |K|, on nodes near S."""
+    torus = Torus(129, dtype=torch.float32)
+    exact, surface, near = torus.exact, torus.surface, torus.near
+    assert surface.mean_curvature().dtype == torch.float32
+    assert _max(surface.mean_curvature().double() / exact["mean"] - 1, near) < 0.01
+    scale = float(exact["gaussian"].abs().masked_select(near).max())
+    assert _max(surface.gaussian_curvature().double() - exact["gaussian"], near) < 0.01 * scale
+
+
+def test_torus_principal_directions(torus65):
+    surface, near, exact = torus65.surface, torus65.near, torus65.exact
+    e1, e2 = surface.principal_directions()
+    n = surface.normal
+    ones = torch.ones_like(surface.phi)
+    for e in (e1, e2):
+        assert _max(e.norm(dim=1, keepdim=True) - ones, near) < 1e-10
+        assert _max(_dot(e, n), near) < 1e-10  # tangent
+    assert _max(_dot(e1, e2), near) < 1e-10  # orthogonal
+    # (e1, e2, n) is an orthonormal frame (of either handedness)
+    assert _max(_dot(torch.linalg.cross(e1, e2, dim=1), n).abs() - ones, near) < 1e-10
+    # e1 carries k1 = 1 / r along the meridian, e2 the parallel; defined up to sign
+    assert _max(_dot(e1, exact["meridian"]).abs() - ones, near) < 1e-4
+    assert _max(_dot(e2, exact["parallel"]).abs() - ones, near) < 1e-4
+
+
+def test_principal_curvatures_consistent_with_h_and_k(torus33):
+    surface, near = torus33.surface, torus33.near
+    k1, k2 = surface.principal_curvatures()
+    assert bool((k1 >= k2).all())
+    assert bool((k1 - k2).masked_select(near).min() > 1.0)  # 1/r - 1/(R + r) > 1.9 here
+    # off the medial axis (where |grad phi| -> eps and the two regularisations differ)
+    torch.testing.assert_close((k1 + k2).masked_select(near),
+                               surface.mean_curvature().masked_select(near), rtol=1e-9, atol=1e-9)
+    torch.testing.assert_close((k1 * k2).masked_select(near),
+                               surface.gaussian_curvature().masked_select(near),
+                               rtol=1e-9, atol=1e-9)
+    # H/2 +- sqrt(H^2/4 - K) (SPEC §4)
+    mean, gaussian = surface.mean_curvature(), surface.gaussian_curvature()
+    root = torch.sqrt(mean**2 / 4 - gaussian)
+    torch.testing.assert_close(k1.masked_select(near), (mean / 2 + root).masked_select(near),
+                               rtol=1e-8, atol=1e-8)
+
+
+# ---------------------------------------------------------------------------- ellipsoid
+
+AXES = (1.2, 0.9, 0.6)
+
+
+def _ellipsoid_level_curvature(grid, value, scale_of_value):
+    """Exact K at each node of the ellipsoid through it, whose semi-axes are ``AXES * s(value)``."""
+    scale = scale_of_value(value[0, 0])
+    a, b, c = (axis * scale for axis in AXES)
+    return channels(ellipsoid_gaussian_curvature(grid.points(dtype=torch.float64), a, b, c))
+
+
+def test_ellipsoid_gaussian_curvature_exact_for_quadratic():
+    """``f = x^2/a^2 + y^2/b^2 + z^2/c^2 - 1`` is no distance function, but central differences
+    are exact for quadratics: K at a node equals, to round-off, the Gaussian curvature of the
+    ellipsoid ``f = f(node)`` through it, semi-axes ``(a, b, c) sqrt(1 + f)``."""
+    a, b, c = AXES
+    grid = Grid.cube(33, BOUND)
+    f = sdf.from_function(
+        grid, lambda p: (p[..., 0] / a) ** 2 + (p[..., 1] / b) ** 2 + (p[..., 2] / c) ** 2 - 1,
+        dtype=torch.float64,
+    )
+    surface = ImplicitSurface(f, grid)
+    exact = _ellipsoid_level_curvature(grid, f, lambda value: torch.sqrt(1 + value))
+    near = near_surface(f, 0.2)
+    assert int(near.sum()) > 1000
+    assert _max(surface.gaussian_curvature() / exact - 1, near) < 1e-10
+
+
+def _ellipsoid_error(n):
+    a, b, c = AXES
+    grid = Grid.cube(n, BOUND)
+    f = sdf.from_function(
+        grid,
+        lambda p: torch.sqrt((p[..., 0] / a) ** 2 + (p[..., 1] / b) ** 2 + (p[..., 2] / c) ** 2)
+        - 1,
+        dtype=torch.float64,
+    )
+    exact = _ellipsoid_level_curvature(grid, f, lambda value: 1 + value)
+    error = ImplicitSurface(f, grid).gaussian_curvature() / exact - 1
+    return grid.spacing, _max(error, near_surface(f, grid.spacing))
+
+
+def test_ellipsoid_gaussian_curvature_second_order():
+    """``f = |(x/a, y/b, z/c)| - 1`` (|grad f| != 1): level sets are ellipsoids scaled by 1 + f."""
+    h_coarse, coarse = _ellipsoid_error(33)
+    h_fine, fine = _ellipsoid_error(65)
+    assert observed_order(coarse, fine, h_coarse, h_fine) >= 1.8, (coarse, fine)
+    assert fine < 0.01
+
+
+# ------------------------------------------------------------------ embedding invariance
+
+
+def _embedding_differences(n):
+    grid = Grid.cube(n, BOUND)
+    phi = sdf.torus(grid, MAJOR, MINOR, dtype=torch.float64)
+    near = near_surface(phi, grid.spacing)
+    reference = ImplicitSurface(phi, grid)
+    differences = {}
+    for name, embedded in (("cubic", phi + 0.3 * phi**3), ("tanh", 0.5 * torch.tanh(2 * phi))):
+        other = ImplicitSurface(embedded, grid)
+        differences[name + " normal"] = _max(
+            (other.normal - reference.normal).norm(dim=1, keepdim=True), near
+        )
+        differences[name + " mean"] = _max(other.mean_curvature() - reference.mean_curvature(),
+                                           near)
+        differences[name + " gaussian"] = _max(
+            other.gaussian_curvature() - reference.gaussian_curvature(), near
+        )
+    return grid.spacing, differences
+
+
+def test_embedding_invariance():
+    """``phi`` and ``g(phi)`` with ``g' > 0`` share level sets: normals and curvatures agree
+    near S up to a discretisation error that falls as ``h^2``."""
+    h_coarse, coarse = _embedding_differences(33)
+    h_fine, fine = _embedding_differences(65)
+    for name in coarse:
+        order = observed_order(coarse[name], fine[name], h_coarse, h_fine)
+        assert order >= 1.8, (name, coarse[name], fine[name], order)
+        assert coarse[name] > 1e-6  # a real difference is being measured
+
+
+# ------------------------------------------------------------ umbilics, graph, gradcheck
+
+
+def test_umbilic_values_and_gradients_finite():
+    grid = Grid.cube(17, BOUND)
+    phi = sdf.sphere(grid, 1.0, dtype=torch.float64).requires_grad_()
+    surface = ImplicitSurface(phi, grid)
+    k1, k2 = surface.principal_curvatures()
+    e1, e2 = surface.principal_directions()
+    for value in (k1, k2, e1, e2):
+        assert bool(torch.isfinite(value).all())
+    # nodes on the z axis are exact umbilics of the discrete shape operator (by symmetry)
+    top = (0, slice(None), 14, 8, 8)  # (x, y, z) = (0, 0, 1.125)
+    eps = 1e-6 / grid.spacing
+    assert float((k1 - k2).detach()[top][0]) == pytest.approx(eps, rel=1e-3)
+    assert float(e1.detach()[top].norm()) == pytest.approx(1.0, abs=1e-12)
+    assert abs(float(_dot(e1, surface.normal).detach()[top][0])) < 1e-12
+    (gradient,) = torch.autograd.grad((e1.sum() + e2.sum() + k1.sum() + k2.sum()), phi)
+    assert bool(torch.isfinite(gradient).all())
+    assert float(gradient.abs().max()) > 0
+
+
+def test_derived_quantities_stay_in_graph():
+    grid = Grid.cube(9, BOUND)
+    phi = sdf.sphere(grid, 1.0, dtype=torch.float64).requires_grad_()
+    surface = ImplicitSurface(phi, grid)
+    assert surface.normal.requires_grad
+    assert surface.gaussian_curvature().requires_grad
+    assert surface.mean_curvature().requires_grad
+    (gradient,) = torch.autograd.grad(surface.mean_curvature().sum(), phi)
+    assert bool(torch.isfinite(gradient).all())
+
+
+def test_mean_curvature_in_graph_after_no_grad_call():
+    """A call under ``torch.no_grad`` (e.g. logging) must not leave a graph-less cached value."""
+    grid = Grid.cube(9, BOUND)
+    phi = sdf.sphere(grid, 1.0, dtype=torch.float64).requires_grad_()
+    surface = ImplicitSurface(phi, grid)
+    with torch.no_grad():
+        surface.mean_curvature()
+    assert surface.mean_curvature().requires_grad
+
+
+GRADCHECK_GRID = Grid.cube(6, BOUND)  # no node at the sphere's centre, where |grad phi| = 0
+
+
+@pytest.fixture(scope="module")
+def gradcheck_phi():
+    generator = torch.Generator().manual_seed(1)
+    phi = sdf.sphere(GRADCHECK_GRID, 1.0, center=(0.05, -0.03, 0.02), dtype=torch.float64)
+    noise = torch.randn(phi.shape, generator=generator, dtype=torch.float64)
+    return (phi + 0.05 * GRADCHECK_GRID.spacing * noise).requires_grad_()
+
+
+@pytest.mark.parametrize(
+    "quantity",
+    [
+        lambda s: s.normal,
+        lambda s: s.mean_curvature(),
+        lambda s: s.gaussian_curvature(),
+        lambda s: s.principal_curvatures()[0],
+    ],
+    ids=["normal", "mean_curvature", "gaussian_curvature", "k1"],
+)
+def test_gradcheck(quantity, gradcheck_phi):
+    # fast mode: random projections v^T J u of the full Jacobian, checked against finite
+    # differences; the full Jacobian costs 10x more for the same power to detect an error
+    assert torch.autograd.gradcheck(
+        lambda phi: quantity(ImplicitSurface(phi, GRADCHECK_GRID)), (gradcheck_phi,),
+        fast_mode=True,
+    )
+
+
+def test_float32_default():
+    grid = Grid.cube(17, BOUND)
+    surface = ImplicitSurface(sdf.sphere(grid, 1.0), grid)
+    assert surface.normal.dtype == torch.float32
+    assert surface.mean_curvature().dtype == torch.float32
+    near = near_surface(surface.phi, grid.spacing)
+    assert math.isfinite(_max(surface.mean_curvature(), near))
