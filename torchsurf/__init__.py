@@ -4,8 +4,9 @@ Bertalmío, Cheng, Osher & Sapiro (2001): data on the zero level set of ``phi`` 
 to a band around it and every intrinsic operator is computed on the Cartesian grid.
 """
 
-from . import exact, operators, sdf, stencils
+from . import exact, mesh, operators, sdf, stencils
 from .grid import Grid
+from .mesh import MeshAdapter
 from .operators import (
     AnisotropicDiffusion,
     DirectionalDiffusion,
@@ -18,6 +19,7 @@ from .operators import (
     intrinsic_gradient,
     laplace_beltrami,
 )
+from .sampling import sample
 from .surface import ImplicitSurface
 
 __version__ = "0.1.0"
@@ -30,13 +32,16 @@ __all__ = [
     "IntrinsicDivergence",
     "IntrinsicGradient",
     "LaplaceBeltrami",
+    "MeshAdapter",
     "anisotropic_diffusion",
     "directional_diffusion",
     "exact",
     "intrinsic_divergence",
     "intrinsic_gradient",
     "laplace_beltrami",
+    "mesh",
     "operators",
+    "sample",
     "sdf",
     "stencils",
 ]

@@ -1,18 +1,28 @@
-"""Signed distance functions of analytic shapes, sampled on a grid as ``phi`` volumes.
+"""Signed distance functions sampled on a grid as ``phi`` volumes: analytic shapes, meshes,
+and the redistancing of any implicit function.
 
-Every function returns ``phi`` of shape ``(1, 1, D, H, W)``: negative inside, positive outside,
-``|grad phi| = 1`` (exact distances, except :func:`from_function`, which samples whatever it is
-given).
+``phi`` is negative inside and positive outside. The shapes and :func:`from_mesh` return
+``(1, 1, D, H, W)`` exact distances (:func:`from_function` samples whatever it is given);
+:func:`redistance` maps ``(B, 1, D, H, W)`` to ``(B, 1, D, H, W)``.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 
+import numpy as np
 import torch
 from torch import Tensor
 
-from ._checks import check_positive
+from . import _isosurface, _mesh_sdf
+from ._checks import (
+    check_choice,
+    check_finite,
+    check_positive,
+    check_spatial_shape,
+    check_volume,
+)
+from ._mesh_input import MeshLike, as_trimesh, triangle_arrays
 from .grid import Grid
 
 Point = Sequence[float]
@@ -134,3 +144,102 @@ def capsule(
         return (points - a - t[..., None] * axis).norm(dim=-1) - radius
 
     return from_function(grid, distance, dtype=dtype, device=device)
+
+
+BAND_NODES = 5
+"""Default half-width of the band of :func:`from_mesh` and :func:`redistance`, in grid spacings:
+the default band of :class:`~torchsurf.ImplicitSurface` (3) plus the reach of its stencils (2),
+so that every value an operator reads there is an exact distance."""
+
+
+def _band(grid: Grid, band: float | None) -> float:
+    if not isinstance(grid, Grid):
+        raise TypeError(f"grid must be a torchsurf.Grid, got {type(grid).__name__}")
+    return BAND_NODES * grid.spacing if band is None else check_positive(band, "band")
+
+
+def from_mesh(
+    mesh: MeshLike,
+    grid: Grid,
+    band: float | None = None,
+    dtype: torch.dtype | None = None,
+    device: torch.device | str | None = None,
+    sign: str = "auto",
+) -> Tensor:
+    """Signed distance to a triangle mesh, exact in a narrow band, clamped to ``+-band`` beyond.
+
+    Every node within ``band`` of the mesh gets its exact distance to the nearest triangle
+    (libigl's AABB tree, float64); only the nodes near the surface are visited (bricks of nodes
+    far from the mesh are skipped whole). Signs come from the generalised winding number
+    (inside where it exceeds 1/2; libigl's fast winding number), so meshes with holes, several
+    components or inconsistent orientation still get a sensible inside; signs are right
+    everywhere except in a thin shell around holes, where the winding number passes 1/2.
+
+    Args:
+        mesh: a ``trimesh.Trimesh``, a path to any file trimesh reads, or a pair
+            ``(vertices (V, 3), faces (F, 3))``; world coordinates ``(x, y, z)``.
+        grid: the grid to sample on.
+        band: half-width of the band, world units (default ``5 * grid.spacing``, see
+            :data:`BAND_NODES`).
+        dtype, device: of the result (default dtype, CPU).
+        sign: ``"auto"`` (default), ``"winding"`` or ``"pseudonormal"``. ``"winding"`` asks
+            the winding number at every node near the mesh; ``"pseudonormal"`` signs the band
+            by the angle-weighted pseudonormal of the closest feature (exact for closed,
+            consistently wound meshes without self-intersections, and several times faster);
+            ``"auto"`` takes ``"pseudonormal"`` when every edge joins two oppositely wound
+            faces, else ``"winding"``. Beyond the band the sign is always the winding number's.
+
+    Returns:
+        ``phi`` ``(1, 1, D, H, W)``: negative inside, positive outside, world units.
+
+    Example:
+        >>> import trimesh
+        >>> grid = Grid.cube(33, bound=1.5)
+        >>> phi = from_mesh(trimesh.creation.icosphere(subdivisions=3), grid)
+        >>> phi.shape
+        torch.Size([1, 1, 33, 33, 33])
+    """
+    width = _band(grid, band)
+    check_choice(sign, "sign", _mesh_sdf.SIGN_METHODS)
+    vertices, faces = triangle_arrays(as_trimesh(mesh, "mesh"))
+    phi, _ = _mesh_sdf.signed_band(vertices, faces, grid, width, sign)
+    dtype = dtype or torch.get_default_dtype()
+    return torch.as_tensor(phi, dtype=dtype, device=device)[None, None]
+
+
+def redistance(phi: Tensor, grid: Grid, band: float | None = None) -> Tensor:
+    """Turn any implicit function into a signed distance function in the band.
+
+    The zero set of ``phi`` is extracted by marching cubes (linear interpolation along grid
+    edges) and every node within ``band`` of it gets its exact distance to that surface, with
+    the sign of ``phi``; the others get ``+-band``. The zero set stays in place up to the
+    O(h^2) error of the linear interpolation, and ``|grad phi| = 1`` in the band, except at
+    the medial axis. Not differentiable: the result is detached from ``phi``'s graph.
+
+    Args:
+        phi: ``(B, 1, D, H, W)``, negative inside, positive outside, any scale; every batch
+            entry must change sign.
+        grid: the grid ``phi`` is sampled on.
+        band: half-width of the band, world units (default ``5 * grid.spacing``).
+
+    Returns:
+        ``(B, 1, D, H, W)`` signed distance, world units, ``phi``'s dtype and device.
+
+    Example:
+        >>> grid = Grid.cube(33, bound=1.5)
+        >>> ellipsoid = from_function(grid, lambda p: (p**2 / p.new_tensor([1.0, 0.6, 0.4])**2)
+        ...                           .sum(-1) - 1)
+        >>> redistance(ellipsoid, grid).shape
+        torch.Size([1, 1, 33, 33, 33])
+    """
+    width = _band(grid, band)
+    check_volume(phi, "phi", channels=1)
+    check_spatial_shape(phi, "phi", grid.shape, "grid")
+    check_finite(phi, "phi")
+    entries = []
+    for index, entry in enumerate(phi.detach().to("cpu", torch.float64).numpy()[:, 0]):
+        try:
+            entries.append(_isosurface.redistance(entry, grid, width))
+        except ValueError as error:
+            raise ValueError(f"phi batch entry {index}: {error}") from error
+    return torch.as_tensor(np.stack(entries)[:, None], dtype=phi.dtype, device=phi.device)

@@ -1,0 +1,131 @@
+"""torchsurf.mesh: loading, fitted grids, marching cubes, vertex data in the band."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+import torchsurf as ts
+from torchsurf import mesh as tsm
+
+
+def test_extract_sphere_area_and_volume() -> None:
+    grid = ts.Grid.cube(48, bound=1.3)
+    surface = tsm.extract(ts.sdf.sphere(grid, radius=1.0, dtype=torch.float64), grid)
+    assert isinstance(surface, trimesh.Trimesh) and surface.is_watertight
+    assert surface.area == pytest.approx(4 * math.pi, rel=0.01)
+    assert surface.volume == pytest.approx(4 / 3 * math.pi, rel=0.01)  # positive: outward
+    radius = np.linalg.norm(surface.vertices, axis=1)
+    assert np.abs(radius - 1).max() < 0.1 * grid.spacing
+
+
+def test_extract_level_and_world_coordinates() -> None:
+    grid = ts.Grid(shape=(30, 31, 32), spacing=0.1, origin=(1.0, -2.0, 0.5))
+    center = (2.5, -0.5, 2.0)
+    phi = ts.sdf.sphere(grid, radius=0.8, center=center, dtype=torch.float64)
+    surface = tsm.extract(phi, grid, level=0.2)
+    radius = np.linalg.norm(surface.vertices - np.array(center), axis=1)
+    np.testing.assert_allclose(radius, 1.0, atol=0.01)
+
+
+def test_extract_bad_input_raises() -> None:
+    grid = ts.Grid.cube(9, bound=1.0)
+    phi = ts.sdf.sphere(grid, radius=0.5)
+    with pytest.raises(ValueError, match="phi must hold one surface"):
+        tsm.extract(torch.cat((phi, phi)), grid)
+    with pytest.raises(ValueError, match="phi never crosses"):
+        tsm.extract(phi, grid, level=5.0)
+    with pytest.raises(ValueError, match="phi"):
+        tsm.extract(phi[0], grid)
+
+
+def test_fit_grid_holds_the_mesh_with_margin() -> None:
+    mesh = trimesh.creation.box(extents=(2.0, 1.0, 0.5))
+    grid = tsm.fit_grid(mesh, 41, margin=0.25)
+    assert grid.shape == (41, 41, 41)
+    assert grid.spacing == pytest.approx(2.0 * 1.5 / 40)
+    assert bool(grid.contains(torch.from_numpy(mesh.vertices).float()).all())
+    assert grid.origin[0] == pytest.approx(-1.5)
+    with pytest.raises(ValueError, match="resolution"):
+        tsm.fit_grid(mesh, 2)
+
+
+def test_load_errors_name_the_mesh(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="mesh is empty"):
+        tsm.load((np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)))
+    with pytest.raises(ValueError, match="faces must be triangles"):
+        tsm.load((np.eye(4, 3), np.array([[0, 1, 2, 3]])))
+    with pytest.raises(FileNotFoundError, match="mesh"):
+        tsm.load(tmp_path / "missing.obj")
+    mesh = trimesh.creation.icosphere(subdivisions=1)
+    assert tsm.load(mesh) is mesh
+
+
+def round_trip_error(resolution: int, subdivisions: int) -> float:
+    mesh = trimesh.creation.icosphere(subdivisions=subdivisions)
+    adapter = tsm.MeshAdapter(mesh, tsm.fit_grid(mesh, resolution, 0.2), dtype=torch.float64)
+    v = adapter.vertices
+    values = torch.stack((v[:, 0] * v[:, 1] + v[:, 2], torch.sin(2 * v[:, 0])))[None]
+    return float((adapter.decode(adapter.encode(values)) - values).abs().max())
+
+
+def test_round_trip_is_second_order() -> None:
+    # mesh refined with the grid, so that its facets shrink with h too
+    coarse = round_trip_error(33, 4)
+    fine = round_trip_error(65, 5)
+    order = math.log2(coarse / fine)
+    assert order > 1.7, (coarse, fine, order)
+
+
+@pytest.fixture(scope="module")
+def adapter() -> tsm.MeshAdapter:
+    return tsm.MeshAdapter(trimesh.creation.icosphere(subdivisions=2), resolution=25,
+                           dtype=torch.float64)
+
+
+def test_adapter_shapes_and_band(adapter: tsm.MeshAdapter) -> None:
+    vertices = len(adapter.vertices)
+    values = torch.randn(2, 3, vertices, dtype=torch.float64)
+    volume = adapter.encode(values)
+    assert volume.shape == (2, 3, 25, 25, 25)
+    assert adapter.decode(volume).shape == (2, 3, vertices)
+    assert (volume[:, :, ~adapter.band_mask[0, 0]] == 0).all()
+    assert adapter.band_mask.sum() > 0
+    assert adapter.phi.shape == (1, 1, 25, 25, 25)
+    torch.testing.assert_close(adapter(values), volume)
+
+
+def test_encode_is_constant_along_normals() -> None:
+    adapter = tsm.MeshAdapter(trimesh.creation.icosphere(subdivisions=4), resolution=25,
+                              dtype=torch.float64)
+    direction = adapter.vertices / adapter.vertices.norm(dim=1, keepdim=True)
+    volume = adapter.encode(direction[:, 2][None, None])  # z / |z|: constant along rays
+    points = adapter.grid.points(dtype=torch.float64)
+    band = adapter.band_mask[0, 0] & (points.norm(dim=-1) > 0.3)
+    expected = points[..., 2] / points.norm(dim=-1)
+    assert (volume[0, 0][band] - expected[band]).abs().max() < 0.03  # facets of about 0.08
+
+
+def test_encode_decode_gradcheck() -> None:
+    adapter = tsm.MeshAdapter(trimesh.creation.icosphere(subdivisions=0), resolution=9,
+                              dtype=torch.float64)
+    values = torch.randn(1, 1, len(adapter.vertices), dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda u: adapter.decode(adapter.encode(u)), (values,))
+
+
+def test_to_band_matches_the_adapter(adapter: tsm.MeshAdapter) -> None:
+    values = torch.randn(1, 2, len(adapter.vertices), dtype=torch.float64)
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    torch.testing.assert_close(tsm.to_band(values, mesh, adapter.grid), adapter.encode(values))
+
+
+def test_adapter_bad_values_raise(adapter: tsm.MeshAdapter) -> None:
+    with pytest.raises(ValueError, match="values"):
+        adapter.encode(torch.zeros(1, 1, 3, dtype=torch.float64))
+    with pytest.raises(ValueError, match="volume"):
+        adapter.decode(torch.zeros(1, 25, 25, 25, dtype=torch.float64))

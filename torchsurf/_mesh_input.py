@@ -1,0 +1,96 @@
+"""Turn what a user calls a mesh (a ``trimesh.Trimesh``, a file, or arrays) into a checked one."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import torch
+import trimesh
+
+MeshLike = trimesh.Trimesh | str | os.PathLike | tuple
+
+
+def _as_array(value: object) -> np.ndarray:
+    if isinstance(value, torch.Tensor):
+        return value.detach().cpu().numpy()
+    return np.asarray(value)
+
+
+def _read(path: str | os.PathLike, name: str) -> trimesh.Trimesh:
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"{name}: no mesh file at {os.fspath(path)!r}")
+    try:
+        loaded = trimesh.load(path, force="mesh")
+    except Exception as error:  # trimesh raises many types for unreadable files
+        raise ValueError(
+            f"{name}: trimesh could not read {os.fspath(path)!r} as a triangle mesh ({error})"
+        ) from error
+    if not isinstance(loaded, trimesh.Trimesh):
+        raise ValueError(
+            f"{name}: {os.fspath(path)!r} holds no triangle mesh (trimesh read a "
+            f"{type(loaded).__name__})"
+        )
+    return loaded
+
+
+def as_trimesh(mesh: MeshLike, name: str = "mesh") -> trimesh.Trimesh:
+    """Check ``mesh`` and return it as a ``trimesh.Trimesh``; raise naming ``name`` otherwise.
+
+    Args:
+        mesh: a ``trimesh.Trimesh`` (used as it is, never modified); a path to any file
+            trimesh reads (loaded with trimesh's defaults, which merge duplicate vertices and
+            drop unreferenced ones); or a pair ``(vertices, faces)`` of arrays or tensors,
+            ``(V, 3)`` world ``(x, y, z)`` and ``(F, 3)`` vertex indices, kept as given.
+        name: the argument's name, for the error messages.
+
+    Raises:
+        FileNotFoundError: the path names no file.
+        TypeError: ``mesh`` is none of the above.
+        ValueError: the file cannot be read, the mesh is empty, has non-finite vertices,
+            non-triangular faces or face indices out of range.
+    """
+    if isinstance(mesh, (str, os.PathLike)):
+        mesh = _read(mesh, name)
+    elif isinstance(mesh, (tuple, list)) and len(mesh) == 2:
+        vertices = _as_array(mesh[0])
+        faces = _as_array(mesh[1])
+        _check_arrays(vertices, faces, name)
+        mesh = trimesh.Trimesh(
+            vertices.astype(np.float64), faces.astype(np.int64), process=False, validate=False
+        )
+    elif not isinstance(mesh, trimesh.Trimesh):
+        raise TypeError(
+            f"{name} must be a trimesh.Trimesh, a path to a mesh file, or a pair "
+            f"(vertices, faces), got {type(mesh).__name__}"
+        )
+    _check_arrays(np.asarray(mesh.vertices), np.asarray(mesh.faces), name)
+    return mesh
+
+
+def _check_arrays(vertices: np.ndarray, faces: np.ndarray, name: str) -> None:
+    if vertices.ndim != 2 or vertices.shape[1] != 3:
+        raise ValueError(f"{name}: vertices must have shape (V, 3), got {vertices.shape}")
+    if faces.ndim != 2 or faces.shape[1] != 3:
+        raise ValueError(
+            f"{name}: faces must be triangles, shape (F, 3), got {faces.shape}; "
+            "triangulate polygons first (e.g. trimesh.Trimesh(..., process=True))"
+        )
+    if len(faces) == 0 or len(vertices) == 0:
+        raise ValueError(f"{name} is empty: it has {len(vertices)} vertices and {len(faces)} faces")
+    if not np.issubdtype(vertices.dtype, np.number) or not np.isfinite(vertices).all():
+        raise ValueError(f"{name}: vertices must be finite numbers, found NaN or infinity")
+    if not np.issubdtype(faces.dtype, np.integer):
+        raise ValueError(f"{name}: faces must hold integer vertex indices, got {faces.dtype}")
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        raise ValueError(
+            f"{name}: face indices must lie in [0, {len(vertices) - 1}], "
+            f"got [{faces.min()}, {faces.max()}]"
+        )
+
+
+def triangle_arrays(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray]:
+    """Contiguous float64 vertices ``(V, 3)`` and int64 faces ``(F, 3)``, copies of the mesh's."""
+    vertices = np.ascontiguousarray(mesh.vertices, dtype=np.float64).copy()
+    faces = np.ascontiguousarray(mesh.faces, dtype=np.int64).copy()
+    return vertices, faces

@@ -1,0 +1,265 @@
+"""Exact distances to a triangle mesh at the grid nodes of a narrow band, and their signs.
+
+The engine behind :func:`torchsurf.sdf.from_mesh`, :func:`torchsurf.sdf.redistance` and
+:class:`torchsurf.mesh.MeshAdapter`. All arrays are numpy float64, in index order ``(x, y, z)``
+= ``(i, j, k)`` until :func:`to_volume` turns them into ``(D, H, W)``.
+
+Which nodes need an exact distance is found by refining bricks of nodes, octree fashion: a
+brick whose centre lies farther than ``band + its half-diagonal`` from the mesh holds no band
+node, and all its nodes lie on the centre's side of the surface (the segment to the centre is
+shorter than the distance, so it crosses no triangle). Only the bricks that straddle the band
+are split, down to single nodes. Distances come from libigl's AABB tree; signs from libigl's
+fast generalised winding number (Barill et al. 2018) or, for closed consistently wound meshes,
+from angle-weighted pseudonormals at the closest point (Baerentzen & Aanaes 2005), which give
+the same sign there at a fraction of the cost.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import igl
+import numpy as np
+
+from .grid import Grid
+
+SIGN_METHODS = ("auto", "winding", "pseudonormal")
+
+_CHILDREN = np.array([[a, b, c] for a in (0, 1) for b in (0, 1) for c in (0, 1)], dtype=np.int64)
+_BARYCENTRIC_TOLERANCE = 1e-9
+
+
+@dataclass
+class Band:
+    """Nodes within reach of the band and their closest points on the mesh.
+
+    Attributes:
+        nodes: ``(N, 3)`` node indices ``(i, j, k)``; every node within ``band`` of the mesh
+            is among them (some farther ones too).
+        distance: ``(N,)`` exact unsigned distance, world units.
+        face: ``(N,)`` index of the closest triangle.
+        closest: ``(N, 3)`` closest point on the mesh, world ``(x, y, z)``.
+        far_corners: per refinement level ``(size, corners (M, 3))``: bricks of ``size^3``
+            nodes starting at ``corners`` whose nodes all lie farther than ``band``.
+    """
+
+    nodes: np.ndarray
+    distance: np.ndarray
+    face: np.ndarray
+    closest: np.ndarray
+    far_corners: list[tuple[int, np.ndarray]]
+
+
+def _world(grid: Grid, index: np.ndarray) -> np.ndarray:
+    return np.asarray(grid.origin) + grid.spacing * index
+
+
+def refine_band(vertices: np.ndarray, faces: np.ndarray, grid: Grid, band: float) -> Band:
+    """Find every node of ``grid`` within ``band`` of the mesh, with exact distances.
+
+    Args:
+        vertices: ``(V, 3)`` float64 world ``(x, y, z)``.
+        faces: ``(F, 3)`` int64 triangles.
+        grid: the grid.
+        band: half-width of the band, world units.
+    """
+    tree = igl.AABB()
+    tree.init(vertices, faces)
+    extent = np.array(grid.shape[::-1], dtype=np.int64)
+    size = 1
+    while size * 16 <= extent.max():
+        size *= 2
+    axes = [np.arange(0, n, size, dtype=np.int64) for n in extent]
+    corners = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    far_corners = []
+    while size > 1:
+        centres = _world(grid, corners + 0.5 * (size - 1))
+        distance = np.sqrt(tree.squared_distance(vertices, faces, centres)[0])
+        reach = band + grid.spacing * 0.5 * (size - 1) * math.sqrt(3.0)
+        far = distance > reach
+        far_corners.append((size, corners[far]))
+        size //= 2
+        corners = (corners[~far][:, None, :] + size * _CHILDREN).reshape(-1, 3)
+        corners = corners[(corners < extent).all(axis=1)]
+    squared, face, closest = tree.squared_distance(vertices, faces, _world(grid, corners))
+    return Band(corners, np.sqrt(squared), face, closest, far_corners)
+
+
+def to_volume(grid: Grid, nodes: np.ndarray, values: np.ndarray, fill: np.ndarray | float
+              ) -> np.ndarray:
+    """Scatter ``values`` ``(N,)`` at ``nodes`` ``(N, 3)`` ``(i, j, k)`` into ``(D, H, W)``.
+
+    ``fill`` is a ``(D, H, W)`` array or a number for every other node; it is not modified.
+    """
+    volume = np.array(np.broadcast_to(fill, grid.shape), dtype=np.float64)
+    volume[nodes[:, 2], nodes[:, 1], nodes[:, 0]] = values
+    return volume
+
+
+def _far_volume(grid: Grid, far_corners: list[tuple[int, np.ndarray]], corner_values: list
+                ) -> np.ndarray:
+    """Paint each far brick of every level with its value; ``(D, H, W)``, NaN elsewhere.
+
+    Coarse to fine: each level's painting is doubled in resolution and the next level's bricks
+    are painted over it, so the work is a little more than one pass over the fine grid.
+    """
+    volume = None
+    for (size, corners), values in zip(far_corners, corner_values, strict=True):
+        coarse_shape = tuple(-(-n // size) for n in grid.shape)
+        if volume is None:
+            volume = np.full(coarse_shape, np.nan)
+        else:
+            volume = volume.repeat(2, 0).repeat(2, 1).repeat(2, 2)
+            volume = volume[: coarse_shape[0], : coarse_shape[1], : coarse_shape[2]]
+        volume[corners[:, 2] // size, corners[:, 1] // size, corners[:, 0] // size] = values
+    if volume is None:
+        return np.full(grid.shape, np.nan)
+    return volume.repeat(2, 0).repeat(2, 1).repeat(2, 2)[: grid.shape[0], : grid.shape[1],
+                                                         : grid.shape[2]]
+
+
+def _edge_keys(starts: np.ndarray, ends: np.ndarray, vertex_count: int) -> np.ndarray:
+    return starts * vertex_count + ends
+
+
+def _is_closed(faces: np.ndarray, vertex_count: int) -> bool:
+    """Every edge shared by exactly two faces that traverse it in opposite directions."""
+    starts, ends = faces.reshape(-1), faces[:, [1, 2, 0]].reshape(-1)
+    forward = np.sort(_edge_keys(starts, ends, vertex_count))
+    backward = np.sort(_edge_keys(ends, starts, vertex_count))
+    return bool((np.diff(forward) > 0).all() and np.array_equal(forward, backward))
+
+
+def barycentric(vertices: np.ndarray, faces: np.ndarray, face: np.ndarray, points: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Barycentric coordinates ``(N, 3)`` of ``points`` ``(N, 3)`` in triangles ``face`` ``(N,)``.
+
+    For points on their triangle (closest points) the coordinates lie in ``[0, 1]`` and sum to 1.
+    Returns the coordinates and a boolean ``(N,)`` that marks degenerate (zero-area)
+    triangles, where the coordinates put all weight on the nearest corner.
+    """
+    corner = vertices[faces[face]]
+    edge1 = corner[:, 1] - corner[:, 0]
+    edge2 = corner[:, 2] - corner[:, 0]
+    offset = points - corner[:, 0]
+    d11 = np.einsum("ij,ij->i", edge1, edge1)
+    d12 = np.einsum("ij,ij->i", edge1, edge2)
+    d22 = np.einsum("ij,ij->i", edge2, edge2)
+    d1p = np.einsum("ij,ij->i", edge1, offset)
+    d2p = np.einsum("ij,ij->i", edge2, offset)
+    denominator = d11 * d22 - d12**2
+    degenerate = denominator <= 1e-12 * d11 * d22
+    safe = np.where(degenerate, 1.0, denominator)
+    second = (d22 * d1p - d12 * d2p) / safe
+    third = (d11 * d2p - d12 * d1p) / safe
+    weights = np.clip(np.stack((1.0 - second - third, second, third), axis=1), 0.0, 1.0)
+    weights /= weights.sum(axis=1, keepdims=True)
+    if degenerate.any():
+        nearest = np.linalg.norm(corner[degenerate] - points[degenerate, None], axis=2).argmin(1)
+        weights[degenerate] = np.eye(3)[nearest]
+    return weights, degenerate
+
+
+def _pseudonormals(vertices: np.ndarray, faces: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Unit face normals ``(F, 3)``, edge normals ``(F, 3, 3)`` (edge opposite each corner)
+    and angle-weighted vertex normals ``(V, 3)``; the last two unnormalised."""
+    corner = vertices[faces]
+    cross = np.cross(corner[:, 1] - corner[:, 0], corner[:, 2] - corner[:, 0])
+    length = np.linalg.norm(cross, axis=1, keepdims=True)
+    face_normal = cross / np.where(length > 0, length, 1.0)
+
+    starts, ends = faces[:, [1, 2, 0]].reshape(-1), faces[:, [2, 0, 1]].reshape(-1)
+    keys = _edge_keys(np.minimum(starts, ends), np.maximum(starts, ends), len(vertices))
+    _, edge_id = np.unique(keys, return_inverse=True)
+    repeated = np.repeat(face_normal, 3, axis=0)
+    edge_sum = np.stack(
+        [np.bincount(edge_id, repeated[:, axis]) for axis in range(3)], axis=1
+    )
+    edge_normal = edge_sum[edge_id].reshape(-1, 3, 3)
+
+    angles = np.empty(faces.shape)
+    for k in range(3):
+        to_next = corner[:, (k + 1) % 3] - corner[:, k]
+        to_prev = corner[:, (k + 2) % 3] - corner[:, k]
+        cosine = np.einsum("ij,ij->i", to_next, to_prev) / np.maximum(
+            np.linalg.norm(to_next, axis=1) * np.linalg.norm(to_prev, axis=1), 1e-300
+        )
+        angles[:, k] = np.arccos(np.clip(cosine, -1.0, 1.0))
+    weighted = (angles[:, :, None] * face_normal[:, None, :]).reshape(-1, 3)
+    vertex_normal = np.stack(
+        [np.bincount(faces.reshape(-1), weighted[:, axis], minlength=len(vertices))
+         for axis in range(3)], axis=1
+    )
+    return face_normal, edge_normal, vertex_normal
+
+
+def _pseudonormal_inside(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray,
+                         face: np.ndarray, closest: np.ndarray
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """Inside test ``(N,)`` by the pseudonormal of the closest feature, and a mask ``(N,)`` of
+    points it cannot decide (closest triangle degenerate)."""
+    face_normal, edge_normal, vertex_normal = _pseudonormals(vertices, faces)
+    weights, degenerate = barycentric(vertices, faces, face, closest)
+    on_zero = weights < _BARYCENTRIC_TOLERANCE
+    zeros = on_zero.sum(axis=1)
+    normal = face_normal[face]
+    on_edge = zeros == 1
+    normal[on_edge] = edge_normal[face[on_edge], on_zero[on_edge].argmax(axis=1)]
+    on_vertex = zeros == 2
+    corner = (~on_zero[on_vertex]).argmax(axis=1)
+    normal[on_vertex] = vertex_normal[faces[face[on_vertex], corner]]
+    inside = np.einsum("ij,ij->i", points - closest, normal) < 0
+    return inside, degenerate
+
+
+def _winding_inside(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray) -> np.ndarray:
+    if len(points) == 0:
+        return np.zeros(0, dtype=bool)
+    return igl.fast_winding_number(vertices, faces, np.ascontiguousarray(points)) > 0.5
+
+
+def signed_band(vertices: np.ndarray, faces: np.ndarray, grid: Grid, band: float,
+                sign: str = "auto") -> tuple[np.ndarray, Band]:
+    """Signed distance ``(D, H, W)`` to the mesh, exact within ``band``, ``+-band`` beyond.
+
+    Args:
+        vertices, faces: the mesh, as in :func:`refine_band`.
+        grid: the grid.
+        band: half-width of the band, world units.
+        sign: ``"winding"`` (generalised winding number > 1/2 is inside, at every node that
+            needs one), ``"pseudonormal"`` (pseudonormals in the band, winding number beyond),
+            or ``"auto"``: pseudonormal for closed, consistently wound meshes, else winding.
+
+    Returns:
+        ``phi`` (negative inside) and the :class:`Band` it was computed from.
+    """
+    if sign == "auto":
+        sign = "pseudonormal" if _is_closed(faces, len(vertices)) else "winding"
+    if sign == "pseudonormal" and _signed_volume(vertices, faces) < 0:
+        faces = faces[:, ::-1].copy()
+    found = refine_band(vertices, faces, grid, band)
+    points = _world(grid, found.nodes)
+    centres = [_world(grid, corners + 0.5 * (size - 1)) for size, corners in found.far_corners]
+    counts = [len(c) for c in centres]
+    if sign == "winding":
+        queries = np.concatenate(centres + [points])
+        inside_all = _winding_inside(vertices, faces, queries)
+        near_inside = inside_all[sum(counts):]
+    else:
+        near_inside, undecided = _pseudonormal_inside(
+            vertices, faces, points, found.face, found.closest
+        )
+        queries = np.concatenate(centres + [points[undecided]])
+        inside_all = _winding_inside(vertices, faces, queries)
+        near_inside[undecided] = inside_all[sum(counts):]
+    far_inside = np.split(inside_all[: sum(counts)], np.cumsum(counts)[:-1]) if counts else []
+    far = _far_volume(grid, found.far_corners, [np.where(i, -band, band) for i in far_inside])
+    near = np.where(near_inside, -1.0, 1.0) * np.minimum(found.distance, band)
+    return to_volume(grid, found.nodes, near, far), found
+
+
+def _signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
+    corner = vertices[faces]
+    return float(np.einsum("ij,ij->", corner[:, 0], np.cross(corner[:, 1], corner[:, 2]))) / 6.0

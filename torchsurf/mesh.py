@@ -1,0 +1,233 @@
+"""Triangle meshes in and out: loading, grids that fit them, marching cubes, vertex data.
+
+A mesh enters as a signed distance volume (:func:`torchsurf.sdf.from_mesh`); data on its
+vertices enters the band around it constant along the normals (:func:`to_band`, the value at
+the closest point of the mesh) and leaves by trilinear sampling at the vertices
+(:func:`torchsurf.sample`). :class:`MeshAdapter` keeps all of it for one mesh.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+import trimesh
+from torch import Tensor, nn
+
+from . import _isosurface, _mesh_sdf, sdf
+from ._checks import check_positive, check_spatial_shape, check_tensor, check_volume
+from ._mesh_input import MeshLike, as_trimesh, triangle_arrays
+from .grid import Grid
+from .sampling import sample
+from .surface import ImplicitSurface
+
+
+def load(mesh: MeshLike) -> trimesh.Trimesh:
+    """A checked ``trimesh.Trimesh`` from a mesh, a file path or ``(vertices, faces)``.
+
+    Args:
+        mesh: a ``trimesh.Trimesh`` (returned as it is); a path to any file trimesh reads
+            (trimesh's defaults merge duplicate vertices and drop unreferenced ones); or a pair
+            ``(vertices (V, 3), faces (F, 3))`` of arrays or tensors, kept as given.
+
+    Raises:
+        FileNotFoundError, ValueError, TypeError: naming ``mesh`` and what is wrong (no file,
+            unreadable file, empty mesh, NaN vertices, non-triangular faces, bad indices).
+    """
+    return as_trimesh(mesh, "mesh")
+
+
+def fit_grid(mesh: MeshLike, resolution: int = 64, margin: float = 0.1) -> Grid:
+    """A cubic ``resolution^3`` grid around the mesh's bounding box.
+
+    Args:
+        mesh: as in :func:`load`.
+        resolution: nodes along each axis (at least 3).
+        margin: free space on each side, as a fraction of the box's longest side; keep it
+            larger than the band you will ask for.
+
+    Returns:
+        A grid centred on the box, spacing ``longest side * (1 + 2 margin) / (resolution - 1)``.
+    """
+    mesh = as_trimesh(mesh, "mesh")
+    if not isinstance(resolution, int) or resolution < 3:
+        raise ValueError(f"resolution must be an integer >= 3, got {resolution!r}")
+    if not isinstance(margin, (int, float)) or not 0 <= margin < float("inf"):
+        raise ValueError(f"margin must be a finite number >= 0, got {margin!r}")
+    vertices, faces = triangle_arrays(mesh)
+    used = vertices[np.unique(faces)]
+    low, high = used.min(axis=0), used.max(axis=0)
+    extent = float((high - low).max()) * (1.0 + 2.0 * margin)
+    if extent == 0:
+        raise ValueError("mesh: all its vertices coincide, there is no box to fit")
+    origin = (low + high) / 2 - extent / 2
+    return Grid((resolution,) * 3, extent / (resolution - 1), tuple(float(x) for x in origin))
+
+
+def extract(phi: Tensor, grid: Grid, level: float = 0.0) -> trimesh.Trimesh:
+    """The level set ``phi == level`` as a triangle mesh, by marching cubes (scikit-image).
+
+    Args:
+        phi: ``(1, 1, D, H, W)``, one surface (index a batch as ``phi[b:b + 1]``).
+        grid: the grid ``phi`` is sampled on.
+        level: the iso-value, units of ``phi``.
+
+    Returns:
+        A ``trimesh.Trimesh`` in world coordinates ``(x, y, z)``, normals pointing towards
+        larger ``phi`` (outward); watertight wherever the level set stays inside the grid.
+    """
+    if not isinstance(grid, Grid):
+        raise TypeError(f"grid must be a torchsurf.Grid, got {type(grid).__name__}")
+    check_volume(phi, "phi", channels=1)
+    check_spatial_shape(phi, "phi", grid.shape, "grid")
+    if phi.shape[0] != 1:
+        raise ValueError(
+            f"phi must hold one surface, shape (1, 1, D, H, W), got {tuple(phi.shape)}; "
+            "extract batch entry b with phi[b:b + 1]"
+        )
+    volume = phi.detach().to("cpu", torch.float64).numpy()[0, 0]
+    if not np.isfinite(volume).all():
+        raise ValueError("phi must hold finite values only, found NaN or infinity")
+    vertices, faces = _isosurface.level_set(volume, grid, float(level))
+    return trimesh.Trimesh(vertices, faces, process=False)
+
+
+class MeshAdapter(nn.Module):
+    """Moves signals between the vertices of one mesh and the band around it.
+
+    Built once per mesh: the signed distance ``phi`` (:func:`torchsurf.sdf.from_mesh`), the
+    :class:`~torchsurf.ImplicitSurface` on it, and for every band node the closest point on
+    the mesh as a triangle and barycentric weights. Then
+
+    - :meth:`encode` ``(B, C, V) -> (B, C, D, H, W)``: each band node takes the value at its
+      closest point (barycentric interpolation of the vertex values), so the data is constant
+      along the normals; nodes beyond the band get 0;
+    - :meth:`decode` ``(B, C, D, H, W) -> (B, C, V)``: trilinear sampling at the vertices.
+
+    Both are linear and differentiable. Tensors follow ``.to()``.
+
+    Args:
+        mesh: as in :func:`load`; vertex ``v`` of the signals is ``mesh.vertices[v]``.
+        grid: the grid (default :func:`fit_grid` of the mesh at ``resolution``).
+        resolution: nodes per axis of the default grid.
+        band: half-width of the band, world units (default ``5 * grid.spacing``).
+        dtype, device: of the tensors (default dtype, CPU).
+        sign: how ``phi`` is signed, see :func:`torchsurf.sdf.from_mesh`.
+
+    Attributes:
+        grid: the grid.
+        surface: the :class:`~torchsurf.ImplicitSurface` of ``phi`` (its own default band).
+        vertices: ``(V, 3)`` world ``(x, y, z)``.
+        band_mask: ``(1, 1, D, H, W)`` bool, the nodes :meth:`encode` fills.
+
+    Example:
+        >>> adapter = MeshAdapter(trimesh.creation.icosphere(subdivisions=3), resolution=33)
+        >>> values = adapter.vertices[:, 2][None, None]          # (1, 1, V): the height z
+        >>> volume = adapter.encode(values)                       # (1, 1, 33, 33, 33)
+        >>> adapter.decode(volume).shape
+        torch.Size([1, 1, 642])
+    """
+
+    vertices: Tensor
+    band_mask: Tensor
+    _band_index: Tensor
+    _corners: Tensor
+    _weights: Tensor
+
+    def __init__(
+        self,
+        mesh: MeshLike,
+        grid: Grid | None = None,
+        resolution: int = 64,
+        band: float | None = None,
+        dtype: torch.dtype | None = None,
+        device: torch.device | str | None = None,
+        sign: str = "auto",
+    ) -> None:
+        super().__init__()
+        mesh = as_trimesh(mesh, "mesh")
+        grid = fit_grid(mesh, resolution) if grid is None else grid
+        width = sdf._band(grid, band)
+        vertices, faces = triangle_arrays(mesh)
+        phi, found = _mesh_sdf.signed_band(vertices, faces, grid, width, sign)
+        inside = found.distance <= width
+        weights, _ = _mesh_sdf.barycentric(
+            vertices, faces, found.face[inside], found.closest[inside]
+        )
+        nodes = found.nodes[inside]
+        height, width_nodes = grid.shape[1], grid.shape[2]
+        flat = (nodes[:, 2] * height + nodes[:, 1]) * width_nodes + nodes[:, 0]
+        dtype = dtype or torch.get_default_dtype()
+        self.grid = grid
+        self.band = width
+        self.surface = ImplicitSurface(
+            torch.as_tensor(phi, dtype=dtype, device=device)[None, None], grid
+        )
+        mask = torch.zeros(int(np.prod(grid.shape)), dtype=torch.bool, device=device)
+        mask[torch.as_tensor(flat, device=device)] = True
+        self.register_buffer("vertices", torch.as_tensor(vertices, dtype=dtype, device=device))
+        self.register_buffer("band_mask", mask.reshape(1, 1, *grid.shape))
+        self.register_buffer("_band_index", torch.as_tensor(flat, device=device))
+        self.register_buffer("_corners", torch.as_tensor(faces[found.face[inside]], device=device))
+        self.register_buffer("_weights", torch.as_tensor(weights, dtype=dtype, device=device))
+
+    @property
+    def phi(self) -> Tensor:
+        """The signed distance ``(1, 1, D, H, W)``, negative inside, world units."""
+        return self.surface.phi
+
+    def encode(self, values: Tensor) -> Tensor:
+        """Vertex values ``(B, C, V)`` -> volume ``(B, C, D, H, W)``, constant along normals."""
+        return _scatter_to_band(
+            values, self._band_index, self._corners, self._weights, self.grid, len(self.vertices)
+        )
+
+    def decode(self, volume: Tensor) -> Tensor:
+        """Volume ``(B, C, D, H, W)`` -> values ``(B, C, V)`` at the vertices (trilinear)."""
+        check_volume(volume, "volume")
+        return sample(volume, self.vertices.to(volume.dtype), self.grid)
+
+    def forward(self, values: Tensor) -> Tensor:
+        """:meth:`encode`."""
+        return self.encode(values)
+
+    def extra_repr(self) -> str:
+        return (
+            f"vertices={len(self.vertices)}, grid={self.grid.shape}, "
+            f"spacing={self.grid.spacing:g}, band={self.band:g}"
+        )
+
+
+def _scatter_to_band(values: Tensor, band_index: Tensor, corners: Tensor, weights: Tensor,
+                         grid: Grid, vertex_count: int) -> Tensor:
+    """Scatter barycentric interpolants of ``values`` ``(B, C, V)`` into ``(B, C, D, H, W)``.
+
+    Band node ``band_index[n]`` (flat index into ``D * H * W``) gets
+    ``sum_k weights[n, k] * values[..., corners[n, k]]``; every other node gets 0.
+    """
+    check_tensor(values, "values")
+    if values.dim() != 3 or values.shape[-1] != vertex_count:
+        raise ValueError(
+            f"values must have shape (B, C, V) with V = {vertex_count} vertices, "
+            f"got {tuple(values.shape)}"
+        )
+    weights = weights.to(values.dtype)
+    interpolated = (values[..., corners] * weights).sum(dim=-1)
+    batch, channels = values.shape[:2]
+    volume = values.new_zeros(batch, channels, int(np.prod(grid.shape)))
+    volume = volume.index_copy(2, band_index, interpolated)
+    return volume.reshape(batch, channels, *grid.shape)
+
+
+def to_band(values: Tensor, mesh: MeshLike, grid: Grid, band: float | None = None) -> Tensor:
+    """Vertex values ``(B, C, V)`` on ``mesh`` -> a volume ``(B, C, D, H, W)`` in the band.
+
+    Each node within ``band`` of the mesh takes the barycentric interpolant of the vertex
+    values at its closest point on the mesh (constant along the normals); the others get 0.
+    The functional form of :meth:`MeshAdapter.encode`; build a :class:`MeshAdapter` to reuse
+    the closest points.
+    """
+    check_tensor(values, "values")
+    if band is not None:
+        check_positive(band, "band")
+    adapter = MeshAdapter(mesh, grid, band=band, dtype=values.dtype, device=values.device)
+    return adapter.encode(values)
