@@ -175,7 +175,7 @@ def resolve_path(path: str, volume: Tensor) -> str:
     return "slicing" if volume.device.type == "cpu" else "conv3d"
 
 
-def _shifted(padded: Tensor, offset: Offset) -> Tensor:
+def shifted(padded: Tensor, offset: Offset) -> Tensor:
     """The interior of a halo-1 volume shifted by ``offset``: ``u[k + dz, j + dy, i + dx]``."""
     dz, dy, dx = offset
     depth, height, width = (n - 2 for n in padded.shape[-3:])
@@ -185,7 +185,7 @@ def _shifted(padded: Tensor, offset: Offset) -> Tensor:
 def _sliced(padded: Tensor, stencil: Stencil) -> Tensor:
     result = None
     for offset, weight in stencil.taps:
-        term = weight * _shifted(padded, offset)
+        term = weight * shifted(padded, offset)
         result = term if result is None else result + term
     return result
 

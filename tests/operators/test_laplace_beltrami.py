@@ -141,3 +141,18 @@ def test_compiled_path_matches_eager_forward_and_backward():
         results.append((value.detach(), u.grad))
     torch.testing.assert_close(results[1][0], results[0][0], rtol=1e-5, atol=1e-4)
     torch.testing.assert_close(results[1][1], results[0][1], rtol=1e-5, atol=1e-2)
+
+
+@pytest.mark.parametrize("scheme", ["symmetric", "conservative"])
+@pytest.mark.parametrize("flux_map", [None, lambda v: v / torch.sqrt(1 + (v**2).sum(2, keepdim=True))])
+def test_fused_formulation_equals_modular(scheme, flux_map):
+    """The single-expression form that the compiled path runs, checked eagerly on a box grid."""
+    from torchsurf.operators._flux_form import flux_form, fused_flux_form
+
+    grid = ts.Grid((9, 10, 11), spacing=0.15, origin=(-0.8, -0.7, -0.6))
+    points = grid.points(dtype=torch.float64)
+    phi = ((points / torch.tensor([0.5, 0.6, 0.4], dtype=torch.float64)) ** 2).sum(-1) - 1
+    surface = ts.ImplicitSurface(phi[None, None], grid)
+    u = torch.randn(2, 3, 9, 10, 11, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
+    args = (u, surface.normal, surface.grad_norm, grid.spacing, flux_map, scheme)
+    torch.testing.assert_close(fused_flux_form(*args), flux_form(*args, "slicing"), rtol=1e-12, atol=1e-10)

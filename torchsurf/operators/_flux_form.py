@@ -5,15 +5,24 @@ mean of that and its mirror ``(1/W) D+ . (W f(P D- u))`` (``scheme="symmetric"``
 map ``f`` acting on the projected one-sided gradient ``v`` ``(B, C, 3, D, H, W)``: the identity
 for Laplace–Beltrami, ``g(|v|) v`` for edge-stopping diffusion, ``(T . v) T`` for directional
 diffusion. Pure functions of tensors, so that the whole composition can be compiled.
+
+Two formulations give the same numbers. The modular one (:func:`projected_gradient`, then
+:func:`weighted_divergence`) materialises the flux and is the faster one eagerly. The fused
+one (:func:`fused_flux_form`) recomputes the flux through each face from the haloed inputs
+where the divergence needs it: more arithmetic, but under ``torch.compile`` it becomes a single
+pass that reads ``u``, the normals and ``W`` once and writes the result, so :func:`flux_form`
+takes it whenever it is being compiled (docs/benchmarks.md).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
 
+import torch
 from torch import Tensor
 
 from .. import stencils
+from ..stencils import Offset, shifted
 
 FluxMap = Callable[[Tensor], Tensor]
 
@@ -63,15 +72,95 @@ def flux_form(
     normal: Tensor,
     grad_norm: Tensor,
     spacing: float,
-    flux_map: FluxMap,
+    flux_map: FluxMap | None,
     scheme: str,
     path: str,
 ) -> Tensor:
-    """``(1/W) div(W f(P grad u))`` by the one-sided compositions of ``scheme``; ``(B, C, D, H, W)``."""
+    """``(1/W) div(W f(P grad u))`` by the one-sided compositions of ``scheme``; ``(B, C, D, H, W)``.
+
+    ``flux_map=None`` is the identity (Laplace–Beltrami).
+    """
+    if torch.compiler.is_compiling():
+        return fused_flux_form(u, normal, grad_norm, spacing, flux_map, scheme)
     sides = SIDES[scheme]
     result = None
     for side in sides:
         v = projected_gradient(u, normal, spacing, side, path)
-        term = weighted_divergence(flux_map(v), grad_norm, spacing, side, path)
+        flux = v if flux_map is None else flux_map(v)
+        term = weighted_divergence(flux, grad_norm, spacing, side, path)
         result = term if result is None else result + term
     return result if len(sides) == 1 else result / len(sides)
+
+
+def _offset_sum(a: Offset, b: Offset) -> Offset:
+    return tuple(p + q for p, q in zip(a, b, strict=True))
+
+
+def _open_faces(like: Tensor, axis: int, side: int, at: Offset) -> Tensor:
+    """1 where the face of each node shifted by ``at`` along ``axis`` lies inside the box, else 0.
+
+    Broadcastable to ``like`` ``(..., D, H, W)``: varies along ``axis`` only, so that it costs
+    no memory traffic. The face of node ``p`` for differences of ``side`` lies between ``p``
+    and ``p + side``; it is outside for the last node (``side = +1``), the first node
+    (``side = -1``) and every halo node.
+    """
+    dim = like.dim() - 1 - axis
+    length = like.shape[dim]
+    index = torch.arange(length, device=like.device) + at[2 - axis]
+    closed = length - 1 if side == 1 else 0
+    inside = (index >= 0) & (index < length) & (index != closed)
+    shape = [1] * like.dim()
+    shape[dim] = length
+    return inside.to(like.dtype).view(shape)
+
+
+def _face_flux(
+    u: Tensor, normal: Tensor, weight: Tensor, spacing: float,
+    flux_map: FluxMap | None, side: int, axis: int, at: Offset,
+) -> Tensor:
+    """Component ``axis`` of ``W f(P D_side u)`` at the nodes shifted by ``at``; ``(B, C, D, H, W)``.
+
+    ``u``, ``normal`` and ``weight`` carry a halo of one node.
+    """
+    gradient = [
+        sum(w * shifted(u, _offset_sum(at, offset)) for offset, w in stencil.taps) / spacing
+        for stencil in stencils.one_sided(side)
+    ]
+    n = [shifted(normal[:, c: c + 1], at) for c in range(3)]
+    along = gradient[0] * n[0] + gradient[1] * n[1] + gradient[2] * n[2]
+    scale = shifted(weight, at) * _open_faces(gradient[0], axis, side, at)
+    if flux_map is None:
+        return scale * (gradient[axis] - along * n[axis])
+    v = torch.stack([g - along * nc for g, nc in zip(gradient, n, strict=True)], dim=2)
+    return scale * flux_map(v)[:, :, axis]
+
+
+def fused_flux_form(
+    u: Tensor, normal: Tensor, grad_norm: Tensor, spacing: float, flux_map: FluxMap | None,
+    scheme: str,
+) -> Tensor:
+    """``(1/W) div(W f(P grad u))`` as :func:`flux_form` computes it, as one pointwise expression.
+
+    ``flux_map=None`` stands for the identity without building the stacked flux.
+
+    Args:
+        u: ``(B, C, D, H, W)``.
+        normal: ``(B or 1, 3, D, H, W)``.
+        grad_norm: ``(B or 1, 1, D, H, W)``.
+
+    Returns:
+        ``(B, C, D, H, W)``.
+    """
+    padded_u = stencils.pad(u, "replicate")
+    padded_normal = stencils.pad(normal, "zeros")
+    padded_weight = stencils.pad(grad_norm, "zeros")
+    sides = SIDES[scheme]
+    result = None
+    for side in sides:
+        for axis, stencil in enumerate(stencils.one_sided(-side)):
+            for offset, w in stencil.taps:
+                term = w * _face_flux(
+                    padded_u, padded_normal, padded_weight, spacing, flux_map, side, axis, offset
+                )
+                result = term if result is None else result + term
+    return result / (spacing * len(sides) * grad_norm)

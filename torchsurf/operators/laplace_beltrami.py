@@ -15,14 +15,10 @@ from ._inputs import check_data
 SCHEMES = ("symmetric", "conservative", "central")
 
 
-def _identity(v: Tensor) -> Tensor:
-    return v
-
-
 def _divergence_form(
     u: Tensor, normal: Tensor, grad_norm: Tensor, spacing: float, scheme: str, path: str
 ) -> Tensor:
-    return flux_form(u, normal, grad_norm, spacing, _identity, scheme, path)
+    return flux_form(u, normal, grad_norm, spacing, None, scheme, path)
 
 
 def _adjoint(
