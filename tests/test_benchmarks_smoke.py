@@ -1,0 +1,54 @@
+"""Smoke test of benchmarks/bench_laplace_beltrami.py: its numpy reference is the library's stencil."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+import torchsurf as ts
+
+BENCHMARK = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_laplace_beltrami.py"
+
+
+@pytest.fixture(scope="module")
+def bench():
+    spec = importlib.util.spec_from_file_location("bench_laplace_beltrami", BENCHMARK)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses resolve annotations through sys.modules
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_numpy_reference_is_the_conservative_scheme(bench):
+    grid = ts.Grid.cube(17, 1.5)
+    phi = ts.sdf.sphere(grid, dtype=torch.float64)
+    surface = ts.ImplicitSurface(phi, grid)
+    generator = torch.Generator().manual_seed(1)
+    u = torch.rand((1, 1, 17, 17, 17), generator=generator, dtype=torch.float64)
+
+    expected = ts.laplace_beltrami(u, surface, scheme="conservative", path="slicing")
+    reference = bench.AppendixB(phi[0, 0].numpy(), grid.spacing, dtype=np.float64)
+    actual = reference(u[0, 0].numpy()).copy()
+
+    assert actual.dtype == np.float64
+    np.testing.assert_allclose(actual, expected[0, 0].numpy(), rtol=0, atol=1e-10)
+    # the reference's normals are the surface's
+    normal, weight = bench.numpy_normals(phi[0, 0].numpy(), grid.spacing)
+    np.testing.assert_allclose(normal, surface.normal[0].numpy(), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(weight, surface.grad_norm[0, 0].numpy(), rtol=0, atol=1e-12)
+
+
+def test_numpy_reference_float32_buffers_are_reused(bench):
+    grid = ts.Grid.cube(9, 1.5)
+    phi = ts.sdf.sphere(grid)
+    reference = bench.AppendixB(phi[0, 0].numpy(), grid.spacing)
+    u = np.random.default_rng(0).random((9, 9, 9), dtype=np.float32)
+    first = reference(u).copy()
+    second = reference(u)
+    assert second.dtype == np.float32
+    np.testing.assert_array_equal(first, second)
