@@ -214,3 +214,31 @@ def test_from_function_rejects_wrong_shape(function):
 def test_invalid_arguments(call, name):
     with pytest.raises(ValueError, match=name):
         call(Grid.cube(5, 1.0))
+
+
+def test_trefoil_is_the_exact_distance_to_the_smooth_knot():
+    grid = Grid.cube(33, bound=1.6)
+    phi = sdf.trefoil(grid, tube_radius=0.15, scale=0.45, dtype=torch.float64)
+    points = grid.points(dtype=torch.float64).reshape(-1, 3)
+    chosen = torch.randperm(points.shape[0], generator=torch.Generator().manual_seed(0))[:2000]
+    t = torch.linspace(0, 2 * torch.pi, 200_001, dtype=torch.float64)[:-1]
+    curve = 0.45 * torch.stack(
+        (torch.sin(t) + 2 * torch.sin(2 * t), torch.cos(t) - 2 * torch.cos(2 * t), -torch.sin(3 * t)),
+        dim=-1,
+    )
+    dense = torch.cdist(points[chosen], curve).min(dim=1).values - 0.15
+    torch.testing.assert_close(phi.reshape(-1)[chosen], dense, rtol=0, atol=1e-6)
+
+
+def test_trefoil_tube_is_a_closed_genus_one_surface():
+    from torchsurf import mesh
+
+    grid = Grid.cube(65, bound=1.6)
+    surface = mesh.extract(sdf.trefoil(grid), grid)
+    assert surface.is_watertight
+    assert surface.euler_number == 0
+
+
+def test_trefoil_rejects_a_self_intersecting_tube():
+    with pytest.raises(ValueError, match="tube_radius must be below"):
+        sdf.trefoil(Grid.cube(9, bound=1.6), tube_radius=0.3, scale=0.4)
