@@ -73,6 +73,8 @@ class ImplicitSurface(nn.Module):
         self.register_buffer("grad_norm", grad_norm, persistent=False)
         self.register_buffer("normal", gradient / grad_norm, persistent=False)
         self.register_buffer("_mean_curvature", None, persistent=False)
+        self.register_buffer("_haloed_normal", None, persistent=False)
+        self.register_buffer("_haloed_grad_norm", None, persistent=False)
 
     @property
     def batch_size(self) -> int:
@@ -88,6 +90,21 @@ class ImplicitSurface(nn.Module):
         """Boolean mask ``|phi| <= width`` (default ``band_width``); ``(B, 1, D, H, W)``."""
         width = self.band_width if width is None else check_positive(width, "width")
         return self.phi.abs() <= width
+
+    def haloed(self) -> tuple[Tensor, Tensor]:
+        """``normal`` and ``grad_norm`` with a halo of one node (replicated) on every side.
+
+        ``(B, 3, D + 2, H + 2, W + 2)`` and ``(B, 1, D + 2, H + 2, W + 2)``, for kernels that
+        read neighbours without padding (the compiled operators). Computed once and kept, on
+        the same terms as :meth:`mean_curvature`.
+        """
+        if self._haloed_normal is not None:
+            return self._haloed_normal, self._haloed_grad_norm
+        normal = stencils.pad(self.normal, "replicate")
+        grad_norm = stencils.pad(self.grad_norm, "replicate")
+        if torch.is_grad_enabled() or not self.phi.requires_grad:
+            self._haloed_normal, self._haloed_grad_norm = normal, grad_norm
+        return normal, grad_norm
 
     def hessian(self) -> Tensor:
         """Second derivatives of ``phi``, ``(B, 6, D, H, W)`` in the order xx, yy, zz, xy, xz, yz.

@@ -154,5 +154,15 @@ def test_fused_formulation_equals_modular(scheme, flux_map):
     phi = ((points / torch.tensor([0.5, 0.6, 0.4], dtype=torch.float64)) ** 2).sum(-1) - 1
     surface = ts.ImplicitSurface(phi[None, None], grid)
     u = torch.randn(2, 3, 9, 10, 11, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
-    args = (u, surface.normal, surface.grad_norm, grid.spacing, flux_map, scheme)
-    torch.testing.assert_close(fused_flux_form(*args), flux_form(*args, "slicing"), rtol=1e-12, atol=1e-10)
+    haloed = (ts.stencils.pad(u, "replicate"), *surface.haloed())
+    fused = fused_flux_form(*haloed, surface.grad_norm, grid.spacing, flux_map, scheme)
+    modular = flux_form(u, surface.normal, surface.grad_norm, grid.spacing, flux_map, scheme, "slicing")
+    torch.testing.assert_close(fused, modular, rtol=1e-12, atol=1e-10)
+    if flux_map is None:
+        weight = surface.grad_norm
+        divided = (haloed[0] / haloed[2], *haloed[1:])
+        transpose = fused_flux_form(*divided, weight, grid.spacing, None, scheme, adjoint=True)
+        expected = weight * flux_form(
+            u / weight, surface.normal, weight, grid.spacing, None, scheme, "slicing"
+        )
+        torch.testing.assert_close(transpose, expected, rtol=1e-12, atol=1e-10)

@@ -81,7 +81,8 @@ def flux_form(
     ``flux_map=None`` is the identity (Laplace–Beltrami).
     """
     if torch.compiler.is_compiling():
-        return fused_flux_form(u, normal, grad_norm, spacing, flux_map, scheme)
+        haloed = (stencils.pad(t, "replicate") for t in (u, normal, grad_norm))
+        return fused_flux_form(*haloed, grad_norm, spacing, flux_map, scheme)
     sides = SIDES[scheme]
     result = None
     for side in sides:
@@ -136,24 +137,28 @@ def _face_flux(
 
 
 def fused_flux_form(
-    u: Tensor, normal: Tensor, grad_norm: Tensor, spacing: float, flux_map: FluxMap | None,
-    scheme: str,
+    padded_u: Tensor, padded_normal: Tensor, padded_weight: Tensor, grad_norm: Tensor,
+    spacing: float, flux_map: FluxMap | None, scheme: str, adjoint: bool = False,
 ) -> Tensor:
     """``(1/W) div(W f(P grad u))`` as :func:`flux_form` computes it, as one pointwise expression.
 
-    ``flux_map=None`` stands for the identity without building the stacked flux.
+    Every input carries a halo of one node: ``u`` replicated (as :func:`projected_gradient`
+    pads it), the normals and ``W`` with any finite values (faces outside the box carry no
+    flux). Passing them haloed keeps the padding out of the compiled kernel, whose loads then
+    stay contiguous and vectorise (3-4x faster at 128^3, docs/benchmarks.md).
 
     Args:
-        u: ``(B, C, D, H, W)``.
-        normal: ``(B or 1, 3, D, H, W)``.
-        grad_norm: ``(B or 1, 1, D, H, W)``.
+        padded_u: ``(B, C, D + 2, H + 2, W + 2)``.
+        padded_normal: ``(B or 1, 3, D + 2, H + 2, W + 2)``.
+        padded_weight: ``W`` haloed, ``(B or 1, 1, D + 2, H + 2, W + 2)``.
+        grad_norm: ``W``, ``(B or 1, 1, D, H, W)``.
+        flux_map: ``None`` for the identity (no stacked flux is built).
+        adjoint: compute the transpose ``L^T g = W L(g / W)`` of the linear operator instead;
+            ``padded_u`` must then hold ``g / W``, haloed.
 
     Returns:
         ``(B, C, D, H, W)``.
     """
-    padded_u = stencils.pad(u, "replicate")
-    padded_normal = stencils.pad(normal, "zeros")
-    padded_weight = stencils.pad(grad_norm, "zeros")
     sides = SIDES[scheme]
     result = None
     for side in sides:
@@ -163,4 +168,5 @@ def fused_flux_form(
                     padded_u, padded_normal, padded_weight, spacing, flux_map, side, axis, offset
                 )
                 result = term if result is None else result + term
-    return result / (spacing * len(sides) * grad_norm)
+    scale = spacing * len(sides)
+    return result / scale if adjoint else result / (scale * grad_norm)

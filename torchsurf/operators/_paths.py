@@ -22,7 +22,8 @@ COMPILE_MIN_VOXELS = 64**3
 
 
 @functools.cache
-def _compiled(function: Callable[..., Tensor]) -> Callable[..., Tensor]:
+def compiled(function: Callable[..., Tensor]) -> Callable[..., Tensor]:
+    """``function`` compiled once per process (shapes specialised)."""
     return torch.compile(function, dynamic=False)
 
 
@@ -41,5 +42,5 @@ def run(function: Callable[..., Tensor], path: str, volume: Tensor, *args: objec
     """Call ``function(*args, path=...)`` on the path chosen for ``volume``."""
     path = resolve(path, volume)
     if path == "compiled":
-        return _compiled(function)(*args, path="slicing")
+        return compiled(function)(*args, path="slicing")
     return function(*args, path=path)

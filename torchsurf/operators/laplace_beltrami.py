@@ -9,7 +9,7 @@ from .. import stencils
 from .._checks import check_choice
 from ..surface import ImplicitSurface
 from . import _paths
-from ._flux_form import flux_form
+from ._flux_form import flux_form, fused_flux_form
 from ._inputs import check_data
 
 SCHEMES = ("symmetric", "conservative", "central")
@@ -28,6 +28,24 @@ def _adjoint(
     return grad_norm * _divergence_form(g / grad_norm, normal, grad_norm, spacing, scheme, path)
 
 
+def _apply(
+    u: Tensor, surface: ImplicitSurface, scheme: str, path: str, adjoint: bool
+) -> Tensor:
+    """``L u`` (or ``L^T u``) of a divergence-form scheme on the path chosen for ``u``."""
+    path = _paths.resolve(path, u)
+    if path == "compiled":
+        haloed_normal, haloed_grad_norm = surface.haloed()
+        haloed_u = stencils.pad(u, "replicate")
+        if adjoint:
+            haloed_u = haloed_u / haloed_grad_norm
+        return _paths.compiled(fused_flux_form)(
+            haloed_u, haloed_normal, haloed_grad_norm, surface.grad_norm, surface.spacing, None,
+            scheme, adjoint,
+        )
+    function = _adjoint if adjoint else _divergence_form
+    return function(u, surface.normal, surface.grad_norm, surface.spacing, scheme, path)
+
+
 class _WeightedSelfAdjoint(torch.autograd.Function):
     """Backward of a divergence-form scheme w.r.t. ``u`` by its adjoint, one forward-sized pass.
 
@@ -36,21 +54,17 @@ class _WeightedSelfAdjoint(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, u, normal, grad_norm, spacing, scheme, path):  # noqa: ANN001, ANN205
-        ctx.save_for_backward(normal, grad_norm)
-        ctx.settings = (spacing, scheme, path, u.shape[0])
-        return _paths.run(_divergence_form, path, u, u, normal, grad_norm, spacing, scheme)
+    def forward(ctx, u, surface, scheme, path):  # noqa: ANN001, ANN205
+        ctx.surface, ctx.settings = surface, (scheme, path, u.shape[0])
+        return _apply(u, surface, scheme, path, adjoint=False)
 
     @staticmethod
     def backward(ctx, grad_output):  # noqa: ANN001, ANN205
-        normal, grad_norm = ctx.saved_tensors
-        spacing, scheme, path, batch = ctx.settings
-        grad_u = _paths.run(
-            _adjoint, path, grad_output, grad_output, normal, grad_norm, spacing, scheme
-        )
+        scheme, path, batch = ctx.settings
+        grad_u = _apply(grad_output, ctx.surface, scheme, path, adjoint=True)
         if grad_u.shape[0] != batch:
             grad_u = grad_u.sum(dim=0, keepdim=True)
-        return grad_u, None, None, None, None, None
+        return grad_u, None, None, None
 
 
 def _central(
@@ -118,9 +132,7 @@ def laplace_beltrami(
         return _paths.run(
             _divergence_form, path, u, u, surface.normal, surface.grad_norm, surface.spacing, scheme
         )
-    return _WeightedSelfAdjoint.apply(
-        u, surface.normal, surface.grad_norm, surface.spacing, scheme, path
-    )
+    return _WeightedSelfAdjoint.apply(u, surface, scheme, path)
 
 
 class LaplaceBeltrami(nn.Module):
