@@ -4,7 +4,17 @@ Bertalmío, Cheng, Osher & Sapiro (2001): data on the zero level set of ``phi`` 
 to a band around it and every intrinsic operator is computed on the Cartesian grid.
 """
 
-from . import exact, mesh, operators, sdf, stencils
+from . import exact, flows, mesh, operators, sdf, stencils
+from .flows import (
+    AnisotropicFlow,
+    ColorDenoise,
+    Extension,
+    Flow,
+    FlowVisualization,
+    HarmonicMapFlow,
+    HeatFlow,
+    ReactionDiffusion,
+)
 from .grid import Grid
 from .mesh import MeshAdapter
 from .operators import (
@@ -26,6 +36,14 @@ __version__ = "0.1.0"
 
 __all__ = [
     "AnisotropicDiffusion",
+    "AnisotropicFlow",
+    "ColorDenoise",
+    "Extension",
+    "Flow",
+    "FlowVisualization",
+    "HarmonicMapFlow",
+    "HeatFlow",
+    "ReactionDiffusion",
     "DirectionalDiffusion",
     "Grid",
     "ImplicitSurface",
@@ -36,6 +54,7 @@ __all__ = [
     "anisotropic_diffusion",
     "directional_diffusion",
     "exact",
+    "flows",
     "intrinsic_divergence",
     "intrinsic_gradient",
     "laplace_beltrami",

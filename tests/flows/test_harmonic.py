@@ -1,0 +1,69 @@
+"""HarmonicMapFlow: unit length kept, identity map of the sphere stationary, energy descent."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+import torchsurf as ts
+from torchsurf.flows import HarmonicMapFlow
+from torchsurf.flows.harmonic import normalize
+
+
+def sphere(n=17, dtype=torch.float64):
+    grid = ts.Grid.cube(n, bound=1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, radius=1.0, dtype=dtype), grid)
+    identity = normalize(grid.points(dtype=dtype).permute(3, 0, 1, 2)[None])
+    return identity, surface
+
+
+def noisy(identity, amount=0.3, seed=0):
+    generator = torch.Generator().manual_seed(seed)
+    noise = torch.randn(identity.shape, generator=generator, dtype=identity.dtype)
+    return normalize(identity + amount * noise)
+
+
+def dirichlet_energy(u, surface):
+    return float(-(u * surface.grad_norm * ts.laplace_beltrami(u, surface)).sum() / 2)
+
+
+@pytest.mark.parametrize("p", [1.0, 1.5, 2.0])
+def test_unit_length_is_kept(p):
+    identity, surface = sphere(13)
+    u = HarmonicMapFlow(0.002, p=p, eps=0.5)(noisy(identity), surface)
+    norms = u.norm(dim=1)
+    torch.testing.assert_close(norms, torch.ones_like(norms))
+
+
+def test_identity_map_of_the_sphere_is_stationary():
+    identity, surface = sphere(17)
+    near = (surface.phi.abs() <= surface.spacing).expand_as(identity)
+    start = noisy(identity, 0.2)
+    flow = HarmonicMapFlow(0.01)
+    still = (flow(identity, surface) - identity).abs()[near].max()
+    moved = (flow(start, surface) - start).abs()[near].max()
+    assert still < 0.05 * moved, (float(still), float(moved))
+
+
+def test_harmonic_energy_never_increases():
+    identity, surface = sphere(13)
+    u0 = noisy(identity)
+    flow = HarmonicMapFlow(0.004)
+    energies = [dirichlet_energy(u, surface)
+                for u in (u0, *flow(u0, surface, times=[0.001, 0.002, 0.003, 0.004]))]
+    assert all(b <= a for a, b in zip(energies, energies[1:], strict=False)), energies
+
+
+def test_tangent_constraint_keeps_fields_tangent():
+    identity, surface = sphere(13)
+    generator = torch.Generator().manual_seed(3)
+    field = torch.randn(identity.shape, generator=generator, dtype=identity.dtype)
+    u = HarmonicMapFlow(0.002, tangent=True)(normalize(field), surface)
+    band = surface.band().expand_as(u[:, :1])
+    along = (u * surface.normal).sum(1, keepdim=True)
+    assert along[band].abs().max() < 1e-10
+
+
+def test_bad_exponent_is_named():
+    with pytest.raises(ValueError, match="p must"):
+        HarmonicMapFlow(0.1, p=3.0)

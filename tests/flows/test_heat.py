@@ -1,0 +1,264 @@
+"""HeatFlow: exact decay of sphere harmonics for every integrator, energy, batching, gradients."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+import torchsurf as ts
+from torchsurf.flows import HeatFlow
+from torchsurf.sampling import sample
+
+TIME = 0.05
+
+
+def fibonacci_sphere(count: int, dtype: torch.dtype) -> torch.Tensor:
+    """``count`` nearly uniform unit vectors ``(count, 3)``."""
+    i = torch.arange(count, dtype=dtype) + 0.5
+    z = 1 - 2 * i / count
+    r = torch.sqrt(1 - z**2)
+    angle = math.pi * (1 + 5**0.5) * i
+    return torch.stack((r * torch.cos(angle), r * torch.sin(angle), z), dim=-1)
+
+
+def harmonics(n: int, dtype: torch.dtype):
+    """Degrees 1..4 as four channels, their surface, and their values on S at unit directions."""
+    cases = [ts.exact.sphere_harmonic(degree, n, dtype=dtype) for degree in (1, 2, 3, 4)]
+    u0 = torch.cat([case.u for case in cases], dim=1)
+    surface = ts.ImplicitSurface(cases[0].phi, cases[0].grid)
+    return u0, surface
+
+
+def decay_errors(u: torch.Tensor, surface: ts.ImplicitSurface, time: float) -> list[float]:
+    """Max error on S of each harmonic channel against ``exp(-l(l+1)t/R^2) f``, relative to
+    the exact amplitude at ``time``."""
+    directions = fibonacci_sphere(2000, u.dtype)
+    radius = ts.exact.SPHERE_RADIUS
+    points = directions * radius + directions.new_tensor(ts.exact.SPHERE_CENTER)
+    x, y, z = directions.unbind(-1)
+    shapes = (z, 3 * z**2 - 1, x * y * z, 35 * z**4 - 30 * z**2 + 3)
+    values = sample(u, points, surface.grid)[0]
+    errors = []
+    for degree, (shape, value) in enumerate(zip(shapes, values, strict=True), start=1):
+        exact = shape * math.exp(-degree * (degree + 1) * time / radius**2)
+        errors.append(float((value - exact).abs().max() / exact.abs().max()))
+    return errors
+
+
+@pytest.fixture(scope="module")
+def sphere33():
+    return harmonics(33, torch.float32)
+
+
+# Measured at 33^3 (float64, t = 0.05), relative errors for l = 1..4 (float32 runs here):
+# euler 2.5e-3 6.8e-3 1.7e-2 1.7e-2; crank_nicolson(10) 2.4e-3 5.1e-3 1.1e-2 1.5e-2;
+# dopri5 2.4e-3 5.0e-3 1.0e-2 1.6e-2. The spatial error dominates; it is second order.
+@pytest.mark.parametrize(
+    ("method", "settings"),
+    [
+        ("euler", {}),
+        ("crank_nicolson", {"steps": 5}),
+    ],
+)
+def test_sphere_harmonics_decay(sphere33, method, settings):
+    u0, surface = sphere33
+    u = HeatFlow(TIME, method=method, **settings)(u0, surface)
+    errors = decay_errors(u, surface, TIME)
+    assert max(errors) < 2.5e-2, errors
+
+
+def test_sphere_harmonics_decay_torchdiffeq(sphere33):
+    pytest.importorskip("torchdiffeq")
+    u0, surface = sphere33
+    flow = HeatFlow(TIME, method="dopri5", options={"rtol": 1e-4, "atol": 1e-6})
+    errors = decay_errors(flow(u0, surface), surface, TIME)
+    assert max(errors) < 2.5e-2, errors
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("method", ["euler", "crank_nicolson", "dopri5"])
+def test_sphere_harmonics_decay_65(method):
+    if method == "dopri5":
+        pytest.importorskip("torchdiffeq")
+    u0, surface = harmonics(65, torch.float64)
+    settings = {"steps": 20} if method == "crank_nicolson" else {}
+    errors = decay_errors(HeatFlow(TIME, method=method, **settings)(u0, surface), surface, TIME)
+    assert max(errors) < 5e-3, errors
+
+
+def small_case(n: int = 17, dtype: torch.dtype = torch.float64, seed: int = 0):
+    grid = ts.Grid.cube(n, bound=1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, radius=1.0, dtype=dtype), grid)
+    generator = torch.Generator().manual_seed(seed)
+    u0 = torch.rand((1, 1, n, n, n), generator=generator, dtype=dtype)
+    return u0, surface
+
+
+def dirichlet_energy(u, surface):
+    """``-u^T A u / 2`` with ``A = W L``: the energy the symmetric scheme descends."""
+    return float(-(u * surface.grad_norm * ts.laplace_beltrami(u, surface)).sum() / 2)
+
+
+def test_energy_never_increases():
+    u0, surface = small_case()
+    energies = [dirichlet_energy(u, surface)
+                for u in HeatFlow(0.02)(u0, surface, times=[0.005, 0.01, 0.015, 0.02])]
+    energies = [dirichlet_energy(u0, surface), *energies]
+    assert all(b <= a for a, b in zip(energies, energies[1:], strict=False)), energies
+    assert energies[-1] < 0.5 * energies[0]
+
+
+def test_implicit_agrees_with_explicit():
+    u0, surface = small_case()
+    explicit = HeatFlow(0.01, steps=200)(u0, surface)
+    implicit = HeatFlow(0.01, method="crank_nicolson", steps=20)(u0, surface)
+    assert (explicit - implicit).abs().max() < 2e-3
+    backward = HeatFlow(0.01, method="implicit", steps=200)(u0, surface)
+    assert (explicit - backward).abs().max() < 2e-3
+
+
+def test_outside_band_keeps_u0_and_input_untouched():
+    u0, surface = small_case()
+    copy = u0.clone()
+    flow = HeatFlow(0.01, band_width=0.3)
+    u = flow(u0, surface)
+    band = surface.band(0.3).expand_as(u)
+    assert torch.equal(u[~band], u0[~band])
+    assert not torch.equal(u[band], u0[band])
+    assert torch.equal(u0, copy)
+
+
+def test_times_returns_each_time_and_end_matches():
+    u0, surface = small_case()
+    flow = HeatFlow(0.01, steps=20)
+    both = flow(u0, surface, times=[0.005, 0.01])
+    assert both.shape == (2, *u0.shape)
+    torch.testing.assert_close(both[-1], flow(u0, surface))
+
+
+def test_batch_of_signals_and_of_surfaces():
+    u0, surface = small_case()
+    u1, _ = small_case(seed=1)
+    batch = torch.cat((u0, u1))
+    flow = HeatFlow(0.005)
+    together = flow(batch, surface)
+    torch.testing.assert_close(together[1:], flow(u1, surface))
+    surfaces = ts.ImplicitSurface(surface.phi.expand(2, -1, -1, -1, -1), surface.grid)
+    torch.testing.assert_close(flow(batch, surfaces), together)
+
+
+def test_per_channel_diffusivity_is_per_channel_time():
+    u0, surface = small_case()
+    two = torch.cat((u0, u0), dim=1)
+    u = HeatFlow(0.005, diffusivity=[1.0, 2.0], steps=40)(two, surface)
+    torch.testing.assert_close(u[:, 1:], HeatFlow(0.01, steps=40)(u0, surface))
+
+
+def test_learnable_time_and_diffusivity_get_gradients():
+    u0, surface = small_case(9)
+    for method in ("euler", "implicit"):
+        flow = HeatFlow(0.01, learn_time=True, diffusivity=[1.0], learn_diffusivity=True,
+                        method=method, steps=3).double()
+        flow(u0, surface).square().sum().backward()
+        grads = [p.grad for p in flow.parameters()]
+        assert len(grads) == 2 and all(g is not None and torch.isfinite(g).all() for g in grads)
+        assert flow.time > 0 and bool(flow.diffusivity.value() > 0)
+
+
+def directions(count: int, n: int = 9, seed: int = 2) -> torch.Tensor:
+    """``count`` random volumes ``(count, 1, 1, n, n, n)``: gradcheck along these directions."""
+    generator = torch.Generator().manual_seed(seed)
+    return torch.randn((count, 1, 1, n, n, n), generator=generator, dtype=torch.float64)
+
+
+@pytest.mark.parametrize(
+    "method", ["euler", "implicit", pytest.param("crank_nicolson", marks=pytest.mark.slow)]
+)
+def test_gradcheck_data_diffusivity_and_time(method):
+    u0, surface = small_case(9)
+    basis = directions(3)
+    flow = HeatFlow(0.01, diffusivity=[1.3], learn_diffusivity=True, learn_time=True,
+                    method=method, steps=2, band_width=0.4).double()
+    coefficients = torch.zeros(3, dtype=torch.float64, requires_grad=True)
+
+    def run(coefficients, raw_time, raw_diffusivity):
+        u = u0 + (coefficients[:, None, None, None, None, None] * basis).sum(0)
+        parameters = {"time_value.raw": raw_time, "diffusivity.raw": raw_diffusivity}
+        return torch.func.functional_call(flow, parameters, (u, surface))
+
+    inputs = (coefficients, flow.time_value.raw.detach().clone().requires_grad_(),
+              flow.diffusivity.raw.detach().clone().requires_grad_())
+    assert torch.autograd.gradcheck(run, inputs, eps=1e-6, atol=1e-7)
+
+
+def test_gradcheck_phi_through_implicit_solve():
+    grid = ts.Grid.cube(9, bound=1.5)
+    phi0 = ts.sdf.sphere(grid, radius=1.0, dtype=torch.float64)
+    basis = 0.05 * directions(2)
+    u0, _ = small_case(9)
+    flow = HeatFlow(0.01, method="implicit", steps=2, band_width=0.4)
+
+    def run(coefficients):
+        phi = phi0 + (coefficients[:, None, None, None, None, None] * basis).sum(0)
+        return flow(u0, ts.ImplicitSurface(phi, grid))
+
+    coefficients = torch.zeros(2, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(run, (coefficients,), eps=1e-6, atol=1e-7)
+
+
+def test_torchdiffeq_adjoint_matches_direct_backprop():
+    pytest.importorskip("torchdiffeq")
+    u0, surface = small_case(9)
+    grads = []
+    for adjoint in (False, True):
+        flow = HeatFlow(0.01, method="dopri5", learn_diffusivity=True, adjoint=adjoint,
+                        options={"rtol": 1e-9, "atol": 1e-11}).double()
+        flow(u0, surface).square().sum().backward()
+        grads.append(next(flow.parameters()).grad)
+    torch.testing.assert_close(grads[0], grads[1], rtol=1e-5, atol=1e-8)
+
+
+def test_missing_torchdiffeq_is_explained(monkeypatch):
+    import builtins
+
+    real_import = builtins.__import__
+
+    def fake_import(name, *args, **kwargs):
+        if name == "torchdiffeq":
+            raise ImportError("No module named 'torchdiffeq'")
+        return real_import(name, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "__import__", fake_import)
+    u0, surface = small_case(9)
+    with pytest.raises(ImportError, match="pip install torchdiffeq"):
+        HeatFlow(0.01, method="dopri5")(u0, surface)
+
+
+def test_bad_arguments_name_themselves():
+    u0, surface = small_case(9)
+    with pytest.raises(ValueError, match="time"):
+        HeatFlow(-1.0)
+    with pytest.raises(ValueError, match="steps"):
+        HeatFlow(0.1, steps=0)
+    with pytest.raises(ValueError, match="diffusivity"):
+        HeatFlow(0.1, diffusivity=0.0)
+    with pytest.raises(ValueError, match="scheme"):
+        HeatFlow(0.1, scheme="upwind")
+    with pytest.raises(ValueError, match="method"):
+        HeatFlow(0.1, method="implicit", scheme="central")(u0, surface)
+    with pytest.raises(ValueError, match="u0"):
+        HeatFlow(0.1)(u0[0], surface)
+    with pytest.raises(ValueError, match="times"):
+        HeatFlow(0.1)(u0, surface, times=[0.2])
+    with pytest.raises(ValueError, match="diffusivity"):
+        HeatFlow(0.01, diffusivity=[1.0, 2.0, 3.0])(torch.cat((u0, u0), 1), surface)
+
+
+def test_progress_bar_and_reextension_hooks_run(capsys):
+    pytest.importorskip("tqdm")
+    u0, surface = small_case(9)
+    u = HeatFlow(0.01, steps=4, progress=True, reextend_every=2)(u0, surface)
+    assert torch.isfinite(u).all()
+    assert "HeatFlow" in capsys.readouterr().err

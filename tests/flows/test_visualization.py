@@ -1,0 +1,42 @@
+"""FlowVisualization: noise becomes streaks, correlated along T far more than across it."""
+
+from __future__ import annotations
+
+import torch
+
+import torchsurf as ts
+from torchsurf.flows import FlowVisualization
+
+
+def test_streaks_are_correlated_along_the_field_not_across():
+    grid = ts.Grid.cube(33, bound=1.3)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, radius=1.0), grid)
+    points = grid.points()
+    x, y, _ = points.unbind(-1)
+    # T: circles around the z axis (east); across it: the meridians (south)
+    east = torch.stack((-y, x, torch.zeros_like(x)), dim=0)[None]
+    noise = FlowVisualization.noise(surface, generator=torch.Generator().manual_seed(0))
+    u = FlowVisualization(0.02, method="implicit", steps=4)(noise, surface, direction=east)
+    u = (u - u.mean())[0, 0]
+    # near the +x axis, east is +y (volume dim 1) and the meridians run along z (dim 0)
+    mask = ((surface.phi.abs() <= surface.spacing)[0, 0] & (points[..., 1].abs() < 0.2)
+            & (points[..., 2].abs() < 0.5) & (points[..., 0] > 0))
+
+    def correlation(dim: int, shift: int = 2) -> float:
+        both = mask & torch.roll(mask, shifts=shift, dims=dim)
+        a, b = u[both], torch.roll(u, shifts=shift, dims=dim)[both]
+        return float((a * b).mean() / (a.std() * b.std()))
+
+    along, across = correlation(1), correlation(0)
+    assert along > 3 * abs(across), (along, across)
+
+
+def test_explicit_and_implicit_agree():
+    grid = ts.Grid.cube(13, bound=1.3)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, radius=1.0, dtype=torch.float64), grid)
+    e1, _ = surface.principal_directions()
+    noise = FlowVisualization.noise(surface, generator=torch.Generator().manual_seed(1))
+    explicit = FlowVisualization(0.01, isotropic=0.1, steps=100)(noise, surface, direction=e1)
+    implicit = FlowVisualization(0.01, isotropic=0.1, method="crank_nicolson", steps=10)(
+        noise, surface, direction=e1)
+    assert (explicit - implicit).abs().max() < 5e-3

@@ -1,0 +1,27 @@
+"""Flows on implicit surfaces (SPEC §2): heat, anisotropic, harmonic maps, colour,
+reaction–diffusion, flow visualisation and data extension, with explicit, implicit
+(conjugate gradients) and torchdiffeq integration."""
+
+from ._integrators import INTEGRATORS
+from .anisotropic import AnisotropicFlow
+from .base import Flow
+from .color import ColorDenoise
+from .extension import Extension, closest_point_extension, pde_extension
+from .harmonic import HarmonicMapFlow
+from .heat import HeatFlow
+from .reaction_diffusion import ReactionDiffusion
+from .visualization import FlowVisualization
+
+__all__ = [
+    "INTEGRATORS",
+    "AnisotropicFlow",
+    "ColorDenoise",
+    "Extension",
+    "Flow",
+    "FlowVisualization",
+    "HarmonicMapFlow",
+    "HeatFlow",
+    "ReactionDiffusion",
+    "closest_point_extension",
+    "pde_extension",
+]

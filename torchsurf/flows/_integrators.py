@@ -1,0 +1,235 @@
+"""Time integrators of the flows, chosen by name from :data:`INTEGRATORS` (or torchdiffeq).
+
+A flow hands the integrator a :class:`System`: the right-hand side ``du/dt`` (already zero
+outside the surface's band), its stable explicit step, an optional projection applied after
+every step (renormalisation of unit vectors) and, for linear flows ``W du/dt = A u`` with ``A``
+symmetric negative semi-definite, the operator ``A`` so that implicit steps can use conjugate
+gradients. Nodes outside the band keep their initial values throughout (a Dirichlet condition
+on the band's edge), which keeps the band-restricted ``A`` symmetric.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+from ._solve import SolverOptions, solve_symmetric
+
+Rate = Callable[[Tensor], Tensor]
+
+
+def tensors(*values: object) -> tuple[Tensor, ...]:
+    """The tensors among ``values`` that require grad (what ``odeint_adjoint`` differentiates)."""
+    return tuple(v for v in values if isinstance(v, Tensor) and v.requires_grad)
+
+
+@dataclass
+class Linear:
+    """A linear symmetric flow ``W du/dt = A u`` (SPEC §3: ``L = W^-1 A``).
+
+    Attributes:
+        operator: ``(x, *params) -> A x``, symmetric negative semi-definite on volumes
+            ``(B, C, D, H, W)``, reading every tensor it depends on from ``params``.
+        params: those tensors; ``params[0]`` is ``W = |grad phi|`` ``(B or 1, 1, D, H, W)``.
+    """
+
+    operator: Callable[..., Tensor]
+    params: tuple[Tensor, ...]
+
+
+@dataclass
+class System:
+    """What an integrator needs from a flow.
+
+    Attributes:
+        rate: ``u -> du/dt``, zero outside ``band``.
+        band: ``(B or 1, 1, D, H, W)`` float mask of the nodes that evolve.
+        stable_step: the largest stable forward-Euler step, physical time.
+        project: applied after every step (e.g. ``u / |u|``), or ``None``.
+        linear: the symmetric linear form, for the implicit integrators; ``None`` if nonlinear.
+        params: tensors ``rate`` reads that may need gradients (for ``odeint_adjoint``).
+    """
+
+    rate: Rate
+    band: Tensor
+    stable_step: float
+    project: Callable[[Tensor], Tensor] | None = None
+    linear: Linear | None = None
+    params: tuple[Tensor, ...] = field(default_factory=tuple)
+
+
+@dataclass
+class Schedule:
+    """How to walk from time 0 through ``times``: ``steps`` per interval, or automatic.
+
+    Attributes:
+        times: increasing end times (floats or 0-d tensors), physical time.
+        steps: total number of steps over ``[0, times[-1]]``, or ``None`` for the stable step.
+        solver: the conjugate-gradient stopping rule (implicit integrators).
+        options: extra keyword options passed to torchdiffeq.
+        adjoint: use ``torchdiffeq.odeint_adjoint``.
+        after_step: ``(u, step_index) -> u`` hook (progress bar, re-extension), or ``None``.
+    """
+
+    times: Sequence[float | Tensor]
+    steps: int | None = None
+    solver: SolverOptions = field(default_factory=SolverOptions)
+    options: dict = field(default_factory=dict)
+    adjoint: bool = False
+    after_step: Callable[[Tensor, int], Tensor] | None = None
+
+
+def _value(time: float | Tensor) -> float:
+    return float(time.detach()) if isinstance(time, Tensor) else float(time)
+
+
+def _intervals(schedule: Schedule, step: float) -> Iterator[tuple[int, Tensor | float, int]]:
+    """``(interval index, step size, number of steps)`` for each interval of ``schedule``."""
+    end = _value(schedule.times[-1])
+    previous: float | Tensor = 0.0
+    for index, time in enumerate(schedule.times):
+        length = time - previous
+        if schedule.steps is not None:
+            count = max(1, round(schedule.steps * _value(length) / end))
+        else:
+            count = max(1, math.ceil(_value(length) / step * (1 - 1e-9)))
+        yield index, length / count, count
+        previous = time
+
+
+def _finish(system: System, u: Tensor) -> Tensor:
+    return u if system.project is None else system.project(u)
+
+
+def _explicit(
+    step_fn: Callable[[System, Tensor, Tensor | float], Tensor],
+) -> Callable[[System, Tensor, Schedule], list[Tensor]]:
+    def integrate(system: System, u0: Tensor, schedule: Schedule) -> list[Tensor]:
+        u, out, done = u0, [], 0
+        for _, dt, count in _intervals(schedule, system.stable_step):
+            for _ in range(count):
+                u = _finish(system, step_fn(system, u, dt))
+                done += 1
+                if schedule.after_step is not None:
+                    u = schedule.after_step(u, done)
+            out.append(u)
+        return out
+
+    return integrate
+
+
+def _euler_step(system: System, u: Tensor, dt: Tensor | float) -> Tensor:
+    return u + dt * system.rate(u)
+
+
+def _heun_step(system: System, u: Tensor, dt: Tensor | float) -> Tensor:
+    first = system.rate(u)
+    second = system.rate(_finish(system, u + dt * first))
+    return u + 0.5 * dt * (first + second)
+
+
+def _theta_method(theta: float) -> Callable[[System, Tensor, Schedule], list[Tensor]]:
+    """``W u_new - theta dt A u_new = W u + (1 - theta) dt A u``: 1 backward Euler, 1/2 CN."""
+
+    def integrate(system: System, u0: Tensor, schedule: Schedule) -> list[Tensor]:
+        linear = system.linear
+        if linear is None:
+            raise ValueError(
+                "method: the implicit integrators need a linear symmetric flow (HeatFlow, "
+                "FlowVisualization); use 'euler', 'heun' or a torchdiffeq method"
+            )
+        band, weight = system.band, linear.params[0]
+        outside = (1 - band) * u0
+        fixed_image = linear.operator(outside, *linear.params)
+        u, out, done = u0, [], 0
+        for _, dt, count in _intervals(schedule, system.stable_step):
+            step = dt if isinstance(dt, Tensor) else torch.tensor(float(dt), dtype=u0.dtype, device=u0.device)
+
+            def matrix(x: Tensor, step: Tensor, *params: Tensor) -> Tensor:
+                return band * (params[0] * x - theta * step * linear.operator(band * x, *params))
+
+            params = (step, *linear.params)
+            for _ in range(count):
+                rhs = weight * u + theta * dt * fixed_image
+                if theta < 1:
+                    rhs = rhs + (1 - theta) * dt * linear.operator(u, *linear.params)
+                x = solve_symmetric(matrix, band * rhs, band * u, params, schedule.solver)
+                u = _finish(system, band * x + outside)
+                done += 1
+                if schedule.after_step is not None:
+                    u = schedule.after_step(u, done)
+            out.append(u)
+        return out
+
+    return integrate
+
+
+def _torchdiffeq(method: str) -> Callable[[System, Tensor, Schedule], list[Tensor]]:
+    def integrate(system: System, u0: Tensor, schedule: Schedule) -> list[Tensor]:
+        try:
+            import torchdiffeq
+        except ImportError as error:
+            raise ImportError(
+                f"method={method!r} needs torchdiffeq, an optional dependency: "
+                "pip install torchdiffeq (or pip install 'torchsurf[ode]'); the built-in "
+                f"methods are {sorted(INTEGRATORS)}"
+            ) from error
+        times = torch.stack([torch.as_tensor(t, dtype=u0.dtype, device=u0.device)
+                             for t in (0.0, *schedule.times)])
+        options = dict(schedule.options)
+        if method in _FIXED_STEP and "step_size" not in options:
+            end = _value(schedule.times[-1])
+            count = schedule.steps or math.ceil(end / system.stable_step * (1 - 1e-9))
+            options["step_size"] = end / max(count, 1)
+        kwargs = {key: options.pop(key) for key in ("rtol", "atol") if key in options}
+
+        def func(t: Tensor, u: Tensor) -> Tensor:
+            return system.rate(u)
+
+        if schedule.adjoint:
+            module = _RateModule(func)
+            solution = torchdiffeq.odeint_adjoint(
+                module, u0, times, method=method, options=options or None,
+                adjoint_params=tuple(p for p in system.params if p.requires_grad), **kwargs,
+            )
+        else:
+            solution = torchdiffeq.odeint(
+                func, u0, times, method=method, options=options or None, **kwargs
+            )
+        return [_finish(system, u) for u in solution[1:]]
+
+    return integrate
+
+
+class _RateModule(torch.nn.Module):
+    """``odeint_adjoint`` wants an ``nn.Module``; its parameters are passed explicitly."""
+
+    def __init__(self, func: Callable[[Tensor, Tensor], Tensor]) -> None:
+        super().__init__()
+        self.func = func
+
+    def forward(self, t: Tensor, u: Tensor) -> Tensor:
+        return self.func(t, u)
+
+
+_FIXED_STEP = ("euler", "midpoint", "rk4", "explicit_adams", "implicit_adams", "heun3")
+
+INTEGRATORS: dict[str, Callable[[System, Tensor, Schedule], list[Tensor]]] = {
+    "euler": _explicit(_euler_step),
+    "heun": _explicit(_heun_step),
+    "implicit": _theta_method(1.0),
+    "crank_nicolson": _theta_method(0.5),
+}
+"""Built-in integrators by name; any other name is handed to torchdiffeq (``"dopri5"``, ``"rk4"``...)."""
+
+IMPLICIT = ("implicit", "crank_nicolson")
+
+
+def integrate(method: str, system: System, u0: Tensor, schedule: Schedule) -> list[Tensor]:
+    """Run ``method`` on ``system`` from ``u0``; returns ``u`` at each of ``schedule.times``."""
+    integrator = INTEGRATORS.get(method) or _torchdiffeq(method)
+    return integrator(system, u0, schedule)

@@ -1,0 +1,96 @@
+"""Intrinsic heat flow ``u_t = D (1/W) div(W P grad u)`` (SPEC §2, eqs. 7-8)."""
+
+from __future__ import annotations
+
+from torch import Tensor
+
+from .._checks import check_choice
+from ..operators import _paths, laplace_beltrami
+from ..operators.laplace_beltrami import SCHEMES, _divergence_form
+from ..surface import ImplicitSurface
+from ._integrators import Linear, System, tensors
+from ._positive import Positive
+from .base import Flow
+
+SYMMETRIC_SCHEMES = ("symmetric", "conservative")
+
+
+class HeatFlow(Flow):
+    """Heat flow on the surface: ``u_t = D Lap_S u``, ``Lap_S`` by :func:`torchsurf.laplace_beltrami`.
+
+    With the default symmetric scheme, sampled on S, the flow is second order in ``h``
+    without any re-extension (sphere, l = 2, t = 0.05: relative error 6.6e-3, 1.5e-3, 4.1e-4
+    at 33^3, 65^3, 129^3, issue 3).
+
+    Stable explicit step: ``dt <= h^2 / (6 max D)`` (the symmetric and conservative schemes,
+    ``|grad phi| = 1``; ``P <= I``). ``"implicit"`` and ``"crank_nicolson"`` solve
+    ``(W - theta dt D A) u_new = ...`` with ``A = W Lap_S`` symmetric negative semi-definite
+    (schemes ``"symmetric"`` and ``"conservative"``) by conjugate gradients; any step size is
+    stable.
+
+    Args:
+        time: physical end time, world units squared (with ``D = 1``).
+        diffusivity: ``D``, a positive number or one per channel ``(C,)``.
+        learn_diffusivity: make ``D`` an ``nn.Parameter`` (kept positive by softplus).
+        scheme: ``"symmetric"`` (default), ``"conservative"`` or ``"central"`` (explicit
+            and torchdiffeq methods only: not symmetric).
+        path: how stencils are applied (see :func:`torchsurf.laplace_beltrami`).
+        **kwargs: the integration settings of :class:`Flow` (``method``, ``steps``, ...).
+
+    Shapes: ``u0`` ``(B, C, D, H, W)`` -> ``(B, C, D, H, W)``.
+
+    Example:
+        >>> import torch
+        >>> import torchsurf as ts
+        >>> case = ts.exact.sphere_harmonic(2, 17, dtype=torch.float32)
+        >>> surface = ts.ImplicitSurface(case.phi, case.grid)
+        >>> ts.flows.HeatFlow(time=0.01)(case.u, surface).shape
+        torch.Size([1, 1, 17, 17, 17])
+    """
+
+    def __init__(
+        self,
+        time: float,
+        diffusivity: float | Tensor = 1.0,
+        learn_diffusivity: bool = False,
+        scheme: str = "symmetric",
+        path: str = "auto",
+        **kwargs: object,
+    ) -> None:
+        super().__init__(time, **kwargs)
+        self.diffusivity = Positive(diffusivity, "diffusivity", learnable=learn_diffusivity)
+        self.scheme = check_choice(scheme, "scheme", SCHEMES)
+        self.path = path
+
+    def diffusion_length(self) -> float:
+        return (self.diffusivity.maximum() * self.time_value.maximum()) ** 0.5
+
+    def system(self, u0: Tensor, surface: ImplicitSurface, **inputs: Tensor) -> System:
+        if inputs:
+            raise TypeError(f"HeatFlow takes no inputs besides u0 and surface, got {sorted(inputs)}")
+        band = self.band(surface, u0)
+        d = self.diffusivity.volume(u0)
+
+        def rate(u: Tensor) -> Tensor:
+            return band * d * laplace_beltrami(u, surface, self.scheme, self.path)
+
+        linear = None
+        if self.scheme in SYMMETRIC_SCHEMES:
+            spacing, scheme, path = surface.spacing, self.scheme, self.path
+
+            def operator(x: Tensor, weight: Tensor, normal: Tensor, *diffusivity: Tensor
+                         ) -> Tensor:
+                scale = diffusivity[0] if diffusivity else d
+                laplacian = _paths.run(
+                    _divergence_form, path, x, x, normal, weight, spacing, scheme
+                )
+                return scale * weight * laplacian
+
+            geometry = (surface.grad_norm, surface.normal)
+            linear = Linear(operator, geometry + ((d,) if isinstance(d, Tensor) else ()))
+        step = surface.spacing**2 / (6.0 * self.diffusivity.maximum())
+        params = tensors(d, surface.normal, surface.grad_norm)
+        return System(rate, band, step, linear=linear, params=params)
+
+    def extra_repr(self) -> str:
+        return f"{super().extra_repr()}, scheme={self.scheme!r}"
