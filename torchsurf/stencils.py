@@ -166,8 +166,8 @@ def pad_flux(flux: Tensor, side: int) -> Tensor:
 def resolve_path(path: str, volume: Tensor) -> str:
     """Choose how stencils are applied: ``"auto"`` is slicing on CPU, conv3d elsewhere.
 
-    On CPU, conv3d with few channels falls back to an im2col kernel that measured 3-6x slower
-    than shifted slices (docs/benchmarks.md).
+    On CPU, conv3d with few channels falls back to an im2col kernel that measured slower
+    than shifted slices (2-5x, docs/benchmarks.md).
     """
     check_choice(path, "path", PATHS)
     if path != "auto":
