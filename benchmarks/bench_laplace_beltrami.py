@@ -47,7 +47,7 @@ import torch
 
 import torchsurf as ts
 
-SCHEMES = ("symmetric", "conservative", "central")
+SCHEMES = ("symmetric", "conservative", "octant", "central")
 PATHS = ("slicing", "conv3d", "compiled")
 BYTES_PER_VOXEL = 24  # read u (4), n (12), W (4); write the result (4); float32
 TEAM_TUNABLES = "glibc.malloc.mmap_threshold=4294967296:glibc.malloc.trim_threshold=68719476736"

@@ -100,11 +100,28 @@ HESSIAN: tuple[Stencil, ...] = SECOND + MIXED
 """Second derivatives in the order xx, yy, zz, xy, xz, yz."""
 
 
-def one_sided(side: int) -> tuple[Stencil, ...]:
-    """Forward differences for ``side = +1``, backward for ``side = -1``."""
-    if side not in (1, -1):
-        raise ValueError(f"side must be +1 or -1, got {side!r}")
-    return FORWARD if side == 1 else BACKWARD
+Side = int | tuple[int, int, int]
+
+
+def per_axis(side: Side) -> tuple[int, int, int]:
+    """``side`` as one sign per axis ``(x, y, z)``: +1 forward differences, -1 backward."""
+    sides = (side,) * 3 if isinstance(side, int) else tuple(side)
+    if len(sides) != 3 or any(s not in (1, -1) for s in sides):
+        raise ValueError(f"side must be +1, -1 or three of them (x, y, z), got {side!r}")
+    return sides
+
+
+def opposite(side: Side) -> tuple[int, int, int]:
+    """The other one-sided differences on every axis."""
+    return tuple(-s for s in per_axis(side))
+
+
+def one_sided(side: Side) -> tuple[Stencil, ...]:
+    """One-sided differences along x, y, z: forward where ``side`` is +1, backward where -1.
+
+    ``side`` is one sign for all three axes or a sign per axis.
+    """
+    return tuple((FORWARD if s == 1 else BACKWARD)[a] for a, s in enumerate(per_axis(side)))
 
 
 def pad(volume: Tensor, mode: str = "replicate") -> Tensor:
@@ -129,7 +146,7 @@ def pad(volume: Tensor, mode: str = "replicate") -> Tensor:
     return 2.0 * replicated - F.pad(volume, halo, mode="reflect")
 
 
-def pad_flux(flux: Tensor, side: int) -> Tensor:
+def pad_flux(flux: Tensor, side: Side) -> Tensor:
     """Halo a face-centred flux so that nothing flows through the faces of the grid's box.
 
     A one-sided gradient of side ``+1`` puts component ``x`` of node ``i`` on the face
@@ -140,18 +157,19 @@ def pad_flux(flux: Tensor, side: int) -> Tensor:
 
     Args:
         flux: ``(B, C, 3, D, H, W)``, components in ``(x, y, z)`` order.
-        side: ``+1`` or ``-1``, the side of the differences that produced the flux.
+        side: ``+1`` or ``-1`` (or one per axis), the side of the differences that produced
+            the flux.
 
     Returns:
         ``(B, C, 3, D + 2, H + 2, W + 2)``.
     """
-    one_sided(side)
+    sides = per_axis(side)
     components = []
     for axis in range(3):
         component = flux[:, :, axis]
         dim = component.dim() - 1 - axis
         length = component.shape[dim]
-        if side == 1:
+        if sides[axis] == 1:
             inner = component.narrow(dim, 0, length - 1)
             low, high = 1, 2
         else:

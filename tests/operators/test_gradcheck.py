@@ -28,6 +28,7 @@ DIRECTION = ts.ImplicitSurface(_phi(), GRID).principal_directions()[0].detach()
 OPERATORS = {
     "lb_symmetric": lambda u, s: ts.laplace_beltrami(u, s, scheme="symmetric"),
     "lb_conservative": lambda u, s: ts.laplace_beltrami(u, s, scheme="conservative"),
+    "lb_octant": lambda u, s: ts.laplace_beltrami(u, s, scheme="octant"),
     "lb_central": lambda u, s: ts.laplace_beltrami(u, s, scheme="central"),
     "gradient": lambda u, s: ts.intrinsic_gradient(u, s),
     "divergence": lambda u, s: ts.intrinsic_divergence(torch.cat([u, u**2, -u], 1), s),

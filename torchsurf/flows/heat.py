@@ -12,7 +12,7 @@ from ._integrators import Linear, System, tensors
 from ._positive import Positive
 from .base import Flow
 
-SYMMETRIC_SCHEMES = ("symmetric", "conservative")
+SYMMETRIC_SCHEMES = ("symmetric", "conservative", "octant")
 
 
 class HeatFlow(Flow):

@@ -16,6 +16,7 @@ takes it whenever it is being compiled (docs/benchmarks.md).
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Callable
 
 import torch
@@ -26,18 +27,24 @@ from ..stencils import Offset, shifted
 
 FluxMap = Callable[[Tensor], Tensor]
 
-SIDES = {"conservative": (1,), "symmetric": (1, -1)}
+SIDES: dict[str, tuple[tuple[int, int, int], ...]] = {
+    "conservative": ((1, 1, 1),),
+    "symmetric": ((1, 1, 1), (-1, -1, -1)),
+    "octant": tuple(itertools.product((1, -1), repeat=3)),
+}
+"""Each scheme's one-sided compositions: per axis, +1 for forward differences in the gradient
+(then backward in the divergence), -1 for the reverse."""
 
 
 def projected_gradient(
-    u: Tensor, normal: Tensor, spacing: float, side: int, path: str
+    u: Tensor, normal: Tensor, spacing: float, side: stencils.Side, path: str
 ) -> Tensor:
     """``P D± u``: one-sided gradient projected on the tangent plane.
 
     Args:
         u: ``(B, C, D, H, W)``; padded by replication (no flux through the grid's faces).
         normal: ``(B or 1, 3, D, H, W)`` unit normals.
-        side: ``+1`` forward differences, ``-1`` backward.
+        side: ``+1`` forward differences, ``-1`` backward, or one of them per axis.
 
     Returns:
         ``(B, C, 3, D, H, W)``, units of ``u`` per world length.
@@ -49,7 +56,7 @@ def projected_gradient(
 
 
 def weighted_divergence(
-    flux: Tensor, grad_norm: Tensor, spacing: float, side: int, path: str
+    flux: Tensor, grad_norm: Tensor, spacing: float, side: stencils.Side, path: str
 ) -> Tensor:
     """``(1/W) D∓ . (W flux)`` for a flux built from one-sided differences of ``side``.
 
@@ -64,7 +71,8 @@ def weighted_divergence(
         ``(B, C, D, H, W)``.
     """
     padded = stencils.pad_flux(flux * grad_norm[:, None], side)
-    return stencils.contract(padded, stencils.one_sided(-side), path) / (spacing * grad_norm)
+    opposite = stencils.one_sided(stencils.opposite(side))
+    return stencils.contract(padded, opposite, path) / (spacing * grad_norm)
 
 
 def flux_form(
@@ -117,6 +125,8 @@ def _combine(terms: list[tuple[float, Tensor]]) -> Tensor:
 def _open_faces(like: Tensor, axis: int, side: int, at: Offset) -> Tensor:
     """1 where the face of each node shifted by ``at`` along ``axis`` lies inside the box, else 0.
 
+    ``side`` is the sign of the one-sided differences along ``axis``.
+
     Broadcastable to ``like`` ``(..., D, H, W)``: varies along ``axis`` only, so that it costs
     no memory traffic. The face of node ``p`` for differences of ``side`` lies between ``p``
     and ``p + side``; it is outside for the last node (``side = +1``), the first node
@@ -134,7 +144,7 @@ def _open_faces(like: Tensor, axis: int, side: int, at: Offset) -> Tensor:
 
 def _face_flux(
     u: Tensor, normal: Tensor, weight: Tensor, spacing: float,
-    flux_map: FluxMap | None, side: int, axis: int, at: Offset,
+    flux_map: FluxMap | None, side: tuple[int, int, int], axis: int, at: Offset,
 ) -> Tensor:
     """Component ``axis`` of ``W f(P D_side u)`` at the nodes shifted by ``at``; ``(B, C, D, H, W)``.
 
@@ -149,7 +159,7 @@ def _face_flux(
         gradient = [g / spacing for g in gradient]
     n = [shifted(normal[:, c: c + 1], at) for c in range(3)]
     along = gradient[0] * n[0] + gradient[1] * n[1] + gradient[2] * n[2]
-    scale = shifted(weight, at) * _open_faces(gradient[0], axis, side, at)
+    scale = shifted(weight, at) * _open_faces(gradient[0], axis, side[axis], at)
     if flux_map is None:
         return scale * (gradient[axis] - along * n[axis])
     v = torch.stack([g - along * nc for g, nc in zip(gradient, n, strict=True)], dim=2)
@@ -183,7 +193,7 @@ def fused_flux_form(
     terms = [
         (w, _face_flux(padded_u, padded_normal, padded_weight, spacing, flux_map, side, axis, offset))
         for side in sides
-        for axis, stencil in enumerate(stencils.one_sided(-side))
+        for axis, stencil in enumerate(stencils.one_sided(stencils.opposite(side)))
         for offset, w in stencil.taps
     ]
     scale = spacing * len(sides) * (spacing if flux_map is None else 1.0)

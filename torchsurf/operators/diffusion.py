@@ -103,7 +103,8 @@ def anisotropic_diffusion(
         eps: regularisation of ``|P grad u|``, units of ``u`` per world length.
         coupled: measure ``|P grad u|`` over all channels together (vector-valued data, as in
             the harmonic-map flow) instead of per channel.
-        scheme: ``"symmetric"`` (default) or ``"conservative"`` (Appendix B).
+        scheme: ``"symmetric"`` (default), ``"conservative"`` (Appendix B) or ``"octant"``
+            (see :func:`torchsurf.laplace_beltrami`).
         path: how stencils are applied (see :func:`torchsurf.laplace_beltrami`).
 
     Returns:
@@ -134,7 +135,7 @@ def directional_diffusion(
         surface: the implicit surface (batch 1 or B).
         direction: ``T``, ``(B or 1, 3, D, H, W)`` in ``(x, y, z)`` order, tangent to the level
             sets and usually of unit length (e.g. a principal direction).
-        scheme: ``"symmetric"`` (default) or ``"conservative"``.
+        scheme: ``"symmetric"`` (default), ``"conservative"`` or ``"octant"``.
         path: how stencils are applied.
 
     Returns:

@@ -12,7 +12,7 @@ from . import _paths
 from ._flux_form import flux_form, fused_flux_form
 from ._inputs import check_data
 
-SCHEMES = ("symmetric", "conservative", "central")
+SCHEMES = ("symmetric", "conservative", "octant", "central")
 
 
 def _divergence_form(
@@ -100,13 +100,17 @@ def laplace_beltrami(
       stable for ``dt <= h^2 / 6``.
     - ``"conservative"``: ``(1/W) D- . (W P D+ u)``, the paper's Appendix B exactly; symmetric
       negative semi-definite; first order (1.0) on curved surfaces; ``dt <= h^2 / 6``.
+    - ``"octant"``: the mean of the eight compositions that pick forward or backward
+      differences per axis (backward-then-forward and forward-then-backward are two of them);
+      symmetric negative semi-definite; second order (2.0) with an error 2.7-4x smaller than
+      ``"symmetric"`` on the torus, for about twice its cost; ``dt <= h^2 / 6``.
     - ``"central"``: ``Lap u - n^T (Hess u) n - H dn u`` with central differences; second order
       (2.0); not symmetric; explicit steps take ``dt <= h^2 / 6`` in practice.
 
     Args:
         u: data ``(B, C, D, H, W)``; ``surface`` has batch 1 or B.
         surface: the implicit surface.
-        scheme: one of ``"symmetric"``, ``"conservative"``, ``"central"``.
+        scheme: one of ``"symmetric"``, ``"conservative"``, ``"octant"``, ``"central"``.
         path: ``"auto"``, ``"slicing"``, ``"conv3d"`` or ``"compiled"``: how the stencils are
             applied; every path gives the same numbers. ``"auto"`` compiles volumes of at least
             64^3 voxels (double backward needs an eager path).
