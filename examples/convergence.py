@@ -20,7 +20,7 @@ import torch
 import torchsurf as ts
 from torchsurf import exact
 
-SCHEMES = ("symmetric", "conservative", "central")
+SCHEMES = ("symmetric", "octant", "conservative", "central")
 
 
 def cases() -> dict[str, exact.Case]:
