@@ -109,13 +109,14 @@ class Grid:
         last = normalized.new_tensor([n - 1 for n in reversed(self.shape)])
         return self.index_to_world((normalized + 1.0) * 0.5 * last)
 
-    def contains(self, points: Tensor) -> Tensor:
+    def contains(self, points: Tensor, tolerance: float = 0.0) -> Tensor:
         """Boolean ``(...)``: whether each world point ``(..., 3)`` lies inside the grid's box.
 
-        Points on the box's faces count as inside, with a tolerance of a few rounding errors of
-        the index computation, so that every node of the grid is contained.
+        Points on the box's faces count as inside, with a slack of a few rounding errors of
+        the index computation (so that every node of the grid is contained) plus
+        ``tolerance`` grid cells.
         """
         index = self.world_to_index(points)
         last = index.new_tensor([n - 1 for n in reversed(self.shape)])
-        slack = 8 * torch.finfo(index.dtype).eps * last
+        slack = tolerance + 8 * torch.finfo(index.dtype).eps * last
         return ((index >= -slack) & (index <= last + slack)).all(dim=-1)

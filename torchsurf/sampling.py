@@ -75,9 +75,7 @@ def sample(field: Tensor, points: Tensor, grid: Grid) -> Tensor:
 
 
 def _check_inside(points: Tensor, grid: Grid) -> None:
-    index = grid.world_to_index(points.detach())
-    last = index.new_tensor([n - 1 for n in reversed(grid.shape)])
-    outside = ((index < -_OUTSIDE_TOLERANCE) | (index > last + _OUTSIDE_TOLERANCE)).any(dim=-1)
+    outside = ~grid.contains(points.detach(), tolerance=_OUTSIDE_TOLERANCE)
     if bool(outside.any()):
         first = tuple(int(i) for i in outside.nonzero()[0])
         low = grid.origin
