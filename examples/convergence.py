@@ -20,7 +20,7 @@ import torch
 import torchsurf as ts
 from torchsurf import exact
 
-SCHEMES = ("symmetric", "octant", "conservative", "central")
+SCHEMES = ("octant", "symmetric", "conservative", "central")  # the default first
 
 
 def cases() -> dict[str, exact.Case]:

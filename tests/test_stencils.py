@@ -223,3 +223,21 @@ def test_pad_flux_divergence_matches_autograd_adjoint(side, generator):
     (transpose,) = torch.autograd.grad(gradient, u, grad_outputs=f)
     divergence = stencils.contract(stencils.pad_flux(f, side), stencils.one_sided(-side))
     torch.testing.assert_close(transpose, -divergence, rtol=0, atol=1e-12)
+
+
+def test_pad_mirrored_negates_the_component_normal_to_each_face(generator):
+    field = torch.randn(2, 3, 4, 5, 6, dtype=torch.float64, generator=generator)
+    padded = stencils.pad_mirrored(field)
+    assert padded.shape == (2, 3, 6, 7, 8)
+    torch.testing.assert_close(padded[..., 1:-1, 1:-1, 1:-1], field)
+    for axis in range(3):
+        dim = 4 - axis  # x varies along the last dimension
+        for halo, edge in ((0, 0), (-1, -1)):
+            index = [slice(None), slice(None), slice(1, -1), slice(1, -1), slice(1, -1)]
+            index[dim] = halo
+            inside = [slice(None)] * 5
+            inside[dim] = edge
+            sign = torch.ones(3, dtype=field.dtype)
+            sign[axis] = -1.0
+            expected = sign.view(1, 3, 1, 1) * field[tuple(inside)]
+            torch.testing.assert_close(padded[tuple(index)], expected)

@@ -146,6 +146,36 @@ def pad(volume: Tensor, mode: str = "replicate") -> Tensor:
     return 2.0 * replicated - F.pad(volume, halo, mode="reflect")
 
 
+def pad_mirrored(field: Tensor) -> Tensor:
+    """Halo a vector field by mirroring it in the faces of the grid's box.
+
+    Values are replicated, and the component normal to each face changes sign in the halo
+    beyond that face (``n_x`` beyond the faces ``x = const``, ...): the reflection of the field
+    that goes with replicated data. A normal field haloed this way makes every cross
+    coefficient ``n_a n_b`` (``a != b``) odd across the faces, which is what the octant scheme
+    needs there (:mod:`torchsurf.operators._octant`).
+
+    Args:
+        field: ``(B, 3, D, H, W)``, components in ``(x, y, z)`` order.
+
+    Returns:
+        ``(B, 3, D + 2, H + 2, W + 2)``.
+    """
+    replicated = F.pad(field, (1, 1, 1, 1, 1, 1), mode="replicate")
+    components = []
+    for axis in range(3):
+        component = replicated[:, axis: axis + 1]
+        dim = component.dim() - 1 - axis
+        length = component.shape[dim]
+        index = torch.arange(length, device=field.device)
+        halo = (index == 0) | (index == length - 1)
+        sign = torch.where(halo, -1.0, 1.0).to(field.dtype)
+        shape = [1] * component.dim()
+        shape[dim] = length
+        components.append(component * sign.view(shape))
+    return torch.cat(components, dim=1)
+
+
 def pad_flux(flux: Tensor, side: Side) -> Tensor:
     """Halo a face-centred flux so that nothing flows through the faces of the grid's box.
 

@@ -92,7 +92,10 @@ class ImplicitSurface(nn.Module):
         return self.phi.abs() <= width
 
     def haloed(self) -> tuple[Tensor, Tensor]:
-        """``normal`` and ``grad_norm`` with a halo of one node (replicated) on every side.
+        """``normal`` and ``grad_norm`` with a halo of one node on every side.
+
+        ``grad_norm`` is replicated; ``normal`` is mirrored in the box's faces
+        (:func:`torchsurf.stencils.pad_mirrored`), as the octant scheme needs.
 
         ``(B, 3, D + 2, H + 2, W + 2)`` and ``(B, 1, D + 2, H + 2, W + 2)``, for kernels that
         read neighbours without padding (the compiled operators). Computed once and kept, on
@@ -100,7 +103,7 @@ class ImplicitSurface(nn.Module):
         """
         if self._haloed_normal is not None:
             return self._haloed_normal, self._haloed_grad_norm
-        normal = stencils.pad(self.normal, "replicate")
+        normal = stencils.pad_mirrored(self.normal)
         grad_norm = stencils.pad(self.grad_norm, "replicate")
         if torch.is_grad_enabled() or not self.phi.requires_grad:
             self._haloed_normal, self._haloed_grad_norm = normal, grad_norm

@@ -62,24 +62,27 @@ def _torus_cases(n: int):
     return grid, phi, functions
 
 
-def test_octant_scheme_relative_error_on_torus_below_5e_3_at_129():
+@pytest.mark.parametrize("scheme,bound", [(None, 5e-3), ("symmetric", 1e-2)])
+def test_relative_error_on_torus_at_129(scheme, bound):
+    """The issue's target for the default scheme: below 5e-3 at 129^3 on three functions.
+
+    The two-composition symmetric scheme misses it (measured 3.8e-3 to 9.5e-3); its bound
+    only guards against regressions.
+    """
     grid, phi, functions = _torus_cases(129)
     surface = ts.ImplicitSurface(phi, grid)
     mask = phi.abs() <= grid.spacing
+    options = {} if scheme is None else {"scheme": scheme}
     for name, (u, exact) in functions.items():
-        value = ts.laplace_beltrami(u[None, None], surface, scheme="octant")
+        value = ts.laplace_beltrami(u[None, None], surface, **options)
         exact = exact[None, None]
         relative = float((value - exact).abs()[mask].max() / exact.abs()[mask].max())
-        assert relative < 5e-3, (name, relative)
+        assert relative < bound, (name, relative)
 
 
-def test_default_scheme_accuracy_on_torus_at_129():
-    case = torus_function(129)
-    surface = ts.ImplicitSurface(case.phi, case.grid)
-    value = ts.laplace_beltrami(case.u, surface, path="slicing")
-    mask = near(case)
-    relative = max_error(value, case.exact, mask) / float(case.exact[mask].abs().max())
-    assert relative < 7e-3, relative
+def test_default_scheme_is_octant():
+    assert ts.LaplaceBeltrami().scheme == "octant"
+    assert ts.flows.HeatFlow(time=0.1).scheme == "octant"
 
 
 def _appendix_b_reference(u: np.ndarray, phi: np.ndarray, h: float) -> np.ndarray:
@@ -154,10 +157,12 @@ def test_embedding_invariance(scheme):
 def test_paths_agree(scheme):
     case = torus_function(17)
     surface = ts.ImplicitSurface(case.phi, case.grid)
-    u = torch.randn_like(case.u)
+    u = torch.randn(case.u.shape, dtype=case.u.dtype, generator=torch.Generator().manual_seed(4))
     reference = ts.laplace_beltrami(u, surface, scheme=scheme, path="slicing")
     conv = ts.laplace_beltrami(u, surface, scheme=scheme, path="conv3d")
-    torch.testing.assert_close(conv, reference, rtol=1e-12, atol=1e-9)
+    # W-weighted: at the torus's centre W is ~0 and dividing by it magnifies rounding
+    weight = surface.grad_norm
+    torch.testing.assert_close(weight * conv, weight * reference, rtol=1e-12, atol=1e-9)
 
 
 def test_compiled_path_matches_eager_forward_and_backward():
@@ -196,3 +201,31 @@ def test_fused_formulation_equals_modular(scheme, flux_map):
             u / weight, surface.normal, weight, grid.spacing, None, scheme, "slicing"
         )
         torch.testing.assert_close(transpose, expected, rtol=1e-12, atol=1e-10)
+
+
+def test_octant_one_pass_equals_the_eight_compositions():
+    """The closed form the octant scheme runs, against its definition, at every node.
+
+    A non-distance ``phi`` on a box that is not a cube, so that ``W`` varies and the box's faces
+    (where the mirrored normals stand in for the compositions' zero flux) are in play.
+    """
+    from torchsurf.operators._flux_form import flux_form
+    from torchsurf.operators._octant import fused_octant
+
+    grid = ts.Grid((9, 10, 11), spacing=0.15, origin=(-0.8, -0.7, -0.6))
+    points = grid.points(dtype=torch.float64)
+    phi = ((points / torch.tensor([0.5, 0.6, 0.4], dtype=torch.float64)) ** 2).sum(-1) - 1
+    phi = phi * (1.3 + 0.4 * points[..., 1])
+    surface = ts.ImplicitSurface(phi[None, None], grid)
+    u = torch.randn(2, 3, 9, 10, 11, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
+    haloed_normal, haloed_weight = surface.haloed()
+    weight = surface.grad_norm
+    fused = fused_octant(ts.stencils.pad(u, "replicate"), haloed_normal, haloed_weight, weight, grid.spacing)
+    reference = flux_form(u, surface.normal, weight, grid.spacing, None, "octant", "slicing")
+    torch.testing.assert_close(weight * fused, weight * reference, rtol=1e-12, atol=1e-9)
+    transpose = fused_octant(
+        ts.stencils.pad(u / weight, "replicate"), haloed_normal, haloed_weight, weight, grid.spacing,
+        adjoint=True,
+    )
+    expected = weight * flux_form(u / weight, surface.normal, weight, grid.spacing, None, "octant", "slicing")
+    torch.testing.assert_close(transpose, expected, rtol=1e-12, atol=1e-9)

@@ -12,28 +12,28 @@ from ._integrators import Linear, System, tensors
 from ._positive import Positive
 from .base import Flow
 
-SYMMETRIC_SCHEMES = ("symmetric", "conservative", "octant")
+SYMMETRIC_SCHEMES = ("octant", "symmetric", "conservative")
 
 
 class HeatFlow(Flow):
     """Heat flow on the surface: ``u_t = D Lap_S u``, ``Lap_S`` by :func:`torchsurf.laplace_beltrami`.
 
-    With the default symmetric scheme, sampled on S, the flow is second order in ``h``
-    without any re-extension (sphere, l = 2, t = 0.05: relative error 6.6e-3, 1.5e-3, 4.1e-4
-    at 33^3, 65^3, 129^3, issue 3).
+    With the second-order schemes (the default octant, or symmetric), sampled on S, the flow
+    is second order in ``h`` without any re-extension (symmetric scheme, sphere, l = 2,
+    t = 0.05: relative error 6.6e-3, 1.5e-3, 4.1e-4 at 33^3, 65^3, 129^3, issue 3).
 
-    Stable explicit step: ``dt <= h^2 / (6 max D)`` (the symmetric and conservative schemes,
+    Stable explicit step: ``dt <= h^2 / (6 max D)`` (the divergence-form schemes,
     ``|grad phi| = 1``; ``P <= I``). ``"implicit"`` and ``"crank_nicolson"`` solve
     ``(W - theta dt D A) u_new = ...`` with ``A = W Lap_S`` symmetric negative semi-definite
-    (schemes ``"symmetric"`` and ``"conservative"``) by conjugate gradients; any step size is
-    stable.
+    (schemes ``"octant"``, ``"symmetric"`` and ``"conservative"``) by conjugate gradients; any
+    step size is stable.
 
     Args:
         time: physical end time, world units squared (with ``D = 1``).
         diffusivity: ``D``, a positive number or one per channel ``(C,)``.
         learn_diffusivity: make ``D`` an ``nn.Parameter`` (kept positive by softplus).
-        scheme: ``"symmetric"`` (default), ``"conservative"`` or ``"central"`` (explicit
-            and torchdiffeq methods only: not symmetric).
+        scheme: ``"octant"`` (default), ``"symmetric"``, ``"conservative"`` or ``"central"``
+            (explicit and torchdiffeq methods only: not symmetric).
         path: how stencils are applied (see :func:`torchsurf.laplace_beltrami`).
         **kwargs: the integration settings of :class:`Flow` (``method``, ``steps``, ...).
 
@@ -53,7 +53,7 @@ class HeatFlow(Flow):
         time: float,
         diffusivity: float | Tensor = 1.0,
         learn_diffusivity: bool = False,
-        scheme: str = "symmetric",
+        scheme: str = "octant",
         path: str = "auto",
         **kwargs: object,
     ) -> None:

@@ -4,8 +4,11 @@
   Perona–Malik, Charbonnier);
 - :func:`directional_diffusion`: ``(1/W) div(W (T . P grad u) T)`` along a tangent field T.
 
-Both use the one-sided compositions of :func:`torchsurf.laplace_beltrami` (``"symmetric"`` or
-``"conservative"``), so with ``g = 1`` (or ``T T^T = P``) they reduce to it.
+Both use the one-sided compositions of :func:`torchsurf.laplace_beltrami` (``"symmetric"``,
+``"conservative"`` or ``"octant"``), so with ``g = 1`` (or ``T T^T = P``) they reduce to it with
+the same scheme. Their default is ``"symmetric"``, not the Laplace–Beltrami default
+``"octant"``: with a nonlinear flux the eight octant compositions do not collapse into one
+cheap pass, and cost four times the two symmetric ones.
 """
 
 from __future__ import annotations
