@@ -190,7 +190,7 @@ def test_gradcheck_data_diffusivity_and_time(method):
 
     inputs = (coefficients, flow.time_value.raw.detach().clone().requires_grad_(),
               flow.diffusivity.raw.detach().clone().requires_grad_())
-    assert torch.autograd.gradcheck(run, inputs, eps=1e-6, atol=1e-7)
+    assert torch.autograd.gradcheck(run, inputs, eps=1e-6, atol=1e-7, fast_mode=True)
 
 
 def test_gradcheck_phi_through_implicit_solve():
@@ -205,7 +205,7 @@ def test_gradcheck_phi_through_implicit_solve():
         return flow(u0, ts.ImplicitSurface(phi, grid))
 
     coefficients = torch.zeros(2, dtype=torch.float64, requires_grad=True)
-    assert torch.autograd.gradcheck(run, (coefficients,), eps=1e-6, atol=1e-7)
+    assert torch.autograd.gradcheck(run, (coefficients,), eps=1e-6, atol=1e-7, fast_mode=True)
 
 
 def test_torchdiffeq_adjoint_matches_direct_backprop():

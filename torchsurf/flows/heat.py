@@ -5,8 +5,8 @@ from __future__ import annotations
 from torch import Tensor
 
 from .._checks import check_choice
-from ..operators import _paths, laplace_beltrami
-from ..operators.laplace_beltrami import SCHEMES, _divergence_form
+from ..operators import laplace_beltrami
+from ..operators.laplace_beltrami import SCHEMES, weighted_operator
 from ..surface import ImplicitSurface
 from ._integrators import Linear, System, tensors
 from ._positive import Positive
@@ -78,15 +78,15 @@ class HeatFlow(Flow):
         if self.scheme in SYMMETRIC_SCHEMES:
             spacing, scheme, path = surface.spacing, self.scheme, self.path
 
-            def operator(x: Tensor, weight: Tensor, normal: Tensor, *diffusivity: Tensor
-                         ) -> Tensor:
+            def operator(x: Tensor, weight: Tensor, normal: Tensor, haloed_weight: Tensor,
+                         haloed_normal: Tensor, *diffusivity: Tensor) -> Tensor:
                 scale = diffusivity[0] if diffusivity else d
-                laplacian = _paths.run(
-                    _divergence_form, path, x, x, normal, weight, spacing, scheme
+                return scale * weighted_operator(
+                    x, normal, weight, haloed_normal, haloed_weight, spacing, scheme, path
                 )
-                return scale * weight * laplacian
 
-            geometry = (surface.grad_norm, surface.normal)
+            haloed_normal, haloed_weight = surface.haloed()
+            geometry = (surface.grad_norm, surface.normal, haloed_weight, haloed_normal)
             linear = Linear(operator, geometry + ((d,) if isinstance(d, Tensor) else ()))
         step = surface.spacing**2 / (6.0 * self.diffusivity.maximum())
         params = tensors(d, surface.normal, surface.grad_norm)

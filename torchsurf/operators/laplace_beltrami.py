@@ -51,6 +51,35 @@ def _apply(
     return function(u, surface.normal, surface.grad_norm, surface.spacing, scheme, path)
 
 
+def weighted_operator(
+    x: Tensor, normal: Tensor, grad_norm: Tensor, haloed_normal: Tensor, haloed_grad_norm: Tensor,
+    spacing: float, scheme: str, path: str,
+) -> Tensor:
+    """``A x = W L x`` of a divergence-form scheme, symmetric negative semi-definite.
+
+    The form the implicit flows hand to conjugate gradients. Every geometric tensor is an
+    argument, so that autograd reaches all of them; the haloed ones are
+    :meth:`ImplicitSurface.haloed`'s and spare the compiled kernel its padding.
+
+    Args:
+        x: ``(B, C, D, H, W)``.
+        normal, grad_norm: ``(B or 1, 3 | 1, D, H, W)``.
+        haloed_normal, haloed_grad_norm: the same with a halo of one node.
+
+    Returns:
+        ``(B, C, D, H, W)``, units of ``x`` per world length squared.
+    """
+    path = _paths.resolve(path, x)
+    fused_octant_path = scheme == "octant" and path != "conv3d"
+    if path == "compiled" or fused_octant_path:
+        inputs = (stencils.pad(x, "replicate"), haloed_normal, haloed_grad_norm, grad_norm, spacing)
+        if fused_octant_path:
+            kernel = _paths.compiled(fused_octant) if path == "compiled" else fused_octant
+            return kernel(*inputs, True)
+        return _paths.compiled(fused_flux_form)(*inputs, None, scheme, True)
+    return grad_norm * _divergence_form(x, normal, grad_norm, spacing, scheme, path)
+
+
 class _WeightedSelfAdjoint(torch.autograd.Function):
     """Backward of a divergence-form scheme w.r.t. ``u`` by its adjoint, one forward-sized pass.
 
@@ -141,9 +170,7 @@ def laplace_beltrami(
             _central, path, u, u, surface.normal, surface.mean_curvature(), surface.spacing
         )
     if surface.normal.requires_grad or surface.grad_norm.requires_grad:
-        return _paths.run(
-            _divergence_form, path, u, u, surface.normal, surface.grad_norm, surface.spacing, scheme
-        )
+        return _apply(u, surface, scheme, path, adjoint=False)
     return _WeightedSelfAdjoint.apply(u, surface, scheme, path)
 
 
