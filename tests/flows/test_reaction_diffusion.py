@@ -1,12 +1,15 @@
-"""ReactionDiffusion: a pattern grows from Turk's near-homogeneous start, reproducibly."""
+"""ReactionDiffusion: a pattern grows from Turk's near-uniform start, reproducibly, its scale set by s."""
 
 from __future__ import annotations
+
+import math
 
 import pytest
 import torch
 
 import torchsurf as ts
 from torchsurf.flows import ReactionDiffusion
+from torchsurf.operators import intrinsic_gradient
 
 
 @pytest.fixture(scope="module")
@@ -46,6 +49,94 @@ def test_anisotropic_variant_runs_along_a_tangent_field(surface):
     u = ReactionDiffusion(time=20.0)(u0, surface, direction=e1,
                                     generator=torch.Generator().manual_seed(0))
     assert u.shape == u0.shape and torch.isfinite(u).all()
+
+
+def wavelength_on_surface(u, surface):
+    """Characteristic wavelength of ``b`` on S, world units: ``2 pi std(b) / rms |grad_S b|``.
+
+    Over the nodes within one cell of S. For ``b = mean + A cos(k . x)`` the ratio
+    ``rms |grad_S b| / std(b)`` is ``k``, so this is ``2 pi / k``; for a mixture it is a
+    ``k^2``-weighted mean. Central differences read ``sin(k h) / h`` for ``k``, which biases short
+    wavelengths up a little (+8% at 9 cells) and damps the grid-scale noise of ``beta``.
+    """
+    near = (surface.phi.abs() <= surface.spacing)[0, 0]
+    b = u[:, 1:]
+    gradient = (intrinsic_gradient(b, surface)[0] ** 2).sum(dim=0)[near].mean()
+    return 2 * math.pi * float(b[0, 0][near].std()) / float(gradient.sqrt())
+
+
+@pytest.fixture(scope="module")
+def sphere41():
+    grid = ts.Grid.cube(41, bound=1.3)
+    return ts.ImplicitSurface(ts.sdf.sphere(grid, radius=1.0), grid)
+
+
+def wavelengths_in_cells(surface, rates, seed):
+    """Wavelength of the pattern, cells, after running each rate ``s`` to ``s t = 4``."""
+    u0 = ReactionDiffusion.initial(surface)
+    lengths = []
+    for rate in rates:
+        u = ReactionDiffusion(time=4.0 / rate, rate=rate)(
+            u0, surface, generator=torch.Generator().manual_seed(seed))
+        assert torch.isfinite(u).all()
+        lengths.append(wavelength_on_surface(u, surface) / surface.spacing)
+    return lengths
+
+
+def assert_scale_follows_the_rate(rates, cells):
+    """Wavelengths within -20%/+25% of ``(pi / 2) / sqrt(s)`` cells; log-log slope -0.5 +- 0.15."""
+    predicted = [math.pi / 2 / math.sqrt(rate) for rate in rates]
+    report = f"measured {[round(c, 2) for c in cells]}, predicted {[round(p, 2) for p in predicted]}"
+    for length, expected in zip(cells, predicted, strict=True):
+        assert 0.8 < length / expected < 1.25, report
+    x = [math.log(rate) for rate in rates]
+    y = [math.log(length) for length in cells]
+    mx, my = sum(x) / len(x), sum(y) / len(y)
+    slope = sum((a - mx) * (b - my) for a, b in zip(x, y, strict=True)) / sum((a - mx) ** 2 for a in x)
+    assert -0.65 < slope < -0.35, f"slope {slope:.3f}; {report}"
+
+
+def test_pattern_scale_follows_the_rate(sphere41):
+    """The pattern's wavelength scales like ``1 / sqrt(s)``: ``s`` = 1/128 and 1/32, ratio 2.
+
+    Turk's model (SPEC §2): with ``t' = s t`` and ``x' = sqrt(s) x`` the equations lose ``s``,
+    ``a_t' = 16 - a b + D_a L' a`` and ``b_t' = a b - b - beta + D_b L' b``, so at equal ``s t``
+    the patterns of two rates are the same up to a length scale ``1 / sqrt(s)`` (the sphere's
+    fixed radius and the per-node noise of ``beta`` break this only mildly). Linearised about
+    ``a = b = 4``, the growing modes peak at ``k^2 = 2 s / sqrt(D_a D_b) = 16 s / h^2`` with
+    Turk's ``D_a = h^2 / 4``, ``D_b = h^2 / 16``: wavelength ``(pi / 2) h / sqrt(s)``, 17.8 cells
+    at ``s = 1/128``, 12.6 at 1/64, 8.9 at 1/32; log-log slope -1/2.
+
+    Runs end at ``s t = 4``: the variance of ``b`` has grown ~40-fold since ``s t = 1/4`` and
+    the pattern is still near the linear regime (the flow, which does not clamp ``b >= 0`` as
+    Turk's code does, blows up near ``s t = 8``). Measured on 41^3, seeds 0-7, cells at
+    s = 1/128, 1/64, 1/32: 17.4-18.6, 12.8-13.3, 9.7-10.0; slope -0.42 to -0.46 (the
+    central-difference gradient lengthens 9-cell waves by 8%, so about -0.45 is expected).
+    With ``s`` ignored (fixed at 1/128 or 1/32 inside the flow) the slope was -0.23 or -0.05.
+    """
+    rates = [1 / 128, 1 / 32]
+    assert_scale_follows_the_rate(rates, wavelengths_in_cells(sphere41, rates, seed=0))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_pattern_scale_follows_the_rate_over_seeds(sphere41, seed):
+    """As :func:`test_pattern_scale_follows_the_rate` over three rates (1/128, 1/64, 1/32) and
+    other seeds; the wavelength also falls monotonically with ``s``."""
+    rates = [1 / 128, 1 / 64, 1 / 32]
+    cells = wavelengths_in_cells(sphere41, rates, seed)
+    assert cells[0] > cells[1] > cells[2], cells
+    assert_scale_follows_the_rate(rates, cells)
+
+
+def test_long_run_stays_finite_with_b_nonnegative(sphere41):
+    """Without Turk's clamp of ``b`` at 0 this run (``s t = 20``) ended in NaN."""
+    u0 = ReactionDiffusion.initial(sphere41)
+    flow = ReactionDiffusion(time=640.0, rate=1.0 / 32.0)
+    u = flow(u0, sphere41, generator=torch.Generator().manual_seed(0))
+    assert torch.isfinite(u).all()
+    assert float(u[:, 1].min()) == 0.0  # the pattern is saturated: b reaches the clamp
+    assert float(u[:, 0].max()) < 10.0
 
 
 def test_needs_two_channels(surface):

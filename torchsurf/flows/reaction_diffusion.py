@@ -34,6 +34,9 @@ class ReactionDiffusion(Flow):
     ``D_a = h^2 / 4`` and ``D_b = h^2 / 16``, so the pattern scale is a few cells, and it grows
     as ``s`` shrinks.
 
+    After every step ``b`` is clamped at 0 (Turk's rule; with torchdiffeq methods only at
+    the output times).
+
     Stable explicit step: ``dt <= min(h^2 / (6 max D), 1 / (s (max a + max b + 1)))``, the
     diffusion bound and the reaction's (its Jacobian has entries ``s a``, ``s b``, ``s``).
 
@@ -107,4 +110,14 @@ class ReactionDiffusion(Flow):
 
         reaction = float(u0.detach()[:, 0].max() + u0.detach()[:, 1].max() + 1.0)
         step = min(surface.spacing**2 / (6.0 * max(d_a, d_b)), 1.0 / (s * max(reaction, 1.0)))
-        return System(rate, band, step, params=tensors(surface.normal, surface.grad_norm))
+        return System(rate, band, step, project=_nonnegative_b,
+                      params=tensors(surface.normal, surface.grad_norm))
+
+
+def _nonnegative_b(u: Tensor) -> Tensor:
+    """Keep the concentration ``b`` at or above 0 after each step, as Turk does.
+
+    Without it, ``b`` crossing 0 turns the ``a b`` coupling into growth and the run reaches
+    inf/NaN (at ``s t`` about 7 from Turk's start). Gradients are zero where ``b`` is clamped.
+    """
+    return torch.cat((u[:, :1], u[:, 1:].clamp(min=0.0)), dim=1)
