@@ -229,3 +229,16 @@ def test_octant_one_pass_equals_the_eight_compositions():
     )
     expected = weight * flux_form(u / weight, surface.normal, weight, grid.spacing, None, "octant", "slicing")
     torch.testing.assert_close(transpose, expected, rtol=1e-12, atol=1e-9)
+
+
+def test_compiling_raises_dynamo_recompile_limit_but_never_lowers_it(monkeypatch):
+    """Dynamo's default of 8 variants per function ran out at the third grid size."""
+    from torchsurf.operators import _paths
+
+    config = torch._dynamo.config
+    monkeypatch.setattr(config, "recompile_limit", 8)
+    _paths._raise_recompile_limit()
+    assert config.recompile_limit == _paths.RECOMPILE_LIMIT
+    monkeypatch.setattr(config, "recompile_limit", 1000)
+    _paths._raise_recompile_limit()
+    assert config.recompile_limit == 1000

@@ -21,9 +21,27 @@ PATHS = ("auto", "slicing", "conv3d", "compiled")
 COMPILE_MIN_VOXELS = 64**3
 
 
+RECOMPILE_LIMIT = 64
+"""Dynamo's per-function limit on compiled variants, raised to at least this on first compile."""
+
+
+def _raise_recompile_limit() -> None:
+    """Let each operator keep a variant per shape, grad mode and direction (forward/adjoint).
+
+    Dynamo's default of 8 variants per function is spent by two or three grid sizes (each
+    needs a no-grad forward, a recording forward and the adjoint), after which it silently
+    runs the function eagerly, 10-30x slower. The setting is process-wide; it is only raised.
+    """
+    config = torch._dynamo.config
+    for name in ("recompile_limit", "cache_size_limit"):  # renamed in torch 2.6
+        if hasattr(config, name) and getattr(config, name) < RECOMPILE_LIMIT:
+            setattr(config, name, RECOMPILE_LIMIT)
+
+
 @functools.cache
 def compiled(function: Callable[..., Tensor]) -> Callable[..., Tensor]:
     """``function`` compiled once per process (shapes specialised)."""
+    _raise_recompile_limit()
     return torch.compile(function, dynamic=False)
 
 
