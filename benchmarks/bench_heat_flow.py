@@ -7,7 +7,25 @@ amplitude. Rows: torchsurf explicit Euler (stable step ``h^2 / 6``), backward Eu
 Crank–Nicolson with conjugate gradients, an adaptive torchdiffeq method (dopri5, if installed),
 and the numpy Appendix-B explicit reference of ``bench_laplace_beltrami.py`` (first order).
 
+Mesh peer rows do the same job on ``trimesh.creation.icosphere(k)``: cotangent Laplacian ``L``
+and lumped Voronoi mass ``M`` (libigl, float64), backward Euler ``(M - dt L) u' = M u`` with one
+SuperLU factorisation (``scipy.sparse.linalg.splu``), the solution read at the same 2000 points
+by barycentric interpolation at their closest points on the mesh. Its time covers operators,
+factorisation and all steps (median of 3), not building the icosphere nor the error. Two rows
+per n: the icosphere whose vertex count is closest (in ratio) to the grid's surface samples
+(half the nodes with ``|phi| <= h``, about ``area / h^2``) with the fewest steps reaching
+``--mesh-target``; and the smallest icosphere and fewest steps reaching the error of the
+fastest torchsurf row (or ``--match-error``). Steps come from a ladder ``4 * 2^(j / 2)``; if
+none reaches the target, the row shows the icosphere's best error, marked "floor".
+
+    python benchmarks/bench_heat_flow.py --sizes 65 81 97 129 --reference-sizes 129 161 193
+
+The closing summary takes, for each method, the fastest run whose error is at most
+``--mesh-target`` (1e-3), and gives the issue's two ratios: the numpy reference's time over the
+fastest torchsurf method's (target >= 20) and that over the mesh peer's (target <= 10).
+
     python benchmarks/bench_heat_flow.py --sizes 65 129 --implicit-steps 10
+    python benchmarks/bench_heat_flow.py --sizes 65 129 --mesh-peer-only --subdivisions 4 5 6
 """
 
 from __future__ import annotations
@@ -15,12 +33,19 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import math
+import statistics
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import NamedTuple
 
+import igl
 import numpy as np
+import scipy.sparse as sparse
 import torch
+import trimesh
+from scipy.sparse.linalg import splu
 
 import torchsurf as ts
 from torchsurf.flows import HeatFlow
@@ -28,6 +53,32 @@ from torchsurf.sampling import sample
 
 TIME = 0.05
 BOUND = 1.4
+POINTS = 2000
+STEP_LADDER = tuple(round(4 * 2 ** (j / 2)) for j in range(17))  # 4, 6, 8, 11, ..., 724, 1024
+MAX_SUBDIVISIONS = 7
+REFERENCE_NAME = "numpy Appendix B euler"
+
+
+class Row(NamedTuple):
+    """One line of the table; ``samples`` is surface samples (grid) or vertices (mesh)."""
+
+    n: int | None
+    method: str
+    samples: int
+    seconds: float
+    error: float
+    ratio: float | None = None
+
+
+class MeshRun(NamedTuple):
+    """A timed mesh-peer run; ``reached`` says whether the error met the requested target."""
+
+    subdivisions: int
+    vertices: int
+    steps: int
+    seconds: float
+    error: float
+    reached: bool = True
 
 
 def _reference_module():
@@ -40,6 +91,7 @@ def _reference_module():
 
 
 def case(n: int, dtype: torch.dtype):
+    """Grid, unit-sphere SDF and the normally extended initial data ``3 z^2 - 1`` on ``n^3`` nodes."""
     grid = ts.Grid.cube(n, bound=BOUND)
     phi = ts.sdf.sphere(grid, radius=1.0, dtype=dtype)
     points = grid.points(dtype=dtype)
@@ -47,25 +99,38 @@ def case(n: int, dtype: torch.dtype):
     return grid, phi, (3 * z**2 - 1)[None, None]
 
 
-def sampled_error(u: torch.Tensor, grid: ts.Grid) -> float:
-    count = 2000
-    i = torch.arange(count, dtype=u.dtype) + 0.5
+def fibonacci_sphere(count: int = POINTS) -> np.ndarray:
+    """``count`` nearly uniform points on the unit sphere, shape ``(count, 3)``, float64."""
+    i = np.arange(count) + 0.5
     z = 1 - 2 * i / count
-    r = torch.sqrt(1 - z**2)
+    r = np.sqrt(1 - z**2)
     angle = math.pi * (1 + 5**0.5) * i
-    points = torch.stack((r * torch.cos(angle), r * torch.sin(angle), z), dim=-1)
-    exact = (3 * z**2 - 1) * math.exp(-6 * TIME)
-    return float((sample(u, points, grid)[0, 0] - exact).abs().max() / exact.abs().max())
+    return np.stack((r * np.cos(angle), r * np.sin(angle), z), axis=-1)
+
+
+def relative_error(values: np.ndarray | torch.Tensor, points: np.ndarray | torch.Tensor) -> float:
+    """Largest error of ``values`` at ``points`` against ``exp(-6 t)(3 z^2 - 1)``, over its amplitude."""
+    exact = (3 * points[:, 2] ** 2 - 1) * math.exp(-6 * TIME)
+    return float(abs(values - exact).max() / abs(exact).max())
+
+
+def sampled_error(u: torch.Tensor, grid: ts.Grid) -> float:
+    """Error of the grid solution ``u``, sampled trilinearly at the Fibonacci points."""
+    points = torch.from_numpy(fibonacci_sphere()).to(u.dtype)
+    return relative_error(sample(u, points, grid)[0, 0], points)
 
 
 def timed(run):
+    """``run()`` and its wall time in seconds."""
     start = time.perf_counter()
     result = run()
     return result, time.perf_counter() - start
 
 
-def bench(n: int, implicit_steps: int, dtype: torch.dtype, reference: bool) -> list[tuple]:
+def bench(n: int, implicit_steps: int, dtype: torch.dtype, reference: bool) -> list[Row]:
+    """Time every torchsurf integrator (and the numpy reference) on the ``n^3`` grid."""
     grid, phi, u0 = case(n, dtype)
+    samples = surface_samples(phi, grid)
     surface = ts.ImplicitSurface(phi, grid)
     # compile the operator for this shape (>= 64^3) untimed, with and without autograd
     ts.laplace_beltrami(u0, surface)
@@ -81,44 +146,304 @@ def bench(n: int, implicit_steps: int, dtype: torch.dtype, reference: bool) -> l
     if importlib.util.find_spec("torchdiffeq") is not None:
         flows["dopri5 (rtol 1e-4)"] = HeatFlow(
             TIME, method="dopri5", options={"rtol": 1e-4, "atol": 1e-6})
+    for method in ("implicit", "crank_nicolson"):  # compile the CG operator untimed
+        HeatFlow(TIME, method=method, steps=1)(u0, surface)
     for name, flow in flows.items():
         u, seconds = timed(lambda flow=flow: flow(u0, surface))
-        rows.append((n, name, seconds, sampled_error(u, grid)))
+        rows.append(Row(n, name, samples, seconds, sampled_error(u, grid)))
     if reference:
-        module = _reference_module()
-        numpy_dtype = np.float64 if dtype == torch.float64 else np.float32
-        operator = module.AppendixB(phi[0, 0].numpy(), grid.spacing, dtype=numpy_dtype)
-        band = (phi[0, 0].abs() <= HeatFlow(TIME).diffusion_length() * 2 + 3 * grid.spacing)
-        band = band.numpy().astype(numpy_dtype)
-        steps = math.ceil(TIME / (grid.spacing**2 / 6))
-        dt = numpy_dtype(TIME / steps)
-
-        def run() -> np.ndarray:
-            u = u0[0, 0].numpy().astype(numpy_dtype).copy()
-            for _ in range(steps):
-                u += dt * band * operator(u)
-            return u
-
-        u, seconds = timed(run)
-        error = sampled_error(torch.from_numpy(u)[None, None].to(dtype), grid)
-        rows.append((n, "numpy Appendix B euler", seconds, error))
+        rows.append(reference_row(n, dtype))
     return rows
 
 
-def main(argv: list[str] | None = None) -> None:
+def reference_row(n: int, dtype: torch.dtype) -> Row:
+    """The numpy Appendix-B explicit reference on the ``n^3`` grid, in the band the flows use."""
+    grid, phi, u0 = case(n, dtype)
+    module = _reference_module()
+    numpy_dtype = np.float64 if dtype == torch.float64 else np.float32
+    operator = module.AppendixB(phi[0, 0].numpy(), grid.spacing, dtype=numpy_dtype)
+    band = (phi[0, 0].abs() <= HeatFlow(TIME).diffusion_length() * 2 + 3 * grid.spacing)
+    band = band.numpy().astype(numpy_dtype)
+    steps = math.ceil(TIME / (grid.spacing**2 / 6))
+    dt = numpy_dtype(TIME / steps)
+
+    def run() -> np.ndarray:
+        u = u0[0, 0].numpy().astype(numpy_dtype).copy()
+        for _ in range(steps):
+            u += dt * band * operator(u)
+        return u
+
+    u, seconds = timed(run)
+    error = sampled_error(torch.from_numpy(u)[None, None].to(dtype), grid)
+    return Row(n, REFERENCE_NAME, surface_samples(phi, grid), seconds, error)
+
+
+def family(row: Row) -> str:
+    """What a row's method is, without its settings: ``"euler"``, ``"mesh peer"``, ..."""
+    if row.method.startswith("mesh peer"):
+        return "mesh peer"
+    return row.method if row.method == REFERENCE_NAME else row.method.split(" (")[0]
+
+
+def time_to_accuracy(rows: list[Row], target: float) -> list[str]:
+    """Markdown summary: per method, the fastest run reaching ``target``, and the target ratios."""
+    best: dict[str, Row] = {}
+    for row in rows:
+        name = family(row)
+        if row.error <= target and (name not in best or row.seconds < best[name].seconds):
+            best[name] = row
+    lines = [f"Time to reach t = {TIME} with error <= {target:.0e} (fastest run of each method):", "",
+             "| method | n | wall time (s) | error |", "|---|---|---:|---:|"]
+    lines += [f"| {name} | {'—' if row.n is None else row.n} | {row.seconds:.3f} | {row.error:.2e} |"
+              for name, row in sorted(best.items(), key=lambda item: item[1].seconds)]
+    ours = [row for name, row in best.items() if name not in (REFERENCE_NAME, "mesh peer")]
+    fastest = min(ours, key=lambda row: row.seconds, default=None)
+    lines.append("")
+    for name, wording in ((REFERENCE_NAME, "numpy reference ÷ fastest torchsurf (target >= 20)"),
+                          ("mesh peer", "fastest torchsurf ÷ mesh peer (target <= 10)")):
+        if fastest is None or name not in best:
+            lines.append(f"{wording}: not measured (no run reached the target)")
+            continue
+        other = best[name]
+        ratio = other.seconds / fastest.seconds if name == REFERENCE_NAME else fastest.seconds / other.seconds
+        lines.append(f"{wording}: {ratio:.1f}")
+    return lines
+
+
+def surface_samples(phi: torch.Tensor, grid: ts.Grid) -> int:
+    """Half the nodes within one cell of S (``|phi| <= h``): about ``area / h^2``."""
+    return int((phi.abs() <= grid.spacing).sum()) // 2
+
+
+def icosphere(subdivisions: int) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (float64, on the unit sphere) and faces (int64) of trimesh's icosphere."""
+    mesh = trimesh.creation.icosphere(subdivisions=subdivisions, radius=1.0)
+    return np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
+
+
+def corner_cotangents(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Cotangent of each face's angle at each of its corners, shape ``(faces, 3)``."""
+    cot = np.empty(faces.shape)
+    for c in range(3):
+        a = vertices[faces[:, (c + 1) % 3]] - vertices[faces[:, c]]
+        b = vertices[faces[:, (c + 2) % 3]] - vertices[faces[:, c]]
+        cot[:, c] = (a * b).sum(axis=1) / np.linalg.norm(np.cross(a, b), axis=1)
+    return cot
+
+
+def cotangent_laplacian(vertices: np.ndarray, faces: np.ndarray, cot: np.ndarray) -> sparse.csc_matrix:
+    """Negative semi-definite cotangent Laplacian: edge weight half the cotangent of each opposite angle."""
+    # corner c's cotangent weighs the edge between the other two corners
+    i = np.concatenate([faces[:, (c + 1) % 3] for c in range(3)])
+    j = np.concatenate([faces[:, (c + 2) % 3] for c in range(3)])
+    weight = 0.5 * cot.T.ravel()
+    count = len(vertices)
+    off_diagonal = sparse.coo_matrix(
+        (np.concatenate((weight, weight)), (np.concatenate((i, j)), np.concatenate((j, i)))),
+        shape=(count, count)).tocsc()
+    return (off_diagonal - sparse.diags(np.asarray(off_diagonal.sum(axis=1)).ravel())).tocsc()
+
+
+def voronoi_areas(vertices: np.ndarray, faces: np.ndarray, cot: np.ndarray) -> np.ndarray:
+    """Mixed Voronoi area of each vertex (obtuse faces split 1/2 to the obtuse corner, 1/4 to the others)."""
+    corners = [vertices[faces[:, c]] for c in range(3)]
+    area = 0.5 * np.linalg.norm(np.cross(corners[1] - corners[0], corners[2] - corners[0]), axis=1)
+    opposite = np.stack([((corners[(c + 2) % 3] - corners[(c + 1) % 3]) ** 2).sum(axis=1)
+                         for c in range(3)], axis=1)
+    # corner c owns (|edge c, c+1|^2 cot(c+2) + |edge c, c+2|^2 cot(c+1)) / 8 of a non-obtuse face
+    share = np.stack([(opposite[:, (c + 2) % 3] * cot[:, (c + 2) % 3]
+                       + opposite[:, (c + 1) % 3] * cot[:, (c + 1) % 3]) / 8 for c in range(3)], axis=1)
+    obtuse = cot < 0
+    fallback = np.where(obtuse, area[:, None] / 2, area[:, None] / 4)
+    share = np.where(obtuse.any(axis=1, keepdims=True), fallback, share)
+    return np.bincount(faces.ravel(), weights=share.ravel(), minlength=len(vertices))
+
+
+def mesh_operators(vertices: np.ndarray, faces: np.ndarray,
+                   source: str = "igl") -> tuple[sparse.csc_matrix, np.ndarray]:
+    """Cotangent Laplacian and lumped Voronoi mass (diagonal), from libigl or this file's numpy code."""
+    if source == "igl":
+        laplacian = igl.cotmatrix(vertices, faces)
+        mass = igl.massmatrix(vertices, faces, igl.MASSMATRIX_TYPE_VORONOI).diagonal()
+        return sparse.csc_matrix(laplacian), mass
+    cot = corner_cotangents(vertices, faces)
+    return cotangent_laplacian(vertices, faces, cot), voronoi_areas(vertices, faces, cot)
+
+
+def mesh_heat_flow(vertices: np.ndarray, faces: np.ndarray, steps: int, source: str = "igl") -> np.ndarray:
+    """Backward Euler to ``TIME`` in ``steps`` steps from ``3 z^2 - 1``, one factorisation for all steps."""
+    laplacian, mass = mesh_operators(vertices, faces, source)
+    dt = TIME / steps
+    solver = splu((sparse.diags(mass) - dt * laplacian).tocsc())
+    z = vertices[:, 2] / np.linalg.norm(vertices, axis=1)
+    u = 3 * z**2 - 1
+    for _ in range(steps):
+        u = solver.solve(mass * u)
+    return u
+
+
+def mesh_sampler(vertices: np.ndarray, faces: np.ndarray,
+                 points: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
+    """Barycentric interpolation of vertex values at the closest points of ``points`` on the mesh."""
+    _, face, closest = igl.point_mesh_squared_distance(points, vertices, faces)
+    corners = faces[face]
+    weights = trimesh.triangles.points_to_barycentric(vertices[corners], closest)
+    return lambda values: (weights * values[corners]).sum(axis=1)
+
+
+def mesh_error(subdivisions: int, steps: int, source: str = "igl") -> float:
+    """Error of the mesh peer at the Fibonacci points, measured as for the grid."""
+    vertices, faces = icosphere(subdivisions)
+    points = fibonacci_sphere()
+    values = mesh_sampler(vertices, faces, points)(mesh_heat_flow(vertices, faces, steps, source))
+    return relative_error(values, points)
+
+
+def mesh_peer(subdivisions: int, steps: int, source: str = "igl", repeats: int = 3) -> MeshRun:
+    """Median wall time over ``repeats`` of the mesh peer (operators, factorisation, steps) and its error."""
+    vertices, faces = icosphere(subdivisions)
+    seconds = statistics.median(
+        timed(lambda: mesh_heat_flow(vertices, faces, steps, source))[1] for _ in range(repeats))
+    return MeshRun(subdivisions, len(vertices), steps, seconds, mesh_error(subdivisions, steps, source))
+
+
+def fewest_steps(subdivisions: int, target: float, source: str = "igl") -> tuple[int, bool]:
+    """First ladder step count whose error is at most ``target``, else the best one and ``False``.
+
+    The error is not monotone in the steps (time and space errors have opposite signs), so the
+    ladder is scanned in order; it stops once two rungs in a row fail to beat the best error.
+    """
+    best_steps, best_error, worse = STEP_LADDER[0], math.inf, 0
+    for steps in STEP_LADDER:
+        error = mesh_error(subdivisions, steps, source)
+        if error <= target:
+            return steps, True
+        if error < best_error:
+            best_steps, best_error, worse = steps, error, 0
+        else:
+            worse += 1
+            if worse == 2:
+                break
+    return best_steps, False
+
+
+def closest_subdivision(samples: int) -> int:
+    """Icosphere subdivision whose vertex count ``10 * 4^k + 2`` is closest in ratio to ``samples``."""
+    return min(range(MAX_SUBDIVISIONS + 1),
+               key=lambda k: abs(math.log((10 * 4**k + 2) / samples)))
+
+
+def mesh_peer_at_target(subdivisions: int, target: float, source: str = "igl") -> MeshRun:
+    """Timed mesh peer on this icosphere with the fewest ladder steps reaching ``target``."""
+    steps, reached = fewest_steps(subdivisions, target, source)
+    return mesh_peer(subdivisions, steps, source)._replace(reached=reached)
+
+
+def accuracy_matched(target: float, source: str = "igl") -> MeshRun:
+    """The smallest icosphere (then fewest steps) reaching ``target``; the finest one's floor if none does."""
+    for subdivisions in range(2, MAX_SUBDIVISIONS + 1):
+        steps, reached = fewest_steps(subdivisions, target, source)
+        if reached or subdivisions == MAX_SUBDIVISIONS:
+            return mesh_peer(subdivisions, steps, source)._replace(reached=reached)
+    raise AssertionError("unreachable")
+
+
+def mesh_row(n: int | None, run: MeshRun, label: str, ours: Row | None) -> Row:
+    """Table row of a mesh run; the ratio is the torchsurf row ``ours``'s time over the mesh's."""
+    floor = "" if run.reached else ", floor"
+    method = f"mesh peer icosphere({run.subdivisions}), {run.steps} BE steps, {label}{floor}"
+    ratio = None if ours is None else ours.seconds / run.seconds
+    return Row(n, method, run.vertices, run.seconds, run.error, ratio)
+
+
+def mesh_rows(n: int, grid_rows: list[Row], target: float, match_error: float | None,
+              source: str = "igl") -> list[Row]:
+    """The samples-matched and the error-matched mesh-peer rows for the ``n^3`` grid."""
+    ours = fastest_torchsurf(grid_rows)
+    grid = ts.Grid.cube(n, bound=BOUND)
+    samples = surface_samples(ts.sdf.sphere(grid, radius=1.0), grid)
+    by_samples = mesh_peer_at_target(closest_subdivision(samples), target, source)
+    rows = [mesh_row(n, by_samples, f"{samples:,} grid samples, target {target:.0e}", ours)]
+    whose = "given"
+    if match_error is None and ours is not None:
+        match_error, whose = ours.error, f"{ours.method}'s"
+    if match_error is not None:
+        rows.append(mesh_row(n, accuracy_matched(match_error, source),
+                             f"matched to {whose} error {match_error:.2e}", ours))
+    return rows
+
+
+def fastest_torchsurf(rows: list[Row]) -> Row | None:
+    """The fastest torchsurf row (the numpy reference excluded), or ``None``."""
+    candidates = [row for row in rows if row.method != REFERENCE_NAME]
+    return min(candidates, key=lambda row: row.seconds, default=None)
+
+
+def format_row(row: Row) -> str:
+    """Markdown line of ``row``."""
+    n = "—" if row.n is None else row.n
+    ratio = "" if row.ratio is None else f"{row.ratio:.2f}"
+    return f"| {n} | {row.method} | {row.samples:,} | {row.seconds:.3f} | {row.error:.2e} | {ratio} |"
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    """Command-line options."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=[65, 129])
     parser.add_argument("--implicit-steps", type=int, default=10)
     parser.add_argument("--float64", action="store_true")
     parser.add_argument("--no-reference", action="store_true")
+    parser.add_argument("--reference-sizes", type=int, nargs="+",
+                        help="grids for the numpy reference (default: --sizes); it is first order and "
+                        "needs finer grids than the flows to reach the same error")
+    peer = parser.add_mutually_exclusive_group()
+    peer.add_argument("--no-mesh-peer", action="store_true", help="skip the mesh-peer rows")
+    peer.add_argument("--mesh-peer-only", action="store_true", help="skip the torchsurf rows")
+    parser.add_argument("--mesh-target", type=float, default=1e-3,
+                        help="error the samples-matched mesh row must reach (default 1e-3)")
+    parser.add_argument("--match-error", type=float, nargs="+",
+                        help="error per size for the error-matched mesh row (default: fastest torchsurf row)")
+    parser.add_argument("--subdivisions", type=int, nargs="+", default=[],
+                        help="extra mesh-peer rows (n shown as —) at these icosphere subdivisions")
+    parser.add_argument("--mesh-operators", choices=("igl", "numpy"), default="igl",
+                        help="cotangent Laplacian and Voronoi mass from libigl or this file's numpy code")
     args = parser.parse_args(argv)
+    if args.match_error is not None and len(args.match_error) != len(args.sizes):
+        parser.error("--match-error needs one error per size")
+    return args
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Print the markdown table for the requested sizes."""
+    args = parse_args(argv)
     dtype = torch.float64 if args.float64 else torch.float32
-    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, {dtype}")
-    print("| n | method | wall time (s) | max relative error on S |")
-    print("|---|---|---|---|")
-    for n in args.sizes:
-        for row in bench(n, args.implicit_steps, dtype, not args.no_reference):
-            print(f"| {row[0]} | {row[1]} | {row[2]:.2f} | {row[3]:.2e} |", flush=True)
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, {dtype}; "
+          f"mesh peer float64, scipy splu, {args.mesh_operators} operators")
+    print("| n | method | surface samples / vertices | wall time (s) | max relative error on S "
+          "| fastest torchsurf time ÷ mesh time |")
+    print("|---|---|---:|---:|---:|---:|")
+    match_errors = args.match_error or [None] * len(args.sizes)
+    reference_sizes = [] if args.no_reference or args.mesh_peer_only else (
+        args.reference_sizes if args.reference_sizes is not None else args.sizes)
+    every_row = []
+    for n, match_error in zip(args.sizes, match_errors, strict=True):
+        rows = [] if args.mesh_peer_only else bench(n, args.implicit_steps, dtype, n in reference_sizes)
+        if not args.no_mesh_peer:
+            rows += mesh_rows(n, rows, args.mesh_target, match_error, args.mesh_operators)
+        for row in rows:
+            print(format_row(row), flush=True)
+        every_row += rows
+    for n in sorted(set(reference_sizes) - set(args.sizes)):
+        row = reference_row(n, dtype)
+        print(format_row(row), flush=True)
+        every_row.append(row)
+    for subdivisions in [] if args.no_mesh_peer else args.subdivisions:
+        run = mesh_peer_at_target(subdivisions, args.mesh_target, args.mesh_operators)
+        row = mesh_row(None, run, f"target {args.mesh_target:.0e}", None)
+        print(format_row(row), flush=True)
+        every_row.append(row)
+    print()
+    print("\n".join(time_to_accuracy(every_row, args.mesh_target)))
 
 
 if __name__ == "__main__":
