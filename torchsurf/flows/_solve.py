@@ -59,11 +59,13 @@ def conjugate_gradient(
     energy = _dot(residual, residual)
     target = tolerance**2 * _dot(rhs, rhs).clamp(min=torch.finfo(rhs.dtype).tiny)
     for iteration in range(options.max_iterations):
-        if bool((energy <= target).all()):
+        # converged volumes stay put, so a volume's answer does not depend on its batch
+        active = energy > target
+        if not bool(active.any()):
             return x, iteration
         image = operator(direction)
         curvature = _dot(direction, image)
-        alpha = torch.where(curvature > 0, energy / curvature.clamp(min=1e-300), 0.0)
+        alpha = torch.where(active & (curvature > 0), energy / curvature.clamp(min=1e-300), 0.0)
         x = x + alpha * direction
         residual = residual - alpha * image
         new_energy = _dot(residual, residual)

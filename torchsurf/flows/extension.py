@@ -76,9 +76,9 @@ def pde_extension(
     """Steady state of ``u_t + sign(phi) n . grad u = 0`` in the band (upwind, CFL 1/2).
 
     ``sign(phi)`` is smoothed as ``phi / sqrt(phi^2 + h^2)``. The step is ``dt = h / 6``
-    (``|n|_1 <= sqrt 3``, so the CFL number is at most 1/2). The loop stops when the largest
-    change of a step is at most ``tolerance`` times the largest ``|u|``, or after
-    ``max_steps`` (default: enough to cross the band twice).
+    (``|n|_1 <= sqrt 3``, so the CFL number is at most 1/2). Each volume and channel stops
+    when the largest change of a step is at most ``tolerance`` times its largest ``|u|``; the
+    loop ends when all have, or after ``max_steps`` (default: enough to cross the band twice).
 
     Args:
         u: ``(B, C, D, H, W)``.
@@ -99,12 +99,16 @@ def pde_extension(
     band = surface.band(width)
     sign = surface.phi / torch.sqrt(surface.phi**2 + h**2)
     velocity = sign * surface.normal
-    scale = u.detach().abs().max().clamp(min=torch.finfo(u.dtype).tiny)
+    # each volume and channel stops on its own, so that its result does not depend on its batch
+    volume = (2, 3, 4)
+    scale = u.detach().abs().amax(dim=volume, keepdim=True).clamp(min=torch.finfo(u.dtype).tiny)
+    active = torch.ones_like(scale, dtype=torch.bool)
     for _ in range(max_steps):
-        updated = torch.where(band, _upwind_step(u, velocity, h, cfl=0.5), u)
-        change = (updated - u).detach().abs().max()
+        updated = torch.where(band & active, _upwind_step(u, velocity, h, cfl=0.5), u)
+        change = (updated - u).detach().abs().amax(dim=volume, keepdim=True)
         u = updated
-        if change <= tolerance * scale:
+        active = active & (change > tolerance * scale)
+        if not bool(active.any()):
             break
     return u
 
