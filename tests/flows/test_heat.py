@@ -78,12 +78,14 @@ def test_sphere_harmonics_decay_torchdiffeq(sphere33):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("method", ["euler", "crank_nicolson", "dopri5"])
+@pytest.mark.parametrize("method", ["euler", "heun", "implicit", "crank_nicolson", "dopri5"])
 def test_sphere_harmonics_decay_65(method):
+    """Every integrator within the issue's 0.5 % at 65^3; backward Euler, first order in time,
+    needs hundreds of steps for l = 4: its error is about ``lambda^2 t dt / 2``, ``lambda = 20 / R^2``."""
     if method == "dopri5":
         pytest.importorskip("torchdiffeq")
     u0, surface = harmonics(65, torch.float64)
-    settings = {"steps": 20} if method == "crank_nicolson" else {}
+    settings = {"crank_nicolson": {"steps": 20}, "implicit": {"steps": 1200}}.get(method, {})
     errors = decay_errors(HeatFlow(TIME, method=method, **settings)(u0, surface), surface, TIME)
     assert max(errors) < 5e-3, errors
 
