@@ -122,14 +122,21 @@ def _explicit(
     return integrate
 
 
+def _axpy(u: Tensor, dt: Tensor | float, rate: Tensor) -> Tensor:
+    """``u + dt * rate`` in one pass over memory (``dt`` a number or a 0-d tensor)."""
+    if isinstance(dt, Tensor):
+        return torch.addcmul(u, dt, rate)
+    return torch.add(u, rate, alpha=dt)
+
+
 def _euler_step(system: System, u: Tensor, dt: Tensor | float) -> Tensor:
-    return u + dt * system.rate(u)
+    return _axpy(u, dt, system.rate(u))
 
 
 def _heun_step(system: System, u: Tensor, dt: Tensor | float) -> Tensor:
     first = system.rate(u)
-    second = system.rate(_finish(system, u + dt * first))
-    return u + 0.5 * dt * (first + second)
+    second = system.rate(_finish(system, _axpy(u, dt, first)))
+    return _axpy(u, 0.5 * dt, first + second)
 
 
 def _theta_method(theta: float) -> Callable[[System, Tensor, Schedule], list[Tensor]]:

@@ -71,9 +71,10 @@ class HeatFlow(Flow):
             raise TypeError(f"HeatFlow takes no inputs besides u0 and surface, got {sorted(inputs)}")
         band = self.band(surface, u0)
         d = self.diffusivity.volume(u0)
+        scale = band * d  # once, not per step
 
         def rate(u: Tensor) -> Tensor:
-            return band * d * laplace_beltrami(u, surface, self.scheme, self.path)
+            return scale * laplace_beltrami(u, surface, self.scheme, self.path)
 
         linear = None
         if self.scheme in SYMMETRIC_SCHEMES:
