@@ -115,6 +115,8 @@ CASES = {
         tolerance=SOLVED,
     ),
     "extension_closest_point": Case(lambda: Extension("closest_point"), scalar),
+    "extension_closest_point_cubic": Case(lambda: Extension(interpolation="cubic"), scalar),
+    "heat_reextended": Case(lambda: HeatFlow(0.02, steps=4, reextend_every=2), scalar),
     # on this grid the default tolerance is never met: both run all max_steps
     "extension_pde": Case(lambda: Extension("pde"), scalar),
     # ... with a looser tolerance the loop stops early; it used to stop on the largest change
