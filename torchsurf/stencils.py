@@ -48,37 +48,38 @@ class Stencil:
         return kernel
 
 
-def _unit(axis: int, step: int = 1) -> Offset:
+def unit(axis: int, step: int = 1) -> Offset:
     """Offset ``(dz, dy, dx)`` of ``step`` nodes along world axis ``axis`` (0 = x, 1 = y, 2 = z)."""
     offset = [0, 0, 0]
     offset[2 - axis] = step
     return tuple(offset)
 
 
-def _add(a: Offset, b: Offset) -> Offset:
+def add(a: Offset, b: Offset) -> Offset:
+    """The offset ``a + b``."""
     return tuple(p + q for p, q in zip(a, b, strict=True))
 
 
 _AXES = "xyz"
-_CENTRE: Offset = (0, 0, 0)
+CENTRE: Offset = (0, 0, 0)
 
 FORWARD: tuple[Stencil, ...] = tuple(
-    Stencil(f"forward_{_AXES[a]}", ((_CENTRE, -1.0), (_unit(a), 1.0))) for a in range(3)
+    Stencil(f"forward_{_AXES[a]}", ((CENTRE, -1.0), (unit(a), 1.0))) for a in range(3)
 )
 """Forward differences ``u[i+1] - u[i]`` along x, y, z."""
 
 BACKWARD: tuple[Stencil, ...] = tuple(
-    Stencil(f"backward_{_AXES[a]}", ((_unit(a, -1), -1.0), (_CENTRE, 1.0))) for a in range(3)
+    Stencil(f"backward_{_AXES[a]}", ((unit(a, -1), -1.0), (CENTRE, 1.0))) for a in range(3)
 )
 """Backward differences ``u[i] - u[i-1]`` along x, y, z."""
 
 CENTRAL: tuple[Stencil, ...] = tuple(
-    Stencil(f"central_{_AXES[a]}", ((_unit(a, -1), -0.5), (_unit(a), 0.5))) for a in range(3)
+    Stencil(f"central_{_AXES[a]}", ((unit(a, -1), -0.5), (unit(a), 0.5))) for a in range(3)
 )
 """Central differences ``(u[i+1] - u[i-1]) / 2`` along x, y, z."""
 
 SECOND: tuple[Stencil, ...] = tuple(
-    Stencil(f"second_{_AXES[a] * 2}", ((_unit(a, -1), 1.0), (_CENTRE, -2.0), (_unit(a), 1.0)))
+    Stencil(f"second_{_AXES[a] * 2}", ((unit(a, -1), 1.0), (CENTRE, -2.0), (unit(a), 1.0)))
     for a in range(3)
 )
 """Second differences ``u[i+1] - 2 u[i] + u[i-1]`` along x, y, z."""
@@ -89,7 +90,7 @@ MIXED: tuple[Stencil, ...] = tuple(
     Stencil(
         f"mixed_{_AXES[a]}{_AXES[b]}",
         tuple(
-            (_add(_unit(a, sa), _unit(b, sb)), 0.25 * sa * sb) for sa in (1, -1) for sb in (1, -1)
+            (add(unit(a, sa), unit(b, sb)), 0.25 * sa * sb) for sa in (1, -1) for sb in (1, -1)
         ),
     )
     for a, b in _PAIRS

@@ -101,10 +101,6 @@ def flux_form(
     return result if len(sides) == 1 else result / len(sides)
 
 
-def _offset_sum(a: Offset, b: Offset) -> Offset:
-    return tuple(p + q for p, q in zip(a, b, strict=True))
-
-
 def _combine(terms: list[tuple[float, Tensor]]) -> Tensor:
     """``sum(weight * term)``, adding or subtracting for weights of +1 and -1.
 
@@ -152,7 +148,7 @@ def _face_flux(
     is in index units (the caller divides by ``spacing``), which saves the divisions.
     """
     gradient = [
-        _combine([(w, shifted(u, _offset_sum(at, offset))) for offset, w in stencil.taps])
+        _combine([(w, shifted(u, stencils.add(at, offset))) for offset, w in stencil.taps])
         for stencil in stencils.one_sided(side)
     ]
     if flux_map is not None:

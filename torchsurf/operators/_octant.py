@@ -29,13 +29,9 @@ from .. import stencils
 from ..stencils import Offset, shifted
 from ._flux_form import flux_form
 
-_CENTRE: Offset = (0, 0, 0)
-_UNIT: tuple[Offset, Offset, Offset] = ((0, 0, 1), (0, 1, 0), (1, 0, 0))
-
 
 def _step(offset: Offset, axis: int, sign: int) -> Offset:
-    unit = _UNIT[axis]
-    return tuple(o + sign * e for o, e in zip(offset, unit, strict=True))
+    return stencils.add(offset, stencils.unit(axis, sign))
 
 
 def fused_octant(
@@ -68,12 +64,12 @@ def fused_octant(
         n = normal(axis, at)
         return weight(at) - weight(at) * n * n
 
-    centre = u(_CENTRE)
+    centre = u(stencils.CENTRE)
     diagonal = None
     cross = None
     for a in range(3):
-        ahead, behind = _step(_CENTRE, a, 1), _step(_CENTRE, a, -1)
-        here = coefficient(a, _CENTRE)
+        ahead, behind = _step(stencils.CENTRE, a, 1), _step(stencils.CENTRE, a, -1)
+        here = coefficient(a, stencils.CENTRE)
         term = ((here + coefficient(a, ahead)) * (u(ahead) - centre)
                 - (coefficient(a, behind) + here) * (centre - u(behind)))
         diagonal = term if diagonal is None else diagonal + term

@@ -31,22 +31,38 @@ def _adjoint(
     return grad_norm * _divergence_form(g / grad_norm, normal, grad_norm, spacing, scheme, path)
 
 
+def _one_pass(scheme: str, path: str) -> bool:
+    """Whether ``scheme`` runs as one pointwise kernel over haloed inputs on ``path``: the
+    octant scheme on every path but conv3d (its reference), the others when compiled."""
+    return path == "compiled" or (scheme == "octant" and path != "conv3d")
+
+
+def _run_one_pass(
+    haloed_u: Tensor, haloed_normal: Tensor, haloed_grad_norm: Tensor, grad_norm: Tensor,
+    spacing: float, scheme: str, path: str, weighted: bool,
+) -> Tensor:
+    """``L u``, or ``W L u`` when ``weighted`` (with ``haloed_u`` holding ``g / W``: ``L^T g``)."""
+    inputs = (haloed_u, haloed_normal, haloed_grad_norm, grad_norm, spacing)
+    if scheme == "octant":
+        kernel = _paths.compiled(fused_octant) if path == "compiled" else fused_octant
+        return kernel(*inputs, weighted)
+    return _paths.compiled(fused_flux_form)(*inputs, None, scheme, weighted)
+
+
 def _apply(
     u: Tensor, surface: ImplicitSurface, scheme: str, path: str, adjoint: bool
 ) -> Tensor:
     """``L u`` (or ``L^T u``) of a divergence-form scheme on the path chosen for ``u``."""
     path = _paths.resolve(path, u)
-    fused_octant_path = scheme == "octant" and path != "conv3d"
-    if path == "compiled" or fused_octant_path:
+    if _one_pass(scheme, path):
         haloed_normal, haloed_grad_norm = surface.haloed()
         haloed_u = stencils.pad(u, "replicate")
         if adjoint:
             haloed_u = haloed_u / haloed_grad_norm
-        inputs = (haloed_u, haloed_normal, haloed_grad_norm, surface.grad_norm, surface.spacing)
-        if fused_octant_path:
-            kernel = _paths.compiled(fused_octant) if path == "compiled" else fused_octant
-            return kernel(*inputs, adjoint)
-        return _paths.compiled(fused_flux_form)(*inputs, None, scheme, adjoint)
+        return _run_one_pass(
+            haloed_u, haloed_normal, haloed_grad_norm, surface.grad_norm, surface.spacing,
+            scheme, path, weighted=adjoint,
+        )
     function = _adjoint if adjoint else _divergence_form
     return function(u, surface.normal, surface.grad_norm, surface.spacing, scheme, path)
 
@@ -70,13 +86,11 @@ def weighted_operator(
         ``(B, C, D, H, W)``, units of ``x`` per world length squared.
     """
     path = _paths.resolve(path, x)
-    fused_octant_path = scheme == "octant" and path != "conv3d"
-    if path == "compiled" or fused_octant_path:
-        inputs = (stencils.pad(x, "replicate"), haloed_normal, haloed_grad_norm, grad_norm, spacing)
-        if fused_octant_path:
-            kernel = _paths.compiled(fused_octant) if path == "compiled" else fused_octant
-            return kernel(*inputs, True)
-        return _paths.compiled(fused_flux_form)(*inputs, None, scheme, True)
+    if _one_pass(scheme, path):
+        return _run_one_pass(
+            stencils.pad(x, "replicate"), haloed_normal, haloed_grad_norm, grad_norm, spacing,
+            scheme, path, weighted=True,
+        )
     return grad_norm * _divergence_form(x, normal, grad_norm, spacing, scheme, path)
 
 
