@@ -1,0 +1,44 @@
+"""Second-order Runge–Kutta–Chebyshev: coefficients, stability bound, order."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from torchsurf.flows._rkc import coefficients, rkc_step, stages_for
+
+
+def stability_polynomial(stages: int, z: float) -> float:
+    """``R(z)``: one step of ``u' = lambda u`` with ``dt lambda = z``, from ``u = 1``."""
+    u = torch.ones(1, dtype=torch.float64)
+    return float(rkc_step(lambda x: z * x, u, 1.0, stages))
+
+
+@pytest.mark.parametrize("stages", [2, 3, 5, 16, 60])
+def test_stable_on_the_whole_interval_and_not_beyond(stages):
+    beta = coefficients(stages).stability
+    assert 0.49 * stages**2 < beta < 0.66 * stages**2
+    grid = torch.linspace(-beta, 0.0, 2001, dtype=torch.float64)
+    values = [abs(stability_polynomial(stages, float(z))) for z in grid]
+    assert max(values) <= 1.0 + 1e-9
+    assert abs(stability_polynomial(stages, -2.0 * beta)) > 1.0
+
+
+def test_second_order_in_time():
+    errors = []
+    for count in (4, 8, 16):
+        u = torch.ones(1, dtype=torch.float64)
+        for _ in range(count):
+            u = rkc_step(lambda x: -3.0 * x, u, 1.0 / count, 5)
+        errors.append(abs(float(u) - math.exp(-3.0)))
+    orders = [math.log2(a / b) for a, b in zip(errors, errors[1:], strict=False)]
+    assert all(1.9 < order < 2.5 for order in orders), orders
+
+
+@pytest.mark.parametrize("load", [0.5, 10.0, 157.0, 5000.0])
+def test_fewest_stages_that_are_stable(load):
+    stages = stages_for(load)
+    assert coefficients(stages).stability >= load
+    assert stages == 2 or coefficients(stages - 1).stability < load
