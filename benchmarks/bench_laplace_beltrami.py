@@ -66,12 +66,24 @@ def numpy_normals(phi: np.ndarray, spacing: float, eps: float = 1e-6
 
     One-sided first differences on the faces of the box (the same numbers as central
     differences with ``phi`` extrapolated linearly, which is what :class:`ImplicitSurface`
-    does); ``W = sqrt(|grad phi|^2 + eps^2)``.
+    does); ``|grad phi| = sqrt(|g|^2 + eps^2)``, ``n = g / |grad phi|`` and the operators'
+    weight ``W = max(|grad phi|, 0.5 * median |grad phi| over the nodes next to a sign change)``.
     """
     gz, gy, gx = np.gradient(phi, spacing, edge_order=1)
     gradient = np.stack([gx, gy, gz])
-    weight = np.sqrt((gradient**2).sum(axis=0) + eps**2)
-    return gradient / weight, weight
+    norm = np.sqrt((gradient**2).sum(axis=0) + eps**2)
+    inside = phi < 0
+    crossing = np.zeros_like(inside)
+    for axis in range(3):
+        ahead = [slice(None)] * 3
+        behind = [slice(None)] * 3
+        ahead[axis], behind[axis] = slice(1, None), slice(None, -1)
+        change = inside[tuple(ahead)] != inside[tuple(behind)]
+        crossing[tuple(ahead)] |= change
+        crossing[tuple(behind)] |= change
+    values = np.sort(norm[crossing])
+    median = values[(len(values) - 1) // 2]
+    return gradient / norm, np.maximum(norm, 0.5 * median)
 
 
 class AppendixB:

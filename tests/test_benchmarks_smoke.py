@@ -40,7 +40,7 @@ def test_numpy_reference_is_the_conservative_scheme(bench):
     # the reference's normals are the surface's
     normal, weight = bench.numpy_normals(phi[0, 0].numpy(), grid.spacing)
     np.testing.assert_allclose(normal, surface.normal[0].numpy(), rtol=0, atol=1e-12)
-    np.testing.assert_allclose(weight, surface.grad_norm[0, 0].numpy(), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(weight, surface.weight[0, 0].numpy(), rtol=0, atol=1e-12)
 
 
 def test_numpy_reference_float32_buffers_are_reused(bench):

@@ -85,14 +85,40 @@ def test_band():
     grid = Grid.cube(17, BOUND)
     phi = sdf.sphere(grid, 1.0, dtype=torch.float64)
     surface = ImplicitSurface(phi, grid)
-    assert torch.equal(surface.band(), phi.abs() <= 3 * grid.spacing)
-    assert torch.equal(surface.band(0.2), phi.abs() <= 0.2)
-    assert surface.band().dtype == torch.bool
+    distance = phi.abs() / surface.weight
+    assert torch.equal(surface.band_mask(), distance <= 3 * grid.spacing)
+    assert torch.equal(surface.band_mask(0.2), distance <= 0.2)
+    assert surface.band_mask().dtype == torch.bool
     narrow = ImplicitSurface(phi, grid, band_width=0.1)
-    assert torch.equal(narrow.band(), phi.abs() <= 0.1)
-    assert 0 < int(narrow.band().sum()) < int(surface.band().sum())
+    assert torch.equal(narrow.band_mask(), distance <= 0.1)
+    assert 0 < int(narrow.band_mask().sum()) < int(surface.band_mask().sum())
     with pytest.raises(ValueError, match="width"):
-        surface.band(0.0)
+        surface.band_mask(0.0)
+
+
+@pytest.mark.parametrize("scale", [1e-3, 1000.0])
+def test_band_and_weight_do_not_depend_on_the_scale_of_phi(scale):
+    grid = Grid.cube(21, BOUND)
+    phi = sdf.torus(grid, 0.9, 0.35, dtype=torch.float64)
+    surface = ImplicitSurface(phi, grid)
+    scaled = ImplicitSurface(scale * phi, grid)
+    torch.testing.assert_close(scaled.gradient_scale, scale * surface.gradient_scale)
+    torch.testing.assert_close(scaled.weight, scale * surface.weight)
+    assert torch.equal(scaled.band_mask(), surface.band_mask())
+    assert int(surface.band_mask().sum()) > 0
+
+
+def test_weight_is_floored_where_phi_is_not_a_distance():
+    grid = Grid.cube(21, BOUND)
+    phi = sdf.sphere(grid, 1.0, dtype=torch.float64)
+    surface = ImplicitSurface(phi, grid)
+    assert abs(float(surface.gradient_scale) - 1.0) < 1e-2  # central differences, 7 cells per radius
+    # the sphere's centre is its medial axis: |grad phi| vanishes there, the weight does not
+    centre = (10, 10, 10)
+    assert float(surface.grad_norm[(0, 0, *centre)]) < 1e-3
+    assert float(surface.weight[(0, 0, *centre)]) == pytest.approx(0.5 * float(surface.gradient_scale))
+    near = surface.band_mask()
+    torch.testing.assert_close(surface.weight[near], surface.grad_norm[near])
 
 
 def test_to_float64_moves_buffers():

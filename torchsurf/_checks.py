@@ -76,3 +76,16 @@ def check_positive(value: float, name: str) -> float:
     if not isinstance(value, (int, float)) or not value > 0 or value == float("inf"):
         raise ValueError(f"{name} must be a finite positive number, got {value!r}")
     return float(value)
+
+
+def check_count(value: object, name: str, minimum: int = 1) -> int:
+    """A whole number ``>= minimum``: Python, numpy or 0-d integer tensors; never a bool."""
+    if isinstance(value, Tensor) and value.dim() == 0 and not value.is_floating_point():
+        value = int(value)
+    if hasattr(value, "__index__") and not isinstance(value, (bool, Tensor)):
+        value = value.__index__()
+        if value >= minimum:
+            return int(value)
+    if isinstance(value, int) and not isinstance(value, bool) and value >= minimum:
+        return value
+    raise ValueError(f"{name} must be a whole number >= {minimum}, got {value!r}")

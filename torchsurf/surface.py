@@ -9,6 +9,23 @@ from . import curvature, stencils
 from ._checks import check_finite, check_positive, check_spatial_shape, check_volume
 from .grid import Grid
 
+WEIGHT_FLOOR = 0.5
+"""The operators' weight ``W`` is never below this fraction of ``gradient_scale``."""
+
+
+def _gradient_scale(phi: Tensor, grad_norm: Tensor) -> Tensor:
+    """Median ``|grad phi|`` over the nodes with a neighbour across S; ``(B, 1, 1, 1, 1)``."""
+    inside = phi < 0
+    crossing = torch.zeros_like(inside)
+    for dim in (2, 3, 4):
+        change = inside.narrow(dim, 1, inside.shape[dim] - 1) != inside.narrow(
+            dim, 0, inside.shape[dim] - 1
+        )
+        crossing.narrow(dim, 1, inside.shape[dim] - 1).logical_or_(change)
+        crossing.narrow(dim, 0, inside.shape[dim] - 1).logical_or_(change)
+    scales = [grad_norm[b][crossing[b]].median() for b in range(phi.shape[0])]
+    return torch.stack(scales).view(-1, 1, 1, 1, 1)
+
 
 class ImplicitSurface(nn.Module):
     """The zero level set of ``phi`` on ``grid``, with its normals, band and curvatures.
@@ -17,20 +34,32 @@ class ImplicitSurface(nn.Module):
     ``phi`` extrapolated linearly beyond the grid, and reused by every operator. When ``phi``
     requires grad they stay in its graph (build the surface again after each optimiser step).
 
+    Nothing assumes that ``phi`` is a distance in world units: widths are measured as
+    ``|phi| / W`` (so ``1000 * phi`` is the same surface with the same band), and where
+    ``|grad phi|`` collapses (the medial axis, features thinner than two cells, beyond the band
+    in which a mesh's distance was computed) the operators' weight ``W`` is floored at
+    :data:`WEIGHT_FLOOR` times ``gradient_scale``, the typical ``|grad phi|`` on S. Where phi
+    is a distance the floor never acts; where it does, it bounds the operators' coefficients,
+    so that an explicit step chosen for the surface stays stable there (docs/band.md).
+
     Args:
         phi: ``(B, 1, D, H, W)``, negative inside, positive outside, world units; ideally a
             signed distance function near the surface. Every batch entry must change sign.
         grid: the grid ``phi`` is sampled on; ``grid.shape == (D, H, W)``.
-        band_width: half-width of the band ``|phi| <= band_width`` in world units
-            (default ``3 * grid.spacing``).
+        band_width: half-width of the band ``|phi| / W <= band_width``, world units
+            (default ``3 * grid.spacing``); the flows evolve the data in this band.
         eps: regularisation of ``|grad phi|`` as ``sqrt(|grad phi|^2 + eps^2)``, in the units
             of ``|grad phi|`` (1 for a distance function); keeps normals and their gradients
             finite where ``grad phi`` vanishes (the medial axis).
 
     Attributes:
         phi: ``(B, 1, D, H, W)``.
-        grad_norm: ``W = sqrt(|grad phi|^2 + eps^2)``, ``(B, 1, D, H, W)``.
-        normal: ``grad phi / W``, ``(B, 3, D, H, W)`` in ``(x, y, z)`` order.
+        grad_norm: ``sqrt(|grad phi|^2 + eps^2)``, ``(B, 1, D, H, W)``.
+        normal: ``grad phi / grad_norm``, ``(B, 3, D, H, W)`` in ``(x, y, z)`` order.
+        gradient_scale: the median of ``grad_norm`` over the nodes next to a sign change of
+            ``phi`` (1 for a distance function), ``(B, 1, 1, 1, 1)``.
+        weight: ``W = max(grad_norm, WEIGHT_FLOOR * gradient_scale)``, the weight of every
+            divergence-form operator ``(1/W) div(W ...)``, ``(B, 1, D, H, W)``.
 
     Example:
         >>> grid = Grid.cube(33, bound=1.5)
@@ -43,6 +72,8 @@ class ImplicitSurface(nn.Module):
     phi: Tensor
     grad_norm: Tensor
     normal: Tensor
+    gradient_scale: Tensor
+    weight: Tensor
 
     def __init__(
         self, phi: Tensor, grid: Grid, band_width: float | None = None, eps: float = 1e-6
@@ -72,9 +103,14 @@ class ImplicitSurface(nn.Module):
         self.register_buffer("phi", phi, persistent=False)
         self.register_buffer("grad_norm", grad_norm, persistent=False)
         self.register_buffer("normal", gradient / grad_norm, persistent=False)
+        scale = _gradient_scale(phi.detach(), grad_norm)
+        self.register_buffer("gradient_scale", scale, persistent=False)
+        self.register_buffer(
+            "weight", torch.maximum(grad_norm, WEIGHT_FLOOR * scale), persistent=False
+        )
         self.register_buffer("_mean_curvature", None, persistent=False)
         self.register_buffer("_haloed_normal", None, persistent=False)
-        self.register_buffer("_haloed_grad_norm", None, persistent=False)
+        self.register_buffer("_haloed_weight", None, persistent=False)
 
     @property
     def batch_size(self) -> int:
@@ -86,15 +122,22 @@ class ImplicitSurface(nn.Module):
         """Grid spacing ``h``, world units."""
         return self.grid.spacing
 
-    def band(self, width: float | None = None) -> Tensor:
-        """Boolean mask ``|phi| <= width`` (default ``band_width``); ``(B, 1, D, H, W)``."""
+    def distance(self) -> Tensor:
+        """Unsigned distance to S to first order, ``|phi| / W``, world units; ``(B, 1, D, H, W)``."""
+        return self.phi.detach().abs() / self.weight.detach()
+
+    def band_mask(self, width: float | None = None) -> Tensor:
+        """Boolean mask of the nodes within ``width`` of S (default ``band_width``).
+
+        Distances are :meth:`distance`'s ``|phi| / W``, world units; ``(B, 1, D, H, W)``.
+        """
         width = self.band_width if width is None else check_positive(width, "width")
-        return self.phi.abs() <= width
+        return self.distance() <= width
 
     def haloed(self) -> tuple[Tensor, Tensor]:
-        """``normal`` and ``grad_norm`` with a halo of one node on every side.
+        """``normal`` and ``weight`` with a halo of one node on every side.
 
-        ``grad_norm`` is replicated; ``normal`` is mirrored in the box's faces
+        ``weight`` is replicated; ``normal`` is mirrored in the box's faces
         (:func:`torchsurf.stencils.pad_mirrored`), as the octant scheme needs.
 
         ``(B, 3, D + 2, H + 2, W + 2)`` and ``(B, 1, D + 2, H + 2, W + 2)``, for kernels that
@@ -102,12 +145,12 @@ class ImplicitSurface(nn.Module):
         the same terms as :meth:`mean_curvature`.
         """
         if self._haloed_normal is not None:
-            return self._haloed_normal, self._haloed_grad_norm
+            return self._haloed_normal, self._haloed_weight
         normal = stencils.pad_mirrored(self.normal)
-        grad_norm = stencils.pad(self.grad_norm, "replicate")
+        weight = stencils.pad(self.weight, "replicate")
         if torch.is_grad_enabled() or not self.phi.requires_grad:
-            self._haloed_normal, self._haloed_grad_norm = normal, grad_norm
-        return normal, grad_norm
+            self._haloed_normal, self._haloed_weight = normal, weight
+        return normal, weight
 
     def hessian(self) -> Tensor:
         """Second derivatives of ``phi``, ``(B, 6, D, H, W)`` in the order xx, yy, zz, xy, xz, yz.

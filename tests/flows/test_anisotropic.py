@@ -15,7 +15,7 @@ def tv_energy(u, surface, eps):
     total = 0.0
     for side in SIDES["symmetric"]:
         v = projected_gradient(u, surface.normal, surface.spacing, side, "slicing")
-        total += float((surface.grad_norm * torch.sqrt((v**2).sum(2) + eps**2)).sum())
+        total += float((surface.weight * torch.sqrt((v**2).sum(2) + eps**2)).sum())
     return total / 2
 
 

@@ -52,12 +52,14 @@ def sphere33():
     return harmonics(33, torch.float32)
 
 
-# Measured at 33^3 (float64, t = 0.05), relative errors for l = 1..4 (float32 runs here):
-# euler 2.5e-3 6.8e-3 1.7e-2 1.7e-2; crank_nicolson(10) 2.4e-3 5.1e-3 1.1e-2 1.5e-2;
-# dopri5 2.4e-3 5.0e-3 1.0e-2 1.6e-2. The spatial error dominates; it is second order.
+# Measured at 33^3 (float32, t = 0.05, the 3-cell band re-extended), relative errors for
+# l = 1..4: rkc 2.1e-3 4.8e-3 6.1e-3 2.4e-2 (8 steps: 1.7e-2); euler 2.4e-3 7.3e-3 1.7e-2
+# 2.7e-2; crank_nicolson(5) 2.1e-3 5.1e-3 1.2e-2 9.8e-3. l = 4 has 8 cells per wavelength
+# here; the errors are the space discretisation's and fall as h^2 (test below and at 65^3).
 @pytest.mark.parametrize(
     ("method", "settings"),
     [
+        ("rkc", {}),
         ("euler", {}),
         ("crank_nicolson", {"steps": 5}),
     ],
@@ -66,7 +68,8 @@ def test_sphere_harmonics_decay(sphere33, method, settings):
     u0, surface = sphere33
     u = HeatFlow(TIME, method=method, **settings)(u0, surface)
     errors = decay_errors(u, surface, TIME)
-    assert max(errors) < 2.5e-2, errors
+    assert max(errors[:3]) < 2e-2, errors
+    assert errors[3] < 3e-2, errors
 
 
 def test_sphere_harmonics_decay_torchdiffeq(sphere33):
@@ -100,7 +103,7 @@ def small_case(n: int = 17, dtype: torch.dtype = torch.float64, seed: int = 0):
 
 def dirichlet_energy(u, surface):
     """``-u^T A u / 2`` with ``A = W L``: the energy the symmetric scheme descends."""
-    return float(-(u * surface.grad_norm * ts.laplace_beltrami(u, surface)).sum() / 2)
+    return float(-(u * surface.weight * ts.laplace_beltrami(u, surface)).sum() / 2)
 
 
 def test_energy_never_increases():
@@ -113,23 +116,44 @@ def test_energy_never_increases():
 
 
 def test_implicit_agrees_with_explicit():
+    """On one discrete problem (a wide band held at u0 outside: no re-extension), every
+    integrator converges to the same answer."""
     u0, surface = small_case()
-    explicit = HeatFlow(0.01, steps=200)(u0, surface)
-    implicit = HeatFlow(0.01, method="crank_nicolson", steps=20)(u0, surface)
-    assert (explicit - implicit).abs().max() < 2e-3
-    backward = HeatFlow(0.01, method="implicit", steps=200)(u0, surface)
-    assert (explicit - backward).abs().max() < 2e-3
+    settings = {"band_width": 0.6, "reextend_every": None}
+    explicit = HeatFlow(0.01, method="euler", steps=200, **settings)(u0, surface)
+    for method, steps in (("rkc", 20), ("crank_nicolson", 20), ("implicit", 200)):
+        other = HeatFlow(0.01, method=method, steps=steps, **settings)(u0, surface)
+        assert (explicit - other).abs().max() < 2e-3, method
 
 
-def test_outside_band_keeps_u0_and_input_untouched():
+def test_only_the_band_and_its_ring_change_and_input_untouched():
     u0, surface = small_case()
     copy = u0.clone()
-    flow = HeatFlow(0.01, band_width=0.3)
+    flow = HeatFlow(0.01, band_width=0.6)
     u = flow(u0, surface)
-    band = surface.band(0.3).expand_as(u)
-    assert torch.equal(u[~band], u0[~band])
-    assert not torch.equal(u[band], u0[band])
+    band = surface.band_mask(0.6)
+    region = torch.nn.functional.max_pool3d(band.double(), 3, stride=1, padding=1) > 0
+    assert torch.equal(u[~region.expand_as(u)], u0[~region.expand_as(u)])
+    assert not torch.equal(u[band.expand_as(u)], u0[band.expand_as(u)])
     assert torch.equal(u0, copy)
+
+
+def test_nan_outside_the_band_and_ring_stays_there():
+    u0, surface = small_case()
+    band = surface.band_mask()
+    region = torch.nn.functional.max_pool3d(band.double(), 3, stride=1, padding=1) > 0
+    u0 = torch.where(region, u0, torch.nan)
+    u = HeatFlow(0.01)(u0, surface)
+    assert torch.isfinite(u[region.expand_as(u)]).all()
+    with pytest.raises(ValueError, match="u0"):
+        HeatFlow(0.01)(torch.where(band, torch.nan, u0), surface)
+
+
+def test_a_band_too_narrow_for_reextension_is_refused():
+    u0, surface = small_case()
+    with pytest.raises(ValueError, match="band_width"):
+        HeatFlow(0.01, band_width=2 * surface.spacing)(u0, surface)
+    HeatFlow(0.01, band_width=2 * surface.spacing, reextend_every=None)(u0, surface)
 
 
 def test_times_returns_each_time_and_end_matches():
@@ -182,7 +206,7 @@ def test_gradcheck_data_diffusivity_and_time(method):
     u0, surface = small_case(9)
     basis = directions(3)
     flow = HeatFlow(0.01, diffusivity=[1.3], learn_diffusivity=True, learn_time=True,
-                    method=method, steps=2, band_width=0.4).double()
+                    method=method, steps=2, band_width=1.1).double()
     coefficients = torch.zeros(3, dtype=torch.float64, requires_grad=True)
 
     def run(coefficients, raw_time, raw_diffusivity):
@@ -195,12 +219,15 @@ def test_gradcheck_data_diffusivity_and_time(method):
     assert torch.autograd.gradcheck(run, inputs, eps=1e-6, atol=1e-7, fast_mode=True)
 
 
-def test_gradcheck_phi_through_implicit_solve():
-    grid = ts.Grid.cube(9, bound=1.5)
-    phi0 = ts.sdf.sphere(grid, radius=1.0, dtype=torch.float64)
-    basis = 0.05 * directions(2)
-    u0, _ = small_case(9)
-    flow = HeatFlow(0.01, method="implicit", steps=2, band_width=0.4)
+@pytest.mark.parametrize("method", ["implicit", "rkc"])
+def test_gradcheck_phi_through_the_flow_and_its_reextension(method):
+    """Off-centre sphere: on a centred one some closest points fall exactly on nodes, where the
+    tricubic re-extension's derivatives jump."""
+    grid = ts.Grid.cube(13, bound=1.5)
+    phi0 = ts.sdf.sphere(grid, radius=0.93, center=(0.031, -0.047, 0.023), dtype=torch.float64)
+    basis = 0.05 * directions(2, n=13)
+    u0, _ = small_case(13)
+    flow = HeatFlow(0.01, method=method, steps=2, band_width=0.75)
 
     def run(coefficients):
         phi = phi0 + (coefficients[:, None, None, None, None, None] * basis).sum(0)

@@ -1,22 +1,26 @@
 """Time integrators of the flows, chosen by name from :data:`INTEGRATORS` (or torchdiffeq).
 
-A flow hands the integrator a :class:`System`: the right-hand side ``du/dt`` (already zero
-outside the surface's band), its stable explicit step, an optional projection applied after
-every step (renormalisation of unit vectors) and, for linear flows ``W du/dt = A u`` with ``A``
-symmetric negative semi-definite, the operator ``A`` so that implicit steps can use conjugate
-gradients. Nodes outside the band keep their initial values throughout (a Dirichlet condition
-on the band's edge), which keeps the band-restricted ``A`` symmetric.
+A flow hands the integrator a :class:`System`: the right-hand side ``du/dt`` (zero outside the
+band), a bound ``rho`` of the spectral radius of its Jacobian on the band, an optional
+projection applied after every step (renormalisation of unit vectors) and, for linear flows
+``W du/dt = A u`` with ``A`` symmetric negative semi-definite, the operator ``A`` so that
+implicit steps can use conjugate gradients. Nodes outside the band keep their values during a
+step (a Dirichlet condition on the band's edge), which keeps the band-restricted ``A``
+symmetric; the flow refreshes them between steps (:class:`Schedule`'s ``after_step``).
 """
 
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
+from ._rkc import MAX_STAGES, largest_step_times_rho, rkc_step, stages_for
 from ._solve import SolverOptions, solve_symmetric
 
 Rate = Callable[[Tensor], Tensor]
@@ -25,6 +29,11 @@ Rate = Callable[[Tensor], Tensor]
 def tensors(*values: object) -> tuple[Tensor, ...]:
     """The tensors among ``values`` that require grad (what ``odeint_adjoint`` differentiates)."""
     return tuple(v for v in values if isinstance(v, Tensor) and v.requires_grad)
+
+
+def with_ring(band: Tensor) -> Tensor:
+    """``band`` ``(B, 1, D, H, W)`` bool and every node a 3x3x3 stencil on it reads."""
+    return F.max_pool3d(band.to(torch.float32), 3, stride=1, padding=1) > 0
 
 
 @dataclass
@@ -47,8 +56,9 @@ class System:
 
     Attributes:
         rate: ``u -> du/dt``, zero outside ``band``.
-        band: ``(B or 1, 1, D, H, W)`` float mask of the nodes that evolve.
-        stable_step: the largest stable forward-Euler step, physical time.
+        band: ``(B or 1, 1, D, H, W)`` bool mask of the nodes that evolve.
+        spectral_radius: ``rho``, an upper bound of the spectral radius of ``rate``'s Jacobian
+            on the band, ``1 / time``.
         project: applied after every step (e.g. ``u / |u|``), or ``None``.
         linear: the symmetric linear form, for the implicit integrators; ``None`` if nonlinear.
         params: tensors ``rate`` reads that may need gradients (for ``odeint_adjoint``).
@@ -56,10 +66,27 @@ class System:
 
     rate: Rate
     band: Tensor
-    stable_step: float
+    spectral_radius: float
     project: Callable[[Tensor], Tensor] | None = None
     linear: Linear | None = None
     params: tuple[Tensor, ...] = field(default_factory=tuple)
+
+    def __post_init__(self) -> None:
+        if not self.spectral_radius > 0 or not math.isfinite(self.spectral_radius):
+            raise ValueError(
+                f"the flow's operator has no finite positive spectral bound "
+                f"({self.spectral_radius!r}): is its band empty?"
+            )
+
+    @property
+    def stable_step(self) -> float:
+        """The largest stable forward-Euler (and Heun) step, ``2 / rho``, physical time."""
+        return 2.0 / self.spectral_radius
+
+    @property
+    def region(self) -> Tensor:
+        """The band and the ring of nodes its 3x3x3 stencils read, a bool mask like ``band``."""
+        return with_ring(self.band)
 
 
 @dataclass
@@ -68,7 +95,8 @@ class Schedule:
 
     Attributes:
         times: increasing end times (floats or 0-d tensors), physical time.
-        steps: total number of steps over ``[0, times[-1]]``, or ``None`` for the stable step.
+        steps: total number of steps over ``[0, times[-1]]``, or ``None`` for ``step``.
+        step: the step size when ``steps`` is ``None`` (:func:`plan_steps`), physical time.
         solver: the conjugate-gradient stopping rule (implicit integrators).
         options: extra keyword options passed to torchdiffeq.
         adjoint: use ``torchdiffeq.odeint_adjoint``.
@@ -77,6 +105,7 @@ class Schedule:
 
     times: Sequence[float | Tensor]
     steps: int | None = None
+    step: float | None = None
     solver: SolverOptions = field(default_factory=SolverOptions)
     options: dict = field(default_factory=dict)
     adjoint: bool = False
@@ -87,8 +116,75 @@ def _value(time: float | Tensor) -> float:
     return float(time.detach()) if isinstance(time, Tensor) else float(time)
 
 
-def _intervals(schedule: Schedule, step: float) -> Iterator[tuple[int, Tensor | float, int]]:
+MAX_STEPS = 10**6
+"""More steps than this are refused before any work: a sign of a wrong time or unit."""
+
+RKC_STEPS = 8
+"""Fewest RKC steps to a flow's end time (unless forward Euler would need fewer): the time
+error of RKC2 on a mode decaying by ``e^-1`` over the flow stays below the second-order space
+error at 33^3-65^3 (docs/band.md)."""
+
+
+@dataclass(frozen=True)
+class Plan:
+    """How many steps of which size a method takes to ``end``.
+
+    Attributes:
+        count: number of steps (``None`` for adaptive torchdiffeq methods).
+        step: step size, physical time.
+        stages: RKC stages per step (``None`` for the other methods).
+    """
+
+    count: int | None
+    step: float
+    stages: int | None = None
+
+
+def plan_steps(method: str, system: System, end: float, steps: int | None,
+               band_cells: float = 3.0) -> Plan:
+    """The steps of ``method`` over ``[0, end]``; raises before work when they are absurd.
+
+    ``steps`` given: ``end / steps`` (explicit steps above the stable step warn). Otherwise:
+    Euler, Heun and the implicit methods take the stable explicit step ``2 / rho``; RKC takes
+    :data:`RKC_STEPS` steps (or Euler's count, if smaller) or more, none longer than
+    ``12 band_cells^2 / rho``: about the time the diffusion takes to cross a band
+    ``band_cells`` cells wide, after which the data must be re-extended (docs/band.md).
+    """
+    rho = system.spectral_radius
+    if steps is None:
+        explicit = max(1, math.ceil(end / system.stable_step * (1 - 1e-9)))
+        if method == "rkc":
+            longest = min(12.0 * band_cells**2, largest_step_times_rho())
+            count = max(min(RKC_STEPS, explicit), math.ceil(end * rho / longest * (1 - 1e-9)))
+        elif method in INTEGRATORS:
+            count = explicit
+        else:
+            count = None
+    else:
+        count = steps
+        if method in ("euler", "heun") and end / steps > system.stable_step * (1 + 1e-6):
+            warnings.warn(
+                f"steps={steps}: a step of {end / steps:.3g} exceeds the stable explicit step "
+                f"{system.stable_step:.3g} of this surface's operator (2 / rho); the flow may "
+                f"blow up. Use steps >= {math.ceil(end / system.stable_step)} or method='rkc'",
+                RuntimeWarning, stacklevel=4,
+            )
+    if count is not None and count > MAX_STEPS:
+        raise ValueError(
+            f"time={end:g} needs {count} steps of method={method!r} (more than {MAX_STEPS}): "
+            "is the time in world units squared of this surface? method='rkc' takes about "
+            f"sqrt(time * rho) = {math.sqrt(end * rho):.0f} operator applications"
+        )
+    step = end / count if count else end
+    stages = stages_for(step * rho) if method == "rkc" else None
+    if stages is not None and stages > MAX_STAGES:
+        raise ValueError(f"steps={steps} is too few for RKC: use at least {count}")
+    return Plan(count, step, stages)
+
+
+def _intervals(schedule: Schedule) -> Iterator[tuple[int, Tensor | float, int]]:
     """``(interval index, step size, number of steps)`` for each interval of ``schedule``."""
+    step = schedule.step
     end = _value(schedule.times[-1])
     previous: float | Tensor = 0.0
     for index, time in enumerate(schedule.times):
@@ -110,12 +206,13 @@ def _explicit(
 ) -> Callable[[System, Tensor, Schedule], list[Tensor]]:
     def integrate(system: System, u0: Tensor, schedule: Schedule) -> list[Tensor]:
         u, out, done = u0, [], 0
-        for _, dt, count in _intervals(schedule, system.stable_step):
+        for _, dt, count in _intervals(schedule):
             for _ in range(count):
-                u = _finish(system, step_fn(system, u, dt))
+                u = step_fn(system, u, dt)
                 done += 1
                 if schedule.after_step is not None:
                     u = schedule.after_step(u, done)
+                u = _finish(system, u)
             out.append(u)
         return out
 
@@ -131,6 +228,12 @@ def _axpy(u: Tensor, dt: Tensor | float, rate: Tensor) -> Tensor:
 
 def _euler_step(system: System, u: Tensor, dt: Tensor | float) -> Tensor:
     return _axpy(u, dt, system.rate(u))
+
+
+def _rkc_step(system: System, u: Tensor, dt: Tensor | float) -> Tensor:
+    stages = stages_for(_value(dt) * system.spectral_radius)
+    # the stages' combinations of u are exact only up to rounding: keep u outside the band as is
+    return torch.where(system.band, rkc_step(system.rate, u, dt, min(stages, MAX_STAGES)), u)
 
 
 def _heun_step(system: System, u: Tensor, dt: Tensor | float) -> Tensor:
@@ -150,25 +253,29 @@ def _theta_method(theta: float) -> Callable[[System, Tensor, Schedule], list[Ten
                 "FlowVisualization); use 'euler', 'heun' or a torchdiffeq method"
             )
         band, weight = system.band, linear.params[0]
-        outside = (1 - band) * u0
-        fixed_image = linear.operator(outside, *linear.params)
+        mask = band.to(u0.dtype)
+        zero = torch.zeros((), dtype=u0.dtype, device=u0.device)
         u, out, done = u0, [], 0
-        for _, dt, count in _intervals(schedule, system.stable_step):
+        for _, dt, count in _intervals(schedule):
             step = dt if isinstance(dt, Tensor) else torch.tensor(float(dt), dtype=u0.dtype, device=u0.device)
 
             def matrix(x: Tensor, step: Tensor, *params: Tensor) -> Tensor:
-                return band * (params[0] * x - theta * step * linear.operator(band * x, *params))
+                return mask * (params[0] * x - theta * step * linear.operator(mask * x, *params))
 
             params = (step, *linear.params)
             for _ in range(count):
-                rhs = weight * u + theta * dt * fixed_image
+                outside = torch.where(band, zero, u)
+                inside = torch.where(band, u, zero)
+                rhs = weight * inside + theta * dt * linear.operator(outside, *linear.params)
                 if theta < 1:
                     rhs = rhs + (1 - theta) * dt * linear.operator(u, *linear.params)
-                x = solve_symmetric(matrix, band * rhs, band * u, params, schedule.solver)
-                u = _finish(system, band * x + outside)
+                rhs = torch.where(band, rhs, zero)
+                x = solve_symmetric(matrix, rhs, inside, params, schedule.solver)
+                u = torch.where(band, x, u)
                 done += 1
                 if schedule.after_step is not None:
                     u = schedule.after_step(u, done)
+                u = _finish(system, u)
             out.append(u)
         return out
 
@@ -192,6 +299,7 @@ def _torchdiffeq(method: str) -> Callable[[System, Tensor, Schedule], list[Tenso
             end = _value(schedule.times[-1])
             count = schedule.steps or math.ceil(end / system.stable_step * (1 - 1e-9))
             options["step_size"] = end / max(count, 1)
+
         kwargs = {key: options.pop(key) for key in ("rtol", "atol") if key in options}
 
         def func(t: Tensor, u: Tensor) -> Tensor:
@@ -226,6 +334,7 @@ class _RateModule(torch.nn.Module):
 _FIXED_STEP = ("euler", "midpoint", "rk4", "explicit_adams", "implicit_adams", "heun3")
 
 INTEGRATORS: dict[str, Callable[[System, Tensor, Schedule], list[Tensor]]] = {
+    "rkc": _explicit(_rkc_step),
     "euler": _explicit(_euler_step),
     "heun": _explicit(_heun_step),
     "implicit": _theta_method(1.0),

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import torch
 from torch import Tensor
 
 from .._checks import check_choice, check_positive
@@ -23,10 +24,11 @@ class AnisotropicFlow(Flow):
     (:func:`torchsurf.anisotropic_diffusion`). The flow is the gradient descent of
     ``sum W G(|P D u|)`` (``G' = s g(s)``), so a stable step never increases that energy.
 
-    Stable explicit step: ``dt <= h^2 / (6 max g)``: ``max g = 1`` for Perona–Malik and
-    Charbonnier, ``1 / eps`` for total variation (so TV steps scale with ``eps``; choose
-    ``eps`` at the scale of the smallest gradient worth keeping, or a torchdiffeq method).
-    For a callable ``g``, pass ``max_diffusivity``.
+    Spectral bound: ``max g * rho``, ``rho`` the Gershgorin bound of the band's
+    Laplace–Beltrami operator (about ``12 / h^2``; docs/band.md): ``max g = 1`` for
+    Perona–Malik and Charbonnier, ``1 / eps`` for total variation (so TV's explicit steps scale
+    with ``eps`` and its RKC stages with ``sqrt(1 / eps)``; choose ``eps`` at the scale of the
+    smallest gradient worth keeping). For a callable ``g``, pass ``max_diffusivity``.
 
     Args:
         time: physical end time, world units squared times ``g``.
@@ -68,27 +70,25 @@ class AnisotropicFlow(Flow):
             else:
                 raise ValueError(
                     "max_diffusivity: give the upper bound of a callable diffusivity g "
-                    "(it sets the stable explicit step h^2 / (6 max g))"
+                    "(it sets the spectral bound max g * rho of the steps)"
                 )
         self.max_diffusivity = check_positive(max_diffusivity, "max_diffusivity")
         self.scheme = check_choice(scheme, "scheme", FLUX_SCHEMES)
         self.path = path
 
-    def diffusion_length(self) -> float:
-        return (self.time_value.maximum() * min(self.max_diffusivity, 1.0)) ** 0.5
-
     def system(self, u0: Tensor, surface: ImplicitSurface, **inputs: Tensor) -> System:
         if inputs:
             raise TypeError(f"AnisotropicFlow takes no extra inputs, got {sorted(inputs)}")
-        band = self.band(surface, u0)
+        band = self.band_mask(surface)
+        zero = u0.new_zeros(())
         contrast = self.contrast.value()
         if isinstance(contrast, Tensor):
             contrast = contrast.to(u0.dtype)
 
         def rate(u: Tensor) -> Tensor:
-            return band * anisotropic_diffusion(
+            return torch.where(band, anisotropic_diffusion(
                 u, surface, self.diffusivity, contrast, self.eps, False, self.scheme, self.path
-            )
+            ), zero)
 
-        step = surface.spacing**2 / (6.0 * self.max_diffusivity)
-        return System(rate, band, step, params=tensors(contrast, surface.normal, surface.grad_norm))
+        rho = self.max_diffusivity * self.operator_bound(surface, self.scheme)
+        return System(rate, band, rho, params=tensors(contrast, surface.normal, surface.weight))

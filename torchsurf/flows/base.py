@@ -5,41 +5,44 @@ A flow is built with its physical end time and its parameters and called as
 front. Subclasses only describe their equation (:meth:`Flow.system`); the integration method is
 a constructor choice:
 
-- ``"euler"`` (forward Euler) or ``"heun"`` (second order): the step is the flow's stated
-  stable bound, or ``time / steps`` when ``steps`` is given;
+- ``"rkc"`` (default): second-order Runge–Kutta–Chebyshev, its stages chosen from a bound of
+  the assembled operator's spectrum, so that reaching time ``t`` costs about ``sqrt(t rho)``
+  operator applications;
+- ``"euler"`` (forward Euler) or ``"heun"`` (second order): the step ``2 / rho`` from the same
+  bound, or ``time / steps`` when ``steps`` is given;
 - ``"implicit"`` (backward Euler) or ``"crank_nicolson"``: for the linear symmetric flows, each
   step a matrix-free conjugate-gradient solve, differentiated implicitly (a second solve);
 - any torchdiffeq method (``"dopri5"``, ``"rk4"``, ...): torchdiffeq is optional
   (``pip install torchdiffeq``); ``adjoint=True`` uses ``odeint_adjoint``.
 
-Only nodes in a band ``|phi| <= band_width`` evolve; the others keep ``u0`` (a Dirichlet
-condition, which keeps the band-restricted linear operators symmetric). The stale values at the
-band's edge leak inwards by the flow's own diffusion, so the default band is the surface's
-band widened by twice the diffusion length, ``surface.band_width + 2 sqrt(D_max time)``:
-measured on the sphere (l = 2, t = 0.05, sampled on S), the surface's 3-cell band alone gives
-a relative error of 2.8e-2 at both 33^3 and 65^3 (no convergence), the widened band the same
-error as evolving every node (6.7e-3 and 1.6e-3). Re-extension along normals is off by
-default; when asked for, it reads the closest point by tricubic interpolation. Trilinear
-interpolation after every step costs the heat flow its second-order accuracy (issue 3;
-measured here at 65^3, octant scheme, l = 2, t = 0.05: 5.6e-2 against 1.40e-3 without
-re-extension), tricubic keeps it (1.41e-3 re-extending every step, 1.18e-3 every 10 steps).
+The computational domain is a band of fixed width around S (``surface.band_width``, 3 cells by
+default, or ``band_width=``), measured as ``|phi| / W`` so that it does not depend on the scale of
+``phi``, and independent of the time. Nodes outside it keep their values during a step (a
+Dirichlet condition, which keeps the band-restricted linear operators symmetric); after every
+step (``reextend_every``) the band and the ring of nodes its stencils read are refreshed by
+closest-point re-extension with tricubic interpolation, so that the ring carries the values the
+evolving surface data implies. The explicit steps and RKC's stages come from a Gershgorin bound
+``rho`` of the operator assembled on that band (:mod:`torchsurf.operators.spectrum`), never from
+the nominal ``h^2 / 6`` alone. docs/band.md has the measurements behind these choices.
 """
 
 from __future__ import annotations
 
 import math
+import weakref
 from collections.abc import Sequence
 
 import torch
 from torch import Tensor, nn
 
-from .._checks import check_positive
+from .._checks import check_count, check_finite, check_positive
 from ..operators._inputs import check_data, check_surface
+from ..operators.spectrum import laplace_beltrami_bound
 from ..surface import ImplicitSurface
-from ._integrators import IMPLICIT, INTEGRATORS, Schedule, System, integrate
+from ._integrators import IMPLICIT, INTEGRATORS, Plan, Schedule, System, integrate, plan_steps
 from ._positive import Positive
 from ._solve import SolverOptions
-from .extension import Extension
+from .extension import CubicStencil
 
 
 def _check_times(times: Sequence[float], end: float) -> list[float]:
@@ -51,30 +54,63 @@ def _check_times(times: Sequence[float], end: float) -> list[float]:
     return times
 
 
+REEXTEND_CHOICES = ("auto",)
+MIN_BAND_CELLS = 2.9
+"""Narrowest band (in cells) that re-extension allows: the 4^3 nodes a tricubic stencil reads
+around a closest point lie within ``2 sqrt(3) h`` of S, and the band with its ring holds every
+node within ``band_width + h / sqrt(3)`` of S."""
+
+
+_STENCILS: weakref.WeakKeyDictionary[ImplicitSurface, dict[tuple[float | None, str], CubicStencil]] = (
+    weakref.WeakKeyDictionary()
+)
+
+
+def _stencil(surface: ImplicitSurface, width: float | None, kind: str, mask: Tensor
+             ) -> CubicStencil:
+    """The closest-point stencil of ``mask`` (``kind`` names it), kept while the surface lives
+    unless ``phi`` requires grad (its weights are then in ``phi``'s graph)."""
+    if surface.phi.requires_grad:
+        return CubicStencil(surface, mask, limited=True)
+    cached = _STENCILS.setdefault(surface, {})
+    key = (width, kind)
+    if key not in cached:
+        cached[key] = CubicStencil(surface, mask, limited=True)
+    return cached[key]
+
+
 class Flow(nn.Module):
     """Base of the surface flows: integration settings and the call ``flow(u0, surface)``.
 
     Args:
         time: physical end time (world units squared for diffusion); a positive number.
-        method: ``"euler"``, ``"heun"``, ``"implicit"``, ``"crank_nicolson"`` (linear flows
-            only) or a torchdiffeq method name.
-        steps: number of time steps (``None``: the flow's stable explicit step, rounded so
-            that the steps end exactly at ``time``); for adaptive torchdiffeq methods, unused.
+        method: ``"rkc"`` (default), ``"euler"``, ``"heun"``, ``"implicit"``,
+            ``"crank_nicolson"`` (linear flows only) or a torchdiffeq method name.
+        steps: number of time steps (``None``: for ``"rkc"``, steps no longer than the time
+            the fastest diffusion takes to cross the band (:func:`plan_steps`); for
+            ``"euler"`` and ``"heun"``, the stable step ``2 / rho``, rounded so that the steps
+            end exactly at ``time``); for adaptive torchdiffeq methods, unused.
         learn_time: make ``time`` an ``nn.Parameter`` (kept positive by softplus).
         tolerance, max_iterations: conjugate-gradient stopping rule of the implicit methods.
         options: extra keyword options for torchdiffeq (``rtol``, ``atol``, ``step_size``...).
         adjoint: integrate with ``torchdiffeq.odeint_adjoint``.
         progress: show a tqdm progress bar over the steps (tqdm is optional).
-        reextend_every: re-extend the data along normals (closest point, tricubic) every
-            this many steps; ``None`` (default) never does (see the module docstring).
-        band_width: half-width of the evolving band, world units (default: see the module
-            docstring).
+        reextend_every: re-extend the band and its ring along normals (closest point,
+            tricubic, limited to the range of the cell around each closest point) every this
+            many steps; ``"auto"`` (default) after every RKC or implicit step and after as many
+            Euler or Heun steps as the fastest diffusion takes to cross one cell. Between
+            re-extensions, the ring around the band is re-extended at every evaluation of the
+            rate (except by the implicit methods, whose operator must stay symmetric). ``None``:
+            never (the ring keeps ``u0``: only right for a band as wide as the diffusion
+            length).
+        band_width: half-width of the evolving band, world units (default
+            ``surface.band_width``).
     """
 
     def __init__(
         self,
         time: float,
-        method: str = "euler",
+        method: str = "rkc",
         steps: int | None = None,
         learn_time: bool = False,
         tolerance: float | None = None,
@@ -82,37 +118,32 @@ class Flow(nn.Module):
         options: dict | None = None,
         adjoint: bool = False,
         progress: bool = False,
-        reextend_every: int | None = None,
+        reextend_every: int | str | None = "auto",
         band_width: float | None = None,
     ) -> None:
         super().__init__()
         if not isinstance(method, str):
             raise TypeError(f"method must be a string, got {type(method).__name__}")
-        if steps is not None and (isinstance(steps, bool) or not isinstance(steps, int) or steps < 1):
-            raise ValueError(f"steps must be a whole number >= 1 or None, got {steps!r}")
-        if reextend_every is not None and (
-            isinstance(reextend_every, bool) or not isinstance(reextend_every, int)
-            or reextend_every < 1
-        ):
-            raise ValueError(
-                f"reextend_every must be a whole number >= 1 or None, got {reextend_every!r}"
-            )
         self.time_value = Positive(time, "time", learnable=learn_time)
         if self.time_value.channels is not None:
             raise ValueError(f"time must be a single number, got {time!r}")
         self.method = method
-        self.steps = steps
+        self.steps = None if steps is None else check_count(steps, "steps")
         self.solver = SolverOptions(
             None if tolerance is None else check_positive(tolerance, "tolerance"),
-            int(max_iterations),
+            check_count(max_iterations, "max_iterations"),
         )
         self.options = dict(options or {})
         self.adjoint = bool(adjoint)
+        if method in INTEGRATORS and (self.options or self.adjoint):
+            raise ValueError(
+                f"options and adjoint are torchdiffeq settings; method={method!r} is built in "
+                "and takes neither"
+            )
         self.progress = bool(progress)
+        if reextend_every is not None and reextend_every not in REEXTEND_CHOICES:
+            reextend_every = check_count(reextend_every, "reextend_every")
         self.reextend_every = reextend_every
-        self.extension = (
-            Extension(interpolation="cubic") if reextend_every is not None else None
-        )
         self.band_width = None if band_width is None else check_positive(band_width, "band_width")
 
     @property
@@ -120,23 +151,19 @@ class Flow(nn.Module):
         """The end time: a float, or a positive 0-d tensor when learnable."""
         return self.time_value.value()
 
-    def diffusion_length(self) -> float:
-        """``sqrt(D_max time)``, world units: how far the band's edge leaks in by the end."""
-        return self.time_value.maximum() ** 0.5
+    def band_mask(self, surface: ImplicitSurface) -> Tensor:
+        """The evolving band, a bool mask ``(B or 1, 1, D, H, W)``: within ``band_width`` of S."""
+        return surface.band_mask(self.band_width)
 
-    def band(self, surface: ImplicitSurface, like: Tensor) -> Tensor:
-        """The evolving band as a float mask ``(B or 1, 1, D, H, W)`` in ``like``'s dtype."""
-        width = self.band_width
-        if width is None:
-            width = surface.band_width + 2.0 * self.diffusion_length()
-        return surface.band(width).to(like.dtype)
+    def operator_bound(self, surface: ImplicitSurface, scheme: str = "octant") -> float:
+        """Gershgorin bound of ``Lap_S`` restricted to this flow's band, ``1 / world length^2``."""
+        return laplace_beltrami_bound(surface, scheme, self.band_width)
 
     def system(self, u0: Tensor, surface: ImplicitSurface, **inputs: Tensor) -> System:
         """The flow's equation for ``u0`` on ``surface``; subclasses implement it."""
         raise NotImplementedError
 
-    def _schedule(self, times: Sequence[float] | None, surface: ImplicitSurface,
-                  total: int | None, bar: object | None) -> Schedule:
+    def _schedule(self, times: Sequence[float] | None, after_step: object) -> Schedule:
         end = self.time
         if times is None:
             times = [end]
@@ -146,7 +173,7 @@ class Flow(nn.Module):
                 times = [end * (t / self.time_value.maximum()) for t in times]
         return Schedule(
             times=times, steps=self.steps, solver=self.solver, options=self.options,
-            adjoint=self.adjoint, after_step=self._after_step(surface, bar),
+            adjoint=self.adjoint, after_step=after_step,
         )
 
     def _progress_bar(self, total: int | None):  # noqa: ANN202
@@ -160,13 +187,24 @@ class Flow(nn.Module):
             ) from error
         return tqdm(total=total, desc=type(self).__name__, unit="step", leave=False)
 
-    def _after_step(self, surface: ImplicitSurface, bar: object | None):  # noqa: ANN202
+    def _reextension_period(self, system: System, plan: Plan) -> int | None:
+        if self.reextend_every is None:
+            return None
+        if self.reextend_every != "auto":
+            return self.reextend_every
+        if self.method in ("euler", "heun"):
+            # the time the fastest diffusion takes to cross one cell, 12 / rho
+            return max(1, math.floor(12.0 / (system.spectral_radius * plan.step)))
+        return 1
+
+    def _after_step(self, surface: ImplicitSurface, system: System, bar: object | None,
+                    every: int | None):  # noqa: ANN202
         hooks = []
         if bar is not None:
             hooks.append(lambda u, k: (bar.update(1), u)[1])
-        if self.extension is not None:
-            every, extension = self.reextend_every, self.extension
-            hooks.append(lambda u, k: extension(u, surface) if k % every == 0 else u)
+        if every is not None:
+            stencil = _stencil(surface, self.band_width, "region", system.region)
+            hooks.append(lambda u, k: stencil.apply(u) if k % every == 0 else u)
         if not hooks:
             return None
 
@@ -184,7 +222,9 @@ class Flow(nn.Module):
         """Integrate from ``u0`` to the end time.
 
         Args:
-            u0: initial data ``(B, C, D, H, W)``; ``surface`` has batch 1 or B.
+            u0: initial data ``(B, C, D, H, W)``; ``surface`` has batch 1 or B. Values are read
+                in the band and the ring of nodes around it; elsewhere they are returned as
+                they are.
             surface: the implicit surface.
             times: optional increasing times in ``(0, time]`` to return ``u`` at.
             inputs: flow-specific inputs (e.g. ``direction`` for tangent-field flows).
@@ -194,18 +234,33 @@ class Flow(nn.Module):
         """
         check_surface(surface)
         check_data(u0, "u0", surface)
+        width = surface.band_width if self.band_width is None else self.band_width
+        if self.reextend_every is not None and width < MIN_BAND_CELLS * surface.spacing * (1 - 1e-6):
+            raise ValueError(
+                f"band_width={width:g} is {width / surface.spacing:.2f} cells of this grid; "
+                f"re-extension reads closest points up to {MIN_BAND_CELLS} cells from S: "
+                f"use band_width >= {MIN_BAND_CELLS * surface.spacing:.4g} (or reextend_every=None "
+                "with a band as wide as the diffusion length)"
+            )
         system = self.system(u0, surface, **inputs)
+        check_finite(torch.where(system.region, u0, 0.0), "u0 (in the band and its ring)")
         if self.method in IMPLICIT and system.linear is None:
             raise ValueError(
                 f"method={self.method!r} needs a linear symmetric flow; {type(self).__name__} "
-                "is not: use 'euler', 'heun' or a torchdiffeq method"
+                "is not: use 'rkc', 'euler', 'heun' or a torchdiffeq method"
             )
-        total = self.steps
-        if total is None and self.method in INTEGRATORS:
-            total = max(1, math.ceil(self.time_value.maximum() / system.stable_step))
-        bar = self._progress_bar(total)
+        plan = plan_steps(self.method, system, self.time_value.maximum(), self.steps,
+                          band_cells=width / surface.spacing)
+        bar = self._progress_bar(plan.count)
+        every = self._reextension_period(system, plan)
+        schedule = self._schedule(times, self._after_step(surface, system, bar, every))
+        schedule.step = plan.step
+        if self.reextend_every is not None and self.method not in IMPLICIT:
+            ring = _stencil(surface, self.band_width, "ring", system.region & ~system.band)
+            rate = system.rate
+            system.rate = lambda u: rate(ring.apply(u))
         try:
-            result = integrate(self.method, system, u0, self._schedule(times, surface, total, bar))
+            result = integrate(self.method, system, u0, schedule)
         finally:
             if bar is not None:
                 bar.close()
@@ -213,4 +268,3 @@ class Flow(nn.Module):
 
     def extra_repr(self) -> str:
         return f"method={self.method!r}, steps={self.steps}"
-

@@ -10,7 +10,7 @@ from ..operators import anisotropic_diffusion
 from ..operators.differential import intrinsic_gradient
 from ..operators.diffusion import FLUX_SCHEMES
 from ..surface import ImplicitSurface
-from ._integrators import System, tensors
+from ._integrators import System, tensors, with_ring
 from .base import Flow
 
 
@@ -28,8 +28,8 @@ class HarmonicMapFlow(Flow):
     requested times only). With ``tangent=True`` the field is kept tangent to the level sets
     (``u <- P u / |P u|``), for direction fields on S.
 
-    Stable explicit step: ``dt <= h^2 eps^(2-p) / 6`` (``max g = eps^(p-2)``; ``h^2 / 6`` for
-    ``p = 2``).
+    Spectral bound: ``eps^(p-2) rho`` (``max g = eps^(p-2)``), ``rho`` the Gershgorin bound of
+    the band's Laplace–Beltrami operator (about ``12 / h^2``).
 
     Args:
         time: physical end time.
@@ -62,15 +62,14 @@ class HarmonicMapFlow(Flow):
         self.scheme = check_choice(scheme, "scheme", FLUX_SCHEMES)
         self.path = path
 
-    def diffusion_length(self) -> float:
-        return self.time_value.maximum() ** 0.5
-
     def system(self, u0: Tensor, surface: ImplicitSurface, **inputs: Tensor) -> System:
         if inputs:
             raise TypeError(f"HarmonicMapFlow takes no extra inputs, got {sorted(inputs)}")
         if self.tangent and u0.shape[1] != 3:
             raise ValueError(f"u0 must have 3 channels with tangent=True, got {u0.shape[1]}")
-        band = self.band(surface, u0)
+        band = self.band_mask(surface)
+        region = with_ring(band)
+        zero = u0.new_zeros(())
         exponent = self.p - 2.0
 
         def power(magnitude: Tensor, contrast: float) -> Tensor:
@@ -82,17 +81,17 @@ class HarmonicMapFlow(Flow):
             )
             gradient = intrinsic_gradient(u, surface, self.path)
             energy = (gradient**2).sum(dim=1, keepdim=True) + self.eps**2
-            return band * (diffusion + u * energy ** (self.p / 2.0))
+            return torch.where(band, diffusion + u * energy ** (self.p / 2.0), zero)
 
         def project(u: Tensor) -> Tensor:
             if self.tangent:
                 n = surface.normal
                 u = u - (u * n).sum(dim=1, keepdim=True) * n
-            return torch.where(band > 0, normalize(u), u)
+            return torch.where(region, normalize(u), u)
 
-        step = surface.spacing**2 * self.eps ** (-exponent) / 6.0
-        return System(rate, band, step, project=project,
-                      params=tensors(surface.normal, surface.grad_norm))
+        rho = self.eps**exponent * self.operator_bound(surface, self.scheme)
+        return System(rate, band, rho, project=project,
+                      params=tensors(surface.normal, surface.weight))
 
     def extra_repr(self) -> str:
         return f"{super().extra_repr()}, p={self.p:g}, eps={self.eps:g}, tangent={self.tangent}"

@@ -22,7 +22,8 @@ class FlowVisualization(Flow):
     ``T`` is made tangent and unit (``P T / |P T|``), which makes the operator symmetric
     negative semi-definite in the W-weighted inner product, so ``"implicit"`` works too.
 
-    Stable explicit step: ``dt <= h^2 / (6 (1 + iso))`` (``|T| = 1``, ``P <= I``).
+    Spectral bound: ``(1 + iso) rho``, ``rho`` the Gershgorin bound of the band's
+    Laplace–Beltrami operator (``|T| = 1``, ``P <= I``).
 
     Args:
         time: physical end time, world units squared (streak length about ``sqrt(time)``).
@@ -47,9 +48,6 @@ class FlowVisualization(Flow):
                             dtype=surface.phi.dtype)
         return values.to(surface.phi.device)
 
-    def diffusion_length(self) -> float:
-        return ((1.0 + self.isotropic) * self.time_value.maximum()) ** 0.5
-
     def system(self, u0: Tensor, surface: ImplicitSurface, direction: Tensor | None = None
                ) -> System:
         if direction is None:
@@ -57,7 +55,8 @@ class FlowVisualization(Flow):
                             "flow(u0, surface, direction=T)")
         check_data(direction, "direction", surface, channels=3)
         direction = tangent_unit(direction, surface)
-        band = self.band(surface, u0)
+        band = self.band_mask(surface)
+        zero = u0.new_zeros(())
         spacing, isotropic = surface.spacing, self.isotropic
 
         def laplacian(u: Tensor, weight: Tensor, normal: Tensor, direction: Tensor) -> Tensor:
@@ -73,7 +72,7 @@ class FlowVisualization(Flow):
         def operator(x: Tensor, weight: Tensor, normal: Tensor, direction: Tensor) -> Tensor:
             return weight * laplacian(x, weight, normal, direction)
 
-        geometry = (surface.grad_norm, surface.normal, direction)
-        step = surface.spacing**2 / (6.0 * (1.0 + self.isotropic))
-        return System(lambda u: band * laplacian(u, *geometry), band, step,
+        geometry = (surface.weight, surface.normal, direction)
+        rho = (1.0 + self.isotropic) * self.operator_bound(surface, "symmetric")
+        return System(lambda u: torch.where(band, laplacian(u, *geometry), zero), band, rho,
                       linear=Linear(operator, geometry), params=tensors(*geometry))

@@ -14,6 +14,7 @@ from .diffusion import (
 )
 from .diffusivity import DIFFUSIVITIES, charbonnier, perona_malik, total_variation
 from .laplace_beltrami import LaplaceBeltrami, laplace_beltrami
+from .spectrum import gershgorin_bound, laplace_beltrami_bound
 
 __all__ = [
     "DIFFUSIVITIES",
@@ -25,9 +26,11 @@ __all__ = [
     "anisotropic_diffusion",
     "charbonnier",
     "directional_diffusion",
+    "gershgorin_bound",
     "intrinsic_divergence",
     "intrinsic_gradient",
     "laplace_beltrami",
+    "laplace_beltrami_bound",
     "perona_malik",
     "total_variation",
 ]

@@ -67,7 +67,7 @@ def intrinsic_divergence(v: Tensor, surface: ImplicitSurface, path: str = "auto"
             f"v must have 3C channels (x, y, z per field), got shape {tuple(v.shape)}"
         )
     return _paths.run(
-        _divergence, path, v, v, surface.normal, surface.grad_norm, surface.spacing
+        _divergence, path, v, v, surface.normal, surface.weight, surface.spacing
     )
 
 

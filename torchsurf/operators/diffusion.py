@@ -116,7 +116,7 @@ def anisotropic_diffusion(
     check_data(u, "u", surface)
     check_choice(scheme, "scheme", FLUX_SCHEMES)
     return _paths.run(
-        _edge_stopping, path, u, u, surface.normal, surface.grad_norm, surface.spacing,
+        _edge_stopping, path, u, u, surface.normal, surface.weight, surface.spacing,
         _resolve_diffusivity(diffusivity), _channel_contrast(contrast, u),
         check_positive(eps, "eps"), bool(coupled), scheme,
     )
@@ -148,7 +148,7 @@ def directional_diffusion(
     check_data(direction, "direction", surface, channels=3)
     check_choice(scheme, "scheme", FLUX_SCHEMES)
     return _paths.run(
-        _directional, path, u, u, surface.normal, surface.grad_norm, surface.spacing,
+        _directional, path, u, u, surface.normal, surface.weight, surface.spacing,
         direction, scheme,
     )
 

@@ -60,11 +60,11 @@ def _apply(
         if adjoint:
             haloed_u = haloed_u / haloed_grad_norm
         return _run_one_pass(
-            haloed_u, haloed_normal, haloed_grad_norm, surface.grad_norm, surface.spacing,
+            haloed_u, haloed_normal, haloed_grad_norm, surface.weight, surface.spacing,
             scheme, path, weighted=adjoint,
         )
     function = _adjoint if adjoint else _divergence_form
-    return function(u, surface.normal, surface.grad_norm, surface.spacing, scheme, path)
+    return function(u, surface.normal, surface.weight, surface.spacing, scheme, path)
 
 
 def weighted_operator(
@@ -185,7 +185,7 @@ def laplace_beltrami(
             _central, path, u, stencils.pad(u, "replicate"), surface.normal,
             surface.mean_curvature(), surface.spacing,
         )
-    if surface.normal.requires_grad or surface.grad_norm.requires_grad:
+    if surface.normal.requires_grad or surface.weight.requires_grad:
         return _apply(u, surface, scheme, path, adjoint=False)
     return _WeightedSelfAdjoint.apply(u, surface, scheme, path)
 

@@ -1,0 +1,133 @@
+"""The flows on the surfaces users bring: meshes' distance fields, thin tubes, scaled phi.
+
+A heat flow obeys the maximum principle, so ``max |u(t)| <= max |u0|`` on every shape; total
+variation flows too. These are the cases where the time-dependent band of earlier versions
+reached nodes where phi is not a distance and blew up (inf at t = 0.005 on an icosphere's
+``from_mesh`` phi, 1e7 on a 0.12 trefoil tube, NaN through ``MeshAdapter`` on the shared meshes).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+import torch
+import trimesh
+
+import torchsurf as ts
+
+MESH_DIR = Path(
+    os.environ.get("TORCHSURF_MESH_DIR", Path(__file__).resolve().parents[2] / "../shared/data/meshes")
+)
+MESHES = ["armadillo.obj", "bunny.obj", "bunny_closed.obj", "fandisk.obj", "spot.obj",
+          "teapot.obj", "teapot_closed.obj", "trefoil_knot.obj"]
+
+
+def mesh_surface(name: str, resolution: int) -> ts.ImplicitSurface:
+    path = MESH_DIR / name
+    if not path.is_file():
+        pytest.skip(f"test mesh {name} not found in {MESH_DIR} (set TORCHSURF_MESH_DIR)")
+    return ts.MeshAdapter(trimesh.load(path, force="mesh"), resolution=resolution).surface
+
+
+def diagonal(surface: ts.ImplicitSurface) -> float:
+    """Length of the diagonal of the box around the band, world units."""
+    points = surface.grid.points()[surface.band_mask()[0, 0]]
+    return float((points.max(0).values - points.min(0).values).norm())
+
+
+def noise(surface: ts.ImplicitSurface) -> torch.Tensor:
+    generator = torch.Generator().manual_seed(0)
+    return torch.rand((1, 1, *surface.grid.shape), generator=generator)
+
+
+def assert_maximum_principle(flow: ts.Flow, surface: ts.ImplicitSurface) -> None:
+    u0 = noise(surface)
+    with torch.no_grad():
+        u = flow(u0, surface)
+    band = flow.band_mask(surface).expand_as(u)
+    assert torch.isfinite(u).all()
+    assert float(u[band].max()) <= float(u0.max()) + 1e-6
+    assert float(u[band].min()) >= float(u0.min()) - 1e-6
+    # the flow did smooth: the band's spread shrank well below the noise's
+    assert float(u[band].std()) < 0.5 * float(u0[band].std())
+
+
+@pytest.mark.parametrize("name", MESHES)
+def test_heat_flow_on_meshes_keeps_the_maximum_principle(name):
+    surface = mesh_surface(name, 64)
+    time = (0.1 * diagonal(surface)) ** 2
+    assert_maximum_principle(ts.HeatFlow(time, path="slicing"), surface)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", MESHES)
+def test_heat_flow_on_meshes_keeps_the_maximum_principle_128(name):
+    surface = mesh_surface(name, 128)
+    time = (0.1 * diagonal(surface)) ** 2
+    assert_maximum_principle(ts.HeatFlow(time), surface)
+
+
+@pytest.mark.parametrize(
+    "name", ["bunny_closed.obj", pytest.param("fandisk.obj", marks=pytest.mark.slow)]
+)
+def test_total_variation_on_meshes_keeps_the_maximum_principle(name):
+    surface = mesh_surface(name, 64)
+    size = diagonal(surface)
+    flow = ts.AnisotropicFlow(0.1 * size**2, eps=1.0 / size, path="slicing")
+    u0 = noise(surface)
+    with torch.no_grad():
+        u = flow(u0, surface)
+    band = flow.band_mask(surface).expand_as(u)
+    assert float(u[band].max()) <= float(u0.max()) + 1e-6
+    assert float(u[band].min()) >= float(u0.min()) - 1e-6
+
+
+@pytest.mark.parametrize("tube", [0.12, 0.2])
+@pytest.mark.parametrize("resolution", [64, pytest.param(128, marks=pytest.mark.slow)])
+def test_heat_flow_on_thin_trefoil_tubes(tube, resolution):
+    grid = ts.Grid.cube(resolution, 1.5)
+    surface = ts.ImplicitSurface(ts.sdf.trefoil(grid, tube_radius=tube), grid)
+    time = (0.1 * diagonal(surface)) ** 2
+    assert_maximum_principle(ts.HeatFlow(time, path="slicing"), surface)
+
+
+@pytest.mark.parametrize("time", [0.005, 0.01])
+def test_heat_flow_on_an_icosphere_distance_field(time):
+    grid = ts.Grid.cube(64, 1.5)
+    phi = ts.sdf.from_mesh(trimesh.creation.icosphere(subdivisions=4), grid)
+    surface = ts.ImplicitSurface(phi, grid)
+    u0 = torch.randn((1, 1, 64, 64, 64), generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        u = ts.HeatFlow(time, path="slicing")(u0, surface)
+    band = surface.band_mask().expand_as(u)
+    assert torch.isfinite(u).all()
+    assert float(u[band].abs().max()) <= float(u0[band].abs().max())
+
+
+def test_scaled_phi_gives_the_same_flow():
+    """``1000 * phi`` is the same surface: same band, same stable step, same result."""
+    grid = ts.Grid.cube(33, 1.5)
+    phi = ts.sdf.torus(grid, 0.9, 0.35, dtype=torch.float64)
+    u0 = torch.rand((1, 1, 33, 33, 33), generator=torch.Generator().manual_seed(1),
+                    dtype=torch.float64)
+    results = [ts.HeatFlow(0.01)(u0, ts.ImplicitSurface(scale * phi, grid)) for scale in (1, 1000)]
+    torch.testing.assert_close(results[1], results[0], rtol=0, atol=1e-9)
+
+
+def test_readme_mesh_route_stays_bounded():
+    """``MeshAdapter`` then ``HeatFlow`` with their defaults, as the README shows them."""
+    path = MESH_DIR / "bunny_closed.obj"
+    if not path.is_file():
+        pytest.skip(f"test mesh bunny_closed.obj not found in {MESH_DIR}")
+    mesh = trimesh.load(path, process=False)
+    adapter = ts.MeshAdapter(mesh, resolution=48)
+    x = torch.rand(1, 1, len(mesh.vertices), generator=torch.Generator().manual_seed(0))
+    u0 = adapter.encode(x)
+    size = float(((mesh.bounds[1] - mesh.bounds[0]) ** 2).sum() ** 0.5)
+    with torch.no_grad():
+        u = ts.HeatFlow(time=(0.03 * size) ** 2)(u0, adapter.surface)
+    assert float(u.abs().max()) <= float(u0.abs().max()) * (1 + 1e-6)
+    back = adapter.decode(u)
+    assert float(back.std()) < float(x.std())
