@@ -15,6 +15,9 @@ Both update only the band ``|phi| <= width`` and keep ``u`` elsewhere.
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
@@ -113,6 +116,27 @@ _CELL = [16 * z + 4 * y + x for z in (1, 2) for y in (1, 2) for x in (1, 2)]
 """Positions, among the 4^3 taps, of the 8 nodes of the cell that holds the point."""
 
 
+COMPILE_MIN_NODES = 64**3
+"""Volumes of at least this many nodes interpolate through a compiled kernel (one pass, no
+``(C, N, 64)`` temporary: 6x faster at 129^3); smaller ones eagerly, with no compile cost."""
+
+
+def _interpolate(flat: Tensor, sources: Tensor, weights: Tensor, limited: bool) -> Tensor:
+    """``sum_k weights[:, k] flat[:, sources[:, k]]``, ``(C, N)``, optionally limited to the
+    range of the cell's 8 nodes."""
+    gathered = flat[:, sources]
+    value = (gathered * weights).sum(dim=-1)
+    if limited:
+        cell = gathered[..., _CELL]
+        value = torch.minimum(torch.maximum(value, cell.amin(-1)), cell.amax(-1))
+    return value
+
+
+@functools.cache
+def _compiled_interpolate() -> Callable[[Tensor, Tensor, Tensor, bool], Tensor]:
+    return torch.compile(_interpolate, dynamic=True)
+
+
 class CubicStencil:
     """Tricubic closest-point interpolation, assembled once, applied to any data.
 
@@ -144,11 +168,10 @@ class CubicStencil:
             targets, sources, weights = self.parts[min(b, len(self.parts) - 1)]
             volume = u[min(b, u.shape[0] - 1)]
             flat = volume.reshape(volume.shape[0], -1)
-            gathered = flat[:, sources]
-            value = (gathered * weights.to(u.dtype)).sum(dim=-1)
-            if self.limited:
-                cell = gathered[..., _CELL]
-                value = torch.minimum(torch.maximum(value, cell.amin(-1)), cell.amax(-1))
+            interpolate = _interpolate
+            if flat.numel() >= COMPILE_MIN_NODES and not torch.compiler.is_compiling():
+                interpolate = _compiled_interpolate()
+            value = interpolate(flat, sources, weights.to(u.dtype), self.limited)
             results.append(flat.index_copy(1, targets, value).reshape(volume.shape))
         return torch.stack(results)
 
