@@ -101,6 +101,8 @@ class Schedule:
         options: extra keyword options passed to torchdiffeq.
         adjoint: use ``torchdiffeq.odeint_adjoint``.
         after_step: ``(u, step_index) -> u`` hook (progress bar, re-extension), or ``None``.
+        segment: torchdiffeq methods integrate pieces no longer than this (physical time) and
+            call ``after_step`` between them; ``None``: one piece.
     """
 
     times: Sequence[float | Tensor]
@@ -110,6 +112,7 @@ class Schedule:
     options: dict = field(default_factory=dict)
     adjoint: bool = False
     after_step: Callable[[Tensor, int], Tensor] | None = None
+    segment: float | None = None
 
 
 def _value(time: float | Tensor) -> float:
@@ -169,6 +172,14 @@ def plan_steps(method: str, system: System, end: float, steps: int | None,
                 f"blow up. Use steps >= {math.ceil(end / system.stable_step)} or method='rkc'",
                 RuntimeWarning, stacklevel=4,
             )
+    if steps is not None and method in IMPLICIT and end / steps * rho > 12.0 * band_cells**2:
+        warnings.warn(
+            f"steps={steps}: each {method} step outlasts the time the diffusion takes to cross "
+            f"the {band_cells:.1f}-cell band ({12.0 * band_cells**2 / rho:.3g}), whose ring is "
+            f"re-extended only between steps; expect errors from the band's edge. Use steps >= "
+            f"{math.ceil(end * rho / (12.0 * band_cells**2))} or a wider band_width",
+            RuntimeWarning, stacklevel=4,
+        )
     if count is not None and count > MAX_STEPS:
         raise ValueError(
             f"time={end:g} needs {count} steps of method={method!r} (more than {MAX_STEPS}): "
@@ -292,32 +303,61 @@ def _torchdiffeq(method: str) -> Callable[[System, Tensor, Schedule], list[Tenso
                 "pip install torchdiffeq (or pip install 'torchsurf[ode]'); the built-in "
                 f"methods are {sorted(INTEGRATORS)}"
             ) from error
-        times = torch.stack([torch.as_tensor(t, dtype=u0.dtype, device=u0.device)
-                             for t in (0.0, *schedule.times)])
         options = dict(schedule.options)
         if method in _FIXED_STEP and "step_size" not in options:
             end = _value(schedule.times[-1])
             count = schedule.steps or math.ceil(end / system.stable_step * (1 - 1e-9))
             options["step_size"] = end / max(count, 1)
-
         kwargs = {key: options.pop(key) for key in ("rtol", "atol") if key in options}
 
         def func(t: Tensor, u: Tensor) -> Tensor:
             return system.rate(u)
 
-        if schedule.adjoint:
-            module = _RateModule(func)
-            solution = torchdiffeq.odeint_adjoint(
-                module, u0, times, method=method, options=options or None,
-                adjoint_params=tuple(p for p in system.params if p.requires_grad), **kwargs,
-            )
-        else:
-            solution = torchdiffeq.odeint(
-                func, u0, times, method=method, options=options or None, **kwargs
-            )
-        return [_finish(system, u) for u in solution[1:]]
+        def solve(u: Tensor, times: list[float | Tensor]) -> Tensor:
+            times = torch.stack([torch.as_tensor(t, dtype=u0.dtype, device=u0.device)
+                                 for t in times])
+            if schedule.adjoint:
+                return torchdiffeq.odeint_adjoint(
+                    _RateModule(func), u, times, method=method, options=options or None,
+                    adjoint_params=tuple(p for p in system.params if p.requires_grad), **kwargs,
+                )
+            return torchdiffeq.odeint(func, u, times, method=method,
+                                      options=options or None, **kwargs)
+
+        out, u, start, done = [], u0, 0.0, 0
+        for stop, inner, ends_wanted in _segments(schedule):
+            solution = solve(u, [start, *inner, stop])
+            out.extend(_finish(system, v) for v in solution[1:len(inner) + 1])
+            u, start, done = solution[-1], stop, done + 1
+            if schedule.after_step is not None:
+                u = schedule.after_step(u, done)
+            u = _finish(system, u)
+            if ends_wanted:
+                out.append(u)
+        return out
 
     return integrate
+
+
+def _segments(schedule: Schedule) -> Iterator[tuple[float | Tensor, list[float | Tensor], bool]]:
+    """Equal pieces of ``[0, end]`` no longer than ``schedule.segment``, between which the flow
+    re-extends: ``(end of the piece, requested times inside it, whether its end is requested)``."""
+    end = schedule.times[-1]
+    end_value = _value(end)
+    pieces = 1
+    if schedule.segment is not None and schedule.after_step is not None:
+        pieces = max(1, math.ceil(end_value / schedule.segment * (1 - 1e-9)))
+    wanted = list(schedule.times)
+    for k in range(1, pieces + 1):
+        stop_value = end_value * k / pieces
+        stop = end if k == pieces else end * (k / pieces)
+        inner = []
+        while wanted and _value(wanted[0]) < stop_value * (1 - 1e-12):
+            inner.append(wanted.pop(0))
+        ends_wanted = bool(wanted) and _value(wanted[0]) <= stop_value * (1 + 1e-12)
+        if ends_wanted:
+            wanted.pop(0)
+        yield stop, inner, ends_wanted
 
 
 class _RateModule(torch.nn.Module):

@@ -255,6 +255,7 @@ class Flow(nn.Module):
         every = self._reextension_period(system, plan)
         schedule = self._schedule(times, self._after_step(surface, system, bar, every))
         schedule.step = plan.step
+        schedule.segment = 12.0 * (width / surface.spacing) ** 2 / system.spectral_radius
         if self.reextend_every is not None and self.method not in IMPLICIT:
             ring = _stencil(surface, self.band_width, "ring", system.region & ~system.band)
             rate = system.rate
