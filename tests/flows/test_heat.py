@@ -291,3 +291,35 @@ def test_progress_bar_and_reextension_hooks_run(capsys):
     u = HeatFlow(0.01, steps=4, progress=True, reextend_every=2)(u0, surface)
     assert torch.isfinite(u).all()
     assert "HeatFlow" in capsys.readouterr().err
+
+
+def test_absurd_step_counts_are_refused_before_any_work():
+    u0, surface = small_case()
+    with pytest.raises(ValueError, match="steps"):
+        HeatFlow(1e4, method="euler")(u0, surface)
+    with pytest.raises(ValueError, match="steps"):
+        HeatFlow(0.01, steps=10**7)(u0, surface)
+
+
+def test_explicit_steps_beyond_the_stable_step_warn():
+    u0, surface = small_case()
+    with pytest.warns(RuntimeWarning, match="stable explicit step"):
+        HeatFlow(0.3, method="euler", steps=2)(u0, surface)
+
+
+def test_counts_accept_numpy_and_refuse_bools():
+    import numpy as np
+
+    assert HeatFlow(0.01, steps=np.int64(4)).steps == 4
+    assert HeatFlow(0.01, steps=torch.tensor(4)).steps == 4
+    with pytest.raises(ValueError, match="steps"):
+        HeatFlow(0.01, steps=True)
+    with pytest.raises(ValueError, match="reextend_every"):
+        HeatFlow(0.01, reextend_every=0)
+
+
+def test_torchdiffeq_settings_are_refused_with_built_in_methods():
+    with pytest.raises(ValueError, match="options"):
+        HeatFlow(0.01, method="rkc", options={"rtol": 1e-3})
+    with pytest.raises(ValueError, match="adjoint"):
+        HeatFlow(0.01, method="euler", adjoint=True)

@@ -188,8 +188,12 @@ def plan_steps(method: str, system: System, end: float, steps: int | None,
         )
     step = end / count if count else end
     stages = stages_for(step * rho) if method == "rkc" else None
-    if stages is not None and stages > MAX_STAGES:
-        raise ValueError(f"steps={steps} is too few for RKC: use at least {count}")
+    if stages is not None and step * rho > largest_step_times_rho():
+        needed = math.ceil(end * rho / largest_step_times_rho())
+        raise ValueError(
+            f"steps={steps} is too few for RKC: a step would need more than {MAX_STAGES} "
+            f"stages; use steps >= {needed}"
+        )
     return Plan(count, step, stages)
 
 
