@@ -2,18 +2,41 @@
 
 from __future__ import annotations
 
+import math
+import numbers
 from collections.abc import Sequence
 
 import torch
 from torch import Tensor
 
+SUPPORTED_DTYPES = (torch.float32, torch.float64)
+"""The floating-point dtypes torchsurf computes in. Half precision is refused: its epsilon
+(about 1e-3) is above the finite-difference errors the operators are built to, and squares of
+small gradients underflow to 0 (NaN normals)."""
+
+
+def _dtype_error(name: str, dtype: object, what: str) -> TypeError:
+    return TypeError(
+        f"{name} must be {what} torch.float32 or torch.float64 (the dtypes torchsurf "
+        f"supports), got {dtype}"
+    )
+
+
+def check_dtype(dtype: object, name: str = "dtype") -> torch.dtype:
+    """``dtype``, or the default dtype for ``None``; raise naming ``name`` unless supported."""
+    if dtype is None:
+        dtype = torch.get_default_dtype()
+    if dtype not in SUPPORTED_DTYPES:
+        raise _dtype_error(name, dtype, "a floating-point dtype,")
+    return dtype
+
 
 def check_tensor(value: object, name: str) -> Tensor:
-    """Raise ``TypeError`` naming ``name`` unless ``value`` is a floating-point tensor."""
+    """Raise ``TypeError`` naming ``name`` unless ``value`` is a float32 or float64 tensor."""
     if not isinstance(value, Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(value).__name__}")
-    if not value.is_floating_point():
-        raise TypeError(f"{name} must be a floating-point tensor, got dtype {value.dtype}")
+    if value.dtype not in SUPPORTED_DTYPES:
+        raise _dtype_error(name, f"dtype {value.dtype}", "a floating-point tensor of dtype")
     return value
 
 
@@ -29,6 +52,11 @@ def check_volume(value: object, name: str, channels: int | None = None) -> Tenso
     if volume.dim() != 5:
         raise ValueError(
             f"{name} must be a volume of shape (B, C, D, H, W), got shape {tuple(volume.shape)}"
+        )
+    if volume.shape[0] == 0 or volume.shape[1] == 0:
+        raise ValueError(
+            f"{name} must hold at least one volume and one channel, got shape "
+            f"{tuple(volume.shape)} (B = {volume.shape[0]}, C = {volume.shape[1]})"
         )
     if channels is not None and volume.shape[1] != channels:
         raise ValueError(
@@ -71,11 +99,62 @@ def check_choice(value: str, name: str, choices: Sequence[str]) -> str:
     return value
 
 
-def check_positive(value: float, name: str) -> float:
-    """Raise ``ValueError`` naming ``name`` unless ``value`` is a finite number > 0."""
-    if not isinstance(value, (int, float)) or not value > 0 or value == float("inf"):
+def as_float(value: object, name: str, expected: str) -> float:
+    """A Python float from a real number: Python, numpy, or a 0-d tensor; never a bool.
+
+    Raises ``TypeError`` naming ``name`` and saying ``expected`` for anything else (bools,
+    strings, complex numbers, tensors with more than one element).
+    """
+    if isinstance(value, Tensor):
+        if value.dim() == 0 and value.dtype != torch.bool and not value.is_complex():
+            return float(value)
+    elif isinstance(value, numbers.Real) and not isinstance(value, bool):
+        return float(value)
+    kind = f"a tensor of shape {tuple(value.shape)} and dtype {value.dtype}" if isinstance(
+        value, Tensor) else f"a {type(value).__name__}"
+    raise TypeError(f"{name} must be {expected}, got {value!r} ({kind})")
+
+
+def check_real(value: object, name: str) -> float:
+    """A finite real number (Python, numpy or 0-d tensor) as a float; raise naming ``name``."""
+    number = as_float(value, name, "a finite real number")
+    if not math.isfinite(number):
+        raise ValueError(f"{name} must be a finite real number, got {value!r}")
+    return number
+
+
+def check_nonnegative(value: object, name: str) -> float:
+    """A finite real number ``>= 0`` (Python, numpy or 0-d tensor) as a float."""
+    number = as_float(value, name, "a finite number >= 0")
+    if not (math.isfinite(number) and number >= 0):
+        raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+    return number
+
+
+def check_positive(value: object, name: str) -> float:
+    """A finite real number ``> 0`` (Python, numpy or 0-d tensor) as a float.
+
+    Raises ``TypeError`` for what is not a real number (bools and strings included) and
+    ``ValueError`` for zero, negative, NaN or infinite values, both naming ``name``.
+    """
+    number = as_float(value, name, "a finite positive number")
+    if not (math.isfinite(number) and number > 0):
         raise ValueError(f"{name} must be a finite positive number, got {value!r}")
-    return float(value)
+    return number
+
+
+def check_positive_tensor(value: object, name: str) -> Tensor:
+    """Raise naming ``name`` unless ``value`` is a float tensor of finite values ``> 0``."""
+    tensor = check_tensor(value, name)
+    finite = torch.isfinite(tensor)
+    if not bool((finite & (tensor > 0)).all()):
+        bad = "NaN or infinity" if not bool(finite.all()) else (
+            f"a minimum of {float(tensor.detach().min()):g}")
+        raise ValueError(
+            f"{name} must hold finite positive values only, got {bad} in a tensor of shape "
+            f"{tuple(tensor.shape)}"
+        )
+    return tensor
 
 
 def check_count(value: object, name: str, minimum: int = 1) -> int:

@@ -108,3 +108,32 @@ def test_modules_match_functions():
 def test_bad_inputs_raise_naming_the_argument(call, match):
     with pytest.raises((ValueError, TypeError), match=match):
         call()
+
+
+def test_direction_batch_mismatch_names_direction_and_u():
+    u = CASE.u.expand(2, 1, 13, 13, 13)
+    direction = CASE.u.expand(3, 3, 13, 13, 13)
+    with pytest.raises(ValueError, match="direction has batch size 3 but u has 2"):
+        ts.directional_diffusion(u, SURFACE, direction)
+
+
+def test_zero_channels_refused():
+    with pytest.raises(ValueError, match=r"u must hold at least one volume and one channel"):
+        ts.laplace_beltrami(CASE.u[:, :0], SURFACE)
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_half_precision_refused_naming_the_argument(dtype):
+    with pytest.raises(TypeError, match=rf"u must be .*float32 or torch.float64.*{dtype}"):
+        ts.laplace_beltrami(CASE.u.to(dtype), SURFACE)
+    with pytest.raises(TypeError, match=rf"phi must be .*{dtype}"):
+        ts.ImplicitSurface(CASE.phi.to(dtype), CASE.grid)
+
+
+@pytest.mark.parametrize("contrast", [torch.tensor(0.0), torch.tensor(-1.0),
+                                      torch.tensor([float("nan")]), torch.tensor(float("inf"))])
+def test_contrast_tensor_must_be_finite_and_positive(contrast):
+    with pytest.raises(ValueError, match="contrast must hold finite positive values"):
+        ts.anisotropic_diffusion(CASE.u, SURFACE, contrast=contrast.double())
+    with pytest.raises(ValueError, match="contrast"):
+        ts.operators.AnisotropicDiffusion(contrast=contrast.double())(CASE.u, SURFACE)

@@ -16,7 +16,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from .._checks import check_choice, check_positive, check_tensor
+from .._checks import check_batch, check_choice, check_positive, check_positive_tensor
 from ..surface import ImplicitSurface
 from . import _paths
 from ._flux_form import SIDES, flux_form
@@ -69,7 +69,7 @@ def _channel_contrast(contrast: float | Tensor, u: Tensor) -> float | Tensor:
     """A float, or a tensor ``()`` / ``(C,)`` shaped to broadcast over ``(B, C, 1, D, H, W)``."""
     if not isinstance(contrast, Tensor):
         return check_positive(contrast, "contrast")
-    check_tensor(contrast, "contrast")
+    check_positive_tensor(contrast, "contrast")
     if contrast.dim() == 0:
         return contrast
     if contrast.dim() != 1 or contrast.shape[0] not in (1, u.shape[1]):
@@ -102,7 +102,7 @@ def anisotropic_diffusion(
         diffusivity: ``"total_variation"`` (default; eq. 10), ``"perona_malik"``,
             ``"charbonnier"``, or a callable ``g(magnitude, contrast)``.
         contrast: edge threshold ``K`` in units of ``u`` per world length: a number, or a
-            tensor ``()`` or ``(C,)`` (for example a positive ``nn.Parameter``).
+            tensor ``()`` or ``(C,)`` (for example a positive ``nn.Parameter``); finite and > 0.
         eps: regularisation of ``|P grad u|``, units of ``u`` per world length.
         coupled: measure ``|P grad u|`` over all channels together (vector-valued data, as in
             the harmonic-map flow) instead of per channel.
@@ -146,6 +146,7 @@ def directional_diffusion(
     """
     check_data(u, "u", surface)
     check_data(direction, "direction", surface, channels=3)
+    check_batch(direction, "direction", u.shape[0], "u")
     check_choice(scheme, "scheme", FLUX_SCHEMES)
     return _paths.run(
         _directional, path, u, u, surface.normal, surface.weight, surface.spacing,
