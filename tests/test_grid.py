@@ -1,5 +1,6 @@
 """Grid: layout of nodes, coordinate conversions, grid_sample agreement, errors."""
 
+import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
@@ -151,3 +152,37 @@ def test_conversion_rejects_wrong_last_dimension(method, last):
     grid = Grid.cube(5, 1.0)
     with pytest.raises(ValueError, match="points"):
         getattr(grid, method)(torch.zeros(4, last))
+
+
+def test_numpy_and_0d_tensor_numbers_are_accepted():
+    grid = Grid(shape=(5, np.int64(6), 7), spacing=np.float32(0.1), origin=np.zeros(3))
+    assert grid.shape == (5, 6, 7) and grid.spacing == pytest.approx(0.1)
+    assert all(type(n) is int for n in grid.shape) and all(type(x) is float for x in grid.origin)
+    assert Grid.cube(np.int64(17), np.float64(1.5)).shape == (17, 17, 17)
+    assert Grid.cube(torch.tensor(5), torch.tensor(1.0)) == Grid.cube(5, 1.0)
+
+
+@pytest.mark.parametrize(
+    ("make", "error", "name"),
+    [
+        (lambda: Grid((5, 5, 5), True), TypeError, "spacing"),
+        (lambda: Grid((5, 5, 5), "0.1"), TypeError, "spacing"),
+        (lambda: Grid((5, True, 5), 1.0), ValueError, "shape"),
+        (lambda: Grid(5, 1.0), ValueError, "shape"),
+        (lambda: Grid.cube(True, 1.0), ValueError, "n must be"),
+        (lambda: Grid.cube(17.5, 1.0), ValueError, "n must be"),
+        (lambda: Grid.cube(5, True), TypeError, "bound"),
+        (lambda: Grid((5, 5, 5), 1.0, (0.0, float("nan"), 0.0)), ValueError, "origin"),
+        (lambda: Grid((5, 5, 5), 1.0, (0.0, float("inf"), 0.0)), ValueError, "origin"),
+        (lambda: Grid((5, 5, 5), 1.0, (0.0, "a", 0.0)), TypeError, "origin"),
+    ],
+)
+def test_bools_strings_and_non_finite_origin_refused(make, error, name):
+    with pytest.raises(error, match=name):
+        make()
+
+
+@pytest.mark.parametrize("dtype", [torch.int64, torch.bool, torch.float16])
+def test_points_refuse_unsupported_dtypes(dtype):
+    with pytest.raises(TypeError, match="dtype must be"):
+        Grid.cube(5, 1.0).points(dtype=dtype)

@@ -242,3 +242,12 @@ def test_trefoil_tube_is_a_closed_genus_one_surface():
 def test_trefoil_rejects_a_self_intersecting_tube():
     with pytest.raises(ValueError, match="tube_radius must be below"):
         sdf.trefoil(Grid.cube(9, bound=1.6), tube_radius=0.3, scale=0.4)
+
+
+@pytest.mark.parametrize("dtype", [torch.int64, torch.int32, torch.bool, torch.float16])
+def test_unsupported_dtype_refused(dtype):
+    """Not float zeros in silence: the dtype is named and float32/float64 offered."""
+    with pytest.raises(TypeError, match=r"dtype must be .*torch\.float32 or torch\.float64"):
+        sdf.sphere(GRID, dtype=dtype)
+    with pytest.raises(TypeError, match="dtype must be"):
+        sdf.from_function(GRID, lambda p: p[..., 0], dtype=dtype)

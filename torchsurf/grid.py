@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TypeVar
 
 import torch
 from torch import Tensor
 
-from ._checks import check_positive, check_tensor
+from ._checks import check_count, check_dtype, check_positive, check_real, check_tensor
+
+T = TypeVar("T")
 
 
 def _check_points(points: object, name: str) -> Tensor:
@@ -15,6 +19,27 @@ def _check_points(points: object, name: str) -> Tensor:
     if points.dim() == 0 or points.shape[-1] != 3:
         raise ValueError(f"{name} must have shape (..., 3) (x, y, z), got {tuple(points.shape)}")
     return points
+
+
+def _size(value: object, name: str) -> int:
+    """One size of ``shape``: a whole number >= 3 (integral floats such as ``17.0`` too)."""
+    if isinstance(value, float) and value.is_integer():
+        value = int(value)
+    return check_count(value, name, minimum=3)
+
+
+def _triple(value: object, name: str, check: Callable[[object, str], T]) -> tuple[T, T, T]:
+    """Three entries of ``value``, each passed through ``check`` (which names ``name``)."""
+    try:
+        entries = tuple(value)
+    except TypeError:
+        entries = ()
+    if len(entries) != 3:
+        raise ValueError(f"{name} must have three entries, got {value!r}")
+    try:
+        return tuple(check(entry, f"each entry of {name}") for entry in entries)
+    except (TypeError, ValueError) as error:
+        raise type(error)(f"{name} = {value!r}: {error}") from error
 
 
 @dataclass(frozen=True)
@@ -25,9 +50,11 @@ class Grid:
     ``origin + spacing * (i, j, k)`` in ``(x, y, z)``: axis D is z, H is y, W is x.
 
     Args:
-        shape: number of nodes ``(D, H, W)``, at least 3 along every axis.
-        spacing: distance between neighbouring nodes, world units.
-        origin: world position ``(x0, y0, z0)`` of node ``(0, 0, 0)``.
+        shape: number of nodes ``(D, H, W)``, whole numbers, at least 3 along every axis.
+        spacing: distance between neighbouring nodes, world units; finite and > 0.
+        origin: world position ``(x0, y0, z0)`` of node ``(0, 0, 0)``; finite.
+
+    Numbers may be Python, numpy or 0-d tensors; bools are refused.
 
     Example:
         >>> grid = Grid.cube(33, bound=1.5)
@@ -40,25 +67,19 @@ class Grid:
     origin: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def __post_init__(self) -> None:
-        shape = tuple(self.shape)
-        if len(shape) != 3 or any(isinstance(n, bool) or int(n) != n or n < 3 for n in shape):
-            raise ValueError(
-                f"shape must be three whole sizes (D, H, W), each >= 3, got {self.shape!r}"
-            )
-        shape = tuple(int(n) for n in shape)
-        origin = tuple(float(x) for x in self.origin)
-        if len(origin) != 3:
-            raise ValueError(f"origin must be three coordinates (x0, y0, z0), got {self.origin!r}")
-        object.__setattr__(self, "shape", shape)
+        object.__setattr__(self, "shape", _triple(self.shape, "shape", _size))
         object.__setattr__(self, "spacing", check_positive(self.spacing, "spacing"))
-        object.__setattr__(self, "origin", origin)
+        object.__setattr__(self, "origin", _triple(self.origin, "origin", check_real))
 
     @classmethod
     def cube(cls, n: int, bound: float) -> Grid:
-        """An ``n^3`` grid whose nodes span ``[-bound, bound]^3`` (spacing ``2 bound / (n - 1)``)."""
-        if isinstance(n, bool) or not isinstance(n, int) or n < 3:
-            raise ValueError(f"n must be a whole number of nodes >= 3, got {n!r}")
-        check_positive(bound, "bound")
+        """An ``n^3`` grid whose nodes span ``[-bound, bound]^3`` (spacing ``2 bound / (n - 1)``).
+
+        ``n`` is a whole number >= 3 (Python, numpy or a 0-d integer tensor) and ``bound`` a
+        finite positive number.
+        """
+        n = check_count(n, "n", minimum=3)
+        bound = check_positive(bound, "bound")
         return cls(shape=(n, n, n), spacing=2.0 * bound / (n - 1), origin=(-bound,) * 3)
 
     @property
@@ -71,10 +92,14 @@ class Grid:
                ) -> Tensor:
         """World coordinates of every node.
 
+        Args:
+            dtype: ``torch.float32`` or ``torch.float64`` (default: the default dtype).
+            device: where to put them (default CPU).
+
         Returns:
             ``(D, H, W, 3)`` tensor of ``(x, y, z)``.
         """
-        dtype = dtype or torch.get_default_dtype()
+        dtype = check_dtype(dtype)
         axes = [
             self.origin[axis] + self.spacing * torch.arange(n, dtype=dtype, device=device)
             for axis, n in enumerate(reversed(self.shape))

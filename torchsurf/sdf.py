@@ -17,6 +17,7 @@ from torch import Tensor
 from . import _isosurface, _mesh_sdf
 from ._checks import (
     check_choice,
+    check_dtype,
     check_finite,
     check_positive,
     check_spatial_shape,
@@ -257,7 +258,7 @@ def from_mesh(
         grid: the grid to sample on.
         band: half-width of the band, world units (default ``5 * grid.spacing``, see
             :data:`BAND_NODES`).
-        dtype, device: of the result (default dtype, CPU).
+        dtype, device: of the result (``torch.float32`` or ``torch.float64``; default dtype, CPU).
         sign: ``"auto"`` (default), ``"winding"`` or ``"pseudonormal"``. ``"winding"`` asks
             the winding number at every node near the mesh; ``"pseudonormal"`` signs the band
             by the angle-weighted pseudonormal of the closest feature (exact for closed,
@@ -277,9 +278,9 @@ def from_mesh(
     """
     width = _band(grid, band)
     check_choice(sign, "sign", _mesh_sdf.SIGN_METHODS)
+    dtype = check_dtype(dtype)
     vertices, faces = triangle_arrays(as_trimesh(mesh, "mesh"))
     phi, _ = _mesh_sdf.signed_band(vertices, faces, grid, width, sign)
-    dtype = dtype or torch.get_default_dtype()
     return torch.as_tensor(phi, dtype=dtype, device=device)[None, None]
 
 
