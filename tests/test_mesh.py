@@ -129,3 +129,64 @@ def test_adapter_bad_values_raise(adapter: tsm.MeshAdapter) -> None:
         adapter.encode(torch.zeros(1, 1, 3, dtype=torch.float64))
     with pytest.raises(ValueError, match="volume"):
         adapter.decode(torch.zeros(1, 25, 25, 25, dtype=torch.float64))
+
+
+TETRAHEDRON = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\n{extra}f 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n{faces}"
+
+
+@pytest.mark.parametrize(
+    ("extra", "faces", "match"),
+    [
+        ("v nan 0 0\n", "f 5 2 3\n", r"mesh \(.*\): vertices must be finite.*vertex 4"),
+        ("v 0 inf 0\n", "f 5 2 3\n", r"mesh \(.*\): vertices must be finite"),
+        ("", "f 9 2 3\n", r"mesh: .*could not read"),
+    ],
+)
+def test_bad_mesh_file_refused_before_trimesh_drops_anything(tmp_path, extra, faces, match):
+    """trimesh's processing drops a NaN vertex and its faces; the raw arrays are checked first."""
+    path = tmp_path / "bad.obj"
+    path.write_text(TETRAHEDRON.format(extra=extra, faces=faces))
+    with pytest.raises(ValueError, match=match):
+        tsm.load(path)
+    with pytest.raises(ValueError, match=match):
+        ts.sdf.from_mesh(path, ts.Grid.cube(9, 1.5))
+
+
+def test_mesh_file_without_faces_refused(tmp_path):
+    path = tmp_path / "points.obj"
+    path.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\n")
+    with pytest.raises(ValueError, match=r"mesh \(.*\) is empty"):
+        tsm.load(path)
+
+
+def test_good_mesh_file_still_merged_like_trimesh(tmp_path):
+    path = tmp_path / "sphere.stl"
+    trimesh.creation.icosphere(subdivisions=2).export(path)
+    loaded, reference = tsm.load(path), trimesh.load(path, force="mesh")
+    np.testing.assert_array_equal(loaded.vertices, reference.vertices)
+    np.testing.assert_array_equal(loaded.faces, reference.faces)
+
+
+@pytest.mark.parametrize(
+    ("vertices", "faces", "match"),
+    [
+        (np.zeros((3, 3)), np.zeros((0, 3), dtype=np.int64), "mesh is empty"),
+        (np.eye(3), np.array([[0, 1, 3]]), r"face indices must lie in \[0, 2\]"),
+        (np.eye(3), np.array([[-1, 1, 2]]), r"face indices must lie in \[0, 2\]"),
+        (np.array([[0, 0, 0], [1, 0, 0], [0, np.nan, 0]]), np.array([[0, 1, 2]]),
+         "vertices must be finite.*vertex 2"),
+        (np.eye(3), np.array([[0.0, 1.0, 2.0]]), "faces must hold integer"),
+    ],
+)
+def test_bad_mesh_arrays_refused(vertices, faces, match):
+    with pytest.raises(ValueError, match=match):
+        ts.sdf.from_mesh((vertices, faces), ts.Grid.cube(9, 1.5))
+
+
+@pytest.mark.parametrize("dtype", [torch.int64, torch.float16])
+def test_mesh_dtype_refused_before_any_work(dtype):
+    sphere = trimesh.creation.icosphere(subdivisions=1)
+    with pytest.raises(TypeError, match="dtype must be"):
+        ts.sdf.from_mesh(sphere, ts.Grid.cube(9, 1.5), dtype=dtype)
+    with pytest.raises(TypeError, match="dtype must be"):
+        tsm.MeshAdapter(sphere, ts.Grid.cube(9, 1.5), dtype=dtype)

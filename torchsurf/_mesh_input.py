@@ -21,7 +21,9 @@ def _read(path: str | os.PathLike, name: str) -> trimesh.Trimesh:
     if not os.path.isfile(path):
         raise FileNotFoundError(f"{name}: no mesh file at {os.fspath(path)!r}")
     try:
-        loaded = trimesh.load(path, force="mesh")
+        # unprocessed: trimesh's processing would silently drop non-finite vertices and their
+        # faces, which the check below must see first
+        loaded = trimesh.load(path, force="mesh", process=False)
     except Exception as error:  # trimesh raises many types for unreadable files
         raise ValueError(
             f"{name}: trimesh could not read {os.fspath(path)!r} as a triangle mesh ({error})"
@@ -31,6 +33,9 @@ def _read(path: str | os.PathLike, name: str) -> trimesh.Trimesh:
             f"{name}: {os.fspath(path)!r} holds no triangle mesh (trimesh read a "
             f"{type(loaded).__name__})"
         )
+    _check_arrays(np.asarray(loaded.vertices), np.asarray(loaded.faces),
+                  f"{name} ({os.fspath(path)!r})")
+    loaded.process(validate=False)  # trimesh's defaults: merge duplicates, drop unreferenced
     return loaded
 
 
@@ -39,9 +44,10 @@ def as_trimesh(mesh: MeshLike, name: str = "mesh") -> trimesh.Trimesh:
 
     Args:
         mesh: a ``trimesh.Trimesh`` (used as it is, never modified); a path to any file
-            trimesh reads (loaded with trimesh's defaults, which merge duplicate vertices and
-            drop unreferenced ones); or a pair ``(vertices, faces)`` of arrays or tensors,
-            ``(V, 3)`` world ``(x, y, z)`` and ``(F, 3)`` vertex indices, kept as given.
+            trimesh reads (its raw arrays checked, then processed with trimesh's defaults,
+            which merge duplicate vertices and drop unreferenced ones); or a pair
+            ``(vertices, faces)`` of arrays or tensors, ``(V, 3)`` world ``(x, y, z)`` and
+            ``(F, 3)`` vertex indices, kept as given.
         name: the argument's name, for the error messages.
 
     Raises:
@@ -69,6 +75,11 @@ def as_trimesh(mesh: MeshLike, name: str = "mesh") -> trimesh.Trimesh:
 
 
 def _check_arrays(vertices: np.ndarray, faces: np.ndarray, name: str) -> None:
+    """Check raw vertices ``(V, 3)`` and faces ``(F, 3)``; raise ``ValueError`` naming ``name``."""
+    if vertices.size == 0 or faces.size == 0:
+        raise ValueError(
+            f"{name} is empty: it has {len(vertices)} vertices and {len(faces)} faces"
+        )
     if vertices.ndim != 2 or vertices.shape[1] != 3:
         raise ValueError(f"{name}: vertices must have shape (V, 3), got {vertices.shape}")
     if faces.ndim != 2 or faces.shape[1] != 3:
@@ -76,10 +87,14 @@ def _check_arrays(vertices: np.ndarray, faces: np.ndarray, name: str) -> None:
             f"{name}: faces must be triangles, shape (F, 3), got {faces.shape}; "
             "triangulate polygons first (e.g. trimesh.Trimesh(..., process=True))"
         )
-    if len(faces) == 0 or len(vertices) == 0:
-        raise ValueError(f"{name} is empty: it has {len(vertices)} vertices and {len(faces)} faces")
-    if not np.issubdtype(vertices.dtype, np.number) or not np.isfinite(vertices).all():
-        raise ValueError(f"{name}: vertices must be finite numbers, found NaN or infinity")
+    if not np.issubdtype(vertices.dtype, np.number) or np.iscomplexobj(vertices):
+        raise ValueError(f"{name}: vertices must be real numbers, got dtype {vertices.dtype}")
+    bad = np.flatnonzero(~np.isfinite(vertices).all(axis=1))
+    if len(bad):
+        raise ValueError(
+            f"{name}: vertices must be finite, found NaN or infinity in {len(bad)} of "
+            f"{len(vertices)} vertices (first: vertex {bad[0]} = {vertices[bad[0]].tolist()})"
+        )
     if not np.issubdtype(faces.dtype, np.integer):
         raise ValueError(f"{name}: faces must hold integer vertex indices, got {faces.dtype}")
     if faces.min() < 0 or faces.max() >= len(vertices):

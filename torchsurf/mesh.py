@@ -14,7 +14,7 @@ import trimesh
 from torch import Tensor, nn
 
 from . import _isosurface, _mesh_sdf, sdf
-from ._checks import check_positive, check_spatial_shape, check_tensor, check_volume
+from ._checks import check_dtype, check_positive, check_spatial_shape, check_tensor, check_volume
 from ._mesh_input import MeshLike, as_trimesh, triangle_arrays
 from .grid import Grid
 from .sampling import sample
@@ -26,8 +26,9 @@ def load(mesh: MeshLike) -> trimesh.Trimesh:
 
     Args:
         mesh: a ``trimesh.Trimesh`` (returned as it is); a path to any file trimesh reads
-            (trimesh's defaults merge duplicate vertices and drop unreferenced ones); or a pair
-            ``(vertices (V, 3), faces (F, 3))`` of arrays or tensors, kept as given.
+            (its raw arrays checked, then trimesh's defaults merge duplicate vertices and drop
+            unreferenced ones); or a pair ``(vertices (V, 3), faces (F, 3))`` of arrays or
+            tensors, kept as given.
 
     Raises:
         FileNotFoundError, ValueError, TypeError: naming ``mesh`` and what is wrong (no file,
@@ -144,6 +145,7 @@ class MeshAdapter(nn.Module):
         sign: str = "auto",
     ) -> None:
         super().__init__()
+        dtype = check_dtype(dtype)
         mesh = as_trimesh(mesh, "mesh")
         grid = fit_grid(mesh, resolution) if grid is None else grid
         width = sdf._band(grid, band)
@@ -156,7 +158,6 @@ class MeshAdapter(nn.Module):
         nodes = found.nodes[inside]
         height, width_nodes = grid.shape[1], grid.shape[2]
         flat = (nodes[:, 2] * height + nodes[:, 1]) * width_nodes + nodes[:, 0]
-        dtype = dtype or torch.get_default_dtype()
         self.grid = grid
         self.band = width
         self.surface = ImplicitSurface(
