@@ -142,3 +142,10 @@ def test_long_run_stays_finite_with_b_nonnegative(sphere41):
 def test_needs_two_channels(surface):
     with pytest.raises(ValueError, match="u0"):
         ReactionDiffusion(time=1.0)(ReactionDiffusion.initial(surface)[:, :1], surface)
+
+
+def test_direction_batch_mismatch_names_direction_and_u0(surface):
+    u0 = ReactionDiffusion.initial(surface, batch=2)
+    direction = torch.zeros(3, 3, *surface.grid.shape)
+    with pytest.raises(ValueError, match="direction has batch size 3 but u0 has 2"):
+        ReactionDiffusion(1.0, steps=1)(u0, surface, direction=direction)

@@ -1,15 +1,26 @@
 """Positive flow parameters (times, diffusivities, contrasts), optionally learnable.
 
 A learnable value is stored as an unconstrained ``nn.Parameter`` ``raw`` and read as
-``softplus(raw)``, so that an optimiser can never make it zero or negative; a fixed value stays
-a Python float (exact, no round trip through the parametrisation).
+``softplus(raw) + floor``, ``floor`` :data:`FLOOR` times the smallest initial entry, so that an
+optimiser can never make it zero or negative (softplus alone underflows to exactly 0 for
+``raw`` below about -100 in float32); a fixed value stays a Python float (exact, no round trip
+through the parametrisation).
 """
 
 from __future__ import annotations
 
+import math
+from collections.abc import Sequence
+
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
+
+from .._checks import as_float, check_positive
+
+FLOOR = 1e-12
+"""The smallest value a learnable parameter can take, relative to its smallest initial entry."""
 
 
 def _inverse_softplus(value: Tensor) -> Tensor:
@@ -17,29 +28,50 @@ def _inverse_softplus(value: Tensor) -> Tensor:
     return value + torch.log(-torch.expm1(-value))
 
 
+def _as_tensor(value: object, name: str) -> Tensor:
+    """``value`` as a default-dtype tensor; bools, strings and complex numbers refused."""
+    expected = "a finite positive number or a vector (C,) of them"
+    if isinstance(value, (Tensor, np.ndarray)):
+        tensor = torch.as_tensor(value).detach()
+        if tensor.dtype == torch.bool or tensor.is_complex():
+            raise TypeError(f"{name} must be {expected}, got a tensor of dtype {tensor.dtype}")
+        return tensor.to(torch.get_default_dtype())
+    if isinstance(value, Sequence) and not isinstance(value, str):
+        entries = [as_float(v, f"{name}[{i}]", expected) for i, v in enumerate(value)]
+        return torch.tensor(entries, dtype=torch.get_default_dtype())
+    return torch.tensor(as_float(value, name, expected), dtype=torch.get_default_dtype())
+
+
 class Positive(nn.Module):
     """A positive number or per-channel vector ``(C,)``, fixed or learnable through softplus.
 
     Args:
-        value: the initial value: a number, or a sequence/tensor of shape ``(C,)``, all > 0.
+        value: the initial value: a number (Python, numpy or a 0-d tensor), or a sequence,
+            array or tensor of shape ``(C,)``, all finite and > 0; never a bool or a string.
         name: the argument's name, used in error messages.
-        learnable: register ``softplus^-1(value)`` as an ``nn.Parameter``.
+        learnable: register ``softplus^-1(value - floor)`` as an ``nn.Parameter``.
+
+    Raises:
+        TypeError: ``value`` is not made of real numbers (bools, strings).
+        ValueError: it has more than one dimension, or an entry that is not finite and > 0.
     """
 
     def __init__(self, value: float | Tensor, name: str, learnable: bool = False) -> None:
         super().__init__()
         self.name = name
-        tensor = torch.as_tensor(value, dtype=torch.get_default_dtype())
-        if tensor.dim() > 1 or not bool(torch.isfinite(tensor).all()) or not bool((tensor > 0).all()):
+        tensor = _as_tensor(value, name)
+        valid = torch.isfinite(tensor) & (tensor > 0)
+        if tensor.dim() > 1 or tensor.numel() == 0 or not bool(valid.all()):
             raise ValueError(
                 f"{name} must be a finite positive number or a vector (C,) of them, got {value!r}"
             )
         self.learnable = bool(learnable)
         self.fixed: float | Tensor | None = None
+        self.floor = max(FLOOR * float(tensor.min()), torch.finfo(tensor.dtype).tiny)
         if self.learnable:
-            self.raw = nn.Parameter(_inverse_softplus(tensor.detach().clone()))
+            self.raw = nn.Parameter(_inverse_softplus(tensor.clone() - self.floor))
         elif tensor.dim() == 0:
-            self.fixed = float(value)
+            self.fixed = check_positive(value, name)
         else:
             self.register_buffer("values", tensor.detach().clone())
 
@@ -52,13 +84,24 @@ class Positive(nn.Module):
     def value(self) -> float | Tensor:
         """The positive value: a float, or a tensor ``()`` / ``(C,)`` in the graph of ``raw``."""
         if self.learnable:
-            return F.softplus(self.raw)
+            return F.softplus(self.raw) + self.floor
         return self.fixed if self.fixed is not None else self.values
 
     def maximum(self) -> float:
-        """The largest entry, as a float (for step-size bounds)."""
+        """The largest entry, as a float (for step-size bounds); raises if it is not finite.
+
+        A learnable value can only stop being finite through its raw parameter (an optimiser
+        step that went NaN or infinite); the error names the user's parameter.
+        """
         value = self.value()
-        return value if isinstance(value, float) else float(value.detach().max())
+        largest = value if isinstance(value, float) else float(value.detach().max())
+        if not math.isfinite(largest):  # max propagates NaN
+            raise ValueError(
+                f"{self.name} is no longer finite: its learnable parameter holds "
+                f"{self.raw.detach().tolist()!r} (raw, before softplus); an optimiser step "
+                "diverged"
+            )
+        return largest
 
     def volume(self, like: Tensor) -> float | Tensor:
         """The value shaped to broadcast over a volume ``(B, C, D, H, W)`` like ``like``."""

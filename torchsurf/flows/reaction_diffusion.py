@@ -11,7 +11,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .._checks import check_positive
+from .._checks import check_batch, check_nonnegative, check_positive, check_real
 from ..operators import directional_diffusion, laplace_beltrami
 from ..operators._inputs import check_data
 from ..surface import ImplicitSurface
@@ -45,7 +45,7 @@ class ReactionDiffusion(Flow):
         time: end time (Turk's iterations).
         rate: reaction rate ``s`` (Turk: 1/128).
         diffusivity_a, diffusivity_b: ``D_a``, ``D_b``, world units squared (default Turk's).
-        beta: mean of ``beta``; noise: half-width of its uniform noise.
+        beta: mean of ``beta``, a finite number; noise: half-width of its uniform noise, >= 0.
         **kwargs: integration settings of :class:`Flow` (explicit or torchdiffeq); the default
             method is ``"euler"``, as Turk's: the pattern grows from the reaction's unstable
             modes, which Runge–Kutta–Chebyshev's long steps do not resolve.
@@ -72,8 +72,8 @@ class ReactionDiffusion(Flow):
             diffusivity_a, "diffusivity_a")
         self.diffusivity_b = None if diffusivity_b is None else check_positive(
             diffusivity_b, "diffusivity_b")
-        self.beta = float(beta)
-        self.noise = float(noise)
+        self.beta = check_real(beta, "beta")
+        self.noise = check_nonnegative(noise, "noise")
 
     @staticmethod
     def initial(surface: ImplicitSurface, batch: int = 1) -> Tensor:
@@ -97,6 +97,7 @@ class ReactionDiffusion(Flow):
         beta = self.beta + self.noise * (2.0 * noise - 1.0)
         if direction is not None:
             check_data(direction, "direction", surface, channels=3)
+            check_batch(direction, "direction", u0.shape[0], "u0")
             direction = tangent_unit(direction, surface)
         s = self.rate
 

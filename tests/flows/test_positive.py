@@ -1,0 +1,93 @@
+"""Positive flow parameters: what they accept, what they refuse, and that they stay > 0."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from torchsurf.flows import AnisotropicFlow, HeatFlow, ReactionDiffusion
+from torchsurf.flows._positive import FLOOR, Positive
+
+
+@pytest.mark.parametrize("value", [True, "1", np.bool_(True), torch.tensor(True), [1.0, True],
+                                   ["1", "2"], 1j])
+def test_refuses_bools_and_strings_naming_the_parameter(value):
+    with pytest.raises(TypeError, match=r"diffusivity.* must be a finite positive number"):
+        Positive(value, "diffusivity")
+
+
+@pytest.mark.parametrize("value", [0.0, -2.0, float("nan"), [], torch.ones(1, 1), [1.0, -1.0],
+                                   torch.tensor([1.0, float("nan")])])
+def test_refuses_values_naming_the_parameter_and_value(value):
+    with pytest.raises(ValueError, match="contrast must be a finite positive number"):
+        Positive(value, "contrast")
+
+
+@pytest.mark.parametrize("value", [np.float32(0.5), np.int64(2), torch.tensor(0.5),
+                                   torch.tensor(2)])
+def test_accepts_numpy_and_0d_tensor_scalars(value):
+    for learnable in (False, True):
+        parameter = Positive(value, "time", learnable=learnable)
+        assert float(torch.as_tensor(parameter.value()).detach()) == pytest.approx(float(value))
+
+
+@pytest.mark.parametrize("raw", [-1e4, -200.0, -60.0])
+def test_learnable_value_never_reaches_zero(raw):
+    parameter = Positive([2.0, 3.0], "diffusivity", learnable=True)
+    with torch.no_grad():
+        parameter.raw.fill_(raw)
+    value = parameter.value()
+    assert bool((value > 0).all())
+    assert bool((value >= FLOOR * 2.0).all())
+
+
+def test_learnable_value_follows_softplus():
+    """Not the identity: a negative raw value still gives a positive value, softplus(raw)."""
+    parameter = Positive(1.0, "time", learnable=True)
+    with torch.no_grad():
+        parameter.raw.fill_(-3.0)
+    expected = float(torch.nn.functional.softplus(torch.tensor(-3.0)))
+    assert float(parameter.value().detach()) == pytest.approx(expected, rel=1e-6)
+
+
+def test_diverged_learnable_value_names_the_parameter():
+    parameter = Positive(1.0, "diffusivity", learnable=True)
+    with torch.no_grad():
+        parameter.raw.fill_(float("nan"))
+    with pytest.raises(ValueError, match="diffusivity is no longer finite"):
+        parameter.maximum()
+
+
+def test_flows_refuse_bool_and_string_parameters():
+    with pytest.raises(TypeError, match="time"):
+        HeatFlow(True)
+    with pytest.raises(TypeError, match="diffusivity"):
+        HeatFlow(0.1, diffusivity="1")
+    with pytest.raises(TypeError, match="contrast"):
+        AnisotropicFlow(0.1, contrast=True)
+    HeatFlow(np.float32(0.1), diffusivity=torch.tensor(2.0))
+
+
+@pytest.mark.parametrize("contrast", [torch.tensor([1.0, 0.0]), torch.tensor(-1.0),
+                                      torch.tensor(float("nan"))])
+def test_anisotropic_flow_refuses_bad_contrast_tensors(contrast):
+    with pytest.raises(ValueError, match="contrast"):
+        AnisotropicFlow(0.1, contrast=contrast)
+
+
+@pytest.mark.parametrize(("kwargs", "error", "name"), [
+    (dict(beta="12"), TypeError, "beta"),
+    (dict(beta=True), TypeError, "beta"),
+    (dict(beta=float("nan")), ValueError, "beta"),
+    (dict(noise="0.1"), TypeError, "noise"),
+    (dict(noise=-0.1), ValueError, "noise"),
+])
+def test_reaction_diffusion_refuses_bad_beta_and_noise(kwargs, error, name):
+    with pytest.raises(error, match=name):
+        ReactionDiffusion(10.0, **kwargs)
+
+
+def test_reaction_diffusion_accepts_numpy_beta():
+    flow = ReactionDiffusion(10.0, beta=np.float32(12.0), noise=np.float64(0.0))
+    assert flow.beta == 12.0 and flow.noise == 0.0
