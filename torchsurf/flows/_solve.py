@@ -9,6 +9,7 @@ tensors ``theta`` that ``K`` reads (diffusivities, step, the surface's normals a
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -27,7 +28,8 @@ class SolverOptions:
     Args:
         tolerance: stop when ``|b - K x| <= tolerance * |b|`` for every volume and channel;
             ``None`` picks ``1e-6`` in float32 and ``1e-10`` in float64.
-        max_iterations: give up after this many iterations (the result is then the last iterate).
+        max_iterations: give up after this many iterations (the result is then the last iterate,
+            with a ``RuntimeWarning`` stating the residual reached).
     """
 
     tolerance: float | None = None
@@ -43,6 +45,31 @@ def _dot(a: Tensor, b: Tensor) -> Tensor:
     return (a * b).sum(dim=_SPATIAL, keepdim=True)
 
 
+def _check_residual(energy: Tensor, iteration: int) -> None:
+    """Raise ``FloatingPointError`` if a squared residual ``(B, C, 1, 1, 1)`` is NaN or infinite."""
+    if not bool(torch.isfinite(energy).all()):
+        raise FloatingPointError(
+            f"conjugate gradients: the residual became NaN or infinite at iteration {iteration}; "
+            "the right-hand side (the data, e.g. u0) or the operator's coefficients (diffusivity, "
+            "time step, the surface's normals and weights) hold NaN or infinity"
+        )
+
+
+def _warn_unconverged(energy: Tensor, norm: Tensor, tolerance: float, iterations: int) -> None:
+    """Warn that conjugate gradients stopped at ``iterations`` above the tolerance.
+
+    ``energy`` and ``norm`` are the squared residuals and right-hand sides ``(B, C, 1, 1, 1)``.
+    """
+    reached = float(torch.sqrt(energy / norm).max())
+    warnings.warn(
+        f"conjugate gradients stopped at max_iterations = {iterations} without converging: "
+        f"relative residual |b - K x| / |b| = {reached:.3g}, tolerance {tolerance:.3g}; raise "
+        "max_iterations or the tolerance, or take shorter steps",
+        RuntimeWarning,
+        stacklevel=3,
+    )
+
+
 @torch.no_grad()
 def conjugate_gradient(
     operator: Callable[[Tensor], Tensor], rhs: Tensor, initial: Tensor, options: SolverOptions
@@ -51,26 +78,38 @@ def conjugate_gradient(
 
     Returns:
         The solution ``(B, C, D, H, W)`` and the number of iterations taken.
+
+    Raises:
+        FloatingPointError: a residual is NaN or infinite (non-finite data or coefficients).
+
+    Warns:
+        RuntimeWarning: ``options.max_iterations`` was reached before the tolerance.
     """
     tolerance = options.resolved_tolerance(rhs.dtype)
     x = initial.clone()
     residual = rhs - operator(x)
     direction = residual.clone()
     energy = _dot(residual, residual)
-    target = tolerance**2 * _dot(rhs, rhs).clamp(min=torch.finfo(rhs.dtype).tiny)
-    for iteration in range(options.max_iterations):
+    tiny = torch.finfo(rhs.dtype).tiny  # not 1e-300, which is 0 in float32
+    norm = _dot(rhs, rhs).clamp(min=tiny)
+    target = tolerance**2 * norm
+    for iteration in range(options.max_iterations + 1):
+        _check_residual(energy, iteration)
         # converged volumes stay put, so a volume's answer does not depend on its batch
         active = energy > target
         if not bool(active.any()):
             return x, iteration
+        if iteration == options.max_iterations:
+            break
         image = operator(direction)
         curvature = _dot(direction, image)
-        alpha = torch.where(active & (curvature > 0), energy / curvature.clamp(min=1e-300), 0.0)
+        alpha = torch.where(active & (curvature > 0), energy / curvature.clamp(min=tiny), 0.0)
         x = x + alpha * direction
         residual = residual - alpha * image
         new_energy = _dot(residual, residual)
-        direction = residual + (new_energy / energy.clamp(min=1e-300)) * direction
+        direction = residual + (new_energy / energy.clamp(min=tiny)) * direction
         energy = new_energy
+    _warn_unconverged(energy, norm, tolerance, options.max_iterations)
     return x, options.max_iterations
 
 
