@@ -521,3 +521,12 @@ def test_float32_default():
     assert surface.mean_curvature().dtype == torch.float32
     near = near_surface(surface.phi, grid.spacing)
     assert math.isfinite(_max(surface.mean_curvature(), near))
+
+
+def test_phi_without_an_inside_is_refused():
+    grid = Grid.cube(13, BOUND)
+    phi = sdf.sphere(grid, 1.0)
+    with pytest.raises(ValueError, match="zero crossing"):
+        ImplicitSurface(torch.relu(phi), grid)
+    with pytest.raises(ValueError, match="zero crossing"):
+        ImplicitSurface(-torch.relu(phi), grid)

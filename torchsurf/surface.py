@@ -86,7 +86,7 @@ class ImplicitSurface(nn.Module):
         check_finite(phi, "phi")
         lowest = phi.detach().flatten(1).min(dim=1).values
         highest = phi.detach().flatten(1).max(dim=1).values
-        missing = ((lowest > 0) | (highest < 0) | (highest == lowest)).nonzero().flatten()
+        missing = ((lowest >= 0) | (highest <= 0)).nonzero().flatten()
         if len(missing) > 0:
             raise ValueError(
                 f"phi has no zero crossing in batch entries {missing.tolist()}: every entry "
