@@ -11,6 +11,7 @@ symmetric; the flow refreshes them between steps (:class:`Schedule`'s ``after_st
 
 from __future__ import annotations
 
+import functools
 import math
 import warnings
 from collections.abc import Callable, Iterator, Sequence
@@ -83,7 +84,7 @@ class System:
         """The largest stable forward-Euler (and Heun) step, ``2 / rho``, physical time."""
         return 2.0 / self.spectral_radius
 
-    @property
+    @functools.cached_property
     def region(self) -> Tensor:
         """The band and the ring of nodes its 3x3x3 stencils read, a bool mask like ``band``."""
         return with_ring(self.band)
