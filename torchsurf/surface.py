@@ -38,8 +38,8 @@ class ImplicitSurface(nn.Module):
     ``|phi| / W`` (so ``1000 * phi`` is the same surface with the same band), and where
     ``|grad phi|`` collapses (the medial axis, features thinner than two cells, beyond the band
     in which a mesh's distance was computed) the operators' weight ``W`` is floored at
-    :data:`WEIGHT_FLOOR` times ``gradient_scale``, the typical ``|grad phi|`` on S. Where phi
-    is a distance the floor never acts; where it does, it bounds the operators' coefficients,
+    :data:`WEIGHT_FLOOR` times ``gradient_scale``, the typical ``|grad phi|`` on S. Near S,
+    where phi is a distance, the floor does not act; where it does, it bounds the operators' coefficients,
     so that an explicit step chosen for the surface stays stable there (docs/band.md).
 
     Args:

@@ -136,12 +136,10 @@ class Plan:
     Attributes:
         count: number of steps (``None`` for adaptive torchdiffeq methods).
         step: step size, physical time.
-        stages: RKC stages per step (``None`` for the other methods).
     """
 
     count: int | None
     step: float
-    stages: int | None = None
 
 
 def plan_steps(method: str, system: System, end: float, steps: int | None,
@@ -188,14 +186,13 @@ def plan_steps(method: str, system: System, end: float, steps: int | None,
             f"sqrt(time * rho) = {math.sqrt(end * rho):.0f} operator applications"
         )
     step = end / count if count else end
-    stages = stages_for(step * rho) if method == "rkc" else None
-    if stages is not None and step * rho > largest_step_times_rho():
+    if method == "rkc" and step * rho > largest_step_times_rho():
         needed = math.ceil(end * rho / largest_step_times_rho())
         raise ValueError(
             f"steps={steps} is too few for RKC: a step would need more than {MAX_STAGES} "
             f"stages; use steps >= {needed}"
         )
-    return Plan(count, step, stages)
+    return Plan(count, step)
 
 
 def _intervals(schedule: Schedule) -> Iterator[tuple[int, Tensor | float, int]]:
@@ -249,7 +246,7 @@ def _euler_step(system: System, u: Tensor, dt: Tensor | float) -> Tensor:
 def _rkc_step(system: System, u: Tensor, dt: Tensor | float) -> Tensor:
     stages = stages_for(_value(dt) * system.spectral_radius)
     # the stages' combinations of u are exact only up to rounding: keep u outside the band as is
-    return torch.where(system.band, rkc_step(system.rate, u, dt, min(stages, MAX_STAGES)), u)
+    return torch.where(system.band, rkc_step(system.rate, u, dt, stages), u)
 
 
 def _heun_step(system: System, u: Tensor, dt: Tensor | float) -> Tensor:

@@ -18,6 +18,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
+from .._checks import check_choice
 from ..surface import ImplicitSurface
 from .laplace_beltrami import SCHEMES, laplace_beltrami
 
@@ -94,8 +95,7 @@ def laplace_beltrami_bound(
     key = (scheme, width)
     cached = _BOUNDS.setdefault(surface, {})
     if key not in cached:
-        if scheme not in SCHEMES:
-            raise ValueError(f"scheme must be one of {sorted(SCHEMES)}, got {scheme!r}")
+        check_choice(scheme, "scheme", SCHEMES)
         mask = surface.band_mask(width)
         dtype = surface.phi.dtype
         cached[key] = gershgorin_bound(
