@@ -1,4 +1,4 @@
-"""Curvature of level sets from the gradient and Hessian of ``phi`` (SPEC §4).
+"""Curvature of level sets from the gradient and Hessian of ``phi`` (the paper's §2 and its references).
 
 Pure functions of tensors: ``gradient`` is ``(B, 3, D, H, W)`` in ``(x, y, z)`` order,
 ``hessian`` is ``(B, 6, D, H, W)`` in the order ``xx, yy, zz, xy, xz, yz`` and ``grad_norm``

@@ -1,4 +1,4 @@
-"""Exact validation cases for the intrinsic operators (SPEC §5), evaluated band-wide.
+"""Exact validation cases for the intrinsic operators , evaluated band-wide.
 
 Used by the tests and by ``examples/convergence.py``; each case is a grid, a distance function
 ``phi`` ``(1, 1, D, H, W)``, data ``u`` ``(1, 1, D, H, W)`` and the exact ``Lap_S u``.
@@ -42,7 +42,7 @@ def _sphere_frame(points: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def sphere_harmonic(degree: int, n: int, dtype: torch.dtype = torch.float64) -> Case:
-    """Spherical harmonic of ``degree`` 1..4 (SPEC §5): ``Lap_S u = -l(l+1) u / r^2``."""
+    """Spherical harmonic of ``degree`` 1..4: ``Lap_S u = -l(l+1) u / r^2``."""
     grid = Grid.cube(n, bound=1.4)
     points = grid.points(dtype=dtype)
     direction, r = _sphere_frame(points)

@@ -21,6 +21,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from . import backend
 from ._checks import check_choice
 
 Offset = tuple[int, int, int]
@@ -212,16 +213,11 @@ def pad_flux(flux: Tensor, side: Side) -> Tensor:
     return torch.stack(components, dim=2)
 
 
-def resolve_path(path: str, volume: Tensor) -> str:
-    """Choose how stencils are applied: ``"auto"`` is slicing on CPU, conv3d elsewhere.
-
-    On CPU, conv3d with few channels falls back to an im2col kernel that measured slower
-    than shifted slices (2-5x, docs/benchmarks.md).
-    """
+def _concrete(path: str, volume: Tensor) -> str:
+    """``path`` made concrete: ``"auto"`` is the faster eager path for the device
+    (:func:`torchsurf.backend.eager_path`)."""
     check_choice(path, "path", PATHS)
-    if path != "auto":
-        return path
-    return "slicing" if volume.device.type == "cpu" else "conv3d"
+    return backend.eager_path(volume) if path == "auto" else path
 
 
 def shifted(padded: Tensor, offset: Offset) -> Tensor:
@@ -249,12 +245,12 @@ def apply(padded: Tensor, bank: Sequence[Stencil], path: str = "auto") -> Tensor
     Args:
         padded: ``(B, C, D + 2, H + 2, W + 2)``, e.g. from :func:`pad`.
         bank: ``K`` stencils.
-        path: ``"slicing"``, ``"conv3d"`` or ``"auto"`` (see :func:`resolve_path`).
+        path: ``"slicing"``, ``"conv3d"`` or ``"auto"`` (the faster for the device).
 
     Returns:
         ``(B, C, K, D, H, W)`` in index units.
     """
-    path = resolve_path(path, padded)
+    path = _concrete(path, padded)
     if path == "slicing":
         return torch.stack([_sliced(padded, stencil) for stencil in bank], dim=2)
     batch, channels = padded.shape[:2]
@@ -274,7 +270,7 @@ def contract(padded: Tensor, bank: Sequence[Stencil], path: str = "auto") -> Ten
     Returns:
         ``(B, C, D, H, W)`` in index units.
     """
-    path = resolve_path(path, padded)
+    path = _concrete(path, padded)
     if path == "slicing":
         result = _sliced(padded[:, :, 0], bank[0])
         for k in range(1, len(bank)):

@@ -6,7 +6,13 @@ import torch
 from torch import Tensor, nn
 
 from . import curvature, stencils
-from ._checks import check_finite, check_positive, check_spatial_shape, check_volume
+from ._checks import (
+    check_batch,
+    check_finite,
+    check_positive,
+    check_spatial_shape,
+    check_volume,
+)
 from .grid import Grid
 
 WEIGHT_FLOOR = 0.5
@@ -214,3 +220,30 @@ class ImplicitSurface(nn.Module):
             f"batch_size={self.batch_size}, grid={self.grid}, band_width={self.band_width:g}, "
             f"eps={self.eps:g}"
         )
+
+
+def check_surface(surface: object) -> ImplicitSurface:
+    """Raise ``TypeError`` unless ``surface`` is an :class:`ImplicitSurface`."""
+    if not isinstance(surface, ImplicitSurface):
+        raise TypeError(
+            f"surface must be a torchsurf.ImplicitSurface, got {type(surface).__name__}"
+        )
+    return surface
+
+
+def check_data(value: object, name: str, surface: object, channels: int | None = None) -> Tensor:
+    """``value`` checked as data on ``surface``: a volume ``(B, C, D, H, W)`` with the grid's spatial
+    shape, batch 1 or the surface's, the surface's dtype and device (and ``channels``, if given).
+
+    Raises ``TypeError`` or ``ValueError`` naming ``name``; returns the volume.
+    """
+    surface = check_surface(surface)
+    volume = check_volume(value, name, channels=channels)
+    check_spatial_shape(volume, name, surface.grid.shape, "surface.grid")
+    check_batch(volume, name, surface.batch_size, "surface")
+    if volume.dtype != surface.phi.dtype or volume.device != surface.phi.device:
+        raise ValueError(
+            f"{name} has dtype {volume.dtype} on {volume.device} but surface has "
+            f"{surface.phi.dtype} on {surface.phi.device}; move one of them with .to()"
+        )
+    return volume

@@ -183,29 +183,47 @@ def test_compiled_path_matches_eager_forward_and_backward():
     torch.testing.assert_close(results[1][1], results[0][1], rtol=1e-5, atol=1e-2)
 
 
+def _charbonnier_like(v, fields, side):
+    scale = 1 / torch.sqrt(1 + v[0] ** 2 + v[1] ** 2 + v[2] ** 2)
+    return scale * v[0], scale * v[1], scale * v[2]
+
+
+def _coupled_tv(v, fields, side):
+    from torchsurf.operators.functional import edge_stopping_flux
+
+    return edge_stopping_flux(lambda s, k: 1 / s, 1.0, 0.3, True)(v, fields, side)
+
+
 @pytest.mark.parametrize("scheme", ["symmetric", "conservative", "octant"])
-@pytest.mark.parametrize("flux_map", [None, lambda v: v / torch.sqrt(1 + (v**2).sum(2, keepdim=True))])
+@pytest.mark.parametrize("flux_map", [None, _charbonnier_like, _coupled_tv, "directional"])
 def test_fused_formulation_equals_modular(scheme, flux_map):
-    """The single-expression form that the compiled path runs, checked eagerly on a box grid."""
+    """The single-expression form that the compiled path runs, checked eagerly on a box grid,
+    with a phi that is not a distance (W varies) and every kind of flux map."""
     from torchsurf.operators._flux_form import flux_form, fused_flux_form
+    from torchsurf.operators.functional import directional_flux
 
     grid = ts.Grid((9, 10, 11), spacing=0.15, origin=(-0.8, -0.7, -0.6))
     points = grid.points(dtype=torch.float64)
     phi = ((points / torch.tensor([0.5, 0.6, 0.4], dtype=torch.float64)) ** 2).sum(-1) - 1
+    phi = phi * (1.3 + 0.4 * points[..., 1])
     surface = ts.ImplicitSurface(phi[None, None], grid)
-    u = torch.randn(2, 3, 9, 10, 11, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
-    haloed = (ts.stencils.pad(u, "replicate"), *surface.haloed())
-    fused = fused_flux_form(*haloed, surface.weight, grid.spacing, flux_map, scheme)
-    modular = flux_form(u, surface.normal, surface.weight, grid.spacing, flux_map, scheme, "slicing")
-    torch.testing.assert_close(fused, modular, rtol=1e-12, atol=1e-10)
-    if flux_map is None:
-        weight = surface.weight
-        divided = (haloed[0] / haloed[2], *haloed[1:])
-        transpose = fused_flux_form(*divided, weight, grid.spacing, None, scheme, adjoint=True)
-        expected = weight * flux_form(
-            u / weight, surface.normal, weight, grid.spacing, None, scheme, "slicing"
-        )
-        torch.testing.assert_close(transpose, expected, rtol=1e-12, atol=1e-10)
+    generator = torch.Generator().manual_seed(2)
+    u = torch.randn(2, 3, 9, 10, 11, dtype=torch.float64, generator=generator)
+    fields = ()
+    if flux_map == "directional":
+        flux_map = directional_flux
+        fields = (torch.randn(2, 3, 9, 10, 11, dtype=torch.float64, generator=generator),)
+    haloed_fields = tuple(torch.nn.functional.pad(f, (1,) * 6, mode="replicate") for f in fields)
+    padded = torch.nn.functional.pad(u, (2,) * 6, mode="replicate")
+    weight = surface.weight
+    fused = fused_flux_form(padded, *surface.haloed(), weight, grid.spacing, flux_map,
+                            haloed_fields, scheme)
+    modular = flux_form(u, surface.normal, weight, grid.spacing, flux_map, fields, scheme, "slicing")
+    torch.testing.assert_close(weight * fused, weight * modular, rtol=1e-12, atol=1e-10)
+    if flux_map is None or flux_map is directional_flux:
+        weighted = fused_flux_form(padded, *surface.haloed(), weight, grid.spacing, flux_map,
+                                   haloed_fields, scheme, weighted=True)
+        torch.testing.assert_close(weighted, weight * modular, rtol=1e-12, atol=1e-10)
 
 
 def test_octant_one_pass_equals_the_eight_compositions():
@@ -226,24 +244,26 @@ def test_octant_one_pass_equals_the_eight_compositions():
     haloed_normal, haloed_weight = surface.haloed()
     weight = surface.weight
     fused = fused_octant(ts.stencils.pad(u, "replicate"), haloed_normal, haloed_weight, weight, grid.spacing)
-    reference = flux_form(u, surface.normal, weight, grid.spacing, None, "octant", "slicing")
+    reference = flux_form(u, surface.normal, weight, grid.spacing, None, (), "octant", "slicing")
     torch.testing.assert_close(weight * fused, weight * reference, rtol=1e-12, atol=1e-9)
     transpose = fused_octant(
         ts.stencils.pad(u / weight, "replicate"), haloed_normal, haloed_weight, weight, grid.spacing,
-        adjoint=True,
+        weighted=True,
     )
-    expected = weight * flux_form(u / weight, surface.normal, weight, grid.spacing, None, "octant", "slicing")
+    expected = weight * flux_form(
+        u / weight, surface.normal, weight, grid.spacing, None, (), "octant", "slicing"
+    )
     torch.testing.assert_close(transpose, expected, rtol=1e-12, atol=1e-9)
 
 
-def test_compiling_raises_dynamo_recompile_limit_but_never_lowers_it(monkeypatch):
+def test_compiling_raises_dynamo_recompile_limit_but_never_lowers_it():
     """Dynamo's default of 8 variants per function ran out at the third grid size."""
-    from torchsurf.operators import _paths
+    from torchsurf import backend
 
     config = torch._dynamo.config
-    monkeypatch.setattr(config, "recompile_limit", 8)
-    _paths._raise_recompile_limit()
-    assert config.recompile_limit == _paths.RECOMPILE_LIMIT
-    monkeypatch.setattr(config, "recompile_limit", 1000)
-    _paths._raise_recompile_limit()
-    assert config.recompile_limit == 1000
+    with config.patch(recompile_limit=8):
+        backend._raise_recompile_limit()
+        assert config.recompile_limit == backend.RECOMPILE_LIMIT
+    with config.patch(recompile_limit=1000):
+        backend._raise_recompile_limit()
+        assert config.recompile_limit == 1000

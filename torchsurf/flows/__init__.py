@@ -1,4 +1,4 @@
-"""Flows on implicit surfaces (SPEC §2): heat, anisotropic, harmonic maps, colour,
+"""Flows on implicit surfaces (the paper's §2): heat, anisotropic, harmonic maps, colour,
 reaction–diffusion, flow visualisation and data extension, with explicit, implicit
 (conjugate gradients) and torchdiffeq integration."""
 

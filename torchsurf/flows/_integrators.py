@@ -39,7 +39,7 @@ def with_ring(band: Tensor) -> Tensor:
 
 @dataclass
 class Linear:
-    """A linear symmetric flow ``W du/dt = A u`` (SPEC §3: ``L = W^-1 A``).
+    """A linear symmetric flow ``W du/dt = A u`` (``L = W^-1 A``, docs/band.md).
 
     Attributes:
         operator: ``(x, *params) -> A x``, symmetric negative semi-definite on volumes

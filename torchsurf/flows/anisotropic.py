@@ -1,4 +1,4 @@
-"""Edge-stopping intrinsic diffusion ``u_t = (1/W) div(W g(|P grad u|) P grad u)`` (SPEC §2, eq. 10)."""
+"""Edge-stopping intrinsic diffusion ``u_t = (1/W) div(W g(|P grad u|) P grad u)`` (the paper's §3.1)."""
 
 from __future__ import annotations
 
@@ -6,8 +6,9 @@ import torch
 from torch import Tensor
 
 from .._checks import check_choice, check_positive
+from ..backend import PATHS
 from ..operators import anisotropic_diffusion
-from ..operators.diffusion import FLUX_SCHEMES, _resolve_diffusivity
+from ..operators.diffusion import FLUX_SCHEMES, resolve_diffusivity
 from ..operators.diffusivity import Diffusivity
 from ..surface import ImplicitSurface
 from ._integrators import System, tensors
@@ -59,7 +60,7 @@ class AnisotropicFlow(Flow):
         **kwargs: object,
     ) -> None:
         super().__init__(time, **kwargs)
-        self.diffusivity = _resolve_diffusivity(diffusivity)
+        self.diffusivity = resolve_diffusivity(diffusivity)
         self.contrast = Positive(contrast, "contrast", learnable=learn_contrast)
         self.eps = check_positive(eps, "eps")
         if max_diffusivity is None:
@@ -74,7 +75,7 @@ class AnisotropicFlow(Flow):
                 )
         self.max_diffusivity = check_positive(max_diffusivity, "max_diffusivity")
         self.scheme = check_choice(scheme, "scheme", FLUX_SCHEMES)
-        self.path = path
+        self.path = check_choice(path, "path", PATHS)
 
     def system(self, u0: Tensor, surface: ImplicitSurface, **inputs: Tensor) -> System:
         if inputs:

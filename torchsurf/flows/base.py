@@ -37,9 +37,8 @@ import torch
 from torch import Tensor, nn
 
 from .._checks import check_count, check_finite, check_positive
-from ..operators._inputs import check_data, check_surface
 from ..operators.spectrum import laplace_beltrami_bound
-from ..surface import ImplicitSurface
+from ..surface import ImplicitSurface, check_data, check_surface
 from ._integrators import IMPLICIT, INTEGRATORS, Plan, Schedule, System, integrate, plan_steps
 from ._positive import Positive
 from ._solve import SolverOptions

@@ -1,4 +1,4 @@
-"""Colour denoising on a surface: brightness and chroma flowed apart (SPEC §2, the paper's §3.2)."""
+"""Colour denoising on a surface: brightness and chroma flowed apart (the paper's §3.2)."""
 
 from __future__ import annotations
 
@@ -6,8 +6,7 @@ import torch
 from torch import Tensor, nn
 
 from .._checks import check_positive
-from ..operators._inputs import check_data
-from ..surface import ImplicitSurface
+from ..surface import ImplicitSurface, check_data
 from .anisotropic import AnisotropicFlow
 from .base import Flow
 from .harmonic import HarmonicMapFlow

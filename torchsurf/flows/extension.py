@@ -1,4 +1,4 @@
-"""Extension of data off the surface, constant along the normals (SPEC §2, "data extension").
+"""Extension of data off the surface, constant along the normals (the paper's §2).
 
 Two ways:
 
@@ -24,8 +24,7 @@ from torch import Tensor, nn
 
 from .. import stencils
 from .._checks import check_choice, check_positive
-from ..operators._inputs import check_data
-from ..surface import ImplicitSurface
+from ..surface import ImplicitSurface, check_data
 
 METHODS = ("closest_point", "pde")
 

@@ -1,4 +1,4 @@
-"""p-harmonic map flow of unit vectors ``u : S -> S^{m-1}`` (SPEC §2, eq. 11)."""
+"""p-harmonic map flow of unit vectors ``u : S -> S^{m-1}`` (the paper's §3.2)."""
 
 from __future__ import annotations
 
@@ -6,12 +6,17 @@ import torch
 from torch import Tensor
 
 from .._checks import check_choice
-from ..operators import anisotropic_diffusion
-from ..operators.differential import intrinsic_gradient
-from ..operators.diffusion import FLUX_SCHEMES
+from ..backend import PATHS
+from ..operators import functional
+from ..operators.functional import FLUX_SCHEMES
 from ..surface import ImplicitSurface
 from ._integrators import System, tensors, with_ring
 from .base import Flow
+
+
+def power_diffusivity(magnitude: Tensor, exponent: float) -> Tensor:
+    """``g(s) = s^exponent``: the p-harmonic map's diffusivity with ``exponent = p - 2``."""
+    return magnitude**exponent
 
 
 def normalize(u: Tensor, eps: float = 1e-12) -> Tensor:
@@ -60,7 +65,7 @@ class HarmonicMapFlow(Flow):
             raise ValueError(f"eps must be a positive number, got {eps!r}")
         self.p, self.eps, self.tangent = float(p), float(eps), bool(tangent)
         self.scheme = check_choice(scheme, "scheme", FLUX_SCHEMES)
-        self.path = path
+        self.path = check_choice(path, "path", PATHS)
 
     def system(self, u0: Tensor, surface: ImplicitSurface, **inputs: Tensor) -> System:
         if inputs:
@@ -71,16 +76,15 @@ class HarmonicMapFlow(Flow):
         region = with_ring(band)
         zero = u0.new_zeros(())
         exponent = self.p - 2.0
-
-        def power(magnitude: Tensor, contrast: float) -> Tensor:
-            return magnitude**exponent
+        normal, weight, haloed = surface.normal, surface.weight, surface.haloed()
+        spacing, eps, path = surface.spacing, self.eps, self.path
 
         def rate(u: Tensor) -> Tensor:
-            diffusion = anisotropic_diffusion(
-                u, surface, power, 1.0, self.eps, True, self.scheme, self.path
+            diffusion = functional.edge_stopping_form(
+                u, normal, weight, spacing, power_diffusivity, exponent, eps, True, self.scheme,
+                path, haloed=haloed,
             )
-            gradient = intrinsic_gradient(u, surface, self.path)
-            energy = (gradient**2).sum(dim=1, keepdim=True) + self.eps**2
+            energy = functional.tangential_gradient_energy(u, normal, spacing, path) + eps**2
             return torch.where(band, diffusion + u * energy ** (self.p / 2.0), zero)
 
         def project(u: Tensor) -> Tensor:

@@ -1,4 +1,4 @@
-"""Intrinsic heat flow ``u_t = D (1/W) div(W P grad u)`` (SPEC §2, eqs. 7-8)."""
+"""Intrinsic heat flow ``u_t = D (1/W) div(W P grad u)`` (the paper's §2)."""
 
 from __future__ import annotations
 
@@ -6,14 +6,15 @@ import torch
 from torch import Tensor
 
 from .._checks import check_choice
-from ..operators import laplace_beltrami
-from ..operators.laplace_beltrami import SCHEMES, weighted_operator
+from ..backend import PATHS
+from ..operators import functional, laplace_beltrami
+from ..operators.laplace_beltrami import SCHEMES
 from ..surface import ImplicitSurface
 from ._integrators import Linear, System, tensors
 from ._positive import Positive
 from .base import Flow
 
-SYMMETRIC_SCHEMES = ("octant", "symmetric", "conservative")
+SYMMETRIC_SCHEMES = functional.SCHEMES
 
 
 class HeatFlow(Flow):
@@ -63,7 +64,7 @@ class HeatFlow(Flow):
         super().__init__(time, **kwargs)
         self.diffusivity = Positive(diffusivity, "diffusivity", learnable=learn_diffusivity)
         self.scheme = check_choice(scheme, "scheme", SCHEMES)
-        self.path = path
+        self.path = check_choice(path, "path", PATHS)
 
     def system(self, u0: Tensor, surface: ImplicitSurface, **inputs: Tensor) -> System:
         if inputs:
@@ -82,8 +83,9 @@ class HeatFlow(Flow):
             def operator(x: Tensor, weight: Tensor, normal: Tensor, haloed_weight: Tensor,
                          haloed_normal: Tensor, *diffusivity: Tensor) -> Tensor:
                 scale = diffusivity[0] if diffusivity else d
-                return scale * weighted_operator(
-                    x, normal, weight, haloed_normal, haloed_weight, spacing, scheme, path
+                return scale * functional.divergence_form(
+                    x, normal, weight, spacing, scheme, path, weighted=True,
+                    haloed=(haloed_normal, haloed_weight),
                 )
 
             haloed_normal, haloed_weight = surface.haloed()

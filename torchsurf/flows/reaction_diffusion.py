@@ -1,4 +1,4 @@
-"""Turk's two-chemical reaction–diffusion on a surface (SPEC §2, eqs. 12-14).
+"""Turk's two-chemical reaction–diffusion on a surface (the paper's §3.3).
 
 ``a_t = s (16 - a b) + D_a L a``, ``b_t = s (a b - b - beta) + D_b L b``, with ``L`` the
 intrinsic Laplacian or, for anisotropic patterns, ``D_a (1/W) div(W (T . P grad a) T)`` along a
@@ -13,8 +13,7 @@ from torch import Tensor
 
 from .._checks import check_batch, check_nonnegative, check_positive, check_real
 from ..operators import directional_diffusion, laplace_beltrami
-from ..operators._inputs import check_data
-from ..surface import ImplicitSurface
+from ..surface import ImplicitSurface, check_data
 from ._integrators import System, tensors
 from .base import Flow
 

@@ -1,4 +1,4 @@
-"""Flow visualisation on a surface: noise diffused along a tangent field (SPEC §2, §3.4)."""
+"""Flow visualisation on a surface: noise diffused along a tangent field (the paper's §3.4)."""
 
 from __future__ import annotations
 
@@ -6,11 +6,8 @@ import torch
 from torch import Tensor
 
 from .._checks import check_positive
-from ..operators import _paths
-from ..operators._inputs import check_data
-from ..operators.diffusion import _directional
-from ..operators.laplace_beltrami import _divergence_form
-from ..surface import ImplicitSurface
+from ..operators import functional
+from ..surface import ImplicitSurface, check_data
 from ._integrators import Linear, System, tensors
 from .base import Flow
 from .reaction_diffusion import tangent_unit
@@ -59,18 +56,19 @@ class FlowVisualization(Flow):
         zero = u0.new_zeros(())
         spacing, isotropic = surface.spacing, self.isotropic
 
-        def laplacian(u: Tensor, weight: Tensor, normal: Tensor, direction: Tensor) -> Tensor:
-            result = _paths.run(
-                _directional, "auto", u, u, normal, weight, spacing, direction, "symmetric"
+        def laplacian(u: Tensor, weight: Tensor, normal: Tensor, direction: Tensor,
+                      weighted: bool = False) -> Tensor:
+            result = functional.directional_form(
+                u, normal, weight, spacing, direction, "symmetric", weighted=weighted
             )
             if isotropic:
-                result = result + isotropic * _paths.run(
-                    _divergence_form, "auto", u, u, normal, weight, spacing, "symmetric"
+                result = result + isotropic * functional.divergence_form(
+                    u, normal, weight, spacing, "symmetric", weighted=weighted
                 )
             return result
 
         def operator(x: Tensor, weight: Tensor, normal: Tensor, direction: Tensor) -> Tensor:
-            return weight * laplacian(x, weight, normal, direction)
+            return laplacian(x, weight, normal, direction, weighted=True)
 
         geometry = (surface.weight, surface.normal, direction)
         rho = (1.0 + self.isotropic) * self.operator_bound(surface, "symmetric")

@@ -1,5 +1,6 @@
 """Intrinsic differential operators on implicit surfaces: functions and their modules."""
 
+from . import functional
 from .differential import (
     IntrinsicDivergence,
     IntrinsicGradient,
@@ -26,6 +27,7 @@ __all__ = [
     "anisotropic_diffusion",
     "charbonnier",
     "directional_diffusion",
+    "functional",
     "gershgorin_bound",
     "intrinsic_divergence",
     "intrinsic_gradient",

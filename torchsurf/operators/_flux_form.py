@@ -1,23 +1,26 @@
 """The flux-form core shared by every divergence-form intrinsic operator.
 
-``L u = (1/W) D- . (W f(P D+ u))`` (the paper's Appendix B, ``scheme="conservative"``) or the
-mean of that and its mirror ``(1/W) D+ . (W f(P D- u))`` (``scheme="symmetric"``), for a flux
-map ``f`` acting on the projected one-sided gradient ``v`` ``(B, C, 3, D, H, W)``: the identity
-for Laplace–Beltrami, ``g(|v|) v`` for edge-stopping diffusion, ``(T . v) T`` for directional
-diffusion. Pure functions of tensors, so that the whole composition can be compiled.
+``L u = (1/W) D- . (W f(P D+ u))`` (the paper's Appendix B, ``scheme="conservative"``), the
+mean of that and its mirror ``(1/W) D+ . (W f(P D- u))`` (``scheme="symmetric"``), or the mean
+of all eight compositions that pick the side per axis (``"octant"``), for a flux map ``f``
+acting on the projected one-sided gradient: the identity for Laplace–Beltrami, ``g(|v|) v`` for
+edge-stopping diffusion, ``(T . v) T`` for directional diffusion. Pure functions of tensors.
 
-Two formulations give the same numbers. The modular one (:func:`projected_gradient`, then
-:func:`weighted_divergence`) materialises the flux and is the faster one eagerly. The fused
-one (:func:`fused_flux_form`) recomputes the flux through each face from the haloed inputs
-where the divergence needs it: more arithmetic, but under ``torch.compile`` it becomes a single
-pass that reads ``u``, the normals and ``W`` once and writes the result, so :func:`flux_form`
-takes it whenever it is being compiled (docs/benchmarks.md).
+Two formulations give the same numbers:
+
+- :func:`flux_form` (the reference, eager): per composition, :func:`projected_gradient`, the
+  flux map, then :func:`weighted_divergence`, each a bank of stencils (slicing or conv3d).
+- :func:`fused_flux_form` (what is compiled): every flux of every composition at every node of
+  the grid plus one halo layer, from haloed inputs, then the divergence of those fluxes, as one
+  expression. Compiled, each flux is evaluated once per node and composition and the inputs are
+  read once: 1.2x the octant Laplace–Beltrami's time at 128^3 for total variation
+  (docs/benchmarks.md), where recomputing the flux at each of a node's faces cost 12x.
 """
 
 from __future__ import annotations
 
 import itertools
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import torch
 from torch import Tensor
@@ -25,7 +28,13 @@ from torch import Tensor
 from .. import stencils
 from ..stencils import Offset, shifted
 
-FluxMap = Callable[[Tensor], Tensor]
+Components = tuple[Tensor, Tensor, Tensor]
+
+FluxMap = Callable[[Components, Sequence[Tensor], int], Components]
+"""``f(v, fields, k) -> flux``: ``v`` the ``x, y, z`` components of ``P D u`` of the scheme's
+``k``-th composition (:data:`SIDES`), each ``(B, C, D, H, W)``; ``fields`` the per-node tensors
+the map needs (a tangent field), given at the same nodes as ``v``."""
+
 
 SIDES: dict[str, tuple[tuple[int, int, int], ...]] = {
     "conservative": ((1, 1, 1),),
@@ -81,117 +90,99 @@ def flux_form(
     grad_norm: Tensor,
     spacing: float,
     flux_map: FluxMap | None,
+    fields: Sequence[Tensor],
     scheme: str,
     path: str,
 ) -> Tensor:
     """``(1/W) div(W f(P grad u))`` by the one-sided compositions of ``scheme``; ``(B, C, D, H, W)``.
 
-    ``flux_map=None`` is the identity (Laplace–Beltrami).
+    ``flux_map=None`` is the identity (Laplace–Beltrami); ``fields`` are its per-node inputs
+    ``(B or 1, K, D, H, W)``.
     """
-    if torch.compiler.is_compiling():
-        haloed = (stencils.pad(t, "replicate") for t in (u, normal, grad_norm))
-        return fused_flux_form(*haloed, grad_norm, spacing, flux_map, scheme)
     sides = SIDES[scheme]
     result = None
-    for side in sides:
+    for k, side in enumerate(sides):
         v = projected_gradient(u, normal, spacing, side, path)
-        flux = v if flux_map is None else flux_map(v)
+        flux = v if flux_map is None else torch.stack(flux_map(v.unbind(2), fields, k), dim=2)
         term = weighted_divergence(flux, grad_norm, spacing, side, path)
         result = term if result is None else result + term
     return result if len(sides) == 1 else result / len(sides)
 
 
-def _combine(terms: list[tuple[float, Tensor]]) -> Tensor:
-    """``sum(weight * term)``, adding or subtracting for weights of +1 and -1.
+def _open_faces(like: Tensor, axis: int, side: int) -> Tensor:
+    """1 where the face that a node of the haloed grid shares with its neighbour ``side`` along
+    ``axis`` lies inside the box, else 0; broadcastable to ``like`` ``(..., D + 2, H + 2, W + 2)``.
 
-    Inductor does not fold a multiplication by ±1.0; in the fused kernel, which is bound by
-    arithmetic, skipping those multiplications saves about a quarter of the time.
-    """
-    result = None
-    for weight, term in terms:
-        if result is None:
-            result = term if weight == 1 else -term if weight == -1 else weight * term
-        elif weight in (1, -1):
-            result = result + term if weight == 1 else result - term
-        else:
-            result = result + weight * term
-    return result
-
-
-def _open_faces(like: Tensor, axis: int, side: int, at: Offset) -> Tensor:
-    """1 where the face of each node shifted by ``at`` along ``axis`` lies inside the box, else 0.
-
-    ``side`` is the sign of the one-sided differences along ``axis``.
-
-    Broadcastable to ``like`` ``(..., D, H, W)``: varies along ``axis`` only, so that it costs
-    no memory traffic. The face of node ``p`` for differences of ``side`` lies between ``p``
-    and ``p + side``; it is outside for the last node (``side = +1``), the first node
-    (``side = -1``) and every halo node.
+    Closed: every halo node, and the last node (``side = +1``) or the first (``side = -1``):
+    no flux through the box's faces. Varies along ``axis`` only, so it costs no memory traffic.
     """
     dim = like.dim() - 1 - axis
     length = like.shape[dim]
-    index = torch.arange(length, device=like.device) + at[2 - axis]
-    closed = length - 1 if side == 1 else 0
-    inside = (index >= 0) & (index < length) & (index != closed)
+    index = torch.arange(length, device=like.device) - 1
+    closed = length - 3 if side == 1 else 0
+    inside = (index >= 0) & (index < length - 2) & (index != closed)
     shape = [1] * like.dim()
     shape[dim] = length
     return inside.to(like.dtype).view(shape)
 
 
-def _face_flux(
-    u: Tensor, normal: Tensor, weight: Tensor, spacing: float,
-    flux_map: FluxMap | None, side: tuple[int, int, int], axis: int, at: Offset,
-) -> Tensor:
-    """Component ``axis`` of ``W f(P D_side u)`` at the nodes shifted by ``at``; ``(B, C, D, H, W)``.
+def _haloed_slice(padded: Tensor, offset: Offset) -> Tensor:
+    """The haloed grid (interior plus one layer) of a volume padded by two, shifted by ``offset``."""
+    dz, dy, dx = offset
+    depth, height, width = (n - 2 for n in padded.shape[-3:])
+    return padded[..., 1 + dz: 1 + dz + depth, 1 + dy: 1 + dy + height, 1 + dx: 1 + dx + width]
 
-    ``u``, ``normal`` and ``weight`` carry a halo of one node. Without a flux map the result
-    is in index units (the caller divides by ``spacing``), which saves the divisions.
+
+def haloed_projected_gradient(
+    padded_u: Tensor, haloed_normal: Tensor, spacing: float, side: tuple[int, int, int]
+) -> Components:
+    """``P D_side u`` at every node of the haloed grid, by components ``(B, C, D + 2, H + 2, W + 2)``.
+
+    ``padded_u`` carries a halo of two nodes, ``haloed_normal`` ``(B or 1, 3, ...)`` of one.
     """
+    centre = _haloed_slice(padded_u, stencils.CENTRE)
+    normal = tuple(n[:, None] for n in haloed_normal.unbind(1))
     gradient = [
-        _combine([(w, shifted(u, stencils.add(at, offset))) for offset, w in stencil.taps])
-        for stencil in stencils.one_sided(side)
+        (_haloed_slice(padded_u, stencils.unit(axis, s)) - centre) * (s / spacing)
+        for axis, s in enumerate(side)
     ]
-    if flux_map is not None:
-        gradient = [g / spacing for g in gradient]
-    n = [shifted(normal[:, c: c + 1], at) for c in range(3)]
-    along = gradient[0] * n[0] + gradient[1] * n[1] + gradient[2] * n[2]
-    scale = shifted(weight, at) * _open_faces(gradient[0], axis, side[axis], at)
-    if flux_map is None:
-        return scale * (gradient[axis] - along * n[axis])
-    v = torch.stack([g - along * nc for g, nc in zip(gradient, n, strict=True)], dim=2)
-    return scale * flux_map(v)[:, :, axis]
+    along = gradient[0] * normal[0] + gradient[1] * normal[1] + gradient[2] * normal[2]
+    return tuple(g - along * n for g, n in zip(gradient, normal, strict=True))
 
 
 def fused_flux_form(
-    padded_u: Tensor, padded_normal: Tensor, padded_weight: Tensor, grad_norm: Tensor,
-    spacing: float, flux_map: FluxMap | None, scheme: str, adjoint: bool = False,
+    padded_u: Tensor, haloed_normal: Tensor, haloed_weight: Tensor, grad_norm: Tensor,
+    spacing: float, flux_map: FluxMap | None, haloed_fields: Sequence[Tensor], scheme: str,
+    weighted: bool = False,
 ) -> Tensor:
-    """``(1/W) div(W f(P grad u))`` as :func:`flux_form` computes it, as one pointwise expression.
+    """``(1/W) div(W f(P grad u))`` as :func:`flux_form` computes it, as one expression.
 
-    Every input carries a halo of one node: ``u`` replicated (as :func:`projected_gradient`
-    pads it), the normals and ``W`` with any finite values (faces outside the box carry no
-    flux). Passing them haloed keeps the padding out of the compiled kernel, whose loads then
-    stay contiguous and vectorise (3-4x faster at 128^3, docs/benchmarks.md).
+    The fluxes ``W f(P D_s u)`` of every composition ``s`` are formed at every node of the grid
+    plus one halo layer (zero on faces outside the box), then differenced. Halo values of the
+    geometry only need to be finite: every flux they touch lies on a closed face.
 
     Args:
-        padded_u: ``(B, C, D + 2, H + 2, W + 2)``.
-        padded_normal: ``(B or 1, 3, D + 2, H + 2, W + 2)``.
-        padded_weight: ``W`` haloed, ``(B or 1, 1, D + 2, H + 2, W + 2)``.
+        padded_u: ``u`` replicated over a halo of two nodes, ``(B, C, D + 4, H + 4, W + 4)``.
+        haloed_normal: ``(B or 1, 3, D + 2, H + 2, W + 2)``, halo of one node.
+        haloed_weight: ``W``, ``(B or 1, 1, D + 2, H + 2, W + 2)``, halo of one node.
         grad_norm: ``W``, ``(B or 1, 1, D, H, W)``.
-        flux_map: ``None`` for the identity (no stacked flux is built).
-        adjoint: compute the transpose ``L^T g = W L(g / W)`` of the linear operator instead;
-            ``padded_u`` must then hold ``g / W``, haloed.
+        flux_map: ``None`` for the identity.
+        haloed_fields: the flux map's per-node tensors, halo of one node.
+        weighted: return ``W L u`` (symmetric for a linear flux map) instead of ``L u``.
 
     Returns:
         ``(B, C, D, H, W)``.
     """
     sides = SIDES[scheme]
-    terms = [
-        (w, _face_flux(padded_u, padded_normal, padded_weight, spacing, flux_map, side, axis, offset))
-        for side in sides
-        for axis, stencil in enumerate(stencils.one_sided(stencils.opposite(side)))
-        for offset, w in stencil.taps
-    ]
-    scale = spacing * len(sides) * (spacing if flux_map is None else 1.0)
-    result = _combine(terms)
-    return result / scale if adjoint else result / (scale * grad_norm)
+    total = None
+    for k, side in enumerate(sides):
+        v = haloed_projected_gradient(padded_u, haloed_normal, spacing, side)
+        flux = v if flux_map is None else flux_map(v, haloed_fields, k)
+        for axis, s in enumerate(side):
+            face = haloed_weight * flux[axis] * _open_faces(flux[axis], axis, s)
+            ahead, behind = (stencils.unit(axis, 1), stencils.CENTRE) if s == -1 else (
+                stencils.CENTRE, stencils.unit(axis, -1))
+            term = shifted(face, ahead) - shifted(face, behind)
+            total = term if total is None else total + term
+    scale = spacing * len(sides)
+    return total / scale if weighted else total / (scale * grad_norm)

@@ -27,7 +27,6 @@ from torch import Tensor
 
 from .. import stencils
 from ..stencils import Offset, shifted
-from ._flux_form import flux_form
 
 
 def _step(offset: Offset, axis: int, sign: int) -> Offset:
@@ -36,7 +35,7 @@ def _step(offset: Offset, axis: int, sign: int) -> Offset:
 
 def fused_octant(
     padded_u: Tensor, padded_normal: Tensor, padded_weight: Tensor, grad_norm: Tensor,
-    spacing: float, adjoint: bool = False,
+    spacing: float, weighted: bool = False,
 ) -> Tensor:
     """The octant scheme's ``L u`` as one pointwise expression over haloed inputs.
 
@@ -46,7 +45,7 @@ def fused_octant(
             :func:`torchsurf.stencils.pad_mirrored`.
         padded_weight: ``W`` with a replicated halo, ``(B or 1, 1, D + 2, H + 2, W + 2)``.
         grad_norm: ``W``, ``(B or 1, 1, D, H, W)``.
-        adjoint: compute ``L^T g = W L(g / W)`` instead; ``padded_u`` must then hold ``g / W``.
+        weighted: return ``W L u`` (symmetric negative semi-definite) instead of ``L u``.
 
     Returns:
         ``(B, C, D, H, W)``, units of ``u`` per world length squared.
@@ -84,18 +83,4 @@ def fused_octant(
         cross = term if cross is None else cross + term
     total = 2.0 * diagonal + cross
     scale = 4.0 * spacing * spacing
-    return total / scale if adjoint else total / (scale * grad_norm)
-
-
-def octant(u: Tensor, normal: Tensor, grad_norm: Tensor, spacing: float, path: str) -> Tensor:
-    """``L u`` of the octant scheme on a concrete path; ``(B, C, D, H, W)``.
-
-    ``"conv3d"`` evaluates the eight compositions with conv3d stencils (the reference
-    definition); every other path evaluates :func:`fused_octant` by slicing.
-    """
-    if path == "conv3d":
-        return flux_form(u, normal, grad_norm, spacing, None, "octant", path)
-    return fused_octant(
-        stencils.pad(u, "replicate"), stencils.pad_mirrored(normal),
-        stencils.pad(grad_norm, "replicate"), grad_norm, spacing,
-    )
+    return total / scale if weighted else total / (scale * grad_norm)

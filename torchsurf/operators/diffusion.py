@@ -1,4 +1,4 @@
-"""Nonlinear and directional intrinsic diffusion operators in divergence form (SPEC §2).
+"""Nonlinear and directional intrinsic diffusion operators in divergence form (the paper's §2).
 
 - :func:`anisotropic_diffusion`: ``(1/W) div(W g(|P grad u|) P grad u)`` (total variation,
   Perona–Malik, Charbonnier);
@@ -13,60 +13,26 @@ cheap pass, and cost four times the two symmetric ones.
 
 from __future__ import annotations
 
-import torch
 from torch import Tensor, nn
 
+from .. import backend
 from .._checks import check_batch, check_choice, check_positive, check_positive_tensor
-from ..surface import ImplicitSurface
-from . import _paths
-from ._flux_form import SIDES, flux_form
-from ._inputs import check_data
+from ..surface import ImplicitSurface, check_data
+from . import functional
 from .diffusivity import DIFFUSIVITIES, Diffusivity
-
-FLUX_SCHEMES = tuple(SIDES)
-
-
-def _edge_stopping(
-    u: Tensor,
-    normal: Tensor,
-    grad_norm: Tensor,
-    spacing: float,
-    diffusivity: Diffusivity,
-    contrast: float | Tensor,
-    eps: float,
-    coupled: bool,
-    scheme: str,
-    path: str,
-) -> Tensor:
-    summed = (1, 2) if coupled else (2,)
-
-    def flux(v: Tensor) -> Tensor:
-        magnitude = torch.sqrt((v**2).sum(dim=summed, keepdim=True) + eps**2)
-        return diffusivity(magnitude, contrast) * v
-
-    return flux_form(u, normal, grad_norm, spacing, flux, scheme, path)
+from .functional import FLUX_SCHEMES
 
 
-def _directional(
-    u: Tensor, normal: Tensor, grad_norm: Tensor, spacing: float, direction: Tensor,
-    scheme: str, path: str,
-) -> Tensor:
-    t = direction[:, None]
-
-    def flux(v: Tensor) -> Tensor:
-        return (v * t).sum(dim=2, keepdim=True) * t
-
-    return flux_form(u, normal, grad_norm, spacing, flux, scheme, path)
-
-
-def _resolve_diffusivity(diffusivity: str | Diffusivity) -> Diffusivity:
+def resolve_diffusivity(diffusivity: str | Diffusivity) -> Diffusivity:
+    """A diffusivity callable from its name in :data:`DIFFUSIVITIES`, or the callable itself."""
     if callable(diffusivity):
         return diffusivity
     return DIFFUSIVITIES[check_choice(diffusivity, "diffusivity", tuple(DIFFUSIVITIES))]
 
 
-def _channel_contrast(contrast: float | Tensor, u: Tensor) -> float | Tensor:
-    """A float, or a tensor ``()`` / ``(C,)`` shaped to broadcast over ``(B, C, 1, D, H, W)``."""
+def channel_contrast(contrast: float | Tensor, u: Tensor) -> float | Tensor:
+    """A checked contrast: a float, or a tensor ``()`` / ``(C,)`` shaped to broadcast over
+    ``u`` ``(B, C, D, H, W)``."""
     if not isinstance(contrast, Tensor):
         return check_positive(contrast, "contrast")
     check_positive_tensor(contrast, "contrast")
@@ -77,7 +43,7 @@ def _channel_contrast(contrast: float | Tensor, u: Tensor) -> float | Tensor:
             f"contrast must be a number, a scalar tensor or a tensor (C,) = ({u.shape[1]},), "
             f"got shape {tuple(contrast.shape)}"
         )
-    return contrast.view(1, -1, 1, 1, 1, 1)
+    return contrast.view(1, -1, 1, 1, 1)
 
 
 def anisotropic_diffusion(
@@ -115,10 +81,11 @@ def anisotropic_diffusion(
     """
     check_data(u, "u", surface)
     check_choice(scheme, "scheme", FLUX_SCHEMES)
-    return _paths.run(
-        _edge_stopping, path, u, u, surface.normal, surface.weight, surface.spacing,
-        _resolve_diffusivity(diffusivity), _channel_contrast(contrast, u),
-        check_positive(eps, "eps"), bool(coupled), scheme,
+    check_choice(path, "path", backend.PATHS)
+    return functional.edge_stopping_form(
+        u, surface.normal, surface.weight, surface.spacing, resolve_diffusivity(diffusivity),
+        channel_contrast(contrast, u), check_positive(eps, "eps"), bool(coupled), scheme, path,
+        haloed=surface.haloed(),
     )
 
 
@@ -148,9 +115,10 @@ def directional_diffusion(
     check_data(direction, "direction", surface, channels=3)
     check_batch(direction, "direction", u.shape[0], "u")
     check_choice(scheme, "scheme", FLUX_SCHEMES)
-    return _paths.run(
-        _directional, path, u, u, surface.normal, surface.weight, surface.spacing,
-        direction, scheme,
+    check_choice(path, "path", backend.PATHS)
+    return functional.directional_form(
+        u, surface.normal, surface.weight, surface.spacing, direction, scheme, path,
+        haloed=surface.haloed(),
     )
 
 
@@ -172,12 +140,12 @@ class AnisotropicDiffusion(nn.Module):
         path: str = "auto",
     ) -> None:
         super().__init__()
-        self.diffusivity = _resolve_diffusivity(diffusivity)
+        self.diffusivity = resolve_diffusivity(diffusivity)
         self.contrast = contrast
         self.eps = check_positive(eps, "eps")
         self.coupled = bool(coupled)
         self.scheme = check_choice(scheme, "scheme", FLUX_SCHEMES)
-        self.path = check_choice(path, "path", _paths.PATHS)
+        self.path = check_choice(path, "path", backend.PATHS)
 
     def forward(self, u: Tensor, surface: ImplicitSurface) -> Tensor:
         return anisotropic_diffusion(
@@ -192,7 +160,7 @@ class DirectionalDiffusion(nn.Module):
     def __init__(self, scheme: str = "symmetric", path: str = "auto") -> None:
         super().__init__()
         self.scheme = check_choice(scheme, "scheme", FLUX_SCHEMES)
-        self.path = check_choice(path, "path", _paths.PATHS)
+        self.path = check_choice(path, "path", backend.PATHS)
 
     def forward(self, u: Tensor, surface: ImplicitSurface, direction: Tensor) -> Tensor:
         return directional_diffusion(u, surface, direction, self.scheme, self.path)

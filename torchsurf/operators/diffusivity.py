@@ -1,4 +1,4 @@
-"""Edge-stopping diffusivities ``g(s)`` of the gradient magnitude ``s = |P grad u|`` (SPEC §2).
+"""Edge-stopping diffusivities ``g(s)`` of the gradient magnitude ``s = |P grad u|`` (the paper's §2).
 
 Each maps a magnitude tensor ``s > 0`` and a contrast ``K`` (same units as ``s``, a float or a
 tensor broadcastable to ``s``) to the diffusivity; :data:`DIFFUSIVITIES` names them.

@@ -1,0 +1,240 @@
+"""Every intrinsic operator against one Laplace–Beltrami application per channel, in one run.
+
+For each size ``n`` (unit sphere on ``Grid.cube(n, 1.5)``, float32) and each operator the
+script times the forward with data not requiring grad (median of ``--repeats`` calls after
+warm-up), the forward that records the graph plus its backward, and the first call (compile
+time on the compiled path). Each figure is divided by the channels the operator acts on and by
+the octant Laplace–Beltrami's time measured in the same run, so the ratios hold on a loaded or
+slower machine. The traffic limit of one Laplace–Beltrami application (24 bytes per voxel at the
+measured copy bandwidth) is printed beside them.
+
+Operators: the Laplace–Beltrami schemes; edge-stopping diffusion (total variation,
+Perona–Malik; per channel and coupled over 3 channels, as the harmonic-map and colour flows use
+it); directional diffusion; the intrinsic gradient; the rate of the harmonic-map flow (coupled
+diffusion + gradient energy, 3 channels) and of the colour flow (harmonic map of the chroma
+plus TV of the brightness).
+
+Run with the team's allocator setting and one thread (the issue's figures are single-thread)::
+
+    GLIBC_TUNABLES=glibc.malloc.mmap_threshold=4294967296:glibc.malloc.trim_threshold=68719476736 \\
+        PYTHONPATH=. python benchmarks/bench_operators.py --sizes 128 --threads 1 \\
+        --output docs/benchmarks.md
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import importlib.util
+import os
+import shlex
+import statistics
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+import torchsurf as ts
+from torchsurf.flows import ColorDenoise, HarmonicMapFlow
+
+SECTION = "bench_operators"
+MAX_RATIO = 2.0
+"""Target: every operator within this factor of one Laplace–Beltrami application per channel."""
+
+
+def _load_sibling(name: str):
+    path = Path(__file__).with_name(f"{name}.py")
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+_lb_bench = _load_sibling("bench_laplace_beltrami")
+
+
+@dataclass
+class Case:
+    name: str
+    channels: int
+    call: Callable[[torch.Tensor], torch.Tensor]
+    data: Callable[[int], torch.Tensor]
+
+
+@dataclass
+class Row:
+    name: str
+    channels: int
+    first_s: float
+    forward_ms: float
+    backward_ms: float
+
+    def per_channel(self) -> float:
+        return self.forward_ms / self.channels
+
+
+def _flow_rate(flow: ts.flows.Flow, surface: ts.ImplicitSurface, u0: torch.Tensor
+               ) -> Callable[[torch.Tensor], torch.Tensor]:
+    system = flow.system(u0, surface)
+    return system.rate
+
+
+def cases(surface: ts.ImplicitSurface, n: int, path: str) -> list[Case]:
+    """The operators, each a function of data ``(1, C, n, n, n)``."""
+    generator = torch.Generator().manual_seed(0)
+
+    def scalar(channels: int) -> torch.Tensor:
+        return torch.rand((1, channels, n, n, n), generator=generator)
+
+    def unit(channels: int) -> torch.Tensor:
+        u = torch.randn((1, channels, n, n, n), generator=generator)
+        return u / u.norm(dim=1, keepdim=True)
+
+    direction = unit(3)
+    harmonic_u0 = unit(3)
+    harmonic = _flow_rate(HarmonicMapFlow(1e-3, path=path), surface, harmonic_u0)
+    colour = ColorDenoise(1e-3)
+    colour_image = scalar(3)
+    colour_rates = colour.chroma.system(harmonic_u0, surface).rate, \
+        colour.brightness.system(scalar(1), surface).rate
+
+    def colour_rate(image: torch.Tensor) -> torch.Tensor:
+        brightness = image.norm(dim=1, keepdim=True)
+        chroma = image / brightness
+        return torch.cat([colour_rates[0](chroma), colour_rates[1](brightness)], dim=1)
+
+    return [
+        Case("laplace_beltrami octant", 1, lambda u: ts.laplace_beltrami(u, surface, path=path), scalar),
+        Case("laplace_beltrami symmetric", 1,
+             lambda u: ts.laplace_beltrami(u, surface, "symmetric", path), scalar),
+        Case("laplace_beltrami conservative", 1,
+             lambda u: ts.laplace_beltrami(u, surface, "conservative", path), scalar),
+        Case("anisotropic TV", 1, lambda u: ts.anisotropic_diffusion(u, surface, eps=1e-2, path=path),
+             scalar),
+        Case("anisotropic Perona–Malik", 1,
+             lambda u: ts.anisotropic_diffusion(u, surface, "perona_malik", path=path), scalar),
+        Case("anisotropic TV octant", 1,
+             lambda u: ts.anisotropic_diffusion(u, surface, scheme="octant", path=path), scalar),
+        Case("anisotropic coupled (3 ch)", 3,
+             lambda u: ts.anisotropic_diffusion(u, surface, coupled=True, path=path), unit),
+        Case("directional", 1, lambda u: ts.directional_diffusion(u, surface, direction, path=path),
+             scalar),
+        Case("intrinsic gradient", 1, lambda u: ts.intrinsic_gradient(u, surface, path), scalar),
+        Case("harmonic-map rate (3 ch)", 3, harmonic, unit),
+        Case("colour rate (3 ch)", 3, colour_rate, scalar),
+    ]
+
+
+def time_case(case: Case, repeats: int) -> Row:
+    u = case.data(case.channels)
+    with torch.no_grad():
+        start = time.perf_counter()
+        case.call(u)
+        first = time.perf_counter() - start
+        case.call(u)
+        forward = statistics.median(_lb_bench.sample_times(lambda: case.call(u), repeats))
+    leaf = u.clone().requires_grad_(True)
+    out = case.call(leaf)
+    out.backward(torch.ones_like(out))
+
+    def forward_backward() -> None:
+        value = case.call(leaf)
+        value.backward(torch.ones_like(value))
+
+    both = statistics.median(_lb_bench.sample_times(forward_backward, max(3, repeats // 2)))
+    return Row(case.name, case.channels, first, 1e3 * forward, 1e3 * both)
+
+
+def bench_size(n: int, repeats: int, path: str, log=print) -> list[Row]:
+    grid = ts.Grid.cube(n, 1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, dtype=torch.float32), grid)
+    rows = []
+    for case in cases(surface, n, path):
+        row = time_case(case, repeats)
+        log(f"  n={n} {row.name}: first {row.first_s:.1f} s, fwd {row.forward_ms:.2f} ms, "
+            f"fwd+bwd {row.backward_ms:.2f} ms")
+        rows.append(row)
+    return rows
+
+
+def markdown(results: dict[int, list[Row]], bandwidth: dict[str, float], path: str,
+             argv: list[str]) -> str:
+    info = _lb_bench.machine_info()
+    tunables = os.environ.get("GLIBC_TUNABLES")
+    allocator = f"`GLIBC_TUNABLES={tunables}`" if tunables else "default glibc allocator"
+    best = max(bandwidth.values())
+    command = " ".join(shlex.quote(a) for a in argv)
+    prefix = f"GLIBC_TUNABLES={tunables} " if tunables else ""
+    lines = [
+        f"Date: {datetime.datetime.now().astimezone().isoformat(timespec='seconds')}. "
+        f"Machine: {info['cpu']}, {info['cores']} cores, torch {info['torch']} "
+        f"({info['torch threads']} threads). Allocator: {allocator}. Path: `{path}`.",
+        "",
+        f"Command: `{prefix}PYTHONPATH=. python benchmarks/bench_operators.py {command}`",
+        "",
+        f"Copy bandwidth {best:.1f} GB/s. Unit sphere on `Grid.cube(n, 1.5)`, float32. "
+        "`per ch / LB` is the forward time per channel over the octant Laplace–Beltrami's, "
+        f"measured in the same run (target ≤ {MAX_RATIO:g}). `first s` is the first call "
+        "(compilation on the compiled path).",
+        "",
+    ]
+    for n, rows in results.items():
+        baseline = rows[0].per_channel()
+        limit_ms = 1e3 * _lb_bench.BYTES_PER_VOXEL * n**3 / (best * 1e9)
+        lines += [
+            f"### n = {n}: traffic limit of one Laplace–Beltrami application {limit_ms:.2f} ms",
+            "",
+            "| operator | channels | fwd ms | per ch / LB | fwd + bwd ms | first s |",
+            "|---|---:|---:|---:|---:|---:|",
+        ]
+        for row in rows:
+            lines.append(
+                f"| {row.name} | {row.channels} | {row.forward_ms:.2f} "
+                f"| {row.per_channel() / baseline:.2f} | {row.backward_ms:.2f} | {row.first_s:.1f} |"
+            )
+        lines.append("")
+    return "\n".join(lines)
+
+
+def write_section(path: Path, body: str) -> None:
+    """Write or replace this benchmark's section in ``path``."""
+    begin, end = f"<!-- BEGIN {SECTION} -->", f"<!-- END {SECTION} -->"
+    section = f"{begin}\n## Every operator against Laplace–Beltrami\n\n{body}\n{end}\n"
+    text = path.read_text() if path.exists() else "# torchsurf benchmarks\n"
+    if begin in text and end in text:
+        head, rest = text.split(begin, 1)
+        tail = rest.split(end, 1)[1].lstrip("\n")
+        text = head + section + tail
+    else:
+        text = text.rstrip("\n") + "\n\n" + section
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(text)
+    tmp.replace(path)
+
+
+def main(argv: list[str] | None = None) -> dict[int, list[Row]]:
+    argv = sys.argv[1:] if argv is None else argv
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sizes", type=int, nargs="+", default=[128])
+    parser.add_argument("--repeats", type=int, default=7)
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--path", default="auto", choices=ts.backend.PATHS)
+    parser.add_argument("--output", type=Path, default=None)
+    args = parser.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    bandwidth = _lb_bench.memory_bandwidth()
+    print(f"copy bandwidth: {max(bandwidth.values()):.1f} GB/s")
+    results = {n: bench_size(n, args.repeats, args.path) for n in args.sizes}
+    body = markdown(results, bandwidth, args.path, argv)
+    print(body)
+    if args.output is not None:
+        write_section(args.output, body)
+    return results
+
+
+if __name__ == "__main__":
+    main()

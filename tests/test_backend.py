@@ -1,0 +1,123 @@
+"""The backend's choice of path, and the tensor-level operators every path runs."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+import torchsurf as ts
+from torchsurf import backend
+from torchsurf.operators import functional
+
+
+def _kernel(name: str, calls: list[str], fused: bool = True) -> backend.Kernel:
+    def eager(x, *, path):
+        calls.append(path)
+        return x + 1
+
+    def fused_form(x):
+        calls.append("fused")
+        return x + 1
+
+    return backend.Kernel(name, eager, fused_form if fused else None, lambda x: (x,))
+
+
+def test_auto_stays_eager_until_the_measured_eager_time_pays_for_compiling(monkeypatch):
+    calls: list[str] = []
+    kernel = _kernel("test_payback", calls)
+    volume = torch.zeros(1, 1, 4, 4, 4)
+    compiled: list[object] = []
+    monkeypatch.setattr(backend, "compiled", lambda f: compiled.append(f) or f)
+    clock = iter(float(t) for t in range(100))
+    monkeypatch.setattr(backend.time, "perf_counter", lambda: next(clock))
+    monkeypatch.setattr(backend, "COMPILE_PAYBACK_SECONDS", 3.0)
+    for _ in range(3):  # each eager call is measured at one second
+        assert backend.resolve("auto", volume, kernel) == "slicing"
+        backend.run(kernel, "auto", volume, volume)
+    assert backend.resolve("auto", volume, kernel) == "compiled"
+    backend.run(kernel, "auto", volume, volume)
+    assert calls == ["slicing", "slicing", "slicing", "fused"]
+    assert compiled == [kernel.fused]
+    # another shape has its own ledger
+    assert backend.resolve("auto", torch.zeros(1, 1, 5, 4, 4), kernel) == "slicing"
+
+
+def test_auto_compiles_large_volumes_at_once_and_never_a_kernel_without_fused_form():
+    calls: list[str] = []
+    big = torch.zeros(1, 1, 64, 64, 64)
+    assert backend.resolve("auto", big, _kernel("big", calls)) == "compiled"
+    assert backend.resolve("auto", big, _kernel("plain", calls, fused=False)) == "slicing"
+    with pytest.raises(ValueError, match="no compiled form"):
+        backend.run(_kernel("plain", calls, fused=False), "compiled", big, big)
+
+
+def test_explicit_paths_are_taken_as_given_and_unknown_ones_refused():
+    volume = torch.zeros(1, 1, 4, 4, 4)
+    for path in ("slicing", "conv3d", "compiled"):
+        assert backend.resolve(path, volume) == path
+    with pytest.raises(ValueError, match="path"):
+        backend.resolve("fast", volume)
+
+
+def _geometry(n: int = 13, dtype=torch.float64):
+    grid = ts.Grid((n, n + 1, n + 2), spacing=2.6 / n, origin=(-1.3, -1.3, -1.3))
+    points = grid.points(dtype=dtype)
+    phi = ((points / torch.tensor([0.9, 1.0, 0.8], dtype=dtype)) ** 2).sum(-1) - 1
+    phi = phi * (1.2 + 0.3 * points[..., 0])  # not a distance: W varies
+    return grid, ts.ImplicitSurface(phi[None, None], grid)
+
+
+def test_tensor_level_operators_are_what_the_surface_level_functions_compute():
+    grid, surface = _geometry()
+    generator = torch.Generator().manual_seed(0)
+    u = torch.randn(2, 3, *grid.shape, dtype=torch.float64, generator=generator)
+    direction = torch.randn(1, 3, *grid.shape, dtype=torch.float64, generator=generator)
+    n, w, h = surface.normal, surface.weight, surface.spacing
+    for scheme in functional.SCHEMES:
+        torch.testing.assert_close(
+            functional.divergence_form(u, n, w, h, scheme),
+            ts.laplace_beltrami(u, surface, scheme),
+        )
+        torch.testing.assert_close(
+            functional.divergence_form(u, n, w, h, scheme, weighted=True),
+            w * ts.laplace_beltrami(u, surface, scheme),
+        )
+    torch.testing.assert_close(
+        functional.edge_stopping_form(u, n, w, h, ts.operators.perona_malik, 2.0, 1e-2, True),
+        ts.anisotropic_diffusion(u, surface, "perona_malik", 2.0, 1e-2, coupled=True),
+    )
+    torch.testing.assert_close(
+        functional.directional_form(u, n, w, h, direction, weighted=True),
+        w * ts.directional_diffusion(u, surface, direction),
+    )
+    gradient = functional.tangential_gradient(u, n, h)
+    torch.testing.assert_close(gradient, ts.intrinsic_gradient(u, surface))
+    torch.testing.assert_close(
+        functional.tangential_gradient_energy(u, n, h),
+        (gradient**2).sum(dim=1, keepdim=True),
+    )
+
+
+@pytest.mark.parametrize("operator", ["coupled_total_variation", "directional_weighted"])
+def test_compiled_fused_kernels_match_the_eager_reference(operator):
+    """The one-pass kernels compiled, against the stencil compositions, forward and backward."""
+    grid, surface = _geometry(11, torch.float32)
+    generator = torch.Generator().manual_seed(1)
+    u0 = torch.randn(2, 3, *grid.shape, generator=generator)
+    direction = torch.randn(1, 3, *grid.shape, generator=generator)
+    n, w, h = surface.normal, surface.weight, surface.spacing
+    results = []
+    for path in ("slicing", "compiled"):
+        u = u0.clone().requires_grad_(True)
+        if operator == "coupled_total_variation":
+            value = functional.edge_stopping_form(
+                u, n, w, h, ts.operators.total_variation, 1.0, 0.5, True, "symmetric", path
+            )
+        else:
+            value = functional.directional_form(u, n, w, h, direction, path=path, weighted=True)
+        value.square().sum().backward()
+        results.append((value.detach(), u.grad))
+    scale = results[0][0].abs().max()
+    torch.testing.assert_close(results[1][0], results[0][0], rtol=1e-4, atol=1e-5 * scale)
+    gradient_scale = results[0][1].abs().max()
+    torch.testing.assert_close(results[1][1], results[0][1], rtol=1e-4, atol=1e-5 * gradient_scale)

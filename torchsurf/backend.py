@@ -1,0 +1,165 @@
+"""Where every operator's stencil arithmetic runs: the one place that chooses, by measurement.
+
+An operator is a :class:`Kernel`: a reference composition of stencils that runs eagerly on any
+device (by shifted slices or by conv3d), and optionally a one-pass form over haloed inputs that
+``torch.compile`` fuses into a single sweep over memory. :func:`run` picks the path:
+
+- ``"slicing"`` / ``"conv3d"``: eager. Slices are faster on CPU (conv3d with few channels falls
+  back to im2col there, 2-5x slower), conv3d elsewhere; ``"auto"`` takes the faster one for the
+  device when it stays eager.
+- ``"compiled"``: the one-pass form, compiled once per shape (docs/benchmarks.md: the octant
+  Laplace–Beltrami at 128^3 runs at 1.5x the memory-traffic limit, 7x faster than eager).
+- ``"auto"``: compiled when it pays. Compiling costs seconds for each kernel and shape, so
+  ``"auto"`` compiles a volume of at least :data:`COMPILE_MIN_VOXELS` voxels at once, and a
+  smaller one as soon as the eager time measured on that kernel and shape in this process
+  reaches :data:`COMPILE_PAYBACK_SECONDS`, the measured cost of compiling it: a flow or a
+  training loop that calls the same small operator many times is compiled after a few seconds
+  of eager work, while a one-off call (a test, a gradcheck) never waits for a compiler.
+
+Inside a function that ``torch.compile`` is tracing every operator stays eager, so that the
+outer compiler sees plain tensor operations. Compiled kernels have no double backward: pass an
+eager ``path`` to differentiate twice.
+"""
+
+from __future__ import annotations
+
+import functools
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ._checks import check_choice
+
+PATHS = ("auto", "slicing", "conv3d", "compiled")
+"""Values of every operator's ``path`` argument."""
+
+EAGER_PATHS = ("slicing", "conv3d")
+
+COMPILE_MIN_VOXELS = 64**3
+"""Volumes (batch x channels x voxels) at least this large are compiled on their first call."""
+
+COMPILE_PAYBACK_SECONDS = 4.0
+"""Eager seconds spent on one kernel and shape after which ``"auto"`` compiles it.
+
+About the time ``torch.compile`` takes for one of the operators on this machine class
+(2-6 s per kernel and shape, docs/benchmarks.md), so that ``"auto"`` never spends more than
+about twice what the better choice in hindsight would have.
+"""
+
+RECOMPILE_LIMIT = 64
+"""Dynamo's per-function limit on compiled variants, raised to at least this on first compile."""
+
+
+@dataclass(frozen=True)
+class Kernel:
+    """One operator, in the forms :func:`run` chooses between.
+
+    Attributes:
+        name: for error messages and the eager-time ledger.
+        eager: ``eager(*args, path=...)``, the reference composition of stencils, for
+            ``path`` in :data:`EAGER_PATHS`.
+        fused: ``fused(*haloed_args)``, one pointwise expression over haloed inputs, or
+            ``None`` when the operator has no fused form (it is then never compiled).
+        halo: ``halo(*args) -> haloed_args``, run eagerly before ``fused`` (padding outside a
+            compiled kernel keeps its loads contiguous: 3-4x faster at 128^3).
+        fused_when_eager: run ``fused`` (uncompiled) for ``"slicing"`` too, when it is the
+            faster eager form.
+    """
+
+    name: str
+    eager: Callable[..., Tensor]
+    fused: Callable[..., Tensor] | None = None
+    halo: Callable[..., tuple] | None = None
+    fused_when_eager: bool = False
+
+
+def eager_path(volume: Tensor) -> str:
+    """The faster eager path for ``volume``'s device: slicing on CPU, conv3d elsewhere."""
+    return "slicing" if volume.device.type == "cpu" else "conv3d"
+
+
+def _raise_recompile_limit() -> None:
+    """Let each kernel keep a variant per shape, grad mode and direction (forward/adjoint).
+
+    Dynamo's default of 8 variants per function is spent by two or three grid sizes (each
+    needs a no-grad forward, a recording forward and the adjoint), after which it silently
+    runs the function eagerly, 10-30x slower. The setting is process-wide; it is only raised.
+    """
+    config = torch._dynamo.config
+    for name in ("recompile_limit", "cache_size_limit"):  # renamed in torch 2.6
+        if hasattr(config, name) and getattr(config, name) < RECOMPILE_LIMIT:
+            setattr(config, name, RECOMPILE_LIMIT)
+
+
+@functools.cache
+def compiled(function: Callable[..., Tensor]) -> Callable[..., Tensor]:
+    """``function`` compiled once per process (shapes specialised)."""
+    _raise_recompile_limit()
+    return torch.compile(function, dynamic=False)
+
+
+_EAGER_SECONDS: dict[tuple, float] = {}
+"""Eager time measured per (kernel, shape, dtype, device, grad mode) in this process."""
+
+
+def _ledger_key(kernel: Kernel, volume: Tensor) -> tuple:
+    return (kernel.name, tuple(volume.shape), volume.dtype, volume.device.type,
+            torch.is_grad_enabled())
+
+
+def resolve(path: str, volume: Tensor, kernel: Kernel | None = None) -> str:
+    """The concrete path for ``volume``: ``"slicing"``, ``"conv3d"`` or ``"compiled"``.
+
+    Args:
+        path: one of :data:`PATHS`.
+        volume: the data the operator is applied to, ``(B, C, D, H, W)``.
+        kernel: the operator, when known: ``"auto"`` then also weighs the eager time already
+            spent on it (see the module's docstring).
+    """
+    check_choice(path, "path", PATHS)
+    if path != "auto":
+        return path
+    if torch.compiler.is_compiling() or (kernel is not None and kernel.fused is None):
+        return eager_path(volume)
+    if volume.numel() >= COMPILE_MIN_VOXELS:
+        return "compiled"
+    if kernel is not None and _EAGER_SECONDS.get(_ledger_key(kernel, volume), 0.0) >= (
+        COMPILE_PAYBACK_SECONDS
+    ):
+        return "compiled"
+    return eager_path(volume)
+
+
+def run(kernel: Kernel, path: str, volume: Tensor, *args: object) -> Tensor:
+    """Apply ``kernel`` to ``args`` on the path chosen for ``volume``.
+
+    Args:
+        kernel: the operator.
+        path: one of :data:`PATHS`.
+        volume: the data, whose size, device and dtype decide ``"auto"``.
+        *args: the operator's arguments (the same for every path).
+
+    Returns:
+        What the kernel returns; every path gives the same numbers to rounding.
+    """
+    concrete = resolve(path, volume, kernel)
+    if concrete == "compiled":
+        if kernel.fused is None:
+            raise ValueError(f"path='compiled': {kernel.name} has no compiled form")
+        return compiled(kernel.fused)(*kernel.halo(*args))
+    if concrete == "slicing" and kernel.fused_when_eager:
+        def evaluate() -> Tensor:
+            return kernel.fused(*kernel.halo(*args))
+    else:
+        def evaluate() -> Tensor:
+            return kernel.eager(*args, path=concrete)
+    if path != "auto" or kernel.fused is None or volume.device.type != "cpu":
+        return evaluate()
+    start = time.perf_counter()
+    result = evaluate()
+    key = _ledger_key(kernel, volume)
+    _EAGER_SECONDS[key] = _EAGER_SECONDS.get(key, 0.0) + time.perf_counter() - start
+    return result
