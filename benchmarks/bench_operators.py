@@ -98,7 +98,6 @@ def cases(surface: ts.ImplicitSurface, n: int, path: str) -> list[Case]:
     harmonic_u0 = unit(3)
     harmonic = _flow_rate(HarmonicMapFlow(1e-3, path=path), surface, harmonic_u0)
     colour = ColorDenoise(1e-3)
-    colour_image = scalar(3)
     colour_rates = colour.chroma.system(harmonic_u0, surface).rate, \
         colour.brightness.system(scalar(1), surface).rate
 
