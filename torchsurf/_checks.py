@@ -6,6 +6,7 @@ import math
 import numbers
 from collections.abc import Sequence
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -158,13 +159,22 @@ def check_positive_tensor(value: object, name: str) -> Tensor:
 
 
 def check_count(value: object, name: str, minimum: int = 1) -> int:
-    """A whole number ``>= minimum``: Python, numpy or 0-d integer tensors; never a bool."""
-    if isinstance(value, Tensor) and value.dim() == 0 and not value.is_floating_point():
-        value = int(value)
-    if hasattr(value, "__index__") and not isinstance(value, (bool, Tensor)):
-        value = value.__index__()
-        if value >= minimum:
-            return int(value)
-    if isinstance(value, int) and not isinstance(value, bool) and value >= minimum:
-        return value
-    raise ValueError(f"{name} must be a whole number >= {minimum}, got {value!r}")
+    """A whole number ``>= minimum`` as an ``int``.
+
+    Accepted: Python and numpy integers, integral floats (``4.0``, ``1e6``) and 0-d integer or
+    float tensors holding a whole number. Raises ``TypeError`` naming ``name`` for what is not
+    a real number (bools, strings, ``None``, complex numbers, tensors with more than one
+    element), as :func:`as_float` does, and ``ValueError`` for a fraction, a non-finite value
+    or a number below ``minimum``.
+    """
+    expected = f"a whole number >= {minimum}"
+    if isinstance(value, numbers.Integral) and not isinstance(value, (bool, np.bool_)):
+        number: float | int = int(value)
+    else:
+        number = as_float(value, name, expected)
+        if not (math.isfinite(number) and number.is_integer()):
+            raise ValueError(f"{name} must be {expected}, got {value!r}")
+        number = int(number)
+    if number < minimum:
+        raise ValueError(f"{name} must be {expected}, got {value!r}")
+    return number

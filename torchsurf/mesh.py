@@ -14,7 +14,15 @@ import trimesh
 from torch import Tensor, nn
 
 from . import _isosurface, _mesh_sdf, sdf
-from ._checks import check_dtype, check_positive, check_spatial_shape, check_tensor, check_volume
+from ._checks import (
+    check_count,
+    check_dtype,
+    check_nonnegative,
+    check_positive,
+    check_spatial_shape,
+    check_tensor,
+    check_volume,
+)
 from ._mesh_input import MeshLike, as_trimesh, triangle_arrays
 from .grid import Grid
 from .sampling import sample
@@ -50,10 +58,8 @@ def fit_grid(mesh: MeshLike, resolution: int = 64, margin: float = 0.1) -> Grid:
         A grid centred on the box, spacing ``longest side * (1 + 2 margin) / (resolution - 1)``.
     """
     mesh = as_trimesh(mesh, "mesh")
-    if not isinstance(resolution, int) or resolution < 3:
-        raise ValueError(f"resolution must be an integer >= 3, got {resolution!r}")
-    if not isinstance(margin, (int, float)) or not 0 <= margin < float("inf"):
-        raise ValueError(f"margin must be a finite number >= 0, got {margin!r}")
+    resolution = check_count(resolution, "resolution", minimum=3)
+    margin = check_nonnegative(margin, "margin")
     vertices, faces = triangle_arrays(mesh)
     used = vertices[np.unique(faces)]
     low, high = used.min(axis=0), used.max(axis=0)

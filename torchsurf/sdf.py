@@ -17,6 +17,7 @@ from torch import Tensor
 from . import _isosurface, _mesh_sdf
 from ._checks import (
     check_choice,
+    check_count,
     check_dtype,
     check_finite,
     check_positive,
@@ -195,8 +196,8 @@ def trefoil(
             f"tube_radius must be below 0.6 * scale = {0.6 * scale:g} for the tube not to "
             f"intersect itself, got {tube_radius!r}"
         )
-    if not isinstance(samples, int) or samples < 16:
-        raise ValueError(f"samples must be an integer >= 16, got {samples!r}")
+    samples = check_count(samples, "samples", minimum=16)
+    chunk = check_count(chunk, "chunk")
 
     def distance(points: Tensor) -> Tensor:
         flat = _centered(points, center).reshape(-1, 3)
