@@ -44,3 +44,23 @@ def test_counts_accept_every_spelling_of_a_whole_number(value):
 def test_bools_given_as_counts_raise_type_errors(make):
     with pytest.raises(TypeError, match="must be a whole number"):
         make()
+
+
+def _sphere17() -> tuple[ts.Grid, ts.ImplicitSurface]:
+    grid = ts.Grid.cube(17, 1.5)
+    return grid, ts.ImplicitSurface(ts.sdf.sphere(grid), grid)
+
+
+def test_meta_tensors_are_refused_by_name_and_device():
+    grid, surface = _sphere17()
+    with pytest.raises(ValueError, match="phi is on the meta device"):
+        ts.ImplicitSurface(ts.sdf.sphere(grid).to("meta"), grid)
+    u0 = torch.zeros(1, 1, *grid.shape, device="meta")
+    with pytest.raises(ValueError, match="u0 is on the meta device"):
+        HeatFlow(0.01)(u0, surface)
+    with pytest.raises(ValueError, match="u is on the meta device"):
+        ts.operators.laplace_beltrami(u0, surface)
+    with pytest.raises(ValueError, match="diffusivity is on the meta device"):
+        HeatFlow(0.01, diffusivity=torch.ones(2, device="meta"))
+    with pytest.raises(ValueError, match="time is on the meta device"):
+        HeatFlow(torch.tensor(0.01, device="meta"))

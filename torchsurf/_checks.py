@@ -32,10 +32,26 @@ def check_dtype(dtype: object, name: str = "dtype") -> torch.dtype:
     return dtype
 
 
+def check_has_data(value: Tensor, name: str) -> Tensor:
+    """Raise ``ValueError`` naming ``name`` if ``value`` lives on the meta device.
+
+    Meta tensors have shapes but no values; torchsurf reads values (signs of ``phi``, finiteness
+    checks, step bounds) before any work, so it cannot run on them.
+    """
+    if value.is_meta:
+        raise ValueError(
+            f"{name} is on the meta device (shape {tuple(value.shape)}, dtype {value.dtype}), "
+            "which holds no values; torchsurf needs real data: create it on 'cpu' or 'cuda'"
+        )
+    return value
+
+
 def check_tensor(value: object, name: str) -> Tensor:
-    """Raise ``TypeError`` naming ``name`` unless ``value`` is a float32 or float64 tensor."""
+    """Raise ``TypeError`` naming ``name`` unless ``value`` is a float32 or float64 tensor,
+    ``ValueError`` if it is on the meta device (no values)."""
     if not isinstance(value, Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(value).__name__}")
+    check_has_data(value, name)
     if value.dtype not in SUPPORTED_DTYPES:
         raise _dtype_error(name, f"dtype {value.dtype}", "a floating-point tensor of dtype")
     return value
@@ -108,7 +124,7 @@ def as_float(value: object, name: str, expected: str) -> float:
     """
     if isinstance(value, Tensor):
         if value.dim() == 0 and value.dtype != torch.bool and not value.is_complex():
-            return float(value)
+            return float(check_has_data(value, name))
     elif isinstance(value, numbers.Real) and not isinstance(value, bool):
         return float(value)
     kind = f"a tensor of shape {tuple(value.shape)} and dtype {value.dtype}" if isinstance(
