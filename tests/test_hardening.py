@@ -64,3 +64,66 @@ def test_meta_tensors_are_refused_by_name_and_device():
         HeatFlow(0.01, diffusivity=torch.ones(2, device="meta"))
     with pytest.raises(ValueError, match="time is on the meta device"):
         HeatFlow(torch.tensor(0.01, device="meta"))
+
+
+@pytest.mark.parametrize(
+    "times",
+    [[0.05, 0.1], (0.05, 0.1), np.array([0.05, 0.1]), torch.tensor([0.05, 0.1]),
+     torch.tensor([0.05, 0.1], dtype=torch.float64), [np.float32(0.05), torch.tensor(0.1)]],
+)
+def test_times_as_sequences_arrays_and_tensors_give_the_same_flow(times):
+    grid, surface = _sphere17()
+    u0 = ts.sdf.sphere(grid).clamp(-0.3, 0.3)
+    flow = HeatFlow(0.1, steps=8)
+    reference = flow(u0, surface, times=[0.05, 0.1])
+    result = flow(u0, surface, times=times)
+    assert result.shape == (2, *u0.shape)
+    torch.testing.assert_close(result, reference)
+    torch.testing.assert_close(result[-1], flow(u0, surface))
+
+
+def test_times_may_start_at_zero_where_u_is_u0():
+    grid, surface = _sphere17()
+    u0 = ts.sdf.sphere(grid).clamp(-0.3, 0.3)
+    flow = HeatFlow(0.1, steps=8)
+    result = flow(u0, surface, times=torch.linspace(0, 0.1, 3))
+    assert result.shape == (3, *u0.shape)
+    assert torch.equal(result[0], u0)
+    torch.testing.assert_close(result[1:], flow(u0, surface, times=[0.05, 0.1]))
+    assert torch.equal(flow(u0, surface, times=[0])[0], u0)
+
+
+@pytest.mark.parametrize(
+    ("times", "error", "match"),
+    [
+        (0.1, TypeError, r"times must be a sequence .*got 0.1 \(float\); for one time use"),
+        (torch.tensor(0.1), TypeError, "tensor of shape \\(\\) .*for one time use"),
+        (torch.tensor([[0.05, 0.1]]), TypeError, r"tensor of shape \(1, 2\)"),
+        (torch.tensor([True]), TypeError, "dtype torch.bool"),
+        ("0.1", TypeError, "times must be a sequence"),
+        ({0.05, 0.1}, TypeError, "times must be a sequence"),
+        ([], ValueError, "at least one time"),
+        ([0.05, float("nan")], ValueError, r"times\[1\] must be a finite number >= 0"),
+        (torch.tensor([0.05, float("inf")]), ValueError, r"times\[1\] must be a finite"),
+        ([-0.05, 0.1], ValueError, r"times\[0\] must be a finite number >= 0"),
+        ([0.1, 0.05], ValueError, r"increase strictly, got times\[0\] = 0.1 then times\[1\] = 0.05"),
+        ([0.05, 0.05], ValueError, "increase strictly"),
+        ([0.2], ValueError, "must not exceed the flow's time 0.1"),
+        ([True], TypeError, r"times\[0\] must be a finite number >= 0, got True"),
+        (torch.tensor([0.05, 0.1], requires_grad=True), ValueError, "must not require grad"),
+    ],
+)
+def test_bad_times_are_refused_before_any_work(times, error, match, monkeypatch):
+    grid, surface = _sphere17()
+    flow = HeatFlow(0.1)
+    monkeypatch.setattr(flow, "system", lambda *a, **k: pytest.fail("work started"))
+    with pytest.raises(error, match=match):
+        flow(torch.zeros(1, 1, *grid.shape), surface, times=times)
+
+
+def test_float32_times_that_round_above_the_end_are_the_end():
+    grid, surface = _sphere17()
+    flow = HeatFlow(0.1, steps=8)
+    u0 = ts.sdf.sphere(grid).clamp(-0.3, 0.3)
+    assert float(torch.tensor(0.1)) > 0.1
+    torch.testing.assert_close(flow(u0, surface, times=torch.tensor([0.1]))[0], flow(u0, surface))

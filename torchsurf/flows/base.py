@@ -30,13 +30,21 @@ the nominal ``h^2 / 6`` alone. docs/band.md has the measurements behind these ch
 from __future__ import annotations
 
 import math
+import numbers
 import weakref
 from collections.abc import Sequence
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 
-from .._checks import check_count, check_finite, check_positive
+from .._checks import (
+    check_count,
+    check_finite,
+    check_has_data,
+    check_nonnegative,
+    check_positive,
+)
 from ..operators._inputs import check_data, check_surface
 from ..operators.spectrum import laplace_beltrami_bound
 from ..surface import ImplicitSurface
@@ -46,13 +54,47 @@ from ._solve import SolverOptions
 from .extension import CubicStencil
 
 
-def _check_times(times: Sequence[float], end: float) -> list[float]:
-    times = [check_positive(t, "times") for t in times]
-    if not times or any(b <= a for a, b in zip(times, times[1:], strict=False)):
-        raise ValueError(f"times must be a non-empty increasing sequence, got {times!r}")
-    if times[-1] > end * (1 + 1e-12):
-        raise ValueError(f"times must not exceed the flow's time {end:g}, got {times[-1]:g}")
-    return times
+def _check_times(times: object, end: float) -> list[float]:
+    """``times`` as increasing floats in ``[0, end]``; raises naming ``times`` otherwise.
+
+    ``times`` is a sequence of numbers (Python, numpy or 0-d tensors), a 1-D numpy array or a
+    1-D real tensor that does not require grad. Entries within a relative ``1e-6`` of ``end``
+    (float32 rounding: ``float(torch.tensor(0.1)) > 0.1``) are taken as ``end``.
+    """
+    slack = 1e-6
+    if isinstance(times, np.ndarray):
+        times = torch.from_numpy(times)
+    if isinstance(times, Tensor):
+        check_has_data(times, "times")
+        if times.dim() != 1 or times.dtype == torch.bool or times.is_complex():
+            raise TypeError(
+                "times must be a sequence or a 1-D real tensor of times, got a tensor of shape "
+                f"{tuple(times.shape)} and dtype {times.dtype}"
+                + ("; for one time use times=[t]" if times.dim() == 0 else "")
+            )
+        if times.requires_grad:
+            raise ValueError(
+                "times must not require grad: the output times are not differentiable "
+                "(learn_time=True makes the flow's end time learnable)"
+            )
+        times = list(times.detach().cpu().unbind())
+    elif isinstance(times, (str, bytes, set, frozenset, dict)) or not hasattr(times, "__iter__"):
+        raise TypeError(
+            "times must be a sequence or a 1-D real tensor of times, got "
+            f"{times!r} ({type(times).__name__})"
+            + ("; for one time use times=[t]" if isinstance(times, numbers.Real) else "")
+        )
+    values = [check_nonnegative(t, f"times[{i}]") for i, t in enumerate(times)]
+    if not values:
+        raise ValueError("times must hold at least one time, got an empty sequence")
+    for i, (a, b) in enumerate(zip(values, values[1:], strict=False)):
+        if b <= a:
+            raise ValueError(
+                f"times must increase strictly, got times[{i}] = {a:g} then times[{i + 1}] = {b:g}"
+            )
+    if values[-1] > end * (1 + slack):
+        raise ValueError(f"times must not exceed the flow's time {end:g}, got {values[-1]:g}")
+    return [min(t, end) if t > end * (1 - slack) else t for t in values]
 
 
 REEXTEND_CHOICES = ("auto",)
@@ -164,14 +206,13 @@ class Flow(nn.Module):
         """The flow's equation for ``u0`` on ``surface``; subclasses implement it."""
         raise NotImplementedError
 
-    def _schedule(self, times: Sequence[float] | None, after_step: object) -> Schedule:
+    def _schedule(self, times: list[float] | None, after_step: object) -> Schedule:
+        """``times`` checked by :func:`_check_times`, all ``> 0``, or ``None`` for the end."""
         end = self.time
         if times is None:
             times = [end]
-        else:
-            times = _check_times(times, self.time_value.maximum())
-            if isinstance(end, Tensor):
-                times = [end * (t / self.time_value.maximum()) for t in times]
+        elif isinstance(end, Tensor):
+            times = [end * (t / self.time_value.maximum()) for t in times]
         return Schedule(
             times=times, steps=self.steps, solver=self.solver, options=self.options,
             adjoint=self.adjoint, after_step=after_step,
@@ -217,7 +258,8 @@ class Flow(nn.Module):
         return after_step
 
     def forward(
-        self, u0: Tensor, surface: ImplicitSurface, times: Sequence[float] | None = None,
+        self, u0: Tensor, surface: ImplicitSurface,
+        times: Sequence[float] | Tensor | np.ndarray | None = None,
         **inputs: Tensor,
     ) -> Tensor:
         """Integrate from ``u0`` to the end time.
@@ -227,7 +269,9 @@ class Flow(nn.Module):
                 in the band and the ring of nodes around it; elsewhere they are returned as
                 they are.
             surface: the implicit surface.
-            times: optional increasing times in ``(0, time]`` to return ``u`` at.
+            times: optional increasing times in ``[0, time]`` to return ``u`` at: a sequence
+                of numbers, a 1-D numpy array or a 1-D tensor (not requiring grad), e.g.
+                ``torch.linspace(0, time, 5)``; ``u`` at time 0 is ``u0``.
             inputs: flow-specific inputs (e.g. ``direction`` for tangent-field flows).
 
         Returns:
@@ -235,6 +279,7 @@ class Flow(nn.Module):
         """
         check_surface(surface)
         check_data(u0, "u0", surface)
+        wanted = None if times is None else _check_times(times, self.time_value.maximum())
         width = surface.band_width if self.band_width is None else self.band_width
         if self.reextend_every is not None and width < MIN_BAND_CELLS * surface.spacing * (1 - 1e-6):
             raise ValueError(
@@ -250,11 +295,15 @@ class Flow(nn.Module):
                 f"method={self.method!r} needs a linear symmetric flow; {type(self).__name__} "
                 "is not: use 'rkc', 'euler', 'heun' or a torchdiffeq method"
             )
+        initial = [] if wanted is None else [u0 for t in wanted if t == 0]
+        if wanted is not None and len(initial) == len(wanted):
+            return torch.stack(initial)
+        wanted = None if wanted is None else wanted[len(initial):]
         plan = plan_steps(self.method, system, self.time_value.maximum(), self.steps,
                           band_cells=width / surface.spacing)
         bar = self._progress_bar(plan.count)
         every = self._reextension_period(system, plan)
-        schedule = self._schedule(times, self._after_step(surface, system, bar, every))
+        schedule = self._schedule(wanted, self._after_step(surface, system, bar, every))
         schedule.step = plan.step
         schedule.segment = 12.0 * (width / surface.spacing) ** 2 / system.spectral_radius
         if self.reextend_every is not None and self.method not in IMPLICIT:
@@ -266,7 +315,7 @@ class Flow(nn.Module):
         finally:
             if bar is not None:
                 bar.close()
-        return result[-1] if times is None else torch.stack(result)
+        return result[-1] if times is None else torch.stack(initial + result)
 
     def extra_repr(self) -> str:
         return f"method={self.method!r}, steps={self.steps}"
