@@ -13,7 +13,7 @@ import torch
 import trimesh
 from torch import Tensor, nn
 
-from . import _isosurface, _mesh_sdf, sdf
+from . import _isosurface, _memory, _mesh_sdf, sdf
 from ._checks import (
     check_count,
     check_dtype,
@@ -155,6 +155,10 @@ class MeshAdapter(nn.Module):
         mesh = as_trimesh(mesh, "mesh")
         grid = fit_grid(mesh, resolution) if grid is None else grid
         width = sdf._band(grid, band)
+        _memory.check_fits(
+            _memory.mesh_adapter_bytes(grid.shape, grid.spacing, width, float(mesh.area), dtype),
+            f"MeshAdapter on a {grid.shape} grid",
+        )
         vertices, faces = triangle_arrays(mesh)
         phi, found = _mesh_sdf.signed_band(vertices, faces, grid, width, sign)
         inside = found.distance <= width

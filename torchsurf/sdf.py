@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from . import _isosurface, _mesh_sdf
+from . import _isosurface, _memory, _mesh_sdf
 from ._checks import (
     check_choice,
     check_count,
@@ -46,6 +46,11 @@ def from_function(
     Returns:
         ``phi`` ``(1, 1, D, H, W)``.
     """
+    if not isinstance(grid, Grid):
+        raise TypeError(f"grid must be a torchsurf.Grid, got {type(grid).__name__}")
+    dtype = check_dtype(dtype)
+    _memory.check_fits(_memory.sampled_bytes(grid.shape, dtype),
+                       f"sampling a function on a {grid.shape} grid", device)
     points = grid.points(dtype=dtype, device=device)
     values = function(points)
     if not isinstance(values, Tensor) or tuple(values.shape) != tuple(grid.shape):
@@ -280,7 +285,12 @@ def from_mesh(
     width = _band(grid, band)
     check_choice(sign, "sign", _mesh_sdf.SIGN_METHODS)
     dtype = check_dtype(dtype)
-    vertices, faces = triangle_arrays(as_trimesh(mesh, "mesh"))
+    mesh = as_trimesh(mesh, "mesh")
+    _memory.check_fits(
+        _memory.mesh_sdf_bytes(grid.shape, grid.spacing, width, float(mesh.area), dtype),
+        f"sdf.from_mesh on a {grid.shape} grid",
+    )
+    vertices, faces = triangle_arrays(mesh)
     phi, _ = _mesh_sdf.signed_band(vertices, faces, grid, width, sign)
     return torch.as_tensor(phi, dtype=dtype, device=device)[None, None]
 

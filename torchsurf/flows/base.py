@@ -38,6 +38,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from .. import _memory
 from .._checks import (
     check_count,
     check_finite,
@@ -257,6 +258,17 @@ class Flow(nn.Module):
 
         return after_step
 
+    def _check_memory(self, u0: Tensor, surface: ImplicitSurface) -> None:
+        """Raise ``MemoryError`` before any work if the call cannot fit (:mod:`torchsurf._memory`)."""
+        cached = (not surface.phi.requires_grad
+                  and (self.band_width, "region") in _STENCILS.get(surface, {}))
+        band_nodes = None if cached else int(self.band_mask(surface).sum())
+        _memory.check_fits(
+            _memory.flow_bytes(tuple(u0.shape), surface.batch_size, u0.dtype,
+                               self.method in IMPLICIT, band_nodes),
+            f"{type(self).__name__} on u0 of shape {tuple(u0.shape)}", u0.device,
+        )
+
     def forward(
         self, u0: Tensor, surface: ImplicitSurface,
         times: Sequence[float] | Tensor | np.ndarray | None = None,
@@ -276,6 +288,10 @@ class Flow(nn.Module):
 
         Returns:
             ``u(time)`` ``(B, C, D, H, W)``, or ``(T, B, C, D, H, W)`` for ``T`` ``times``.
+
+        Raises:
+            MemoryError: before any work, when a lower bound of the memory the call needs
+                exceeds the memory available (:mod:`torchsurf._memory`).
         """
         check_surface(surface)
         check_data(u0, "u0", surface)
@@ -288,6 +304,7 @@ class Flow(nn.Module):
                 f"use band_width >= {MIN_BAND_CELLS * surface.spacing:.4g} (or reextend_every=None "
                 "with a band as wide as the diffusion length)"
             )
+        self._check_memory(u0, surface)
         system = self.system(u0, surface, **inputs)
         check_finite(torch.where(system.region, u0, 0.0), "u0 (in the band and its ring)")
         if self.method in IMPLICIT and system.linear is None:
