@@ -40,7 +40,11 @@ def load(mesh: MeshLike) -> trimesh.Trimesh:
 
     Raises:
         FileNotFoundError, ValueError, TypeError: naming ``mesh`` and what is wrong (no file,
-            unreadable file, empty mesh, NaN vertices, non-triangular faces, bad indices).
+            unreadable file, empty mesh, NaN vertices, non-triangular faces, bad indices,
+            only zero-area faces).
+
+    A ``trimesh.Trimesh`` that trimesh processed (its default) has already dropped NaN
+    vertices and their faces: build it with ``process=False`` to have them checked.
     """
     return as_trimesh(mesh, "mesh")
 
@@ -161,6 +165,7 @@ class MeshAdapter(nn.Module):
         )
         vertices, faces = triangle_arrays(mesh)
         phi, found = _mesh_sdf.signed_band(vertices, faces, grid, width, sign)
+        sdf._check_sides(phi, vertices[np.unique(faces)], grid)
         inside = found.distance <= width
         weights, _ = _mesh_sdf.barycentric(
             vertices, faces, found.face[inside], found.closest[inside]
