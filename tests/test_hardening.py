@@ -127,3 +127,50 @@ def test_float32_times_that_round_above_the_end_are_the_end():
     u0 = ts.sdf.sphere(grid).clamp(-0.3, 0.3)
     assert float(torch.tensor(0.1)) > 0.1
     torch.testing.assert_close(flow(u0, surface, times=torch.tensor([0.1]))[0], flow(u0, surface))
+
+
+def test_linear_flows_refuse_times_far_beyond_their_equilibrium():
+    grid, surface = _sphere17()
+    u0 = torch.zeros(1, 1, *grid.shape)
+    for method in ("rkc", "euler", "implicit"):
+        with pytest.raises(ValueError, match=r"time=10000 is \d+ times the time the diffusion "
+                                             r"takes to cross the whole grid"):
+            HeatFlow(1e4, method=method)(u0, surface)
+    assert HeatFlow(1.0)(u0, surface).shape == u0.shape  # 1/30 of the crossing time: runs
+
+
+def test_too_many_steps_name_steps_and_many_evaluations_warn():
+    from torchsurf.flows._integrators import LONG_RUN, System, plan_steps
+
+    grid, surface = _sphere17()
+    with pytest.raises(ValueError, match=r"steps=1000000000 is too many"):
+        HeatFlow(0.01, steps=10**9)(torch.zeros(1, 1, *grid.shape), surface)
+    system = System(lambda u: u, surface.band_mask(), spectral_radius=100.0)
+    with pytest.warns(RuntimeWarning, match=r"evaluations of the rate \(more than 100000"):
+        plan = plan_steps("heun", system, 2.0 * (LONG_RUN // 2 + 10) / 100.0, None)
+    assert plan.count == LONG_RUN // 2 + 10
+
+
+def test_reaction_diffusion_ignores_nan_outside_its_band():
+    from torchsurf.flows import ReactionDiffusion
+
+    _, surface = _sphere17()
+    u0 = ReactionDiffusion.initial(surface)
+    clean = ReactionDiffusion(1.0)(u0, surface, generator=torch.Generator().manual_seed(0))
+    u0[0, :, 0, 0, 0] = float("nan")  # a corner, far from the sphere
+    dirty = ReactionDiffusion(1.0)(u0, surface, generator=torch.Generator().manual_seed(0))
+    band = surface.band_mask()[0, 0]
+    torch.testing.assert_close(dirty[:, :, band], clean[:, :, band])
+
+
+def test_a_diverging_integration_raises_instead_of_returning_nan():
+    from torchsurf.flows._integrators import System
+
+    class Exploding(HeatFlow):
+        def system(self, u0, surface, **inputs):
+            band = self.band_mask(surface)
+            return System(lambda u: torch.where(band, u * 1e30 + 1e30, 0.0), band, 1.0)
+
+    grid, surface = _sphere17()
+    with pytest.raises(FloatingPointError, match=r"Exploding \(method='euler', 4 steps .* diverged"):
+        Exploding(0.5, method="euler", steps=4)(torch.ones(1, 1, *grid.shape), surface)

@@ -49,7 +49,16 @@ from .._checks import (
 from ..operators._inputs import check_data, check_surface
 from ..operators.spectrum import laplace_beltrami_bound
 from ..surface import ImplicitSurface
-from ._integrators import IMPLICIT, INTEGRATORS, Plan, Schedule, System, integrate, plan_steps
+from ._integrators import (
+    IMPLICIT,
+    INTEGRATORS,
+    Plan,
+    Schedule,
+    System,
+    integrate,
+    plan_steps,
+    with_ring,
+)
 from ._positive import Positive
 from ._solve import SolverOptions
 from .extension import CubicStencil
@@ -133,7 +142,9 @@ class Flow(nn.Module):
         steps: number of time steps (``None``: for ``"rkc"``, steps no longer than the time
             the fastest diffusion takes to cross the band (:func:`plan_steps`); for
             ``"euler"`` and ``"heun"``, the stable step ``2 / rho``, rounded so that the steps
-            end exactly at ``time``); for adaptive torchdiffeq methods, unused.
+            end exactly at ``time``); for adaptive torchdiffeq methods, unused. A run of more
+            than ``10**6`` steps or evaluations of the rate (RKC's stages counted) is refused
+            before any work; more than ``10**5`` evaluations warn with the count.
         learn_time: make ``time`` an ``nn.Parameter`` (kept positive by softplus).
         tolerance, max_iterations: conjugate-gradient stopping rule of the implicit methods.
         options: extra keyword options for torchdiffeq (``rtol``, ``atol``, ``step_size``...).
@@ -258,11 +269,11 @@ class Flow(nn.Module):
 
         return after_step
 
-    def _check_memory(self, u0: Tensor, surface: ImplicitSurface) -> None:
+    def _check_memory(self, u0: Tensor, surface: ImplicitSurface, band: Tensor) -> None:
         """Raise ``MemoryError`` before any work if the call cannot fit (:mod:`torchsurf._memory`)."""
         cached = (not surface.phi.requires_grad
                   and (self.band_width, "region") in _STENCILS.get(surface, {}))
-        band_nodes = None if cached else int(self.band_mask(surface).sum())
+        band_nodes = None if cached else int(band.sum())
         _memory.check_fits(
             _memory.flow_bytes(tuple(u0.shape), surface.batch_size, u0.dtype,
                                self.method in IMPLICIT, band_nodes),
@@ -290,6 +301,7 @@ class Flow(nn.Module):
             ``u(time)`` ``(B, C, D, H, W)``, or ``(T, B, C, D, H, W)`` for ``T`` ``times``.
 
         Raises:
+            FloatingPointError: the integration diverged (NaN or infinity in the band).
             MemoryError: before any work, when a lower bound of the memory the call needs
                 exceeds the memory available (:mod:`torchsurf._memory`).
         """
@@ -304,9 +316,11 @@ class Flow(nn.Module):
                 f"use band_width >= {MIN_BAND_CELLS * surface.spacing:.4g} (or reextend_every=None "
                 "with a band as wide as the diffusion length)"
             )
-        self._check_memory(u0, surface)
+        band = self.band_mask(surface)
+        self._check_memory(u0, surface, band)
+        # before the flow's system, whose bounds read u0 (reaction-diffusion's)
+        check_finite(torch.where(with_ring(band), u0, 0.0), "u0 (in the band and its ring)")
         system = self.system(u0, surface, **inputs)
-        check_finite(torch.where(system.region, u0, 0.0), "u0 (in the band and its ring)")
         if self.method in IMPLICIT and system.linear is None:
             raise ValueError(
                 f"method={self.method!r} needs a linear symmetric flow; {type(self).__name__} "
@@ -317,7 +331,8 @@ class Flow(nn.Module):
             return torch.stack(initial)
         wanted = None if wanted is None else wanted[len(initial):]
         plan = plan_steps(self.method, system, self.time_value.maximum(), self.steps,
-                          band_cells=width / surface.spacing)
+                          band_cells=width / surface.spacing,
+                          diagonal_cells=math.dist(surface.grid.shape, (1, 1, 1)))
         bar = self._progress_bar(plan.count)
         every = self._reextension_period(system, plan)
         schedule = self._schedule(wanted, self._after_step(surface, system, bar, every))
@@ -332,6 +347,13 @@ class Flow(nn.Module):
         finally:
             if bar is not None:
                 bar.close()
+        for value in result:
+            if not bool(torch.isfinite(torch.where(system.region, value.detach(), 0.0)).all()):
+                raise FloatingPointError(
+                    f"{type(self).__name__} (method={self.method!r}, {plan.count} steps of "
+                    f"{plan.step:.3g}) diverged: u holds NaN or infinity in the band though u0 "
+                    "did not; use method='rkc', more steps, or smaller parameters"
+                )
         return result[-1] if times is None else torch.stack(initial + result)
 
     def extra_repr(self) -> str:
