@@ -167,9 +167,9 @@ def test_numpy_and_0d_tensor_numbers_are_accepted():
     [
         (lambda: Grid((5, 5, 5), True), TypeError, "spacing"),
         (lambda: Grid((5, 5, 5), "0.1"), TypeError, "spacing"),
-        (lambda: Grid((5, True, 5), 1.0), ValueError, "shape"),
+        (lambda: Grid((5, True, 5), 1.0), TypeError, "shape"),
         (lambda: Grid(5, 1.0), ValueError, "shape"),
-        (lambda: Grid.cube(True, 1.0), ValueError, "n must be"),
+        (lambda: Grid.cube(True, 1.0), TypeError, "n must be"),
         (lambda: Grid.cube(17.5, 1.0), ValueError, "n must be"),
         (lambda: Grid.cube(5, True), TypeError, "bound"),
         (lambda: Grid((5, 5, 5), 1.0, (0.0, float("nan"), 0.0)), ValueError, "origin"),

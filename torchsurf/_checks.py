@@ -6,6 +6,7 @@ import math
 import numbers
 from collections.abc import Sequence
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -31,10 +32,26 @@ def check_dtype(dtype: object, name: str = "dtype") -> torch.dtype:
     return dtype
 
 
+def check_has_data(value: Tensor, name: str) -> Tensor:
+    """Raise ``ValueError`` naming ``name`` if ``value`` lives on the meta device.
+
+    Meta tensors have shapes but no values; torchsurf reads values (signs of ``phi``, finiteness
+    checks, step bounds) before any work, so it cannot run on them.
+    """
+    if value.is_meta:
+        raise ValueError(
+            f"{name} is on the meta device (shape {tuple(value.shape)}, dtype {value.dtype}), "
+            "which holds no values; torchsurf needs real data: create it on 'cpu' or 'cuda'"
+        )
+    return value
+
+
 def check_tensor(value: object, name: str) -> Tensor:
-    """Raise ``TypeError`` naming ``name`` unless ``value`` is a float32 or float64 tensor."""
+    """Raise ``TypeError`` naming ``name`` unless ``value`` is a float32 or float64 tensor,
+    ``ValueError`` if it is on the meta device (no values)."""
     if not isinstance(value, Tensor):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(value).__name__}")
+    check_has_data(value, name)
     if value.dtype not in SUPPORTED_DTYPES:
         raise _dtype_error(name, f"dtype {value.dtype}", "a floating-point tensor of dtype")
     return value
@@ -107,7 +124,7 @@ def as_float(value: object, name: str, expected: str) -> float:
     """
     if isinstance(value, Tensor):
         if value.dim() == 0 and value.dtype != torch.bool and not value.is_complex():
-            return float(value)
+            return float(check_has_data(value, name))
     elif isinstance(value, numbers.Real) and not isinstance(value, bool):
         return float(value)
     kind = f"a tensor of shape {tuple(value.shape)} and dtype {value.dtype}" if isinstance(
@@ -158,13 +175,22 @@ def check_positive_tensor(value: object, name: str) -> Tensor:
 
 
 def check_count(value: object, name: str, minimum: int = 1) -> int:
-    """A whole number ``>= minimum``: Python, numpy or 0-d integer tensors; never a bool."""
-    if isinstance(value, Tensor) and value.dim() == 0 and not value.is_floating_point():
-        value = int(value)
-    if hasattr(value, "__index__") and not isinstance(value, (bool, Tensor)):
-        value = value.__index__()
-        if value >= minimum:
-            return int(value)
-    if isinstance(value, int) and not isinstance(value, bool) and value >= minimum:
-        return value
-    raise ValueError(f"{name} must be a whole number >= {minimum}, got {value!r}")
+    """A whole number ``>= minimum`` as an ``int``.
+
+    Accepted: Python and numpy integers, integral floats (``4.0``, ``1e6``) and 0-d integer or
+    float tensors holding a whole number. Raises ``TypeError`` naming ``name`` for what is not
+    a real number (bools, strings, ``None``, complex numbers, tensors with more than one
+    element), as :func:`as_float` does, and ``ValueError`` for a fraction, a non-finite value
+    or a number below ``minimum``.
+    """
+    expected = f"a whole number >= {minimum}"
+    if isinstance(value, numbers.Integral) and not isinstance(value, (bool, np.bool_)):
+        number: float | int = int(value)
+    else:
+        number = as_float(value, name, expected)
+        if not (math.isfinite(number) and number.is_integer()):
+            raise ValueError(f"{name} must be {expected}, got {value!r}")
+        number = int(number)
+    if number < minimum:
+        raise ValueError(f"{name} must be {expected}, got {value!r}")
+    return number

@@ -54,7 +54,12 @@ def as_trimesh(mesh: MeshLike, name: str = "mesh") -> trimesh.Trimesh:
         FileNotFoundError: the path names no file.
         TypeError: ``mesh`` is none of the above.
         ValueError: the file cannot be read, the mesh is empty, has non-finite vertices,
-            non-triangular faces or face indices out of range.
+            non-triangular faces, face indices out of range, or only degenerate (zero-area)
+            faces. A few degenerate faces are kept (see :func:`degenerate_faces`).
+
+    A ``trimesh.Trimesh`` built with trimesh's default ``process=True`` has already dropped
+    non-finite vertices and the faces that use them, leaving a hole that nothing records;
+    build it with ``process=False``, or pass the file or the arrays, to have them checked.
     """
     if isinstance(mesh, (str, os.PathLike)):
         mesh = _read(mesh, name)
@@ -102,6 +107,25 @@ def _check_arrays(vertices: np.ndarray, faces: np.ndarray, name: str) -> None:
             f"{name}: face indices must lie in [0, {len(vertices) - 1}], "
             f"got [{faces.min()}, {faces.max()}]"
         )
+    if degenerate_faces(vertices, faces).all():
+        raise ValueError(
+            f"{name} has no area: all its {len(faces)} faces are degenerate (a repeated vertex "
+            "index or three collinear corners), so it bounds nothing"
+        )
+
+
+def degenerate_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Boolean ``(F,)``: faces of zero area, ``|e1 x e2| <= 1e-12 * (longest edge)^2``.
+
+    Such a face is a segment or a point. The mesh distance keeps it (the distance to it is
+    exact, and it never changes a sign: it spans no solid angle and its pseudonormal is not
+    used), so a mesh with a few of them gives the same ``phi`` as without them.
+    """
+    corner = vertices[faces].astype(np.float64)
+    edges = corner[:, [1, 2, 0]] - corner
+    cross = np.linalg.norm(np.cross(edges[:, 0], -edges[:, 2]), axis=1)
+    longest = (edges**2).sum(axis=2).max(axis=1)
+    return cross <= 1e-12 * longest
 
 
 def triangle_arrays(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray]:

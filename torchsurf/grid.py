@@ -23,8 +23,6 @@ def _check_points(points: object, name: str) -> Tensor:
 
 def _size(value: object, name: str) -> int:
     """One size of ``shape``: a whole number >= 3 (integral floats such as ``17.0`` too)."""
-    if isinstance(value, float) and value.is_integer():
-        value = int(value)
     return check_count(value, name, minimum=3)
 
 

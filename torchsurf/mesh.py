@@ -13,8 +13,16 @@ import torch
 import trimesh
 from torch import Tensor, nn
 
-from . import _isosurface, _mesh_sdf, sdf
-from ._checks import check_dtype, check_positive, check_spatial_shape, check_tensor, check_volume
+from . import _isosurface, _memory, _mesh_sdf, sdf
+from ._checks import (
+    check_count,
+    check_dtype,
+    check_nonnegative,
+    check_positive,
+    check_spatial_shape,
+    check_tensor,
+    check_volume,
+)
 from ._mesh_input import MeshLike, as_trimesh, triangle_arrays
 from .grid import Grid
 from .sampling import sample
@@ -32,7 +40,11 @@ def load(mesh: MeshLike) -> trimesh.Trimesh:
 
     Raises:
         FileNotFoundError, ValueError, TypeError: naming ``mesh`` and what is wrong (no file,
-            unreadable file, empty mesh, NaN vertices, non-triangular faces, bad indices).
+            unreadable file, empty mesh, NaN vertices, non-triangular faces, bad indices,
+            only zero-area faces).
+
+    A ``trimesh.Trimesh`` that trimesh processed (its default) has already dropped NaN
+    vertices and their faces: build it with ``process=False`` to have them checked.
     """
     return as_trimesh(mesh, "mesh")
 
@@ -50,10 +62,8 @@ def fit_grid(mesh: MeshLike, resolution: int = 64, margin: float = 0.1) -> Grid:
         A grid centred on the box, spacing ``longest side * (1 + 2 margin) / (resolution - 1)``.
     """
     mesh = as_trimesh(mesh, "mesh")
-    if not isinstance(resolution, int) or resolution < 3:
-        raise ValueError(f"resolution must be an integer >= 3, got {resolution!r}")
-    if not isinstance(margin, (int, float)) or not 0 <= margin < float("inf"):
-        raise ValueError(f"margin must be a finite number >= 0, got {margin!r}")
+    resolution = check_count(resolution, "resolution", minimum=3)
+    margin = check_nonnegative(margin, "margin")
     vertices, faces = triangle_arrays(mesh)
     used = vertices[np.unique(faces)]
     low, high = used.min(axis=0), used.max(axis=0)
@@ -149,8 +159,13 @@ class MeshAdapter(nn.Module):
         mesh = as_trimesh(mesh, "mesh")
         grid = fit_grid(mesh, resolution) if grid is None else grid
         width = sdf._band(grid, band)
+        _memory.check_fits(
+            _memory.mesh_adapter_bytes(grid.shape, grid.spacing, width, float(mesh.area), dtype),
+            f"MeshAdapter on a {grid.shape} grid",
+        )
         vertices, faces = triangle_arrays(mesh)
         phi, found = _mesh_sdf.signed_band(vertices, faces, grid, width, sign)
+        sdf._check_sides(phi, vertices[np.unique(faces)], grid)
         inside = found.distance <= width
         weights, _ = _mesh_sdf.barycentric(
             vertices, faces, found.face[inside], found.closest[inside]

@@ -14,9 +14,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from . import _isosurface, _mesh_sdf
+from . import _isosurface, _memory, _mesh_sdf
 from ._checks import (
     check_choice,
+    check_count,
     check_dtype,
     check_finite,
     check_positive,
@@ -45,6 +46,11 @@ def from_function(
     Returns:
         ``phi`` ``(1, 1, D, H, W)``.
     """
+    if not isinstance(grid, Grid):
+        raise TypeError(f"grid must be a torchsurf.Grid, got {type(grid).__name__}")
+    dtype = check_dtype(dtype)
+    _memory.check_fits(_memory.sampled_bytes(grid.shape, dtype),
+                       f"sampling a function on a {grid.shape} grid", device)
     points = grid.points(dtype=dtype, device=device)
     values = function(points)
     if not isinstance(values, Tensor) or tuple(values.shape) != tuple(grid.shape):
@@ -195,8 +201,8 @@ def trefoil(
             f"tube_radius must be below 0.6 * scale = {0.6 * scale:g} for the tube not to "
             f"intersect itself, got {tube_radius!r}"
         )
-    if not isinstance(samples, int) or samples < 16:
-        raise ValueError(f"samples must be an integer >= 16, got {samples!r}")
+    samples = check_count(samples, "samples", minimum=16)
+    chunk = check_count(chunk, "chunk")
 
     def distance(points: Tensor) -> Tensor:
         flat = _centered(points, center).reshape(-1, 3)
@@ -235,6 +241,30 @@ def _band(grid: Grid, band: float | None) -> float:
     return BAND_NODES * grid.spacing if band is None else check_positive(band, "band")
 
 
+def _box(low: np.ndarray, high: np.ndarray) -> str:
+    return ", ".join(f"{axis} [{a:.4g}, {b:.4g}]" for axis, a, b in zip("xyz", low, high, strict=True))
+
+
+def _check_sides(phi: np.ndarray, vertices: np.ndarray, grid: Grid) -> None:
+    """Raise ``ValueError`` naming the mesh and the grid unless ``phi`` ``(D, H, W)`` has nodes
+    on both sides of the mesh (``vertices`` ``(V, 3)``: those its faces use)."""
+    if (phi < 0).any() and (phi > 0).any():
+        return
+    low = np.asarray(grid.origin)
+    boxes = (f"the mesh spans {_box(vertices.min(axis=0), vertices.max(axis=0))}; the grid "
+             f"{_box(low, low + np.asarray(grid.size))}")
+    if not (phi < 0).any():
+        raise ValueError(
+            f"mesh: no node of the grid lies inside it ({boxes}); a mesh outside the grid, "
+            "or one that encloses nothing (a single triangle, an open sheet), has no surface "
+            "phi = 0 on it"
+        )
+    raise ValueError(
+        f"mesh: every node of the grid lies inside it ({boxes}); the grid must extend beyond "
+        "the mesh (torchsurf.mesh.fit_grid)"
+    )
+
+
 def from_mesh(
     mesh: MeshLike,
     grid: Grid,
@@ -269,6 +299,14 @@ def from_mesh(
     Returns:
         ``phi`` ``(1, 1, D, H, W)``: negative inside, positive outside, world units.
 
+    Raises:
+        ValueError: the mesh is invalid (see :func:`torchsurf.mesh.load`), or no node of the
+            grid lies inside it, or none outside (mesh outside the grid, enclosing nothing,
+            or larger than the grid).
+        MemoryError: before any work, if the grid cannot fit (:mod:`torchsurf._memory`).
+
+    Faces of zero area are kept: the distance to them is exact and they change no sign.
+
     Example:
         >>> import trimesh
         >>> grid = Grid.cube(33, bound=1.5)
@@ -279,8 +317,14 @@ def from_mesh(
     width = _band(grid, band)
     check_choice(sign, "sign", _mesh_sdf.SIGN_METHODS)
     dtype = check_dtype(dtype)
-    vertices, faces = triangle_arrays(as_trimesh(mesh, "mesh"))
+    mesh = as_trimesh(mesh, "mesh")
+    _memory.check_fits(
+        _memory.mesh_sdf_bytes(grid.shape, grid.spacing, width, float(mesh.area), dtype),
+        f"sdf.from_mesh on a {grid.shape} grid",
+    )
+    vertices, faces = triangle_arrays(mesh)
     phi, _ = _mesh_sdf.signed_band(vertices, faces, grid, width, sign)
+    _check_sides(phi, vertices[np.unique(faces)], grid)
     return torch.as_tensor(phi, dtype=dtype, device=device)[None, None]
 
 

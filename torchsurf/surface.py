@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from . import curvature, stencils
+from . import _memory, curvature, stencils
 from ._checks import (
     check_batch,
     check_finite,
@@ -89,6 +89,10 @@ class ImplicitSurface(nn.Module):
             raise TypeError(f"grid must be a torchsurf.Grid, got {type(grid).__name__}")
         check_volume(phi, "phi", channels=1)
         check_spatial_shape(phi, "phi", grid.shape, "grid")
+        _memory.check_fits(
+            _memory.surface_bytes(phi.shape[0], grid.shape, phi.dtype),
+            f"ImplicitSurface of phi with shape {tuple(phi.shape)}", phi.device,
+        )
         check_finite(phi, "phi")
         lowest = phi.detach().flatten(1).min(dim=1).values
         highest = phi.detach().flatten(1).max(dim=1).values

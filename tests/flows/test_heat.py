@@ -312,7 +312,7 @@ def test_counts_accept_numpy_and_refuse_bools():
 
     assert HeatFlow(0.01, steps=np.int64(4)).steps == 4
     assert HeatFlow(0.01, steps=torch.tensor(4)).steps == 4
-    with pytest.raises(ValueError, match="steps"):
+    with pytest.raises(TypeError, match="steps"):
         HeatFlow(0.01, steps=True)
     with pytest.raises(ValueError, match="reextend_every"):
         HeatFlow(0.01, reextend_every=0)

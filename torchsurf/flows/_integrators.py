@@ -121,7 +121,12 @@ def _value(time: float | Tensor) -> float:
 
 
 MAX_STEPS = 10**6
-"""More steps than this are refused before any work: a sign of a wrong time or unit."""
+"""More steps, or more evaluations of the rate (RKC's stages and Heun's two per step
+counted), than this are refused before any work: a sign of a wrong time or unit."""
+
+LONG_RUN = 10**5
+"""More evaluations of the rate than this warn before the run, with the count: at 17^3 that is
+already half an hour."""
 
 RKC_STEPS = 8
 """Fewest RKC steps to a flow's end time (unless forward Euler would need fewer): the time
@@ -142,8 +147,15 @@ class Plan:
     step: float
 
 
+EQUILIBRIUM_CROSSINGS = 10
+"""A linear flow's time may be at most this many times the time its diffusion takes to cross
+the grid's diagonal, ``12 (diagonal / h)^2 / rho``: by then every mode but the constant has
+decayed by more than ``e^-100`` on any surface the grid resolves, and a longer time is a unit
+error that would run for hours."""
+
+
 def plan_steps(method: str, system: System, end: float, steps: int | None,
-               band_cells: float = 3.0) -> Plan:
+               band_cells: float = 3.0, diagonal_cells: float | None = None) -> Plan:
     """The steps of ``method`` over ``[0, end]``; raises before work when they are absurd.
 
     ``steps`` given: ``end / steps`` (explicit steps above the stable step warn). Otherwise:
@@ -151,8 +163,23 @@ def plan_steps(method: str, system: System, end: float, steps: int | None,
     :data:`RKC_STEPS` steps (or Euler's count, if smaller) or more, none longer than
     ``12 band_cells^2 / rho``: about the time the diffusion takes to cross a band
     ``band_cells`` cells wide, after which the data must be re-extended (docs/band.md).
+
+    Refused (``ValueError``): more than :data:`MAX_STEPS` steps or evaluations of the rate; for
+    a linear flow, a time above :data:`EQUILIBRIUM_CROSSINGS` times the time its diffusion
+    takes to cross ``diagonal_cells`` cells. Warned: more than :data:`LONG_RUN` evaluations.
     """
     rho = system.spectral_radius
+    if system.linear is not None and diagonal_cells is not None:
+        crossing = 12.0 * diagonal_cells**2 / rho
+        if end > EQUILIBRIUM_CROSSINGS * crossing:
+            raise ValueError(
+                f"time={end:g} is {end / crossing:.3g} times the time the diffusion takes to "
+                f"cross the whole grid ({crossing:.3g}: its diagonal of {diagonal_cells:.0f} "
+                f"cells, from the operator's bound rho = {rho:.3g}); the flow reaches its "
+                f"equilibrium long before, and more than {EQUILIBRIUM_CROSSINGS} times is "
+                f"refused as a likely unit error (forward Euler would take {end * rho / 2:.3g} "
+                "steps): the time is in world units squared"
+            )
     if steps is None:
         explicit = max(1, math.ceil(end / system.stable_step * (1 - 1e-9)))
         if method == "rkc":
@@ -179,11 +206,25 @@ def plan_steps(method: str, system: System, end: float, steps: int | None,
             f"{math.ceil(end * rho / (12.0 * band_cells**2))} or a wider band_width",
             RuntimeWarning, stacklevel=4,
         )
-    if count is not None and count > MAX_STEPS:
+    evaluations = None
+    if count is not None:
+        per_step = {"rkc": stages_for(end / count * rho), "heun": 2}.get(method, 1)
+        evaluations = count * per_step
+    if evaluations is not None and max(count, evaluations) > MAX_STEPS:
+        advice = (f"steps={steps} is too many: use fewer" if steps is not None else
+                  "is the time in world units squared of this surface?")
         raise ValueError(
-            f"time={end:g} needs {count} steps of method={method!r} (more than {MAX_STEPS}): "
-            "is the time in world units squared of this surface? method='rkc' takes about "
-            f"sqrt(time * rho) = {math.sqrt(end * rho):.0f} operator applications"
+            f"time={end:g} needs {count} steps of method={method!r}, {evaluations} evaluations "
+            f"of the rate (more than {MAX_STEPS}): {advice}; time * rho = {end * rho:.3g} "
+            f"(rho = {rho:.3g}, the operator's bound)"
+        )
+    if evaluations is not None and evaluations > LONG_RUN:
+        warnings.warn(
+            f"time={end:g} needs {count} steps of method={method!r}, {evaluations} evaluations "
+            f"of the rate (more than {LONG_RUN}; time * rho = {end * rho:.3g}); a diffusion "
+            "reaches its equilibrium once its length sqrt(time * diffusivity) exceeds the "
+            "surface's size: is the time in world units squared?",
+            RuntimeWarning, stacklevel=4,
         )
     step = end / count if count else end
     if method == "rkc" and step * rho > largest_step_times_rho():

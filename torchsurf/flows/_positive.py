@@ -17,7 +17,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .._checks import as_float, check_positive
+from .._checks import as_float, check_has_data, check_positive
 
 FLOOR = 1e-12
 """The smallest value a learnable parameter can take, relative to its smallest initial entry."""
@@ -32,7 +32,7 @@ def _as_tensor(value: object, name: str) -> Tensor:
     """``value`` as a default-dtype tensor; bools, strings and complex numbers refused."""
     expected = "a finite positive number or a vector (C,) of them"
     if isinstance(value, (Tensor, np.ndarray)):
-        tensor = torch.as_tensor(value).detach()
+        tensor = check_has_data(torch.as_tensor(value).detach(), name)
         if tensor.dtype == torch.bool or tensor.is_complex():
             raise TypeError(f"{name} must be {expected}, got a tensor of dtype {tensor.dtype}")
         return tensor.to(torch.get_default_dtype())

@@ -30,28 +30,80 @@ the nominal ``h^2 / 6`` alone. docs/band.md has the measurements behind these ch
 from __future__ import annotations
 
 import math
+import numbers
 import weakref
 from collections.abc import Sequence
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 
-from .._checks import check_count, check_finite, check_positive
+from .. import _memory
+from .._checks import (
+    check_count,
+    check_finite,
+    check_has_data,
+    check_nonnegative,
+    check_positive,
+)
 from ..operators.spectrum import laplace_beltrami_bound
 from ..surface import ImplicitSurface, check_data, check_surface
-from ._integrators import IMPLICIT, INTEGRATORS, Plan, Schedule, System, integrate, plan_steps
+from ._integrators import (
+    IMPLICIT,
+    INTEGRATORS,
+    Plan,
+    Schedule,
+    System,
+    integrate,
+    plan_steps,
+    with_ring,
+)
 from ._positive import Positive
 from ._solve import SolverOptions
 from .extension import CubicStencil
 
 
-def _check_times(times: Sequence[float], end: float) -> list[float]:
-    times = [check_positive(t, "times") for t in times]
-    if not times or any(b <= a for a, b in zip(times, times[1:], strict=False)):
-        raise ValueError(f"times must be a non-empty increasing sequence, got {times!r}")
-    if times[-1] > end * (1 + 1e-12):
-        raise ValueError(f"times must not exceed the flow's time {end:g}, got {times[-1]:g}")
-    return times
+def _check_times(times: object, end: float) -> list[float]:
+    """``times`` as increasing floats in ``[0, end]``; raises naming ``times`` otherwise.
+
+    ``times`` is a sequence of numbers (Python, numpy or 0-d tensors), a 1-D numpy array or a
+    1-D real tensor that does not require grad. Entries within a relative ``1e-6`` of ``end``
+    (float32 rounding: ``float(torch.tensor(0.1)) > 0.1``) are taken as ``end``.
+    """
+    slack = 1e-6
+    if isinstance(times, np.ndarray):
+        times = torch.from_numpy(times)
+    if isinstance(times, Tensor):
+        check_has_data(times, "times")
+        if times.dim() != 1 or times.dtype == torch.bool or times.is_complex():
+            raise TypeError(
+                "times must be a sequence or a 1-D real tensor of times, got a tensor of shape "
+                f"{tuple(times.shape)} and dtype {times.dtype}"
+                + ("; for one time use times=[t]" if times.dim() == 0 else "")
+            )
+        if times.requires_grad:
+            raise ValueError(
+                "times must not require grad: the output times are not differentiable "
+                "(learn_time=True makes the flow's end time learnable)"
+            )
+        times = list(times.detach().cpu().unbind())
+    elif isinstance(times, (str, bytes, set, frozenset, dict)) or not hasattr(times, "__iter__"):
+        raise TypeError(
+            "times must be a sequence or a 1-D real tensor of times, got "
+            f"{times!r} ({type(times).__name__})"
+            + ("; for one time use times=[t]" if isinstance(times, numbers.Real) else "")
+        )
+    values = [check_nonnegative(t, f"times[{i}]") for i, t in enumerate(times)]
+    if not values:
+        raise ValueError("times must hold at least one time, got an empty sequence")
+    for i, (a, b) in enumerate(zip(values, values[1:], strict=False)):
+        if b <= a:
+            raise ValueError(
+                f"times must increase strictly, got times[{i}] = {a:g} then times[{i + 1}] = {b:g}"
+            )
+    if values[-1] > end * (1 + slack):
+        raise ValueError(f"times must not exceed the flow's time {end:g}, got {values[-1]:g}")
+    return [min(t, end) if t > end * (1 - slack) else t for t in values]
 
 
 REEXTEND_CHOICES = ("auto",)
@@ -89,7 +141,9 @@ class Flow(nn.Module):
         steps: number of time steps (``None``: for ``"rkc"``, steps no longer than the time
             the fastest diffusion takes to cross the band (:func:`plan_steps`); for
             ``"euler"`` and ``"heun"``, the stable step ``2 / rho``, rounded so that the steps
-            end exactly at ``time``); for adaptive torchdiffeq methods, unused.
+            end exactly at ``time``); for adaptive torchdiffeq methods, unused. A run of more
+            than ``10**6`` steps or evaluations of the rate (RKC's stages counted) is refused
+            before any work; more than ``10**5`` evaluations warn with the count.
         learn_time: make ``time`` an ``nn.Parameter`` (kept positive by softplus).
         tolerance, max_iterations: conjugate-gradient stopping rule of the implicit methods.
         options: extra keyword options for torchdiffeq (``rtol``, ``atol``, ``step_size``...).
@@ -163,14 +217,13 @@ class Flow(nn.Module):
         """The flow's equation for ``u0`` on ``surface``; subclasses implement it."""
         raise NotImplementedError
 
-    def _schedule(self, times: Sequence[float] | None, after_step: object) -> Schedule:
+    def _schedule(self, times: list[float] | None, after_step: object) -> Schedule:
+        """``times`` checked by :func:`_check_times`, all ``> 0``, or ``None`` for the end."""
         end = self.time
         if times is None:
             times = [end]
-        else:
-            times = _check_times(times, self.time_value.maximum())
-            if isinstance(end, Tensor):
-                times = [end * (t / self.time_value.maximum()) for t in times]
+        elif isinstance(end, Tensor):
+            times = [end * (t / self.time_value.maximum()) for t in times]
         return Schedule(
             times=times, steps=self.steps, solver=self.solver, options=self.options,
             adjoint=self.adjoint, after_step=after_step,
@@ -215,8 +268,20 @@ class Flow(nn.Module):
 
         return after_step
 
+    def _check_memory(self, u0: Tensor, surface: ImplicitSurface, band: Tensor) -> None:
+        """Raise ``MemoryError`` before any work if the call cannot fit (:mod:`torchsurf._memory`)."""
+        cached = (not surface.phi.requires_grad
+                  and (self.band_width, "region") in _STENCILS.get(surface, {}))
+        band_nodes = None if cached else int(band.sum())
+        _memory.check_fits(
+            _memory.flow_bytes(tuple(u0.shape), surface.batch_size, u0.dtype,
+                               self.method in IMPLICIT, band_nodes),
+            f"{type(self).__name__} on u0 of shape {tuple(u0.shape)}", u0.device,
+        )
+
     def forward(
-        self, u0: Tensor, surface: ImplicitSurface, times: Sequence[float] | None = None,
+        self, u0: Tensor, surface: ImplicitSurface,
+        times: Sequence[float] | Tensor | np.ndarray | None = None,
         **inputs: Tensor,
     ) -> Tensor:
         """Integrate from ``u0`` to the end time.
@@ -226,14 +291,22 @@ class Flow(nn.Module):
                 in the band and the ring of nodes around it; elsewhere they are returned as
                 they are.
             surface: the implicit surface.
-            times: optional increasing times in ``(0, time]`` to return ``u`` at.
+            times: optional increasing times in ``[0, time]`` to return ``u`` at: a sequence
+                of numbers, a 1-D numpy array or a 1-D tensor (not requiring grad), e.g.
+                ``torch.linspace(0, time, 5)``; ``u`` at time 0 is ``u0``.
             inputs: flow-specific inputs (e.g. ``direction`` for tangent-field flows).
 
         Returns:
             ``u(time)`` ``(B, C, D, H, W)``, or ``(T, B, C, D, H, W)`` for ``T`` ``times``.
+
+        Raises:
+            FloatingPointError: the integration diverged (NaN or infinity in the band).
+            MemoryError: before any work, when a lower bound of the memory the call needs
+                exceeds the memory available (:mod:`torchsurf._memory`).
         """
         check_surface(surface)
         check_data(u0, "u0", surface)
+        wanted = None if times is None else _check_times(times, self.time_value.maximum())
         width = surface.band_width if self.band_width is None else self.band_width
         if self.reextend_every is not None and width < MIN_BAND_CELLS * surface.spacing * (1 - 1e-6):
             raise ValueError(
@@ -242,18 +315,26 @@ class Flow(nn.Module):
                 f"use band_width >= {MIN_BAND_CELLS * surface.spacing:.4g} (or reextend_every=None "
                 "with a band as wide as the diffusion length)"
             )
+        band = self.band_mask(surface)
+        self._check_memory(u0, surface, band)
+        # before the flow's system, whose bounds read u0 (reaction-diffusion's)
+        check_finite(torch.where(with_ring(band), u0, 0.0), "u0 (in the band and its ring)")
         system = self.system(u0, surface, **inputs)
-        check_finite(torch.where(system.region, u0, 0.0), "u0 (in the band and its ring)")
         if self.method in IMPLICIT and system.linear is None:
             raise ValueError(
                 f"method={self.method!r} needs a linear symmetric flow; {type(self).__name__} "
                 "is not: use 'rkc', 'euler', 'heun' or a torchdiffeq method"
             )
+        initial = [] if wanted is None else [u0 for t in wanted if t == 0]
+        if wanted is not None and len(initial) == len(wanted):
+            return torch.stack(initial)
+        wanted = None if wanted is None else wanted[len(initial):]
         plan = plan_steps(self.method, system, self.time_value.maximum(), self.steps,
-                          band_cells=width / surface.spacing)
+                          band_cells=width / surface.spacing,
+                          diagonal_cells=math.dist(surface.grid.shape, (1, 1, 1)))
         bar = self._progress_bar(plan.count)
         every = self._reextension_period(system, plan)
-        schedule = self._schedule(times, self._after_step(surface, system, bar, every))
+        schedule = self._schedule(wanted, self._after_step(surface, system, bar, every))
         schedule.step = plan.step
         schedule.segment = 12.0 * (width / surface.spacing) ** 2 / system.spectral_radius
         if self.reextend_every is not None and self.method not in IMPLICIT:
@@ -265,7 +346,14 @@ class Flow(nn.Module):
         finally:
             if bar is not None:
                 bar.close()
-        return result[-1] if times is None else torch.stack(result)
+        for value in result:
+            if not bool(torch.isfinite(torch.where(system.region, value.detach(), 0.0)).all()):
+                raise FloatingPointError(
+                    f"{type(self).__name__} (method={self.method!r}, {plan.count} steps of "
+                    f"{plan.step:.3g}) diverged: u holds NaN or infinity in the band though u0 "
+                    "did not; use method='rkc', more steps, or smaller parameters"
+                )
+        return result[-1] if times is None else torch.stack(initial + result)
 
     def extra_repr(self) -> str:
         return f"method={self.method!r}, steps={self.steps}"

@@ -110,7 +110,9 @@ class ReactionDiffusion(Flow):
             db = s * (a * b - b - beta) + d_b * laplace_beltrami(b, surface)
             return torch.where(band, torch.cat((da, db), dim=1), zero)
 
-        reaction = float(u0.detach()[:, 0].max() + u0.detach()[:, 1].max() + 1.0)
+        # the largest a and b in the band: values outside it are never read
+        largest = torch.where(band, u0.detach(), -torch.inf).amax(dim=(0, 2, 3, 4))
+        reaction = float(largest.sum() + 1.0)
         bound = self.operator_bound(surface)
         if direction is not None:
             bound = max(bound, self.operator_bound(surface, "symmetric"))

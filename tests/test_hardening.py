@@ -1,0 +1,176 @@
+"""Bad or unusual input to the public entries: refused clearly before any work, or accepted."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+import torchsurf as ts
+from torchsurf._checks import check_count
+from torchsurf.flows import HeatFlow
+
+
+@pytest.mark.parametrize(
+    "value", [True, False, np.bool_(True), torch.tensor(True), "3", None, 3 + 0j,
+              torch.tensor([3, 4])],
+)
+def test_counts_refuse_what_is_not_a_number_with_a_type_error(value):
+    with pytest.raises(TypeError, match="steps must be a whole number >= 1, got"):
+        check_count(value, "steps")
+
+
+@pytest.mark.parametrize("value", [2.5, float("nan"), float("inf"), 0, -3, np.int64(0),
+                                   torch.tensor(2.5)])
+def test_counts_refuse_fractions_and_small_values_with_a_value_error(value):
+    with pytest.raises(ValueError, match="steps must be a whole number >= 1, got"):
+        check_count(value, "steps")
+
+
+@pytest.mark.parametrize("value", [4, 4.0, np.int64(4), np.float32(4.0), torch.tensor(4),
+                                   torch.tensor(4.0)])
+def test_counts_accept_every_spelling_of_a_whole_number(value):
+    assert check_count(value, "steps") == 4
+    assert type(check_count(value, "steps")) is int
+
+
+@pytest.mark.parametrize(
+    "make",
+    [lambda: HeatFlow(0.01, steps=True), lambda: HeatFlow(0.01, max_iterations=False),
+     lambda: HeatFlow(0.01, reextend_every=True), lambda: ts.Grid.cube(np.bool_(True), 1.0),
+     lambda: ts.mesh.fit_grid(__import__("trimesh").creation.box(), resolution=True),
+     lambda: ts.sdf.trefoil(ts.Grid.cube(9, 1.5), samples=True)],
+)
+def test_bools_given_as_counts_raise_type_errors(make):
+    with pytest.raises(TypeError, match="must be a whole number"):
+        make()
+
+
+def _sphere17() -> tuple[ts.Grid, ts.ImplicitSurface]:
+    grid = ts.Grid.cube(17, 1.5)
+    return grid, ts.ImplicitSurface(ts.sdf.sphere(grid), grid)
+
+
+def test_meta_tensors_are_refused_by_name_and_device():
+    grid, surface = _sphere17()
+    with pytest.raises(ValueError, match="phi is on the meta device"):
+        ts.ImplicitSurface(ts.sdf.sphere(grid).to("meta"), grid)
+    u0 = torch.zeros(1, 1, *grid.shape, device="meta")
+    with pytest.raises(ValueError, match="u0 is on the meta device"):
+        HeatFlow(0.01)(u0, surface)
+    with pytest.raises(ValueError, match="u is on the meta device"):
+        ts.operators.laplace_beltrami(u0, surface)
+    with pytest.raises(ValueError, match="diffusivity is on the meta device"):
+        HeatFlow(0.01, diffusivity=torch.ones(2, device="meta"))
+    with pytest.raises(ValueError, match="time is on the meta device"):
+        HeatFlow(torch.tensor(0.01, device="meta"))
+
+
+@pytest.mark.parametrize(
+    "times",
+    [[0.05, 0.1], (0.05, 0.1), np.array([0.05, 0.1]), torch.tensor([0.05, 0.1]),
+     torch.tensor([0.05, 0.1], dtype=torch.float64), [np.float32(0.05), torch.tensor(0.1)]],
+)
+def test_times_as_sequences_arrays_and_tensors_give_the_same_flow(times):
+    grid, surface = _sphere17()
+    u0 = ts.sdf.sphere(grid).clamp(-0.3, 0.3)
+    flow = HeatFlow(0.1, steps=8)
+    reference = flow(u0, surface, times=[0.05, 0.1])
+    result = flow(u0, surface, times=times)
+    assert result.shape == (2, *u0.shape)
+    torch.testing.assert_close(result, reference)
+    torch.testing.assert_close(result[-1], flow(u0, surface))
+
+
+def test_times_may_start_at_zero_where_u_is_u0():
+    grid, surface = _sphere17()
+    u0 = ts.sdf.sphere(grid).clamp(-0.3, 0.3)
+    flow = HeatFlow(0.1, steps=8)
+    result = flow(u0, surface, times=torch.linspace(0, 0.1, 3))
+    assert result.shape == (3, *u0.shape)
+    assert torch.equal(result[0], u0)
+    torch.testing.assert_close(result[1:], flow(u0, surface, times=[0.05, 0.1]))
+    assert torch.equal(flow(u0, surface, times=[0])[0], u0)
+
+
+@pytest.mark.parametrize(
+    ("times", "error", "match"),
+    [
+        (0.1, TypeError, r"times must be a sequence .*got 0.1 \(float\); for one time use"),
+        (torch.tensor(0.1), TypeError, "tensor of shape \\(\\) .*for one time use"),
+        (torch.tensor([[0.05, 0.1]]), TypeError, r"tensor of shape \(1, 2\)"),
+        (torch.tensor([True]), TypeError, "dtype torch.bool"),
+        ("0.1", TypeError, "times must be a sequence"),
+        ({0.05, 0.1}, TypeError, "times must be a sequence"),
+        ([], ValueError, "at least one time"),
+        ([0.05, float("nan")], ValueError, r"times\[1\] must be a finite number >= 0"),
+        (torch.tensor([0.05, float("inf")]), ValueError, r"times\[1\] must be a finite"),
+        ([-0.05, 0.1], ValueError, r"times\[0\] must be a finite number >= 0"),
+        ([0.1, 0.05], ValueError, r"increase strictly, got times\[0\] = 0.1 then times\[1\] = 0.05"),
+        ([0.05, 0.05], ValueError, "increase strictly"),
+        ([0.2], ValueError, "must not exceed the flow's time 0.1"),
+        ([True], TypeError, r"times\[0\] must be a finite number >= 0, got True"),
+        (torch.tensor([0.05, 0.1], requires_grad=True), ValueError, "must not require grad"),
+    ],
+)
+def test_bad_times_are_refused_before_any_work(times, error, match, monkeypatch):
+    grid, surface = _sphere17()
+    flow = HeatFlow(0.1)
+    monkeypatch.setattr(flow, "system", lambda *a, **k: pytest.fail("work started"))
+    with pytest.raises(error, match=match):
+        flow(torch.zeros(1, 1, *grid.shape), surface, times=times)
+
+
+def test_float32_times_that_round_above_the_end_are_the_end():
+    grid, surface = _sphere17()
+    flow = HeatFlow(0.1, steps=8)
+    u0 = ts.sdf.sphere(grid).clamp(-0.3, 0.3)
+    assert float(torch.tensor(0.1)) > 0.1
+    torch.testing.assert_close(flow(u0, surface, times=torch.tensor([0.1]))[0], flow(u0, surface))
+
+
+def test_linear_flows_refuse_times_far_beyond_their_equilibrium():
+    grid, surface = _sphere17()
+    u0 = torch.zeros(1, 1, *grid.shape)
+    for method in ("rkc", "euler", "implicit"):
+        with pytest.raises(ValueError, match=r"time=10000 is \d+ times the time the diffusion "
+                                             r"takes to cross the whole grid"):
+            HeatFlow(1e4, method=method)(u0, surface)
+    assert HeatFlow(1.0)(u0, surface).shape == u0.shape  # 1/30 of the crossing time: runs
+
+
+def test_too_many_steps_name_steps_and_many_evaluations_warn():
+    from torchsurf.flows._integrators import LONG_RUN, System, plan_steps
+
+    grid, surface = _sphere17()
+    with pytest.raises(ValueError, match=r"steps=1000000000 is too many"):
+        HeatFlow(0.01, steps=10**9)(torch.zeros(1, 1, *grid.shape), surface)
+    system = System(lambda u: u, surface.band_mask(), spectral_radius=100.0)
+    with pytest.warns(RuntimeWarning, match=r"evaluations of the rate \(more than 100000"):
+        plan = plan_steps("heun", system, 2.0 * (LONG_RUN // 2 + 10) / 100.0, None)
+    assert plan.count == LONG_RUN // 2 + 10
+
+
+def test_reaction_diffusion_ignores_nan_outside_its_band():
+    from torchsurf.flows import ReactionDiffusion
+
+    _, surface = _sphere17()
+    u0 = ReactionDiffusion.initial(surface)
+    clean = ReactionDiffusion(1.0)(u0, surface, generator=torch.Generator().manual_seed(0))
+    u0[0, :, 0, 0, 0] = float("nan")  # a corner, far from the sphere
+    dirty = ReactionDiffusion(1.0)(u0, surface, generator=torch.Generator().manual_seed(0))
+    band = surface.band_mask()[0, 0]
+    torch.testing.assert_close(dirty[:, :, band], clean[:, :, band])
+
+
+def test_a_diverging_integration_raises_instead_of_returning_nan():
+    from torchsurf.flows._integrators import System
+
+    class Exploding(HeatFlow):
+        def system(self, u0, surface, **inputs):
+            band = self.band_mask(surface)
+            return System(lambda u: torch.where(band, u * 1e30 + 1e30, 0.0), band, 1.0)
+
+    grid, surface = _sphere17()
+    with pytest.raises(FloatingPointError, match=r"Exploding \(method='euler', 4 steps .* diverged"):
+        Exploding(0.5, method="euler", steps=4)(torch.ones(1, 1, *grid.shape), surface)

@@ -1,0 +1,90 @@
+"""Work that cannot fit in memory is refused before it starts, with the estimate."""
+
+from __future__ import annotations
+
+import math
+import time
+
+import pytest
+import torch
+import trimesh
+
+import torchsurf as ts
+from torchsurf import _memory
+from torchsurf.flows import HeatFlow
+
+
+@pytest.fixture
+def little_memory(monkeypatch):
+    """Pretend 1 MiB is available."""
+    monkeypatch.setattr(_memory, "available_bytes", lambda device=None: 2**20)
+    monkeypatch.delenv(_memory.ENVIRONMENT_SWITCH, raising=False)
+
+
+def _no_work(*args, **kwargs):
+    pytest.fail("work started before the memory check")
+
+
+def test_available_memory_is_read_on_linux():
+    available = _memory.available_bytes()
+    if available is None:
+        pytest.skip("no /proc/meminfo")
+    assert 0 < available < 2**50
+    assert _memory.available_bytes("meta") is None
+
+
+def test_from_mesh_refuses_before_computing_any_distance(little_memory, monkeypatch):
+    monkeypatch.setattr(ts._mesh_sdf, "signed_band", _no_work)
+    grid = ts.Grid.cube(33, 1.5)
+    with pytest.raises(MemoryError, match=r"sdf.from_mesh on a \(33, 33, 33\) grid needs at "
+                                          r"least \d+ bytes .* only 1048576 bytes"):
+        ts.sdf.from_mesh(trimesh.creation.icosphere(subdivisions=2), grid)
+    with pytest.raises(MemoryError, match=r"MeshAdapter on a \(33, 33, 33\) grid needs"):
+        ts.MeshAdapter(trimesh.creation.icosphere(subdivisions=2), grid)
+
+
+def test_shapes_and_surfaces_refuse_before_any_work(little_memory, monkeypatch):
+    grid = ts.Grid.cube(65, 1.5)
+    monkeypatch.setattr(ts.Grid, "points", _no_work)
+    with pytest.raises(MemoryError, match=r"sampling a function on a \(65, 65, 65\) grid"):
+        ts.sdf.sphere(grid)
+    phi = torch.zeros(2, 1, *grid.shape)
+    with pytest.raises(MemoryError, match=r"ImplicitSurface of phi with shape \(2, 1, 65, 65, 65\)"):
+        ts.ImplicitSurface(phi, grid)
+
+
+def test_flows_refuse_before_any_work(monkeypatch):
+    grid = ts.Grid.cube(17, 1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid), grid)
+    u0 = torch.zeros(4, 3, *grid.shape)
+    flow = HeatFlow(0.01)
+    expected = _memory.flow_bytes(tuple(u0.shape), 1, u0.dtype, False,
+                                  int(surface.band_mask().sum()))
+    assert expected > 2 * u0.numel() * 4  # the result and a rate at least
+    monkeypatch.setattr(_memory, "available_bytes", lambda device=None: expected - 1)
+    monkeypatch.setattr(flow, "system", _no_work)
+    with pytest.raises(MemoryError, match=rf"HeatFlow on u0 of shape \(4, 3, 17, 17, 17\) needs "
+                                          rf"at least {expected} bytes"):
+        flow(u0, surface)
+    monkeypatch.setenv(_memory.ENVIRONMENT_SWITCH, "0")
+    with pytest.raises(pytest.fail.Exception, match="work started"):
+        flow(u0, surface)
+
+
+def test_a_run_that_fits_is_not_refused():
+    grid = ts.Grid.cube(17, 1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid), grid)
+    assert HeatFlow(0.01)(torch.zeros(1, 1, *grid.shape), surface).shape == (1, 1, 17, 17, 17)
+
+
+def test_from_mesh_on_a_3000_cubed_grid_is_refused_at_once():
+    grid = ts.Grid.cube(3000, 1.5)
+    available = _memory.available_bytes()
+    if available is None or available > 16 * math.prod(grid.shape):
+        pytest.skip("needs Linux with less than 432 GB available")
+    start = time.perf_counter()
+    with pytest.raises(MemoryError, match=r"needs at least \d+ bytes .*only \d+ bytes"):
+        ts.sdf.from_mesh(trimesh.creation.icosphere(subdivisions=2), grid)
+    with pytest.raises(MemoryError, match="sampling a function"):
+        ts.sdf.sphere(grid)
+    assert time.perf_counter() - start < 5.0

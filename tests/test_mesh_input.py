@@ -1,0 +1,75 @@
+"""Mesh input: degenerate faces, meshes with no inside on the grid, what trimesh hides."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+import torchsurf as ts
+
+
+@pytest.fixture(scope="module")
+def icosphere() -> tuple[np.ndarray, np.ndarray]:
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    return np.asarray(mesh.vertices), np.asarray(mesh.faces)
+
+
+GRID = ts.Grid.cube(17, 1.5)
+
+
+def test_degenerate_faces_on_the_surface_change_nothing(icosphere):
+    vertices, faces = icosphere
+    reference = ts.sdf.from_mesh((vertices, faces), GRID)
+    a, b = faces[0, 0], faces[0, 1]  # an edge of the mesh
+    repeated = np.vstack([faces, [[a, a, b]]])
+    torch.testing.assert_close(ts.sdf.from_mesh((vertices, repeated), GRID), reference)
+    midpoint = np.vstack([vertices, (vertices[a] + vertices[b]) / 2])
+    sliver = np.vstack([faces, [[a, b, len(vertices)]]])  # three collinear corners
+    torch.testing.assert_close(ts.sdf.from_mesh((midpoint, sliver), GRID), reference)
+    adapter = ts.MeshAdapter((vertices, repeated), GRID)
+    values = torch.from_numpy(vertices[:, 2]).float()[None, None]
+    assert adapter.encode(values).shape == (1, 1, *GRID.shape)
+
+
+@pytest.mark.parametrize(
+    "arrays",
+    [(np.eye(3), np.array([[0, 0, 1], [1, 2, 2]])),
+     (np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0]]), np.array([[0, 1, 2]]))],
+)
+def test_a_mesh_of_degenerate_faces_only_is_refused(arrays):
+    for make in (ts.sdf.from_mesh, ts.MeshAdapter):
+        with pytest.raises(ValueError, match="mesh has no area: all its . faces are degenerate"):
+            make(arrays, GRID)
+
+
+@pytest.mark.parametrize(
+    ("arrays", "match"),
+    [((np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]]), np.array([[0, 1, 2]])),
+      r"no node of the grid lies inside it \(the mesh spans x \[0, 1\].*the grid x \[-1.5, 1.5\]"),
+     (lambda v, f: (v + 10, f), r"no node of the grid lies inside it \(the mesh spans x \[9"),
+     (lambda v, f: (v * 10, f), "every node of the grid lies inside it"),
+     ],
+)
+def test_meshes_with_no_surface_on_the_grid_are_named(icosphere, arrays, match):
+    arrays = arrays(*icosphere) if callable(arrays) else arrays
+    for make in (ts.sdf.from_mesh, ts.MeshAdapter):
+        with pytest.raises(ValueError, match=match):
+            make(arrays, GRID)
+
+
+def test_nan_vertices_are_caught_unless_trimesh_already_dropped_them(icosphere, tmp_path):
+    vertices, faces = icosphere
+    broken = vertices.copy()
+    broken[5] = np.nan
+    for mesh in ((broken, faces), trimesh.Trimesh(broken, faces, process=False)):
+        with pytest.raises(ValueError, match="vertices must be finite.*vertex 5"):
+            ts.sdf.from_mesh(mesh, GRID)
+    path = tmp_path / "broken.obj"
+    trimesh.Trimesh(broken, faces, process=False).export(path)
+    with pytest.raises(ValueError, match="vertices must be finite"):
+        ts.sdf.from_mesh(path, GRID)
+    # trimesh's default processing drops the vertex and its faces before torchsurf sees them
+    processed = trimesh.Trimesh(broken, faces)
+    assert len(processed.vertices) == len(vertices) - 1
