@@ -174,3 +174,17 @@ def test_a_diverging_integration_raises_instead_of_returning_nan():
     grid, surface = _sphere17()
     with pytest.raises(FloatingPointError, match=r"Exploding \(method='euler', 4 steps .* diverged"):
         Exploding(0.5, method="euler", steps=4)(torch.ones(1, 1, *grid.shape), surface)
+
+
+def test_harmonic_map_flow_checks_p_and_eps_by_name():
+    import numpy as np
+
+    from torchsurf.flows import HarmonicMapFlow
+
+    assert HarmonicMapFlow(0.1, p=np.float32(1.5)).p == 1.5
+    with pytest.raises(TypeError, match="p must be"):
+        HarmonicMapFlow(0.1, p=True)
+    with pytest.raises(TypeError, match="eps"):
+        HarmonicMapFlow(0.1, eps="0.1")
+    with pytest.raises(ValueError, match="1 <= p <= 2"):
+        HarmonicMapFlow(0.1, p=3)

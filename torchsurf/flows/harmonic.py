@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .._checks import check_choice
+from .._checks import check_choice, check_positive, check_real
 from ..backend import PATHS
 from ..operators import functional
 from ..operators.functional import FLUX_SCHEMES
@@ -59,11 +59,10 @@ class HarmonicMapFlow(Flow):
         **kwargs: object,
     ) -> None:
         super().__init__(time, **kwargs)
-        if not isinstance(p, (int, float)) or not 1 <= p <= 2:
+        p = check_real(p, "p")
+        if not 1 <= p <= 2:
             raise ValueError(f"p must be a number with 1 <= p <= 2, got {p!r}")
-        if not eps > 0:
-            raise ValueError(f"eps must be a positive number, got {eps!r}")
-        self.p, self.eps, self.tangent = float(p), float(eps), bool(tangent)
+        self.p, self.eps, self.tangent = p, check_positive(eps, "eps"), bool(tangent)
         self.scheme = check_choice(scheme, "scheme", FLUX_SCHEMES)
         self.path = check_choice(path, "path", PATHS)
 
