@@ -70,7 +70,7 @@ def main() -> None:
         grid = fit_grid(mesh, args.resolution, margin=0.1)
         for band_nodes in (5, 3):
             band = band_nodes * grid.spacing
-            phi, wall, cpu = timed(ts.sdf.from_mesh, mesh, grid, band=band, dtype=torch.float64)
+            phi, wall, cpu = timed(ts.sdf.from_mesh, mesh, grid, band_width=band, dtype=torch.float64)
             print(row(label, mesh, args.resolution, band_nodes, "auto", wall, cpu), flush=True)
         if args.skip_full_grid:
             continue

@@ -86,7 +86,7 @@ def test_distances_are_exact_in_float64(
 ) -> None:
     mesh, expected = icosphere_reference
     band = 0.4
-    phi = ts.sdf.from_mesh(mesh, EXACT_GRID, band=band, dtype=torch.float64, sign=sign)
+    phi = ts.sdf.from_mesh(mesh, EXACT_GRID, band_width=band, dtype=torch.float64, sign=sign)
     phi = phi[0, 0].numpy()
     near = np.abs(expected) < band
     assert near.sum() > 1000
@@ -198,8 +198,8 @@ def test_unreadable_file_raises(tmp_path: Path) -> None:
 def test_bad_arguments_raise() -> None:
     mesh = trimesh.creation.icosphere(subdivisions=1)
     grid = ts.Grid.cube(9, bound=1.5)
-    with pytest.raises(ValueError, match="band"):
-        ts.sdf.from_mesh(mesh, grid, band=0.0)
+    with pytest.raises(ValueError, match="band_width"):
+        ts.sdf.from_mesh(mesh, grid, band_width=0.0)
     with pytest.raises(ValueError, match="sign"):
         ts.sdf.from_mesh(mesh, grid, sign="parity")
     with pytest.raises(TypeError, match="grid"):

@@ -72,7 +72,7 @@ def test_batch_dtype_and_band() -> None:
     grid = ts.Grid.cube(25, bound=1.3)
     sphere = ts.sdf.sphere(grid, radius=0.8)
     batch = torch.cat((sphere, ellipsoid(grid).float()))
-    result = ts.sdf.redistance(batch, grid, band=0.2)
+    result = ts.sdf.redistance(batch, grid, band_width=0.2)
     assert result.shape == batch.shape and result.dtype == torch.float32
     assert result.abs().max() <= 0.2 + 1e-6
     assert not batch.requires_grad
@@ -87,5 +87,5 @@ def test_bad_input_raises() -> None:
         ts.sdf.redistance(torch.ones(1, 9, 9, 9), grid)
     with pytest.raises(ValueError, match="phi"):
         ts.sdf.redistance(torch.full((1, 1, 9, 9, 9), float("nan")), grid)
-    with pytest.raises(ValueError, match="band"):
-        ts.sdf.redistance(ts.sdf.sphere(grid, 0.5), grid, band=-1.0)
+    with pytest.raises(ValueError, match="band_width"):
+        ts.sdf.redistance(ts.sdf.sphere(grid, 0.5), grid, band_width=-1.0)

@@ -120,7 +120,7 @@ class MeshAdapter(nn.Module):
         mesh: as in :func:`load`; vertex ``v`` of the signals is ``mesh.vertices[v]``.
         grid: the grid (default :func:`fit_grid` of the mesh at ``resolution``).
         resolution: nodes per axis of the default grid.
-        band: half-width of the band, world units (default ``5 * grid.spacing``).
+        band_width: half-width of the band, world units (default ``5 * grid.spacing``).
         dtype, device: of the tensors (default dtype, CPU).
         sign: how ``phi`` is signed, see :func:`torchsurf.sdf.from_mesh`.
 
@@ -149,7 +149,7 @@ class MeshAdapter(nn.Module):
         mesh: MeshLike,
         grid: Grid | None = None,
         resolution: int = 64,
-        band: float | None = None,
+        band_width: float | None = None,
         dtype: torch.dtype | None = None,
         device: torch.device | str | None = None,
         sign: str = "auto",
@@ -158,7 +158,7 @@ class MeshAdapter(nn.Module):
         dtype = check_dtype(dtype)
         mesh = as_trimesh(mesh, "mesh")
         grid = fit_grid(mesh, resolution) if grid is None else grid
-        width = sdf._band(grid, band)
+        width = sdf._band(grid, band_width)
         _memory.check_fits(
             _memory.mesh_adapter_bytes(grid.shape, grid.spacing, width, float(mesh.area), dtype),
             f"MeshAdapter on a {grid.shape} grid",
@@ -174,7 +174,7 @@ class MeshAdapter(nn.Module):
         height, width_nodes = grid.shape[1], grid.shape[2]
         flat = (nodes[:, 2] * height + nodes[:, 1]) * width_nodes + nodes[:, 0]
         self.grid = grid
-        self.band = width
+        self.band_width = width
         self.surface = ImplicitSurface(
             torch.as_tensor(phi, dtype=dtype, device=device)[None, None], grid
         )
@@ -209,7 +209,7 @@ class MeshAdapter(nn.Module):
     def extra_repr(self) -> str:
         return (
             f"vertices={len(self.vertices)}, grid={self.grid.shape}, "
-            f"spacing={self.grid.spacing:g}, band={self.band:g}"
+            f"spacing={self.grid.spacing:g}, band_width={self.band_width:g}"
         )
 
 
@@ -234,16 +234,18 @@ def _scatter_to_band(values: Tensor, band_index: Tensor, corners: Tensor, weight
     return volume.reshape(batch, channels, *grid.shape)
 
 
-def to_band(values: Tensor, mesh: MeshLike, grid: Grid, band: float | None = None) -> Tensor:
+def to_band(values: Tensor, mesh: MeshLike, grid: Grid, band_width: float | None = None
+            ) -> Tensor:
     """Vertex values ``(B, C, V)`` on ``mesh`` -> a volume ``(B, C, D, H, W)`` in the band.
 
-    Each node within ``band`` of the mesh takes the barycentric interpolant of the vertex
+    Each node within ``band_width`` of the mesh takes the barycentric interpolant of the vertex
     values at its closest point on the mesh (constant along the normals); the others get 0.
     The functional form of :meth:`MeshAdapter.encode`; build a :class:`MeshAdapter` to reuse
     the closest points.
     """
     check_tensor(values, "values")
-    if band is not None:
-        check_positive(band, "band")
-    adapter = MeshAdapter(mesh, grid, band=band, dtype=values.dtype, device=values.device)
+    if band_width is not None:
+        check_positive(band_width, "band_width")
+    adapter = MeshAdapter(mesh, grid, band_width=band_width, dtype=values.dtype,
+                          device=values.device)
     return adapter.encode(values)

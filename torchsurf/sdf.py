@@ -235,10 +235,10 @@ the default band of :class:`~torchsurf.ImplicitSurface` (3) plus the reach of it
 so that every value an operator reads there is an exact distance."""
 
 
-def _band(grid: Grid, band: float | None) -> float:
+def _band(grid: Grid, band_width: float | None) -> float:
     if not isinstance(grid, Grid):
         raise TypeError(f"grid must be a torchsurf.Grid, got {type(grid).__name__}")
-    return BAND_NODES * grid.spacing if band is None else check_positive(band, "band")
+    return BAND_NODES * grid.spacing if band_width is None else check_positive(band_width, "band_width")
 
 
 def _box(low: np.ndarray, high: np.ndarray) -> str:
@@ -268,14 +268,14 @@ def _check_sides(phi: np.ndarray, vertices: np.ndarray, grid: Grid) -> None:
 def from_mesh(
     mesh: MeshLike,
     grid: Grid,
-    band: float | None = None,
+    band_width: float | None = None,
     dtype: torch.dtype | None = None,
     device: torch.device | str | None = None,
     sign: str = "auto",
 ) -> Tensor:
-    """Signed distance to a triangle mesh, exact in a narrow band, clamped to ``+-band`` beyond.
+    """Signed distance to a triangle mesh, exact in a narrow band, clamped to ``+-band_width`` beyond.
 
-    Every node within ``band`` of the mesh gets its exact distance to the nearest triangle
+    Every node within ``band_width`` of the mesh gets its exact distance to the nearest triangle
     (libigl's AABB tree, float64); only the nodes near the surface are visited (bricks of nodes
     far from the mesh are skipped whole). Signs come from the generalised winding number
     (inside where it exceeds 1/2; libigl's fast winding number), so meshes with holes, several
@@ -286,7 +286,7 @@ def from_mesh(
         mesh: a ``trimesh.Trimesh``, a path to any file trimesh reads, or a pair
             ``(vertices (V, 3), faces (F, 3))``; world coordinates ``(x, y, z)``.
         grid: the grid to sample on.
-        band: half-width of the band, world units (default ``5 * grid.spacing``, see
+        band_width: half-width of the band, world units (default ``5 * grid.spacing``, see
             :data:`BAND_NODES`).
         dtype, device: of the result (``torch.float32`` or ``torch.float64``; default dtype, CPU).
         sign: ``"auto"`` (default), ``"winding"`` or ``"pseudonormal"``. ``"winding"`` asks
@@ -314,7 +314,7 @@ def from_mesh(
         >>> phi.shape
         torch.Size([1, 1, 33, 33, 33])
     """
-    width = _band(grid, band)
+    width = _band(grid, band_width)
     check_choice(sign, "sign", _mesh_sdf.SIGN_METHODS)
     dtype = check_dtype(dtype)
     mesh = as_trimesh(mesh, "mesh")
@@ -328,12 +328,12 @@ def from_mesh(
     return torch.as_tensor(phi, dtype=dtype, device=device)[None, None]
 
 
-def redistance(phi: Tensor, grid: Grid, band: float | None = None) -> Tensor:
+def redistance(phi: Tensor, grid: Grid, band_width: float | None = None) -> Tensor:
     """Turn any implicit function into a signed distance function in the band.
 
     The zero set of ``phi`` is extracted by marching cubes (linear interpolation along grid
-    edges) and every node within ``band`` of it gets its exact distance to that surface, with
-    the sign of ``phi``; the others get ``+-band``. The zero set stays in place up to the
+    edges) and every node within ``band_width`` of it gets its exact distance to that surface, with
+    the sign of ``phi``; the others get ``+-band_width``. The zero set stays in place up to the
     O(h^2) error of the linear interpolation, and ``|grad phi| = 1`` in the band, except at
     the medial axis. Not differentiable: the result is detached from ``phi``'s graph.
 
@@ -341,7 +341,7 @@ def redistance(phi: Tensor, grid: Grid, band: float | None = None) -> Tensor:
         phi: ``(B, 1, D, H, W)``, negative inside, positive outside, any scale; every batch
             entry must change sign.
         grid: the grid ``phi`` is sampled on.
-        band: half-width of the band, world units (default ``5 * grid.spacing``).
+        band_width: half-width of the band, world units (default ``5 * grid.spacing``).
 
     Returns:
         ``(B, 1, D, H, W)`` signed distance, world units, ``phi``'s dtype and device.
@@ -353,7 +353,7 @@ def redistance(phi: Tensor, grid: Grid, band: float | None = None) -> Tensor:
         >>> redistance(ellipsoid, grid).shape
         torch.Size([1, 1, 33, 33, 33])
     """
-    width = _band(grid, band)
+    width = _band(grid, band_width)
     check_volume(phi, "phi", channels=1)
     check_spatial_shape(phi, "phi", grid.shape, "grid")
     check_finite(phi, "phi")
