@@ -102,7 +102,7 @@ def cases(surface: ts.ImplicitSurface, n: int, path: str) -> list[Case]:
         colour.brightness.system(scalar(1), surface).rate
 
     def colour_rate(image: torch.Tensor) -> torch.Tensor:
-        brightness = image.norm(dim=1, keepdim=True)
+        brightness = torch.sqrt((image**2).sum(dim=1, keepdim=True) + colour.eps**2)
         chroma = image / brightness
         return torch.cat([colour_rates[0](chroma), colour_rates[1](brightness)], dim=1)
 

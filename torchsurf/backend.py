@@ -67,6 +67,8 @@ class Kernel:
             compiled kernel keeps its loads contiguous: 3-4x faster at 128^3).
         fused_when_eager: run ``fused`` (uncompiled) for ``"slicing"`` too, when it is the
             faster eager form.
+        dynamic: compile with dynamic shapes (one variant for every size; for kernels whose
+            sizes vary from call to call, such as a gather over a surface's band nodes).
     """
 
     name: str
@@ -74,6 +76,7 @@ class Kernel:
     fused: Callable[..., Tensor] | None = None
     halo: Callable[..., tuple] | None = None
     fused_when_eager: bool = False
+    dynamic: bool = False
 
 
 def eager_path(volume: Tensor) -> str:
@@ -95,10 +98,10 @@ def _raise_recompile_limit() -> None:
 
 
 @functools.cache
-def compiled(function: Callable[..., Tensor]) -> Callable[..., Tensor]:
-    """``function`` compiled once per process (shapes specialised)."""
+def compiled(function: Callable[..., Tensor], dynamic: bool = False) -> Callable[..., Tensor]:
+    """``function`` compiled once per process (shapes specialised unless ``dynamic``)."""
     _raise_recompile_limit()
-    return torch.compile(function, dynamic=False)
+    return torch.compile(function, dynamic=dynamic)
 
 
 _EAGER_SECONDS: dict[tuple, float] = {}
@@ -149,7 +152,7 @@ def run(kernel: Kernel, path: str, volume: Tensor, *args: object) -> Tensor:
     if concrete == "compiled":
         if kernel.fused is None:
             raise ValueError(f"path='compiled': {kernel.name} has no compiled form")
-        return compiled(kernel.fused)(*kernel.halo(*args))
+        return compiled(kernel.fused, kernel.dynamic)(*kernel.halo(*args))
     if concrete == "slicing" and kernel.fused_when_eager:
         def evaluate() -> Tensor:
             return kernel.fused(*kernel.halo(*args))

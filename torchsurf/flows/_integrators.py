@@ -18,7 +18,6 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from ._rkc import MAX_STAGES, largest_step_times_rho, rkc_step, stages_for
@@ -33,8 +32,20 @@ def tensors(*values: object) -> tuple[Tensor, ...]:
 
 
 def with_ring(band: Tensor) -> Tensor:
-    """``band`` ``(B, 1, D, H, W)`` bool and every node a 3x3x3 stencil on it reads."""
-    return F.max_pool3d(band.to(torch.float32), 3, stride=1, padding=1) > 0
+    """``band`` ``(B, 1, D, H, W)`` bool and every node a 3x3x3 stencil on it reads.
+
+    The 3x3x3 dilation as three 1-D ones (max_pool3d took 13 ms at 81^3 on one thread).
+    """
+    grown = band
+    for dim in (2, 3, 4):
+        length = grown.shape[dim]
+        if length < 2:
+            continue
+        result = grown.clone()
+        result.narrow(dim, 1, length - 1).logical_or_(grown.narrow(dim, 0, length - 1))
+        result.narrow(dim, 0, length - 1).logical_or_(grown.narrow(dim, 1, length - 1))
+        grown = result
+    return grown
 
 
 @dataclass
