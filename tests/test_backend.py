@@ -27,7 +27,7 @@ def test_auto_stays_eager_until_the_measured_eager_time_pays_for_compiling(monke
     kernel = _kernel("test_payback", calls)
     volume = torch.zeros(1, 1, 4, 4, 4)
     compiled: list[object] = []
-    monkeypatch.setattr(backend, "compiled", lambda f: compiled.append(f) or f)
+    monkeypatch.setattr(backend, "compiled", lambda f, dynamic=False: compiled.append(f) or f)
     clock = iter(float(t) for t in range(100))
     monkeypatch.setattr(backend.time, "perf_counter", lambda: next(clock))
     monkeypatch.setattr(backend, "COMPILE_PAYBACK_SECONDS", 3.0)
@@ -121,3 +121,18 @@ def test_compiled_fused_kernels_match_the_eager_reference(operator):
     torch.testing.assert_close(results[1][0], results[0][0], rtol=1e-4, atol=1e-5 * scale)
     gradient_scale = results[0][1].abs().max()
     torch.testing.assert_close(results[1][1], results[0][1], rtol=1e-4, atol=1e-5 * gradient_scale)
+
+
+def test_recorded_decisions_replay_what_auto_chose(monkeypatch):
+    """A checkpoint's recomputation must run the kernels the forward ran."""
+    calls: list[str] = []
+    kernel = _kernel("test_replay", calls)
+    volume = torch.zeros(1, 1, 4, 4, 4)
+    monkeypatch.setattr(backend, "compiled", lambda f, dynamic=False: f)
+    record, replay = backend.recorded_decisions()
+    with record:
+        assert backend.resolve("auto", volume, kernel) == "slicing"
+    monkeypatch.setattr(backend, "COMPILE_PAYBACK_SECONDS", 0.0)
+    assert backend.resolve("auto", volume, kernel) == "compiled"
+    with replay:
+        assert backend.resolve("auto", volume, kernel) == "slicing"

@@ -23,10 +23,12 @@ eager ``path`` to differentiate twice.
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import functools
 import time
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
 
 import torch
 from torch import Tensor
@@ -113,6 +115,47 @@ def _ledger_key(kernel: Kernel, volume: Tensor) -> tuple:
             torch.is_grad_enabled())
 
 
+@dataclass
+class _Decisions:
+    paths: list[str] = field(default_factory=list)
+    replaying: bool = False
+    position: int = 0
+
+
+_DECISIONS: contextvars.ContextVar[_Decisions | None] = contextvars.ContextVar(
+    "torchsurf_backend_decisions", default=None
+)
+
+
+def recorded_decisions() -> tuple[contextlib.AbstractContextManager, contextlib.AbstractContextManager]:
+    """Two context managers: the first records every path :func:`resolve` picks, the second
+    replays them in the same order.
+
+    For ``torch.utils.checkpoint(context_fn=...)``: the recomputation in backward must run the
+    same kernels as the forward did, although ``"auto"`` may have decided to compile since.
+    """
+    decisions = _Decisions()
+
+    @contextlib.contextmanager
+    def record() -> Iterator[None]:
+        token = _DECISIONS.set(decisions)
+        try:
+            yield
+        finally:
+            _DECISIONS.reset(token)
+
+    @contextlib.contextmanager
+    def replay() -> Iterator[None]:
+        decisions.replaying, decisions.position = True, 0
+        token = _DECISIONS.set(decisions)
+        try:
+            yield
+        finally:
+            _DECISIONS.reset(token)
+
+    return record(), replay()
+
+
 def resolve(path: str, volume: Tensor, kernel: Kernel | None = None) -> str:
     """The concrete path for ``volume``: ``"slicing"``, ``"conv3d"`` or ``"compiled"``.
 
@@ -125,6 +168,17 @@ def resolve(path: str, volume: Tensor, kernel: Kernel | None = None) -> str:
     check_choice(path, "path", PATHS)
     if path != "auto":
         return path
+    decisions = _DECISIONS.get()
+    if decisions is not None and decisions.replaying:
+        decisions.position += 1
+        return decisions.paths[decisions.position - 1]
+    chosen = _choose(volume, kernel)
+    if decisions is not None:
+        decisions.paths.append(chosen)
+    return chosen
+
+
+def _choose(volume: Tensor, kernel: Kernel | None) -> str:
     if torch.compiler.is_compiling() or (kernel is not None and kernel.fused is None):
         return eager_path(volume)
     if volume.numel() >= COMPILE_MIN_VOXELS:

@@ -18,8 +18,10 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 
 import torch
+import torch.utils.checkpoint
 from torch import Tensor
 
+from .. import backend
 from ._rkc import MAX_STAGES, largest_step_times_rho, rkc_step, stages_for
 from ._solve import SolverOptions, solve_symmetric
 
@@ -115,6 +117,10 @@ class Schedule:
         after_step: ``(u, step_index) -> u`` hook (progress bar, re-extension), or ``None``.
         segment: torchdiffeq methods integrate pieces no longer than this (physical time) and
             call ``after_step`` between them; ``None``: one piece.
+        checkpoint: the explicit methods (RKC, Euler, Heun) keep for backward only ``u`` at
+            the start of each group of about ``sqrt(steps)`` steps and recompute the group's
+            stages in backward (``torch.utils.checkpoint``): memory ``O(sqrt(steps))``
+            volumes instead of every stage's, for about 1.3-2x the time.
     """
 
     times: Sequence[float | Tensor]
@@ -125,6 +131,7 @@ class Schedule:
     adjoint: bool = False
     after_step: Callable[[Tensor, int], Tensor] | None = None
     segment: float | None = None
+    checkpoint: bool = False
 
 
 def _value(time: float | Tensor) -> float:
@@ -269,15 +276,29 @@ def _finish(system: System, u: Tensor) -> Tensor:
 def _explicit(
     step_fn: Callable[[System, Tensor, Tensor | float], Tensor],
 ) -> Callable[[System, Tensor, Schedule], list[Tensor]]:
+    def advance(u: Tensor, dt: Tensor | float, first: int, count: int,
+                schedule: Schedule, system: System) -> Tensor:
+        for done in range(first + 1, first + count + 1):
+            u = step_fn(system, u, dt)
+            if schedule.after_step is not None:
+                u = schedule.after_step(u, done)
+            u = _finish(system, u)
+        return u
+
     def integrate(system: System, u0: Tensor, schedule: Schedule) -> list[Tensor]:
         u, out, done = u0, [], 0
         for _, dt, count in _intervals(schedule):
-            for _ in range(count):
-                u = step_fn(system, u, dt)
-                done += 1
-                if schedule.after_step is not None:
-                    u = schedule.after_step(u, done)
-                u = _finish(system, u)
+            group = max(1, math.isqrt(count)) if schedule.checkpoint else count
+            for first in range(done, done + count, group):
+                length = min(group, done + count - first)
+                if schedule.checkpoint:
+                    u = torch.utils.checkpoint.checkpoint(
+                        advance, u, dt, first, length, schedule, system, use_reentrant=False,
+                        context_fn=backend.recorded_decisions,
+                    )
+                else:
+                    u = advance(u, dt, first, length, schedule, system)
+            done += count
             out.append(u)
         return out
 
