@@ -146,12 +146,14 @@ class SignalConfig:
 @dataclass
 class FieldConfig:
     """A unit tangent field: principal directions (``smoothing``: length in cells of the
-    sign-free smoothing, 0 for none), the projection of an ``axis``, or the ``swirl``
-    ``n x axis`` around it."""
+    sign-free smoothing, 0 for none; ``orient``: an axis whose swirl fixes their signs), the
+    projection of an ``axis``, or the ``swirl``, the rotation about ``axis`` through the
+    shape's centre."""
 
     kind: FieldKind = FieldKind.principal_max
     axis: Axis = Axis.z
     smoothing: float = 2.0
+    orient: Axis | None = None
 
 
 @dataclass

@@ -143,15 +143,20 @@ def build_surface(prepared: Prepared) -> ImplicitSurface:
     return ImplicitSurface(phi, grid)
 
 
-def tangent_field(config: cfg.FieldConfig, surface: ImplicitSurface) -> Tensor:
-    """The unit tangent field ``(1, 3, D, H, W)`` a ``field:`` section describes."""
+def tangent_field(config: cfg.FieldConfig, surface: ImplicitSurface,
+                  centre: tuple[float, float, float]) -> Tensor:
+    """The unit tangent field ``(1, 3, D, H, W)`` a ``field:`` section describes; ``centre``
+    is the shape's, world ``(x, y, z)``."""
     kind = config.kind
     if kind is cfg.FieldKind.axis:
         return signals.axis_field(surface, config.axis.name)
     if kind is cfg.FieldKind.swirl:
-        return signals.swirl_field(surface, config.axis.name)
+        return signals.swirl_field(surface, config.axis.name, centre)
     which = "max" if kind is cfg.FieldKind.principal_max else "min"
-    return signals.principal_direction(surface, which, config.smoothing)
+    field = signals.principal_direction(surface, which, config.smoothing)
+    if config.orient is not None:
+        field = signals.orient(field, signals.swirl_field(surface, config.orient.name, centre))
+    return field
 
 
 def build_signal(prepared: Prepared, surface: ImplicitSurface, box: tuple[Tensor, Tensor],
@@ -319,7 +324,8 @@ def run(prepared: Prepared, out: str | os.PathLike, progress: bool = False,
         log(f"{experiment.name}: {experiment.surface.shape.name} on {n}^3 nodes, spacing "
             f"h = {spacing:.4g}, box diagonal L = {diagonal:.4g} ({diagonal / spacing:.0f} cells)")
         stage("surface")
-        field = (tangent_field(experiment.field, surface)
+        centre = tuple(float(c) for c in 0.5 * (low + high))
+        field = (tangent_field(experiment.field, surface, centre)
                  if experiment.field is not None else None)
         clean, start = build_signal(prepared, surface, (low, high), diagonal, field)
         stage("signal")
@@ -350,6 +356,10 @@ def run(prepared: Prepared, out: str | os.PathLike, progress: bool = False,
             raise FloatingPointError(f"{experiment.name}: the flow produced NaN or infinity")
         stage("flow")
         volumes = {"clean": clean, "input": start, "output": output}
+        if experiment.signal.kind is SignalKind.field:
+            # Shown sign-free, |T| per component at the nodes: sampling T itself would
+            # average opposite signs of a line field to nothing.
+            volumes = {name: volume.abs() for name, volume in volumes.items()}
         values = {name: render.vertex_values(volumes[name], extracted, surface.grid)
                   for name in ("clean", "input", "output")}
         metrics: dict[str, float] = {}

@@ -89,7 +89,7 @@ class Camera:
 
 
 def fit_camera(vertices: np.ndarray, elevation: float = 25.0, azimuth: float = -60.0,
-               up: str = "z", aspect: float = 1.0, margin: float = 0.04) -> Camera:
+               up: str = "z", aspect: float = 1.0, margin: float = 0.08) -> Camera:
     """The camera seeing all of ``vertices`` ``(V, 3)`` from ``elevation``, ``azimuth``
     (degrees; azimuth 0 looks from the axis after ``up`` in x, y, z order), ``up`` an axis
     name, the window of ``aspect`` (width / height) with ``margin`` free on each side."""

@@ -207,11 +207,26 @@ def axis_field(surface: ImplicitSurface, axis: str = "z") -> Tensor:
     return tangent_unit(direction, surface)
 
 
-def swirl_field(surface: ImplicitSurface, axis: str = "z") -> Tensor:
-    """``n x e_axis`` made unit: circles around ``axis`` on S, ``(B, 3, D, H, W)``."""
-    direction = torch.zeros_like(surface.normal)
+def swirl_field(surface: ImplicitSurface, axis: str = "z",
+                centre: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> Tensor:
+    """The rotation about an axis through ``centre``, ``e_axis x (x - centre)``, made tangent
+    and unit: ``(B, 3, D, H, W)``. On a surface of revolution about that axis it is already
+    tangent (the parallels: on a torus, the minor principal direction, oriented); it vanishes
+    only on the axis."""
+    points = surface.grid.points(dtype=surface.phi.dtype, device=surface.phi.device)
+    offset = points.permute(3, 0, 1, 2)[None] - points.new_tensor(centre).view(1, 3, 1, 1, 1)
+    direction = torch.zeros_like(offset)
     direction[:, _axis_index(axis)] = 1.0
-    return tangent_unit(torch.cross(surface.normal, direction, dim=1), surface)
+    return tangent_unit(torch.cross(direction, offset, dim=1), surface)
+
+
+def orient(field: Tensor, reference: Tensor) -> Tensor:
+    """``field`` with each vector's sign flipped to agree with ``reference`` (both
+    ``(B, 3, D, H, W)``): a line field (principal directions, defined up to sign) made a
+    vector field wherever the reference is smooth."""
+    check_volume(field, "field", channels=3)
+    sign = torch.where((field * reference).sum(dim=1, keepdim=True) < 0, -1.0, 1.0)
+    return field * sign.to(field.dtype)
 
 
 def _line_tensor(direction: Tensor) -> Tensor:
