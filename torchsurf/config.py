@@ -25,7 +25,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from omegaconf import MISSING, OmegaConf
+from omegaconf import MISSING, DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 CONFIG_SUFFIX = ".yaml"
@@ -302,7 +302,7 @@ def load(config: str | os.PathLike, overrides: list[str] | None = None) -> tuple
         raw = OmegaConf.load(path)
     except Exception as error:  # yaml's own errors carry the line and column
         raise ConfigError("", f"{path} is not valid YAML: {error}") from error
-    if not isinstance(raw, type(OmegaConf.create({}))):
+    if not isinstance(raw, DictConfig):
         raise ConfigError("", f"{path} must hold a mapping of settings, got a list")
     try:
         merged = OmegaConf.merge(OmegaConf.structured(Experiment), raw,
