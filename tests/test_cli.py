@@ -1,0 +1,195 @@
+"""The ``torchsurf`` command: every shipped config runs at a tiny size and draws a picture;
+bad configs are refused with the key's path before any work; exit codes 0, 1, 2."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from torchsurf import cli, config
+
+pytest.importorskip("matplotlib")
+from matplotlib import image as mpimg  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+MESH_DIR = Path(
+    os.environ.get("TORCHSURF_MESH_DIR", REPO / "../shared/data/meshes")
+)
+WIDTH, HEIGHT = 64, 48
+
+TINY = ["grid.size=24", f"render.width={WIDTH}", f"render.height={HEIGHT}"]
+"""Settings of every tiny run; the stiff flows also get a shorter time below."""
+
+SHORTER = {
+    "total_variation": ["flow.time=0.0005"],
+    "harmonic": ["flow.time=0.0003"],
+    "color": ["flow.time=0.0003"],
+    "reaction_diffusion": ["flow.time=40"],
+    "visualization": ["flow.time=4", "field.smoothing=1"],
+}
+
+
+def _load(name: str) -> config.Experiment:
+    return config.load(name)[0]
+
+
+BUILTIN = [n for n in config.builtin_names() if _load(n).surface.shape is not config.Shape.mesh]
+MESHES = [n for n in config.builtin_names() if _load(n).surface.shape is config.Shape.mesh]
+
+
+def _tiny_args(name: str) -> list[str]:
+    return TINY + SHORTER.get(_load(name).flow.kind.name, [])
+
+
+def _check_picture(path: Path, panels: int) -> None:
+    picture = mpimg.imread(path)
+    assert picture.shape[:2] == (HEIGHT, panels * WIDTH)
+    for index in range(panels):
+        panel = picture[:, index * WIDTH:(index + 1) * WIDTH, :3]
+        assert panel.std() > 0.02, f"panel {index} of {path.name} is uniform"
+
+
+def test_every_config_has_a_builtin_variant_and_a_description():
+    assert len(BUILTIN) >= 8
+    for name in config.builtin_names():
+        assert _load(name).name == name
+        assert _load(name).description
+    kinds = {_load(n).flow.kind for n in BUILTIN}
+    assert kinds == set(config.FlowKind)
+
+
+@pytest.mark.parametrize("name", BUILTIN)
+def test_builtin_config_runs_at_a_tiny_size(name, tmp_path, capsys):
+    code = cli.main(["run", name, "--set", *_tiny_args(name), "--out", str(tmp_path)])
+    assert code == cli.EXIT_OK, capsys.readouterr().err
+    experiment = _load(name)
+    _check_picture(tmp_path / f"{name}.png", len(experiment.render.panels))
+    record = json.loads((tmp_path / f"{name}.json").read_text())
+    assert record["config"]["grid"]["size"] == 24
+    assert set(record["stages_seconds"]) == {"surface", "signal", "flow", "render"}
+    assert record["physical"]["time"] > 0
+    assert record["versions"]["torch"]
+    printed = capsys.readouterr().out
+    assert "physical time" in printed
+    assert not list(tmp_path.glob(".*")), "a temporary file was left behind"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", MESHES)
+def test_mesh_config_runs_at_a_tiny_size(name, tmp_path, monkeypatch):
+    mesh = _load(name).surface.mesh
+    if not (MESH_DIR / mesh).is_file():
+        pytest.skip(f"test mesh {mesh} not found in {MESH_DIR} (set TORCHSURF_MESH_DIR)")
+    monkeypatch.setenv(config.MESH_DIR_VARIABLE, str(MESH_DIR))
+    code = cli.main(["run", name, "--set", *_tiny_args(name), "--out", str(tmp_path), "--quiet"])
+    assert code == cli.EXIT_OK
+    _check_picture(tmp_path / f"{name}.png", len(_load(name).render.panels))
+
+
+def test_mesh_path_resolves_against_the_config_folder_then_the_mesh_dir(tmp_path, monkeypatch):
+    folder = tmp_path / "meshes"
+    folder.mkdir()
+    trimesh.creation.icosphere(subdivisions=2).export(folder / "ball.obj")
+    here = tmp_path / "here.yaml"
+    here.write_text("name: ball\nsurface: {shape: mesh, mesh: meshes/ball.obj}\n"
+                    "flow: {kind: heat, time: 0.0005}\n")
+    code = cli.main(["run", str(here), "--set", *TINY, "--out", str(tmp_path / "out"),
+                     "--quiet"])
+    assert code == cli.EXIT_OK
+    _check_picture(tmp_path / "out" / "ball.png", 2)
+
+    elsewhere = tmp_path / "configs"
+    elsewhere.mkdir()
+    there = elsewhere / "there.yaml"
+    there.write_text("name: ball\nsurface: {shape: mesh, mesh: ball.obj}\n")
+    monkeypatch.delenv(config.MESH_DIR_VARIABLE, raising=False)
+    with pytest.raises(config.ConfigError, match="surface.mesh"):
+        config.resolve_mesh("ball.obj", elsewhere)
+    monkeypatch.setenv(config.MESH_DIR_VARIABLE, str(folder))
+    assert config.resolve_mesh("ball.obj", elsewhere) == folder / "ball.obj"
+
+
+@pytest.mark.parametrize(
+    ("overrides", "key"),
+    [
+        (["flow.foo=1"], "flow.foo"),
+        (["colour=red"], "colour"),
+        (["flow.kind=nope"], "flow.kind"),
+        (["grid.size=abc"], "grid.size"),
+        (["grid.size=4"], "grid.size"),
+        (["flow.time=-1"], "flow.time"),
+        (["flow.p=1.5"], "flow.p"),
+        (["flow.kind=harmonic"], "signal.kind"),
+        (["surface.params.radiuz=2"], "surface.params.radiuz"),
+        (["surface.shape=mesh"], "surface.mesh"),
+        (["surface.shape=mesh", "surface.mesh=no_such.obj"], "surface.mesh"),
+        (["render.panels=[input,after]"], "render.panels[1]"),
+        (["signal.image=no_such.png", "signal.kind=image"], "signal.image"),
+        (["flow.time_unit=turk"], "flow.time_unit"),
+        (["flowtime"], "--set"),
+    ],
+)
+def test_bad_settings_are_refused_with_their_key(overrides, key, tmp_path, capsys):
+    code = cli.main(["run", "heat_sphere", "--set", *overrides, "--out", str(tmp_path / "out")])
+    assert code == cli.EXIT_USAGE
+    error = capsys.readouterr().err
+    assert f"config error: {key}:" in error
+    assert not (tmp_path / "out").exists(), "work was done before the config was refused"
+
+
+def test_bad_config_files_are_refused(tmp_path, capsys):
+    unknown = tmp_path / "unknown.yaml"
+    unknown.write_text("name: x\nflow:\n  kind: heat\n  tyme: 1\n")
+    assert cli.main(["run", str(unknown)]) == cli.EXIT_USAGE
+    assert "flow.tyme" in capsys.readouterr().err
+    unnamed = tmp_path / "unnamed.yaml"
+    unnamed.write_text("flow: {kind: heat}\n")
+    assert cli.main(["run", str(unnamed)]) == cli.EXIT_USAGE
+    assert "name" in capsys.readouterr().err
+    assert cli.main(["run", "no_such_config"]) == cli.EXIT_USAGE
+    assert "heat_sphere" in capsys.readouterr().err
+
+
+def test_usage_errors_exit_2(capsys):
+    assert cli.main([]) == cli.EXIT_USAGE
+    assert cli.main(["paint"]) == cli.EXIT_USAGE
+    assert cli.main(["run"]) == cli.EXIT_USAGE
+    assert cli.main(["--help"]) == cli.EXIT_OK
+    capsys.readouterr()
+
+
+def test_list_names_every_shipped_config(capsys):
+    assert cli.main(["list"]) == cli.EXIT_OK
+    printed = capsys.readouterr().out
+    for name in config.builtin_names():
+        assert name in printed
+
+
+def test_python_dash_m_torchsurf_exit_codes(tmp_path):
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    refused = subprocess.run([sys.executable, "-m", "torchsurf", "run", "heat_sphere", "--set",
+                              "flow.eps=1"], capture_output=True, text=True, env=env,
+                             cwd=tmp_path, timeout=120)
+    assert refused.returncode == 2 and "flow.eps" in refused.stderr
+
+
+def test_scale_free_time_gives_the_same_run_on_a_scaled_shape(tmp_path):
+    from torchsurf import experiment
+
+    small, _ = config.load("heat_sphere", TINY)
+    physical_one = experiment.physical_settings(small, diagonal=2.0, spacing=0.1)
+    physical_ten = experiment.physical_settings(small, diagonal=20.0, spacing=1.0)
+    assert physical_ten["time"] == pytest.approx(100 * physical_one["time"])
+    tv, _ = config.load("tv_torus", TINY)
+    one = experiment.physical_settings(tv, diagonal=2.0, spacing=0.1)
+    ten = experiment.physical_settings(tv, diagonal=20.0, spacing=1.0)
+    assert ten["time"] == pytest.approx(10 * one["time"])
+    assert ten["eps"] == pytest.approx(one["eps"] / 10)
+    assert np.isfinite(list(one.values())).all()

@@ -1,0 +1,73 @@
+"""torchsurf.render: colours, the fitted camera, panels side by side written atomically."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+import torchsurf as ts
+
+pytest.importorskip("matplotlib")
+from matplotlib import image as mpimg  # noqa: E402
+
+from torchsurf import render  # noqa: E402
+
+
+def test_colours_modes():
+    values = np.linspace(0, 1, 10)[:, None]
+    scalar = render.colours(values, "scalar", "viridis", (0.0, 1.0))
+    assert scalar.shape == (10, 3) and (scalar[0] != scalar[-1]).any()
+    field = render.colours(np.array([[-1.0, 0.0, 0.0], [0.0, 0.6, -0.8]]), "field")
+    assert np.allclose(field, [[1, 0, 0], [0, 0.6, 0.8]])
+    rgb = render.colours(np.array([[1.5, -0.2, 0.5]]), "rgb")
+    assert np.allclose(rgb, [[1.0, 0.0, 0.5]])
+    with pytest.raises(ValueError, match="mode"):
+        render.colours(values, "hsv")
+
+
+@pytest.mark.parametrize("up", ["x", "y", "z"])
+def test_camera_sees_every_vertex(up):
+    vertices = np.random.default_rng(0).normal(size=(200, 3)) * [3.0, 1.0, 0.5] + 10.0
+    camera = render.fit_camera(vertices, 30.0, 40.0, up, aspect=2.0)
+    screen, _ = camera.project(vertices)
+    x0, x1, y0, y1 = camera.window
+    assert (screen[:, 0] > x0).all() and (screen[:, 0] < x1).all()
+    assert (screen[:, 1] > y0).all() and (screen[:, 1] < y1).all()
+    assert (x1 - x0) == pytest.approx(2.0 * (y1 - y0))
+    assert np.allclose(np.cross(camera.right, camera.up), camera.towards)
+
+
+def test_vertex_values_sample_the_volume():
+    grid = ts.Grid.cube(9, bound=1.0)
+    x = grid.points()[..., 0][None, None]
+    mesh = trimesh.Trimesh([[0.1, 0.2, 0.3], [-0.5, 0.0, 0.0], [0.0, 0.5, 0.0]], [[0, 1, 2]])
+    assert np.allclose(render.vertex_values(x, mesh, grid)[:, 0], [0.1, -0.5, 0.0], atol=1e-6)
+
+
+def test_panels_side_by_side_written_atomically(tmp_path):
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    height = mesh.vertices[:, 2]
+    panels = [("height", render.colours(height[:, None])),
+              ("normal", render.colours(mesh.vertex_normals, "field"))]
+    path = render.render_panels(mesh, panels, tmp_path / "sub" / "ball.png", width=80, height=60)
+    picture = mpimg.imread(path)
+    assert picture.shape[:2] == (60, 160)
+    assert picture[:, :80, :3].std() > 0.05 and picture[:, 80:, :3].std() > 0.05
+    assert [p.name for p in path.parent.iterdir()] == ["ball.png"]
+    with pytest.raises(ValueError, match=r"panels\[0\]"):
+        render.render_panels(mesh, [("bad", np.zeros((3, 3)))], tmp_path / "bad.png")
+    assert not (tmp_path / "bad.png").exists()
+
+
+def test_render_extracted_surface_data(tmp_path):
+    grid = ts.Grid.cube(16, bound=1.3)
+    phi = ts.sdf.torus(grid)
+    mesh = ts.mesh.extract(phi, grid)
+    z = grid.points()[..., 2][None, None]
+    colours = render.colours(render.vertex_values(z, mesh, grid))
+    path = render.render_panels(mesh, [("z", colours)], tmp_path / "torus.png", 40, 40,
+                                elevation=60.0)
+    assert mpimg.imread(path).shape[:2] == (40, 40)
+    assert torch.is_tensor(z)

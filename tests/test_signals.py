@@ -1,0 +1,159 @@
+"""torchsurf.signals: patterns read at closest points, images wrapped onto surfaces, seeded
+noise, unit tangent fields and colour conversions."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+import torchsurf as ts
+from torchsurf import signals
+
+
+@pytest.fixture(scope="module")
+def torus():
+    grid = ts.Grid.cube(24, bound=1.6)
+    return ts.ImplicitSurface(ts.sdf.torus(grid), grid)
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    grid = ts.Grid.cube(20, bound=1.4)
+    return ts.ImplicitSurface(ts.sdf.sphere(grid), grid)
+
+
+def test_closest_points_lie_on_the_sphere(sphere):
+    points = signals.closest_points(sphere)
+    band = sphere.band_mask()[0, 0]
+    radius = points[0].norm(dim=0)[band]
+    assert torch.allclose(radius, torch.ones_like(radius), atol=2e-2)
+
+
+def test_checkerboard_alternates_and_is_constant_along_normals(sphere):
+    points = signals.closest_points(sphere)
+    board = signals.checkerboard(points, 0.5)
+    assert board.shape == (1, 1, 20, 20, 20)
+    assert set(board.unique().tolist()) == {0.0, 1.0}
+    cells = torch.tensor([[[0.1, 0.1, 0.1], [0.6, 0.1, 0.1], [0.6, 0.6, 0.1]]]).permute(0, 2, 1)
+    values = signals.checkerboard(cells[..., None, None], 0.5).flatten().tolist()
+    assert values == [0.0, 1.0, 0.0]
+    with pytest.raises(ValueError, match="tile"):
+        signals.checkerboard(points, 0.0)
+
+
+@pytest.mark.parametrize("name", signals.IMAGES)
+def test_builtin_images_are_rgb_in_the_unit_range(name):
+    image = signals.builtin_image(name, size=32)
+    assert image.shape == (3, 32, 32)
+    assert image.min() >= 0 and image.max() <= 1 and image.std() > 0.1
+
+
+@pytest.mark.parametrize("projection", signals.PROJECTIONS)
+def test_project_image_reads_the_image_where_expected(sphere, projection):
+    image = torch.linspace(0, 1, 16).expand(1, 16, 16).clone()   # grows left to right
+    points = signals.closest_points(sphere)
+    box = (torch.full((3,), -1.0), torch.full((3,), 1.0))
+    values = signals.project_image(image, points, projection, box, "z", sphere.normal)
+    assert values.shape == (1, 1, 20, 20, 20)
+    assert 0 <= values.min() and values.max() <= 1
+    if projection == "planar":   # seen along z: the value grows with x
+        x = points[0, 0]
+        assert torch.allclose(values[0, 0], ((x + 1) / 2).clamp(0, 1), atol=1e-5)
+    if projection in ("spherical", "cylindrical"):   # longitude: -x side is the image's edges
+        east = torch.tensor([[1.0, 0.0, 0.0]]).T.reshape(1, 3, 1, 1, 1)
+        value = signals.project_image(image, east, projection, box)
+        assert value.item() == pytest.approx(0.5, abs=0.05)
+
+
+def test_project_image_refuses_bad_input(sphere):
+    points = signals.closest_points(sphere)
+    box = (torch.full((3,), -1.0), torch.full((3,), 1.0))
+    with pytest.raises(ValueError, match="projection"):
+        signals.project_image(torch.rand(3, 8, 8), points, "conical", box)
+    with pytest.raises(ValueError, match="image"):
+        signals.project_image(torch.rand(8, 8), points, "planar", box)
+    with pytest.raises(ValueError, match="normal"):
+        signals.project_image(torch.rand(3, 8, 8), points, "triplanar", box)
+
+
+def test_load_image_reads_a_png(tmp_path):
+    from skimage import io
+
+    array = (np.arange(48, dtype=np.uint8).reshape(4, 4, 3) * 5)
+    io.imsave(tmp_path / "small.png", array, check_contrast=False)
+    image = signals.load_image(tmp_path / "small.png")
+    assert image.shape == (3, 4, 4)
+    assert torch.allclose(image, torch.as_tensor(array).permute(2, 0, 1) / 255.0)
+    with pytest.raises(FileNotFoundError, match="image"):
+        signals.load_image(tmp_path / "missing.png")
+
+
+def test_noise_is_seeded(sphere):
+    like = torch.zeros(1, 2, 4, 4, 4)
+    assert torch.equal(signals.gaussian_noise(like, 0.3, 7), signals.gaussian_noise(like, 0.3, 7))
+    assert not torch.equal(signals.gaussian_noise(like, 0.3, 7), signals.gaussian_noise(like, 0.3, 8))
+    uniform = signals.uniform_noise(sphere, 1, 0)
+    assert uniform.shape == (1, 1, 20, 20, 20) and 0 <= uniform.min() and uniform.max() < 1
+
+
+def _unit_and_tangent(field, surface):
+    band = surface.band_mask()[0, 0]
+    length = field[0].norm(dim=0)[band]
+    normal_part = (field * surface.normal).sum(dim=1)[0][band]
+    assert torch.allclose(length, torch.ones_like(length), atol=1e-5)
+    assert normal_part.abs().max() < 1e-5
+
+
+def test_axis_and_swirl_fields(torus):
+    axis = signals.axis_field(torus, "x")
+    swirl = signals.swirl_field(torus, "z")
+    _unit_and_tangent(swirl, torus)
+    points = torus.grid.points().permute(3, 0, 1, 2)[None]
+    around = torch.stack((-points[:, 1], points[:, 0], torch.zeros_like(points[:, 0])), dim=1)
+    band = torus.band_mask()[0, 0]
+    alignment = (swirl * around).sum(1)[0][band].abs() / around[0].norm(dim=0)[band]
+    assert alignment.min() > 0.99
+    assert (swirl * around).sum(1)[0][band].min() > 0, "the swirl turns one way"
+    _unit_and_tangent(axis, torus)
+
+
+def test_smoothed_principal_direction_keeps_a_clean_field():
+    grid = ts.Grid.cube(20, bound=1.5)
+    torus = ts.ImplicitSurface(ts.sdf.torus(grid), grid)
+    raw = signals.principal_direction(torus, "max")
+    smoothed = signals.principal_direction(torus, "max", smoothing=1.0)
+    _unit_and_tangent(smoothed, torus)
+    band = torus.band_mask()[0, 0]
+    agreement = (raw * smoothed).sum(1)[0][band].abs()
+    assert agreement.median() > 0.99
+    minor = signals.principal_direction(torus, "min")
+    assert (minor * raw).sum(1)[0][band].abs().max() < 1e-4
+    oriented = signals.orient(minor, signals.swirl_field(torus))
+    assert (oriented * signals.swirl_field(torus)).sum(1)[0][band].min() > 0.9
+
+
+def test_perturbed_field_is_unit_and_tangent(torus):
+    noisy = signals.perturb_field(signals.swirl_field(torus), torus, 0.5, seed=1)
+    _unit_and_tangent(noisy, torus)
+
+
+@pytest.mark.parametrize("space", signals.COLOUR_SPACES)
+def test_colour_conversions_round_trip(space):
+    rgb = torch.rand(1, 3, 3, 4, 5, generator=torch.Generator().manual_seed(0))
+    back = signals.rgb_from(signals.rgb_to(rgb, space), space)
+    assert back.shape == rgb.shape
+    assert torch.allclose(back, rgb, atol=1e-3)
+
+
+def test_gray_and_chroma_brightness():
+    rgb = torch.rand(2, 3, 3, 4, 5)
+    assert signals.gray(rgb).shape == (2, 1, 3, 4, 5)
+    chroma, brightness = signals.chroma_brightness(rgb)
+    assert torch.allclose(chroma * brightness, rgb, atol=1e-5)
+    assert torch.allclose(chroma.norm(dim=1), torch.ones(2, 3, 4, 5), atol=1e-4)
+    with pytest.raises(ValueError, match="space"):
+        signals.rgb_to(rgb, "cmyk")
+    assert math.isfinite(float(brightness.min()))

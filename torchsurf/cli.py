@@ -1,0 +1,96 @@
+"""The ``torchsurf`` command: ``torchsurf run CONFIG [--set key=value ...] [--out DIR]`` and
+``torchsurf list`` (docs/cli.md).
+
+Exit codes: 0 done, 2 usage or config error (nothing computed), 1 the run itself failed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from .config import ConfigError, builtin_folder, builtin_names
+
+EXIT_OK, EXIT_FAILED, EXIT_USAGE = 0, 1, 2
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="torchsurf",
+        description="PDEs on implicit surfaces: run the paper's experiments from config files.",
+    )
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    run = commands.add_parser("run", help="run an experiment config and write its pictures")
+    run.add_argument("config", help="a config file, or the name of a shipped config "
+                     "(see `torchsurf list`)")
+    run.add_argument("--set", dest="overrides", action="extend", nargs="+", default=[],
+                     metavar="KEY=VALUE", help="override settings, e.g. --set grid.size=96 "
+                     "flow.time=0.002")
+    run.add_argument("--out", default=None, help="output folder (default outputs/<name>)")
+    run.add_argument("--quiet", action="store_true", help="print nothing but errors")
+    run.add_argument("--no-progress", action="store_true", help="no progress bar")
+    commands.add_parser("list", help="list the shipped configs and what each shows")
+    return parser
+
+
+def _description(name: str) -> str:
+    from omegaconf import OmegaConf
+
+    text = OmegaConf.load(builtin_folder() / f"{name}.yaml").get("description", "")
+    return " ".join(str(text).split())
+
+
+def list_configs() -> str:
+    """One line per shipped config: its name and description."""
+    names = builtin_names()
+    width = max((len(n) for n in names), default=0)
+    return "\n".join(f"{name:<{width}}  {_description(name)}" for name in names)
+
+
+def _progress_wanted(disabled: bool) -> bool:
+    if disabled or not sys.stderr.isatty():
+        return False
+    try:
+        import tqdm  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the command line ``argv`` (default ``sys.argv[1:]``); returns the exit code."""
+    try:
+        args = _parser().parse_args(argv)
+    except SystemExit as stop:
+        return int(stop.code or 0)
+    if args.command == "list":
+        print(list_configs())
+        return EXIT_OK
+    from . import experiment
+
+    try:
+        prepared = experiment.prepare(args.config, args.overrides)
+    except ConfigError as error:
+        print(f"torchsurf: config error: {error}", file=sys.stderr)
+        return EXIT_USAGE
+    out = Path(args.out) if args.out else Path("outputs") / prepared.experiment.name
+    log = (lambda message: None) if args.quiet else print
+    try:
+        result = experiment.run(prepared, out, progress=_progress_wanted(args.no_progress), log=log)
+    except ImportError as error:
+        print(f"torchsurf: {error}", file=sys.stderr)
+        return EXIT_FAILED
+    except (ValueError, FloatingPointError, RuntimeError) as error:
+        print(f"torchsurf: run failed: {type(error).__name__}: {error}", file=sys.stderr)
+        return EXIT_FAILED
+    times = ", ".join(f"{k} {v:.1f} s" for k, v in result.stages.items())
+    log(f"stages: {times}")
+    log(f"wrote {result.picture} and {result.record}")
+    return EXIT_OK
+
+
+def entry_point() -> None:
+    """The console script: ``sys.exit(main())``."""
+    sys.exit(main())

@@ -1,0 +1,414 @@
+"""Experiment files: the typed schema of a ``torchsurf run`` config, loading and checking.
+
+A config is YAML matched against the dataclasses below by omegaconf (structured configs): an
+unknown key or a value of the wrong type is refused by omegaconf with the key's path, and
+:func:`load` then checks ranges and the combinations of settings, again naming the key, before
+anything is computed. Every error is a :class:`ConfigError` whose message starts with the key's
+path (``flow.eps: ...``).
+
+Scale-free units (docs/cli.md): a surface's size is the diagonal ``L`` of its bounding box and
+``h`` the grid spacing; ``flow.time`` is in units of ``L^q`` (``time_unit: diagonal``), ``h^q``
+(``cells``) or physical (``world``), ``q`` the order of the flow in space (2 for heat,
+Perona–Malik, flow visualisation and harmonic maps with ``p = 2``; ``p`` for harmonic maps,
+1 for total variation and colour), so that one config works on a sphere of radius 1 and on a
+0.15-wide bunny. Reaction–diffusion time is in Turk's iterations (``turk``). Gradient settings
+(``eps``, ``contrast``) are in units of the data's range per cell.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from dataclasses import field as _field
+from enum import Enum
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+from omegaconf import MISSING, DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
+
+CONFIG_SUFFIX = ".yaml"
+MESH_DIR_VARIABLE = "TORCHSURF_MESH_DIR"
+
+
+class ConfigError(ValueError):
+    """A config that cannot run: the message starts with the offending key's path."""
+
+    def __init__(self, key: str, message: str) -> None:
+        super().__init__(f"{key}: {message}" if key else message)
+        self.key = key
+
+
+class Shape(Enum):
+    """Where the surface comes from: an analytic signed distance or a mesh file."""
+
+    sphere = "sphere"
+    torus = "torus"
+    trefoil = "trefoil"
+    box = "box"
+    capsule = "capsule"
+    mesh = "mesh"
+
+
+class SignalKind(Enum):
+    """The data put on the surface before the flow."""
+
+    checkerboard = "checkerboard"
+    image = "image"
+    noise = "noise"
+    field = "field"
+    turk = "turk"
+
+
+class Projection(Enum):
+    """How a 2-D image is wrapped onto the surface (:func:`torchsurf.signals.project_image`)."""
+
+    spherical = "spherical"
+    cylindrical = "cylindrical"
+    planar = "planar"
+    triplanar = "triplanar"
+
+
+class Axis(Enum):
+    """A coordinate axis."""
+
+    x = "x"
+    y = "y"
+    z = "z"
+
+
+class FieldKind(Enum):
+    """A unit tangent field (:mod:`torchsurf.signals`)."""
+
+    principal_max = "principal_max"
+    principal_min = "principal_min"
+    axis = "axis"
+    swirl = "swirl"
+
+
+class FlowKind(Enum):
+    """The flow run on the signal."""
+
+    heat = "heat"
+    total_variation = "total_variation"
+    perona_malik = "perona_malik"
+    harmonic = "harmonic"
+    color = "color"
+    reaction_diffusion = "reaction_diffusion"
+    visualization = "visualization"
+
+
+class TimeUnit(Enum):
+    """Unit of ``flow.time`` (see the module docstring)."""
+
+    diagonal = "diagonal"
+    cells = "cells"
+    world = "world"
+    turk = "turk"
+
+
+@dataclass
+class SurfaceConfig:
+    """``shape``: a built-in signed distance or ``mesh``; ``mesh``: a file path, resolved
+    against the config's folder, then ``$TORCHSURF_MESH_DIR``; ``params``: keyword arguments
+    of the :mod:`torchsurf.sdf` function (e.g. ``radius``, ``major_radius``)."""
+
+    shape: Shape = Shape.sphere
+    mesh: str | None = None
+    params: dict[str, Any] = _field(default_factory=dict)
+
+
+@dataclass
+class GridConfig:
+    """``size``: nodes per axis (a cube); ``margin``: free space on each side of the shape's
+    box, a fraction of its longest side."""
+
+    size: int = 64
+    margin: float = 0.15
+
+
+@dataclass
+class SignalConfig:
+    """The initial data; ``noise``: standard deviation of added Gaussian noise (units of the
+    data's range; for a field, of each component before re-normalising)."""
+
+    kind: SignalKind = SignalKind.checkerboard
+    tiles: float = 8.0
+    image: str = "colour_wheel"
+    projection: Projection = Projection.spherical
+    axis: Axis = Axis.z
+    gray: bool = False
+    noise: float = 0.0
+    seed: int = 0
+
+
+@dataclass
+class FieldConfig:
+    """A unit tangent field: principal directions (``smoothing``: length in cells of the
+    sign-free smoothing, 0 for none; ``orient``: an axis whose swirl fixes their signs), the
+    projection of an ``axis``, or the ``swirl``, the rotation about ``axis`` through the
+    shape's centre."""
+
+    kind: FieldKind = FieldKind.principal_max
+    axis: Axis = Axis.z
+    smoothing: float = 2.0
+    orient: Axis | None = None
+
+
+@dataclass
+class FlowConfig:
+    """The flow; settings left ``null`` take the flow's default, settings that the flow does
+    not use must stay ``null``."""
+
+    kind: FlowKind = FlowKind.heat
+    time: float = 1e-3
+    time_unit: TimeUnit | None = None
+    method: str | None = None
+    steps: int | None = None
+    eps: float | None = None
+    contrast: float | None = None
+    p: float | None = None
+    rate: float | None = None
+    isotropic: float | None = None
+
+
+@dataclass
+class RenderConfig:
+    """Pictures: one PNG of ``panels`` side by side (``clean``, ``input``, ``output``), each
+    ``width x height`` pixels, seen from ``elevation``/``azimuth`` degrees with ``up`` up."""
+
+    width: int = 400
+    height: int = 400
+    panels: list[str] = _field(default_factory=lambda: ["input", "output"])
+    colormap: str = "viridis"
+    elevation: float = 25.0
+    azimuth: float = -60.0
+    up: Axis = Axis.z
+
+
+@dataclass
+class Experiment:
+    """One ``torchsurf run``: a surface, a signal on it, a flow, and the pictures."""
+
+    name: str = MISSING
+    description: str = ""
+    surface: SurfaceConfig = _field(default_factory=SurfaceConfig)
+    grid: GridConfig = _field(default_factory=GridConfig)
+    signal: SignalConfig = _field(default_factory=SignalConfig)
+    field: FieldConfig | None = None
+    flow: FlowConfig = _field(default_factory=FlowConfig)
+    render: RenderConfig = _field(default_factory=RenderConfig)
+    threads: int | None = None
+
+
+FLOW_SETTINGS: dict[FlowKind, tuple[str, ...]] = {
+    FlowKind.heat: (),
+    FlowKind.total_variation: ("eps",),
+    FlowKind.perona_malik: ("contrast",),
+    FlowKind.harmonic: ("p", "eps"),
+    FlowKind.color: ("p", "eps"),
+    FlowKind.reaction_diffusion: ("rate",),
+    FlowKind.visualization: ("isotropic",),
+}
+"""The optional settings each flow reads; the others must stay ``null``."""
+
+FLOW_DEFAULTS: dict[str, float] = {"eps": 0.05, "contrast": 0.1, "p": 1.0, "rate": 1.0 / 16.0,
+                                   "isotropic": 0.0}
+"""Defaults of the optional flow settings (``eps``, ``contrast``: data range per cell)."""
+
+FLOW_SIGNALS: dict[FlowKind, tuple[SignalKind, ...]] = {
+    FlowKind.heat: (SignalKind.checkerboard, SignalKind.image, SignalKind.noise),
+    FlowKind.total_variation: (SignalKind.checkerboard, SignalKind.image),
+    FlowKind.perona_malik: (SignalKind.checkerboard, SignalKind.image),
+    FlowKind.harmonic: (SignalKind.field,),
+    FlowKind.color: (SignalKind.image,),
+    FlowKind.reaction_diffusion: (SignalKind.turk,),
+    FlowKind.visualization: (SignalKind.noise,),
+}
+"""The signals each flow accepts."""
+
+PANELS = ("clean", "input", "output")
+
+
+def flow_setting(flow: FlowConfig, name: str) -> float:
+    """``flow.<name>`` or its default from :data:`FLOW_DEFAULTS`."""
+    value = getattr(flow, name)
+    return FLOW_DEFAULTS[name] if value is None else float(value)
+
+
+def time_unit(flow: FlowConfig) -> TimeUnit:
+    """``flow.time_unit``, by default ``turk`` for reaction–diffusion, ``diagonal`` otherwise."""
+    if flow.time_unit is not None:
+        return flow.time_unit
+    return TimeUnit.turk if flow.kind is FlowKind.reaction_diffusion else TimeUnit.diagonal
+
+
+def builtin_folder() -> Path:
+    """The folder of the configs shipped with the package."""
+    return Path(str(resources.files("torchsurf") / "configs"))
+
+
+def builtin_names() -> list[str]:
+    """Names of the shipped configs, sorted."""
+    return sorted(path.stem for path in builtin_folder().glob(f"*{CONFIG_SUFFIX}"))
+
+
+def find(config: str | os.PathLike) -> Path:
+    """A config's file: ``config`` as a path if it exists, else a shipped config's name.
+
+    Raises:
+        ConfigError: neither (the message lists the shipped names).
+    """
+    path = Path(config)
+    if path.is_file():
+        return path
+    name = path.name[: -len(CONFIG_SUFFIX)] if path.name.endswith(CONFIG_SUFFIX) else path.name
+    shipped = builtin_folder() / f"{name}{CONFIG_SUFFIX}"
+    if path.parent == Path(".") and shipped.is_file():
+        return shipped
+    raise ConfigError(
+        "", f"no config file {str(config)!r} and no shipped config of that name; shipped: "
+        f"{', '.join(builtin_names())}"
+    )
+
+
+def _omegaconf_error(error: OmegaConfBaseException) -> ConfigError:
+    key = getattr(error, "full_key", "") or ""
+    message = str(getattr(error, "msg", "") or error).splitlines()[0]
+    return ConfigError(str(key), message)
+
+
+def parse_overrides(overrides: list[str]) -> list[str]:
+    """Check ``key=value`` overrides (``--set``); returns them as given."""
+    for item in overrides:
+        key, equals, _ = item.partition("=")
+        if not equals or not key.strip():
+            raise ConfigError("--set", f"expected key=value, got {item!r}")
+    return overrides
+
+
+def load(config: str | os.PathLike, overrides: list[str] | None = None) -> tuple[Experiment, Path]:
+    """Read, merge with ``overrides`` (``["grid.size=24", ...]``) and check a config.
+
+    Returns:
+        The :class:`Experiment` and the config's folder (against which mesh paths resolve).
+
+    Raises:
+        ConfigError: the first problem found, its message starting with the key's path.
+    """
+    path = find(config)
+    try:
+        raw = OmegaConf.load(path)
+    except Exception as error:  # yaml's own errors carry the line and column
+        raise ConfigError("", f"{path} is not valid YAML: {error}") from error
+    if not isinstance(raw, DictConfig):
+        raise ConfigError("", f"{path} must hold a mapping of settings, got a list")
+    try:
+        merged = OmegaConf.merge(OmegaConf.structured(Experiment), raw,
+                                 OmegaConf.from_dotlist(parse_overrides(overrides or [])))
+        experiment = OmegaConf.to_object(merged)
+    except OmegaConfBaseException as error:
+        raise _omegaconf_error(error) from error
+    check(experiment)
+    return experiment, path.resolve().parent
+
+
+def to_dict(experiment: Experiment) -> dict[str, Any]:
+    """The experiment as plain data (enums as their names), e.g. for JSON."""
+    return OmegaConf.to_container(OmegaConf.structured(experiment), enum_to_str=True)
+
+
+def _positive(value: float, key: str) -> None:
+    if not value > 0 or value == float("inf"):
+        raise ConfigError(key, f"must be a finite number > 0, got {value!r}")
+
+
+def check(experiment: Experiment) -> None:
+    """Ranges and combinations of an experiment's settings (types are checked by omegaconf).
+
+    Raises:
+        ConfigError: naming the key.
+    """
+    if experiment.surface.shape is Shape.mesh and not experiment.surface.mesh:
+        raise ConfigError("surface.mesh", "shape: mesh needs a mesh file path")
+    if experiment.surface.shape is not Shape.mesh and experiment.surface.mesh:
+        raise ConfigError("surface.mesh", f"a mesh file is only read with shape: mesh, not "
+                          f"shape: {experiment.surface.shape.name}")
+    if experiment.grid.size < 8:
+        raise ConfigError("grid.size", f"must be an integer >= 8, got {experiment.grid.size}")
+    if not 0 <= experiment.grid.margin <= 1:
+        raise ConfigError("grid.margin", f"must be in [0, 1], got {experiment.grid.margin}")
+    signal = experiment.signal
+    _positive(signal.tiles, "signal.tiles")
+    if not signal.noise >= 0:
+        raise ConfigError("signal.noise", f"must be >= 0, got {signal.noise}")
+    flow = experiment.flow
+    _positive(flow.time, "flow.time")
+    if flow.steps is not None and flow.steps < 1:
+        raise ConfigError("flow.steps", f"must be an integer >= 1, got {flow.steps}")
+    allowed = FLOW_SETTINGS[flow.kind]
+    for name in FLOW_DEFAULTS:
+        value = getattr(flow, name)
+        if value is None:
+            continue
+        if name not in allowed:
+            listed = ", ".join(allowed) or "none besides time, time_unit, method, steps"
+            raise ConfigError(f"flow.{name}", f"not a setting of flow.kind={flow.kind.name} "
+                              f"(its settings: {listed})")
+        if name == "p":
+            if not 1 <= value <= 2:
+                raise ConfigError("flow.p", f"must be in [1, 2], got {value}")
+        elif name == "isotropic":
+            if not value >= 0:
+                raise ConfigError("flow.isotropic", f"must be >= 0, got {value}")
+        else:
+            _positive(value, f"flow.{name}")
+    unit = time_unit(flow)
+    if (unit is TimeUnit.turk) != (flow.kind is FlowKind.reaction_diffusion):
+        raise ConfigError("flow.time_unit", "turk is the unit of reaction_diffusion, and "
+                          f"its only one; got {unit.name} with flow.kind={flow.kind.name}")
+    if signal.kind not in FLOW_SIGNALS[flow.kind]:
+        names = ", ".join(kind.name for kind in FLOW_SIGNALS[flow.kind])
+        raise ConfigError("signal.kind", f"flow.kind={flow.kind.name} takes signal.kind "
+                          f"{names}, got {signal.kind.name}")
+    if flow.kind is FlowKind.color and signal.gray:
+        raise ConfigError("signal.gray", "flow.kind=color needs colour data, not gray")
+    needs_field = flow.kind is FlowKind.visualization or signal.kind is SignalKind.field
+    if needs_field and experiment.field is None:
+        raise ConfigError("field", f"flow.kind={flow.kind.name} with signal.kind="
+                          f"{signal.kind.name} needs a tangent field (field: {{kind: ...}})")
+    if experiment.field is not None and not experiment.field.smoothing >= 0:
+        raise ConfigError("field.smoothing", f"must be >= 0, got {experiment.field.smoothing}")
+    render = experiment.render
+    for key in ("width", "height"):
+        if not 16 <= getattr(render, key) <= 4096:
+            raise ConfigError(f"render.{key}", f"must be in [16, 4096] pixels, got "
+                              f"{getattr(render, key)}")
+    if not render.panels:
+        raise ConfigError("render.panels", f"name at least one of {', '.join(PANELS)}")
+    for index, panel in enumerate(render.panels):
+        if panel not in PANELS:
+            raise ConfigError(f"render.panels[{index}]",
+                              f"must be one of {', '.join(PANELS)}, got {panel!r}")
+    if experiment.threads is not None and experiment.threads < 1:
+        raise ConfigError("threads", f"must be an integer >= 1, got {experiment.threads}")
+
+
+def resolve_mesh(mesh: str, folder: Path) -> Path:
+    """A mesh path: as given if absolute, else against ``folder``, then ``$TORCHSURF_MESH_DIR``.
+
+    Raises:
+        ConfigError: ``surface.mesh`` is in none of them (the message lists where it looked).
+    """
+    path = Path(mesh).expanduser()
+    candidates = [path] if path.is_absolute() else [folder / path]
+    directory = os.environ.get(MESH_DIR_VARIABLE)
+    if directory and not path.is_absolute():
+        candidates.append(Path(directory) / path)
+    for candidate in candidates:
+        if candidate.is_file():
+            return candidate
+    where = ", ".join(str(c) for c in candidates)
+    unset = "" if directory else f" (${MESH_DIR_VARIABLE} is not set)"
+    raise ConfigError("surface.mesh", f"{mesh!r} not found; looked at {where}{unset}")

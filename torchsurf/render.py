@@ -1,0 +1,194 @@
+"""Pictures of data on a surface: marching cubes, values sampled at the vertices, panels side by
+side, drawn off screen by matplotlib (``pip install torchsurf[render]``).
+
+The surface is extracted once (:func:`torchsurf.mesh.extract`), each volume is sampled at its
+vertices (:func:`torchsurf.sample`), and every panel is drawn with the same camera, fitted to the
+shape: an orthographic view from ``elevation`` and ``azimuth`` degrees, back faces culled,
+triangles painted far to near with Lambert shading. PNGs are written to a temporary file in the
+target folder and renamed into place, so a reader never sees half a picture.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import trimesh
+from torch import Tensor
+
+from .grid import Grid
+from .sampling import sample
+
+AXES = ("x", "y", "z")
+MODES = ("scalar", "rgb", "field")
+
+
+def _matplotlib():  # noqa: ANN202
+    try:
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.collections import PolyCollection
+        from matplotlib.figure import Figure
+    except ImportError as error:
+        raise ImportError(
+            "torchsurf.render draws with matplotlib, an optional dependency: "
+            "pip install 'torchsurf[render]' (or pip install matplotlib)"
+        ) from error
+    return Figure, FigureCanvasAgg, PolyCollection
+
+
+def vertex_values(volume: Tensor, mesh: trimesh.Trimesh, grid: Grid) -> np.ndarray:
+    """``volume`` ``(1, C, D, H, W)`` sampled trilinearly at ``mesh``'s vertices: ``(V, C)``."""
+    points = torch.as_tensor(np.asarray(mesh.vertices), dtype=volume.dtype, device=volume.device)
+    values = sample(volume.detach(), points, grid)[0]
+    return values.T.to("cpu", torch.float64).numpy()
+
+
+def colours(values: np.ndarray, mode: str = "scalar", colormap: str = "viridis",
+            limits: tuple[float, float] | None = None) -> np.ndarray:
+    """Per-vertex RGB ``(V, 3)`` in ``[0, 1]`` from values ``(V, C)``.
+
+    ``"scalar"`` (C = 1): ``colormap`` over ``limits`` (default the 1st and 99th percentiles);
+    ``"rgb"`` (C = 3): clipped to ``[0, 1]``; ``"field"`` (C = 3, unit vectors up to sign):
+    ``|T_x|, |T_y|, |T_z|``.
+    """
+    if mode not in MODES:
+        raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+    values = np.asarray(values, dtype=np.float64)
+    if values.ndim != 2:
+        raise ValueError(f"values must have shape (V, C), got {values.shape}")
+    if mode == "rgb":
+        return np.clip(values[:, :3], 0.0, 1.0)
+    if mode == "field":
+        return np.clip(np.abs(values[:, :3]), 0.0, 1.0)
+    Figure, _, _ = _matplotlib()
+    from matplotlib import colormaps
+
+    low, high = limits if limits is not None else np.percentile(values[:, 0], [1.0, 99.0])
+    scaled = (values[:, 0] - low) / max(high - low, 1e-12)
+    return colormaps[colormap](np.clip(scaled, 0.0, 1.0))[:, :3]
+
+
+@dataclass(frozen=True)
+class Camera:
+    """An orthographic view: unit ``right``, ``up`` and ``towards`` (from the shape to the
+    viewer) world vectors ``(3,)``, and the visible window ``(x0, x1, y0, y1)`` on screen."""
+
+    right: np.ndarray
+    up: np.ndarray
+    towards: np.ndarray
+    window: tuple[float, float, float, float]
+
+    def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Screen ``(N, 2)`` and depth ``(N,)`` (larger is nearer) of world points ``(N, 3)``."""
+        return np.stack((points @ self.right, points @ self.up), axis=1), points @ self.towards
+
+
+def fit_camera(vertices: np.ndarray, elevation: float = 25.0, azimuth: float = -60.0,
+               up: str = "z", aspect: float = 1.0, margin: float = 0.08) -> Camera:
+    """The camera seeing all of ``vertices`` ``(V, 3)`` from ``elevation``, ``azimuth``
+    (degrees; azimuth 0 looks from the axis after ``up`` in x, y, z order), ``up`` an axis
+    name, the window of ``aspect`` (width / height) with ``margin`` free on each side."""
+    if up not in AXES:
+        raise ValueError(f"up must be one of {AXES}, got {up!r}")
+    k = AXES.index(up)
+    axis_up = np.eye(3)[k]
+    front = np.eye(3)[(k + 1) % 3]
+    side = np.cross(axis_up, front)
+    el, az = math.radians(elevation), math.radians(azimuth)
+    towards = math.cos(el) * (math.cos(az) * front + math.sin(az) * side) + math.sin(el) * axis_up
+    right = np.cross(axis_up, towards)
+    right = right / np.linalg.norm(right) if np.linalg.norm(right) > 1e-9 else side
+    screen_up = np.cross(towards, right)
+    camera = Camera(right, screen_up, towards, (0.0, 1.0, 0.0, 1.0))
+    screen, _ = camera.project(np.asarray(vertices, dtype=np.float64))
+    low, high = screen.min(axis=0), screen.max(axis=0)
+    centre = 0.5 * (low + high)
+    half = 0.5 * (high - low) * (1.0 + 2.0 * margin)
+    half_width = max(half[0], half[1] * aspect, 1e-12)
+    half_height = half_width / aspect
+    window = (centre[0] - half_width, centre[0] + half_width,
+              centre[1] - half_height, centre[1] + half_height)
+    return Camera(right, screen_up, towards, tuple(float(w) for w in window))
+
+
+def _draw(axes, mesh: trimesh.Trimesh, vertex_colours: np.ndarray, camera: Camera,
+          poly_collection) -> None:  # noqa: ANN001
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    faces = np.asarray(mesh.faces)
+    corners = vertices[faces]
+    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    length = np.linalg.norm(normals, axis=1)
+    normals = normals / np.where(length > 0, length, 1.0)[:, None]
+    facing = normals @ camera.towards
+    keep = facing > 0
+    screen, depth = camera.project(vertices)
+    order = np.argsort(depth[faces[keep]].mean(axis=1))
+    kept = faces[keep][order]
+    light = camera.towards + 0.5 * camera.up + 0.3 * camera.right
+    light = light / np.linalg.norm(light)
+    shade = 0.35 + 0.65 * np.clip(normals[keep][order] @ light, 0.0, 1.0)
+    face_colours = vertex_colours[kept].mean(axis=1) * shade[:, None]
+    collection = poly_collection(screen[kept], facecolors=np.clip(face_colours, 0.0, 1.0),
+                                 edgecolors="none", antialiased=False)
+    axes.add_collection(collection)
+    axes.set_xlim(camera.window[0], camera.window[1])
+    axes.set_ylim(camera.window[2], camera.window[3])
+    axes.set_aspect("equal")
+    axes.set_axis_off()
+
+
+def render_panels(mesh: trimesh.Trimesh, panels: list[tuple[str, np.ndarray]], path: str | Path,
+                  width: int = 400, height: int = 400, elevation: float = 25.0,
+                  azimuth: float = -60.0, up: str = "z") -> Path:
+    """Draw ``mesh`` once per panel, side by side, and write a PNG atomically.
+
+    Args:
+        mesh: the surface (e.g. :func:`torchsurf.mesh.extract`), outward normals.
+        panels: ``(title, vertex colours (V, 3) in [0, 1])`` for each panel, left to right.
+        path: the PNG's path; its folder is created.
+        width, height: pixels of one panel (the picture is ``len(panels) * width`` by
+            ``height``).
+        elevation, azimuth, up: the view (:func:`fit_camera`).
+
+    Returns:
+        The path written.
+    """
+    Figure, FigureCanvasAgg, PolyCollection = _matplotlib()
+    if not panels:
+        raise ValueError("panels: give at least one (title, colours) pair")
+    count = len(panels)
+    dpi = 100
+    figure = Figure(figsize=(count * width / dpi, height / dpi), dpi=dpi, facecolor="white")
+    FigureCanvasAgg(figure)
+    camera = fit_camera(np.asarray(mesh.vertices), elevation, azimuth, up, aspect=width / height)
+    for index, (title, vertex_colours) in enumerate(panels):
+        vertex_colours = np.asarray(vertex_colours, dtype=np.float64)
+        if vertex_colours.shape != (len(mesh.vertices), 3):
+            raise ValueError(f"panels[{index}]: colours must have shape (V, 3) = "
+                             f"({len(mesh.vertices)}, 3), got {vertex_colours.shape}")
+        axes = figure.add_axes((index / count, 0.0, 1.0 / count, 1.0))
+        _draw(axes, mesh, vertex_colours, camera, PolyCollection)
+        axes.text(0.5, 0.98, title, transform=axes.transAxes, ha="center", va="top",
+                  fontsize=max(7, min(12, height // 30)))
+    return write_png(figure, path)
+
+
+def write_png(figure, path: str | Path) -> Path:  # noqa: ANN001
+    """Save a matplotlib figure as PNG to a temporary file beside ``path``, then rename it
+    into place (``os.replace``: atomic on one file system)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".png")
+    try:
+        with os.fdopen(handle, "wb") as stream:
+            figure.savefig(stream, format="png", dpi=figure.dpi)
+        os.replace(temporary, path)
+    except BaseException:
+        Path(temporary).unlink(missing_ok=True)
+        raise
+    return path
