@@ -33,7 +33,7 @@ def test_checkpointing_keeps_gradients_and_cuts_saved_memory(method, steps):
         flow = ts.HeatFlow(0.02, learn_diffusivity=True, method=method, steps=steps,
                            checkpoint=checkpoint).double()
         start = u0.clone().requires_grad_(True)
-        value, saved = _saved_bytes(lambda: flow(start, surface))
+        value, saved = _saved_bytes(lambda flow=flow, start=start: flow(start, surface))
         (value * weights).sum().backward()
         grads = (start.grad, *(p.grad for p in flow.parameters()))
         results[checkpoint] = (value.detach(), grads, saved)
