@@ -136,3 +136,13 @@ def test_recorded_decisions_replay_what_auto_chose(monkeypatch):
     assert backend.resolve("auto", volume, kernel) == "compiled"
     with replay:
         assert backend.resolve("auto", volume, kernel) == "slicing"
+
+
+def test_recorded_calls_never_switch_by_eager_time(monkeypatch):
+    """A gradcheck or a double backward must not find a compiled kernel under it mid-run."""
+    kernel = _kernel("test_recording", [])
+    volume = torch.zeros(1, 1, 4, 4, 4)
+    monkeypatch.setattr(backend, "COMPILE_PAYBACK_SECONDS", 0.0)
+    assert backend.resolve("auto", volume, kernel, recording=False) == "compiled"
+    assert backend.resolve("auto", volume, kernel, recording=True) == "slicing"
+

@@ -11,10 +11,10 @@ device (by shifted slices or by conv3d), and optionally a one-pass form over hal
   Laplace–Beltrami at 128^3 runs at 1.5x the memory-traffic limit, 7x faster than eager).
 - ``"auto"``: compiled when it pays. Compiling costs seconds for each kernel and shape, so
   ``"auto"`` compiles a volume of at least :data:`COMPILE_MIN_VOXELS` voxels at once, and a
-  smaller one as soon as the eager time measured on that kernel and shape in this process
-  reaches :data:`COMPILE_PAYBACK_SECONDS`, the measured cost of compiling it: a flow or a
-  training loop that calls the same small operator many times is compiled after a few seconds
-  of eager work, while a one-off call (a test, a gradcheck) never waits for a compiler.
+  smaller one, when autograd does not record the call, as soon as the eager time measured on
+  that kernel and shape in this process reaches :data:`COMPILE_PAYBACK_SECONDS`, the measured
+  cost of compiling it: a flow run many times is compiled after a few seconds of eager work,
+  while a one-off call never waits for a compiler.
 
 Inside a function that ``torch.compile`` is tracing every operator stays eager, so that the
 outer compiler sees plain tensor operations. Compiled kernels have no double backward: pass an
@@ -27,7 +27,7 @@ import contextlib
 import contextvars
 import functools
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import torch
@@ -127,36 +127,36 @@ _DECISIONS: contextvars.ContextVar[_Decisions | None] = contextvars.ContextVar(
 )
 
 
+class _Using:
+    """Makes ``decisions`` the active record while entered; re-entrant (a checkpoint's
+    recomputation may run once per backward)."""
+
+    def __init__(self, decisions: _Decisions, replaying: bool) -> None:
+        self.decisions, self.replaying = decisions, replaying
+        self.tokens: list[contextvars.Token] = []
+
+    def __enter__(self) -> None:
+        if self.replaying:
+            self.decisions.replaying, self.decisions.position = True, 0
+        self.tokens.append(_DECISIONS.set(self.decisions))
+
+    def __exit__(self, *exc: object) -> None:
+        _DECISIONS.reset(self.tokens.pop())
+
+
 def recorded_decisions() -> tuple[contextlib.AbstractContextManager, contextlib.AbstractContextManager]:
     """Two context managers: the first records every path :func:`resolve` picks, the second
-    replays them in the same order.
+    replays them in the same order (as often as it is entered).
 
     For ``torch.utils.checkpoint(context_fn=...)``: the recomputation in backward must run the
     same kernels as the forward did, although ``"auto"`` may have decided to compile since.
     """
     decisions = _Decisions()
-
-    @contextlib.contextmanager
-    def record() -> Iterator[None]:
-        token = _DECISIONS.set(decisions)
-        try:
-            yield
-        finally:
-            _DECISIONS.reset(token)
-
-    @contextlib.contextmanager
-    def replay() -> Iterator[None]:
-        decisions.replaying, decisions.position = True, 0
-        token = _DECISIONS.set(decisions)
-        try:
-            yield
-        finally:
-            _DECISIONS.reset(token)
-
-    return record(), replay()
+    return _Using(decisions, replaying=False), _Using(decisions, replaying=True)
 
 
-def resolve(path: str, volume: Tensor, kernel: Kernel | None = None) -> str:
+def resolve(path: str, volume: Tensor, kernel: Kernel | None = None,
+            recording: bool = False) -> str:
     """The concrete path for ``volume``: ``"slicing"``, ``"conv3d"`` or ``"compiled"``.
 
     Args:
@@ -164,6 +164,9 @@ def resolve(path: str, volume: Tensor, kernel: Kernel | None = None) -> str:
         volume: the data the operator is applied to, ``(B, C, D, H, W)``.
         kernel: the operator, when known: ``"auto"`` then also weighs the eager time already
             spent on it (see the module's docstring).
+        recording: autograd records the call. The eager-time rule then never switches a
+            small volume to the compiled kernel, whose backward cannot be differentiated
+            again (gradcheck, double backward) and would change in the middle of a run.
     """
     check_choice(path, "path", PATHS)
     if path != "auto":
@@ -172,22 +175,33 @@ def resolve(path: str, volume: Tensor, kernel: Kernel | None = None) -> str:
     if decisions is not None and decisions.replaying:
         decisions.position += 1
         return decisions.paths[decisions.position - 1]
-    chosen = _choose(volume, kernel)
+    chosen = _choose(volume, kernel, recording)
     if decisions is not None:
         decisions.paths.append(chosen)
     return chosen
 
 
-def _choose(volume: Tensor, kernel: Kernel | None) -> str:
+def _choose(volume: Tensor, kernel: Kernel | None, recording: bool) -> str:
     if torch.compiler.is_compiling() or (kernel is not None and kernel.fused is None):
         return eager_path(volume)
     if volume.numel() >= COMPILE_MIN_VOXELS:
         return "compiled"
-    if kernel is not None and _EAGER_SECONDS.get(_ledger_key(kernel, volume), 0.0) >= (
-        COMPILE_PAYBACK_SECONDS
-    ):
+    if not recording and kernel is not None and _EAGER_SECONDS.get(
+        _ledger_key(kernel, volume), 0.0
+    ) >= COMPILE_PAYBACK_SECONDS:
         return "compiled"
     return eager_path(volume)
+
+
+def _keep_buffers() -> contextlib.AbstractContextManager:
+    """AOTAutograd's donated buffers off (where this torch has them) for the compile."""
+    try:
+        import torch._functorch.config as functorch_config
+    except ImportError:
+        return contextlib.nullcontext()
+    if not hasattr(functorch_config, "donated_buffer"):
+        return contextlib.nullcontext()
+    return functorch_config.patch(donated_buffer=False)
 
 
 def run(kernel: Kernel, path: str, volume: Tensor, *args: object) -> Tensor:
@@ -202,11 +216,17 @@ def run(kernel: Kernel, path: str, volume: Tensor, *args: object) -> Tensor:
     Returns:
         What the kernel returns; every path gives the same numbers to rounding.
     """
-    concrete = resolve(path, volume, kernel)
+    recording = torch.is_grad_enabled() and any(
+        isinstance(a, Tensor) and a.requires_grad for a in args
+    )
+    concrete = resolve(path, volume, kernel, recording)
     if concrete == "compiled":
         if kernel.fused is None:
             raise ValueError(f"path='compiled': {kernel.name} has no compiled form")
-        return compiled(kernel.fused, kernel.dynamic)(*kernel.halo(*args))
+        # donated buffers would forbid backward(retain_graph=True), which gradcheck and
+        # several losses on one graph use
+        with _keep_buffers():
+            return compiled(kernel.fused, kernel.dynamic)(*kernel.halo(*args))
     if concrete == "slicing" and kernel.fused_when_eager:
         def evaluate() -> Tensor:
             return kernel.fused(*kernel.halo(*args))

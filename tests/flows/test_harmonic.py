@@ -61,7 +61,7 @@ def test_tangent_constraint_keeps_fields_tangent():
     u = HarmonicMapFlow(0.002, tangent=True)(normalize(field), surface)
     band = surface.band_mask().expand_as(u[:, :1])
     along = (u * surface.normal).sum(1, keepdim=True)
-    assert along[band].abs().max() < 1e-10
+    assert along[band].abs().max() < 1e-9  # rounding: the normals are unit to eps^2 / |grad phi|^2
 
 
 def test_bad_exponent_is_named():
