@@ -19,14 +19,14 @@ def stability_polynomial(stages: int, z: float) -> float:
 @pytest.mark.parametrize("stages", [2, 3, 5, 16, 60])
 def test_stable_on_the_whole_interval_and_not_beyond(stages):
     beta = coefficients(stages).stability
-    assert 0.3 * stages**2 < beta < 0.36 * stages**2
+    assert 0.39 * stages**2 < beta < 0.5 * stages**2
     grid = torch.linspace(-beta, 0.0, 2001, dtype=torch.float64)
     values = [abs(stability_polynomial(stages, float(z))) for z in grid]
     assert max(values) <= 1.0 + 1e-9
     assert abs(stability_polynomial(stages, -2.0 * beta)) > 1.0
 
 
-@pytest.mark.parametrize("stages,bound", [(3, 0.41), (9, 0.27), (40, 0.27)])
+@pytest.mark.parametrize("stages,bound", [(3, 0.58), (9, 0.51), (40, 0.51)])
 def test_stiff_modes_are_damped(stages, bound):
     """Away from the slow modes the polynomial stays small: noise is smoothed, not kept
     (the textbook damping 2/13 leaves 0.95)."""
