@@ -21,7 +21,7 @@ from torch import Tensor
 from ._checks import check_choice, check_nonnegative, check_positive, check_volume
 from .curvature import tangent_basis
 from .flows import HeatFlow
-from .surface import ImplicitSurface
+from .surface import ImplicitSurface, tangent_unit
 
 PROJECTIONS = ("spherical", "cylindrical", "planar", "triplanar")
 AXES = ("x", "y", "z")
@@ -188,14 +188,6 @@ def uniform_noise(surface: ImplicitSurface, channels: int, seed: int) -> Tensor:
     values = torch.rand((1, channels, *surface.grid.shape), generator=generator(seed),
                         dtype=surface.phi.dtype)
     return values.to(surface.phi.device)
-
-
-def tangent_unit(field: Tensor, surface: ImplicitSurface) -> Tensor:
-    """``P T / |P T|``: ``field`` ``(B, 3, D, H, W)`` made tangent to the level sets and unit."""
-    check_volume(field, "field", channels=3)
-    normal = surface.normal
-    tangent = field - (field * normal).sum(dim=1, keepdim=True) * normal
-    return tangent / torch.sqrt((tangent**2).sum(dim=1, keepdim=True) + 1e-24)
 
 
 def axis_field(surface: ImplicitSurface, axis: str = "z") -> Tensor:

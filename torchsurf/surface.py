@@ -251,3 +251,13 @@ def check_data(value: object, name: str, surface: object, channels: int | None =
             f"{surface.phi.dtype} on {surface.phi.device}; move one of them with .to()"
         )
     return volume
+
+
+def tangent_unit(field: Tensor, surface: ImplicitSurface) -> Tensor:
+    """``P T / |P T|``: ``field`` ``(B, 3, D, H, W)`` made tangent to the level sets and unit.
+
+    Where ``P T`` vanishes (``T`` along the normal) the result is 0.
+    """
+    normal = surface.normal
+    tangent = field - (field * normal).sum(dim=1, keepdim=True) * normal
+    return tangent / torch.sqrt((tangent**2).sum(dim=1, keepdim=True) + 1e-24)

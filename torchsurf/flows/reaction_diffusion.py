@@ -13,16 +13,9 @@ from torch import Tensor
 
 from .._checks import check_batch, check_nonnegative, check_positive, check_real
 from ..operators import directional_diffusion, laplace_beltrami
-from ..surface import ImplicitSurface, check_data
+from ..surface import ImplicitSurface, check_data, tangent_unit
 from ._integrators import System, tensors
 from .base import Flow
-
-
-def tangent_unit(direction: Tensor, surface: ImplicitSurface) -> Tensor:
-    """``P T / |P T|``: a field made tangent to the level sets and of unit length."""
-    n = surface.normal
-    tangent = direction - (direction * n).sum(dim=1, keepdim=True) * n
-    return tangent / torch.sqrt((tangent**2).sum(dim=1, keepdim=True) + 1e-12)
 
 
 class ReactionDiffusion(Flow):

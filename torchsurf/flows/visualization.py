@@ -7,10 +7,9 @@ from torch import Tensor
 
 from .._checks import check_positive
 from ..operators import functional
-from ..surface import ImplicitSurface, check_data
+from ..surface import ImplicitSurface, check_data, tangent_unit
 from ._integrators import Linear, System, tensors
 from .base import Flow
-from .reaction_diffusion import tangent_unit
 
 
 class FlowVisualization(Flow):
