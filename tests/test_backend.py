@@ -146,3 +146,18 @@ def test_recorded_calls_never_switch_by_eager_time(monkeypatch):
     assert backend.resolve("auto", volume, kernel, recording=False) == "compiled"
     assert backend.resolve("auto", volume, kernel, recording=True) == "slicing"
 
+
+
+def test_compiled_kernels_allow_backward_with_retain_graph():
+    """AOTAutograd's donated buffers refuse retain_graph (gradcheck, several losses on one graph)."""
+    from torchsurf.flows.extension import _INTERPOLATION
+
+    generator = torch.Generator().manual_seed(0)
+    flat = torch.randn(1, 6 * 7 * 8, dtype=torch.float64, generator=generator)
+    sizes = torch.tensor([8, 7, 6])[:, None, None]
+    corners = (torch.randint(0, 4, (3, 30, 1), generator=generator) + torch.arange(4)) % sizes
+    weights = torch.randn(3, 30, 4, dtype=torch.float64, generator=generator, requires_grad=True)
+    value = backend.run(_INTERPOLATION, "compiled", flat[None], flat, corners, weights, 7, 8, True)
+    loss = value.square().sum()
+    loss.backward(retain_graph=True)
+    loss.backward()

@@ -97,6 +97,22 @@ def _raise_recompile_limit() -> None:
     for name in ("recompile_limit", "cache_size_limit"):  # renamed in torch 2.6
         if hasattr(config, name) and getattr(config, name) < RECOMPILE_LIMIT:
             setattr(config, name, RECOMPILE_LIMIT)
+    _keep_buffers()
+
+
+def _keep_buffers() -> None:
+    """Turn AOTAutograd's donated buffers off, process-wide, where this torch has them.
+
+    With them a compiled kernel's backward refuses ``backward(retain_graph=True)``, which
+    gradcheck and several losses on one graph use. They are read when the backward is
+    compiled, during the first backward, so the setting cannot be scoped to the call.
+    """
+    try:
+        import torch._functorch.config as functorch_config
+    except ImportError:
+        return
+    if getattr(functorch_config, "donated_buffer", False):
+        functorch_config.donated_buffer = False
 
 
 @functools.cache
@@ -193,17 +209,6 @@ def _choose(volume: Tensor, kernel: Kernel | None, recording: bool) -> str:
     return eager_path(volume)
 
 
-def _keep_buffers() -> contextlib.AbstractContextManager:
-    """AOTAutograd's donated buffers off (where this torch has them) for the compile."""
-    try:
-        import torch._functorch.config as functorch_config
-    except ImportError:
-        return contextlib.nullcontext()
-    if not hasattr(functorch_config, "donated_buffer"):
-        return contextlib.nullcontext()
-    return functorch_config.patch(donated_buffer=False)
-
-
 def run(kernel: Kernel, path: str, volume: Tensor, *args: object) -> Tensor:
     """Apply ``kernel`` to ``args`` on the path chosen for ``volume``.
 
@@ -223,10 +228,7 @@ def run(kernel: Kernel, path: str, volume: Tensor, *args: object) -> Tensor:
     if concrete == "compiled":
         if kernel.fused is None:
             raise ValueError(f"path='compiled': {kernel.name} has no compiled form")
-        # donated buffers would forbid backward(retain_graph=True), which gradcheck and
-        # several losses on one graph use
-        with _keep_buffers():
-            return compiled(kernel.fused, kernel.dynamic)(*kernel.halo(*args))
+        return compiled(kernel.fused, kernel.dynamic)(*kernel.halo(*args))
     if concrete == "slicing" and kernel.fused_when_eager:
         def evaluate() -> Tensor:
             return kernel.fused(*kernel.halo(*args))

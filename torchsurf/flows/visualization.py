@@ -56,13 +56,15 @@ class FlowVisualization(Flow):
         spacing, isotropic = surface.spacing, self.isotropic
 
         def laplacian(u: Tensor, weight: Tensor, normal: Tensor, direction: Tensor,
-                      weighted: bool = False) -> Tensor:
+                      weighted: bool = False, haloed: tuple[Tensor, Tensor] | None = None
+                      ) -> Tensor:
             result = functional.directional_form(
-                u, normal, weight, spacing, direction, "symmetric", weighted=weighted
+                u, normal, weight, spacing, direction, "symmetric", weighted=weighted,
+                haloed=haloed,
             )
             if isotropic:
                 result = result + isotropic * functional.divergence_form(
-                    u, normal, weight, spacing, "symmetric", weighted=weighted
+                    u, normal, weight, spacing, "symmetric", weighted=weighted, haloed=haloed
                 )
             return result
 
@@ -71,5 +73,9 @@ class FlowVisualization(Flow):
 
         geometry = (surface.weight, surface.normal, direction)
         rho = (1.0 + self.isotropic) * self.operator_bound(surface, "symmetric")
-        return System(lambda u: torch.where(band, laplacian(u, *geometry), zero), band, rho,
+        # the rate reads the surface's kept halos; the implicit operator pads its own
+        # parameters, through which conjugate gradients' backward differentiates
+        haloed = surface.haloed()
+        return System(lambda u: torch.where(band, laplacian(u, *geometry, haloed=haloed), zero),
+                      band, rho,
                       linear=Linear(operator, geometry), params=tensors(*geometry))
