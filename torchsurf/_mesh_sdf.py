@@ -220,9 +220,24 @@ def _winding_inside(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray)
     return igl.fast_winding_number(vertices, faces, np.ascontiguousarray(points)) > 0.5
 
 
-def signed_band(vertices: np.ndarray, faces: np.ndarray, grid: Grid, band: float,
-                sign: str = "auto") -> tuple[np.ndarray, Band]:
-    """Signed distance ``(D, H, W)`` to the mesh, exact within ``band``, ``+-band`` beyond.
+@dataclass
+class SignedBand:
+    """Signed distances near the mesh and the sides of the bricks beyond.
+
+    Attributes:
+        band: the :class:`Band` of nodes within reach, with exact distances.
+        near: ``(N,)`` signed distance at ``band.nodes`` (negative inside), clamped to ``+-reach``.
+        far_inside: per entry of ``band.far_corners``, ``(M,)`` bool: the brick lies inside.
+    """
+
+    band: Band
+    near: np.ndarray
+    far_inside: list[np.ndarray]
+
+
+def signed_near(vertices: np.ndarray, faces: np.ndarray, grid: Grid, band: float,
+                sign: str = "auto") -> SignedBand:
+    """Signed distances at the nodes within ``band`` of the mesh, and the far bricks' sides.
 
     Args:
         vertices, faces: the mesh, as in :func:`refine_band`.
@@ -231,9 +246,6 @@ def signed_band(vertices: np.ndarray, faces: np.ndarray, grid: Grid, band: float
         sign: ``"winding"`` (generalised winding number > 1/2 is inside, at every node that
             needs one), ``"pseudonormal"`` (pseudonormals in the band, winding number beyond),
             or ``"auto"``: pseudonormal for closed, consistently wound meshes, else winding.
-
-    Returns:
-        ``phi`` (negative inside) and the :class:`Band` it was computed from.
     """
     if sign == "auto":
         sign = "pseudonormal" if _is_closed(faces, len(vertices)) else "winding"
@@ -255,9 +267,24 @@ def signed_band(vertices: np.ndarray, faces: np.ndarray, grid: Grid, band: float
         inside_all = _winding_inside(vertices, faces, queries)
         near_inside[undecided] = inside_all[sum(counts):]
     far_inside = np.split(inside_all[: sum(counts)], np.cumsum(counts)[:-1]) if counts else []
-    far = _far_volume(grid, found.far_corners, [np.where(i, -band, band) for i in far_inside])
     near = np.where(near_inside, -1.0, 1.0) * np.minimum(found.distance, band)
-    return to_volume(grid, found.nodes, near, far), found
+    return SignedBand(found, near, list(far_inside))
+
+
+def signed_band(vertices: np.ndarray, faces: np.ndarray, grid: Grid, band: float,
+                sign: str = "auto") -> tuple[np.ndarray, Band]:
+    """Signed distance ``(D, H, W)`` to the mesh, exact within ``band``, ``+-band`` beyond.
+
+    Args: as in :func:`signed_near`.
+
+    Returns:
+        ``phi`` (negative inside) and the :class:`Band` it was computed from.
+    """
+    signed = signed_near(vertices, faces, grid, band, sign)
+    found = signed.band
+    far = _far_volume(grid, found.far_corners,
+                      [np.where(i, -band, band) for i in signed.far_inside])
+    return to_volume(grid, found.nodes, signed.near, far), found
 
 
 def _signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:

@@ -242,3 +242,32 @@ def run(kernel: Kernel, path: str, volume: Tensor, *args: object) -> Tensor:
     key = _ledger_key(kernel, volume)
     _EAGER_SECONDS[key] = _EAGER_SECONDS.get(key, 0.0) + time.perf_counter() - start
     return result
+
+
+def run_haloed(kernel: Kernel, path: str, volume: Tensor, *haloed_args: object) -> Tensor:
+    """Apply ``kernel``'s one-pass form to inputs the caller has already haloed.
+
+    For storage that brings its own halos (:meth:`torchsurf.bricks.BrickLayout.halo`): the
+    reference composition of stencils pads at a box's faces, which a brick does not have, so
+    every path evaluates ``kernel.fused``, compiled or not as :func:`resolve` decides.
+
+    Args:
+        kernel: the operator; it must have a fused form.
+        path: one of :data:`PATHS` (``"slicing"`` and ``"conv3d"`` both run it eagerly).
+        volume: the data, whose size decides ``"auto"``.
+        *haloed_args: the fused form's arguments.
+    """
+    if kernel.fused is None:
+        raise ValueError(f"{kernel.name} has no one-pass form to run on haloed inputs")
+    recording = torch.is_grad_enabled() and any(
+        isinstance(a, Tensor) and a.requires_grad for a in haloed_args
+    )
+    if resolve(path, volume, kernel, recording) == "compiled":
+        return compiled(kernel.fused, kernel.dynamic)(*haloed_args)
+    if path != "auto" or volume.device.type != "cpu":
+        return kernel.fused(*haloed_args)
+    start = time.perf_counter()
+    result = kernel.fused(*haloed_args)
+    key = _ledger_key(kernel, volume)
+    _EAGER_SECONDS[key] = _EAGER_SECONDS.get(key, 0.0) + time.perf_counter() - start
+    return result

@@ -19,9 +19,8 @@ WEIGHT_FLOOR = 0.5
 """The operators' weight ``W`` is never below this fraction of ``gradient_scale``."""
 
 
-def _gradient_scale(phi: Tensor, grad_norm: Tensor) -> Tensor:
-    """Median ``|grad phi|`` over the nodes with a neighbour across S; ``(B, 1, 1, 1, 1)``."""
-    inside = phi < 0
+def _crossing(inside: Tensor) -> Tensor:
+    """Nodes of a dense ``(B, 1, D, H, W)`` bool volume with a neighbour on the other side."""
     crossing = torch.zeros_like(inside)
     for dim in (2, 3, 4):
         change = inside.narrow(dim, 1, inside.shape[dim] - 1) != inside.narrow(
@@ -29,8 +28,7 @@ def _gradient_scale(phi: Tensor, grad_norm: Tensor) -> Tensor:
         )
         crossing.narrow(dim, 1, inside.shape[dim] - 1).logical_or_(change)
         crossing.narrow(dim, 0, inside.shape[dim] - 1).logical_or_(change)
-    scales = [grad_norm[b][crossing[b]].median() for b in range(phi.shape[0])]
-    return torch.stack(scales).view(-1, 1, 1, 1, 1)
+    return crossing
 
 
 class ImplicitSurface(nn.Module):
@@ -107,13 +105,21 @@ class ImplicitSurface(nn.Module):
             3.0 * grid.spacing if band_width is None else band_width, "band_width"
         )
         self.eps = check_positive(eps, "eps")
-        gradient = stencils.apply(stencils.pad(phi, "linear"), stencils.CENTRAL)[:, 0]
-        gradient = gradient / grid.spacing
+        self._assemble(phi)
+
+    layout = None
+    """How the fields are stored: ``None`` for dense volumes (a :class:`torchsurf.bricks.BrickSurface`
+    has its :class:`~torchsurf.bricks.BrickLayout`)."""
+
+    def _assemble(self, phi: Tensor) -> None:
+        """``grad_norm``, ``normal``, ``gradient_scale`` and ``weight`` from ``phi``."""
+        gradient = stencils.apply(self._pad(phi, "linear"), stencils.CENTRAL)[:, 0]
+        gradient = gradient / self.spacing
         grad_norm = torch.sqrt((gradient**2).sum(dim=1, keepdim=True) + self.eps**2)
         self.register_buffer("phi", phi, persistent=False)
         self.register_buffer("grad_norm", grad_norm, persistent=False)
         self.register_buffer("normal", gradient / grad_norm, persistent=False)
-        scale = _gradient_scale(phi.detach(), grad_norm)
+        scale = self._gradient_scale(phi.detach(), grad_norm)
         self.register_buffer("gradient_scale", scale, persistent=False)
         self.register_buffer(
             "weight", torch.maximum(grad_norm, WEIGHT_FLOOR * scale), persistent=False
@@ -121,6 +127,23 @@ class ImplicitSurface(nn.Module):
         self.register_buffer("_mean_curvature", None, persistent=False)
         self.register_buffer("_haloed_normal", None, persistent=False)
         self.register_buffer("_haloed_weight", None, persistent=False)
+
+    def _pad(self, volume: Tensor, mode: str) -> Tensor:
+        """``volume`` with a halo of one node (``mode`` at the box's faces)."""
+        return stencils.pad(volume, mode)
+
+    def _gradient_scale(self, phi: Tensor, grad_norm: Tensor) -> Tensor:
+        """Median ``|grad phi|`` over the nodes with a neighbour across S; ``(B, 1, 1, 1, 1)``."""
+        crossing = _crossing(phi < 0)
+        scales = [grad_norm[b][crossing[b]].median() for b in range(phi.shape[0])]
+        return torch.stack(scales).view(-1, 1, 1, 1, 1)
+
+    def check_field(self, value: object, name: str, channels: int | None = None) -> Tensor:
+        """``value`` checked as data on this surface (see :func:`check_data`)."""
+        volume = check_volume(value, name, channels=channels)
+        check_spatial_shape(volume, name, self.grid.shape, "surface.grid")
+        check_batch(volume, name, self.batch_size, "surface")
+        return volume
 
     @property
     def batch_size(self) -> int:
@@ -156,18 +179,20 @@ class ImplicitSurface(nn.Module):
         """
         if self._haloed_normal is not None:
             return self._haloed_normal, self._haloed_weight
-        normal = stencils.pad_mirrored(self.normal)
-        weight = stencils.pad(self.weight, "replicate")
+        normal, weight = self._haloed_geometry()
         if torch.is_grad_enabled() or not self.phi.requires_grad:
             self._haloed_normal, self._haloed_weight = normal, weight
         return normal, weight
+
+    def _haloed_geometry(self) -> tuple[Tensor, Tensor]:
+        return stencils.pad_mirrored(self.normal), stencils.pad(self.weight, "replicate")
 
     def hessian(self) -> Tensor:
         """Second derivatives of ``phi``, ``(B, 6, D, H, W)`` in the order xx, yy, zz, xy, xz, yz.
 
         Central differences, world units (``1 / length``).
         """
-        padded = stencils.pad(self.phi, "linear")
+        padded = self._pad(self.phi, "linear")
         return stencils.apply(padded, stencils.HESSIAN)[:, 0] / self.spacing**2
 
     def _gradient(self) -> Tensor:
@@ -242,9 +267,7 @@ def check_data(value: object, name: str, surface: object, channels: int | None =
     Raises ``TypeError`` or ``ValueError`` naming ``name``; returns the volume.
     """
     surface = check_surface(surface)
-    volume = check_volume(value, name, channels=channels)
-    check_spatial_shape(volume, name, surface.grid.shape, "surface.grid")
-    check_batch(volume, name, surface.batch_size, "surface")
+    volume = surface.check_field(value, name, channels)
     if volume.dtype != surface.phi.dtype or volume.device != surface.phi.device:
         raise ValueError(
             f"{name} has dtype {volume.dtype} on {volume.device} but surface has "

@@ -22,6 +22,7 @@ import torch.utils.checkpoint
 from torch import Tensor
 
 from .. import backend
+from ..bricks.layout import BrickLayout
 from ._rkc import MAX_STAGES, largest_step_times_rho, rkc_step, stages_for
 from ._solve import SolverOptions, solve_symmetric
 
@@ -33,11 +34,14 @@ def tensors(*values: object) -> tuple[Tensor, ...]:
     return tuple(v for v in values if isinstance(v, Tensor) and v.requires_grad)
 
 
-def with_ring(band: Tensor) -> Tensor:
+def with_ring(band: Tensor, layout: BrickLayout | None = None) -> Tensor:
     """``band`` ``(B, 1, D, H, W)`` bool and every node a 3x3x3 stencil on it reads.
 
-    The 3x3x3 dilation as three 1-D ones (max_pool3d took 13 ms at 81^3 on one thread).
+    The 3x3x3 dilation as three 1-D ones (max_pool3d took 13 ms at 81^3 on one thread). With
+    ``layout``, ``band`` is packed ``(N, 1, 8, 8, 8)`` on it (:meth:`BrickLayout.dilate`).
     """
+    if layout is not None:
+        return layout.dilate(band)
     grown = band
     for dim in (2, 3, 4):
         length = grown.shape[dim]
@@ -76,6 +80,7 @@ class System:
         project: applied after every step (e.g. ``u / |u|``), or ``None``.
         linear: the symmetric linear form, for the implicit integrators; ``None`` if nonlinear.
         params: tensors ``rate`` reads that may need gradients (for ``odeint_adjoint``).
+        layout: the :class:`~torchsurf.bricks.BrickLayout` of packed fields, or ``None``.
     """
 
     rate: Rate
@@ -84,6 +89,7 @@ class System:
     project: Callable[[Tensor], Tensor] | None = None
     linear: Linear | None = None
     params: tuple[Tensor, ...] = field(default_factory=tuple)
+    layout: BrickLayout | None = None
 
     def __post_init__(self) -> None:
         if not self.spectral_radius > 0 or not math.isfinite(self.spectral_radius):
@@ -100,7 +106,7 @@ class System:
     @functools.cached_property
     def region(self) -> Tensor:
         """The band and the ring of nodes its 3x3x3 stencils read, a bool mask like ``band``."""
-        return with_ring(self.band)
+        return with_ring(self.band, self.layout)
 
 
 @dataclass
@@ -339,6 +345,7 @@ def _theta_method(theta: float) -> Callable[[System, Tensor, Schedule], list[Ten
                 "FlowVisualization); use 'euler', 'heun' or a torchdiffeq method"
             )
         band, weight = system.band, linear.params[0]
+        groups = None if system.layout is None else system.layout.batch.to(u0.device)
         mask = band.to(u0.dtype)
         zero = torch.zeros((), dtype=u0.dtype, device=u0.device)
         u, out, done = u0, [], 0
@@ -356,7 +363,7 @@ def _theta_method(theta: float) -> Callable[[System, Tensor, Schedule], list[Ten
                 if theta < 1:
                     rhs = rhs + (1 - theta) * dt * linear.operator(u, *linear.params)
                 rhs = torch.where(band, rhs, zero)
-                x = solve_symmetric(matrix, rhs, inside, params, schedule.solver)
+                x = solve_symmetric(matrix, rhs, inside, params, schedule.solver, groups)
                 u = torch.where(band, x, u)
                 done += 1
                 if schedule.after_step is not None:

@@ -41,8 +41,14 @@ class SolverOptions:
         return 1e-10 if dtype == torch.float64 else 1e-6
 
 
-def _dot(a: Tensor, b: Tensor) -> Tensor:
-    return (a * b).sum(dim=_SPATIAL, keepdim=True)
+def _dot(a: Tensor, b: Tensor, groups: Tensor | None = None) -> Tensor:
+    """``<a, b>`` per volume and channel ``(B, C, 1, 1, 1)``; with ``groups`` ``(N,)``, the
+    rows are the bricks of packed fields and the sums run over each batch entry's bricks."""
+    rows = (a * b).sum(dim=_SPATIAL, keepdim=True)
+    if groups is None:
+        return rows
+    entries = rows.new_zeros((int(groups.max()) + 1, *rows.shape[1:]))
+    return entries.index_add(0, groups, rows)[groups]
 
 
 def _check_residual(energy: Tensor, iteration: int) -> None:
@@ -72,9 +78,13 @@ def _warn_unconverged(energy: Tensor, norm: Tensor, tolerance: float, iterations
 
 @torch.no_grad()
 def conjugate_gradient(
-    operator: Callable[[Tensor], Tensor], rhs: Tensor, initial: Tensor, options: SolverOptions
+    operator: Callable[[Tensor], Tensor], rhs: Tensor, initial: Tensor, options: SolverOptions,
+    groups: Tensor | None = None,
 ) -> tuple[Tensor, int]:
     """Solve ``operator(x) = rhs`` for every volume and channel of ``rhs`` ``(B, C, D, H, W)``.
+
+    With ``groups`` ``(N,)`` (the batch index of each brick), ``rhs`` is a packed band field
+    ``(N, C, 8, 8, 8)`` and each batch entry is one system.
 
     Returns:
         The solution ``(B, C, D, H, W)`` and the number of iterations taken.
@@ -89,9 +99,9 @@ def conjugate_gradient(
     x = initial.clone()
     residual = rhs - operator(x)
     direction = residual.clone()
-    energy = _dot(residual, residual)
+    energy = _dot(residual, residual, groups)
     tiny = torch.finfo(rhs.dtype).tiny  # not 1e-300, which is 0 in float32
-    norm = _dot(rhs, rhs).clamp(min=tiny)
+    norm = _dot(rhs, rhs, groups).clamp(min=tiny)
     target = tolerance**2 * norm
     for iteration in range(options.max_iterations + 1):
         _check_residual(energy, iteration)
@@ -102,11 +112,11 @@ def conjugate_gradient(
         if iteration == options.max_iterations:
             break
         image = operator(direction)
-        curvature = _dot(direction, image)
+        curvature = _dot(direction, image, groups)
         alpha = torch.where(active & (curvature > 0), energy / curvature.clamp(min=tiny), 0.0)
         x = x + alpha * direction
         residual = residual - alpha * image
-        new_energy = _dot(residual, residual)
+        new_energy = _dot(residual, residual, groups)
         direction = residual + (new_energy / energy.clamp(min=tiny)) * direction
         energy = new_energy
     _warn_unconverged(energy, norm, tolerance, options.max_iterations)
@@ -117,12 +127,12 @@ class _SymmetricSolve(torch.autograd.Function):
     """``x = K^-1 b`` with ``K`` symmetric; backward by a second solve (implicit differentiation)."""
 
     @staticmethod
-    def forward(ctx, operator, options, initial, rhs, *params):  # noqa: ANN001, ANN205
+    def forward(ctx, operator, options, groups, initial, rhs, *params):  # noqa: ANN001, ANN205
         def apply(x: Tensor) -> Tensor:
             return operator(x, *params)
 
-        solution, _ = conjugate_gradient(apply, rhs, initial, options)
-        ctx.operator, ctx.options = operator, options
+        solution, _ = conjugate_gradient(apply, rhs, initial, options, groups)
+        ctx.operator, ctx.options, ctx.groups = operator, options, groups
         ctx.save_for_backward(solution, *params)
         return solution
 
@@ -134,9 +144,9 @@ class _SymmetricSolve(torch.autograd.Function):
             return ctx.operator(x, *params)
 
         adjoint, _ = conjugate_gradient(
-            apply, grad_solution, torch.zeros_like(grad_solution), ctx.options
+            apply, grad_solution, torch.zeros_like(grad_solution), ctx.options, ctx.groups
         )
-        wanted = [i for i in range(len(params)) if ctx.needs_input_grad[4 + i]]
+        wanted = [i for i in range(len(params)) if ctx.needs_input_grad[5 + i]]
         grads: list[Tensor | None] = [None] * len(params)
         if wanted:
             # fresh leaves: the gradient must stop at the parameters, not run into their graphs
@@ -148,8 +158,8 @@ class _SymmetricSolve(torch.autograd.Function):
                 )
             for i, grad in zip(wanted, found, strict=True):
                 grads[i] = grad
-        grad_rhs = adjoint if ctx.needs_input_grad[3] else None
-        return None, None, None, grad_rhs, *grads
+        grad_rhs = adjoint if ctx.needs_input_grad[4] else None
+        return None, None, None, None, grad_rhs, *grads
 
 
 def solve_symmetric(
@@ -158,6 +168,7 @@ def solve_symmetric(
     initial: Tensor,
     params: Sequence[Tensor],
     options: SolverOptions,
+    groups: Tensor | None = None,
 ) -> Tensor:
     """``K^-1 rhs`` by conjugate gradients, differentiable by implicit differentiation.
 
@@ -168,5 +179,6 @@ def solve_symmetric(
         initial: starting guess, same shape (treated as a constant).
         params: the tensors ``operator`` reads (diffusivities, steps, the surface's geometry).
         options: the stopping rule.
+        groups: for packed band fields, the batch index of each brick ``(N,)``.
     """
-    return _SymmetricSolve.apply(operator, options, initial.detach(), rhs, *params)
+    return _SymmetricSolve.apply(operator, options, groups, initial.detach(), rhs, *params)

@@ -60,7 +60,7 @@ from ._integrators import (
 )
 from ._positive import Positive
 from ._solve import SolverOptions
-from .extension import CubicStencil
+from .extension import BrickCubicStencil, CubicStencil, cubic_stencil
 
 
 def _check_times(times: object, end: float) -> list[float]:
@@ -113,22 +113,29 @@ around a closest point lie within ``2 sqrt(3) h`` of S, and the band with its ri
 node within ``band_width + h / sqrt(3)`` of S."""
 
 
-_STENCILS: weakref.WeakKeyDictionary[ImplicitSurface, dict[tuple[float | None, str], CubicStencil]] = (
+Stencil = CubicStencil | BrickCubicStencil
+
+_STENCILS: weakref.WeakKeyDictionary[ImplicitSurface, dict[tuple[float | None, str], Stencil]] = (
     weakref.WeakKeyDictionary()
 )
 
 
 def _stencil(surface: ImplicitSurface, width: float | None, kind: str, mask: Tensor
-             ) -> CubicStencil:
+             ) -> Stencil:
     """The closest-point stencil of ``mask`` (``kind`` names it), kept while the surface lives
     unless ``phi`` requires grad (its weights are then in ``phi``'s graph)."""
     if surface.phi.requires_grad:
-        return CubicStencil(surface, mask, limited=True)
+        return cubic_stencil(surface, mask, limited=True)
     cached = _STENCILS.setdefault(surface, {})
     key = (width, kind)
     if key not in cached:
-        cached[key] = CubicStencil(surface, mask, limited=True)
+        cached[key] = cubic_stencil(surface, mask, limited=True)
     return cached[key]
+
+
+def _diagonal_cells(surface: ImplicitSurface) -> float:
+    grids = surface.grids if surface.layout is not None else (surface.grid,)
+    return max(math.dist(grid.shape, (1, 1, 1)) for grid in grids)
 
 
 class Flow(nn.Module):
@@ -165,6 +172,9 @@ class Flow(nn.Module):
             ``"auto"`` (default): when autograd records the call (a parameter, ``u0`` or
             ``phi`` requires grad); ``True`` or ``False`` to force.
     """
+
+    supports_bricks = False
+    """Whether the flow runs on a :class:`~torchsurf.bricks.BrickSurface` (packed fields)."""
 
     def __init__(
         self,
@@ -322,7 +332,14 @@ class Flow(nn.Module):
                 exceeds the memory available (:mod:`torchsurf._memory`).
         """
         check_surface(surface)
+        if surface.layout is not None and not self.supports_bricks:
+            raise NotImplementedError(
+                f"{type(self).__name__} does not run on a BrickSurface yet (HeatFlow does); "
+                "use the dense ImplicitSurface (docs/bricks.md)"
+            )
         check_data(u0, "u0", surface)
+        if surface.layout is not None and surface.batch_size > 1:
+            return self._each_entry(u0, surface, times, inputs)
         wanted = None if times is None else _check_times(times, self.time_value.maximum())
         width = surface.band_width if self.band_width is None else self.band_width
         if self.reextend_every is not None and width < MIN_BAND_CELLS * surface.spacing * (1 - 1e-6):
@@ -335,8 +352,10 @@ class Flow(nn.Module):
         band = self.band_mask(surface)
         self._check_memory(u0, surface, band)
         # before the flow's system, whose bounds read u0 (reaction-diffusion's)
-        check_finite(torch.where(with_ring(band), u0, 0.0), "u0 (in the band and its ring)")
+        check_finite(torch.where(with_ring(band, surface.layout), u0, 0.0),
+                     "u0 (in the band and its ring)")
         system = self.system(u0, surface, **inputs)
+        system.layout = surface.layout
         if self.method in IMPLICIT and system.linear is None:
             raise ValueError(
                 f"method={self.method!r} needs a linear symmetric flow; {type(self).__name__} "
@@ -348,7 +367,7 @@ class Flow(nn.Module):
         wanted = None if wanted is None else wanted[len(initial):]
         plan = plan_steps(self.method, system, self.time_value.maximum(), self.steps,
                           band_cells=width / surface.spacing,
-                          diagonal_cells=math.dist(surface.grid.shape, (1, 1, 1)))
+                          diagonal_cells=_diagonal_cells(surface))
         bar = self._progress_bar(plan.count)
         every = self._reextension_period(system, plan)
         schedule = self._schedule(wanted, self._after_step(surface, system, bar, every))
@@ -372,6 +391,23 @@ class Flow(nn.Module):
                     "did not; use method='rkc', more steps, or smaller parameters"
                 )
         return result[-1] if times is None else torch.stack(initial + result)
+
+    def _each_entry(self, u0: Tensor, surface: ImplicitSurface, times: object,
+                    inputs: dict[str, Tensor]) -> Tensor:
+        """A batch of brick entries, each integrated alone with its own steps and stages (its
+        own operator bound): each entry's result is what it would be without the others."""
+        result = None
+        count = len(surface.layout)
+        for rows, entry in surface.entries():
+            own = {name: value[rows] if isinstance(value, Tensor) and value.shape[:1] == (count,)
+                   else value for name, value in inputs.items()}
+            part = self.forward(u0[rows], entry, times, **own)
+            if result is None:
+                shape = list(part.shape)
+                shape[-5] = count
+                result = part.new_zeros(shape)
+            result = result.index_copy(part.dim() - 5, rows, part)
+        return result
 
     def extra_repr(self) -> str:
         return f"method={self.method!r}, steps={self.steps}"

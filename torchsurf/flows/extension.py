@@ -15,12 +15,15 @@ Both update only the band ``|phi| <= width`` and keep ``u`` elsewhere.
 
 from __future__ import annotations
 
+import itertools
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .. import backend, stencils
 from .._checks import check_choice, check_positive
+from ..bricks.layout import BRICK
 from ..surface import ImplicitSurface, check_data
 
 METHODS = ("closest_point", "pde")
@@ -197,6 +200,137 @@ class CubicStencil:
                                 weights.to(u.dtype), height, width, self.limited)
             results.append(flat.index_copy(1, targets, value).reshape(volume.shape))
         return torch.stack(results)
+
+
+def _brick_sources(lookup: Tensor, block: Tensor, local: Tensor) -> Tensor:
+    """``(M, 64)`` packed indices of the taps, in the order of ``_CELL``."""
+    zb, yb, xb = block.unbind(0)
+    zl, yl, xl = local.unbind(0)
+    bricks = lookup[zb[:, :, None, None] + yb[:, None, :, None] + xb[:, None, None, :]]
+    offsets = zl[:, :, None, None] + yl[:, None, :, None] + xl[:, None, None, :]
+    return (bricks * BRICK**3 + offsets).flatten(1)
+
+
+def _brick_gathered(flat: Tensor, lookup: Tensor, block: Tensor, local: Tensor, weights: Tensor,
+                    limited: bool, *, path: str = "slicing") -> Tensor:
+    """Bricks' :func:`_interpolate_gathered`: one gather of ``(C, M, 64)``."""
+    wx, wy, wz = weights.unbind(0)
+    taps = (wz[:, :, None, None] * wy[:, None, :, None] * wx[:, None, None, :]).flatten(1)
+    gathered = flat[:, _brick_sources(lookup, block.long(), local.long())]
+    value = (gathered * taps).sum(dim=-1)
+    if limited:
+        cell = gathered[..., _CELL]
+        value = torch.minimum(torch.maximum(value, cell.amin(-1)), cell.amax(-1))
+    return value
+
+
+def _brick_terms(flat: Tensor, lookup: Tensor, block: Tensor, local: Tensor, weights: Tensor,
+                 limited: bool) -> Tensor:
+    """Bricks' :func:`_interpolate_terms`: compiled, each tap's brick looked up in the loop."""
+    zb, yb, xb = block.long().unbind(0)
+    zl, yl, xl = local.long().unbind(0)
+    wx, wy, wz = weights.unbind(0)
+    value = low = high = None
+    for k in range(4):
+        for j in range(4):
+            weight = wz[:, k] * wy[:, j]
+            for i in range(4):
+                brick = lookup[zb[:, k] + yb[:, j] + xb[:, i]]
+                tap = flat[:, brick * BRICK**3 + zl[:, k] + yl[:, j] + xl[:, i]]
+                term = (weight * wx[:, i]) * tap
+                value = term if value is None else value + term
+                if limited and 1 <= k <= 2 and 1 <= j <= 2 and 1 <= i <= 2:
+                    low = tap if low is None else torch.minimum(low, tap)
+                    high = tap if high is None else torch.maximum(high, tap)
+    if limited:
+        value = torch.minimum(torch.maximum(value, low), high)
+    return value
+
+
+_BRICK_INTERPOLATION = backend.Kernel(
+    "tricubic_interpolation_bricks", _brick_gathered, _brick_terms, lambda *args: args,
+    dynamic=True,
+)
+
+
+class BrickCubicStencil:
+    """:class:`CubicStencil` on a :class:`~torchsurf.bricks.BrickSurface`: the same numbers at
+    the same nodes, reading packed fields ``(N, C, 8, 8, 8)``.
+
+    Each node keeps, per axis, the brick part and the in-brick part of its 4 taps' indices
+    and their weights (144 bytes per node); the 64 taps' bricks are looked up where they are
+    read. Taps are clamped to each entry's box, as the dense stencil replicates its data.
+
+    Args:
+        surface: a :class:`~torchsurf.bricks.BrickSurface`.
+        mask: ``(N, 1, 8, 8, 8)`` bool, the nodes to fill.
+        limited: as in :class:`CubicStencil`.
+
+    Raises:
+        ValueError: a tap falls in a brick that is not stored (a closest point too near the
+            edge of the stored band).
+    """
+
+    def __init__(self, surface: ImplicitSurface, mask: Tensor, limited: bool = False) -> None:
+        layout = surface.layout
+        self.limited = bool(limited)
+        device = surface.phi.device
+        self.targets = mask.reshape(-1).nonzero().squeeze(1)
+        row = self.targets // BRICK**3
+        batch = layout.batch.to(device)[row]
+        # world points first, as the dense stencil computes them: the same rounding of the
+        # closest points, so that the limiter picks the same cell
+        dtype = surface.phi.dtype
+        points = layout.points(dtype).to(device)
+        step = (surface.phi / surface.weight) * surface.normal
+        world = (points - step).permute(0, 2, 3, 4, 1).reshape(-1, 3)[self.targets]
+        origins = torch.tensor([g.origin for g in layout.grids], dtype=dtype, device=device)
+        at = (world - origins[batch]) / surface.spacing
+        shapes = torch.tensor([g.shape[::-1] for g in layout.grids], device=device)[batch]
+        extent_z, extent_y, extent_x = layout.extent
+        base = at.detach().floor()
+        offsets = torch.arange(-1, 3, device=device)
+        coordinates = [(base[:, axis: axis + 1].long() + offsets).clamp(
+            torch.zeros_like(shapes[:, axis: axis + 1]), shapes[:, axis: axis + 1] - 1)
+            for axis in range(3)]
+        x, y, z = coordinates
+        block = torch.stack([(batch[:, None] * extent_z + z // BRICK) * extent_y * extent_x,
+                             (y // BRICK) * extent_x, x // BRICK])
+        local = torch.stack([(z % BRICK) * BRICK * BRICK, (y % BRICK) * BRICK, x % BRICK])
+        self.lookup = layout.lookup.to(device).reshape(-1)
+        wide = self.lookup.numel() * BRICK**3 >= 2**31
+        self.block = block if wide else block.to(torch.int32)
+        self.local = local.to(torch.int32)
+        self.weights = torch.stack([
+            torch.stack(_cubic_weights(at[:, axis] - base[:, axis]), dim=1) for axis in range(3)
+        ])
+        self._check_stored()
+
+    def _check_stored(self) -> None:
+        zb, yb, xb = self.block.long().unbind(0)
+        for k, j, i in itertools.product(range(4), repeat=3):
+            if bool((self.lookup[zb[:, k] + yb[:, j] + xb[:, i]] < 0).any()):
+                raise ValueError(
+                    "closest-point re-extension reads nodes outside the stored bricks: build the "
+                    "BrickSurface with torchsurf.bricks.from_dense or from_mesh at this band width"
+                )
+
+    def apply(self, u: Tensor) -> Tensor:
+        """``u`` ``(N, C, 8, 8, 8)`` with the masked nodes re-extended; a new tensor."""
+        channels = u.shape[1]
+        flat = u.transpose(0, 1).reshape(channels, -1)
+        value = backend.run(_BRICK_INTERPOLATION, "auto", u, flat, self.lookup, self.block,
+                            self.local, self.weights.to(u.dtype), self.limited)
+        result = flat.index_copy(1, self.targets, value)
+        return result.view(channels, *u.shape[:1], *u.shape[2:]).transpose(0, 1)
+
+
+def cubic_stencil(surface: ImplicitSurface, mask: Tensor, limited: bool = False
+                  ) -> CubicStencil | BrickCubicStencil:
+    """The closest-point stencil for ``surface``'s storage: dense or bricks."""
+    if surface.layout is not None:
+        return BrickCubicStencil(surface, mask, limited)
+    return CubicStencil(surface, mask, limited)
 
 
 def _closest_points(surface: ImplicitSurface, dtype: torch.dtype) -> Tensor:

@@ -18,6 +18,8 @@ SYMMETRIC_SCHEMES = functional.SCHEMES
 
 
 class HeatFlow(Flow):
+    supports_bricks = True
+
     """Heat flow on the surface: ``u_t = D Lap_S u``, ``Lap_S`` by :func:`torchsurf.laplace_beltrami`.
 
     With the second-order schemes (the default octant, or symmetric), sampled on S, the flow
@@ -79,13 +81,14 @@ class HeatFlow(Flow):
         linear = None
         if self.scheme in SYMMETRIC_SCHEMES:
             spacing, scheme, path = surface.spacing, self.scheme, self.path
+            pad = None if surface.layout is None else surface.layout.halo
 
             def operator(x: Tensor, weight: Tensor, normal: Tensor, haloed_weight: Tensor,
                          haloed_normal: Tensor, *diffusivity: Tensor) -> Tensor:
                 scale = diffusivity[0] if diffusivity else d
                 return scale * functional.divergence_form(
                     x, normal, weight, spacing, scheme, path, weighted=True,
-                    haloed=(haloed_normal, haloed_weight),
+                    haloed=(haloed_normal, haloed_weight), pad=pad,
                 )
 
             haloed_normal, haloed_weight = surface.haloed()

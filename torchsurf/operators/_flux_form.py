@@ -153,7 +153,7 @@ def haloed_projected_gradient(
 def fused_flux_form(
     padded_u: Tensor, haloed_normal: Tensor, haloed_weight: Tensor, grad_norm: Tensor,
     spacing: float, flux_map: FluxMap | None, haloed_fields: Sequence[Tensor], scheme: str,
-    weighted: bool = False,
+    weighted: bool = False, box_faces: bool = True,
 ) -> Tensor:
     """``(1/W) div(W f(P grad u))`` as :func:`flux_form` computes it, as one expression.
 
@@ -169,6 +169,8 @@ def fused_flux_form(
         flux_map: ``None`` for the identity.
         haloed_fields: the flux map's per-node tensors, halo of one node.
         weighted: return ``W L u`` (symmetric for a linear flux map) instead of ``L u``.
+        box_faces: the inputs' outer faces are the box's (no flux through them); ``False``
+            for bricks, whose halos hold their neighbours' values.
 
     Returns:
         ``(B, C, D, H, W)``.
@@ -179,7 +181,9 @@ def fused_flux_form(
         v = haloed_projected_gradient(padded_u, haloed_normal, spacing, side)
         flux = v if flux_map is None else flux_map(v, haloed_fields, k)
         for axis, s in enumerate(side):
-            face = haloed_weight * flux[axis] * _open_faces(flux[axis], axis, s)
+            face = haloed_weight * flux[axis]
+            if box_faces:
+                face = face * _open_faces(flux[axis], axis, s)
             ahead, behind = (stencils.unit(axis, 1), stencils.CENTRE) if s == -1 else (
                 stencils.CENTRE, stencils.unit(axis, -1))
             term = shifted(face, ahead) - shifted(face, behind)

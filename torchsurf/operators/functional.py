@@ -24,7 +24,7 @@ The divergence forms ``L u = (1/W) div(W f(P grad u))`` come in three schemes (s
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import torch
 import torch.nn.functional as F
@@ -46,6 +46,11 @@ SCHEMES = ("octant", "symmetric", "conservative")
 """The divergence-form schemes."""
 
 Haloed = tuple[Tensor, Tensor] | None
+
+Pad = Callable[[Tensor, int], Tensor]
+"""``pad(u, width) -> u`` with a halo of ``width`` nodes from where ``u`` is stored: for packed
+band fields, :meth:`torchsurf.bricks.BrickLayout.halo`. Given, an operator runs its one-pass
+form on the haloed inputs (``haloed`` geometry required) and imposes no box faces."""
 
 
 def _replicated(volume: Tensor, width: int) -> Tensor:
@@ -97,7 +102,28 @@ def _flux_lb_halo(u, normal, weight, spacing, scheme, weighted, haloed):  # noqa
 _FLUX_LB = backend.Kernel("laplace_beltrami_flux_form", _flux_lb_eager, _flux_lb_fused, _flux_lb_halo)
 
 
-def _apply_linear(u, normal, weight, spacing, scheme, weighted, haloed, path):  # noqa: ANN001, ANN202
+def _flux_lb_open(padded_u, haloed_normal, haloed_weight, weight, spacing, scheme, weighted):  # noqa: ANN001, ANN202
+    return fused_flux_form(padded_u, haloed_normal, haloed_weight, weight, spacing, None, (),
+                           scheme, weighted, box_faces=False)
+
+
+_FLUX_LB_OPEN = backend.Kernel("laplace_beltrami_flux_form_open", _flux_lb_eager, _flux_lb_open)
+
+
+def _require_haloed(haloed: Haloed) -> tuple[Tensor, Tensor]:
+    if haloed is None:
+        raise ValueError("pad= needs haloed=(normal, weight) with a halo of one node")
+    return haloed
+
+
+def _apply_linear(u, normal, weight, spacing, scheme, weighted, haloed, path, pad=None):  # noqa: ANN001, ANN202
+    if pad is not None:
+        haloed_normal, haloed_weight = _require_haloed(haloed)
+        if scheme == "octant":
+            return backend.run_haloed(_OCTANT, path, u, pad(u, 1), haloed_normal, haloed_weight,
+                                      weight, spacing, weighted)
+        return backend.run_haloed(_FLUX_LB_OPEN, path, u, pad(u, 2), haloed_normal,
+                                  haloed_weight, weight, spacing, scheme, weighted)
     if scheme == "octant":
         return backend.run(_OCTANT, path, u, u, normal, weight, spacing, weighted, haloed)
     return backend.run(_FLUX_LB, path, u, u, normal, weight, spacing, scheme, weighted, haloed)
@@ -109,40 +135,41 @@ class _SelfAdjoint(torch.autograd.Function):
     Only for a fixed geometry (no gradient to the normals or ``W``)."""
 
     @staticmethod
-    def forward(ctx, u, normal, weight, spacing, scheme, weighted, haloed, path):  # noqa: ANN001, ANN205
-        ctx.geometry = (normal, weight, spacing, scheme, weighted, haloed, path, u.shape[0])
-        return _apply_linear(u, normal, weight, spacing, scheme, weighted, haloed, path)
+    def forward(ctx, u, normal, weight, spacing, scheme, weighted, haloed, path, pad):  # noqa: ANN001, ANN205
+        ctx.geometry = (normal, weight, spacing, scheme, weighted, haloed, path, pad, u.shape[0])
+        return _apply_linear(u, normal, weight, spacing, scheme, weighted, haloed, path, pad)
 
     @staticmethod
     def backward(ctx, grad_output):  # noqa: ANN001, ANN205
-        normal, weight, spacing, scheme, weighted, haloed, path, batch = ctx.geometry
+        normal, weight, spacing, scheme, weighted, haloed, path, pad, batch = ctx.geometry
         # A = W L is symmetric: (W^-1 A)^T g = A (g / W), and A^T g = A g
         source = grad_output if weighted else grad_output / weight
-        grad_u = _apply_linear(source, normal, weight, spacing, scheme, True, haloed, path)
+        grad_u = _apply_linear(source, normal, weight, spacing, scheme, True, haloed, path, pad)
         if grad_u.shape[0] != batch:
             grad_u = grad_u.sum(dim=0, keepdim=True)
-        return grad_u, None, None, None, None, None, None, None
+        return grad_u, None, None, None, None, None, None, None, None
 
 
 def divergence_form(
     u: Tensor, normal: Tensor, weight: Tensor, spacing: float, scheme: str = "octant",
-    path: str = "auto", weighted: bool = False, haloed: Haloed = None,
+    path: str = "auto", weighted: bool = False, haloed: Haloed = None, pad: Pad | None = None,
 ) -> Tensor:
     """The Laplace–Beltrami operator ``L u = (1/W) div(W P grad u)`` in divergence form.
 
     Args:
-        u: ``(B, C, D, H, W)``.
+        u: ``(B, C, D, H, W)``, or packed band bricks ``(N, C, 8, 8, 8)`` with ``pad``.
         normal, weight, spacing, haloed: the geometry (module docstring).
         scheme: ``"octant"`` (default), ``"symmetric"`` or ``"conservative"``.
         path: how the stencils run (:mod:`torchsurf.backend`).
         weighted: return ``W L u`` (symmetric negative semi-definite) instead.
+        pad: how ``u`` gets its halo (:data:`Pad`); ``None`` for a dense volume.
 
     Returns:
-        ``(B, C, D, H, W)``, units of ``u`` per world length squared (times ``W`` if weighted).
+        ``u``'s shape, units of ``u`` per world length squared (times ``W`` if weighted).
     """
     if normal.requires_grad or weight.requires_grad:
-        return _apply_linear(u, normal, weight, spacing, scheme, weighted, haloed, path)
-    return _SelfAdjoint.apply(u, normal, weight, spacing, scheme, weighted, haloed, path)
+        return _apply_linear(u, normal, weight, spacing, scheme, weighted, haloed, path, pad)
+    return _SelfAdjoint.apply(u, normal, weight, spacing, scheme, weighted, haloed, path, pad)
 
 
 # --- Nonlinear and directional fluxes ------------------------------------------------------

@@ -40,7 +40,8 @@ def laplace_beltrami(
       (2.0); not symmetric; explicit steps take ``dt <= h^2 / 6`` in practice.
 
     Args:
-        u: data ``(B, C, D, H, W)``; ``surface`` has batch 1 or B.
+        u: data ``(B, C, D, H, W)``; ``surface`` has batch 1 or B. On a
+            :class:`~torchsurf.bricks.BrickSurface`, a packed field ``(N, C, 8, 8, 8)``.
         surface: the implicit surface.
         scheme: one of ``"octant"``, ``"symmetric"``, ``"conservative"``, ``"central"``.
         path: ``"auto"``, ``"slicing"``, ``"conv3d"`` or ``"compiled"``: how the stencils are
@@ -61,6 +62,14 @@ def laplace_beltrami(
     check_choice(scheme, "scheme", SCHEMES)
     check_data(u, "u", surface)
     check_choice(path, "path", backend.PATHS)
+    if surface.layout is not None:
+        if scheme == "central":
+            raise ValueError("scheme='central' is not available on a BrickSurface: use a "
+                             "divergence form ('octant', 'symmetric' or 'conservative')")
+        return functional.divergence_form(
+            u, surface.normal, surface.weight, surface.spacing, scheme, path,
+            haloed=surface.haloed(), pad=surface.layout.halo,
+        )
     if scheme == "central":
         return functional.central_laplace_beltrami(
             u, surface.normal, surface.mean_curvature(), surface.spacing, path

@@ -26,21 +26,24 @@ COLOURS = 27
 """Probe volumes needed for a stencil of radius one."""
 
 
-def _probes(mask: Tensor, channels: range) -> Tensor:
+def _probes(mask: Tensor, channels: range, colour: Tensor | None = None) -> Tensor:
     """Indicator volumes of the colours in ``channels``, restricted to ``mask``.
 
     ``mask``: ``(B, 1, D, H, W)`` bool; returns ``(B, len(channels), D, H, W)`` float.
+    ``colour``: each node's colour, broadcastable to ``mask`` (default: from its position in
+    ``mask``'s grid).
     """
-    shape = mask.shape[-3:]
-    k, j, i = (torch.arange(n, device=mask.device) % 3 for n in shape)
-    colour = (k[:, None, None] * 9 + j[None, :, None] * 3 + i[None, None, :])
+    if colour is None:
+        shape = mask.shape[-3:]
+        k, j, i = (torch.arange(n, device=mask.device) % 3 for n in shape)
+        colour = (k[:, None, None] * 9 + j[None, :, None] * 3 + i[None, None, :])
     wanted = torch.tensor(list(channels), device=mask.device).view(1, -1, 1, 1, 1)
     return ((colour == wanted) & mask).to(torch.get_default_dtype())
 
 
 def gershgorin_bound(
     operator: Callable[[Tensor], Tensor], mask: Tensor, dtype: torch.dtype | None = None,
-    chunk: int = 9,
+    chunk: int = 9, colour: Tensor | None = None,
 ) -> float:
     """Largest absolute row sum of ``x -> mask * operator(mask * x)`` over the nodes of ``mask``.
 
@@ -53,6 +56,9 @@ def gershgorin_bound(
         mask: ``(B, 1, D, H, W)`` bool, the nodes that evolve.
         dtype: of the probes (default: the default dtype).
         chunk: colours probed per call (memory: ``chunk`` volumes).
+        colour: ``(B, 1, D, H, W)`` colour ``(k mod 3) 9 + (j mod 3) 3 + i mod 3`` of each node
+            from its grid index, for fields not stored as whole grids (packed bricks:
+            :meth:`torchsurf.bricks.BrickLayout.colours`); default from ``mask``'s grid.
 
     Returns:
         The bound, in the operator's units (``1 / world length^2`` for a diffusion operator).
@@ -60,7 +66,7 @@ def gershgorin_bound(
     total = None
     with torch.no_grad():
         for start in range(0, COLOURS, chunk):
-            probes = _probes(mask, range(start, min(start + chunk, COLOURS)))
+            probes = _probes(mask, range(start, min(start + chunk, COLOURS)), colour)
             if dtype is not None:
                 probes = probes.to(dtype)
             image = operator(probes).abs().sum(dim=1, keepdim=True)
@@ -98,7 +104,8 @@ def laplace_beltrami_bound(
         check_choice(scheme, "scheme", SCHEMES)
         mask = surface.band_mask(width)
         dtype = surface.phi.dtype
+        colour = None if surface.layout is None else surface.layout.colours().to(mask.device)
         cached[key] = gershgorin_bound(
-            lambda x: laplace_beltrami(x, surface, scheme, "slicing"), mask, dtype
+            lambda x: laplace_beltrami(x, surface, scheme, "slicing"), mask, dtype, colour=colour
         )
     return cached[key]

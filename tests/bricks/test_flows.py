@@ -1,0 +1,120 @@
+"""Flows on bricks: every integrator equals the dense flow on the band; batches; gradients."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+import torchsurf as ts
+from torchsurf import Grid, bricks
+from torchsurf.flows._integrators import with_ring
+from torchsurf.flows.extension import BrickCubicStencil, CubicStencil
+from torchsurf.operators.spectrum import laplace_beltrami_bound
+
+MESHES = Path(__file__).resolve().parents[3] / "shared" / "data" / "meshes"
+
+
+@pytest.fixture(scope="module")
+def torus():
+    grid = Grid.cube(33, 2.1)
+    dense = ts.ImplicitSurface(ts.sdf.torus(grid, 0.9, 0.4).double(), grid)
+    return dense, bricks.from_dense(dense)
+
+
+def _data(grid, channels=2, seed=0):
+    return torch.randn(1, channels, *grid.shape, dtype=torch.float64,
+                       generator=torch.Generator().manual_seed(seed))
+
+
+def test_bound_ring_and_closest_point_stencil_equal_the_dense_ones(torus):
+    dense, surface = torus
+    assert laplace_beltrami_bound(surface) == laplace_beltrami_bound(dense)
+    band, packed_band = dense.band_mask(), surface.band_mask()
+    region = with_ring(band)
+    packed_region = with_ring(packed_band, surface.layout)
+    (grown,) = surface.to_dense(packed_region.double())
+    assert torch.equal(grown > 0, region)
+    u = _data(dense.grid)
+    expected = CubicStencil(dense, region, limited=True).apply(u)
+    (result,) = surface.to_dense(
+        BrickCubicStencil(surface, packed_region, limited=True).apply(surface.from_dense(u)))
+    assert torch.equal(result * region, expected * region)
+
+
+@pytest.mark.parametrize("method", ["rkc", "euler", "heun", "implicit", "crank_nicolson"])
+def test_heat_flow_equals_the_dense_flow_on_the_band(torus, method):
+    dense, surface = torus
+    u = _data(dense.grid)
+    flow = ts.flows.HeatFlow(time=0.01, method=method, steps=None if method != "implicit" else 4)
+    expected = flow(u, dense)
+    (result,) = surface.to_dense(flow(surface.from_dense(u), surface))
+    band = dense.band_mask()
+    assert torch.allclose(result * band, expected * band, atol=1e-12, rtol=0)
+
+
+def test_heat_flow_batch_of_shapes_on_their_own_boxes_equals_each_alone():
+    spacing = 0.1
+    small = Grid(shape=(29, 29, 29), spacing=spacing, origin=(-1.4,) * 3)
+    long = Grid(shape=(33, 41, 39), spacing=spacing, origin=(-1.9, -2.0, -1.6))
+    sphere = bricks.from_dense(ts.sdf.sphere(small, 0.9).double(), small)
+    torus = bricks.from_dense(ts.sdf.torus(long, 1.0, 0.4).double(), long)
+    both = bricks.cat([sphere, torus])
+    u = torch.randn(len(both.layout), 1, 8, 8, 8, dtype=torch.float64,
+                    generator=torch.Generator().manual_seed(3))
+    count = len(sphere.layout)
+    for method in ("rkc", "implicit"):
+        flow = ts.flows.HeatFlow(time=0.01, method=method)
+        together = flow(u, both)
+        alone = torch.cat([flow(u[:count], sphere), flow(u[count:], torus)])
+        band = both.band_mask()
+        assert torch.allclose(together * band, alone * band, atol=1e-12, rtol=0), method
+
+
+def test_heat_flow_on_bricks_keeps_the_maximum_principle_on_a_mesh():
+    mesh_file = MESHES / "bunny_closed.obj"
+    if not mesh_file.exists():
+        pytest.skip("shared meshes not present")
+    mesh = ts.mesh.load(mesh_file)
+    grid = ts.mesh.fit_grid(mesh, 48, margin=0.15)
+    surface = bricks.from_mesh(mesh, grid)
+    points = surface.layout.points()
+    # smooth data in [-1, 1]
+    u0 = torch.sin(40.0 * points[:, :1]) * torch.cos(30.0 * points[:, 1:2] + 20 * points[:, 2:])
+    u = ts.flows.HeatFlow(time=(6 * grid.spacing) ** 2)(u0, surface)
+    band = surface.band_mask()
+    low, high = u0[with_ring(band, surface.layout)].min(), u0[with_ring(band, surface.layout)].max()
+    assert u[band].max() <= high + 1e-6 and u[band].min() >= low - 1e-6
+    assert u[band].std() < 0.8 * u0[band].std()  # and it did smooth
+
+
+def test_heat_flow_on_bricks_solves_the_sphere_exactly_to_second_order():
+    errors = []
+    for n in (33, 49):
+        case = ts.exact.sphere_harmonic(2, n, dtype=torch.float64)
+        surface = bricks.from_dense(case.phi, case.grid)
+        u = ts.flows.HeatFlow(time=0.05)(surface.from_dense(case.u), surface)
+        (volume,) = surface.to_dense(u)
+        decay = -6.0 * 0.05 / ts.exact.SPHERE_RADIUS**2
+        exact = case.u * torch.exp(torch.tensor(decay, dtype=torch.float64))
+        on_s = case.phi.abs() < 0.5 * case.grid.spacing
+        errors.append(float((volume - exact)[on_s].abs().max() / exact[on_s].abs().max()))
+    assert errors[1] < errors[0] / 1.7, errors
+
+
+def test_gradcheck_heat_flow_on_bricks_in_the_data():
+    grid = Grid.cube(21, 2.0)
+    surface = bricks.from_dense(ts.sdf.sphere(grid, 1.0).double(), grid)
+    flow = ts.flows.HeatFlow(time=0.004, method="euler", steps=2)
+    u = torch.randn(len(surface.layout), 1, 8, 8, 8, dtype=torch.float64,
+                    generator=torch.Generator().manual_seed(2), requires_grad=True)
+    band = surface.band_mask()
+    assert torch.autograd.gradcheck(lambda x: flow(x, surface)[band], (u,), fast_mode=True)
+
+
+def test_flows_not_ported_to_bricks_say_so(torus):
+    _, surface = torus
+    u = torch.zeros(len(surface.layout), 1, 8, 8, 8, dtype=torch.float64)
+    with pytest.raises(NotImplementedError, match="BrickSurface"):
+        ts.flows.AnisotropicFlow(time=0.01)(u, surface)

@@ -1,0 +1,142 @@
+"""BrickLayout: halos, dense conversions, dilation and the tables, against dense references."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from torchsurf import Grid
+from torchsurf.bricks import BRICK, BrickLayout, bricks_of_mask
+from torchsurf.flows._integrators import with_ring
+
+
+def _scattered_layout(shape=(21, 30, 17), seed=0) -> tuple[BrickLayout, Grid]:
+    """Every other brick of a box whose sides are not multiples of 8: many absent neighbours."""
+    grid = Grid(shape=shape, spacing=0.1)
+    generator = torch.Generator().manual_seed(seed)
+    extent = [-(-n // BRICK) for n in shape]
+    occupied = torch.rand(extent, generator=generator) < 0.6
+    occupied.view(-1)[0] = True
+    coords = occupied.nonzero()
+    return BrickLayout(coords, torch.zeros(len(coords), dtype=torch.long), [grid]), grid
+
+
+def _reference_halo(packed, layout, width):
+    """Each brick's haloed block cut from the whole box of bricks, zeros where none is stored."""
+    nz, ny, nx = layout.extent
+    channels = packed.shape[1]
+    full = torch.zeros(channels, nz * BRICK, ny * BRICK, nx * BRICK, dtype=packed.dtype)
+    for row, (z, y, x) in enumerate((layout.coords * BRICK).tolist()):
+        full[:, z: z + BRICK, y: y + BRICK, x: x + BRICK] = packed[row]
+    full = F.pad(full, (width,) * 6)
+    side = BRICK + 2 * width
+    return torch.stack([full[:, z: z + side, y: y + side, x: x + side]
+                        for z, y, x in (layout.coords * BRICK).tolist()])
+
+
+@pytest.mark.parametrize("width", [1, 2, 3])
+def test_halo_equals_the_dense_neighbourhood_with_zeros_where_no_brick_is(width):
+    layout, grid = _scattered_layout()
+    packed = torch.randn(len(layout), 2, BRICK, BRICK, BRICK, dtype=torch.float64)
+    haloed = layout.halo(packed, width)
+    assert haloed.shape == (len(layout), 2, *(BRICK + 2 * width,) * 3)
+    assert torch.equal(haloed, _reference_halo(packed, layout, width))
+    assert not layout.present.all()  # the case has missing neighbours
+
+
+def test_halo_is_differentiable_and_its_adjoint_sums_the_copies():
+    layout, grid = _scattered_layout(seed=1)
+    field = torch.randn(len(layout), 1, BRICK, BRICK, BRICK, dtype=torch.float64,
+                        requires_grad=True)
+    weights = torch.randn(len(layout), 1, BRICK + 2, BRICK + 2, BRICK + 2, dtype=torch.float64)
+    (grad,) = torch.autograd.grad((layout.halo(field, 1) * weights).sum(), field)
+    # <halo(x), w> = <x, halo^T w>: check on a random x
+    probe = torch.randn_like(field)
+    assert torch.allclose((layout.halo(probe, 1) * weights).sum(), (probe * grad).sum())
+
+
+def test_dense_round_trip_and_shapes():
+    layout, grid = _scattered_layout(seed=2)
+    volume = torch.randn(1, 3, *grid.shape)
+    (back,) = layout.to_dense(layout.from_dense(volume), fill=float("nan"))
+    stored = ~back.isnan()
+    assert back.shape == volume.shape
+    assert torch.equal(back[stored], volume[stored])
+    assert stored.sum() == layout.inside.sum() * 3
+
+
+def test_linear_fill_extends_affine_data_exactly_beyond_the_box():
+    grid = Grid(shape=(11, 13, 9), spacing=0.5)
+    layout = BrickLayout(torch.tensor([[1, 1, 1]]), torch.tensor([0]), [grid])
+    k, j, i = torch.meshgrid(*(torch.arange(n, dtype=torch.float64) for n in grid.shape),
+                             indexing="ij")
+    affine = (0.3 * k - 1.2 * j + 2.0 * i + 0.7)[None, None]
+    packed = layout.from_dense(affine, fill="linear")
+    kk, jj, ii = (layout.node_index()[0].to(torch.float64))
+    assert torch.allclose(packed[0, 0], 0.3 * kk - 1.2 * jj + 2.0 * ii + 0.7)
+
+
+def test_dilate_matches_the_dense_ring_on_stored_nodes():
+    layout, grid = _scattered_layout(seed=3)
+    mask = torch.rand(1, 1, *grid.shape, generator=torch.Generator().manual_seed(4)) < 0.02
+    packed = layout.from_dense(mask.double()) > 0
+    packed &= layout.inside
+    (grown,) = layout.to_dense(layout.dilate(packed).double(), fill=-1.0)
+    (kept,) = layout.to_dense(packed.double())
+    dense = with_ring(kept > 0)
+    valid = layout.to_dense(layout.interior(1).double(), fill=0.0)[0] > 0
+    assert torch.equal((grown > 0) & valid, dense & valid)
+
+
+def test_interior_marks_nodes_whose_neighbours_are_all_stored():
+    grid = Grid(shape=(24, 8, 8), spacing=1.0)
+    layout = BrickLayout(torch.tensor([[0, 0, 0], [1, 0, 0]]), torch.tensor([0, 0]), [grid])
+    inner = layout.interior(2)
+    # brick 0: only its +z neighbour is stored; two nodes from every other face
+    expected = torch.zeros(BRICK, BRICK, BRICK, dtype=torch.bool)
+    expected[2:, 2:6, 2:6] = True
+    assert torch.equal(inner[0, 0], expected)
+    layout = BrickLayout(torch.tensor([[a, b, c] for a in range(3) for b in range(3)
+                                       for c in range(3)]), torch.zeros(27, dtype=torch.long),
+                         [Grid(shape=(24, 24, 24), spacing=1.0)])
+    centre = layout.interior(2)[13, 0]
+    assert centre.all()
+    corner = layout.interior(2)[0, 0]
+    assert corner[2:, 2:, 2:].all() and not corner[:2].any()
+
+
+def test_colours_repeat_with_period_three_in_grid_indices():
+    layout, _ = _scattered_layout(seed=5)
+    index = layout.node_index()
+    expected = (index[:, 0] % 3) * 9 + (index[:, 1] % 3) * 3 + index[:, 2] % 3
+    assert torch.equal(layout.colours()[:, 0], expected)
+
+
+def test_bricks_of_mask_and_entries_of_different_boxes():
+    grids = [Grid(shape=(20, 20, 20), spacing=0.1), Grid(shape=(9, 40, 12), spacing=0.1)]
+    masks = [torch.zeros(g.shape, dtype=torch.bool) for g in grids]
+    masks[0][10, 10, 10] = True
+    masks[1][8, 39, 0] = True
+    layout = bricks_of_mask(masks, grids)
+    assert layout.counts() == [1, 1]
+    assert layout.coords.tolist() == [[1, 1, 1], [1, 4, 0]]
+    assert not layout.present[:, :13].any() and not layout.present[:, 14:].any()
+
+
+@pytest.mark.parametrize("coords, batch, grids, message", [
+    ([[0, 0, 0]], [0], [Grid((8, 8, 8), 0.1), Grid((8, 8, 8), 0.2)], "one spacing"),
+    ([[0, 0, 0], [0, 0, 0]], [0, 0], [Grid((8, 8, 8), 0.1)], "repeat"),
+    ([[1, 0, 0]], [0], [Grid((8, 8, 8), 0.1)], "inside"),
+    ([[0, 0]], [0], [Grid((8, 8, 8), 0.1)], r"\(N, 3\)"),
+    ([[0, 0, 0]], [1], [Grid((8, 8, 8), 0.1)], "batch indices"),
+])
+def test_bad_tables_are_refused(coords, batch, grids, message):
+    with pytest.raises(ValueError, match=message):
+        BrickLayout(torch.tensor(coords), torch.tensor(batch), grids)
+
+
+def test_fields_of_the_wrong_shape_are_refused_with_the_expected_shape():
+    layout, _ = _scattered_layout()
+    with pytest.raises(ValueError, match=rf"\({len(layout)}, C, 8, 8, 8\)"):
+        layout.check_field(torch.zeros(len(layout) + 1, 1, 8, 8, 8), "u")

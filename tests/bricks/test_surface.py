@@ -1,0 +1,144 @@
+"""BrickSurface against the dense ImplicitSurface: geometry, operators, gradients, meshes."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+import torchsurf as ts
+from torchsurf import Grid, bricks
+
+MESHES = Path(__file__).resolve().parents[3] / "shared" / "data" / "meshes"
+
+
+def _on_band(dense_surface, brick_surface, packed):
+    """The packed field as a dense volume, and the dense band mask."""
+    (volume,) = brick_surface.to_dense(packed)
+    return volume, dense_surface.band_mask()
+
+
+@pytest.fixture(scope="module")
+def torus():
+    grid = Grid.cube(33, 2.1)
+    dense = ts.ImplicitSurface(ts.sdf.torus(grid, 0.9, 0.4).double(), grid)
+    return dense, bricks.from_dense(dense)
+
+
+def test_geometry_equals_the_dense_surface_on_the_band(torus):
+    dense, surface = torus
+    band = dense.band_mask()
+    for name in ("phi", "grad_norm", "normal", "weight"):
+        (volume,) = surface.to_dense(getattr(surface, name))
+        assert torch.equal(volume * band, getattr(dense, name) * band), name
+    assert torch.equal(surface.gradient_scale.unique(), dense.gradient_scale.flatten())
+    for name in ("mean_curvature", "gaussian_curvature"):
+        (volume,) = surface.to_dense(getattr(surface, name)())
+        assert torch.allclose(volume * band, getattr(dense, name)() * band, atol=1e-12), name
+    (k1,), (k2,) = (surface.to_dense(k) for k in surface.principal_curvatures())
+    d1, d2 = dense.principal_curvatures()
+    assert torch.allclose(k1 * band, d1 * band, atol=1e-10)
+    assert torch.allclose(k2 * band, d2 * band, atol=1e-10)
+
+
+def test_band_is_the_dense_band_and_scale_free(torus):
+    dense, surface = torus
+    (band,) = surface.to_dense(surface.band_mask().double())
+    assert torch.equal(band > 0, dense.band_mask())
+    scaled = bricks.from_dense(1000.0 * dense.phi, dense.grid)
+    assert torch.equal(scaled.band_mask(), surface.band_mask())
+    assert len(surface.layout) < 0.5 * 5**3  # bricks hold the band, not the box
+
+
+def test_a_band_that_reaches_the_box_faces_is_refused():
+    grid = Grid.cube(33, 1.5)
+    with pytest.raises(ValueError, match="within 2 nodes of its grid's faces"):
+        bricks.from_dense(ts.sdf.torus(grid, 1.0, 0.45), grid)
+
+
+@pytest.mark.parametrize("scheme", ["octant", "symmetric", "conservative"])
+def test_laplace_beltrami_equals_the_dense_operator_on_the_band(torus, scheme):
+    dense, surface = torus
+    u = torch.randn(1, 3, *dense.grid.shape, dtype=torch.float64,
+                    generator=torch.Generator().manual_seed(0))
+    expected = ts.laplace_beltrami(u, dense, scheme)
+    packed = surface.from_dense(u)
+    (result,) = surface.to_dense(ts.laplace_beltrami(packed, surface, scheme))
+    band = dense.band_mask()
+    scale = expected.abs().max()
+    assert torch.allclose(result * band, expected * band, atol=1e-13 * scale, rtol=0)
+
+
+def test_central_scheme_and_dense_data_are_refused_with_the_expected_shape(torus):
+    dense, surface = torus
+    packed = surface.from_dense(torch.zeros(1, 1, *dense.grid.shape, dtype=torch.float64))
+    with pytest.raises(ValueError, match="central"):
+        ts.laplace_beltrami(packed, surface, "central")
+    with pytest.raises(ValueError, match=r"\(\d+, C, 8, 8, 8\)"):
+        ts.laplace_beltrami(torch.zeros(1, 1, *dense.grid.shape, dtype=torch.float64), surface)
+
+
+def test_gradcheck_laplace_beltrami_on_bricks_in_data_and_phi():
+    grid = Grid.cube(21, 2.0)
+    dense = ts.ImplicitSurface(ts.sdf.sphere(grid, 1.0).double(), grid)
+    reference = bricks.from_dense(dense)
+    layout = reference.layout
+    band = reference.band_mask()
+    u = torch.randn(len(layout), 1, 8, 8, 8, dtype=torch.float64,
+                    generator=torch.Generator().manual_seed(1))
+    picked = band.flatten().nonzero()[:: 97].flatten()
+
+    def in_u(x):
+        return ts.laplace_beltrami(x, reference).flatten()[picked]
+
+    assert torch.autograd.gradcheck(in_u, (u.requires_grad_(),), eps=1e-6, atol=1e-6,
+                                    fast_mode=True)
+
+    # phi perturbed at the nodes the picked outputs read (and a few more)
+    base = reference.phi.detach()
+    moved = (reference.layout.dilate(reference.layout.dilate(
+        torch.zeros_like(band).flatten().index_fill(0, picked[:3], True).view_as(band)
+    ))).flatten().nonzero().flatten()[::3]
+
+    def in_phi(delta):
+        phi = base.flatten().index_add(0, moved, delta).view_as(base)
+        surface = bricks.BrickSurface(phi, layout, reference.band_width)
+        return ts.laplace_beltrami(u.detach(), surface).flatten()[picked[:3]]
+
+    delta = torch.zeros(len(moved), dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(in_phi, (delta,), eps=1e-6, atol=1e-5, fast_mode=True)
+
+
+def test_cat_batches_boxes_of_different_shapes():
+    spacing = 0.1
+    small = Grid(shape=(29, 29, 29), spacing=spacing, origin=(-1.4,) * 3)
+    long = Grid(shape=(33, 41, 39), spacing=spacing, origin=(-1.9, -2.0, -1.6))
+    sphere = bricks.from_dense(ts.sdf.sphere(small, 0.9).double(), small)
+    torus = bricks.from_dense(ts.sdf.torus(long, 1.0, 0.4).double(), long)
+    both = bricks.cat([sphere, torus])
+    assert both.batch_size == 2 and both.grids == (small, long)
+    assert torch.equal(both.band_mask(), torch.cat([sphere.band_mask(), torus.band_mask()]))
+    u = torch.randn(len(both.layout), 2, 8, 8, 8, dtype=torch.float64)
+    together = ts.laplace_beltrami(u, both)
+    alone = torch.cat([ts.laplace_beltrami(u[: len(sphere.layout)], sphere),
+                       ts.laplace_beltrami(u[len(sphere.layout):], torus)])
+    band = both.band_mask()
+    assert torch.equal(together * band, alone * band)
+    with pytest.raises(ValueError, match="grids"):
+        both.grid  # noqa: B018
+
+
+@pytest.mark.skipif(not (MESHES / "spot.obj").exists(), reason="shared meshes not present")
+def test_from_mesh_equals_the_dense_distance_on_every_stored_node_that_matters():
+    mesh = ts.mesh.load(MESHES / "spot.obj")
+    grid = ts.mesh.fit_grid(mesh, 40, margin=0.15)
+    surface = bricks.from_mesh(mesh, grid, dtype=torch.float64)
+    reach = surface.band_width + bricks.build.EXACT_REACH * grid.spacing
+    dense_phi = ts.sdf.from_mesh(mesh, grid, band_width=reach, dtype=torch.float64)
+    (phi,) = surface.to_dense(surface.phi, fill=float("nan"))
+    stored = ~phi.isnan()
+    assert torch.allclose(phi[stored], dense_phi[stored], atol=1e-12)
+    dense = ts.ImplicitSurface(dense_phi, grid)
+    (band,) = surface.to_dense(surface.band_mask().double())
+    assert torch.equal(band > 0, dense.band_mask())

@@ -1,0 +1,213 @@
+"""Brick surfaces from dense ``phi`` or straight from triangle meshes."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .. import _mesh_sdf
+from .._checks import check_choice, check_dtype, check_positive
+from .._mesh_input import MeshLike, as_trimesh, triangle_arrays
+from ..grid import Grid
+from ..surface import ImplicitSurface
+from .layout import BRICK, BrickLayout, bricks_of_mask
+from .surface import STENCIL_REACH, BrickSurface
+
+REACH_CELLS = STENCIL_REACH
+"""Nodes stored beyond the band along each axis (:data:`~torchsurf.bricks.surface.STENCIL_REACH`)."""
+
+EXACT_REACH = 3.5
+"""Cells beyond the band within which :func:`from_mesh` computes exact distances: every node
+within two nodes of a band node along each axis lies within ``2 sqrt(3) h`` of it."""
+
+
+def _grown(mask: Tensor, cells: int) -> Tensor:
+    """``(D, H, W)`` bool dilated by ``cells`` nodes along every axis (a cube)."""
+    grown = mask[None, None].float()
+    grown = torch.nn.functional.max_pool3d(grown, 2 * cells + 1, stride=1, padding=cells)
+    return grown[0, 0] > 0
+
+
+def from_dense(phi: Tensor | ImplicitSurface, grid: Grid | None = None,
+               band_width: float | None = None, eps: float = 1e-6) -> BrickSurface:
+    """The bricks of a dense ``phi`` that hold its band and every node the band's stencils read.
+
+    The small-case route (and the reference the band path is tested against): it builds the
+    dense :class:`~torchsurf.ImplicitSurface` to find the band. Large grids should come
+    from :func:`from_mesh`, which never forms the dense volume.
+
+    Args:
+        phi: ``(B, 1, D, H, W)`` on ``grid``, or an :class:`~torchsurf.ImplicitSurface` (whose
+            grid, band width and ``eps`` are then used).
+        grid: the grid of ``phi`` (not with a surface).
+        band_width: half-width of the band, world units (default ``3 * grid.spacing``).
+        eps: as in :class:`~torchsurf.ImplicitSurface`.
+
+    Returns:
+        A :class:`BrickSurface` whose band, and fields on it, equal the dense surface's.
+    """
+    if isinstance(phi, ImplicitSurface):
+        if grid is not None:
+            raise ValueError("grid must be None when phi is an ImplicitSurface (it has its own)")
+        dense = phi
+    else:
+        if grid is None:
+            raise TypeError("from_dense(phi, grid): grid is required with a phi tensor")
+        dense = ImplicitSurface(phi, grid, band_width, eps)
+    band = dense.band_mask()
+    for b in range(dense.batch_size):
+        check_clear_of_faces(band[b, 0].nonzero(), dense.grid, b)
+    masks = [_grown(band[b, 0], REACH_CELLS) for b in range(dense.batch_size)]
+    grids = [dense.grid] * dense.batch_size
+    layout = bricks_of_mask(masks, grids)
+    packed = layout.from_dense(dense.phi, fill="linear")
+    return BrickSurface(packed, layout, dense.band_width, dense.eps)
+
+
+def from_mesh(meshes: MeshLike | Sequence[MeshLike], grids: Grid | Sequence[Grid],
+              band_width: float | None = None, dtype: torch.dtype | None = None,
+              sign: str = "auto") -> BrickSurface:
+    """Signed distance bricks of one or several meshes, built without any dense volume.
+
+    Each mesh gets its own grid (all with one spacing); only the bricks within
+    ``band_width + 3.5 h`` of a mesh are visited and stored (exact distances from libigl's AABB
+    tree, signs as in :func:`torchsurf.sdf.from_mesh`). Nodes of stored bricks farther than
+    that hold ``+-(band_width + 3.5 h)``.
+
+    Args:
+        meshes: a mesh (``trimesh.Trimesh``, path, or ``(vertices, faces)``) or a sequence.
+        grids: a :class:`~torchsurf.Grid` per mesh (or one for a single mesh).
+        band_width: half-width of the surface's band, world units (default ``3 h``).
+        dtype: of ``phi`` (default: the default dtype).
+        sign: ``"auto"``, ``"winding"`` or ``"pseudonormal"`` (:func:`torchsurf.sdf.from_mesh`).
+
+    Returns:
+        A :class:`BrickSurface` with one batch entry per mesh.
+
+    Example:
+        >>> import trimesh
+        >>> from torchsurf import Grid, bricks
+        >>> grid = Grid.cube(64, bound=1.5)
+        >>> surface = bricks.from_mesh(trimesh.creation.icosphere(subdivisions=3), grid)
+        >>> surface.phi.shape[1:]
+        torch.Size([1, 8, 8, 8])
+    """
+    if not isinstance(meshes, (list, tuple)) or _is_array_pair(meshes):
+        meshes = [meshes]
+    if isinstance(grids, Grid):
+        grids = [grids]
+    grids = list(grids)
+    if len(grids) != len(meshes):
+        raise ValueError(f"grids must hold one Grid per mesh ({len(meshes)}), got {len(grids)}")
+    check_choice(sign, "sign", _mesh_sdf.SIGN_METHODS)
+    dtype = check_dtype(dtype)
+    spacing = grids[0].spacing
+    width = check_positive(3.0 * spacing if band_width is None else band_width, "band_width")
+    reach = width + EXACT_REACH * spacing
+    coords, batch, values = [], [], []
+    for b, (mesh, grid) in enumerate(zip(meshes, grids, strict=True)):
+        vertices, faces = triangle_arrays(as_trimesh(mesh, f"meshes[{b}]"))
+        signed = _mesh_sdf.signed_near(vertices, faces, grid, reach, sign)
+        in_band = np.abs(signed.near) <= width
+        check_clear_of_faces(torch.from_numpy(signed.band.nodes[in_band][:, ::-1].copy()), grid, b)
+        entry_coords, entry_values = _brick_values(signed, grid, reach)
+        coords.append(entry_coords)
+        batch.append(np.full(len(entry_coords), b))
+        values.append(entry_values)
+    layout = BrickLayout(torch.from_numpy(np.concatenate(coords)),
+                         torch.from_numpy(np.concatenate(batch)), grids)
+    phi = torch.from_numpy(np.concatenate(values)).to(dtype)[:, None]
+    return BrickSurface(phi, layout, width)
+
+
+def check_clear_of_faces(band_nodes: Tensor, grid: Grid, entry: int) -> None:
+    """Raise ``ValueError`` if a band node ``(M, 3)`` ``(k, j, i)`` lies within
+    :data:`REACH_CELLS` nodes of the faces of ``grid``'s box (bricks have no faces to stop the
+    flux at: the dense and band results would differ there)."""
+    if len(band_nodes) == 0:
+        return
+    high = torch.tensor(grid.shape) - 1 - REACH_CELLS
+    if bool((band_nodes < REACH_CELLS).any()) or bool((band_nodes > high).any()):
+        raise ValueError(
+            f"the band of batch entry {entry} comes within {REACH_CELLS} nodes of its grid's "
+            f"faces (grid shape {grid.shape}); bricks have no box faces to stop the flux at: "
+            "use a grid with a wider margin around the shape"
+        )
+
+
+def cat(surfaces: Sequence[BrickSurface]) -> BrickSurface:
+    """One batch of the entries of several :class:`BrickSurface` (boxes of any shape, one
+    spacing and band width); entries keep their order.
+
+    Packed fields of the parts join the same way: ``torch.cat(fields)`` along dim 0.
+    """
+    surfaces = list(surfaces)
+    if not surfaces or not all(isinstance(s, BrickSurface) for s in surfaces):
+        raise TypeError("surfaces must be a non-empty sequence of BrickSurface")
+    widths = {s.band_width for s in surfaces}
+    if len(widths) > 1:
+        raise ValueError(f"surfaces must share one band_width, got {sorted(widths)}")
+    offsets = np.cumsum([0] + [s.batch_size for s in surfaces[:-1]])
+    layout = BrickLayout(
+        torch.cat([s.layout.coords.cpu() for s in surfaces]),
+        torch.cat([s.layout.batch.cpu() + int(o) for s, o in zip(surfaces, offsets, strict=True)]),
+        [g for s in surfaces for g in s.grids],
+    )
+    phi = torch.cat([s.phi for s in surfaces])
+    return BrickSurface(phi, layout, surfaces[0].band_width, surfaces[0].eps)
+
+
+def _is_array_pair(value: object) -> bool:
+    return (isinstance(value, (list, tuple)) and len(value) == 2
+            and all(hasattr(v, "shape") for v in value))
+
+
+def _brick_values(signed: _mesh_sdf.SignedBand, grid: Grid, reach: float
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """The bricks holding a node within ``reach`` and their values ``(M, 8, 8, 8)``.
+
+    Nodes of those bricks outside ``reach`` lie in far bricks of the refinement finer than a
+    brick; each takes ``+-reach`` by its side.
+    """
+    nodes = signed.band.nodes
+    extent = np.array([-(-n // BRICK) for n in grid.shape[::-1]])  # x, y, z
+    brick_of = nodes // BRICK
+    key = (brick_of[:, 2] * extent[1] + brick_of[:, 1]) * extent[0] + brick_of[:, 0]
+    unique, row = np.unique(key, return_inverse=True)
+    values = np.full((len(unique), BRICK, BRICK, BRICK), reach)
+    for (size, corners), inside in zip(signed.band.far_corners, signed.far_inside, strict=True):
+        if size >= BRICK or len(corners) == 0:
+            continue
+        corner_key = ((corners[:, 2] // BRICK) * extent[1] + corners[:, 1] // BRICK) * extent[0] \
+            + corners[:, 0] // BRICK
+        slot = np.searchsorted(unique, corner_key)
+        kept = (slot < len(unique)) & (unique[np.minimum(slot, len(unique) - 1)] == corner_key)
+        local = corners % BRICK
+        side = np.where(inside, -reach, reach)
+        span = np.arange(size)
+        for dz in span:
+            for dy in span:
+                for dx in span:
+                    values[slot[kept], local[kept, 2] + dz, local[kept, 1] + dy,
+                           local[kept, 0] + dx] = side[kept]
+    local = nodes % BRICK
+    values[row, local[:, 2], local[:, 1], local[:, 0]] = signed.near
+    bz = unique // (extent[0] * extent[1])
+    by = (unique // extent[0]) % extent[1]
+    bx = unique % extent[0]
+    return np.stack([bz, by, bx], axis=1), values
+
+
+def spacing_grid(bounds_min: Sequence[float], bounds_max: Sequence[float], spacing: float,
+                 margin_cells: int = 8) -> Grid:
+    """The grid of spacing ``spacing`` that holds the box ``[bounds_min, bounds_max]`` (world
+    ``(x, y, z)``) with ``margin_cells`` free nodes on every side."""
+    spacing = check_positive(spacing, "spacing")
+    low = np.asarray(bounds_min, dtype=float) - margin_cells * spacing
+    high = np.asarray(bounds_max, dtype=float) + margin_cells * spacing
+    counts = [int(math.ceil((hi - lo) / spacing)) + 1 for lo, hi in zip(low, high, strict=True)]
+    return Grid(shape=tuple(counts[::-1]), spacing=spacing, origin=tuple(low))

@@ -1,0 +1,372 @@
+"""``BrickLayout``: which 8^3 bricks of which grids hold a band, and how they touch.
+
+A band field is stored packed, ``(N, C, 8, 8, 8)``: one row per brick, bricks of every batch
+entry together (a batch index per brick, as PyTorch3D's packed meshes or fVDB's grid batches).
+Entries may have boxes of different shapes and origins; they share the spacing. Stencils read
+across brick faces through :meth:`BrickLayout.halo`, which gathers a halo of ``g`` nodes from
+the 26 neighbours into ``(N, C, 8 + 2g, 8 + 2g, 8 + 2g)``: the haloed input every compiled
+kernel of :mod:`torchsurf.operators.functional` already takes. Pointwise work (1x1x1
+convolutions, activations, losses) applies to the packed values as they are.
+
+Bricks tile each entry's box from its first node; a box whose side is not a multiple of 8
+leaves nodes of the last bricks outside it (:attr:`BrickLayout.inside` is ``False`` there). A
+neighbour that is not stored reads as zeros. Band nodes never read one (the builders store
+every node the band's stencils reach), and a divergence-form operator then stays exactly
+symmetric on the stored nodes: zero ``u`` and zero weight beyond them, a principal submatrix of
+the dense operator with that geometry.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Sequence
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from ..grid import Grid
+
+BRICK = 8
+"""Nodes along each side of a brick."""
+
+OFFSETS: tuple[tuple[int, int, int], ...] = tuple(itertools.product((-1, 0, 1), repeat=3))
+"""The 27 brick offsets ``(dz, dy, dx)`` of the neighbour table, ``(0, 0, 0)`` (itself) at 13."""
+
+
+def bricks_along(shape: Sequence[int]) -> tuple[int, int, int]:
+    """Bricks along ``(D, H, W)`` that tile a box of ``shape`` nodes."""
+    return tuple(-(-int(n) // BRICK) for n in shape)
+
+
+class BrickLayout:
+    """The bricks of a batch of band fields: coordinates, batch index, neighbours.
+
+    Args:
+        coords: ``(N, 3)`` integer brick coordinates ``(bz, by, bx)``: brick ``(bz, by, bx)`` of
+            an entry holds its nodes ``8 bz + (0..7)`` along D, and so on.
+        batch: ``(N,)`` the batch entry of each brick, in ``[0, len(grids))``.
+        grids: one :class:`~torchsurf.Grid` per batch entry, all with the same spacing.
+
+    Attributes:
+        coords, batch: as given (int64, on the CPU unless moved with :meth:`to`).
+        grids: the grids.
+        neighbours: ``(N, 27)`` int64 row of the neighbour at each of :data:`OFFSETS`, the brick
+            itself where that neighbour is not stored (its values are then read as zeros).
+        present: ``(N, 27)`` bool, the neighbour is stored.
+        inside: ``(N, 1, 8, 8, 8)`` bool, the node lies in its entry's box.
+
+    Bricks of one entry must be distinct and inside its box.
+    """
+
+    def __init__(self, coords: Tensor, batch: Tensor, grids: Sequence[Grid]) -> None:
+        grids = tuple(grids)
+        if not grids or not all(isinstance(g, Grid) for g in grids):
+            raise TypeError("grids must be a non-empty sequence of torchsurf.Grid")
+        spacings = {g.spacing for g in grids}
+        if len(spacings) > 1:
+            raise ValueError(
+                f"grids must share one spacing (bricks of one batch are stencilled together), "
+                f"got spacings {sorted(spacings)}"
+            )
+        coords = torch.as_tensor(coords).long()
+        batch = torch.as_tensor(batch).long()
+        if coords.dim() != 2 or coords.shape[1] != 3:
+            raise ValueError(f"coords must have shape (N, 3), got {tuple(coords.shape)}")
+        if batch.shape != coords.shape[:1]:
+            raise ValueError(
+                f"batch must have shape ({coords.shape[0]},) like coords' rows, got "
+                f"{tuple(batch.shape)}"
+            )
+        if len(batch) == 0:
+            raise ValueError("a brick layout needs at least one brick, got none")
+        if int(batch.min()) < 0 or int(batch.max()) >= len(grids):
+            raise ValueError(f"batch indices must lie in [0, {len(grids)}), got "
+                             f"[{int(batch.min())}, {int(batch.max())}]")
+        extents = torch.tensor([bricks_along(g.shape) for g in grids])
+        if bool((coords < 0).any()) or bool((coords >= extents[batch]).any()):
+            raise ValueError("coords must lie inside each entry's box of bricks")
+        self.coords, self.batch, self.grids = coords, batch, grids
+        self.extent = tuple(int(n) for n in extents.max(dim=0).values)
+        self.lookup = self._lookup()
+        if int((self.lookup >= 0).sum()) != len(coords):
+            raise ValueError("coords must not repeat a brick of the same batch entry")
+        self.neighbours, self.present = self._neighbours()
+        self._halo_indices: dict[tuple[int, torch.device], Tensor] = {}
+        self.inside = self._inside()
+
+    # --- construction -------------------------------------------------------------------
+
+    def _lookup(self) -> Tensor:
+        """``(B, nbz, nby, nbx)`` int64 row of each stored brick, ``-1`` elsewhere."""
+        lookup = torch.full((len(self.grids), *self.extent), -1, dtype=torch.long)
+        z, y, x = self.coords.unbind(1)
+        lookup[self.batch, z, y, x] = torch.arange(len(self.coords))
+        return lookup
+
+    def _neighbours(self) -> tuple[Tensor, Tensor]:
+        padded = F.pad(self.lookup, (1, 1, 1, 1, 1, 1), value=-1)
+        rows = []
+        z, y, x = self.coords.unbind(1)
+        for dz, dy, dx in OFFSETS:
+            rows.append(padded[self.batch, z + 1 + dz, y + 1 + dy, x + 1 + dx])
+        table = torch.stack(rows, dim=1)
+        present = table >= 0
+        own = torch.arange(len(self.coords))[:, None].expand_as(table)
+        return torch.where(present, table, own), present
+
+    def _inside(self) -> Tensor:
+        shapes = torch.tensor([g.shape for g in self.grids])[self.batch]
+        local = torch.arange(BRICK)
+        axes = [
+            (self.coords[:, axis, None] * BRICK + local) < shapes[:, axis, None]
+            for axis in range(3)
+        ]
+        inside = axes[0][:, :, None, None] & axes[1][:, None, :, None] & axes[2][:, None, None, :]
+        return inside[:, None]
+
+    # --- sizes -----------------------------------------------------------------------------
+
+    def __len__(self) -> int:
+        return len(self.coords)
+
+    @property
+    def batch_size(self) -> int:
+        """Number of batch entries ``B``."""
+        return len(self.grids)
+
+    @property
+    def spacing(self) -> float:
+        """The spacing ``h`` every entry shares, world units."""
+        return self.grids[0].spacing
+
+    @property
+    def device(self) -> torch.device:
+        return self.coords.device
+
+    def to(self, device: torch.device | str) -> BrickLayout:
+        """The same layout with its tables on ``device``."""
+        moved = object.__new__(BrickLayout)
+        moved.__dict__.update({
+            key: value.to(device) if isinstance(value, Tensor) else value
+            for key, value in self.__dict__.items()
+        })
+        moved._halo_indices = {}
+        return moved
+
+    def counts(self) -> list[int]:
+        """Bricks of each batch entry."""
+        return torch.bincount(self.batch, minlength=self.batch_size).tolist()
+
+    def __repr__(self) -> str:
+        return (f"BrickLayout(bricks={len(self)}, batch_size={self.batch_size}, "
+                f"shapes={[g.shape for g in self.grids]}, spacing={self.spacing:g})")
+
+    # --- stencils --------------------------------------------------------------------------
+
+    def check_field(self, value: Tensor, name: str) -> None:
+        """Raise ``ValueError`` naming ``name`` unless ``value`` is ``(N, C, 8, 8, 8)``."""
+        if value.dim() != 5 or value.shape[0] != len(self) or value.shape[2:] != (BRICK,) * 3:
+            raise ValueError(
+                f"{name} must be a packed band field of shape ({len(self)}, C, {BRICK}, {BRICK}, "
+                f"{BRICK}) for this layout of {len(self)} bricks, got {tuple(value.shape)}"
+            )
+
+    def halo(self, field: Tensor, width: int = 1) -> Tensor:
+        """``field`` ``(N, C, 8, 8, 8)`` with ``width`` nodes of its neighbours on every side.
+
+        One gather from a table of the haloed bricks' sources (kept per width, 4 bytes per
+        haloed node); zeros where a neighbour is not stored; differentiable.
+
+        Returns:
+            ``(N, C, 8 + 2 width, 8 + 2 width, 8 + 2 width)``.
+        """
+        if not 1 <= width <= BRICK:
+            raise ValueError(f"width must be in [1, {BRICK}], got {width}")
+        n, channels = field.shape[:2]
+        side = BRICK + 2 * width
+        index = self._halo_index(width, field.device)
+        rows = field.reshape(n, channels, -1).transpose(0, 1)
+        flat = torch.cat([rows.reshape(channels, -1), rows.new_zeros((channels, 1))], dim=1)
+        gathered = flat.index_select(1, index)
+        return gathered.view(channels, n, side, side, side).transpose(0, 1)
+
+    def _halo_index(self, width: int, device: torch.device) -> Tensor:
+        """``(N (8 + 2 width)^3,)`` source of each haloed node in the packed nodes, ``N 512``
+        (one past the last) for a neighbour that is not stored."""
+        key = (width, device)
+        cached = self._halo_indices.get(key)
+        if cached is not None:
+            return cached
+        along = torch.arange(-width, BRICK + width)
+        offset = torch.where(along < 0, -1, torch.where(along >= BRICK, 1, 0))
+        local = along - offset * BRICK
+        which = ((offset[:, None, None] + 1) * 9 + (offset[None, :, None] + 1) * 3
+                 + offset[None, None, :] + 1).flatten()
+        inside = (local[:, None, None] * BRICK * BRICK + local[None, :, None] * BRICK
+                  + local[None, None, :]).flatten()
+        source = self.neighbours[:, which] * BRICK**3 + inside
+        source = torch.where(self.present[:, which], source, len(self) * BRICK**3).flatten()
+        dtype = torch.int32 if len(self) * BRICK**3 < 2**31 else torch.long
+        cached = source.to(dtype=dtype, device=device)
+        self._halo_indices[key] = cached
+        return cached
+
+    def dilate(self, mask: Tensor) -> Tensor:
+        """``mask`` ``(N, 1, 8, 8, 8)`` bool and every node a 3x3x3 stencil on it reads."""
+        grown = self.halo(mask, 1)
+        for dim in (2, 3, 4):
+            length = grown.shape[dim]
+            grown = (grown.narrow(dim, 0, length - 2) | grown.narrow(dim, 1, length - 2)
+                     | grown.narrow(dim, 2, length - 2))
+        return grown
+
+    def interior(self, cells: int) -> Tensor:
+        """``(N, 1, 8, 8, 8)`` bool: every node within ``cells`` of the node (along each axis) is
+        stored. Where it is not, a stencil of that reach reads a missing neighbour's stand-in."""
+        local = torch.arange(BRICK, device=self.device)
+        near = {-1: local < cells, 0: torch.ones_like(local, dtype=torch.bool),
+                1: local >= BRICK - cells}
+        reads = torch.stack([
+            near[dz][:, None, None] & near[dy][None, :, None] & near[dx][None, None, :]
+            for dz, dy, dx in OFFSETS
+        ]).reshape(len(OFFSETS), -1)
+        missing = (~self.present).to(torch.float32) @ reads.to(torch.float32)
+        return (missing == 0).view(-1, 1, BRICK, BRICK, BRICK)
+
+    def node_index(self) -> Tensor:
+        """``(N, 3, 8, 8, 8)`` int64 index ``(k, j, i)`` of each node in its entry's grid (D, H, W
+        order)."""
+        local = torch.arange(BRICK, device=self.device)
+        start = self.coords * BRICK
+        return torch.stack([
+            (start[:, axis, None] + local).view(
+                -1, *[BRICK if a == axis else 1 for a in range(3)]
+            ).expand(-1, BRICK, BRICK, BRICK)
+            for axis in range(3)
+        ], dim=1)
+
+    def points(self, dtype: torch.dtype | None = None) -> Tensor:
+        """World coordinates ``(x, y, z)`` of every node, ``(N, 3, 8, 8, 8)``."""
+        dtype = dtype or torch.get_default_dtype()
+        index = self.node_index().flip(1).to(dtype)
+        origins = torch.tensor([g.origin for g in self.grids], dtype=dtype, device=self.device)
+        return origins[self.batch].view(-1, 3, 1, 1, 1) + self.spacing * index
+
+    def colours(self) -> Tensor:
+        """``(N, 1, 8, 8, 8)`` colour ``(k mod 3) 9 + (j mod 3) 3 + i mod 3`` of each node: no
+        3x3x3 neighbourhood holds two nodes of one colour (:mod:`torchsurf.operators.spectrum`)."""
+        k, j, i = (self.node_index() % 3).unbind(1)
+        return (k * 9 + j * 3 + i)[:, None]
+
+    # --- dense volumes ---------------------------------------------------------------------
+
+    def from_dense(self, volume: Tensor | Sequence[Tensor], fill: str = "replicate") -> Tensor:
+        """The bricks of dense volumes, ``(N, C, 8, 8, 8)``.
+
+        Args:
+            volume: ``(B, C, D, H, W)`` when every entry has the same box, or a sequence of one
+                ``(1, C, D_b, H_b, W_b)`` (or ``(C, D_b, H_b, W_b)``) volume per entry, each on
+                its entry's grid.
+            fill: values of the nodes outside an entry's box: ``"replicate"`` (its edge) or
+                ``"linear"`` (extrapolated from its last two nodes: right for ``phi``).
+        """
+        volumes = self._entries(volume, "volume")
+        rows = []
+        for b, entry in enumerate(volumes):
+            padded = _pad_to_bricks(entry, fill)
+            c = padded.shape[0]
+            nz, ny, nx = (n // BRICK for n in padded.shape[1:])
+            tiles = padded.view(c, nz, BRICK, ny, BRICK, nx, BRICK).permute(1, 3, 5, 0, 2, 4, 6)
+            selected = (self.batch == b).nonzero().squeeze(1)
+            z, y, x = self.coords[selected].unbind(1)
+            rows.append((selected, tiles[z, y, x]))
+        channels = rows[0][1].shape[1]
+        pieces = volumes[0].new_empty((len(self), channels, BRICK, BRICK, BRICK))
+        for selected, values in rows:
+            pieces = pieces.index_copy(0, selected.to(pieces.device), values)
+        return pieces
+
+    def to_dense(self, field: Tensor, fill: float = 0.0) -> list[Tensor]:
+        """Dense volumes of a packed field: one ``(1, C, D_b, H_b, W_b)`` per entry, ``fill``
+        outside the stored bricks; differentiable."""
+        self.check_field(field, "field")
+        channels = field.shape[1]
+        volumes = []
+        for b, grid in enumerate(self.grids):
+            nz, ny, nx = bricks_along(grid.shape)
+            tiles = field.new_full((nz, ny, nx, channels, BRICK, BRICK, BRICK), fill)
+            selected = (self.batch == b).nonzero().squeeze(1)
+            z, y, x = self.coords[selected].unbind(1)
+            tiles = tiles.index_put((z, y, x), field[selected.to(field.device)])
+            dense = tiles.permute(3, 0, 4, 1, 5, 2, 6).reshape(
+                channels, nz * BRICK, ny * BRICK, nx * BRICK
+            )
+            d, h, w = grid.shape
+            volumes.append(dense[None, :, :d, :h, :w])
+        return volumes
+
+    def _entries(self, volume: Tensor | Sequence[Tensor], name: str) -> list[Tensor]:
+        if isinstance(volume, Tensor):
+            if volume.dim() != 5 or volume.shape[0] != self.batch_size:
+                raise ValueError(
+                    f"{name} must be (B, C, D, H, W) with B = {self.batch_size}, got "
+                    f"{tuple(volume.shape)}"
+                )
+            entries = list(volume.unbind(0))
+        else:
+            entries = [v[0] if v.dim() == 5 else v for v in volume]
+            if len(entries) != self.batch_size:
+                raise ValueError(
+                    f"{name} must hold one volume per batch entry ({self.batch_size}), got "
+                    f"{len(entries)}"
+                )
+        for b, (entry, grid) in enumerate(zip(entries, self.grids, strict=True)):
+            if entry.dim() != 4 or tuple(entry.shape[1:]) != tuple(grid.shape):
+                raise ValueError(
+                    f"{name}[{b}] must be (C, {', '.join(map(str, grid.shape))}) on grid "
+                    f"{b}, got {tuple(entry.shape)}"
+                )
+        return entries
+
+
+def _pad_to_bricks(volume: Tensor, fill: str) -> Tensor:
+    """``(C, D, H, W)`` padded at the far end of each axis to a multiple of 8."""
+    for dim in (1, 2, 3):
+        length = volume.shape[dim]
+        missing = -length % BRICK
+        if missing == 0:
+            continue
+        last = volume.narrow(dim, length - 1, 1)
+        if fill == "linear" and length > 1:
+            slope = last - volume.narrow(dim, length - 2, 1)
+            steps = torch.arange(1, missing + 1, dtype=volume.dtype, device=volume.device)
+            shape = [1] * volume.dim()
+            shape[dim] = missing
+            extra = last + slope * steps.view(shape)
+        else:
+            extra = last.expand(*[missing if d == dim else -1 for d in range(volume.dim())])
+        volume = torch.cat([volume, extra], dim=dim)
+    return volume
+
+
+def bricks_of_mask(masks: Sequence[Tensor], grids: Sequence[Grid]) -> BrickLayout:
+    """The layout of the bricks that hold a node of each ``(D_b, H_b, W_b)`` bool mask."""
+    coords, batch = [], []
+    if len(masks) != len(grids):
+        raise ValueError(f"masks and grids must pair up, got {len(masks)} and {len(grids)}")
+    for b, mask in enumerate(masks):
+        padded = F.pad(mask.to(torch.uint8), _far_padding(mask.shape))
+        nz, ny, nx = (n // BRICK for n in padded.shape)
+        occupied = padded.view(nz, BRICK, ny, BRICK, nx, BRICK).amax(dim=(1, 3, 5)) > 0
+        found = occupied.nonzero()
+        coords.append(found)
+        batch.append(torch.full((len(found),), b, dtype=torch.long))
+    return BrickLayout(torch.cat(coords).cpu(), torch.cat(batch), grids)
+
+
+def _far_padding(shape: Sequence[int]) -> tuple[int, ...]:
+    pads = []
+    for n in reversed(tuple(shape)):
+        pads += [0, -n % BRICK]
+    return tuple(pads)

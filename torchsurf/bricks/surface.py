@@ -1,0 +1,172 @@
+"""``BrickSurface``: an implicit surface whose fields are stored as the bricks of its band."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from .._checks import check_finite, check_positive, check_tensor
+from ..grid import Grid
+from ..surface import ImplicitSurface
+from .layout import BRICK, BrickLayout
+
+STENCIL_REACH = 2
+"""Nodes, along each axis, that the operators read around a band node they update (the
+compiled flux forms read ``u`` two nodes away, the normals one node away read ``phi`` one
+further). Band nodes closer than this to a brick that is not stored are left out of the band."""
+
+
+class BrickSurface(ImplicitSurface):
+    """The zero level set of ``phi`` stored as 8^3 bricks around it (:mod:`torchsurf.bricks`).
+
+    The same surface as :class:`~torchsurf.ImplicitSurface` of the dense ``phi`` — same normals,
+    weight ``W``, band and curvatures at every stored node, to rounding — with every field packed
+    ``(N, C, 8, 8, 8)`` on :attr:`layout`: memory and work grow with the surface's area, not with
+    its box, and shapes on boxes of different sizes share a batch (a batch index per brick).
+    Laplace–Beltrami, curvature, closest-point re-extension and :class:`~torchsurf.flows.HeatFlow`
+    run on it (docs/bricks.md lists what does).
+
+    Build it with :func:`torchsurf.bricks.from_dense` or :func:`torchsurf.bricks.from_mesh`,
+    which store every node that the band's stencils read and check that the band stays
+    :data:`STENCIL_REACH` nodes inside each grid's box (bricks have no box faces to stop the
+    flux at).
+
+    Args:
+        phi: ``(N, 1, 8, 8, 8)`` packed on ``layout``, world units, negative inside.
+        layout: the bricks.
+        band_width: half-width of the band, world units (default ``3 * spacing``).
+        eps: as in :class:`~torchsurf.ImplicitSurface`.
+
+    Attributes:
+        phi, grad_norm, normal, weight: as in :class:`~torchsurf.ImplicitSurface`, packed
+            ``(N, K, 8, 8, 8)``.
+        gradient_scale: the median ``|grad phi|`` on S of each brick's batch entry,
+            ``(N, 1, 1, 1, 1)``.
+    """
+
+    def __init__(self, phi: Tensor, layout: BrickLayout, band_width: float | None = None,
+                 eps: float = 1e-6) -> None:
+        torch.nn.Module.__init__(self)
+        if not isinstance(layout, BrickLayout):
+            raise TypeError(f"layout must be a torchsurf.bricks.BrickLayout, got "
+                            f"{type(layout).__name__}")
+        check_tensor(phi, "phi")
+        layout.check_field(phi, "phi")
+        if phi.shape[1] != 1:
+            raise ValueError(f"phi must have 1 channel, got shape {tuple(phi.shape)}")
+        check_finite(phi, "phi")
+        self.layout = layout.to(phi.device)
+        self.band_width = check_positive(
+            3.0 * layout.spacing if band_width is None else band_width, "band_width"
+        )
+        self.eps = check_positive(eps, "eps")
+        self._assemble(phi)
+
+    @property
+    def grids(self) -> tuple[Grid, ...]:
+        """One grid per batch entry."""
+        return self.layout.grids
+
+    @property
+    def grid(self) -> Grid:
+        """The grid of a single-entry surface (a batch of several has :attr:`grids`)."""
+        if self.layout.batch_size != 1:
+            raise ValueError(
+                f"this BrickSurface holds {self.layout.batch_size} entries, each on its own grid: "
+                "use surface.grids"
+            )
+        return self.layout.grids[0]
+
+    @property
+    def batch_size(self) -> int:
+        return self.layout.batch_size
+
+    @property
+    def spacing(self) -> float:
+        return self.layout.spacing
+
+    def _pad(self, volume: Tensor, mode: str) -> Tensor:
+        return self.layout.halo(volume, 1)
+
+    def _haloed_geometry(self) -> tuple[Tensor, Tensor]:
+        return self.layout.halo(self.normal, 1), self.layout.halo(self.weight, 1)
+
+    def _gradient_scale(self, phi: Tensor, grad_norm: Tensor) -> Tensor:
+        inside = phi < 0
+        haloed = self.layout.halo(inside, 1)
+        crossing = torch.zeros_like(inside)
+        core = slice(1, 1 + BRICK)
+        for axis in range(3):
+            for shift in (0, 2):
+                window = [core, core, core]
+                window[axis] = slice(shift, shift + BRICK)
+                crossing |= haloed[:, :, window[0], window[1], window[2]] != inside
+        crossing &= self._stencilled(1)
+        batch = self.layout.batch.to(phi.device)
+        scales = []
+        for b in range(self.layout.batch_size):
+            entry = batch == b
+            values = grad_norm[entry][crossing[entry]]
+            if values.numel() == 0:
+                raise ValueError(
+                    f"phi has no zero crossing in batch entry {b}: every entry must be negative "
+                    "somewhere (inside) and positive somewhere (outside)"
+                )
+            scales.append(values.median())
+        return torch.stack(scales)[batch].view(-1, 1, 1, 1, 1)
+
+    def band_mask(self, width: float | None = None) -> Tensor:
+        """Nodes within ``width`` of S (default ``band_width``), ``(N, 1, 8, 8, 8)``.
+
+        Only nodes inside their box whose neighbours within :data:`STENCIL_REACH` are stored
+        count: the builders store all of them around the band they were asked for.
+        """
+        return super().band_mask(width) & self._stencilled(STENCIL_REACH)
+
+    def _stencilled(self, cells: int) -> Tensor:
+        """Nodes inside their box whose neighbours within ``cells`` are all stored."""
+        key = f"_stencilled_{cells}"
+        if key not in self.__dict__:
+            mask = self.layout.inside & self.layout.interior(cells)
+            self.__dict__[key] = mask.to(self.phi.device)
+        return self.__dict__[key]
+
+    def check_field(self, value: object, name: str, channels: int | None = None) -> Tensor:
+        """``value`` checked as a packed field on this surface: ``(N, C, 8, 8, 8)``."""
+        field = check_tensor(value, name)
+        self.layout.check_field(field, name)
+        if channels is not None and field.shape[1] != channels:
+            raise ValueError(f"{name} must have {channels} channels, got shape {tuple(field.shape)}")
+        return field
+
+    def entries(self) -> list[tuple[Tensor, BrickSurface]]:
+        """Each batch entry alone: ``(rows, surface)``, ``rows`` ``(N_b,)`` its bricks' rows in
+        the packed fields. Kept (not when ``phi`` requires grad: then rebuilt per call)."""
+        if self.batch_size == 1:
+            return [(torch.arange(len(self.layout), device=self.phi.device), self)]
+        cached = self.__dict__.get("_entries")
+        if cached is not None:
+            return cached
+        batch = self.layout.batch
+        parts = []
+        for b, grid in enumerate(self.grids):
+            rows = (batch == b).nonzero().squeeze(1)
+            layout = BrickLayout(self.layout.coords[rows].cpu(),
+                                 torch.zeros(len(rows), dtype=torch.long), [grid])
+            rows = rows.to(self.phi.device)
+            parts.append((rows, BrickSurface(self.phi[rows], layout, self.band_width, self.eps)))
+        if not self.phi.requires_grad:
+            self.__dict__["_entries"] = parts
+        return parts
+
+    def to_dense(self, field: Tensor, fill: float = 0.0) -> list[Tensor]:
+        """One dense ``(1, C, D_b, H_b, W_b)`` volume per entry (:meth:`BrickLayout.to_dense`)."""
+        return self.layout.to_dense(field, fill)
+
+    def from_dense(self, volume: Tensor | list[Tensor]) -> Tensor:
+        """Dense data ``(B, C, D, H, W)`` or one volume per entry, packed ``(N, C, 8, 8, 8)``."""
+        return self.layout.from_dense(volume)
+
+    def extra_repr(self) -> str:
+        return (f"bricks={len(self.layout)}, batch_size={self.batch_size}, "
+                f"spacing={self.spacing:g}, band_width={self.band_width:g}, eps={self.eps:g}")
