@@ -2,8 +2,10 @@
 
 A mesh enters as a signed distance volume (:func:`torchsurf.sdf.from_mesh`); data on its
 vertices enters the band around it constant along the normals (:func:`to_band`, the value at
-the closest point of the mesh) and leaves by trilinear sampling at the vertices
-(:func:`torchsurf.sample`). :class:`MeshAdapter` keeps all of it for one mesh.
+the closest point of the mesh) and leaves by weights, around each vertex, that reproduce the
+closest points the band nodes stand for (:meth:`MeshAdapter.decode`). :class:`MeshAdapter` keeps
+all of it for one mesh; :class:`torchsurf.shape_batch.MeshBatchAdapter` puts several shapes on one
+grid.
 """
 
 from __future__ import annotations
