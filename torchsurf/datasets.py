@@ -75,8 +75,11 @@ def smooth_signal(surface: ImplicitSurface, channels: int = 1, frequency: float 
     device = surface.phi.device
     wave, amplitude, phase = (t.to(dtype=dtype, device=device) for t in (wave, amplitude, phase))
     points = closest_points(surface)  # (B, 3, D, H, W)
-    angle = torch.einsum("bcmk,bkdhw->bcmdhw", wave, points) + phase[..., None, None, None]
-    values = (amplitude[..., None, None, None] * torch.sin(angle)).sum(dim=2)
+    values = torch.zeros(batch, channels, *surface.grid.shape, dtype=dtype, device=device)
+    for m in range(modes):  # one wave at a time: memory of one (B, C, D, H, W) volume
+        angle = torch.einsum("bck,bkdhw->bcdhw", wave[:, :, m], points)
+        values += amplitude[:, :, m, None, None, None] * torch.sin(
+            angle + phase[:, :, m, None, None, None])
     return _rescale(values, surface.band_mask())
 
 

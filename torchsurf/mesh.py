@@ -132,11 +132,12 @@ class MeshAdapter(nn.Module):
     then comes back with an error ``O(h^2 |u''|)``. Measured relative max error of the round
     trip of ``sin(2 pi a . x)``, ``|a| = 2``, on meshes scaled to a box diagonal of 1, at
     64^3 / 96^3 / 128^3: spot 1.7e-2 / 1.1e-2 / 8.1e-3, armadillo 1.3e-2 / 6.8e-3 / 3.7e-3,
-    bunny_closed 1.7e-2 / 8.2e-3 / 4.7e-3 (``order=1``: 3.3e-2 / 1.8e-2 / 1.2e-2, 4.7e-2 / 2.7e-2 / 2.0e-2, 3.4e-2 / 2.5e-2 /
-    1.9e-2). What remains, for a fixed mesh, is the piecewise-linear interpolation of the
-    vertex data between vertices (the data bends at every edge too): the error falls at about
-    second order while the facets are smaller than the cells, more slowly once they span
-    several cells (spot at 128^3). Building the weights adds 25-50% to the adapter's setup.
+    bunny_closed 1.7e-2 / 8.2e-3 / 4.7e-3 (``order=1``: 3.3e-2 / 1.8e-2 / 1.2e-2,
+    4.7e-2 / 2.7e-2 / 2.0e-2, 3.4e-2 / 2.5e-2 / 1.9e-2). What remains, for a fixed mesh, is
+    the piecewise-linear interpolation of the vertex data between vertices (the data bends at
+    every edge too): the error falls at about second order while the facets are smaller than
+    the cells, more slowly once they span several cells (spot at 128^3). Building the weights
+    adds 25-50% to the adapter's setup.
 
     Both maps are linear and differentiable. Tensors follow ``.to()``.
 
