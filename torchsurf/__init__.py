@@ -4,7 +4,7 @@ Bertalmío, Cheng, Osher & Sapiro (2001): data on the zero level set of ``phi`` 
 to a band around it and every intrinsic operator is computed on the Cartesian grid.
 """
 
-from . import backend, exact, flows, mesh, operators, sdf, stencils
+from . import backend, datasets, exact, flows, mesh, operators, sdf, shape_batch, stencils
 from .flows import (
     AnisotropicFlow,
     ColorDenoise,
@@ -30,11 +30,13 @@ from .operators import (
     laplace_beltrami,
 )
 from .sampling import sample
+from .shape_batch import AnalyticShape, MeshBatchAdapter
 from .surface import ImplicitSurface
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "AnalyticShape",
     "AnisotropicDiffusion",
     "AnisotropicFlow",
     "ColorDenoise",
@@ -51,8 +53,10 @@ __all__ = [
     "IntrinsicGradient",
     "LaplaceBeltrami",
     "MeshAdapter",
+    "MeshBatchAdapter",
     "anisotropic_diffusion",
     "backend",
+    "datasets",
     "directional_diffusion",
     "exact",
     "flows",
@@ -63,5 +67,6 @@ __all__ = [
     "operators",
     "sample",
     "sdf",
+    "shape_batch",
     "stencils",
 ]

@@ -1,0 +1,214 @@
+"""Synthetic training data: random signals on a batch of surfaces, clean and with seeded noise.
+
+Signals are evaluated at the closest point on S of every node (:func:`torchsurf.signals.closest_points`),
+so they are constant along the normals, as the flows expect. Lengths are in the units of the
+grid: on a :class:`~torchsurf.shape_batch.MeshBatchAdapter` every shape has size 1 there, so a
+frequency of 2 is two periods across any shape. Everything is deterministic under ``seed``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+from torch import Tensor
+from torch.utils.data import Dataset
+
+from ._checks import check_choice, check_count, check_nonnegative, check_positive
+from .shape_batch import MeshBatchAdapter
+from .signals import closest_points, gaussian_noise, generator
+from .surface import ImplicitSurface
+
+KINDS = ("smooth", "piecewise_constant")
+
+
+def derived_seed(seed: int, *keys: int) -> int:
+    """A seed for item ``keys`` of a run seeded ``seed`` (numpy's ``SeedSequence``): distinct
+    keys give independent streams, and ``(seed, i)`` never collides with ``(seed + 1, i - 1)``."""
+    return int(np.random.SeedSequence([int(seed), *map(int, keys)]).generate_state(1)[0])
+
+
+def _rescale(values: Tensor, band: Tensor) -> Tensor:
+    """Each entry and channel of ``values`` ``(B, C, ...)`` mapped to ``[0, 1]`` by its min and
+    max over ``band`` ``(B or 1, 1, ...)``."""
+    inside = band.expand_as(values)
+    low = torch.where(inside, values, torch.inf).flatten(2).amin(-1)
+    high = torch.where(inside, values, -torch.inf).flatten(2).amax(-1)
+    shape = (*values.shape[:2],) + (1,) * (values.dim() - 2)
+    low, high = low.view(shape), high.view(shape)
+    return ((values - low) / (high - low).clamp(min=torch.finfo(values.dtype).tiny)).clamp(0, 1)
+
+
+def smooth_signal(surface: ImplicitSurface, channels: int = 1, frequency: float = 2.0,
+                  modes: int = 8, seed: int = 0) -> Tensor:
+    """A random low-frequency signal: a sum of ``modes`` plane waves at the closest points.
+
+    ``u(x) = sum_m a_m sin(2 pi k_m . p(x) + phase_m)``, ``p`` the closest point on S, ``k_m``
+    of random direction and length uniform in ``[frequency / 2, frequency]`` (periods per unit
+    length), ``a_m`` standard normal, ``phase_m`` uniform; then each entry and channel is
+    rescaled to ``[0, 1]`` over the surface's band.
+
+    Args:
+        surface: ``B`` surfaces.
+        channels: ``C``.
+        frequency: the highest wave number, periods per unit length of the grid.
+        modes: waves per channel.
+        seed: the same seed gives the same signal.
+
+    Returns:
+        ``(B, C, D, H, W)`` in ``[0, 1]``, the surface's dtype and device.
+    """
+    channels = check_count(channels, "channels")
+    frequency = check_positive(frequency, "frequency")
+    modes = check_count(modes, "modes")
+    dtype = surface.phi.dtype
+    batch = surface.batch_size
+    random = generator(seed)
+    direction = torch.randn(batch, channels, modes, 3, generator=random, dtype=torch.float64)
+    length = frequency * (0.5 + 0.5 * torch.rand(batch, channels, modes, 1, generator=random,
+                                                 dtype=torch.float64))
+    wave = (2 * torch.pi * length * direction / direction.norm(dim=-1, keepdim=True)).to(dtype)
+    amplitude = torch.randn(batch, channels, modes, generator=random, dtype=torch.float64)
+    phase = 2 * torch.pi * torch.rand(batch, channels, modes, generator=random,
+                                      dtype=torch.float64)
+    device = surface.phi.device
+    wave, amplitude, phase = (t.to(dtype=dtype, device=device) for t in (wave, amplitude, phase))
+    points = closest_points(surface)  # (B, 3, D, H, W)
+    values = torch.zeros(batch, channels, *surface.grid.shape, dtype=dtype, device=device)
+    for m in range(modes):  # one wave at a time: memory of one (B, C, D, H, W) volume
+        angle = torch.einsum("bck,bkdhw->bcdhw", wave[:, :, m], points)
+        values += amplitude[:, :, m, None, None, None] * torch.sin(
+            angle + phase[:, :, m, None, None, None])
+    return _rescale(values, surface.band_mask())
+
+
+def piecewise_constant_signal(surface: ImplicitSurface, channels: int = 1, cells: int = 12,
+                              seed: int = 0) -> Tensor:
+    """A random piecewise-constant signal: ``cells`` regions with uniform random values.
+
+    The regions are the Voronoi cells, in space, of ``cells`` points drawn at random among the
+    closest points of the nodes next to S; every node takes the value of the cell its own closest
+    point falls in, so the regions are patches of S bounded by curves, constant along normals.
+
+    Args:
+        surface: ``B`` surfaces.
+        channels: ``C``; the channels share the regions and differ in their values.
+        cells: regions per surface.
+        seed: the same seed gives the same signal.
+
+    Returns:
+        ``(B, C, D, H, W)``, values uniform in ``[0, 1)``, the surface's dtype and device.
+    """
+    channels = check_count(channels, "channels")
+    cells = check_count(cells, "cells")
+    random = generator(seed)
+    points = closest_points(surface).flatten(2)  # (B, 3, N)
+    near = (surface.distance() <= surface.spacing).flatten(2)[:, 0]  # (B, N)
+    result = []
+    for b in range(surface.batch_size):
+        candidates = near[b].nonzero().squeeze(1).cpu()
+        pick = torch.randint(len(candidates), (cells,), generator=random)
+        centres = points[b][:, candidates[pick].to(points.device)]  # (3, cells)
+        nearest = torch.cdist(points[b].T, centres.T).argmin(dim=1)  # (N,)
+        values = torch.rand(channels, cells, generator=random, dtype=torch.float64)
+        values = values.to(dtype=points.dtype, device=points.device)
+        result.append(values[:, nearest])
+    return torch.stack(result).reshape(surface.batch_size, channels, *surface.grid.shape)
+
+
+def signal(kind: str, surface: ImplicitSurface, channels: int = 1, seed: int = 0,
+           **options: float) -> Tensor:
+    """:func:`smooth_signal` (``kind="smooth"``) or :func:`piecewise_constant_signal`
+    (``"piecewise_constant"``) with their ``options``; ``(B, C, D, H, W)``."""
+    check_choice(kind, "kind", KINDS)
+    make = smooth_signal if kind == "smooth" else piecewise_constant_signal
+    return make(surface, channels=channels, seed=seed, **options)
+
+
+class SignalDataset(Dataset):
+    """Noisy and clean random signals on a batch of shapes, item by item, deterministic.
+
+    Item ``i`` lies on shape ``i % B``, is of kind ``kinds[(i // B) % len(kinds)]``, and is
+    drawn from ``derived_seed(seed, i)``: the same ``(seed, i)`` always gives the same item,
+    whatever was drawn before. Noise is Gaussian, independent at every node.
+
+    Args:
+        shapes: a :class:`~torchsurf.shape_batch.MeshBatchAdapter` or an
+            :class:`~torchsurf.ImplicitSurface` of ``B`` surfaces on one grid.
+        length: number of items.
+        kinds: signal kinds to cycle through, from :data:`KINDS`.
+        channels: ``C``.
+        noise: standard deviation of the noise (signals lie in ``[0, 1]``).
+        seed: the run's seed.
+        smooth, piecewise_constant: options of :func:`smooth_signal` and
+            :func:`piecewise_constant_signal` (``frequency``, ``modes``; ``cells``).
+
+    Items are dicts: ``"noisy"`` and ``"clean"`` ``(C, D, H, W)``, ``"shape"`` the shape's
+    index (an ``int``), ``"kind"`` the kind. A ``DataLoader`` stacks them into ``(N, C, D, H, W)``;
+    :meth:`surface` gives the matching surfaces, :meth:`band_mask` the nodes to score.
+
+    Example:
+        >>> import torchsurf as ts
+        >>> grid = ts.Grid.cube(17, bound=1.5)
+        >>> shapes = ts.ImplicitSurface(ts.sdf.sphere(grid), grid)
+        >>> item = SignalDataset(shapes, length=4, seed=1)[3]
+        >>> item["noisy"].shape, item["kind"]
+        (torch.Size([1, 17, 17, 17]), 'piecewise_constant')
+    """
+
+    def __init__(
+        self,
+        shapes: MeshBatchAdapter | ImplicitSurface,
+        length: int,
+        kinds: Sequence[str] = KINDS,
+        channels: int = 1,
+        noise: float = 0.1,
+        seed: int = 0,
+        smooth: dict | None = None,
+        piecewise_constant: dict | None = None,
+    ) -> None:
+        surface = shapes.surface if isinstance(shapes, MeshBatchAdapter) else shapes
+        if not isinstance(surface, ImplicitSurface):
+            raise TypeError(
+                "shapes must be a MeshBatchAdapter or an ImplicitSurface, got "
+                f"{type(shapes).__name__}"
+            )
+        if isinstance(kinds, str) or len(kinds) == 0:
+            raise ValueError(f"kinds must be a non-empty sequence of {KINDS}, got {kinds!r}")
+        self.kinds = tuple(check_choice(kind, "kinds", KINDS) for kind in kinds)
+        self.length = check_count(length, "length")
+        self.channels = check_count(channels, "channels")
+        self.noise = check_nonnegative(noise, "noise")
+        self.seed = int(seed)
+        self.options = {"smooth": dict(smooth or {}),
+                        "piecewise_constant": dict(piecewise_constant or {})}
+        self.grid = surface.grid
+        self.phi = surface.phi.detach()
+        self._surfaces = [ImplicitSurface(self.phi[b:b + 1], self.grid, surface.band_width)
+                          for b in range(surface.batch_size)]
+        self._band_width = surface.band_width
+
+    def __len__(self) -> int:
+        return self.length
+
+    def __getitem__(self, index: int) -> dict[str, Tensor | int | str]:
+        if not -self.length <= index < self.length:
+            raise IndexError(f"index {index} out of range for {self.length} items")
+        index %= self.length
+        shape = index % len(self._surfaces)
+        kind = self.kinds[(index // len(self._surfaces)) % len(self.kinds)]
+        seed = derived_seed(self.seed, index)
+        clean = signal(kind, self._surfaces[shape], self.channels, seed, **self.options[kind])[0]
+        noisy = clean + gaussian_noise(clean, self.noise, derived_seed(self.seed, index, 1))
+        return {"noisy": noisy, "clean": clean, "shape": shape, "kind": kind}
+
+    def surface(self, shapes: Tensor | Sequence[int]) -> ImplicitSurface:
+        """The surfaces of a batch of items, ``shapes`` their ``"shape"`` indices ``(N,)``."""
+        index = torch.as_tensor(shapes, dtype=torch.long, device=self.phi.device)
+        return ImplicitSurface(self.phi[index], self.grid, self._band_width)
+
+    def band_mask(self, shapes: Tensor | Sequence[int]) -> Tensor:
+        """``(N, 1, D, H, W)`` bool, the band of each item's surface (where to score)."""
+        index = torch.as_tensor(shapes, dtype=torch.long, device=self.phi.device)
+        return torch.cat([self._surfaces[int(b)].band_mask() for b in index.cpu()])

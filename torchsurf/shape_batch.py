@@ -1,0 +1,265 @@
+"""Several shapes on one grid, each centred and scaled to a common size, as one batch.
+
+Meshes and analytic shapes (:mod:`torchsurf.sdf`) cannot share a batch when each has its own
+grid (:func:`torchsurf.mesh.fit_grid` fits the spacing to the shape). :class:`MeshBatchAdapter`
+maps every shape ``b`` to normalised coordinates ``x' = scale_b (x - centre_b)``, in which its
+bounding box is centred at the origin and its longest side is ``size``; all shapes then live on
+one cubic grid and their ``phi`` stack into ``(B, 1, D, H, W)``. Distances scale by
+``scale_b``, so a diffusion time ``t'`` on the common grid is ``t' / scale_b^2`` in the shape's
+own units (:meth:`MeshBatchAdapter.shape_time`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+import trimesh
+from torch import Tensor, nn
+
+from . import sdf
+from ._checks import check_count, check_dtype, check_nonnegative, check_positive, check_volume
+from ._mesh_input import MeshLike, as_trimesh, triangle_arrays
+from .grid import Grid
+from .mesh import MeshAdapter, extract
+from .surface import ImplicitSurface
+
+ANALYTIC = ("sphere", "torus", "box", "capsule", "trefoil")
+
+
+def _trefoil_reach(parameters: Mapping[str, object]) -> np.ndarray:
+    """``(2, 3)`` box of the trefoil's core curve (:func:`torchsurf.sdf.trefoil`)."""
+    scale = float(parameters.get("scale", 0.4))
+    t = np.linspace(0, 2 * math.pi, 4097)
+    curve = scale * np.stack((np.sin(t) + 2 * np.sin(2 * t), np.cos(t) - 2 * np.cos(2 * t),
+                              -np.sin(3 * t)), axis=1)
+    return np.stack((curve.min(axis=0), curve.max(axis=0)))
+
+
+@dataclass(frozen=True)
+class AnalyticShape:
+    """An analytic shape of :mod:`torchsurf.sdf`, by function name and keyword arguments.
+
+    Args:
+        name: ``"sphere"``, ``"torus"``, ``"box"``, ``"capsule"`` or ``"trefoil"``.
+        parameters: keyword arguments of that function other than ``grid``, ``dtype`` and
+            ``device`` (e.g. ``{"major_radius": 1.0, "minor_radius": 0.3}``), world units.
+
+    Example:
+        >>> AnalyticShape("torus", {"minor_radius": 0.3}).bounds()[1]
+        array([1.3, 1.3, 0.3])
+    """
+
+    name: str
+    parameters: Mapping[str, object] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.name not in ANALYTIC:
+            raise ValueError(f"name must be one of {ANALYTIC}, got {self.name!r}")
+        for key in ("grid", "dtype", "device"):
+            if key in self.parameters:
+                raise ValueError(f"parameters must not hold {key!r}: the batch chooses it")
+
+    def phi(self, grid: Grid, dtype: torch.dtype | None = None,
+            device: torch.device | str | None = None) -> Tensor:
+        """The exact signed distance on ``grid`` (the shape's own units), ``(1, 1, D, H, W)``."""
+        return getattr(sdf, self.name)(grid, dtype=dtype, device=device, **self.parameters)
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """The bounding box ``(low, high)``, world ``(x, y, z)`` arrays ``(3,)``."""
+        p = self.parameters
+        centre = np.asarray(p.get("center", (0.0, 0.0, 0.0)), dtype=np.float64)
+        if self.name == "sphere":
+            reach = np.full(3, float(p.get("radius", 1.0)))
+        elif self.name == "torus":
+            major, minor = float(p.get("major_radius", 1.0)), float(p.get("minor_radius", 0.4))
+            reach = np.array([major + minor, major + minor, minor])
+        elif self.name == "box":
+            reach = np.asarray(p.get("half_size", (0.5, 0.5, 0.5)), dtype=np.float64)
+        elif self.name == "capsule":
+            ends = np.array([p.get("start", (0.0, 0.0, -0.5)), p.get("end", (0.0, 0.0, 0.5))],
+                            dtype=np.float64)
+            radius = float(p.get("radius", 0.4))
+            return ends.min(axis=0) - radius, ends.max(axis=0) + radius
+        else:
+            low, high = _trefoil_reach(p)
+            tube = float(p.get("tube_radius", 0.12))
+            return centre + low - tube, centre + high + tube
+        return centre - reach, centre + reach
+
+
+Shape = MeshLike | AnalyticShape
+
+
+class MeshBatchAdapter(nn.Module):
+    """Several meshes and analytic shapes on one grid, normalised, with their vertex data.
+
+    Shape ``b`` is moved to normalised coordinates ``x' = scale_b (x - centre_b)``: its
+    bounding box centred at the origin, its longest side ``size``. The common grid is
+    ``Grid.cube(resolution, bound=size (1 + 2 margin) / 2)``. A mesh gets a
+    :class:`~torchsurf.mesh.MeshAdapter` there (its ``phi``, the band, encode and decode, of
+    ``order``); an analytic shape gets its exact ``phi`` (:class:`AnalyticShape`), and as
+    vertices those of the marching-cubes mesh of that ``phi`` (:func:`torchsurf.mesh.extract`),
+    whose adapter moves its vertex data.
+
+    Args:
+        shapes: a sequence of meshes (as in :func:`torchsurf.mesh.load`) and
+            :class:`AnalyticShape`.
+        resolution: nodes per axis of the common grid.
+        size: longest side of every shape's box, normalised units.
+        margin: free space on each side of the box, fraction of ``size``.
+        band_width: half-width of the band the adapters fill, normalised units (default
+            ``5 * spacing``).
+        dtype, device: of the tensors (default dtype, CPU).
+        order: decoding of the adapters, see :class:`~torchsurf.mesh.MeshAdapter`.
+
+    Attributes:
+        grid: the common grid.
+        phi: ``(B, 1, D, H, W)``, normalised units, negative inside.
+        surface: the :class:`~torchsurf.ImplicitSurface` of the batch (default band).
+        scale: ``(B,)`` float64, the factor from a shape's own units to normalised units.
+        centre: ``(B, 3)`` float64, the box centre of each shape in its own units.
+        vertices: list of ``B`` tensors ``(V_b, 3)``, normalised coordinates.
+        adapters: ``nn.ModuleList`` of the ``B`` :class:`~torchsurf.mesh.MeshAdapter`.
+
+    Example:
+        >>> batch = MeshBatchAdapter([trimesh.creation.icosphere(),
+        ...                           AnalyticShape("torus", {"minor_radius": 0.3})],
+        ...                          resolution=33)
+        >>> batch.phi.shape
+        torch.Size([2, 1, 33, 33, 33])
+        >>> values = [v[:, :1] for v in batch.vertices]          # x of every vertex, (V_b, 1)
+        >>> [d.shape[1] for d in batch.decode(batch.encode(values))]
+        [1, 1]
+    """
+
+    phi: Tensor
+    scale: Tensor
+    centre: Tensor
+
+    def __init__(
+        self,
+        shapes: Sequence[Shape],
+        resolution: int = 64,
+        size: float = 1.0,
+        margin: float = 0.15,
+        band_width: float | None = None,
+        dtype: torch.dtype | None = None,
+        device: torch.device | str | None = None,
+        order: int = 2,
+    ) -> None:
+        super().__init__()
+        if isinstance(shapes, (str, AnalyticShape, trimesh.Trimesh)) or not isinstance(
+            shapes, Sequence
+        ):
+            raise TypeError(
+                "shapes must be a sequence (list or tuple) of meshes and AnalyticShape, got "
+                f"{type(shapes).__name__}"
+            )
+        if len(shapes) == 0:
+            raise ValueError("shapes must hold at least one shape, got an empty sequence")
+        resolution = check_count(resolution, "resolution", minimum=3)
+        size = check_positive(size, "size")
+        margin = check_nonnegative(margin, "margin")
+        dtype = check_dtype(dtype)
+        self.grid = Grid.cube(resolution, bound=0.5 * size * (1.0 + 2.0 * margin))
+        phis, scales, centres, adapters = [], [], [], []
+        for index, shape in enumerate(shapes):
+            name = f"shapes[{index}]"
+            if isinstance(shape, AnalyticShape):
+                low, high = shape.bounds()
+            else:
+                mesh = as_trimesh(shape, name)
+                vertices, faces = triangle_arrays(mesh)
+                used = vertices[np.unique(faces)]
+                low, high = used.min(axis=0), used.max(axis=0)
+            longest = float((high - low).max())
+            if longest == 0:
+                raise ValueError(f"{name}: its bounding box has no extent")
+            scale, centre = size / longest, (low + high) / 2
+            if isinstance(shape, AnalyticShape):
+                own = Grid(self.grid.shape, self.grid.spacing / scale,
+                           tuple(float(c) for c in centre + np.asarray(self.grid.origin) / scale))
+                phi = scale * shape.phi(own, dtype=torch.float64)
+                mesh = extract(phi, self.grid)
+                phi = phi.to(dtype=dtype, device=device)
+            else:
+                mesh = trimesh.Trimesh(scale * (vertices - centre), faces, process=False)
+                phi = None
+            try:
+                adapter = MeshAdapter(mesh, self.grid, band_width=band_width, dtype=dtype,
+                                      device=device, order=order)
+            except ValueError as error:
+                raise ValueError(f"{name}: {error}") from error
+            phis.append(adapter.phi if phi is None else phi)
+            scales.append(scale)
+            centres.append(centre)
+            adapters.append(adapter)
+        self.adapters = nn.ModuleList(adapters)
+        self.register_buffer("phi", torch.cat(phis))
+        self.register_buffer("scale", torch.tensor(scales, dtype=torch.float64))
+        self.register_buffer("centre", torch.as_tensor(np.stack(centres), dtype=torch.float64))
+        self.surface = ImplicitSurface(self.phi, self.grid)
+
+    def __len__(self) -> int:
+        return len(self.adapters)
+
+    @property
+    def vertices(self) -> list[Tensor]:
+        """The vertices of every shape, ``(V_b, 3)`` normalised ``(x, y, z)``."""
+        return [adapter.vertices for adapter in self.adapters]
+
+    def encode(self, values: Sequence[Tensor]) -> Tensor:
+        """Per-vertex values of every shape -> the batch volume.
+
+        Args:
+            values: ``B`` tensors ``(V_b, C)``, the same ``C`` and dtype for all.
+
+        Returns:
+            ``(B, C, D, H, W)``: entry ``b`` is shape ``b``'s values in its band
+            (:meth:`MeshAdapter.encode`), 0 beyond.
+        """
+        if isinstance(values, Tensor) or len(values) != len(self):
+            raise ValueError(
+                f"values must be a sequence of {len(self)} tensors (V_b, C), one per shape, "
+                f"got {type(values).__name__}"
+                + ("" if isinstance(values, Tensor) else f" of length {len(values)}")
+            )
+        channels = None
+        volumes = []
+        for b, (entry, adapter) in enumerate(zip(values, self.adapters, strict=True)):
+            count = len(adapter.vertices)
+            if not isinstance(entry, Tensor) or entry.dim() != 2 or entry.shape[0] != count:
+                shape = tuple(entry.shape) if isinstance(entry, Tensor) else type(entry).__name__
+                raise ValueError(f"values[{b}] must have shape ({count}, C), got {shape}")
+            if channels is None:
+                channels = entry.shape[1]
+            elif entry.shape[1] != channels:
+                raise ValueError(
+                    f"values[{b}] has {entry.shape[1]} channels, values[0] has {channels}; "
+                    "every shape needs the same C"
+                )
+            volumes.append(adapter.encode(entry.T[None]))
+        return torch.cat(volumes)
+
+    def decode(self, volume: Tensor) -> list[Tensor]:
+        """The batch volume ``(B, C, D, H, W)`` -> ``B`` tensors ``(V_b, C)`` at the vertices."""
+        check_volume(volume, "volume")
+        if volume.shape[0] != len(self):
+            raise ValueError(
+                f"volume must hold the {len(self)} shapes in its batch, got shape "
+                f"{tuple(volume.shape)}"
+            )
+        return [adapter.decode(volume[b:b + 1])[0].T
+                for b, adapter in enumerate(self.adapters)]
+
+    def shape_time(self, time: float) -> Tensor:
+        """A diffusion time on the common grid in every shape's own units, ``(B,)`` float64:
+        ``time / scale_b^2`` (times are lengths squared)."""
+        return check_nonnegative(time, "time") / self.scale**2
+
+    def extra_repr(self) -> str:
+        return f"shapes={len(self)}, grid={self.grid.shape}, spacing={self.grid.spacing:g}"
