@@ -27,6 +27,19 @@ def test_colours_modes():
         render.colours(values, "hsv")
 
 
+def test_equalized_colours_use_the_whole_map():
+    values = np.sort(np.random.default_rng(0).normal(size=1000))[:, None]
+    middle = slice(250, 750)
+    stretched = render.colours(values, "scalar", "gray")
+    equalized = render.colours(values, "scalar", "gray", equalize=True)
+    # percentiles leave the middle half of a normal sample 29 % of the map; ranks give it half
+    assert np.ptp(stretched[middle, 0]) < 0.35
+    assert np.ptp(equalized[middle, 0]) > 0.48
+    assert equalized[0, 0] == pytest.approx(0.0) and equalized[-1, 0] == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="not both"):
+        render.colours(values, "scalar", "gray", (0.0, 1.0), equalize=True)
+
+
 @pytest.mark.parametrize("up", ["x", "y", "z"])
 def test_camera_sees_every_vertex(up):
     vertices = np.random.default_rng(0).normal(size=(200, 3)) * [3.0, 1.0, 0.5] + 10.0

@@ -131,7 +131,8 @@ class GridConfig:
 @dataclass
 class SignalConfig:
     """The initial data; ``noise``: standard deviation of added Gaussian noise (units of the
-    data's range; for a field, of each component before re-normalising)."""
+    data's range; for a field, of each component before re-normalising); ``grain``: with
+    ``kind: noise``, the size of the noise's specks, cells."""
 
     kind: SignalKind = SignalKind.checkerboard
     tiles: float = 8.0
@@ -140,6 +141,7 @@ class SignalConfig:
     axis: Axis = Axis.z
     gray: bool = False
     noise: float = 0.0
+    grain: float = 1.0
     seed: int = 0
 
 
@@ -341,6 +343,7 @@ def check(experiment: Experiment) -> None:
         raise ConfigError("grid.margin", f"must be in [0, 1], got {experiment.grid.margin}")
     signal = experiment.signal
     _positive(signal.tiles, "signal.tiles")
+    _positive(signal.grain, "signal.grain")
     if not signal.noise >= 0:
         raise ConfigError("signal.noise", f"must be >= 0, got {signal.noise}")
     flow = experiment.flow

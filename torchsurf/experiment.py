@@ -179,7 +179,7 @@ def build_signal(prepared: Prepared, surface: ImplicitSurface, box: tuple[Tensor
         if signal.gray and clean.shape[1] == 3:
             clean = signals.gray(clean)
     elif kind is SignalKind.noise:
-        clean = signals.uniform_noise(surface, 1, signal.seed)
+        clean = signals.surface_noise(surface, 1, signal.seed, signal.grain)
     elif kind is SignalKind.field:
         clean = field
     else:
@@ -280,8 +280,9 @@ def _threads(count: int | None):  # noqa: ANN202
 
 
 def _panel_colours(experiment: Experiment, values: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """Vertex colours of each panel: textures on a shared ``[0, 1]`` scale, noise and
-    reaction–diffusion each on its own percentiles, fields and colour as themselves."""
+    """Vertex colours of each panel: textures on a shared ``[0, 1]`` scale, reaction–diffusion
+    on its own percentiles, noise and its flow visualisation histogram-equalised, fields and
+    colour as themselves."""
     kind, flow = experiment.signal.kind, experiment.flow.kind
     colormap = experiment.render.colormap
     result = {}
@@ -290,7 +291,9 @@ def _panel_colours(experiment: Experiment, values: dict[str, np.ndarray]) -> dic
             result[name] = render.colours(vertex, "field")
         elif vertex.shape[1] == 3:
             result[name] = render.colours(vertex, "rgb")
-        elif kind in (SignalKind.noise, SignalKind.turk) or flow is FlowKind.visualization:
+        elif kind is SignalKind.noise:
+            result[name] = render.colours(vertex, "scalar", colormap, equalize=True)
+        elif kind is SignalKind.turk:
             result[name] = render.colours(vertex, "scalar", colormap)
         else:
             result[name] = render.colours(vertex, "scalar", colormap, (0.0, 1.0))

@@ -49,12 +49,14 @@ def vertex_values(volume: Tensor, mesh: trimesh.Trimesh, grid: Grid) -> np.ndarr
 
 
 def colours(values: np.ndarray, mode: str = "scalar", colormap: str = "viridis",
-            limits: tuple[float, float] | None = None) -> np.ndarray:
+            limits: tuple[float, float] | None = None, equalize: bool = False) -> np.ndarray:
     """Per-vertex RGB ``(V, 3)`` in ``[0, 1]`` from values ``(V, C)``.
 
-    ``"scalar"`` (C = 1): ``colormap`` over ``limits`` (default the 1st and 99th percentiles);
-    ``"rgb"`` (C = 3): clipped to ``[0, 1]``; ``"field"`` (C = 3, unit vectors up to sign):
-    ``|T_x|, |T_y|, |T_z|``.
+    ``"scalar"`` (C = 1): ``colormap`` over ``limits`` (default the 1st and 99th percentiles),
+    or, with ``equalize``, over each value's rank among the vertices (histogram equalisation:
+    every colour of the map is used equally often, which shows the streaks of a flow
+    visualisation whose values cluster near their mean); ``"rgb"`` (C = 3): clipped to
+    ``[0, 1]``; ``"field"`` (C = 3, unit vectors up to sign): ``|T_x|, |T_y|, |T_z|``.
     """
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
@@ -68,8 +70,14 @@ def colours(values: np.ndarray, mode: str = "scalar", colormap: str = "viridis",
     Figure, _, _ = _matplotlib()
     from matplotlib import colormaps
 
-    low, high = limits if limits is not None else np.percentile(values[:, 0], [1.0, 99.0])
-    scaled = (values[:, 0] - low) / max(high - low, 1e-12)
+    if equalize and limits is not None:
+        raise ValueError("give limits or equalize=True, not both")
+    if equalize:
+        ranks = np.argsort(np.argsort(values[:, 0], kind="stable"), kind="stable")
+        scaled = ranks / max(len(ranks) - 1, 1)
+    else:
+        low, high = limits if limits is not None else np.percentile(values[:, 0], [1.0, 99.0])
+        scaled = (values[:, 0] - low) / max(high - low, 1e-12)
     return colormaps[colormap](np.clip(scaled, 0.0, 1.0))[:, :3]
 
 
