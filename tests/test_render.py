@@ -84,3 +84,30 @@ def test_render_extracted_surface_data(tmp_path):
                                 elevation=60.0)
     assert mpimg.imread(path).shape[:2] == (40, 40)
     assert torch.is_tensor(z)
+
+
+def test_renderer_auto_falls_back_to_matplotlib_and_says_why(monkeypatch, tmp_path):
+    assert render.resolve_renderer("matplotlib") == ("matplotlib", "asked for")
+    monkeypatch.setattr(render, "_pyvista_problem", lambda: "pyvista is not installed")
+    assert render.resolve_renderer("auto") == ("matplotlib",
+                                               "fallback: pyvista is not installed")
+    with pytest.raises(ImportError, match="not installed"):
+        render.resolve_renderer("pyvista")
+    with pytest.raises(ValueError, match="renderer"):
+        render.resolve_renderer("blender")
+    mesh = trimesh.creation.icosphere(subdivisions=1)
+    with pytest.raises(ImportError, match="not installed"):
+        render.render_panels(mesh, [("a", np.ones((len(mesh.vertices), 3)))],
+                             tmp_path / "a.png", renderer="pyvista")
+
+
+def test_pyvista_draws_the_panels_the_size_asked(tmp_path):
+    if render.resolve_renderer("auto")[0] != "pyvista":
+        pytest.skip(render.resolve_renderer("auto")[1])
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    panels = [("height", render.colours(mesh.vertices[:, 2:])),
+              ("normal", render.colours(mesh.vertex_normals, "field"))]
+    path = render.render_panels(mesh, panels, tmp_path / "ball.png", 80, 60, renderer="pyvista")
+    picture = mpimg.imread(path)
+    assert picture.shape[:2] == (60, 160)
+    assert picture[:, :80, :3].std() > 0.05 and picture[:, 80:, :3].std() > 0.05

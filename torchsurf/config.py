@@ -108,6 +108,14 @@ class TimeUnit(Enum):
     turk = "turk"
 
 
+class Renderer(Enum):
+    """What draws the pictures (:func:`torchsurf.render.resolve_renderer`)."""
+
+    auto = "auto"
+    pyvista = "pyvista"
+    matplotlib = "matplotlib"
+
+
 @dataclass
 class SurfaceConfig:
     """``shape``: a built-in signed distance or ``mesh``; ``mesh``: a file path, resolved
@@ -178,7 +186,8 @@ class FlowConfig:
 @dataclass
 class RenderConfig:
     """Pictures: one PNG of ``panels`` side by side (``clean``, ``input``, ``output``), each
-    ``width x height`` pixels, seen from ``elevation``/``azimuth`` degrees with ``up`` up."""
+    ``width x height`` pixels, seen from ``elevation``/``azimuth`` degrees with ``up`` up, drawn
+    by ``renderer`` (``auto``: pyvista when it draws off screen, else matplotlib)."""
 
     width: int = 400
     height: int = 400
@@ -187,6 +196,7 @@ class RenderConfig:
     elevation: float = 25.0
     azimuth: float = -60.0
     up: Axis = Axis.z
+    renderer: Renderer = Renderer.auto
 
 
 @dataclass

@@ -106,6 +106,11 @@ def prepare(config: str | os.PathLike, overrides: list[str] | None = None) -> Pr
         if not image.is_file():
             raise ConfigError("signal.image", f"neither a built-in image "
                               f"({', '.join(signals.IMAGES)}) nor a file: {str(image)!r}")
+    if experiment.render.renderer is cfg.Renderer.pyvista:
+        try:
+            render.resolve_renderer("pyvista")
+        except ImportError as error:
+            raise ConfigError("render.renderer", str(error)) from error
     return Prepared(experiment, folder, params, mesh_path)
 
 
@@ -245,7 +250,8 @@ def _versions() -> dict[str, str]:
     from . import __version__
 
     found = {"torchsurf": __version__, "python": platform.python_version()}
-    for name in ("torch", "numpy", "kornia", "omegaconf", "matplotlib", "scikit-image", "trimesh"):
+    for name in ("torch", "numpy", "kornia", "omegaconf", "matplotlib", "scikit-image", "trimesh",
+                 "pyvista", "vtk"):
         try:
             found[name] = metadata.version(name)
         except metadata.PackageNotFoundError:
@@ -376,11 +382,13 @@ def run(prepared: Prepared, out: str | os.PathLike, progress: bool = False,
         titles = {"clean": "clean", "input": "input" if experiment.signal.noise == 0 else "noisy",
                   "output": f"{kind.name.replace('_', ' ')}, t = {experiment.flow.time:g}"}
         render_config = experiment.render
+        renderer, why = render.resolve_renderer(render_config.renderer.name)
+        log(f"render: {renderer} ({why})")
         out = Path(out)
         picture = render.render_panels(
             extracted, [(titles[p], colours[p]) for p in render_config.panels],
             out / f"{experiment.name}.png", render_config.width, render_config.height,
-            render_config.elevation, render_config.azimuth, render_config.up.name,
+            render_config.elevation, render_config.azimuth, render_config.up.name, renderer,
         )
         stage("render")
     record = write_json({
@@ -392,6 +400,7 @@ def run(prepared: Prepared, out: str | os.PathLike, progress: bool = False,
         "metrics": metrics,
         "stages_seconds": stages,
         "picture": picture.name,
+        "renderer": renderer,
         "command": sys.argv,
         "versions": _versions(),
     }, out / f"{experiment.name}.json")
