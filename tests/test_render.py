@@ -69,6 +69,8 @@ def test_panels_side_by_side_written_atomically(tmp_path):
     assert picture.shape[:2] == (60, 160)
     assert picture[:, :80, :3].std() > 0.05 and picture[:, 80:, :3].std() > 0.05
     assert [p.name for p in path.parent.iterdir()] == ["ball.png"]
+    # the permissions open() would give, not the temporary file's private 0600
+    assert path.stat().st_mode & 0o777 == render.FILE_MODE
     with pytest.raises(ValueError, match=r"panels\[0\]"):
         render.render_panels(mesh, [("bad", np.zeros((3, 3)))], tmp_path / "bad.png")
     assert not (tmp_path / "bad.png").exists()

@@ -267,6 +267,7 @@ def write_json(data: dict[str, Any], path: Path) -> Path:
         with os.fdopen(handle, "w") as stream:
             json.dump(data, stream, indent=2)
             stream.write("\n")
+            os.fchmod(stream.fileno(), render.FILE_MODE)
         os.replace(temporary, path)
     except BaseException:
         Path(temporary).unlink(missing_ok=True)

@@ -32,6 +32,11 @@ from .sampling import sample
 
 AXES = ("x", "y", "z")
 MODES = ("scalar", "rgb", "field")
+_UMASK = os.umask(0)
+os.umask(_UMASK)
+FILE_MODE = 0o666 & ~_UMASK
+"""Permissions of the files written (those of ``open``): ``mkstemp``'s own 0600 would hide
+the pictures from everyone else."""
 RENDERERS = ("auto", "pyvista", "matplotlib")
 """Values of ``renderer``: ``"auto"`` is pyvista when it can draw off screen, else matplotlib."""
 
@@ -294,6 +299,7 @@ def write_png(figure, path: str | Path) -> Path:  # noqa: ANN001
     try:
         with os.fdopen(handle, "wb") as stream:
             figure.savefig(stream, format="png", dpi=figure.dpi)
+            os.fchmod(stream.fileno(), FILE_MODE)
         os.replace(temporary, path)
     except BaseException:
         Path(temporary).unlink(missing_ok=True)
