@@ -290,7 +290,7 @@ def _panel_colours(experiment: Experiment, values: dict[str, np.ndarray]) -> dic
     """Vertex colours of each panel: textures on a shared ``[0, 1]`` scale, reaction–diffusion
     on its own percentiles, noise and its flow visualisation histogram-equalised, fields and
     colour as themselves."""
-    kind, flow = experiment.signal.kind, experiment.flow.kind
+    kind = experiment.signal.kind
     colormap = experiment.render.colormap
     result = {}
     for name, vertex in values.items():
