@@ -134,6 +134,8 @@ def test_mesh_path_resolves_against_the_config_folder_then_the_mesh_dir(tmp_path
         (["signal.image=no_such.png", "signal.kind=image"], "signal.image"),
         (["flow.time_unit=turk"], "flow.time_unit"),
         (["flowtime"], "--set"),
+        (["signal.grain=0"], "signal.grain"),
+        (["render.renderer=povray"], "render.renderer"),
     ],
 )
 def test_bad_settings_are_refused_with_their_key(overrides, key, tmp_path, capsys):

@@ -27,6 +27,19 @@ def test_colours_modes():
         render.colours(values, "hsv")
 
 
+def test_equalized_colours_use_the_whole_map():
+    values = np.sort(np.random.default_rng(0).normal(size=1000))[:, None]
+    middle = slice(250, 750)
+    stretched = render.colours(values, "scalar", "gray")
+    equalized = render.colours(values, "scalar", "gray", equalize=True)
+    # percentiles leave the middle half of a normal sample 29 % of the map; ranks give it half
+    assert np.ptp(stretched[middle, 0]) < 0.35
+    assert np.ptp(equalized[middle, 0]) > 0.48
+    assert equalized[0, 0] == pytest.approx(0.0) and equalized[-1, 0] == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="not both"):
+        render.colours(values, "scalar", "gray", (0.0, 1.0), equalize=True)
+
+
 @pytest.mark.parametrize("up", ["x", "y", "z"])
 def test_camera_sees_every_vertex(up):
     vertices = np.random.default_rng(0).normal(size=(200, 3)) * [3.0, 1.0, 0.5] + 10.0
@@ -56,6 +69,8 @@ def test_panels_side_by_side_written_atomically(tmp_path):
     assert picture.shape[:2] == (60, 160)
     assert picture[:, :80, :3].std() > 0.05 and picture[:, 80:, :3].std() > 0.05
     assert [p.name for p in path.parent.iterdir()] == ["ball.png"]
+    # the permissions open() would give, not the temporary file's private 0600
+    assert path.stat().st_mode & 0o777 == render.FILE_MODE
     with pytest.raises(ValueError, match=r"panels\[0\]"):
         render.render_panels(mesh, [("bad", np.zeros((3, 3)))], tmp_path / "bad.png")
     assert not (tmp_path / "bad.png").exists()
@@ -71,3 +86,30 @@ def test_render_extracted_surface_data(tmp_path):
                                 elevation=60.0)
     assert mpimg.imread(path).shape[:2] == (40, 40)
     assert torch.is_tensor(z)
+
+
+def test_renderer_auto_falls_back_to_matplotlib_and_says_why(monkeypatch, tmp_path):
+    assert render.resolve_renderer("matplotlib") == ("matplotlib", "asked for")
+    monkeypatch.setattr(render, "_pyvista_problem", lambda: "pyvista is not installed")
+    assert render.resolve_renderer("auto") == ("matplotlib",
+                                               "fallback: pyvista is not installed")
+    with pytest.raises(ImportError, match="not installed"):
+        render.resolve_renderer("pyvista")
+    with pytest.raises(ValueError, match="renderer"):
+        render.resolve_renderer("blender")
+    mesh = trimesh.creation.icosphere(subdivisions=1)
+    with pytest.raises(ImportError, match="not installed"):
+        render.render_panels(mesh, [("a", np.ones((len(mesh.vertices), 3)))],
+                             tmp_path / "a.png", renderer="pyvista")
+
+
+def test_pyvista_draws_the_panels_the_size_asked(tmp_path):
+    if render.resolve_renderer("auto")[0] != "pyvista":
+        pytest.skip(render.resolve_renderer("auto")[1])
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    panels = [("height", render.colours(mesh.vertices[:, 2:])),
+              ("normal", render.colours(mesh.vertex_normals, "field"))]
+    path = render.render_panels(mesh, panels, tmp_path / "ball.png", 80, 60, renderer="pyvista")
+    picture = mpimg.imread(path)
+    assert picture.shape[:2] == (60, 160)
+    assert picture[:, :80, :3].std() > 0.05 and picture[:, 80:, :3].std() > 0.05

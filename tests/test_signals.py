@@ -99,6 +99,29 @@ def test_noise_is_seeded(sphere):
     assert uniform.shape == (1, 1, 20, 20, 20) and 0 <= uniform.min() and uniform.max() < 1
 
 
+def test_surface_noise_is_seeded_constant_along_normals_and_grained(sphere):
+    noise = signals.surface_noise(sphere, 2, seed=3, grain=2.0)
+    assert noise.shape == (1, 2, 20, 20, 20) and 0 <= noise.min() and noise.max() < 1
+    assert torch.equal(noise, signals.surface_noise(sphere, 2, seed=3, grain=2.0))
+    assert not torch.equal(noise, signals.surface_noise(sphere, 2, seed=4, grain=2.0))
+    # nodes on the +x axis either side of S share their closest point, hence their value
+    grid = ts.Grid.cube(21, bound=1.4)
+    odd = ts.ImplicitSurface(ts.sdf.sphere(grid), grid)
+    on_axis = signals.surface_noise(odd, 1, seed=3, grain=2.0)[0, 0, 10, 10]
+    assert float(on_axis[16]) == pytest.approx(float(on_axis[17]), abs=1e-5)
+    band = sphere.band_mask()[0, 0]
+
+    def neighbour_correlation(volume):
+        a, b = volume[0, 0][band], torch.roll(volume, 1, dims=4)[0, 0][band]
+        return float(torch.corrcoef(torch.stack((a, b)))[0, 1])
+
+    fine = neighbour_correlation(signals.surface_noise(sphere, 1, seed=3, grain=1.0))
+    coarse = neighbour_correlation(signals.surface_noise(sphere, 1, seed=3, grain=4.0))
+    assert coarse > fine + 0.2, (fine, coarse)
+    with pytest.raises(ValueError, match="grain"):
+        signals.surface_noise(sphere, 1, seed=0, grain=0.0)
+
+
 def _unit_and_tangent(field, surface):
     band = surface.band_mask()[0, 0]
     length = field[0].norm(dim=0)[band]

@@ -108,6 +108,14 @@ class TimeUnit(Enum):
     turk = "turk"
 
 
+class Renderer(Enum):
+    """What draws the pictures (:func:`torchsurf.render.resolve_renderer`)."""
+
+    auto = "auto"
+    pyvista = "pyvista"
+    matplotlib = "matplotlib"
+
+
 @dataclass
 class SurfaceConfig:
     """``shape``: a built-in signed distance or ``mesh``; ``mesh``: a file path, resolved
@@ -131,7 +139,8 @@ class GridConfig:
 @dataclass
 class SignalConfig:
     """The initial data; ``noise``: standard deviation of added Gaussian noise (units of the
-    data's range; for a field, of each component before re-normalising)."""
+    data's range; for a field, of each component before re-normalising); ``grain``: with
+    ``kind: noise``, the size of the noise's specks, cells."""
 
     kind: SignalKind = SignalKind.checkerboard
     tiles: float = 8.0
@@ -140,6 +149,7 @@ class SignalConfig:
     axis: Axis = Axis.z
     gray: bool = False
     noise: float = 0.0
+    grain: float = 1.0
     seed: int = 0
 
 
@@ -176,7 +186,8 @@ class FlowConfig:
 @dataclass
 class RenderConfig:
     """Pictures: one PNG of ``panels`` side by side (``clean``, ``input``, ``output``), each
-    ``width x height`` pixels, seen from ``elevation``/``azimuth`` degrees with ``up`` up."""
+    ``width x height`` pixels, seen from ``elevation``/``azimuth`` degrees with ``up`` up, drawn
+    by ``renderer`` (``auto``: pyvista when it draws off screen, else matplotlib)."""
 
     width: int = 400
     height: int = 400
@@ -185,6 +196,7 @@ class RenderConfig:
     elevation: float = 25.0
     azimuth: float = -60.0
     up: Axis = Axis.z
+    renderer: Renderer = Renderer.auto
 
 
 @dataclass
@@ -341,6 +353,7 @@ def check(experiment: Experiment) -> None:
         raise ConfigError("grid.margin", f"must be in [0, 1], got {experiment.grid.margin}")
     signal = experiment.signal
     _positive(signal.tiles, "signal.tiles")
+    _positive(signal.grain, "signal.grain")
     if not signal.noise >= 0:
         raise ConfigError("signal.noise", f"must be >= 0, got {signal.noise}")
     flow = experiment.flow

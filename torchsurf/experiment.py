@@ -106,6 +106,11 @@ def prepare(config: str | os.PathLike, overrides: list[str] | None = None) -> Pr
         if not image.is_file():
             raise ConfigError("signal.image", f"neither a built-in image "
                               f"({', '.join(signals.IMAGES)}) nor a file: {str(image)!r}")
+    if experiment.render.renderer is cfg.Renderer.pyvista:
+        try:
+            render.resolve_renderer("pyvista")
+        except ImportError as error:
+            raise ConfigError("render.renderer", str(error)) from error
     return Prepared(experiment, folder, params, mesh_path)
 
 
@@ -179,7 +184,7 @@ def build_signal(prepared: Prepared, surface: ImplicitSurface, box: tuple[Tensor
         if signal.gray and clean.shape[1] == 3:
             clean = signals.gray(clean)
     elif kind is SignalKind.noise:
-        clean = signals.uniform_noise(surface, 1, signal.seed)
+        clean = signals.surface_noise(surface, 1, signal.seed, signal.grain)
     elif kind is SignalKind.field:
         clean = field
     else:
@@ -245,7 +250,8 @@ def _versions() -> dict[str, str]:
     from . import __version__
 
     found = {"torchsurf": __version__, "python": platform.python_version()}
-    for name in ("torch", "numpy", "kornia", "omegaconf", "matplotlib", "scikit-image", "trimesh"):
+    for name in ("torch", "numpy", "kornia", "omegaconf", "matplotlib", "scikit-image", "trimesh",
+                 "pyvista", "vtk"):
         try:
             found[name] = metadata.version(name)
         except metadata.PackageNotFoundError:
@@ -261,6 +267,7 @@ def write_json(data: dict[str, Any], path: Path) -> Path:
         with os.fdopen(handle, "w") as stream:
             json.dump(data, stream, indent=2)
             stream.write("\n")
+            os.fchmod(stream.fileno(), render.FILE_MODE)
         os.replace(temporary, path)
     except BaseException:
         Path(temporary).unlink(missing_ok=True)
@@ -280,9 +287,10 @@ def _threads(count: int | None):  # noqa: ANN202
 
 
 def _panel_colours(experiment: Experiment, values: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """Vertex colours of each panel: textures on a shared ``[0, 1]`` scale, noise and
-    reaction–diffusion each on its own percentiles, fields and colour as themselves."""
-    kind, flow = experiment.signal.kind, experiment.flow.kind
+    """Vertex colours of each panel: textures on a shared ``[0, 1]`` scale, reaction–diffusion
+    on its own percentiles, noise and its flow visualisation histogram-equalised, fields and
+    colour as themselves."""
+    kind = experiment.signal.kind
     colormap = experiment.render.colormap
     result = {}
     for name, vertex in values.items():
@@ -290,7 +298,9 @@ def _panel_colours(experiment: Experiment, values: dict[str, np.ndarray]) -> dic
             result[name] = render.colours(vertex, "field")
         elif vertex.shape[1] == 3:
             result[name] = render.colours(vertex, "rgb")
-        elif kind in (SignalKind.noise, SignalKind.turk) or flow is FlowKind.visualization:
+        elif kind is SignalKind.noise:
+            result[name] = render.colours(vertex, "scalar", colormap, equalize=True)
+        elif kind is SignalKind.turk:
             result[name] = render.colours(vertex, "scalar", colormap)
         else:
             result[name] = render.colours(vertex, "scalar", colormap, (0.0, 1.0))
@@ -373,11 +383,13 @@ def run(prepared: Prepared, out: str | os.PathLike, progress: bool = False,
         titles = {"clean": "clean", "input": "input" if experiment.signal.noise == 0 else "noisy",
                   "output": f"{kind.name.replace('_', ' ')}, t = {experiment.flow.time:g}"}
         render_config = experiment.render
+        renderer, why = render.resolve_renderer(render_config.renderer.name)
+        log(f"render: {renderer} ({why})")
         out = Path(out)
         picture = render.render_panels(
             extracted, [(titles[p], colours[p]) for p in render_config.panels],
             out / f"{experiment.name}.png", render_config.width, render_config.height,
-            render_config.elevation, render_config.azimuth, render_config.up.name,
+            render_config.elevation, render_config.azimuth, render_config.up.name, renderer,
         )
         stage("render")
     record = write_json({
@@ -389,6 +401,7 @@ def run(prepared: Prepared, out: str | os.PathLike, progress: bool = False,
         "metrics": metrics,
         "stages_seconds": stages,
         "picture": picture.name,
+        "renderer": renderer,
         "command": sys.argv,
         "versions": _versions(),
     }, out / f"{experiment.name}.json")

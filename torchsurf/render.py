@@ -1,15 +1,21 @@
 """Pictures of data on a surface: marching cubes, values sampled at the vertices, panels side by
-side, drawn off screen by matplotlib (``pip install torchsurf[render]``).
+side, drawn off screen by pyvista when it is installed, by matplotlib otherwise
+(``pip install torchsurf[render]`` installs both).
 
 The surface is extracted once (:func:`torchsurf.mesh.extract`), each volume is sampled at its
 vertices (:func:`torchsurf.sample`), and every panel is drawn with the same camera, fitted to the
-shape: an orthographic view from ``elevation`` and ``azimuth`` degrees, back faces culled,
-triangles painted far to near with Lambert shading. PNGs are written to a temporary file in the
-target folder and renamed into place, so a reader never sees half a picture.
+shape: an orthographic view from ``elevation`` and ``azimuth`` degrees. pyvista (VTK, off screen
+through EGL or OSMesa when there is no display) draws with a depth buffer and smooth shading;
+matplotlib, the fallback, culls back faces and paints the triangles far to near with Lambert
+shading (faces in front of one another can be mis-ordered). :func:`resolve_renderer` says which
+one ``"auto"`` takes and why. PNGs are written to a temporary file in the target folder and
+renamed into place, so a reader never sees half a picture.
 """
 
 from __future__ import annotations
 
+import functools
+import importlib.util
 import math
 import os
 import tempfile
@@ -26,6 +32,13 @@ from .sampling import sample
 
 AXES = ("x", "y", "z")
 MODES = ("scalar", "rgb", "field")
+_UMASK = os.umask(0)
+os.umask(_UMASK)
+FILE_MODE = 0o666 & ~_UMASK
+"""Permissions of the files written (those of ``open``): ``mkstemp``'s own 0600 would hide
+the pictures from everyone else."""
+RENDERERS = ("auto", "pyvista", "matplotlib")
+"""Values of ``renderer``: ``"auto"`` is pyvista when it can draw off screen, else matplotlib."""
 
 
 def _matplotlib():  # noqa: ANN202
@@ -49,12 +62,14 @@ def vertex_values(volume: Tensor, mesh: trimesh.Trimesh, grid: Grid) -> np.ndarr
 
 
 def colours(values: np.ndarray, mode: str = "scalar", colormap: str = "viridis",
-            limits: tuple[float, float] | None = None) -> np.ndarray:
+            limits: tuple[float, float] | None = None, equalize: bool = False) -> np.ndarray:
     """Per-vertex RGB ``(V, 3)`` in ``[0, 1]`` from values ``(V, C)``.
 
-    ``"scalar"`` (C = 1): ``colormap`` over ``limits`` (default the 1st and 99th percentiles);
-    ``"rgb"`` (C = 3): clipped to ``[0, 1]``; ``"field"`` (C = 3, unit vectors up to sign):
-    ``|T_x|, |T_y|, |T_z|``.
+    ``"scalar"`` (C = 1): ``colormap`` over ``limits`` (default the 1st and 99th percentiles),
+    or, with ``equalize``, over each value's rank among the vertices (histogram equalisation:
+    every colour of the map is used equally often, which shows the streaks of a flow
+    visualisation whose values cluster near their mean); ``"rgb"`` (C = 3): clipped to
+    ``[0, 1]``; ``"field"`` (C = 3, unit vectors up to sign): ``|T_x|, |T_y|, |T_z|``.
     """
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
@@ -68,8 +83,14 @@ def colours(values: np.ndarray, mode: str = "scalar", colormap: str = "viridis",
     Figure, _, _ = _matplotlib()
     from matplotlib import colormaps
 
-    low, high = limits if limits is not None else np.percentile(values[:, 0], [1.0, 99.0])
-    scaled = (values[:, 0] - low) / max(high - low, 1e-12)
+    if equalize and limits is not None:
+        raise ValueError("give limits or equalize=True, not both")
+    if equalize:
+        ranks = np.argsort(np.argsort(values[:, 0], kind="stable"), kind="stable")
+        scaled = ranks / max(len(ranks) - 1, 1)
+    else:
+        low, high = limits if limits is not None else np.percentile(values[:, 0], [1.0, 99.0])
+        scaled = (values[:, 0] - low) / max(high - low, 1e-12)
     return colormaps[colormap](np.clip(scaled, 0.0, 1.0))[:, :3]
 
 
@@ -142,9 +163,94 @@ def _draw(axes, mesh: trimesh.Trimesh, vertex_colours: np.ndarray, camera: Camer
     axes.set_axis_off()
 
 
+def _pyvista():  # noqa: ANN202
+    if not os.environ.get("DISPLAY"):
+        # without an X server, VTK tries X first and logs an error before its EGL fallback
+        os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
+    import pyvista
+
+    return pyvista
+
+
+@functools.cache
+def _pyvista_problem() -> str | None:
+    """Why pyvista cannot draw off screen here (``None``: it can), probed once per process."""
+    if importlib.util.find_spec("pyvista") is None:
+        return "pyvista is not installed"
+    try:
+        pyvista = _pyvista()
+        plotter = pyvista.Plotter(off_screen=True, window_size=(16, 16))
+        try:
+            plotter.add_mesh(pyvista.Sphere())
+            plotter.screenshot(return_img=True)
+        finally:
+            plotter.close()
+    except Exception as error:  # VTK reports a missing OpenGL context in many ways
+        return f"pyvista could not draw off screen ({type(error).__name__}: {error})"
+    return None
+
+
+def resolve_renderer(renderer: str = "auto") -> tuple[str, str]:
+    """The renderer ``renderer`` names, and why: ``("pyvista" or "matplotlib", reason)``.
+
+    ``"auto"`` takes pyvista when it is installed and draws off screen (probed once per
+    process with a 16-pixel picture), matplotlib otherwise; the reason says which held.
+
+    Raises:
+        ValueError: ``renderer`` is not one of :data:`RENDERERS`.
+        ImportError: ``"pyvista"`` asked for and unusable (the message says why).
+    """
+    if renderer not in RENDERERS:
+        raise ValueError(f"renderer must be one of {RENDERERS}, got {renderer!r}")
+    if renderer == "matplotlib":
+        return "matplotlib", "asked for"
+    problem = _pyvista_problem()
+    if problem is None:
+        return "pyvista", "off screen" if renderer == "pyvista" else "installed, off screen"
+    if renderer == "pyvista":
+        raise ImportError(f"renderer='pyvista': {problem}; pip install 'torchsurf[render]', "
+                          "or use renderer='matplotlib'")
+    return "matplotlib", f"fallback: {problem}"
+
+
+def _pyvista_image(mesh: trimesh.Trimesh, panels: list[tuple[str, np.ndarray]],
+                   camera: Camera, width: int, height: int) -> np.ndarray:
+    """The panels drawn by pyvista side by side: an RGB image ``(height, count * width, 3)``."""
+    pyvista = _pyvista()
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    faces = np.asarray(mesh.faces)
+    cells = np.hstack((np.full((len(faces), 1), 3), faces)).ravel()
+    x0, x1, y0, y1 = camera.window
+    depth = float((vertices @ camera.towards).max())
+    extent = float(np.ptp(vertices @ camera.towards)) + (x1 - x0)
+    centre = 0.5 * (x0 + x1) * camera.right + 0.5 * (y0 + y1) * camera.up + depth * camera.towards
+    plotter = pyvista.Plotter(off_screen=True, shape=(1, len(panels)), border=False,
+                              window_size=(len(panels) * width, height))
+    try:
+        for index, (title, vertex_colours) in enumerate(panels):
+            plotter.subplot(0, index)
+            plotter.set_background("white")
+            surface = pyvista.PolyData(vertices, cells)
+            surface.point_data["colours"] = np.round(255 * np.clip(vertex_colours, 0, 1)).astype(
+                np.uint8)
+            plotter.add_mesh(surface, scalars="colours", rgb=True, smooth_shading=True,
+                             show_scalar_bar=False)
+            plotter.add_text(title, position="upper_edge", color="black",
+                             font_size=max(6, min(11, height // 40)))
+            plotter.camera.focal_point = tuple(centre - extent * camera.towards)
+            plotter.camera.position = tuple(centre + extent * camera.towards)
+            plotter.camera.up = tuple(camera.up)
+            plotter.camera.parallel_projection = True
+            plotter.camera.parallel_scale = 0.5 * (y1 - y0)
+            plotter.camera.clipping_range = (1e-3 * extent, 4.0 * extent)
+        return plotter.screenshot(return_img=True)[..., :3]
+    finally:
+        plotter.close()
+
+
 def render_panels(mesh: trimesh.Trimesh, panels: list[tuple[str, np.ndarray]], path: str | Path,
                   width: int = 400, height: int = 400, elevation: float = 25.0,
-                  azimuth: float = -60.0, up: str = "z") -> Path:
+                  azimuth: float = -60.0, up: str = "z", renderer: str = "auto") -> Path:
     """Draw ``mesh`` once per panel, side by side, and write a PNG atomically.
 
     Args:
@@ -154,23 +260,29 @@ def render_panels(mesh: trimesh.Trimesh, panels: list[tuple[str, np.ndarray]], p
         width, height: pixels of one panel (the picture is ``len(panels) * width`` by
             ``height``).
         elevation, azimuth, up: the view (:func:`fit_camera`).
+        renderer: one of :data:`RENDERERS` (:func:`resolve_renderer`).
 
     Returns:
         The path written.
     """
+    used, _ = resolve_renderer(renderer)
     Figure, FigureCanvasAgg, PolyCollection = _matplotlib()
     if not panels:
         raise ValueError("panels: give at least one (title, colours) pair")
+    for index, (_, vertex_colours) in enumerate(panels):
+        if np.shape(vertex_colours) != (len(mesh.vertices), 3):
+            raise ValueError(f"panels[{index}]: colours must have shape (V, 3) = "
+                             f"({len(mesh.vertices)}, 3), got {np.shape(vertex_colours)}")
+    panels = [(title, np.asarray(c, dtype=np.float64)) for title, c in panels]
     count = len(panels)
     dpi = 100
     figure = Figure(figsize=(count * width / dpi, height / dpi), dpi=dpi, facecolor="white")
     FigureCanvasAgg(figure)
     camera = fit_camera(np.asarray(mesh.vertices), elevation, azimuth, up, aspect=width / height)
+    if used == "pyvista":
+        figure.figimage(_pyvista_image(mesh, panels, camera, width, height))
+        return write_png(figure, path)
     for index, (title, vertex_colours) in enumerate(panels):
-        vertex_colours = np.asarray(vertex_colours, dtype=np.float64)
-        if vertex_colours.shape != (len(mesh.vertices), 3):
-            raise ValueError(f"panels[{index}]: colours must have shape (V, 3) = "
-                             f"({len(mesh.vertices)}, 3), got {vertex_colours.shape}")
         axes = figure.add_axes((index / count, 0.0, 1.0 / count, 1.0))
         _draw(axes, mesh, vertex_colours, camera, PolyCollection)
         axes.text(0.5, 0.98, title, transform=axes.transAxes, ha="center", va="top",
@@ -187,6 +299,7 @@ def write_png(figure, path: str | Path) -> Path:  # noqa: ANN001
     try:
         with os.fdopen(handle, "wb") as stream:
             figure.savefig(stream, format="png", dpi=figure.dpi)
+            os.fchmod(stream.fileno(), FILE_MODE)
         os.replace(temporary, path)
     except BaseException:
         Path(temporary).unlink(missing_ok=True)

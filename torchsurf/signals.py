@@ -21,6 +21,8 @@ from torch import Tensor
 from ._checks import check_choice, check_nonnegative, check_positive, check_volume
 from .curvature import tangent_basis
 from .flows import HeatFlow
+from .grid import Grid
+from .sampling import sample
 from .surface import ImplicitSurface, tangent_unit
 
 PROJECTIONS = ("spherical", "cylindrical", "planar", "triplanar")
@@ -188,6 +190,35 @@ def uniform_noise(surface: ImplicitSurface, channels: int, seed: int) -> Tensor:
     values = torch.rand((1, channels, *surface.grid.shape), generator=generator(seed),
                         dtype=surface.phi.dtype)
     return values.to(surface.phi.device)
+
+
+def surface_noise(surface: ImplicitSurface, channels: int, seed: int, grain: float = 1.0
+                  ) -> Tensor:
+    """Seeded value noise on S, constant along the normals: ``(1, channels, D, H, W)``.
+
+    Uniform values in ``[0, 1)`` on a lattice of spacing ``grain`` cells, interpolated
+    trilinearly at each node's closest point on S (:func:`closest_points`). ``grain`` sets the
+    size of the noise's specks: flow visualisation (the paper's §3.4) draws streaks as wide as
+    them, and specks of one cell are averaged away by the pictures' trilinear sampling.
+
+    Args:
+        surface: the surface (batch 1).
+        channels: number of independent noise channels.
+        seed: the seed; the same seed and grain give the same noise.
+        grain: lattice spacing, cells, > 0.
+    """
+    grain = check_positive(grain, "grain")
+    grid = surface.grid
+    lattice = Grid(tuple(math.ceil((n - 1) / grain) + 1 for n in grid.shape),
+                   grain * grid.spacing, grid.origin)
+    values = torch.rand((1, channels, *lattice.shape), generator=generator(seed),
+                        dtype=surface.phi.dtype).to(surface.phi.device)
+    low = torch.tensor(grid.origin, dtype=values.dtype, device=values.device)
+    high = low + torch.tensor(grid.size, dtype=values.dtype, device=values.device)
+    # nodes far from S can have closest points outside the box: their values are never read
+    points = closest_points(surface)[0].permute(1, 2, 3, 0).reshape(-1, 3)
+    points = torch.minimum(torch.maximum(points, low), high)
+    return sample(values, points, lattice).reshape(1, channels, *grid.shape)
 
 
 def axis_field(surface: ImplicitSurface, axis: str = "z") -> Tensor:

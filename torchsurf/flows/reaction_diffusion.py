@@ -11,6 +11,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from .. import backend
 from .._checks import check_batch, check_nonnegative, check_positive, check_real
 from ..operators import directional_diffusion, laplace_beltrami
 from ..surface import ImplicitSurface, check_data, tangent_unit
@@ -82,7 +83,6 @@ class ReactionDiffusion(Flow):
         if u0.shape[1] != 2:
             raise ValueError(f"u0 must have 2 channels (a, b), got shape {tuple(u0.shape)}")
         band = self.band_mask(surface)
-        zero = u0.new_zeros(())
         d_a, d_b = self._diffusivities(surface)
         noise = torch.rand((u0.shape[0], 1, *u0.shape[2:]), generator=generator,
                            dtype=u0.dtype, device="cpu").to(u0.device)
@@ -99,9 +99,8 @@ class ReactionDiffusion(Flow):
                 diffusion_a = laplace_beltrami(a, surface)
             else:
                 diffusion_a = directional_diffusion(a, surface, direction)
-            da = s * (16.0 - a * b) + d_a * diffusion_a
-            db = s * (a * b - b - beta) + d_b * laplace_beltrami(b, surface)
-            return torch.where(band, torch.cat((da, db), dim=1), zero)
+            return backend.run(_TURK, "auto", u, a, b, diffusion_a,
+                               laplace_beltrami(b, surface), beta, band, s, d_a, d_b)
 
         # the largest a and b in the band: values outside it are never read
         largest = torch.where(band, u0.detach(), -torch.inf).amax(dim=(0, 2, 3, 4))
@@ -114,10 +113,27 @@ class ReactionDiffusion(Flow):
                       params=tensors(surface.normal, surface.weight))
 
 
+def _turk_rate(a: Tensor, b: Tensor, diffusion_a: Tensor, diffusion_b: Tensor, beta: Tensor,
+               band: Tensor, s: float, d_a: float, d_b: float, path: str = "slicing") -> Tensor:
+    """Turk's ``(a_t, b_t)`` from ``a``, ``b`` and their diffusion terms, zero outside the band.
+
+    One pointwise expression: compiled (:mod:`torchsurf.backend`) it is a single pass over
+    memory instead of a dozen (at 128^3 they took half of each step's time).
+    """
+    da = s * (16.0 - a * b) + d_a * diffusion_a
+    db = s * (a * b - b - beta) + d_b * diffusion_b
+    return torch.where(band, torch.cat((da, db), dim=1), 0.0)
+
+
+_TURK = backend.Kernel("turk_reaction", _turk_rate, _turk_rate, lambda *args: args,
+                       fused_when_eager=True)
+
+
 def _nonnegative_b(u: Tensor) -> Tensor:
     """Keep the concentration ``b`` at or above 0 after each step, as Turk does.
 
     Without it, ``b`` crossing 0 turns the ``a b`` coupling into growth and the run reaches
     NaN (a 41^3 run at ``s = 1/32`` did by ``s t = 20``). Gradients are zero where ``b`` is clamped.
     """
-    return torch.cat((u[:, :1], u[:, 1:].clamp(min=0.0)), dim=1)
+    lowest = u.new_tensor([-torch.inf, 0.0]).view(1, 2, 1, 1, 1)
+    return u.clamp(min=lowest)
