@@ -195,12 +195,30 @@ def _pseudonormals(vertices: np.ndarray, faces: np.ndarray
     return face_normal, edge_normal, vertex_normal
 
 
+PSEUDONORMAL_CHUNK = 2**20
+"""Points signed per pass: the temporaries cost about 300 bytes a point."""
+
+
 def _pseudonormal_inside(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray,
                          face: np.ndarray, closest: np.ndarray
                          ) -> tuple[np.ndarray, np.ndarray]:
     """Inside test ``(N,)`` by the pseudonormal of the closest feature, and a mask ``(N,)`` of
-    points it cannot decide (closest triangle degenerate)."""
-    face_normal, edge_normal, vertex_normal = _pseudonormals(vertices, faces)
+    points it cannot decide (closest triangle degenerate); in chunks of
+    :data:`PSEUDONORMAL_CHUNK` points."""
+    normals = _pseudonormals(vertices, faces)
+    inside = np.empty(len(points), dtype=bool)
+    degenerate = np.empty(len(points), dtype=bool)
+    for start in range(0, len(points), PSEUDONORMAL_CHUNK):
+        part = slice(start, start + PSEUDONORMAL_CHUNK)
+        inside[part], degenerate[part] = _pseudonormal_chunk(
+            vertices, faces, normals, points[part], face[part], closest[part])
+    return inside, degenerate
+
+
+def _pseudonormal_chunk(vertices: np.ndarray, faces: np.ndarray, normals: tuple,
+                        points: np.ndarray, face: np.ndarray, closest: np.ndarray
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    face_normal, edge_normal, vertex_normal = normals
     weights, degenerate = barycentric(vertices, faces, face, closest)
     on_zero = weights < _BARYCENTRIC_TOLERANCE
     zeros = on_zero.sum(axis=1)

@@ -113,8 +113,27 @@ def test_gradcheck_heat_flow_on_bricks_in_the_data():
     assert torch.autograd.gradcheck(lambda x: flow(x, surface)[band], (u,), fast_mode=True)
 
 
+@pytest.mark.parametrize("settings", [
+    {"diffusivity": "total_variation", "eps": 0.1},
+    {"diffusivity": "perona_malik", "contrast": 0.5, "scheme": "octant"},
+])
+def test_anisotropic_flow_equals_the_dense_flow_on_the_band(torus, settings):
+    dense, surface = torus
+    u = torch.rand(1, 2, *dense.grid.shape, dtype=torch.float64,
+                   generator=torch.Generator().manual_seed(4))
+    flow = ts.flows.AnisotropicFlow(time=0.003, **settings)
+    expected = flow(u, dense)
+    (result,) = surface.to_dense(flow(surface.from_dense(u), surface))
+    band = dense.band_mask()
+    assert torch.allclose(result * band, expected * band, atol=1e-12, rtol=0)
+    coupled = ts.anisotropic_diffusion(u, dense, settings["diffusivity"], coupled=True)
+    (packed,) = surface.to_dense(ts.anisotropic_diffusion(
+        surface.from_dense(u), surface, settings["diffusivity"], coupled=True))
+    assert torch.allclose(packed * band, coupled * band, atol=1e-12 * coupled.abs().max())
+
+
 def test_flows_not_ported_to_bricks_say_so(torus):
     _, surface = torus
-    u = torch.zeros(len(surface.layout), 1, 8, 8, 8, dtype=torch.float64)
+    u = torch.zeros(len(surface.layout), 3, 8, 8, 8, dtype=torch.float64)
     with pytest.raises(NotImplementedError, match="BrickSurface"):
-        ts.flows.AnisotropicFlow(time=0.01)(u, surface)
+        ts.flows.HarmonicMapFlow(time=0.01)(u, surface)

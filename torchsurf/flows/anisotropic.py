@@ -47,6 +47,8 @@ class AnisotropicFlow(Flow):
     Shapes: ``u0`` ``(B, C, D, H, W)`` -> ``(B, C, D, H, W)``.
     """
 
+    supports_bricks = True
+
     def __init__(
         self,
         time: float,

@@ -85,7 +85,7 @@ def anisotropic_diffusion(
     return functional.edge_stopping_form(
         u, surface.normal, surface.weight, surface.spacing, resolve_diffusivity(diffusivity),
         channel_contrast(contrast, u), check_positive(eps, "eps"), bool(coupled), scheme, path,
-        haloed=surface.haloed(),
+        haloed=surface.haloed(), pad=None if surface.layout is None else surface.layout.halo,
     )
 
 

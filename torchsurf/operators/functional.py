@@ -222,11 +222,11 @@ def _edge_eager(u, normal, weight, spacing, diffusivity, contrast, eps, coupled,
 
 
 def _edge_fused(padded_u, haloed_normal, haloed_weight, weight, spacing, diffusivity, contrast,  # noqa: ANN001, ANN202
-                eps, coupled, scheme):
+                eps, coupled, scheme, box_faces=True):
     if not coupled or padded_u.shape[1] == 1:
         flux = edge_stopping_flux(diffusivity, contrast, eps, coupled)
         return fused_flux_form(padded_u, haloed_normal, haloed_weight, weight, spacing, flux, (),
-                               scheme)
+                               scheme, box_faces=box_faces)
     # Coupled: g depends on every channel. Fused into one kernel, each channel's output
     # recomputed it from all channels (3.5x slower at 3 channels); the graph break makes
     # the compiler store g per composition, then the divergence reads it.
@@ -237,7 +237,7 @@ def _edge_fused(padded_u, haloed_normal, haloed_weight, weight, spacing, diffusi
     ], dim=1)
     torch._dynamo.graph_break()
     return fused_flux_form(padded_u, haloed_normal, haloed_weight, weight, spacing, _scaled_flux,
-                           (scales,), scheme)
+                           (scales,), scheme, box_faces=box_faces)
 
 
 def _edge_halo(u, normal, weight, spacing, diffusivity, contrast, eps, coupled, scheme, haloed):  # noqa: ANN001, ANN202
@@ -248,15 +248,24 @@ def _edge_halo(u, normal, weight, spacing, diffusivity, contrast, eps, coupled, 
 _EDGE_STOPPING = backend.Kernel("edge_stopping", _edge_eager, _edge_fused, _edge_halo)
 
 
+def _edge_fused_open(padded_u, haloed_normal, haloed_weight, weight, spacing, diffusivity,  # noqa: ANN001, ANN202
+                     contrast, eps, coupled, scheme):
+    return _edge_fused(padded_u, haloed_normal, haloed_weight, weight, spacing, diffusivity,
+                       contrast, eps, coupled, scheme, box_faces=False)
+
+
+_EDGE_STOPPING_OPEN = backend.Kernel("edge_stopping_open", _edge_eager, _edge_fused_open)
+
+
 def edge_stopping_form(
     u: Tensor, normal: Tensor, weight: Tensor, spacing: float, diffusivity: Diffusivity,
     contrast: float | Tensor, eps: float, coupled: bool = False, scheme: str = "symmetric",
-    path: str = "auto", haloed: Haloed = None,
+    path: str = "auto", haloed: Haloed = None, pad: Pad | None = None,
 ) -> Tensor:
     """Edge-stopping diffusion ``(1/W) div(W g(|P grad u|) P grad u)``, ``|.|`` regularised by ``eps``.
 
     Args:
-        u: ``(B, C, D, H, W)``.
+        u: ``(B, C, D, H, W)``, or packed band bricks ``(N, C, 8, 8, 8)`` with ``pad``.
         normal, weight, spacing, haloed: the geometry (module docstring).
         diffusivity: ``g(magnitude, contrast)``, pointwise (:mod:`torchsurf.operators.diffusivity`).
         contrast: ``K``, a float or a tensor broadcastable to ``(B, C, D, H, W)`` (e.g. ``(1, C, 1, 1, 1)``).
@@ -264,10 +273,16 @@ def edge_stopping_form(
         coupled: measure ``|P grad u|`` over all channels together.
         scheme: ``"symmetric"`` (default), ``"conservative"`` or ``"octant"``.
         path: how the stencils run.
+        pad: how ``u`` gets its halo (:data:`Pad`); ``None`` for a dense volume.
 
     Returns:
-        ``(B, C, D, H, W)``.
+        ``u``'s shape.
     """
+    if pad is not None:
+        haloed_normal, haloed_weight = _require_haloed(haloed)
+        return backend.run_haloed(_EDGE_STOPPING_OPEN, path, u, pad(u, 2), haloed_normal,
+                                  haloed_weight, weight, spacing, diffusivity, contrast, eps,
+                                  coupled, scheme)
     return backend.run(_EDGE_STOPPING, path, u, u, normal, weight, spacing, diffusivity,
                        contrast, eps, coupled, scheme, haloed)
 

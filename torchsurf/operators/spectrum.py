@@ -104,8 +104,16 @@ def laplace_beltrami_bound(
         check_choice(scheme, "scheme", SCHEMES)
         mask = surface.band_mask(width)
         dtype = surface.phi.dtype
-        colour = None if surface.layout is None else surface.layout.colours().to(mask.device)
-        cached[key] = gershgorin_bound(
-            lambda x: laplace_beltrami(x, surface, scheme, "slicing"), mask, dtype, colour=colour
-        )
+        if surface.layout is None:
+            cached[key] = gershgorin_bound(
+                lambda x: laplace_beltrami(x, surface, scheme, "slicing"), mask, dtype
+            )
+        else:
+            # bricks: the one-pass kernel, eager, keeps a dozen temporaries per probe channel;
+            # three colours at a time, on the path "auto" picks, bound the memory to a few
+            # fields (1 GB at 192^3 with nine eager colours)
+            cached[key] = gershgorin_bound(
+                lambda x: laplace_beltrami(x, surface, scheme, "auto"), mask, dtype, chunk=3,
+                colour=surface.layout.colours().to(mask.device),
+            )
     return cached[key]
