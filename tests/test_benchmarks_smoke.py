@@ -52,3 +52,19 @@ def test_numpy_reference_float32_buffers_are_reused(bench):
     second = reference(u)
     assert second.dtype == np.float32
     np.testing.assert_array_equal(first, second)
+
+
+BRICKS = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_bricks.py"
+
+
+def test_bricks_benchmark_time_to_solution_and_report():
+    spec = importlib.util.spec_from_file_location("bench_bricks", BRICKS)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    rows, (best, peer) = module.solution([41], target=0.05)
+    assert rows[0]["error"] < 0.05 and best is rows[0]
+    assert peer.error <= 0.05 or not peer.reached
+    args = module.argparse.Namespace(mesh="bunny_closed.obj")
+    text = module.markdown(args, 20.0, None, None, (rows, (best, peer)))
+    assert "| 41 |" in text and "Mesh peer" in text
