@@ -262,6 +262,10 @@ _BRICK_INTERPOLATION = backend.Kernel(
 )
 
 
+STENCIL_CHUNK = 2**19
+"""Nodes whose brick stencil is assembled at once (about 1 kB of temporaries a node)."""
+
+
 class BrickCubicStencil:
     """:class:`CubicStencil` on a :class:`~torchsurf.bricks.BrickSurface`: the same numbers at
     the same nodes, reading packed fields ``(N, C, 8, 8, 8)``.
@@ -282,28 +286,46 @@ class BrickCubicStencil:
     """
 
     def __init__(self, surface: ImplicitSurface, mask: Tensor, limited: bool = False) -> None:
-        layout = surface.layout
         self.limited = bool(limited)
-        device = surface.phi.device
         self.targets = mask.reshape(-1).nonzero().squeeze(1)
-        row = self.targets // BRICK**3
+        parts = [self._assemble(surface, self.targets[start: start + STENCIL_CHUNK])
+                 for start in range(0, len(self.targets), STENCIL_CHUNK)]
+        if not parts:
+            parts = [self._assemble(surface, self.targets)]
+        self.bases, self.second, self.local, self.weights = (
+            torch.cat(pieces, dim=1) for pieces in zip(*parts, strict=True))
+
+    @staticmethod
+    def _assemble(surface: ImplicitSurface, targets: Tensor
+                  ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """The stencil of ``targets`` (packed node indices), read from the surface's fields at
+        those nodes only."""
+        layout = surface.layout
+        device, dtype = surface.phi.device, surface.phi.dtype
+        row = targets // BRICK**3
         batch = layout.batch.to(device)[row]
+        inside = targets % BRICK**3
+        local_index = torch.stack([inside // (BRICK * BRICK), (inside // BRICK) % BRICK,
+                                   inside % BRICK], dim=1)
+        index = (layout.coords.to(device)[row] * BRICK + local_index).flip(1).to(dtype)
         # world points first, as the dense stencil computes them: the same rounding of the
         # closest points, so that the limiter picks the same cell
-        dtype = surface.phi.dtype
-        points = layout.points(dtype).to(device)
-        step = (surface.phi / surface.weight) * surface.normal
-        world = (points - step).permute(0, 2, 3, 4, 1).reshape(-1, 3)[self.targets]
         origins = torch.tensor([g.origin for g in layout.grids], dtype=dtype, device=device)
+        points = origins[batch] + surface.spacing * index
+        def at_targets(field: Tensor) -> Tensor:
+            return field.reshape(field.shape[0], field.shape[1], -1)[row, :, inside]
+
+        normal = at_targets(surface.normal)
+        distance = at_targets(surface.phi)[:, 0] / at_targets(surface.weight)[:, 0]
+        world = points - distance[:, None] * normal
         at = (world - origins[batch]) / surface.spacing
         shapes = torch.tensor([g.shape[::-1] for g in layout.grids], device=device)[batch]
         extent_z, extent_y, extent_x = layout.extent
         base = at.detach().floor()
         offsets = torch.arange(-1, 3, device=device)
-        coordinates = [(base[:, axis: axis + 1].long() + offsets).clamp(
+        x, y, z = ((base[:, axis: axis + 1].long() + offsets).clamp(
             torch.zeros_like(shapes[:, axis: axis + 1]), shapes[:, axis: axis + 1] - 1)
-            for axis in range(3)]
-        x, y, z = coordinates
+            for axis in range(3))
         block = ((batch[:, None] * extent_z + z // BRICK) * extent_y * extent_x,
                  (y // BRICK) * extent_x, x // BRICK)
         lookup = layout.lookup.to(device).reshape(-1)
@@ -314,15 +336,16 @@ class BrickCubicStencil:
                 "closest-point re-extension reads nodes outside the stored bricks: build the "
                 "BrickSurface with torchsurf.bricks.from_dense or from_mesh at this band width"
             )
-        wide = len(layout) * BRICK**3 >= 2**31
         bases = bases * BRICK**3
-        self.bases = bases if wide else bases.to(torch.int32)
-        self.second = torch.stack([part != part[:, :1] for part in block])
-        self.local = torch.stack([(z % BRICK) * BRICK * BRICK, (y % BRICK) * BRICK,
-                                  x % BRICK]).to(torch.int32)
-        self.weights = torch.stack([
+        if len(layout) * BRICK**3 < 2**31:
+            bases = bases.to(torch.int32)
+        second = torch.stack([part != part[:, :1] for part in block])
+        local = torch.stack([(z % BRICK) * BRICK * BRICK, (y % BRICK) * BRICK,
+                             x % BRICK]).to(torch.int32)
+        weights = torch.stack([
             torch.stack(_cubic_weights(at[:, axis] - base[:, axis]), dim=1) for axis in range(3)
         ])
+        return bases, second, local, weights
 
     def apply(self, u: Tensor) -> Tensor:
         """``u`` ``(N, C, 8, 8, 8)`` with the masked nodes re-extended; a new tensor."""
