@@ -142,3 +142,22 @@ def test_from_mesh_equals_the_dense_distance_on_every_stored_node_that_matters()
     dense = ts.ImplicitSurface(dense_phi, grid)
     (band,) = surface.to_dense(surface.band_mask().double())
     assert torch.equal(band > 0, dense.band_mask())
+
+
+def test_intrinsic_gradient_and_sampling_at_mesh_vertices_equal_the_dense_ones(torus):
+    dense, surface = torus
+    u = torch.randn(1, 2, *dense.grid.shape, dtype=torch.float64,
+                    generator=torch.Generator().manual_seed(5))
+    packed = surface.from_dense(u)
+    band = dense.band_mask()
+    (gradient,) = surface.to_dense(ts.intrinsic_gradient(packed, surface))
+    expected = ts.intrinsic_gradient(u, dense)
+    assert torch.allclose(gradient * band, expected * band, atol=1e-12 * expected.abs().max())
+    vertices = torch.as_tensor(ts.mesh.extract(dense.phi, dense.grid).vertices)
+    sampled = surface.sample(packed, vertices)
+    assert sampled.shape == (2, len(vertices))
+    assert torch.allclose(sampled, ts.sample(u, vertices, dense.grid)[0], atol=1e-12)
+    with pytest.raises(ValueError, match="not stored"):
+        surface.sample(packed, torch.tensor([[0.0, 0.0, 1.5]], dtype=torch.float64))  # far
+    with pytest.raises(ValueError, match="outside the box"):
+        surface.sample(packed, torch.full((1, 3), 5.0, dtype=torch.float64))

@@ -159,6 +159,59 @@ class BrickSurface(ImplicitSurface):
             self.__dict__["_entries"] = parts
         return parts
 
+    def sample(self, field: Tensor, points: Tensor, entry: int = 0) -> Tensor:
+        """Trilinear interpolation of a packed ``field`` at world ``points`` of batch ``entry``:
+        the numbers :func:`torchsurf.sample` gives on the dense volume.
+
+        Args:
+            field: ``(N, C, 8, 8, 8)``.
+            points: ``(V, 3)`` world ``(x, y, z)``, same dtype and device as ``field``; each
+                point's 8 surrounding nodes must be stored (points near S are).
+            entry: the batch entry the points belong to.
+
+        Returns:
+            ``(C, V)``; differentiable in ``field`` and ``points``.
+
+        Raises:
+            ValueError: a point lies outside the entry's box or next to a brick that is not
+                stored.
+        """
+        self.check_field(field, "field")
+        check_tensor(points, "points")
+        if points.dim() != 2 or points.shape[1] != 3:
+            raise ValueError(f"points must have shape (V, 3), got {tuple(points.shape)}")
+        if not 0 <= entry < self.batch_size:
+            raise ValueError(f"entry must be in [0, {self.batch_size}), got {entry}")
+        grid = self.grids[entry]
+        index = grid.world_to_index(points)
+        high = torch.tensor(grid.shape[::-1], dtype=points.dtype, device=points.device) - 1
+        if bool(((index < -1e-4) | (index > high + 1e-4)).any()):
+            raise ValueError(f"points: some lie outside the box of entry {entry} ({grid})")
+        index = torch.minimum(index.clamp(min=0), high)
+        low = index.detach().floor().clamp(max=high - 1).long()
+        fraction = index - low
+        extent = self.layout.extent
+        lookup = self.layout.lookup.to(points.device)
+        flat = field.transpose(0, 1).reshape(field.shape[1], -1)
+        value = None
+        for corner in range(8):
+            offset = torch.tensor([corner & 1, (corner >> 1) & 1, corner >> 2],
+                                  device=points.device)
+            node = low + offset
+            x, y, z = node.unbind(1)
+            brick = lookup[entry, z // BRICK, y // BRICK, x // BRICK]
+            if bool((brick < 0).any()):
+                raise ValueError(
+                    "points: some lie next to a brick that is not stored (farther from S than "
+                    "the band and its reach)"
+                )
+            source = brick * BRICK**3 + (z % BRICK) * BRICK * BRICK + (y % BRICK) * BRICK \
+                + x % BRICK
+            weight = torch.where(offset.bool(), fraction, 1 - fraction).prod(dim=1)
+            term = flat[:, source] * weight
+            value = term if value is None else value + term
+        return value
+
     def to_dense(self, field: Tensor, fill: float = 0.0) -> list[Tensor]:
         """One dense ``(1, C, D_b, H_b, W_b)`` volume per entry (:meth:`BrickLayout.to_dense`)."""
         return self.layout.to_dense(field, fill)

@@ -24,7 +24,8 @@ def intrinsic_gradient(u: Tensor, surface: ImplicitSurface, path: str = "auto") 
     """
     check_data(u, "u", surface)
     check_choice(path, "path", backend.PATHS)
-    return functional.tangential_gradient(u, surface.normal, surface.spacing, path)
+    pad = None if surface.layout is None else surface.layout.halo
+    return functional.tangential_gradient(u, surface.normal, surface.spacing, path, pad)
 
 
 def intrinsic_divergence(v: Tensor, surface: ImplicitSurface, path: str = "auto") -> Tensor:

@@ -349,18 +349,22 @@ def _gradient_halo(u, normal, spacing):  # noqa: ANN001, ANN202
 _GRADIENT = backend.Kernel("tangential_gradient", _gradient_eager, _gradient_padded, _gradient_halo)
 
 
-def tangential_gradient(u: Tensor, normal: Tensor, spacing: float, path: str = "auto") -> Tensor:
+def tangential_gradient(u: Tensor, normal: Tensor, spacing: float, path: str = "auto",
+                        pad: Pad | None = None) -> Tensor:
     """``P grad u`` by central differences, second order.
 
     Args:
-        u: ``(B, C, D, H, W)``.
+        u: ``(B, C, D, H, W)``, or packed band bricks ``(N, C, 8, 8, 8)`` with ``pad``.
         normal, spacing: the geometry (module docstring).
         path: how the stencils run.
+        pad: how ``u`` gets its halo (:data:`Pad`); ``None`` for a dense volume.
 
     Returns:
-        ``(B, 3C, D, H, W)``: channels ``3c, 3c+1, 3c+2`` are the ``x, y, z`` components for
-        channel ``c``, units of ``u`` per world length.
+        ``(B, 3C, D, H, W)`` (or ``(N, 3C, 8, 8, 8)``): channels ``3c, 3c+1, 3c+2`` are the
+        ``x, y, z`` components for channel ``c``, units of ``u`` per world length.
     """
+    if pad is not None:
+        return backend.run_haloed(_GRADIENT, path, u, pad(u, 1), normal, spacing)
     return backend.run(_GRADIENT, path, u, u, normal, spacing)
 
 
