@@ -158,6 +158,6 @@ def test_intrinsic_gradient_and_sampling_at_mesh_vertices_equal_the_dense_ones(t
     assert sampled.shape == (2, len(vertices))
     assert torch.allclose(sampled, ts.sample(u, vertices, dense.grid)[0], atol=1e-12)
     with pytest.raises(ValueError, match="not stored"):
-        surface.sample(packed, torch.tensor([[0.0, 0.0, 1.5]], dtype=torch.float64))  # far
+        surface.sample(packed, torch.tensor([[0.0, 0.0, 2.05]], dtype=torch.float64))  # far
     with pytest.raises(ValueError, match="outside the box"):
         surface.sample(packed, torch.full((1, 3), 5.0, dtype=torch.float64))

@@ -190,7 +190,6 @@ class BrickSurface(ImplicitSurface):
         index = torch.minimum(index.clamp(min=0), high)
         low = index.detach().floor().clamp(max=high - 1).long()
         fraction = index - low
-        extent = self.layout.extent
         lookup = self.layout.lookup.to(points.device)
         flat = field.transpose(0, 1).reshape(field.shape[1], -1)
         value = None
