@@ -60,6 +60,17 @@ _lb_bench = _load_sibling("bench_laplace_beltrami")
 _heat_bench = _load_sibling("bench_heat_flow")
 
 
+def cpu_model() -> str:
+    """The CPU's model name (``/proc/cpuinfo``), or the platform's processor string."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
 def peak_gb() -> float:
     """Maximum resident set of this process so far, GB."""
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
@@ -172,7 +183,7 @@ def markdown(args, bandwidth: float, scaled: dict | None, ratioed: dict | None,
              solved: tuple | None) -> str:
     threads = torch.get_num_threads()
     lines = [
-        f"Run of {time.strftime('%Y-%m-%d')}, {platform.processor() or platform.machine()}, "
+        f"Run of {time.strftime('%Y-%m-%d')}, {cpu_model()}, "
         f"{os.cpu_count()} cores, torch {torch.__version__}, {threads} thread(s), float32, "
         f"allocator: GLIBC_TUNABLES={os.environ.get('GLIBC_TUNABLES', 'default')}, load "
         f"average at the end {os.getloadavg()[0]:.1f}. Copy bandwidth measured in the run: "
