@@ -2,17 +2,21 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
+import numpy as np
 import torch
 from torch import Tensor
 
-from .._checks import check_choice
+from .._checks import check_choice, check_finite
 from ..backend import PATHS
 from ..operators import functional, laplace_beltrami
 from ..operators.laplace_beltrami import SCHEMES
-from ..surface import ImplicitSurface
+from ..surface import ImplicitSurface, check_data, check_surface
 from ._integrators import Linear, System, tensors
 from ._positive import Positive
-from .base import Flow
+from .base import Flow, _check_times
+from .exponential import BandLaplacian, heat_semigroup
 
 SYMMETRIC_SCHEMES = functional.SCHEMES
 
@@ -31,6 +35,14 @@ class HeatFlow(Flow):
     ``(W - theta dt D A) u_new = ...`` with ``A = W Lap_S`` symmetric negative semi-definite
     (schemes ``"octant"``, ``"symmetric"`` and ``"conservative"``) by conjugate gradients; any
     step size is stable.
+
+    ``method="chebyshev"`` applies the heat semigroup ``exp(t D Lap_S)`` in one Chebyshev
+    expansion (:func:`torchsurf.flows.exponential.heat_semigroup`, divergence-form schemes
+    only): about ``sqrt(t D rho)`` operator applications instead of RKC's steps, the ring
+    re-extended at every application and no step stored for backward (its backward is the
+    transposed expansion), so the cost of a learned time no longer grows as ``t / h^2``.
+    ``steps``, ``reextend_every`` and ``checkpoint`` do not apply to it. It is opt-in: the
+    other methods' results and options stay as they were.
 
     Args:
         time: physical end time, world units squared (with ``D = 1``).
@@ -94,6 +106,33 @@ class HeatFlow(Flow):
         rho = self.diffusivity.maximum() * self.operator_bound(surface, self.scheme)
         params = tensors(d, surface.normal, surface.weight)
         return System(rate, band, rho, linear=linear, params=params)
+
+    def forward(
+        self, u0: Tensor, surface: ImplicitSurface,
+        times: Sequence[float] | Tensor | np.ndarray | None = None, **inputs: Tensor,
+    ) -> Tensor:
+        """Integrate from ``u0`` to the end time (:meth:`Flow.forward`; ``"chebyshev"`` here)."""
+        if self.method != "chebyshev":
+            return super().forward(u0, surface, times, **inputs)
+        if inputs:
+            raise TypeError(f"HeatFlow takes no inputs besides u0 and surface, got {sorted(inputs)}")
+        if self.scheme not in SYMMETRIC_SCHEMES:
+            raise ValueError(
+                f"method='chebyshev' needs a divergence-form scheme {SYMMETRIC_SCHEMES}, got "
+                f"scheme={self.scheme!r}"
+            )
+        check_surface(surface)
+        check_data(u0, "u0", surface)
+        end = self.time_value.maximum()
+        wanted = [end] if times is None else _check_times(times, end)
+        operator = BandLaplacian(surface, self.scheme, self.band_width, self.path)
+        check_finite(torch.where(operator.band, u0, 0.0), "u0 (in the band)")
+        d = self.diffusivity.volume(u0)
+        rate = (d.reshape(-1) if isinstance(d, Tensor) else u0.new_tensor(d)).expand(u0.shape[1])
+        horizon = self.time * rate
+        results = [u0 if t == 0 else heat_semigroup(u0, operator, horizon * (t / end))
+                   for t in wanted]
+        return results[-1] if times is None else torch.stack(results)
 
     def extra_repr(self) -> str:
         return f"{super().extra_repr()}, scheme={self.scheme!r}"
