@@ -41,21 +41,21 @@ BOUND_MARGIN = 1.1
 """The expansion's interval is ``[-BOUND_MARGIN rho, 0]``: the re-extended ring makes ``L``
 slightly non-normal, and the cost of the margin is ``sqrt(1.1)``, 5% more terms."""
 
-_STENCILS: weakref.WeakKeyDictionary[ImplicitSurface, dict[float, CubicStencil]] = (
+_STENCILS: weakref.WeakKeyDictionary[ImplicitSurface, dict[tuple[float, str], CubicStencil]] = (
     weakref.WeakKeyDictionary()
 )
 
 
-def _ring_stencil(surface: ImplicitSurface, width: float, band: Tensor) -> CubicStencil:
-    """The linear closest-point stencil of the ring around the band of ``width``, kept while the
-    surface lives unless ``phi`` requires grad."""
-    ring = with_ring(band) & ~band
+def _linear_stencil(surface: ImplicitSurface, width: float, kind: str, mask: Tensor
+                    ) -> CubicStencil:
+    """The linear closest-point stencil of ``mask`` (``kind`` names it: ``"ring"`` or
+    ``"region"``), kept while the surface lives unless ``phi`` requires grad."""
     if surface.phi.requires_grad:
-        return CubicStencil(surface, ring, limited=False)
+        return CubicStencil(surface, mask, limited=False)
     cached = _STENCILS.setdefault(surface, {})
-    if width not in cached:
-        cached[width] = CubicStencil(surface, ring, limited=False)
-    return cached[width]
+    if (width, kind) not in cached:
+        cached[(width, kind)] = CubicStencil(surface, mask, limited=False)
+    return cached[(width, kind)]
 
 
 class BandLaplacian:
@@ -70,6 +70,7 @@ class BandLaplacian:
     Attributes:
         band: ``(B or 1, 1, D, H, W)`` bool, the nodes that evolve.
         region: the band and its ring (the nodes the result is written to).
+        ring, extension: the closest-point stencils of the ring and of the whole region.
         bound: ``BOUND_MARGIN`` times the Gershgorin bound of ``Lap_S`` on the band,
             ``1 / world length^2``.
     """
@@ -84,7 +85,8 @@ class BandLaplacian:
         self.surface, self.scheme, self.path = surface, scheme, path
         self.band = surface.band_mask(width)
         self.region = with_ring(self.band)
-        self.ring = _ring_stencil(surface, width, self.band)
+        self.ring = _linear_stencil(surface, width, "ring", self.region & ~self.band)
+        self.extension = _linear_stencil(surface, width, "region", self.region)
         self.bound = BOUND_MARGIN * laplace_beltrami_bound(surface, scheme, width)
 
     @property
@@ -114,8 +116,27 @@ class BandLaplacian:
         return torch.where(self.band, self.ring.transpose(self._weighted(inside)), zero)
 
 
+class _Extend(torch.autograd.Function):
+    """``E x`` for a linear stencil ``E`` with fixed weights; backward ``E^T g``, nothing saved
+    (autograd through the gather would keep 64 values per node)."""
+
+    @staticmethod
+    def forward(ctx, stencil, x):  # noqa: ANN001, ANN205
+        ctx.stencil, ctx.batch = stencil, x.shape[0]
+        return stencil.apply(x)
+
+    @staticmethod
+    def backward(ctx, grad_output):  # noqa: ANN001, ANN205
+        grad = ctx.stencil.transpose(grad_output)
+        return None, grad if grad.shape[0] == ctx.batch else grad.sum(dim=0, keepdim=True)
+
+
 def heat_semigroup(u0: Tensor, operator: BandLaplacian, times: Tensor) -> Tensor:
-    """``exp(t_c L) u0`` per channel on the band, the ring re-extended from the result.
+    """``exp(t_c L) u0`` per channel on the band, then re-extended along normals.
+
+    As the flows do after each step, the result is re-extended from its values near S to the
+    whole band and its ring (the linear tricubic closest-point stencil), so that it is constant
+    along the normals: every level set in the band carries the surface's solution.
 
     Args:
         u0: ``(B, C, D, H, W)``; only its band values are read.
@@ -123,7 +144,8 @@ def heat_semigroup(u0: Tensor, operator: BandLaplacian, times: Tensor) -> Tensor
         times: ``(C,)`` or ``()``, positive, world units squared (may require grad).
 
     Returns:
-        ``(B, C, D, H, W)``: the band and its ring hold ``u(t)``, other nodes ``u0``'s values.
+        ``(B, C, D, H, W)``: the band and its ring hold ``u(t)`` (constant along normals),
+        other nodes ``u0``'s values.
         Gradients reach ``u0``'s band values, ``times`` and (by recomputation) ``phi``.
     """
     zero = u0.new_zeros(())
@@ -132,4 +154,8 @@ def heat_semigroup(u0: Tensor, operator: BandLaplacian, times: Tensor) -> Tensor
         operator.apply, inside, times, operator.bound, adjoint=operator.transpose,
         differentiable_operator=operator.differentiable,
     )
-    return torch.where(operator.region, operator.ring.apply(result), u0)
+    if operator.differentiable:
+        extended = operator.extension.apply(result)
+    else:
+        extended = _Extend.apply(operator.extension, result)
+    return torch.where(operator.region, extended, u0)
