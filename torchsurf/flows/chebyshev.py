@@ -57,16 +57,18 @@ def _nodes(count: int, dtype: torch.dtype, device: torch.device | None = None) -
     return (torch.arange(count, dtype=dtype, device=device) + 0.5) * (math.pi / count)
 
 
-def _values(kind: str, times: Tensor, bound: float, theta: Tensor) -> Tensor:
-    """``f_t((rho / 2)(cos theta - 1))`` for each time ``(C,)`` and angle ``(N,)``: ``(C, N)``."""
+def _values(kind: str, times: Tensor, bound: float, theta: Tensor, derivative: bool) -> Tensor:
+    """``f_t((rho / 2)(cos theta - 1))`` for each time ``(C,)`` and angle ``(N,)``: ``(C, N)``;
+    its derivative in ``t`` if ``derivative``."""
     s = (0.5 * bound) * (torch.cos(theta) - 1.0)  # eigenvalues of L, all < 0 at the nodes
     ts = times[:, None] * s[None, :]
     if kind == "exp":
-        return torch.exp(ts)
-    return torch.expm1(ts) / s[None, :]
+        return s[None, :] * torch.exp(ts) if derivative else torch.exp(ts)
+    return torch.exp(ts) if derivative else torch.expm1(ts) / s[None, :]
 
 
-def coefficients(kind: str, times: Tensor, bound: float, terms: int) -> Tensor:
+def coefficients(kind: str, times: Tensor, bound: float, terms: int,
+                 derivative: bool = False) -> Tensor:
     """Chebyshev coefficients ``(C, terms)`` of ``f_t`` on ``[-bound, 0]``, in ``times``' graph.
 
     Args:
@@ -74,13 +76,15 @@ def coefficients(kind: str, times: Tensor, bound: float, terms: int) -> Tensor:
         times: ``(C,)``, in the units of ``1 / bound`` (world length squared for a diffusion).
         bound: ``rho``, an upper bound of ``-L``'s spectrum.
         terms: ``K``.
+        derivative: return ``dc / dt`` instead (each channel's coefficients depend on its own
+            time only).
 
     Returns:
         ``c`` with ``f_t(L) ~= sum_k c[:, k] T_k(I + 2 L / rho)``, in ``times``' dtype.
     """
     count = 2 * terms + 16
     theta = _nodes(count, torch.float64, times.device)
-    values = _values(kind, times.to(torch.float64), bound, theta)
+    values = _values(kind, times.to(torch.float64), bound, theta, derivative)
     k = torch.arange(terms, dtype=torch.float64, device=times.device)
     cosines = torch.cos(k[:, None] * theta[None, :])  # (K, N)
     result = (2.0 / count) * values @ cosines.T
@@ -109,6 +113,13 @@ def count_terms(kind: str, time: float, bound: float, dtype: torch.dtype) -> int
     return int(small[0]) if len(small) else cap
 
 
+@torch.compiler.disable
+def _terms_for(kind: str, times: Tensor, bound: float, dtype: torch.dtype) -> int:
+    """:func:`count_terms` of the largest of ``times``: the loop's length is a host integer,
+    read from the times (under ``torch.compile``, the one graph break of an expansion)."""
+    return count_terms(kind, float(times.detach().max()), bound, dtype)
+
+
 def _step(operator: Callable[..., Tensor], scale: float, current: Tensor, previous: Tensor,
           params: tuple[Tensor, ...]) -> Tensor:
     """``T_{k+1} x = 2 Y T_k x - T_{k-1} x`` with ``Y = I + scale L`` (``scale = 2 / rho``)."""
@@ -125,7 +136,8 @@ def _recurrence(operator: Callable[..., Tensor], x: Tensor, c: Tensor, bound: fl
                 params: tuple[Tensor, ...],
                 inner: Tensor | None = None) -> tuple[Tensor, Tensor | None]:
     """``sum_k c[:, k] T_k(Y) x`` ``(B, C, D, H, W)`` and, if ``inner`` is given, the inner
-    products ``<inner, T_k(Y) x>`` per channel ``(C, K)``; four volumes live at a time."""
+    products ``<inner, T_k(Y) x>`` per channel ``(C, K)``; four volumes live at a time.
+    Without autograd only (the Function's forward and backward)."""
     terms = c.shape[1]
     scale = 2.0 / bound
     products = [] if inner is not None else None
@@ -139,11 +151,15 @@ def _recurrence(operator: Callable[..., Tensor], x: Tensor, c: Tensor, bound: fl
     record(x)
     if terms > 1:
         current = torch.add(x, operator(x, *params), alpha=scale)
-        total = torch.addcmul(total, _channelwise(c[:, 1]), current)
+        total.addcmul_(_channelwise(c[:, 1]), current)
         record(current)
         for k in range(2, terms):
-            previous, current = current, _step(operator, scale, current, previous, params)
-            total = torch.addcmul(total, _channelwise(c[:, k]), current)
+            # in place on the operator's output (no grad here): fewer allocations, less
+            # fragmentation of the heap over a long expansion
+            following = operator(current, *params).mul_(2.0 * scale)
+            following.add_(current, alpha=2.0).sub_(previous)
+            previous, current = current, following
+            total.addcmul_(_channelwise(c[:, k]), current)
             record(current)
     return total, None if products is None else torch.stack(products, dim=1)
 
@@ -184,12 +200,8 @@ class _Expansion(torch.autograd.Function):
             if want_x:
                 grad_x = transposed.sum_to_size(x.shape) if transposed.shape != x.shape else transposed
             if want_times:
-                with torch.enable_grad():
-                    leaf = times.detach().requires_grad_(True)
-                    (grad_times,) = torch.autograd.grad(
-                        coefficients(ctx.kind, leaf, ctx.bound, ctx.terms), leaf,
-                        products.to(leaf.dtype),
-                    )
+                slopes = coefficients(ctx.kind, times.detach(), ctx.bound, ctx.terms, True)
+                grad_times = (slopes * products.to(slopes.dtype)).sum(dim=1)
         return None, None, None, None, None, grad_x, None, grad_times
 
 
@@ -253,7 +265,7 @@ def expansion(
         raise ValueError("expansion needs weight (a W-self-adjoint operator) or adjoint")
     times = times.reshape(-1).expand(x.shape[1]) if times.numel() == 1 else times
     if terms is None:
-        terms = count_terms(kind, float(times.detach().max()), bound, x.dtype)
+        terms = _terms_for(kind, times, bound, x.dtype)
     if differentiable_operator and torch.is_grad_enabled():
         c = coefficients(kind, times, bound, terms)
         return _checkpointed(operator, x, c, bound, ())

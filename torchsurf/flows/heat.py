@@ -123,16 +123,17 @@ class HeatFlow(Flow):
             )
         check_surface(surface)
         check_data(u0, "u0", surface)
-        end = self.time_value.maximum()
-        wanted = [end] if times is None else _check_times(times, end)
         operator = BandLaplacian(surface, self.scheme, self.band_width, self.path)
-        check_finite(torch.where(operator.band, u0, 0.0), "u0 (in the band)")
+        if not torch.compiler.is_compiling():  # a host read: it would break a compiled graph
+            check_finite(torch.where(operator.band, u0, 0.0), "u0 (in the band)")
         d = self.diffusivity.volume(u0)
         rate = (d.reshape(-1) if isinstance(d, Tensor) else u0.new_tensor(d)).expand(u0.shape[1])
         horizon = self.time * rate
-        results = [u0 if t == 0 else heat_semigroup(u0, operator, horizon * (t / end))
-                   for t in wanted]
-        return results[-1] if times is None else torch.stack(results)
+        if times is None:
+            return heat_semigroup(u0, operator, horizon)
+        end = self.time_value.maximum()
+        return torch.stack([u0 if t == 0 else heat_semigroup(u0, operator, horizon * (t / end))
+                            for t in _check_times(times, end)])
 
     def extra_repr(self) -> str:
         return f"{super().extra_repr()}, scheme={self.scheme!r}"
