@@ -10,8 +10,9 @@ second as the steady iteration. Two peaks of memory, both above what the process
 building the surface and the data: ``peak`` is the resident set's (``ru_maxrss``: what the
 machine had to provide, including the allocator's fragmentation), ``live`` the largest number
 of bytes allocated and not yet freed (glibc's ``mallinfo2``, sampled every 0.5 ms by a thread:
-what the computation needs). Stencils run eagerly (``"slicing"``; the backend's compile thresholds are raised for
-the run) unless ``--compiled``, so that no compiler's memory or time enters the figures.
+what the computation needs). Stencils run eagerly (``"slicing"``; the backend's compile
+thresholds are raised for the run) unless ``--compiled``, so that no compiler's memory or time
+enters the figures.
 
 Methods:
 

@@ -85,8 +85,8 @@ def test_sphere_harmonics_decay_like_heat_flow(sphere33, cells):
     layer = LearnedDiffusion(4, time=cells, learn_time=False)
     errors = decay_errors(layer(u0, surface), surface, time)
     reference = decay_errors(ts.HeatFlow(time)(u0, surface), surface, time)
-    absolute = [e * math.exp(-l * (l + 1) * time / ts.exact.SPHERE_RADIUS**2)
-                for l, e in zip((1, 2, 3, 4), errors, strict=True)]
+    absolute = [e * math.exp(-degree * (degree + 1) * time / ts.exact.SPHERE_RADIUS**2)
+                for degree, e in zip((1, 2, 3, 4), errors, strict=True)]
     assert max(absolute) < 2.5e-2, errors  # l = 4: 8 cells a wavelength at 33^3
     for mine, theirs in zip(errors, reference, strict=True):
         assert mine < 1.5 * theirs + 2e-3, (errors, reference)
@@ -236,3 +236,8 @@ def test_bad_arguments_are_named(sphere33):
         LearnedDiffusion(3)(u0, surface)
     with pytest.raises(TypeError, match="surface"):
         LearnedDiffusion(4)(u0, None)
+    diverged = LearnedDiffusion(4)
+    with torch.no_grad():
+        diverged.raw_time[1] = float("nan")
+    with pytest.raises(ValueError, match="times must be finite"):
+        diverged(u0, surface)

@@ -119,7 +119,13 @@ def count_terms(kind: str, time: float, bound: float, dtype: torch.dtype) -> int
 def _terms_for(kind: str, times: Tensor, bound: float, dtype: torch.dtype) -> int:
     """:func:`count_terms` of the largest of ``times``: the loop's length is a host integer,
     read from the times (under ``torch.compile``, the one graph break of an expansion)."""
-    return count_terms(kind, float(times.detach().max()), bound, dtype)
+    largest = float(times.detach().max())
+    if not math.isfinite(largest) or not largest > 0:
+        raise ValueError(
+            f"times must be finite and positive, got {times.detach().tolist()!r} (a learned "
+            "time that is not: an optimiser step diverged)"
+        )
+    return count_terms(kind, largest, bound, dtype)
 
 
 def _step(operator: Callable[..., Tensor], scale: float, current: Tensor, previous: Tensor,
