@@ -241,3 +241,18 @@ def test_bad_arguments_are_named(sphere33):
         diverged.raw_time[1] = float("nan")
     with pytest.raises(ValueError, match="times must be finite"):
         diverged(u0, surface)
+
+
+def test_compile_breaks_only_at_the_term_count():
+    """``torch._dynamo.explain``: the one break is the host-read number of terms (reported once
+    per enclosing frame); the operators, the stencils and the expansion trace."""
+    grid = ts.Grid.cube(13, 1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid), grid)
+    layer = LearnedDiffusion(2, time=[0.05, 0.1])  # four terms: a short trace
+    u = torch.rand(1, 2, *grid.shape, generator=torch.Generator().manual_seed(0))
+    layer(u, surface)  # the surface's band, bound and stencils, computed once and kept
+    torch._dynamo.reset()
+    explanation = torch._dynamo.explain(layer)(u, surface)
+    torch._dynamo.reset()
+    reasons = [str(reason.reason) for reason in explanation.break_reasons]
+    assert reasons and all("_terms_for" in reason for reason in reasons), reasons
