@@ -41,7 +41,8 @@ class HeatFlow(Flow):
     only): about ``sqrt(t D rho)`` operator applications instead of RKC's steps, the ring
     re-extended at every application and no step stored for backward (its backward is the
     transposed expansion), so the cost of a learned time no longer grows as ``t / h^2``.
-    ``steps``, ``reextend_every`` and ``checkpoint`` do not apply to it. It is opt-in: the
+    ``steps``, ``options`` and ``adjoint`` are refused with it, ``reextend_every`` and
+    ``checkpoint`` do not apply. It is opt-in: the
     other methods' results and options stay as they were.
 
     Args:
@@ -74,6 +75,11 @@ class HeatFlow(Flow):
         **kwargs: object,
     ) -> None:
         super().__init__(time, **kwargs)
+        if self.method == "chebyshev" and (self.steps is not None or self.options or self.adjoint):
+            raise ValueError(
+                "method='chebyshev' takes no steps, options or adjoint: it applies "
+                "exp(t D Lap_S) in one expansion whose length follows the time"
+            )
         self.diffusivity = Positive(diffusivity, "diffusivity", learnable=learn_diffusivity)
         self.scheme = check_choice(scheme, "scheme", SCHEMES)
         self.path = check_choice(path, "path", PATHS)
