@@ -68,3 +68,37 @@ def test_bricks_benchmark_time_to_solution_and_report():
     args = module.argparse.Namespace(mesh="bunny_closed.obj")
     text = module.markdown(args, 20.0, None, None, (rows, (best, peer)))
     assert "| 41 |" in text and "Mesh peer" in text
+
+
+LEARNED = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_learned_diffusion.py"
+
+
+@pytest.fixture(scope="module")
+def learned_bench():
+    spec = importlib.util.spec_from_file_location("bench_learned_diffusion", LEARNED)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_learned_diffusion_bench_runs_one_iteration(learned_bench):
+    # compiled=True leaves the backend's thresholds alone (the eager setting is per process)
+    for method in learned_bench.METHODS:
+        run = learned_bench.Run(**learned_bench.single(method, 1.0, 17, 1, 2, compiled=True))
+        assert run.method == method and run.first > 0 and run.steady > 0
+        assert run.live_mb >= 0 and run.peak_mb >= 0
+        assert run.world == pytest.approx(1.0 * (3.0 / 16) ** 2)
+
+
+def test_learned_diffusion_bench_summary_reads_the_ratios(learned_bench):
+    Run = learned_bench.Run
+    runs = [Run("learned", 0.044, 1e-4, 1.0, 1.0, 110.0, 100.0),
+            Run("learned", 4.4, 1e-2, 5.0, 5.0, 150.0, 110.0),
+            Run("heatflow", 0.044, 1e-4, 1.0, 1.0, 100.0, 100.0),
+            Run("heatflow", 4.4, 1e-2, 30.0, 30.0, 900.0, 800.0)]
+    lines = learned_bench.summary(runs, 0.044, 4.4)
+    assert "live memory x1.10" in lines[0] and "time x5.00" in lines[0]
+    assert lines[0].endswith("meets the targets")
+    assert "live memory x8.00" in lines[1] and lines[1].endswith("misses the targets")
+    assert "| learned | 4.4 | 0.01 | 5.00 | 5.00 | 110 | 150 |" in learned_bench.table(runs)

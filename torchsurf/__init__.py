@@ -4,7 +4,7 @@ Bertalmío, Cheng, Osher & Sapiro (2001): data on the zero level set of ``phi`` 
 to a band around it and every intrinsic operator is computed on the Cartesian grid.
 """
 
-from . import backend, bricks, datasets, exact, flows, mesh, operators, sdf, shape_batch, stencils
+from . import backend, bricks, datasets, exact, flows, mesh, nn, operators, sdf, shape_batch, stencils
 from .flows import (
     AnisotropicFlow,
     ColorDenoise,
@@ -65,6 +65,7 @@ __all__ = [
     "intrinsic_gradient",
     "laplace_beltrami",
     "mesh",
+    "nn",
     "operators",
     "sample",
     "sdf",

@@ -221,6 +221,13 @@ def run(kernel: Kernel, path: str, volume: Tensor, *args: object) -> Tensor:
     Returns:
         What the kernel returns; every path gives the same numbers to rounding.
     """
+    if torch.compiler.is_compiling() and path in ("auto", *EAGER_PATHS):
+        # traced by an outer torch.compile: plain tensor operations, no ledger or record
+        # (a context variable and a clock would each break the outer graph)
+        concrete = eager_path(volume) if path == "auto" else path
+        if concrete == "slicing" and kernel.fused_when_eager:
+            return kernel.fused(*kernel.halo(*args))
+        return kernel.eager(*args, path=concrete)
     recording = torch.is_grad_enabled() and any(
         isinstance(a, Tensor) and a.requires_grad for a in args
     )

@@ -199,6 +199,30 @@ class CubicStencil:
             results.append(flat.index_copy(1, targets, value).reshape(volume.shape))
         return torch.stack(results)
 
+    def transpose(self, v: Tensor) -> Tensor:
+        """The transpose of :meth:`apply` (``limited=False`` only, where it is linear).
+
+        ``v`` ``(B, C, D, H, W)`` with each masked node's value zeroed and scattered back, with
+        its 64 tricubic weights, to the nodes :meth:`apply` reads it from; a new tensor.
+        """
+        if self.limited:
+            raise ValueError("CubicStencil.transpose: a limited stencil is not linear")
+        results = []
+        for b in range(v.shape[0]):
+            targets, corners, weights = self.parts[min(b, len(self.parts) - 1)]
+            volume = v[b]
+            height, width = volume.shape[-2:]
+            flat = volume.reshape(volume.shape[0], -1)
+            x, y, z = corners.long().unbind(0)
+            sources = ((z[:, :, None, None] * height + y[:, None, :, None]) * width
+                       + x[:, None, None, :]).flatten()
+            wx, wy, wz = weights.to(v.dtype).unbind(0)
+            taps = (wz[:, :, None, None] * wy[:, None, :, None] * wx[:, None, None, :]).flatten(1)
+            moved = (flat[:, targets, None] * taps).flatten(1)
+            kept = flat.index_fill(1, targets, 0.0)
+            results.append(kept.index_add(1, sources, moved).reshape(volume.shape))
+        return torch.stack(results)
+
 
 def _corner_base(bases: list[Tensor], second: tuple[Tensor, Tensor, Tensor], k: int, j: int,
                  i: int) -> Tensor:

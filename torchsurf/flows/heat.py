@@ -2,17 +2,21 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
+import numpy as np
 import torch
 from torch import Tensor
 
-from .._checks import check_choice
+from .._checks import check_choice, check_finite
 from ..backend import PATHS
 from ..operators import functional, laplace_beltrami
 from ..operators.laplace_beltrami import SCHEMES
-from ..surface import ImplicitSurface
+from ..surface import ImplicitSurface, check_data, check_surface
 from ._integrators import Linear, System, tensors
 from ._positive import Positive
-from .base import Flow
+from .base import Flow, _check_times
+from .exponential import BandLaplacian, heat_semigroup
 
 SYMMETRIC_SCHEMES = functional.SCHEMES
 
@@ -33,6 +37,15 @@ class HeatFlow(Flow):
     ``(W - theta dt D A) u_new = ...`` with ``A = W Lap_S`` symmetric negative semi-definite
     (schemes ``"octant"``, ``"symmetric"`` and ``"conservative"``) by conjugate gradients; any
     step size is stable.
+
+    ``method="chebyshev"`` applies the heat semigroup ``exp(t D Lap_S)`` in one Chebyshev
+    expansion (:func:`torchsurf.flows.exponential.heat_semigroup`, divergence-form schemes
+    only): about ``sqrt(t D rho)`` operator applications instead of RKC's steps, the ring
+    re-extended at every application and no step stored for backward (its backward is the
+    transposed expansion), so the cost of a learned time no longer grows as ``t / h^2``.
+    ``steps``, ``options`` and ``adjoint`` are refused with it, ``reextend_every`` and
+    ``checkpoint`` do not apply. It is opt-in: the
+    other methods' results and options stay as they were.
 
     Args:
         time: physical end time, world units squared (with ``D = 1``).
@@ -64,6 +77,11 @@ class HeatFlow(Flow):
         **kwargs: object,
     ) -> None:
         super().__init__(time, **kwargs)
+        if self.method == "chebyshev" and (self.steps is not None or self.options or self.adjoint):
+            raise ValueError(
+                "method='chebyshev' takes no steps, options or adjoint: it applies "
+                "exp(t D Lap_S) in one expansion whose length follows the time"
+            )
         self.diffusivity = Positive(diffusivity, "diffusivity", learnable=learn_diffusivity)
         self.scheme = check_choice(scheme, "scheme", SCHEMES)
         self.path = check_choice(path, "path", PATHS)
@@ -97,6 +115,34 @@ class HeatFlow(Flow):
         rho = self.diffusivity.maximum() * self.operator_bound(surface, self.scheme)
         params = tensors(d, surface.normal, surface.weight)
         return System(rate, band, rho, linear=linear, params=params)
+
+    def forward(
+        self, u0: Tensor, surface: ImplicitSurface,
+        times: Sequence[float] | Tensor | np.ndarray | None = None, **inputs: Tensor,
+    ) -> Tensor:
+        """Integrate from ``u0`` to the end time (:meth:`Flow.forward`; ``"chebyshev"`` here)."""
+        if self.method != "chebyshev":
+            return super().forward(u0, surface, times, **inputs)
+        if inputs:
+            raise TypeError(f"HeatFlow takes no inputs besides u0 and surface, got {sorted(inputs)}")
+        if self.scheme not in SYMMETRIC_SCHEMES:
+            raise ValueError(
+                f"method='chebyshev' needs a divergence-form scheme {SYMMETRIC_SCHEMES}, got "
+                f"scheme={self.scheme!r}"
+            )
+        check_surface(surface)
+        check_data(u0, "u0", surface)
+        operator = BandLaplacian(surface, self.scheme, self.band_width, self.path)
+        if not torch.compiler.is_compiling():  # a host read: it would break a compiled graph
+            check_finite(torch.where(operator.band, u0, 0.0), "u0 (in the band)")
+        d = self.diffusivity.volume(u0)
+        rate = (d.reshape(-1) if isinstance(d, Tensor) else u0.new_tensor(d)).expand(u0.shape[1])
+        horizon = self.time * rate
+        if times is None:
+            return heat_semigroup(u0, operator, horizon)
+        end = self.time_value.maximum()
+        return torch.stack([u0 if t == 0 else heat_semigroup(u0, operator, horizon * (t / end))
+                            for t in _check_times(times, end)])
 
     def extra_repr(self) -> str:
         return f"{super().extra_repr()}, scheme={self.scheme!r}"

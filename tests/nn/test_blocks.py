@@ -1,0 +1,112 @@
+"""Gradient features, the residual diffusion block and the band-masked losses."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+import torchsurf as ts
+from torchsurf.nn import (
+    DiffusionBlock,
+    GradientFeatures,
+    band_mse,
+    feature_count,
+    gradient_features,
+    psnr,
+)
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    grid = ts.Grid.cube(33, 1.4)
+    phi = ts.sdf.sphere(grid, radius=0.9, dtype=torch.float64)
+    return grid, ts.ImplicitSurface(phi, grid)
+
+
+def test_gradient_norm_of_the_height_function(sphere):
+    """``u = z`` on a sphere of radius R: ``|grad_S u| = sin(polar angle)``, per cell ``h sin``."""
+    grid, surface = sphere
+    points = grid.points(dtype=torch.float64)
+    z = points[..., 2] / points.norm(dim=-1).clamp(min=1e-9)  # extended along normals
+    u = z[None, None]
+    features = gradient_features(u, surface, eps=1e-12)
+    near = surface.band_mask(grid.spacing)
+    radius = points.norm(dim=-1)[None, None]
+    exact = grid.spacing * torch.sqrt((1 - z**2).clamp(min=0))[None, None] / radius
+    error = (features - exact).abs()[near].max()
+    assert error < 0.02 * grid.spacing, float(error / grid.spacing)
+
+
+def test_features_are_rotation_invariant_products(sphere):
+    grid, surface = sphere
+    generator = torch.Generator().manual_seed(0)
+    u = torch.rand((2, 3, *grid.shape), generator=generator, dtype=torch.float64)
+    features = GradientFeatures()(u, surface)
+    assert features.shape == (2, feature_count(3), *grid.shape) == (2, 6, *grid.shape)
+    gradient = ts.operators.functional.tangential_gradient(u, surface.normal, grid.spacing)
+    gradient = (gradient * grid.spacing).unflatten(1, (3, 3))
+    torch.testing.assert_close(features[:, 4], (gradient[:, 0] * gradient[:, 2]).sum(dim=1))
+    torch.testing.assert_close(features[:, 1] ** 2, (gradient[:, 1] ** 2).sum(dim=1) + 1e-12)
+    # a rotation of the channels' common frame leaves norms and products unchanged: swapping
+    # the grid's x and y axes on data and surface permutes the nodes only
+    swapped = ts.ImplicitSurface(surface.phi.transpose(3, 4), grid)
+    again = gradient_features(u.transpose(3, 4), swapped)
+    torch.testing.assert_close(again, features.transpose(3, 4), rtol=1e-10, atol=1e-10)
+    assert gradient_features(u, surface, pairs=False).shape[1] == 3
+
+
+def test_block_starts_as_identity_and_changes_only_the_band(sphere):
+    grid, surface = sphere
+    generator = torch.Generator().manual_seed(1)
+    u = torch.rand((2, 2, *grid.shape), generator=generator, dtype=torch.float64)
+    block = DiffusionBlock(2, hidden=8, time=[1.0, 2.0]).double()
+    torch.testing.assert_close(block(u, surface), u)
+    torch.nn.init.normal_(block.mlp[-1].weight, generator=generator)
+    out = block(u, surface)
+    outside = ~surface.band_mask().expand_as(u)
+    torch.testing.assert_close(out[outside], u[outside])
+    assert (out - u).abs()[~outside].max() > 1e-3
+    # the same as the MLP applied as a 1x1x1 convolution everywhere, then masked
+    diffused = block.diffusion(u, surface)
+    features = torch.cat([diffused, gradient_features(diffused, surface)], dim=1)
+    first, last = block.mlp[0], block.mlp[2]
+    hidden = torch.relu(torch.nn.functional.conv3d(features, first.weight[..., None, None, None],
+                                                   first.bias))
+    update = torch.nn.functional.conv3d(hidden, last.weight[..., None, None, None], last.bias)
+    torch.testing.assert_close(out, torch.where(~outside, u + update, u))
+
+
+def test_block_gradients_reach_every_parameter(sphere):
+    grid, surface = sphere
+    generator = torch.Generator().manual_seed(2)
+    u = torch.rand((1, 2, *grid.shape), generator=generator, dtype=torch.float64)
+    block = DiffusionBlock(2, hidden=4).double()
+    torch.nn.init.normal_(block.mlp[-1].weight, generator=generator)
+    band_mse(block(u, surface), u.flip(2), surface).backward()
+    for name, parameter in block.named_parameters():
+        assert parameter.grad is not None and parameter.grad.abs().sum() > 0, name
+
+
+def test_band_mse_and_psnr(sphere):
+    grid, surface = sphere
+    generator = torch.Generator().manual_seed(3)
+    target = torch.rand((2, 2, *grid.shape), generator=generator, dtype=torch.float64)
+    noise = torch.zeros_like(target)
+    noise[0] = 0.1
+    noise[1] = 0.01
+    band = surface.band_mask()
+    noise = torch.where(band, noise, 5.0)  # errors outside the band do not count
+    mse = band_mse(target + noise, target, surface)
+    expected = (0.1**2 + 0.01**2) / 2
+    torch.testing.assert_close(mse, torch.tensor(expected, dtype=torch.float64))
+    db = psnr(target + noise, target, surface)
+    torch.testing.assert_close(db, torch.tensor([20.0, 40.0], dtype=torch.float64))
+    torch.testing.assert_close(psnr(target + noise, target, surface, peak=10.0),
+                               torch.tensor([40.0, 60.0], dtype=torch.float64))
+    assert math.isinf(float(psnr(target, target, surface)[0]))
+    with pytest.raises(ValueError, match="target"):
+        band_mse(target, target[:, :1], surface)
+    with pytest.raises(ValueError, match="peak"):
+        psnr(target, target, surface, peak=0.0)

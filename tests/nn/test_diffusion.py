@@ -1,0 +1,260 @@
+"""LearnedDiffusion and the Chebyshev heat semigroup: exact decay, gradients, memory, errors."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+import torchsurf as ts
+from torchsurf.flows import chebyshev
+from torchsurf.flows.exponential import BandLaplacian, heat_semigroup
+from torchsurf.nn import LearnedDiffusion
+from torchsurf.sampling import sample
+
+
+def harmonics(n: int, dtype: torch.dtype):
+    """Degrees 1..4 of SPEC §5 as four channels, and their surface."""
+    cases = [ts.exact.sphere_harmonic(degree, n, dtype=dtype) for degree in (1, 2, 3, 4)]
+    return torch.cat([case.u for case in cases], dim=1), ts.ImplicitSurface(cases[0].phi, cases[0].grid)
+
+
+def decay_errors(u: torch.Tensor, surface: ts.ImplicitSurface, time: float) -> list[float]:
+    """Max error on S (2000 points) of each channel against ``exp(-l(l+1)t/R^2) f``, relative
+    to the exact amplitude at ``time``."""
+    count = 2000
+    i = torch.arange(count, dtype=u.dtype) + 0.5
+    z = 1 - 2 * i / count
+    r, angle = torch.sqrt(1 - z**2), math.pi * (1 + 5**0.5) * i
+    directions = torch.stack((r * torch.cos(angle), r * torch.sin(angle), z), dim=-1)
+    radius = ts.exact.SPHERE_RADIUS
+    points = directions * radius + directions.new_tensor(ts.exact.SPHERE_CENTER)
+    x, y, z = directions.unbind(-1)
+    shapes = (z, 3 * z**2 - 1, x * y * z, 35 * z**4 - 30 * z**2 + 3)
+    values = sample(u, points, surface.grid)[0]
+    errors = []
+    for degree, (shape, value) in enumerate(zip(shapes, values, strict=True), start=1):
+        exact = shape * math.exp(-degree * (degree + 1) * time / radius**2)
+        errors.append(float((value - exact).abs().max() / exact.abs().max()))
+    return errors
+
+
+@pytest.fixture(scope="module")
+def sphere33():
+    return harmonics(33, torch.float32)
+
+
+@pytest.fixture(scope="module")
+def small():
+    grid = ts.Grid.cube(9, 1.5)
+    phi = ts.sdf.sphere(grid, dtype=torch.float64)
+    return grid, phi, ts.ImplicitSurface(phi, grid)
+
+
+def test_coefficients_reproduce_exp_on_the_interval():
+    """The truncated series equals ``exp(t s)`` at every ``s`` in ``[-rho, 0]``."""
+    bound, time = 12.0, 7.5
+    terms = chebyshev.count_terms("exp", time, bound, torch.float64)
+    c = chebyshev.coefficients("exp", torch.tensor([time], dtype=torch.float64), bound, terms)[0]
+    s = torch.linspace(-bound, 0, 101, dtype=torch.float64)
+    y = 1 + 2 * s / bound
+    series = sum(c[k] * torch.cos(k * torch.arccos(y.clamp(-1, 1))) for k in range(terms))
+    torch.testing.assert_close(series, torch.exp(time * s), rtol=0, atol=1e-13)
+    # terms grow as sqrt(t rho) (plus a constant): 100x the time, 8-14x the terms
+    many = chebyshev.count_terms("exp", 100 * time, bound, torch.float64)
+    assert 8 * terms < many < 14 * terms, (terms, many)
+
+
+def test_phi1_is_the_affine_solution():
+    """``t phi1(t s) = (exp(t s) - 1) / s`` on the interval."""
+    bound, time = 12.0, 2.0
+    terms = chebyshev.count_terms("phi1", time, bound, torch.float64)
+    c = chebyshev.coefficients("phi1", torch.tensor([time], dtype=torch.float64), bound, terms)[0]
+    s = torch.linspace(-bound, -1e-3, 51, dtype=torch.float64)
+    theta = torch.arccos(1 + 2 * s / bound)
+    series = sum(c[k] * torch.cos(k * theta) for k in range(terms))
+    torch.testing.assert_close(series, torch.expm1(time * s) / s, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("cells", [1.0, 10.0])
+def test_sphere_harmonics_decay_like_heat_flow(sphere33, cells):
+    """Within 1.5x the RKC heat flow's error (and 2.5e-2 of the amplitude) on S, 33^3."""
+    u0, surface = sphere33
+    time = cells * surface.spacing**2
+    layer = LearnedDiffusion(4, time=cells, learn_time=False)
+    errors = decay_errors(layer(u0, surface), surface, time)
+    reference = decay_errors(ts.HeatFlow(time)(u0, surface), surface, time)
+    absolute = [e * math.exp(-degree * (degree + 1) * time / ts.exact.SPHERE_RADIUS**2)
+                for degree, e in zip((1, 2, 3, 4), errors, strict=True)]
+    assert max(absolute) < 2.5e-2, errors  # l = 4: 8 cells a wavelength at 33^3
+    for mine, theirs in zip(errors, reference, strict=True):
+        assert mine < 1.5 * theirs + 2e-3, (errors, reference)
+
+
+def test_heat_flow_chebyshev_matches_rkc(sphere33):
+    u0, surface = sphere33
+    expanded = ts.HeatFlow(0.05, method="chebyshev", path="slicing")(u0, surface)
+    stepped = ts.HeatFlow(0.05)(u0, surface)
+    assert max(decay_errors(expanded, surface, 0.05)) < 2e-2
+    # near S (RKC re-extends the whole band after each step, the expansion does not)
+    near = surface.band_mask(surface.spacing).expand_as(u0)
+    difference = (expanded - stepped).abs()[near].max() / u0.abs()[near].max()
+    assert difference < 1e-2, difference
+
+
+def test_heat_flow_chebyshev_times_and_diffusivity(sphere33):
+    u0, surface = sphere33
+    flow = ts.HeatFlow(0.02, diffusivity=[1.0, 2.0, 1.0, 0.5], method="chebyshev")
+    several = flow(u0, surface, times=[0.0, 0.01, 0.02])
+    assert several.shape == (3, *u0.shape)
+    torch.testing.assert_close(several[0], u0)
+    torch.testing.assert_close(several[-1], flow(u0, surface))
+    # D = 2 for 0.01 is D = 1 for 0.02
+    doubled = ts.HeatFlow(0.01, diffusivity=2.0, method="chebyshev")(u0[:, 1:2], surface)
+    torch.testing.assert_close(several[1][:, 1:2], doubled, rtol=1e-5, atol=1e-5)
+    with pytest.raises(ValueError, match="scheme"):
+        ts.HeatFlow(0.01, scheme="central", method="chebyshev")(u0, surface)
+    with pytest.raises(ValueError, match="steps"):
+        ts.HeatFlow(0.01, method="chebyshev", steps=4)
+
+
+def test_transpose_is_exact(small):
+    grid, phi, surface = small
+    operator = BandLaplacian(surface, path="slicing")
+    generator = torch.Generator().manual_seed(0)
+    a, b = (torch.randn((2, 3, *grid.shape), generator=generator, dtype=torch.float64)
+            for _ in range(2))
+    torch.testing.assert_close((operator.apply(a) * b).sum(), (a * operator.transpose(b)).sum())
+
+
+def test_gradcheck_data_and_times(small):
+    """Along six random directions of ``u0`` and the times; ``fast_mode`` checks a random
+    projection of the output (every entry would take minutes)."""
+    grid, phi, surface = small
+    operator = BandLaplacian(surface, path="slicing")
+    generator = torch.Generator().manual_seed(0)
+    u0 = torch.rand((2, 2, *grid.shape), generator=generator, dtype=torch.float64)
+    directions = torch.randn((6, *u0.shape), generator=generator, dtype=torch.float64)
+    times = torch.tensor([0.3, 2.0], dtype=torch.float64) * grid.spacing**2
+
+    def run(along: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        return heat_semigroup(u0 + torch.tensordot(along, directions, dims=1), operator, t)
+
+    along = torch.zeros(6, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(run, (along, times.requires_grad_(True)), fast_mode=True)
+
+
+def test_gradcheck_phi(small):
+    """Through ``phi`` (the checkpointed recomputation), along a one-parameter family."""
+    grid, phi, _ = small
+    generator = torch.Generator().manual_seed(1)
+    u0 = torch.rand((1, 1, *grid.shape), generator=generator, dtype=torch.float64)
+    bump = torch.rand(phi.shape, generator=generator, dtype=torch.float64)
+    times = torch.tensor([1.5 * grid.spacing**2], dtype=torch.float64, requires_grad=True)
+
+    def run(scale: torch.Tensor, t: torch.Tensor, u: torch.Tensor) -> torch.Tensor:  # noqa: D401
+        surface = ts.ImplicitSurface(phi + scale * bump, grid)
+        return heat_semigroup(u, BandLaplacian(surface, path="slicing"), t)
+
+    scale = torch.tensor(0.01, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda s, t: run(s, t, u0), (scale, times), fast_mode=True)
+
+
+def test_layer_gradients_reach_the_times_and_match_finite_differences(small):
+    grid, phi, surface = small
+    layer = LearnedDiffusion(2, time=[0.5, 3.0]).double()
+    generator = torch.Generator().manual_seed(2)
+    u0 = torch.rand((1, 2, *grid.shape), generator=generator, dtype=torch.float64)
+    target = torch.rand(u0.shape, generator=generator, dtype=torch.float64)
+    loss = ((layer(u0, surface) - target) ** 2).sum()
+    loss.backward()
+    grad = layer.raw_time.grad.clone()
+    eps = 1e-6
+    with torch.no_grad():
+        for c in range(2):
+            layer.raw_time[c] += eps
+            up = ((layer(u0, surface) - target) ** 2).sum()
+            layer.raw_time[c] -= 2 * eps
+            down = ((layer(u0, surface) - target) ** 2).sum()
+            layer.raw_time[c] += eps
+            assert abs(float((up - down) / (2 * eps)) - float(grad[c])) < 1e-6 * max(1, abs(float(grad[c])))
+
+
+def _saved_bytes(run) -> tuple[torch.Tensor, int]:
+    total = 0
+
+    def pack(tensor):
+        nonlocal total
+        total += tensor.numel() * tensor.element_size()
+        return tensor
+
+    with torch.autograd.graph.saved_tensors_hooks(pack, lambda tensor: tensor):
+        value = run()
+    return value, total
+
+
+def test_memory_kept_for_backward_does_not_grow_with_time(sphere33):
+    u0, surface = sphere33
+    saved = {}
+    for cells in (1.0, 100.0):
+        layer = LearnedDiffusion(4, time=cells)
+        start = u0.clone().requires_grad_(True)
+        value, saved[cells] = _saved_bytes(lambda layer=layer, start=start: layer(start, surface))
+        value.sum().backward()
+        assert start.grad is not None and layer.raw_time.grad is not None
+    assert saved[100.0] <= saved[1.0], saved
+    assert saved[1.0] < 3 * u0.numel() * u0.element_size(), saved
+
+
+def test_layer_shapes_batches_and_untouched_inputs(sphere33):
+    u0, surface = sphere33
+    batch = torch.cat([u0, 2 * u0]).clone()
+    before = batch.clone()
+    layer = LearnedDiffusion(4, time=2.0)
+    out = layer(batch, surface)
+    assert out.shape == batch.shape
+    torch.testing.assert_close(batch, before)
+    torch.testing.assert_close(out[1], 2 * out[0], rtol=1e-5, atol=1e-5)
+    # nodes beyond the band and its ring are returned as they are
+    operator = BandLaplacian(surface)
+    outside = ~operator.region.expand_as(batch)
+    torch.testing.assert_close(out[outside], batch[outside])
+    # one time per channel: channel c diffuses like a one-channel layer of time t_c
+    mixed = LearnedDiffusion(2, time=[1.0, 5.0], learn_time=False)(u0[:, :2], surface)
+    alone = LearnedDiffusion(1, time=5.0, learn_time=False)(u0[:, 1:2], surface)
+    torch.testing.assert_close(mixed[:, 1:2], alone, rtol=1e-5, atol=1e-6)
+
+
+def test_bad_arguments_are_named(sphere33):
+    u0, surface = sphere33
+    with pytest.raises(ValueError, match="time"):
+        LearnedDiffusion(2, time=[1.0, -1.0])
+    with pytest.raises(ValueError, match="time"):
+        LearnedDiffusion(2, time=[1.0, 2.0, 3.0])
+    with pytest.raises(ValueError, match="scheme"):
+        LearnedDiffusion(2, scheme="central")
+    with pytest.raises(ValueError, match="u"):
+        LearnedDiffusion(3)(u0, surface)
+    with pytest.raises(TypeError, match="surface"):
+        LearnedDiffusion(4)(u0, None)
+    diverged = LearnedDiffusion(4)
+    with torch.no_grad():
+        diverged.raw_time[1] = float("nan")
+    with pytest.raises(ValueError, match="times must be finite"):
+        diverged(u0, surface)
+
+
+def test_compile_breaks_only_at_the_term_count():
+    """``torch._dynamo.explain``: the one break is the host-read number of terms (reported once
+    per enclosing frame); the operators, the stencils and the expansion trace."""
+    grid = ts.Grid.cube(13, 1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid), grid)
+    layer = LearnedDiffusion(2, time=[0.05, 0.1])  # four terms: a short trace
+    u = torch.rand(1, 2, *grid.shape, generator=torch.Generator().manual_seed(0))
+    layer(u, surface)  # the surface's band, bound and stencils, computed once and kept
+    torch._dynamo.reset()
+    explanation = torch._dynamo.explain(layer)(u, surface)
+    torch._dynamo.reset()
+    reasons = [str(reason.reason) for reason in explanation.break_reasons]
+    assert reasons and all("_terms_for" in reason for reason in reasons), reasons

@@ -1,0 +1,287 @@
+"""Functions of a self-adjoint diffusion operator by Chebyshev expansion: ``exp(t L) x`` and
+``t phi1(t L) x`` in ``O(sqrt(t rho))`` operator applications, with a backward that stores nothing.
+
+``L`` is any linear operator ``apply(x)`` on volumes ``(B, C, D, H, W)`` whose spectrum lies in
+``[-rho, 0]`` and which is self-adjoint in the ``W``-weighted inner product, ``L^T = W L W^-1``
+(the divergence-form Laplace–Beltrami restricted to a band: docs/SPEC §6, docs/learning.md).
+With ``Y = I + (2 / rho) L`` (spectrum in ``[-1, 1]``) and ``T_k`` the Chebyshev polynomials,
+
+    f(L) x ~= sum_{k < K} c_k T_k(Y) x,      T_{k+1}(Y) x = 2 Y T_k(Y) x - T_{k-1}(Y) x,
+
+``c_k`` the Chebyshev coefficients of ``s -> f((rho / 2)(s - 1))`` on ``[-1, 1]``. For
+``f(s) = exp(t s)`` they are ``(2 - [k = 0]) e^-a I_k(a)``, ``a = t rho / 2`` (modified Bessel
+functions), which fall below a tolerance ``tol`` once ``k > sqrt(2 a log(1 / tol))``: the
+number of applications grows as ``sqrt(t rho)``, not as the ``t rho / 2`` of explicit steps.
+The coefficients are computed here by a cosine sum over ``2K + 16`` nodes (exact to rounding,
+and differentiable in ``t``), one set per channel; the expansion stops when every channel's
+remaining coefficients sum below ``tol`` (``1e-7`` in float32, ``1e-13`` in float64).
+
+Backward, with the operator fixed (nothing it reads requires grad): the map is
+``p(Y) = sum c_k T_k(Y)``, whose transpose is ``W p(Y) (g / W)`` since ``Y`` is self-adjoint in
+the ``W`` inner product. One recurrence on ``g / W`` gives the gradient of ``x`` and, with the
+inner products ``s_k = <x, W T_k(Y)(g / W)>`` per channel, the gradient of the times through the
+coefficients: ``dL/dt_c = sum_k (dc_k / dt_c) s_k``, the exact derivative of the expansion
+computed (equal to ``<g, L exp(t L) x>`` for ``f = exp``, to the tolerance). Nothing but ``x``,
+the times and ``W`` is kept for backward. When the operator's tensors require grad (a learned
+``phi``), the recurrence runs under autograd instead, checkpointed in groups of ``sqrt(K)``
+terms: ``O(sqrt(K))`` volumes kept, the terms of a group recomputed in backward.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import numpy as np
+import torch
+import torch.utils.checkpoint
+from torch import Tensor
+
+from .. import backend
+
+KINDS = ("exp", "phi1")
+"""``"exp"``: ``exp(t L)``; ``"phi1"``: ``t phi1(t L) = (exp(t L) - 1) / L`` (which maps a
+constant source ``f`` to the solution of ``u' = L u + f``, ``u(0) = 0``, at time ``t``)."""
+
+MAX_TERMS = 100_000
+"""More terms than this are refused before any work: ``t rho`` near ``10^9``, a unit error."""
+
+
+def tolerance(dtype: torch.dtype) -> float:
+    """Truncation tolerance of the expansion for ``dtype``: ``1e-13`` in float64, else ``1e-7``."""
+    return 1e-13 if dtype == torch.float64 else 1e-7
+
+
+def _nodes(count: int, dtype: torch.dtype, device: torch.device | None = None) -> Tensor:
+    """``theta_j = pi (j + 1/2) / count``, the Chebyshev nodes' angles ``(count,)``."""
+    return (torch.arange(count, dtype=dtype, device=device) + 0.5) * (math.pi / count)
+
+
+def _values(kind: str, times: Tensor, bound: float, theta: Tensor, derivative: bool) -> Tensor:
+    """``f_t((rho / 2)(cos theta - 1))`` for each time ``(C,)`` and angle ``(N,)``: ``(C, N)``;
+    its derivative in ``t`` if ``derivative``."""
+    s = (0.5 * bound) * (torch.cos(theta) - 1.0)  # eigenvalues of L, all < 0 at the nodes
+    ts = times[:, None] * s[None, :]
+    if kind == "exp":
+        return s[None, :] * torch.exp(ts) if derivative else torch.exp(ts)
+    return torch.exp(ts) if derivative else torch.expm1(ts) / s[None, :]
+
+
+def coefficients(kind: str, times: Tensor, bound: float, terms: int,
+                 derivative: bool = False) -> Tensor:
+    """Chebyshev coefficients ``(C, terms)`` of ``f_t`` on ``[-bound, 0]``, in ``times``' graph.
+
+    Args:
+        kind: ``"exp"`` or ``"phi1"`` (:data:`KINDS`).
+        times: ``(C,)``, in the units of ``1 / bound`` (world length squared for a diffusion).
+        bound: ``rho``, an upper bound of ``-L``'s spectrum.
+        terms: ``K``.
+        derivative: return ``dc / dt`` instead (each channel's coefficients depend on its own
+            time only).
+
+    Returns:
+        ``c`` with ``f_t(L) ~= sum_k c[:, k] T_k(I + 2 L / rho)``, in ``times``' dtype.
+    """
+    count = 2 * terms + 16
+    theta = _nodes(count, torch.float64, times.device)
+    values = _values(kind, times.to(torch.float64), bound, theta, derivative)
+    k = torch.arange(terms, dtype=torch.float64, device=times.device)
+    cosines = torch.cos(k[:, None] * theta[None, :])  # (K, N)
+    result = (2.0 / count) * values @ cosines.T
+    result = torch.cat([0.5 * result[:, :1], result[:, 1:]], dim=1)
+    return result.to(times.dtype)
+
+
+def count_terms(kind: str, time: float, bound: float, dtype: torch.dtype) -> int:
+    """The fewest terms ``K`` whose omitted coefficients sum below :func:`tolerance` times
+    their total, for the largest time ``time`` (a float: the host decides the loop).
+
+    Raises ``ValueError`` beyond :data:`MAX_TERMS`.
+    """
+    a = 0.5 * time * bound
+    tol = tolerance(dtype)
+    cap = math.ceil(1.3 * math.sqrt(2.0 * a * math.log(1.0 / tol)) + 2.0 * math.log(1.0 / tol) + 8)
+    if cap > MAX_TERMS:
+        raise ValueError(
+            f"time * rho = {time * bound:.3g} needs about {cap} Chebyshev terms (more than "
+            f"{MAX_TERMS}): is the time in the expected units?"
+        )
+    values = coefficients(kind, torch.tensor([time], dtype=torch.float64), bound, cap)[0]
+    magnitude = np.abs(values.numpy())
+    # the cosine sums leave ~1e-17 of rounding in coefficients that are really far smaller
+    magnitude[magnitude < 1e-16 * magnitude.sum()] = 0.0
+    tail = np.cumsum(magnitude[::-1])[::-1]  # tail[k] = sum_{j >= k} |c_j|
+    small = np.nonzero(tail <= tol * tail[0])[0]
+    return int(small[0]) if len(small) else cap
+
+
+@torch.compiler.disable
+def _terms_for(kind: str, times: Tensor, bound: float, dtype: torch.dtype) -> int:
+    """:func:`count_terms` of the largest of ``times``: the loop's length is a host integer,
+    read from the times (under ``torch.compile``, the one graph break of an expansion)."""
+    largest = float(times.detach().max())
+    if not math.isfinite(largest) or not largest > 0:
+        raise ValueError(
+            f"times must be finite and positive, got {times.detach().tolist()!r} (a learned "
+            "time that is not: an optimiser step diverged)"
+        )
+    return count_terms(kind, largest, bound, dtype)
+
+
+def _step(operator: Callable[..., Tensor], scale: float, current: Tensor, previous: Tensor,
+          params: tuple[Tensor, ...]) -> Tensor:
+    """``T_{k+1} x = 2 Y T_k x - T_{k-1} x`` with ``Y = I + scale L`` (``scale = 2 / rho``)."""
+    image = operator(current, *params)
+    return torch.add(2.0 * current - previous, image, alpha=2.0 * scale)
+
+
+def _channelwise(c: Tensor) -> Tensor:
+    """Coefficients ``(C,)`` shaped to broadcast over ``(B, C, D, H, W)``."""
+    return c.view(1, -1, 1, 1, 1)
+
+
+def _recurrence(operator: Callable[..., Tensor], x: Tensor, c: Tensor, bound: float,
+                params: tuple[Tensor, ...],
+                inner: Tensor | None = None) -> tuple[Tensor, Tensor | None]:
+    """``sum_k c[:, k] T_k(Y) x`` ``(B, C, D, H, W)`` and, if ``inner`` is given, the inner
+    products ``<inner, T_k(Y) x>`` per channel ``(C, K)``; four volumes live at a time.
+    Without autograd only (the Function's forward and backward)."""
+    terms = c.shape[1]
+    scale = 2.0 / bound
+    # one buffer, not one small tensor a term: small long-lived allocations between the
+    # volumes' fragment the heap (measured: resident memory grew with the number of terms)
+    products = x.new_empty((x.shape[1], terms)) if inner is not None else None
+    index = 0
+
+    def record(term: Tensor) -> None:
+        nonlocal index
+        if products is not None:
+            products[:, index] = (inner * term).sum(dim=(0, 2, 3, 4))
+        index += 1
+
+    previous = x
+    total = _channelwise(c[:, 0]) * x
+    record(x)
+    if terms > 1:
+        current = torch.add(x, operator(x, *params), alpha=scale)
+        total.addcmul_(_channelwise(c[:, 1]), current)
+        record(current)
+        for k in range(2, terms):
+            # in place on the operator's output (no grad here): fewer allocations, less
+            # fragmentation of the heap over a long expansion
+            following = operator(current, *params).mul_(2.0 * scale)
+            following.add_(current, alpha=2.0).sub_(previous)
+            previous, current = current, following
+            total.addcmul_(_channelwise(c[:, k]), current)
+            record(current)
+    return total, products
+
+
+class _Expansion(torch.autograd.Function):
+    """``sum_k c_k(t) T_k(Y) x`` for an operator that reads no tensor requiring grad; backward
+    by the transposed expansion ``W p(Y)(g / W)``, nothing stored but ``x``, ``t`` and ``W``."""
+
+    @staticmethod
+    def forward(ctx, operator, adjoint, kind, bound, terms, x, weight, times):  # noqa: ANN001, ANN205
+        c = coefficients(kind, times.detach(), bound, terms)
+        with torch.no_grad():
+            total, _ = _recurrence(operator, x, c, bound, ())
+        ctx.operator, ctx.adjoint = operator, adjoint
+        ctx.kind, ctx.bound, ctx.terms = kind, bound, terms
+        ctx.save_for_backward(x, weight, times)
+        return total
+
+    @staticmethod
+    def backward(ctx, grad_output):  # noqa: ANN001, ANN205
+        x, weight, times = ctx.saved_tensors
+        want_x, want_times = ctx.needs_input_grad[5], ctx.needs_input_grad[7]
+        grad_x = grad_times = None
+        if want_x or want_times:
+            c = coefficients(ctx.kind, times.detach(), ctx.bound, ctx.terms)
+            with torch.no_grad():
+                if ctx.adjoint is None:  # p(Y)^T g = W p(Y)(g / W)
+                    transposed, products = _recurrence(
+                        ctx.operator, grad_output / weight, c, ctx.bound, (),
+                        inner=x * weight if want_times else None,
+                    )
+                    transposed = weight * transposed
+                else:
+                    transposed, products = _recurrence(
+                        ctx.adjoint, grad_output, c, ctx.bound, (),
+                        inner=x if want_times else None,
+                    )
+            if want_x:
+                grad_x = transposed.sum_to_size(x.shape) if transposed.shape != x.shape else transposed
+            if want_times:
+                slopes = coefficients(ctx.kind, times.detach(), ctx.bound, ctx.terms, True)
+                grad_times = (slopes * products.to(slopes.dtype)).sum(dim=1)
+        return None, None, None, None, None, grad_x, None, grad_times
+
+
+def _group(operator: Callable[..., Tensor], scale: float, c: Tensor, first: int, previous: Tensor,
+           current: Tensor, total: Tensor, *params: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Terms ``first .. first + c.shape[1] - 1`` of the recurrence (a checkpointed group)."""
+    for j in range(c.shape[1]):
+        previous, current = current, _step(operator, scale, current, previous, params)
+        total = torch.addcmul(total, _channelwise(c[:, j]), current)
+    return previous, current, total
+
+
+def _checkpointed(operator: Callable[..., Tensor], x: Tensor, c: Tensor, bound: float,
+                  params: tuple[Tensor, ...]) -> Tensor:
+    """The recurrence under autograd, checkpointed every ``sqrt(K)`` terms."""
+    terms, scale = c.shape[1], 2.0 / bound
+    total = _channelwise(c[:, 0]) * x
+    if terms == 1:
+        return total
+    previous = x
+    current = torch.add(x, operator(x, *params), alpha=scale)
+    total = total + _channelwise(c[:, 1]) * current
+    group = max(1, math.isqrt(terms))
+    for first in range(2, terms, group):
+        chunk = c[:, first: min(first + group, terms)]
+        previous, current, total = torch.utils.checkpoint.checkpoint(
+            _group, operator, scale, chunk, first, previous, current, total, *params,
+            use_reentrant=False, context_fn=backend.recorded_decisions,
+        )
+    return total
+
+
+def expansion(
+    operator: Callable[[Tensor], Tensor], x: Tensor, times: Tensor, bound: float,
+    weight: Tensor | None = None, adjoint: Callable[[Tensor], Tensor] | None = None,
+    kind: str = "exp", differentiable_operator: bool = False, terms: int | None = None,
+) -> Tensor:
+    """``f_t(L) x`` by Chebyshev expansion, one time per channel (module docstring).
+
+    Args:
+        operator: ``x -> L x`` on ``(B, C, D, H, W)``, linear, its spectrum in ``[-bound, 0]``
+            (real, or close to it).
+        x: ``(B, C, D, H, W)``.
+        times: ``(C,)`` or ``()`` positive times, units of ``1 / bound``.
+        bound: ``rho > 0``, an upper bound of the spectral radius of ``L``.
+        weight: ``W`` ``(B or 1, 1, D, H, W)``, positive, when ``L`` is self-adjoint in the
+            ``W`` inner product (``L^T = W L W^-1``): backward then uses ``operator`` itself.
+        adjoint: ``g -> L^T g`` otherwise (one of ``weight`` and ``adjoint`` is needed).
+        kind: ``"exp"`` (``exp(t L) x``) or ``"phi1"`` (``(exp(t L) - 1) L^-1 x``).
+        differentiable_operator: ``operator`` reads tensors that require grad (``phi``'s
+            geometry): the recurrence then runs under autograd, checkpointed every
+            ``sqrt(K)`` terms, instead of the transposed expansion.
+        terms: number of terms ``K`` (default :func:`count_terms` of the largest time).
+
+    Returns:
+        ``(B, C, D, H, W)``. Operator applications: ``K - 1`` forward, as many in backward.
+    """
+    if kind not in KINDS:
+        raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
+    if weight is None and adjoint is None:
+        raise ValueError("expansion needs weight (a W-self-adjoint operator) or adjoint")
+    times = times.reshape(-1).expand(x.shape[1]) if times.numel() == 1 else times
+    if terms is None:
+        terms = _terms_for(kind, times, bound, x.dtype)
+    if differentiable_operator and torch.is_grad_enabled():
+        c = coefficients(kind, times, bound, terms)
+        return _checkpointed(operator, x, c, bound, ())
+    if weight is None:
+        weight = x.new_ones(())
+    return _Expansion.apply(operator, adjoint, kind, bound, terms, x, weight, times)

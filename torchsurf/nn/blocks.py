@@ -1,0 +1,61 @@
+"""``DiffusionBlock``: diffuse, take gradient features, mix pointwise, add back (DiffusionNet's
+block on an implicit surface's band)."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from .._checks import check_count
+from ..surface import ImplicitSurface, check_data, check_surface
+from .diffusion import LearnedDiffusion
+from .features import feature_count, gradient_features
+
+
+class DiffusionBlock(nn.Module):
+    """``u + MLP([d, features(d)])`` on the band, ``d = LearnedDiffusion(u)``.
+
+    The MLP is pointwise (a 1x1x1 convolution: ``Linear -> ReLU -> Linear`` on each node's
+    ``C + feature_count(C)`` values) and is **evaluated at the band's nodes only** (those of
+    ``surface.band_mask()``): they are gathered, mixed and scattered back. Outside the band the
+    block returns ``u`` as it is (the next diffusion reads the band only and re-extends the
+    rest). The last layer starts at zero, so a new block is the identity.
+
+    Args:
+        channels: ``C``, channels in and out.
+        hidden: width of the MLP's hidden layer (default ``2 C + feature_count(C)``).
+        time: initial diffusion times, ``h^2`` units (:class:`LearnedDiffusion`).
+        pairs: use the products of pairs of channels' gradients as features.
+        **diffusion: other arguments of :class:`LearnedDiffusion` (``scheme``, ``path``,
+            ``learn_time``).
+
+    Shapes: ``(B, C, D, H, W)`` on a surface of batch 1 or ``B`` -> ``(B, C, D, H, W)``.
+    """
+
+    def __init__(self, channels: int, hidden: int | None = None, time: float | list[float] = 1.0,
+                 pairs: bool = True, **diffusion: object) -> None:
+        super().__init__()
+        self.channels = check_count(channels, "channels")
+        self.pairs = bool(pairs)
+        inputs = channels + feature_count(channels, self.pairs)
+        hidden = 2 * channels + inputs if hidden is None else check_count(hidden, "hidden")
+        self.diffusion = LearnedDiffusion(channels, time=time, **diffusion)
+        self.mlp = nn.Sequential(nn.Linear(inputs, hidden), nn.ReLU(), nn.Linear(hidden, channels))
+        nn.init.zeros_(self.mlp[-1].weight)
+        nn.init.zeros_(self.mlp[-1].bias)
+
+    def forward(self, u: Tensor, surface: ImplicitSurface) -> Tensor:
+        check_surface(surface)
+        check_data(u, "u", surface, channels=self.channels)
+        diffused = self.diffusion(u, surface)
+        features = torch.cat([diffused, gradient_features(diffused, surface, self.pairs)], dim=1)
+        band = surface.band_mask().expand(u.shape[0], 1, *u.shape[2:])[:, 0]
+        nodes = features.permute(0, 2, 3, 4, 1)[band]  # (N, C + features)
+        update = self.mlp(nodes)
+        scattered = u.new_zeros(u.shape[0], *u.shape[2:], self.channels).masked_scatter(
+            band[..., None], update
+        )
+        return u + scattered.permute(0, 4, 1, 2, 3)
+
+    def extra_repr(self) -> str:
+        return f"channels={self.channels}, pairs={self.pairs}"

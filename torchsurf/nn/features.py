@@ -1,0 +1,74 @@
+"""Rotation-invariant features of surface data from its tangential gradients.
+
+For data ``u`` ``(B, C, D, H, W)`` on a surface, ``grad_S u_c = P grad u_c`` by central
+differences (:func:`torchsurf.operators.functional.tangential_gradient`); the features are
+``|grad_S u_c|`` for each channel and, optionally, ``<grad_S u_i, grad_S u_j>`` for each pair
+``i < j``: invariant under rotations of the shape and of the grid's axes (to discretisation).
+They are scale-free: gradients are measured **per cell** (``h grad_S u``, units of ``u``), so
+the same data on a grid of the same resolution gives the same features whatever the shape's
+world size.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from .._checks import check_choice, check_positive
+from ..backend import PATHS
+from ..operators import functional
+from ..surface import ImplicitSurface, check_data, check_surface
+
+
+def feature_count(channels: int, pairs: bool = True) -> int:
+    """Number of features of ``channels`` channels: ``C`` norms plus ``C (C - 1) / 2`` products."""
+    return channels + (channels * (channels - 1) // 2 if pairs else 0)
+
+
+def gradient_features(u: Tensor, surface: ImplicitSurface, pairs: bool = True,
+                      eps: float = 1e-6, path: str = "auto") -> Tensor:
+    """``|h grad_S u_c|`` per channel, then ``<h grad_S u_i, h grad_S u_j>`` for ``i < j``.
+
+    Args:
+        u: ``(B, C, D, H, W)``; ``surface`` has batch 1 or B.
+        surface: the implicit surface.
+        pairs: include the products of every pair of channels.
+        eps: the norms are ``sqrt(|h grad_S u_c|^2 + eps^2)``, units of ``u``: finite
+            gradients where the data is flat.
+        path: how the stencils run (:mod:`torchsurf.backend`).
+
+    Returns:
+        ``(B, feature_count(C, pairs), D, H, W)``: norms (units of ``u``) in channel order,
+        then products (units of ``u^2``) in the order ``(0, 1), (0, 2), ..., (C - 2, C - 1)``.
+    """
+    check_surface(surface)
+    check_data(u, "u", surface)
+    check_positive(eps, "eps")
+    check_choice(path, "path", PATHS)
+    channels = u.shape[1]
+    gradient = functional.tangential_gradient(u, surface.normal, surface.spacing, path)
+    gradient = (gradient * surface.spacing).unflatten(1, (channels, 3))
+    features = [torch.sqrt((gradient * gradient).sum(dim=2) + eps * eps)]
+    if pairs and channels > 1:
+        i, j = torch.triu_indices(channels, channels, offset=1, device=u.device)
+        features.append((gradient[:, i] * gradient[:, j]).sum(dim=2))
+    return torch.cat(features, dim=1)
+
+
+class GradientFeatures(nn.Module):
+    """Module form of :func:`gradient_features`.
+
+    Shapes: ``(B, C, D, H, W)`` -> ``(B, feature_count(C, pairs), D, H, W)``.
+    """
+
+    def __init__(self, pairs: bool = True, eps: float = 1e-6, path: str = "auto") -> None:
+        super().__init__()
+        self.pairs = bool(pairs)
+        self.eps = check_positive(eps, "eps")
+        self.path = check_choice(path, "path", PATHS)
+
+    def forward(self, u: Tensor, surface: ImplicitSurface) -> Tensor:
+        return gradient_features(u, surface, self.pairs, self.eps, self.path)
+
+    def extra_repr(self) -> str:
+        return f"pairs={self.pairs}"

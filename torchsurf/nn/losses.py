@@ -1,0 +1,60 @@
+"""Losses and quality measures of surface data, over the band only."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from .._checks import check_positive
+from ..surface import ImplicitSurface, check_data, check_surface
+
+
+def _squared_errors(prediction: Tensor, target: Tensor, surface: ImplicitSurface,
+                    width: float | None) -> tuple[Tensor, Tensor]:
+    """Per batch entry: the sum of squared errors over the band and the count of its values."""
+    check_surface(surface)
+    check_data(prediction, "prediction", surface)
+    check_data(target, "target", surface)
+    if prediction.shape != target.shape:
+        raise ValueError(
+            f"prediction has shape {tuple(prediction.shape)} but target has "
+            f"{tuple(target.shape)}; they must match"
+        )
+    band = surface.band_mask(width).expand(prediction.shape[0], 1, *prediction.shape[2:])
+    errors = torch.where(band, prediction - target, prediction.new_zeros(()))
+    counts = band.sum(dim=(1, 2, 3, 4)) * prediction.shape[1]
+    return (errors * errors).sum(dim=(1, 2, 3, 4)), counts.to(prediction.dtype)
+
+
+def band_mse(prediction: Tensor, target: Tensor, surface: ImplicitSurface,
+             width: float | None = None) -> Tensor:
+    """Mean squared error over the band's nodes (all batch entries and channels).
+
+    Args:
+        prediction, target: ``(B, C, D, H, W)``, same shape; ``surface`` has batch 1 or B.
+        surface: the implicit surface.
+        width: the band's half-width, world units (default ``surface.band_width``).
+
+    Returns:
+        A 0-d tensor, units of the data squared.
+    """
+    total, counts = _squared_errors(prediction, target, surface, width)
+    return total.sum() / counts.sum()
+
+
+def psnr(prediction: Tensor, target: Tensor, surface: ImplicitSurface, peak: float = 1.0,
+         width: float | None = None) -> Tensor:
+    """Peak signal-to-noise ratio over the band, ``10 log10(peak^2 / MSE)``, per batch entry.
+
+    Args:
+        prediction, target: ``(B, C, D, H, W)``, same shape.
+        surface: the implicit surface.
+        peak: the data's peak-to-peak range (1 for data in ``[0, 1]``), units of the data.
+        width: the band's half-width, world units (default ``surface.band_width``).
+
+    Returns:
+        ``(B,)``, decibels (``inf`` where the prediction is exact).
+    """
+    check_positive(peak, "peak")
+    total, counts = _squared_errors(prediction, target, surface, width)
+    return 10.0 * torch.log10(peak**2 / (total / counts))
