@@ -81,6 +81,12 @@ class BandLaplacian:
             raise ValueError(
                 f"scheme must be one of {functional.SCHEMES} (the divergence forms), got {scheme!r}"
             )
+        if surface.layout is not None:
+            raise NotImplementedError(
+                "the Chebyshev heat semigroup (HeatFlow(method='chebyshev'), LearnedDiffusion) "
+                "does not run on a BrickSurface yet; use the dense ImplicitSurface "
+                "(docs/bricks.md)"
+            )
         width = surface.band_width if band_width is None else float(band_width)
         self.surface, self.scheme, self.path = surface, scheme, path
         self.band = surface.band_mask(width)
