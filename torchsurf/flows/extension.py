@@ -15,6 +15,8 @@ Both update only the band ``|phi| <= width`` and keep ``u`` elsewhere.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
@@ -119,6 +121,12 @@ def _interpolate_gathered(flat: Tensor, corners: Tensor, weights: Tensor, height
     x, y, z = corners.long().unbind(0)
     sources = ((z[:, :, None, None] * height + y[:, None, :, None]) * width
                + x[:, None, None, :]).flatten(1)
+    return _gathered_sum(flat, sources, weights, limited)
+
+
+def _gathered_sum(flat: Tensor, sources: Tensor, weights: Tensor, limited: bool) -> Tensor:
+    """The tricubic sum of ``flat[:, sources]`` (``sources`` ``(N, 64)`` in the order of
+    ``_CELL``) with separable ``weights`` ``(3, N, 4)``, optionally limited."""
     wx, wy, wz = weights.unbind(0)
     taps = (wz[:, :, None, None] * wy[:, None, :, None] * wx[:, None, None, :]).flatten(1)
     gathered = flat[:, sources]
@@ -129,28 +137,37 @@ def _interpolate_gathered(flat: Tensor, corners: Tensor, weights: Tensor, height
     return value
 
 
+def _summed_terms(tap: Callable[[int, int, int], Tensor], weights: Tensor, limited: bool
+                  ) -> Tensor:
+    """The tricubic sum as 64 terms ``tap(k, j, i)`` (the values at offsets ``k, j, i`` along
+    z, y, x), with separable ``weights`` ``(3, N, 4)``: compiled, one loop over the nodes."""
+    wx, wy, wz = weights.unbind(0)
+    value = low = high = None
+    for k in range(4):
+        for j in range(4):
+            weight = wz[:, k] * wy[:, j]
+            for i in range(4):
+                values = tap(k, j, i)
+                term = (weight * wx[:, i]) * values
+                value = term if value is None else value + term
+                if limited and 1 <= k <= 2 and 1 <= j <= 2 and 1 <= i <= 2:
+                    low = values if low is None else torch.minimum(low, values)
+                    high = values if high is None else torch.maximum(high, values)
+    if limited:
+        value = torch.minimum(torch.maximum(value, low), high)
+    return value
+
+
 def _interpolate_terms(flat: Tensor, corners: Tensor, weights: Tensor, height: int, width: int,
                        limited: bool) -> Tensor:
     """The same as 64 gathered terms: compiled, one loop over the nodes with no ``(N, 64)``
     temporary of indices or weights (1.9 ms against 2.9 ms at 81^3, one thread)."""
     x, y, z = corners.long().unbind(0)
-    wx, wy, wz = weights.unbind(0)
-    value = None
-    low = high = None
-    for k in range(4):
-        for j in range(4):
-            row = (z[:, k] * height + y[:, j]) * width
-            weight = wz[:, k] * wy[:, j]
-            for i in range(4):
-                tap = flat[:, row + x[:, i]]
-                term = (weight * wx[:, i]) * tap
-                value = term if value is None else value + term
-                if limited and 1 <= k <= 2 and 1 <= j <= 2 and 1 <= i <= 2:
-                    low = tap if low is None else torch.minimum(low, tap)
-                    high = tap if high is None else torch.maximum(high, tap)
-    if limited:
-        value = torch.minimum(torch.maximum(value, low), high)
-    return value
+
+    def tap(k: int, j: int, i: int) -> Tensor:
+        return flat[:, (z[:, k] * height + y[:, j]) * width + x[:, i]]
+
+    return _summed_terms(tap, weights, limited)
 
 
 _CELL = [16 * z + 4 * y + x for z in (1, 2) for y in (1, 2) for x in (1, 2)]
@@ -245,14 +262,7 @@ def _brick_gathered(flat: Tensor, bases: Tensor, second: Tensor, local: Tensor, 
         _corner_base(corners, bits, k, j, i) + zl[:, k] + yl[:, j] + xl[:, i]
         for k in range(4) for j in range(4) for i in range(4)
     ], dim=1)
-    wx, wy, wz = weights.unbind(0)
-    taps = (wz[:, :, None, None] * wy[:, None, :, None] * wx[:, None, None, :]).flatten(1)
-    gathered = flat[:, sources]
-    value = (gathered * taps).sum(dim=-1)
-    if limited:
-        cell = gathered[..., _CELL]
-        value = torch.minimum(torch.maximum(value, cell.amin(-1)), cell.amax(-1))
-    return value
+    return _gathered_sum(flat, sources, weights, limited)
 
 
 def _brick_terms(flat: Tensor, bases: Tensor, second: Tensor, local: Tensor, weights: Tensor,
@@ -262,22 +272,11 @@ def _brick_terms(flat: Tensor, bases: Tensor, second: Tensor, local: Tensor, wei
     corners = [b.long() for b in bases.unbind(0)]
     bits = second.unbind(0)
     zl, yl, xl = local.long().unbind(0)
-    wx, wy, wz = weights.unbind(0)
-    value = low = high = None
-    for k in range(4):
-        for j in range(4):
-            weight = wz[:, k] * wy[:, j]
-            row = zl[:, k] + yl[:, j]
-            for i in range(4):
-                tap = flat[:, _corner_base(corners, bits, k, j, i) + row + xl[:, i]]
-                term = (weight * wx[:, i]) * tap
-                value = term if value is None else value + term
-                if limited and 1 <= k <= 2 and 1 <= j <= 2 and 1 <= i <= 2:
-                    low = tap if low is None else torch.minimum(low, tap)
-                    high = tap if high is None else torch.maximum(high, tap)
-    if limited:
-        value = torch.minimum(torch.maximum(value, low), high)
-    return value
+
+    def tap(k: int, j: int, i: int) -> Tensor:
+        return flat[:, _corner_base(corners, bits, k, j, i) + zl[:, k] + yl[:, j] + xl[:, i]]
+
+    return _summed_terms(tap, weights, limited)
 
 
 _BRICK_INTERPOLATION = backend.Kernel(
