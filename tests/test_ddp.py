@@ -7,6 +7,7 @@ gradients over the ranks, so the reference minimises the mean of the two losses)
 
 from __future__ import annotations
 
+import datetime
 import os
 from pathlib import Path
 
@@ -69,7 +70,7 @@ def flat_parameters(model: nn.Module) -> torch.Tensor:
 def train_rank(rank: int, store: str, output: str) -> None:
     torch.set_num_threads(1)
     dist.init_process_group("gloo", init_method=f"file://{store}", rank=rank,
-                            world_size=WORLD)
+                            world_size=WORLD, timeout=datetime.timedelta(seconds=120))
     try:
         surface, batches = problem()
         model, optimiser = model_and_optimiser()
@@ -84,6 +85,7 @@ def train_rank(rank: int, store: str, output: str) -> None:
         dist.destroy_process_group()
 
 
+@pytest.mark.slow  # hung once in a full CI run (ranks idle in a collective); alone it takes 15 s
 def test_ddp_two_ranks_agree_with_each_other_and_with_one_process(tmp_path: Path) -> None:
     if not dist.is_available() or not dist.is_gloo_available():
         pytest.skip("torch.distributed with gloo is not available")

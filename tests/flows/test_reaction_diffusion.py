@@ -39,8 +39,10 @@ def test_seeded_generator_reproduces_the_pattern(surface):
     first = flow(u0, surface, generator=torch.Generator().manual_seed(7))
     second = flow(u0, surface, generator=torch.Generator().manual_seed(7))
     other = flow(u0, surface, generator=torch.Generator().manual_seed(8))
-    assert torch.equal(first, second)
-    assert not torch.equal(first, other)
+    # "auto" may switch a kernel from eager to compiled between two calls (docs: every path
+    # gives the same numbers to rounding), so the same seed gives the pattern to rounding
+    torch.testing.assert_close(first, second, rtol=1e-5, atol=1e-5)
+    assert float((first - other).abs().max()) > 1e-2
 
 
 def test_anisotropic_variant_runs_along_a_tangent_field(surface):
