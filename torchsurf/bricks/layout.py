@@ -254,10 +254,14 @@ class BrickLayout:
         return origins[self.batch].view(-1, 3, 1, 1, 1) + self.spacing * index
 
     def colours(self) -> Tensor:
-        """``(N, 1, 8, 8, 8)`` colour ``(k mod 3) 9 + (j mod 3) 3 + i mod 3`` of each node: no
-        3x3x3 neighbourhood holds two nodes of one colour (:mod:`torchsurf.operators.spectrum`)."""
-        k, j, i = (self.node_index() % 3).unbind(1)
-        return (k * 9 + j * 3 + i)[:, None]
+        """``(N, 1, 8, 8, 8)`` uint8 colour ``(k mod 3) 9 + (j mod 3) 3 + i mod 3`` of each node:
+        no 3x3x3 neighbourhood holds two nodes of one colour (:mod:`torchsurf.operators.spectrum`).
+        Formed per axis, then broadcast: one byte a node."""
+        local = torch.arange(BRICK, device=self.device)
+        k, j, i = ((self.coords[:, axis, None] * BRICK + local) % 3 for axis in range(3))
+        k, j, i = (part.to(torch.uint8) for part in (k, j, i))
+        colour = (9 * k[:, :, None, None] + 3 * j[:, None, :, None] + i[:, None, None, :])
+        return colour[:, None]
 
     # --- dense volumes ---------------------------------------------------------------------
 

@@ -285,7 +285,7 @@ _BRICK_INTERPOLATION = backend.Kernel(
 )
 
 
-STENCIL_CHUNK = 2**19
+STENCIL_CHUNK = 2**17
 """Nodes whose brick stencil is assembled at once (about 1 kB of temporaries a node)."""
 
 
@@ -295,7 +295,7 @@ class BrickCubicStencil:
 
     Each node keeps the first packed index of the (at most) 8 bricks its 4^3 taps meet, and per
     axis whether each tap lies in the second brick, its in-brick offset and its weight (about
-    140 bytes per node). Taps are clamped to each entry's box, as the dense stencil replicates
+    125 bytes per node). Taps are clamped to each entry's box, as the dense stencil replicates
     its data.
 
     Args:
@@ -364,7 +364,7 @@ class BrickCubicStencil:
             bases = bases.to(torch.int32)
         second = torch.stack([part != part[:, :1] for part in block])
         local = torch.stack([(z % BRICK) * BRICK * BRICK, (y % BRICK) * BRICK,
-                             x % BRICK]).to(torch.int32)
+                             x % BRICK]).to(torch.int16)
         weights = torch.stack([
             torch.stack(_cubic_weights(at[:, axis] - base[:, axis]), dim=1) for axis in range(3)
         ])

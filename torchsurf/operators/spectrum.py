@@ -109,11 +109,10 @@ def laplace_beltrami_bound(
                 lambda x: laplace_beltrami(x, surface, scheme, "slicing"), mask, dtype
             )
         else:
-            # bricks: the one-pass kernel, eager, keeps a dozen temporaries per probe channel;
-            # three colours at a time, on the path "auto" picks, bound the memory to a few
-            # fields (1 GB at 192^3 with nine eager colours)
+            # bricks: one colour at a time, on the path "auto" picks, keeps the memory to a few
+            # fields (nine eager colours held 1 GB at 192^3, three compiled 1.4 GB at 512^3)
             cached[key] = gershgorin_bound(
-                lambda x: laplace_beltrami(x, surface, scheme, "auto"), mask, dtype, chunk=3,
+                lambda x: laplace_beltrami(x, surface, scheme, "auto"), mask, dtype, chunk=1,
                 colour=surface.layout.colours().to(mask.device),
             )
     return cached[key]
