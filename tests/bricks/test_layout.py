@@ -140,3 +140,13 @@ def test_fields_of_the_wrong_shape_are_refused_with_the_expected_shape():
     layout, _ = _scattered_layout()
     with pytest.raises(ValueError, match=rf"\({len(layout)}, C, 8, 8, 8\)"):
         layout.check_field(torch.zeros(len(layout) + 1, 1, 8, 8, 8), "u")
+
+
+def test_from_dense_refuses_an_unknown_fill_and_reads_non_contiguous_volumes():
+    grid = Grid(shape=(9, 9, 9), spacing=1.0)
+    layout = BrickLayout(torch.tensor([[0, 0, 0], [1, 1, 1]]), torch.tensor([0, 0]), [grid])
+    volume = torch.randn(1, 9, 9, 9).transpose(1, 3)
+    with pytest.raises(ValueError, match="fill"):
+        layout.from_dense([volume], fill="zeros")
+    packed = layout.from_dense([volume])
+    assert torch.equal(packed[0, 0], volume[0, :8, :8, :8])

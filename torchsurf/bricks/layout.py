@@ -25,10 +25,14 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from .._checks import check_choice
 from ..grid import Grid
 
 BRICK = 8
 """Nodes along each side of a brick."""
+
+FILLS = ("replicate", "linear")
+"""How :meth:`BrickLayout.from_dense` fills the nodes of a brick beyond its entry's box."""
 
 OFFSETS: tuple[tuple[int, int, int], ...] = tuple(itertools.product((-1, 0, 1), repeat=3))
 """The 27 brick offsets ``(dz, dy, dx)`` of the neighbour table, ``(0, 0, 0)`` (itself) at 13."""
@@ -275,13 +279,14 @@ class BrickLayout:
             fill: values of the nodes outside an entry's box: ``"replicate"`` (its edge) or
                 ``"linear"`` (extrapolated from its last two nodes: right for ``phi``).
         """
+        check_choice(fill, "fill", FILLS)
         volumes = self._entries(volume, "volume")
         rows = []
         for b, entry in enumerate(volumes):
             padded = _pad_to_bricks(entry, fill)
             c = padded.shape[0]
             nz, ny, nx = (n // BRICK for n in padded.shape[1:])
-            tiles = padded.view(c, nz, BRICK, ny, BRICK, nx, BRICK).permute(1, 3, 5, 0, 2, 4, 6)
+            tiles = padded.reshape(c, nz, BRICK, ny, BRICK, nx, BRICK).permute(1, 3, 5, 0, 2, 4, 6)
             selected = (self.batch == b).nonzero().squeeze(1)
             z, y, x = self.coords[selected].unbind(1)
             rows.append((selected, tiles[z, y, x]))
