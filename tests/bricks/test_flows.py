@@ -16,13 +16,6 @@ from torchsurf.operators.spectrum import laplace_beltrami_bound
 MESHES = Path(__file__).resolve().parents[3] / "shared" / "data" / "meshes"
 
 
-@pytest.fixture(scope="module")
-def torus():
-    grid = Grid.cube(33, 2.1)
-    dense = ts.ImplicitSurface(ts.sdf.torus(grid, 0.9, 0.4).double(), grid)
-    return dense, bricks.from_dense(dense)
-
-
 def _data(grid, channels=2, seed=0):
     return torch.randn(1, channels, *grid.shape, dtype=torch.float64,
                        generator=torch.Generator().manual_seed(seed))
@@ -54,13 +47,8 @@ def test_heat_flow_equals_the_dense_flow_on_the_band(torus, method):
     assert torch.allclose(result * band, expected * band, atol=1e-12, rtol=0)
 
 
-def test_heat_flow_batch_of_shapes_on_their_own_boxes_equals_each_alone():
-    spacing = 0.1
-    small = Grid(shape=(29, 29, 29), spacing=spacing, origin=(-1.4,) * 3)
-    long = Grid(shape=(33, 41, 39), spacing=spacing, origin=(-1.9, -2.0, -1.6))
-    sphere = bricks.from_dense(ts.sdf.sphere(small, 0.9).double(), small)
-    torus = bricks.from_dense(ts.sdf.torus(long, 1.0, 0.4).double(), long)
-    both = bricks.cat([sphere, torus])
+def test_heat_flow_batch_of_shapes_on_their_own_boxes_equals_each_alone(two_boxes):
+    sphere, torus, both = two_boxes
     u = torch.randn(len(both.layout), 1, 8, 8, 8, dtype=torch.float64,
                     generator=torch.Generator().manual_seed(3))
     count = len(sphere.layout)

@@ -19,13 +19,6 @@ def _on_band(dense_surface, brick_surface, packed):
     return volume, dense_surface.band_mask()
 
 
-@pytest.fixture(scope="module")
-def torus():
-    grid = Grid.cube(33, 2.1)
-    dense = ts.ImplicitSurface(ts.sdf.torus(grid, 0.9, 0.4).double(), grid)
-    return dense, bricks.from_dense(dense)
-
-
 def test_geometry_equals_the_dense_surface_on_the_band(torus):
     dense, surface = torus
     band = dense.band_mask()
@@ -110,14 +103,9 @@ def test_gradcheck_laplace_beltrami_on_bricks_in_data_and_phi():
     assert torch.autograd.gradcheck(in_phi, (delta,), eps=1e-6, atol=1e-5, fast_mode=True)
 
 
-def test_cat_batches_boxes_of_different_shapes():
-    spacing = 0.1
-    small = Grid(shape=(29, 29, 29), spacing=spacing, origin=(-1.4,) * 3)
-    long = Grid(shape=(33, 41, 39), spacing=spacing, origin=(-1.9, -2.0, -1.6))
-    sphere = bricks.from_dense(ts.sdf.sphere(small, 0.9).double(), small)
-    torus = bricks.from_dense(ts.sdf.torus(long, 1.0, 0.4).double(), long)
-    both = bricks.cat([sphere, torus])
-    assert both.batch_size == 2 and both.grids == (small, long)
+def test_cat_batches_boxes_of_different_shapes(two_boxes):
+    sphere, torus, both = two_boxes
+    assert both.batch_size == 2 and both.grids == (*sphere.grids, *torus.grids)
     assert torch.equal(both.band_mask(), torch.cat([sphere.band_mask(), torus.band_mask()]))
     u = torch.randn(len(both.layout), 2, 8, 8, 8, dtype=torch.float64)
     together = ts.laplace_beltrami(u, both)

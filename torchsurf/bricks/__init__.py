@@ -9,7 +9,7 @@
 docs/bricks.md describes the layout, what runs on it and its measured cost.
 """
 
-from .build import cat, from_dense, from_mesh, spacing_grid
+from .build import cat, from_dense, from_mesh
 from .layout import BRICK, BrickLayout, bricks_of_mask
 from .surface import BrickSurface
 
@@ -21,5 +21,4 @@ __all__ = [
     "cat",
     "from_dense",
     "from_mesh",
-    "spacing_grid",
 ]

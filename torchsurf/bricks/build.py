@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -200,14 +199,3 @@ def _brick_values(signed: _mesh_sdf.SignedBand, grid: Grid, reach: float
     by = (unique // extent[0]) % extent[1]
     bx = unique % extent[0]
     return np.stack([bz, by, bx], axis=1), values
-
-
-def spacing_grid(bounds_min: Sequence[float], bounds_max: Sequence[float], spacing: float,
-                 margin_cells: int = 8) -> Grid:
-    """The grid of spacing ``spacing`` that holds the box ``[bounds_min, bounds_max]`` (world
-    ``(x, y, z)``) with ``margin_cells`` free nodes on every side."""
-    spacing = check_positive(spacing, "spacing")
-    low = np.asarray(bounds_min, dtype=float) - margin_cells * spacing
-    high = np.asarray(bounds_max, dtype=float) + margin_cells * spacing
-    counts = [int(math.ceil((hi - lo) / spacing)) + 1 for lo, hi in zip(low, high, strict=True)]
-    return Grid(shape=tuple(counts[::-1]), spacing=spacing, origin=tuple(low))

@@ -86,6 +86,8 @@ class BrickSurface(ImplicitSurface):
         return self.layout.spacing
 
     def _pad(self, volume: Tensor, mode: str) -> Tensor:
+        """The neighbours' values: bricks have no box faces, so ``mode`` has nothing to say
+        (the builders keep the band away from them)."""
         return self.layout.halo(volume, 1)
 
     def _haloed_geometry(self) -> tuple[Tensor, Tensor]:
