@@ -59,6 +59,7 @@ from ._integrators import (
     with_ring,
 )
 from ._positive import Positive
+from ._reextension import reextend
 from ._solve import SolverOptions
 from .extension import BrickCubicStencil, CubicStencil, cubic_stencil
 
@@ -284,7 +285,7 @@ class Flow(nn.Module):
             hooks.append(lambda u, k: (bar.update(1), u)[1])
         if every is not None:
             stencil = _stencil(surface, self.band_width, "region", system.region)
-            hooks.append(lambda u, k: stencil.apply(u) if k % every == 0 else u)
+            hooks.append(lambda u, k: reextend(stencil, u) if k % every == 0 else u)
         if not hooks:
             return None
 
@@ -377,7 +378,7 @@ class Flow(nn.Module):
         if self.reextend_every is not None and self.method not in IMPLICIT:
             ring = _stencil(surface, self.band_width, "ring", system.region & ~system.band)
             rate = system.rate
-            system.rate = lambda u: rate(ring.apply(u))
+            system.rate = lambda u: rate(reextend(ring, u))
         try:
             result = integrate(self.method, system, u0, schedule)
         finally:

@@ -1,0 +1,139 @@
+"""Closest-point re-extension under autograd that stores one volume, not 64 values a node.
+
+Autograd through a stencil's gather (:class:`~torchsurf.flows.extension.CubicStencil`,
+:class:`~torchsurf.flows.extension.BrickCubicStencil`) keeps the ``(C, N, 64)`` gathered values
+and the ``(N, 64)`` source indices of every application: in a flow, one set per stage, several
+times the band's own size each. When the stencil's weights are fixed (``phi`` does not require
+grad), :func:`reextend` applies it without autograd and keeps only its input; backward forms
+the taps again, a chunk of nodes at a time, and scatters the incoming gradient back along
+them. For a limited stencil (each value clamped to the range of the 8 nodes of its cell), a
+clamped node sends its gradient to the cell node that set the bound, the others along their 64
+taps: the derivative of ``min(max(value, low), high)`` away from ties.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import torch
+from torch import Tensor
+
+from .extension import _CELL, BrickCubicStencil, CubicStencil, _corner_base
+
+Stencil = CubicStencil | BrickCubicStencil
+
+CHUNK = 2**15
+"""Nodes whose taps are formed at once in backward (about 1 kB of temporaries a node)."""
+
+
+def reextend(stencil: Stencil, u: Tensor) -> Tensor:
+    """``stencil.apply(u)``; under autograd with fixed weights, through :class:`_Reextend`.
+
+    Args:
+        stencil: a closest-point stencil whose weights are not in ``phi``'s graph (built from a
+            ``phi`` that does not require grad), dense or on bricks.
+        u: ``(B, C, D, H, W)`` dense or ``(N, C, 8, 8, 8)`` packed, matching the stencil.
+
+    Returns:
+        The re-extended field, like ``u``; a new tensor.
+    """
+    weights = stencil.parts[0][2] if isinstance(stencil, CubicStencil) else stencil.weights
+    if torch.is_grad_enabled() and u.requires_grad and not weights.requires_grad:
+        return _Reextend.apply(stencil, u)
+    return stencil.apply(u)
+
+
+class _Reextend(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, stencil, u):  # noqa: ANN001, ANN205
+        ctx.stencil = stencil
+        ctx.save_for_backward(u)
+        with torch.no_grad():
+            return stencil.apply(u)
+
+    @staticmethod
+    def backward(ctx, grad_output):  # noqa: ANN001, ANN205
+        (u,) = ctx.saved_tensors
+        return None, _vector_jacobian(ctx.stencil, u.detach(), grad_output)
+
+
+def _vector_jacobian(stencil: Stencil, u: Tensor, g: Tensor) -> Tensor:
+    """``g^T d(stencil.apply(u)) / du`` for ``u`` and ``g`` of the same shape."""
+    if isinstance(stencil, BrickCubicStencil):
+        channels = u.shape[1]
+        flat = u.transpose(0, 1).reshape(channels, -1)
+        incoming = g.transpose(0, 1).reshape(channels, -1)
+        result = _scatter_back(flat, incoming, stencil.targets, _brick_taps(stencil),
+                               stencil.limited)
+        return result.view(channels, u.shape[0], *u.shape[2:]).transpose(0, 1)
+    results = []
+    for b in range(max(u.shape[0], len(stencil.parts))):
+        targets, corners, weights = stencil.parts[min(b, len(stencil.parts) - 1)]
+        volume = u[min(b, u.shape[0] - 1)]
+        flat = volume.reshape(volume.shape[0], -1)
+        incoming = g[b].reshape(g.shape[1], -1)
+        taps = _dense_taps(targets, corners, weights.to(u.dtype), *volume.shape[-2:])
+        results.append(_scatter_back(flat, incoming, targets, taps, stencil.limited)
+                       .reshape(volume.shape))
+    result = torch.stack(results)
+    return result if result.shape[0] == u.shape[0] else result.sum(dim=0, keepdim=True)
+
+
+def _separable(weights: Tensor) -> Tensor:
+    """The 64 tap weights ``(n, 64)`` from the per-axis weights ``(3, n, 4)`` (z, y, x order)."""
+    wx, wy, wz = weights.unbind(0)
+    return (wz[:, :, None, None] * wy[:, None, :, None] * wx[:, None, None, :]).flatten(1)
+
+
+def _dense_taps(targets: Tensor, corners: Tensor, weights: Tensor, height: int, width: int
+                ) -> Iterator[tuple[slice, Tensor, Tensor]]:
+    """Chunks ``(nodes, sources (n, 64), taps (n, 64))`` of a dense stencil part."""
+    for start in range(0, len(targets), CHUNK):
+        nodes = slice(start, start + CHUNK)
+        x, y, z = corners[:, nodes].long().unbind(0)
+        sources = ((z[:, :, None, None] * height + y[:, None, :, None]) * width
+                   + x[:, None, None, :]).flatten(1)
+        yield nodes, sources, _separable(weights[:, nodes])
+
+
+def _brick_taps(stencil: BrickCubicStencil) -> Iterator[tuple[slice, Tensor, Tensor]]:
+    """Chunks ``(nodes, sources (n, 64), taps (n, 64))`` of a brick stencil, packed indices."""
+    for start in range(0, len(stencil.targets), CHUNK):
+        nodes = slice(start, start + CHUNK)
+        bases = [b.long() for b in stencil.bases[:, nodes].unbind(0)]
+        bits = stencil.second[:, nodes].unbind(0)
+        zl, yl, xl = stencil.local[:, nodes].long().unbind(0)
+        sources = torch.stack([
+            _corner_base(bases, bits, k, j, i) + zl[:, k] + yl[:, j] + xl[:, i]
+            for k in range(4) for j in range(4) for i in range(4)
+        ], dim=1)
+        yield nodes, sources, _separable(stencil.weights[:, nodes])
+
+
+def _scatter_back(flat: Tensor, incoming: Tensor, targets: Tensor,
+                  chunks: Iterator[tuple[slice, Tensor, Tensor]], limited: bool) -> Tensor:
+    """``incoming`` ``(C, M)`` with the targets' entries moved back to their sources.
+
+    ``flat`` ``(C, M)`` is the stencil's input (read only when ``limited``, to find which
+    nodes were clamped and by which cell node).
+    """
+    result = incoming.index_fill(1, targets, 0.0)
+    for nodes, sources, taps in chunks:
+        moved = incoming[:, targets[nodes]]  # (C, n)
+        taps = taps.to(flat.dtype)
+        if not limited:
+            result.index_add_(1, sources.flatten(), (moved[..., None] * taps).flatten(1))
+            continue
+        gathered = flat[:, sources]  # (C, n, 64)
+        value = (gathered * taps).sum(dim=-1)
+        cell = gathered[..., _CELL]
+        low, lowest = cell.min(dim=-1)
+        high, highest = cell.max(dim=-1)
+        below, above = value < low, value > high
+        free = ~(below | above)
+        result.index_add_(1, sources.flatten(), ((moved * free)[..., None] * taps).flatten(1))
+        cell_sources = sources[:, _CELL].expand(flat.shape[0], -1, -1)
+        for clamped, position in ((below, lowest), (above, highest)):
+            node = cell_sources.gather(2, position[..., None])[..., 0]  # (C, n)
+            result.scatter_add_(1, node, moved * clamped)
+    return result
