@@ -15,7 +15,7 @@ import functools
 import math
 import warnings
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import torch
 import torch.utils.checkpoint
@@ -293,6 +293,8 @@ def _explicit(
 
     def integrate(system: System, u0: Tensor, schedule: Schedule) -> list[Tensor]:
         u, out, done = u0, [], 0
+        if schedule.checkpoint:
+            system = replace(system, rate=_checkpointed_rate(system.rate))
         for _, dt, count in _intervals(schedule):
             group = max(1, math.isqrt(count)) if schedule.checkpoint else count
             for first in range(done, done + count, group):
@@ -309,6 +311,21 @@ def _explicit(
         return out
 
     return integrate
+
+
+def _checkpointed_rate(rate: Rate) -> Rate:
+    """``rate`` keeping for backward only its input: a stage's operator (a nonlinear flux form
+    keeps a dozen volumes under autograd) is recomputed when its gradient is needed, so that
+    the recomputed group of steps holds about two volumes a stage."""
+
+    def checkpointed(u: Tensor) -> Tensor:
+        if not torch.is_grad_enabled():
+            return rate(u)
+        return torch.utils.checkpoint.checkpoint(
+            rate, u, use_reentrant=False, context_fn=backend.recorded_decisions,
+        )
+
+    return checkpointed
 
 
 def _axpy(u: Tensor, dt: Tensor | float, rate: Tensor) -> Tensor:
