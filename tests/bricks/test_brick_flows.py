@@ -1,0 +1,157 @@
+"""Flow visualisation (directional diffusion) on bricks: every integrator equals the dense flow
+on the band to rounding; a batch of shapes equals each shape alone; gradients through a brick
+step.
+
+Float64 throughout, compared relative to the largest value on the band (``1e-10``; measured
+differences are ``1e-15``-``1e-14``, summation order).
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+import torchsurf as ts
+from torchsurf import Grid, backend, bricks
+from torchsurf.flows import FlowVisualization
+from torchsurf.operators import functional
+
+RELATIVE = 1e-10
+
+
+@pytest.fixture(autouse=True, scope="module")
+def eager():
+    """Many small calls of one kernel and shape would make ``path="auto"`` compile it after a
+    few seconds of eager time (tens of seconds of compiling here): keep every kernel eager, and
+    keep this module's eager time off the ledger, which would make the next modules' calls of
+    the same kernels and shapes compile."""
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(backend, "COMPILE_PAYBACK_SECONDS", math.inf)
+        patch.setattr(backend, "_EAGER_SECONDS", {})
+        yield
+
+
+def _assert_equal_on_band(packed, expected, surface, dense):
+    """``packed`` on ``surface`` equals the dense ``expected`` at the dense band's nodes."""
+    (result,) = surface.to_dense(packed)
+    band = dense.band_mask().expand_as(expected)
+    difference = float((result - expected)[band].abs().max())
+    scale = float(expected[band].abs().max())
+    assert difference <= RELATIVE * scale, (difference, scale)
+
+
+def _east(points):
+    """The tangent field ``(-y, x, 0)`` of shapes around the z axis, ``(..., 3, ...)`` from
+    points with their components along dim 1."""
+    x, y = points[:, :1], points[:, 1:2]
+    return torch.cat((-y, x, torch.zeros_like(x)), dim=1)
+
+
+def _dense_points(grid):
+    return grid.points(dtype=torch.float64).permute(3, 0, 1, 2)[None]
+
+
+def _noise(grid, channels, seed):
+    return torch.randn(1, channels, *grid.shape, dtype=torch.float64,
+                       generator=torch.Generator().manual_seed(seed))
+
+
+# --- the operators --------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("scheme", ["symmetric", "conservative", "octant"])
+def test_directional_diffusion_equals_the_dense_operator(torus, scheme):
+    dense, surface = torus
+    u = _noise(dense.grid, 2, 0)
+    direction = _east(_dense_points(dense.grid))
+    packed_u, packed_direction = surface.from_dense(u), surface.from_dense(direction)
+    expected = ts.directional_diffusion(u, dense, direction, scheme)
+    result = ts.directional_diffusion(packed_u, surface, packed_direction, scheme)
+    _assert_equal_on_band(result, expected, surface, dense)
+    haloed = surface.layout.halo(packed_direction, 1)
+    kept = functional.directional_form(
+        packed_u, surface.normal, surface.weight, surface.spacing, packed_direction, scheme,
+        haloed=surface.haloed(), pad=surface.layout.halo, haloed_direction=haloed)
+    assert torch.equal(kept, result)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_noise_on_bricks_is_the_dense_noise_node_for_node(two_boxes, dtype):
+    _, _, both = two_boxes
+    layout = both.layout
+    packed = layout.rand(2, torch.Generator().manual_seed(3), dtype)
+    generator = torch.Generator().manual_seed(3)
+    volumes = [torch.rand((1, 2, *grid.shape), generator=generator, dtype=dtype)
+               for grid in layout.grids]
+    inside = layout.inside.expand_as(packed)
+    assert torch.equal(packed[inside], layout.from_dense(volumes)[inside])
+    noise = FlowVisualization.noise(both, generator=torch.Generator().manual_seed(3))
+    assert noise.shape == (len(layout), 1, 8, 8, 8) and noise.dtype == torch.float64
+    with pytest.raises(ValueError, match="batch=3"):
+        FlowVisualization.noise(both, batch=3)
+
+
+# --- the flows against the dense flows --------------------------------------------------------
+
+
+@pytest.mark.parametrize("method", ["rkc", "euler", "heun", "implicit", "crank_nicolson"])
+def test_flow_visualization_equals_the_dense_flow_on_the_band(torus, method):
+    dense, surface = torus
+    u = FlowVisualization.noise(dense, generator=torch.Generator().manual_seed(0))
+    packed_u = FlowVisualization.noise(surface, generator=torch.Generator().manual_seed(0))
+    direction = _east(_dense_points(dense.grid)) + 0.3 * _noise(dense.grid, 3, 1)
+    options = {"tolerance": 1e-13} if method in ("implicit", "crank_nicolson") else {}
+    flow = FlowVisualization(0.01, isotropic=0.2, method=method, **options)
+    expected = flow(u, dense, direction=direction)
+    result = flow(packed_u, surface, direction=surface.from_dense(direction))
+    _assert_equal_on_band(result, expected, surface, dense)
+
+
+# --- batches ------------------------------------------------------------------------------------
+
+
+def _assert_batch_equals_each_alone(two_boxes, run):
+    """``run(surface, rows)`` on the batch equals it on each shape alone, on the band."""
+    sphere, torus, both = two_boxes
+    count = len(sphere.layout)
+    together = run(both, slice(None))
+    alone = torch.cat([run(sphere, slice(0, count)), run(torus, slice(count, None))])
+    band = both.band_mask().expand_as(together)
+    assert torch.allclose(together[band], alone[band], atol=1e-12, rtol=0)
+
+
+@pytest.mark.parametrize("method", ["rkc", "implicit"])
+def test_flow_visualization_batch_of_shapes_equals_each_alone(two_boxes, method):
+    both = two_boxes[2]
+    u = both.layout.rand(1, torch.Generator().manual_seed(6), torch.float64)
+    direction = _east(both.layout.points(torch.float64))
+    flow = FlowVisualization(0.01, method=method)
+    _assert_batch_equals_each_alone(
+        two_boxes, lambda surface, rows: flow(u[rows], surface, direction=direction[rows]))
+
+
+# --- gradients ----------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def small_sphere():
+    grid = Grid.cube(21, 2.0)
+    return bricks.from_dense(ts.sdf.sphere(grid, 1.0).double(), grid)
+
+
+@pytest.mark.parametrize("method", ["euler", "implicit"])
+def test_gradcheck_flow_visualization_step_on_bricks_in_data_and_direction(small_sphere, method):
+    surface = small_sphere
+    generator = torch.Generator().manual_seed(10)
+    u = surface.layout.rand(1, generator, torch.float64)
+    points = surface.layout.points(torch.float64)
+    direction = _east(points) + 0.3 * torch.randn(points.shape, generator=generator,
+                                                  dtype=torch.float64)
+    band = surface.band_mask()
+    options = {"tolerance": 1e-13} if method == "implicit" else {}
+    flow = FlowVisualization(0.002, isotropic=0.1, method=method, steps=1, **options)
+    assert torch.autograd.gradcheck(
+        lambda x, t: flow(x, surface, direction=t)[band],
+        (u.requires_grad_(), direction.requires_grad_()), fast_mode=True, atol=1e-6)
