@@ -1,6 +1,6 @@
-"""Flow visualisation (directional diffusion) on bricks: every integrator equals the dense flow
-on the band to rounding; a batch of shapes equals each shape alone; gradients through a brick
-step.
+"""Flow visualisation (directional diffusion) and harmonic maps on bricks: every integrator
+equals the dense flow on the band to rounding; a batch of shapes equals each shape alone;
+gradients through a brick step.
 
 Float64 throughout, compared relative to the largest value on the band (``1e-10``; measured
 differences are ``1e-15``-``1e-14``, summation order).
@@ -15,7 +15,8 @@ import torch
 
 import torchsurf as ts
 from torchsurf import Grid, backend, bricks
-from torchsurf.flows import FlowVisualization
+from torchsurf.flows import FlowVisualization, HarmonicMapFlow
+from torchsurf.flows.harmonic import normalize
 from torchsurf.operators import functional
 
 RELATIVE = 1e-10
@@ -62,7 +63,7 @@ def _noise(grid, channels, seed):
 
 
 @pytest.mark.parametrize("scheme", ["symmetric", "conservative", "octant"])
-def test_directional_diffusion_equals_the_dense_operator(torus, scheme):
+def test_directional_diffusion_and_gradient_energy_equal_the_dense_operators(torus, scheme):
     dense, surface = torus
     u = _noise(dense.grid, 2, 0)
     direction = _east(_dense_points(dense.grid))
@@ -75,6 +76,10 @@ def test_directional_diffusion_equals_the_dense_operator(torus, scheme):
         packed_u, surface.normal, surface.weight, surface.spacing, packed_direction, scheme,
         haloed=surface.haloed(), pad=surface.layout.halo, haloed_direction=haloed)
     assert torch.equal(kept, result)
+    energy = functional.tangential_gradient_energy(u, dense.normal, dense.spacing)
+    packed_energy = functional.tangential_gradient_energy(
+        packed_u, surface.normal, surface.spacing, pad=surface.layout.halo)
+    _assert_equal_on_band(packed_energy, energy, surface, dense)
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
@@ -109,6 +114,20 @@ def test_flow_visualization_equals_the_dense_flow_on_the_band(torus, method):
     _assert_equal_on_band(result, expected, surface, dense)
 
 
+@pytest.mark.parametrize("method", ["rkc", "euler", "heun"])
+@pytest.mark.parametrize("settings", [
+    {"p": 2.0},
+    {"p": 1.0, "eps": 0.5, "tangent": True},
+    {"p": 1.5, "scheme": "conservative"},
+])
+def test_harmonic_map_flow_equals_the_dense_flow_on_the_band(torus, method, settings):
+    dense, surface = torus
+    u = normalize(_dense_points(dense.grid) + 0.3 * _noise(dense.grid, 3, 2))
+    flow = HarmonicMapFlow(0.004, method=method, **settings)
+    expected = flow(u, dense)
+    _assert_equal_on_band(flow(surface.from_dense(u), surface), expected, surface, dense)
+
+
 # --- batches ------------------------------------------------------------------------------------
 
 
@@ -132,6 +151,15 @@ def test_flow_visualization_batch_of_shapes_equals_each_alone(two_boxes, method)
         two_boxes, lambda surface, rows: flow(u[rows], surface, direction=direction[rows]))
 
 
+def test_harmonic_map_batch_of_shapes_equals_each_alone(two_boxes):
+    points = two_boxes[2].layout.points(torch.float64)
+    generator = torch.Generator().manual_seed(7)
+    u = normalize(points + 0.3 * torch.randn(points.shape, generator=generator,
+                                             dtype=torch.float64))
+    flow = HarmonicMapFlow(0.002, p=1.0, eps=0.5, tangent=True)
+    _assert_batch_equals_each_alone(two_boxes, lambda surface, rows: flow(u[rows], surface))
+
+
 # --- gradients ----------------------------------------------------------------------------------
 
 
@@ -139,6 +167,18 @@ def test_flow_visualization_batch_of_shapes_equals_each_alone(two_boxes, method)
 def small_sphere():
     grid = Grid.cube(21, 2.0)
     return bricks.from_dense(ts.sdf.sphere(grid, 1.0).double(), grid)
+
+
+def test_gradcheck_harmonic_map_step_on_bricks_in_the_data(small_sphere):
+    surface = small_sphere
+    points = surface.layout.points(torch.float64)
+    generator = torch.Generator().manual_seed(9)
+    u = normalize(points + 0.3 * torch.randn(points.shape, generator=generator,
+                                             dtype=torch.float64))
+    band = surface.band_mask().expand_as(u)
+    flow = HarmonicMapFlow(0.001, method="euler", steps=1)
+    assert torch.autograd.gradcheck(lambda x: flow(x, surface)[band],
+                                    (u.requires_grad_(),), fast_mode=True)
 
 
 @pytest.mark.parametrize("method", ["euler", "implicit"])

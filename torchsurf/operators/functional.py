@@ -409,18 +409,22 @@ def _energy_eager(u, normal, spacing, *, path):  # noqa: ANN001, ANN202
 _ENERGY = backend.Kernel("tangential_gradient_energy", _energy_eager, _energy_padded, _gradient_halo)
 
 
-def tangential_gradient_energy(u: Tensor, normal: Tensor, spacing: float, path: str = "auto"
-                               ) -> Tensor:
+def tangential_gradient_energy(u: Tensor, normal: Tensor, spacing: float, path: str = "auto",
+                               pad: Pad | None = None) -> Tensor:
     """``sum_c |P grad u_c|^2`` by central differences, without forming the gradient.
 
     Args:
-        u: ``(B, C, D, H, W)``.
+        u: ``(B, C, D, H, W)``, or packed band bricks ``(N, C, 8, 8, 8)`` with ``pad``.
         normal, spacing: the geometry (module docstring).
         path: how the stencils run.
+        pad: how ``u`` gets its halo (:data:`Pad`); ``None`` for a dense volume.
 
     Returns:
-        ``(B, 1, D, H, W)``, units of ``u`` squared per world length squared.
+        ``(B, 1, D, H, W)`` (or ``(N, 1, 8, 8, 8)``), units of ``u`` squared per world length
+        squared.
     """
+    if pad is not None:
+        return backend.run_haloed(_ENERGY, path, u, pad(u, 1), normal, spacing)
     return backend.run(_ENERGY, path, u, u, normal, spacing)
 
 
