@@ -1,6 +1,6 @@
-"""Flow visualisation (directional diffusion) and harmonic maps on bricks: every integrator
-equals the dense flow on the band to rounding; a batch of shapes equals each shape alone;
-gradients through a brick step.
+"""Flow visualisation (directional diffusion), harmonic maps and colour on bricks: every
+integrator equals the dense flow on the band to rounding; a batch of shapes equals each shape
+alone; gradients through a brick step.
 
 Float64 throughout, compared relative to the largest value on the band (``1e-10``; measured
 differences are ``1e-15``-``1e-14``, summation order).
@@ -15,7 +15,7 @@ import torch
 
 import torchsurf as ts
 from torchsurf import Grid, backend, bricks
-from torchsurf.flows import FlowVisualization, HarmonicMapFlow
+from torchsurf.flows import ColorDenoise, FlowVisualization, HarmonicMapFlow, HeatFlow
 from torchsurf.flows.harmonic import normalize
 from torchsurf.operators import functional
 
@@ -128,6 +128,26 @@ def test_harmonic_map_flow_equals_the_dense_flow_on_the_band(torus, method, sett
     _assert_equal_on_band(flow(surface.from_dense(u), surface), expected, surface, dense)
 
 
+@pytest.mark.parametrize("method", ["rkc", "euler", "heun"])
+def test_colour_denoising_equals_the_dense_flow_on_the_band(torus, method):
+    dense, surface = torus
+    z = _dense_points(dense.grid)[:, 2:]
+    image = torch.cat((0.6 + 0.3 * (z > 0), 0.4 + 0 * z, 0.5 - 0.2 * (z > 0)), dim=1)
+    image = image + 0.1 * _noise(dense.grid, 3, 3)
+    flow = ColorDenoise(0.002, method=method)
+    _assert_equal_on_band(flow(surface.from_dense(image), surface), flow(image, dense),
+                          surface, dense)
+
+
+def test_colour_denoising_with_an_implicit_heat_flow_for_the_brightness(torus):
+    dense, surface = torus
+    image = 0.5 + 0.2 * _noise(dense.grid, 3, 4)
+    flow = ColorDenoise(0.002, brightness=HeatFlow(0.002, method="implicit", tolerance=1e-13))
+    assert flow.supports_bricks
+    _assert_equal_on_band(flow(surface.from_dense(image), surface), flow(image, dense),
+                          surface, dense)
+
+
 # --- batches ------------------------------------------------------------------------------------
 
 
@@ -158,6 +178,14 @@ def test_harmonic_map_batch_of_shapes_equals_each_alone(two_boxes):
                                              dtype=torch.float64))
     flow = HarmonicMapFlow(0.002, p=1.0, eps=0.5, tangent=True)
     _assert_batch_equals_each_alone(two_boxes, lambda surface, rows: flow(u[rows], surface))
+
+
+def test_colour_denoising_batch_of_shapes_equals_each_alone(two_boxes):
+    points = two_boxes[2].layout.points(torch.float64)
+    generator = torch.Generator().manual_seed(11)
+    image = 0.5 + 0.2 * torch.randn(points.shape, generator=generator, dtype=torch.float64)
+    colour = ColorDenoise(0.0005)
+    _assert_batch_equals_each_alone(two_boxes, lambda surface, rows: colour(image[rows], surface))
 
 
 # --- gradients ----------------------------------------------------------------------------------
