@@ -1,6 +1,6 @@
-"""Flow visualisation (directional diffusion), harmonic maps and colour on bricks: every
-integrator equals the dense flow on the band to rounding; a batch of shapes equals each shape
-alone; gradients through a brick step.
+"""Flow visualisation, harmonic maps, colour and reaction–diffusion on bricks: every integrator
+equals the dense flow on the band to rounding; a batch of shapes equals each shape alone;
+gradients through a brick step.
 
 Float64 throughout, compared relative to the largest value on the band (``1e-10``; measured
 differences are ``1e-15``-``1e-14``, summation order).
@@ -15,7 +15,13 @@ import torch
 
 import torchsurf as ts
 from torchsurf import Grid, backend, bricks
-from torchsurf.flows import ColorDenoise, FlowVisualization, HarmonicMapFlow, HeatFlow
+from torchsurf.flows import (
+    ColorDenoise,
+    FlowVisualization,
+    HarmonicMapFlow,
+    HeatFlow,
+    ReactionDiffusion,
+)
 from torchsurf.flows.harmonic import normalize
 from torchsurf.operators import functional
 
@@ -94,6 +100,7 @@ def test_noise_on_bricks_is_the_dense_noise_node_for_node(two_boxes, dtype):
     assert torch.equal(packed[inside], layout.from_dense(volumes)[inside])
     noise = FlowVisualization.noise(both, generator=torch.Generator().manual_seed(3))
     assert noise.shape == (len(layout), 1, 8, 8, 8) and noise.dtype == torch.float64
+    assert ReactionDiffusion.initial(both).shape == (len(layout), 2, 8, 8, 8)
     with pytest.raises(ValueError, match="batch=3"):
         FlowVisualization.noise(both, batch=3)
 
@@ -148,6 +155,29 @@ def test_colour_denoising_with_an_implicit_heat_flow_for_the_brightness(torus):
                           surface, dense)
 
 
+@pytest.mark.parametrize("method", ["euler", "heun", "rkc"])
+def test_reaction_diffusion_equals_the_dense_flow_on_the_band(torus, method):
+    """Turk's ``beta`` noise drawn from one seed: the same numbers at the same nodes."""
+    dense, surface = torus
+    u = ReactionDiffusion.initial(dense) + torch.rand(
+        1, 2, *dense.grid.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(5))
+    flow = ReactionDiffusion(time=20.0, method=method)
+    expected = flow(u, dense, generator=torch.Generator().manual_seed(0))
+    result = flow(surface.from_dense(u), surface, generator=torch.Generator().manual_seed(0))
+    _assert_equal_on_band(result, expected, surface, dense)
+
+
+def test_anisotropic_reaction_diffusion_equals_the_dense_flow_on_the_band(torus):
+    dense, surface = torus
+    u = ReactionDiffusion.initial(dense)
+    e1, _ = dense.principal_directions()
+    flow = ReactionDiffusion(time=20.0)
+    expected = flow(u, dense, direction=e1, generator=torch.Generator().manual_seed(1))
+    result = flow(ReactionDiffusion.initial(surface), surface, direction=surface.from_dense(e1),
+                  generator=torch.Generator().manual_seed(1))
+    _assert_equal_on_band(result, expected, surface, dense)
+
+
 # --- batches ------------------------------------------------------------------------------------
 
 
@@ -186,6 +216,23 @@ def test_colour_denoising_batch_of_shapes_equals_each_alone(two_boxes):
     image = 0.5 + 0.2 * torch.randn(points.shape, generator=generator, dtype=torch.float64)
     colour = ColorDenoise(0.0005)
     _assert_batch_equals_each_alone(two_boxes, lambda surface, rows: colour(image[rows], surface))
+
+
+def test_reaction_diffusion_batch_of_shapes_equals_each_alone(two_boxes):
+    """Entries draw their boxes' noise in turn from the one generator: the torus alone equals
+    the batch's second entry once its generator has drawn the sphere's box."""
+    sphere, _, both = two_boxes
+    direction = _east(both.layout.points(torch.float64))
+    flow = ReactionDiffusion(time=10.0)
+
+    def run(surface, rows):
+        generator = torch.Generator().manual_seed(8)
+        if surface.batch_size == 1 and surface.grids[0] != sphere.grids[0]:
+            torch.rand((1, 1, *sphere.grids[0].shape), generator=generator, dtype=torch.float64)
+        return flow(ReactionDiffusion.initial(surface), surface, direction=direction[rows],
+                    generator=generator)
+
+    _assert_batch_equals_each_alone(two_boxes, run)
 
 
 # --- gradients ----------------------------------------------------------------------------------

@@ -350,8 +350,9 @@ class Flow(nn.Module):
         check_surface(surface)
         if surface.layout is not None and not self.supports_bricks:
             raise NotImplementedError(
-                f"{type(self).__name__} does not run on a BrickSurface yet (HeatFlow does); "
-                "use the dense ImplicitSurface (docs/bricks.md)"
+                f"{type(self).__name__} does not run on a BrickSurface (its supports_bricks "
+                "is False; every flow of torchsurf.flows does): use the dense ImplicitSurface "
+                "(docs/bricks.md)"
             )
         check_data(u0, "u0", surface)
         if surface.layout is not None and surface.batch_size > 1:
