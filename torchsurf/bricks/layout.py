@@ -267,6 +267,35 @@ class BrickLayout:
         colour = (9 * k[:, :, None, None] + 3 * j[:, None, :, None] + i[:, None, None, :])
         return colour[:, None]
 
+    def rand(self, channels: int = 1, generator: torch.Generator | None = None,
+             dtype: torch.dtype | None = None) -> Tensor:
+        """Uniform noise in ``[0, 1)`` at every stored node, ``(N, C, 8, 8, 8)`` on the layout's
+        device: the numbers ``torch.rand((1, C, D_b, H_b, W_b), generator=generator)`` gives
+        each entry's box, the entries drawn in turn (nodes beyond a box repeat its edge).
+
+        Drawn on the CPU one layer of bricks (8 planes of a box) at a time, so that memory stays
+        at one slab: a CPU generator fills a uniform tensor one number after another, so
+        consecutive draws continue the dense volume's stream (tests/bricks check it). Every
+        number of the boxes is drawn, so the time grows with their volume.
+        """
+        dtype = dtype or torch.get_default_dtype()
+        coords, batch = self.coords.cpu(), self.batch.cpu()
+        packed = torch.empty((len(self), channels, BRICK, BRICK, BRICK), dtype=dtype)
+        for b, grid in enumerate(self.grids):
+            depth, height, width = grid.shape
+            layers = bricks_along(grid.shape)[0]
+            rows_of_layer = [((batch == b) & (coords[:, 0] == bz)).nonzero().squeeze(1)
+                             for bz in range(layers)]
+            for c in range(channels):
+                for bz, rows in enumerate(rows_of_layer):
+                    planes = min(BRICK, depth - bz * BRICK)
+                    slab = torch.rand((1, planes, height, width), generator=generator, dtype=dtype)
+                    slab = _pad_to_bricks(slab, "replicate")[0]
+                    ny, nx = slab.shape[1] // BRICK, slab.shape[2] // BRICK
+                    tiles = slab.reshape(BRICK, ny, BRICK, nx, BRICK).permute(1, 3, 0, 2, 4)
+                    packed[rows, c] = tiles[coords[rows, 1], coords[rows, 2]]
+        return packed.to(self.device)
+
     # --- dense volumes ---------------------------------------------------------------------
 
     def from_dense(self, volume: Tensor | Sequence[Tensor], fill: str = "replicate") -> Tensor:

@@ -46,6 +46,7 @@ from .._checks import (
     check_nonnegative,
     check_positive,
 )
+from ..bricks.layout import BRICK
 from ..operators.spectrum import laplace_beltrami_bound
 from ..surface import ImplicitSurface, check_data, check_surface
 from ._integrators import (
@@ -132,6 +133,21 @@ def _stencil(surface: ImplicitSurface, width: float | None, kind: str, mask: Ten
     if key not in cached:
         cached[key] = cubic_stencil(surface, mask, limited=True)
     return cached[key]
+
+
+def data_shape(surface: ImplicitSurface, batch: int, channels: int) -> tuple[int, ...]:
+    """Shape of ``channels`` of data on ``surface``: ``(batch, C, D, H, W)``, or on a
+    :class:`~torchsurf.bricks.BrickSurface` the packed ``(N, C, 8, 8, 8)``, which holds every
+    entry (``batch`` must then be 1 or the surface's batch size)."""
+    batch = check_count(batch, "batch")
+    if surface.layout is None:
+        return (batch, channels, *surface.grid.shape)
+    if batch not in (1, surface.batch_size):
+        raise ValueError(
+            f"batch={batch}: a packed field on this BrickSurface holds its {surface.batch_size} "
+            "entries, one data entry each; use batch=1 (or the surface's batch size)"
+        )
+    return (len(surface.layout), channels, BRICK, BRICK, BRICK)
 
 
 def _diagonal_cells(surface: ImplicitSurface) -> float:
@@ -335,8 +351,9 @@ class Flow(nn.Module):
         check_surface(surface)
         if surface.layout is not None and not self.supports_bricks:
             raise NotImplementedError(
-                f"{type(self).__name__} does not run on a BrickSurface yet (HeatFlow does); "
-                "use the dense ImplicitSurface (docs/bricks.md)"
+                f"{type(self).__name__} does not run on a BrickSurface (its supports_bricks "
+                "is False; every flow of torchsurf.flows does): use the dense ImplicitSurface "
+                "(docs/bricks.md)"
             )
         check_data(u0, "u0", surface)
         if surface.layout is not None and surface.batch_size > 1:

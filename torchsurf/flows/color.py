@@ -6,7 +6,7 @@ import torch
 from torch import Tensor, nn
 
 from .._checks import check_positive
-from ..surface import ImplicitSurface, check_data
+from ..surface import ImplicitSurface, check_data, check_surface
 from .anisotropic import AnisotropicFlow
 from .base import Flow
 from .harmonic import HarmonicMapFlow
@@ -15,6 +15,10 @@ from .harmonic import HarmonicMapFlow
 class ColorDenoise(nn.Module):
     """Denoise RGB data: chroma ``c = I / |I|`` by a harmonic map flow, brightness ``b = |I|``
     by a scalar flow, result ``b c``.
+
+    Brightness and chroma are pointwise, so on a :class:`~torchsurf.bricks.BrickSurface` (data
+    packed ``(N, 3, 8, 8, 8)``) the module runs whenever both its flows do
+    (:attr:`supports_bricks`; the default ones do).
 
     Args:
         time: end time of both flows (physical time), unless ``chroma``/``brightness`` are given.
@@ -45,7 +49,21 @@ class ColorDenoise(nn.Module):
         )
         self.eps = check_positive(eps, "eps")
 
+    @property
+    def supports_bricks(self) -> bool:
+        """Whether both flows run on a :class:`~torchsurf.bricks.BrickSurface`."""
+        return all(getattr(flow, "supports_bricks", False)
+                   for flow in (self.chroma, self.brightness))
+
     def forward(self, image: Tensor, surface: ImplicitSurface) -> Tensor:
+        check_surface(surface)
+        if surface.layout is not None and not self.supports_bricks:
+            names = [type(flow).__name__ for flow in (self.chroma, self.brightness)
+                     if not getattr(flow, "supports_bricks", False)]
+            raise NotImplementedError(
+                f"ColorDenoise: {' and '.join(names)} does not run on a BrickSurface yet; "
+                "use flows that do or the dense ImplicitSurface (docs/bricks.md)"
+            )
         check_data(image, "image", surface)
         brightness = torch.sqrt((image**2).sum(dim=1, keepdim=True) + self.eps**2)
         chroma = image / brightness

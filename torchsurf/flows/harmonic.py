@@ -29,9 +29,9 @@ class HarmonicMapFlow(Flow):
 
     ``|P grad u|^2 = sum_i |P grad u_i|^2`` couples the channels (the coupled norm of
     :func:`torchsurf.anisotropic_diffusion` with ``g(s) = s^(p-2)``), regularised by ``eps``.
-    After every explicit step ``u <- u / |u|`` in the band (torchdiffeq methods: at the
-    requested times only). With ``tangent=True`` the field is kept tangent to the level sets
-    (``u <- P u / |P u|``), for direction fields on S.
+    After every explicit step ``u <- u / |u|`` in the band and its ring (torchdiffeq methods: at
+    the requested times only); elsewhere ``u`` is returned as it is. With ``tangent=True`` the
+    field is kept tangent to the level sets (``u <- P u / |P u|``), for direction fields on S.
 
     Spectral bound: ``eps^(p-2) rho`` (``max g = eps^(p-2)``), ``rho`` the Gershgorin bound of
     the band's Laplace–Beltrami operator (about ``12 / h^2``).
@@ -45,8 +45,13 @@ class HarmonicMapFlow(Flow):
         path: how stencils are applied.
         **kwargs: integration settings of :class:`Flow` (explicit or torchdiffeq).
 
+    Runs on a :class:`~torchsurf.bricks.BrickSurface` too (``u0`` packed ``(N, m, 8, 8, 8)``),
+    equal to the dense flow on the band (docs/bricks.md).
+
     Shapes: ``u0`` ``(B, m, D, H, W)`` with ``|u0| = 1`` -> ``(B, m, D, H, W)``.
     """
+
+    supports_bricks = True
 
     def __init__(
         self,
@@ -72,25 +77,30 @@ class HarmonicMapFlow(Flow):
         if self.tangent and u0.shape[1] != 3:
             raise ValueError(f"u0 must have 3 channels with tangent=True, got {u0.shape[1]}")
         band = self.band_mask(surface)
-        region = with_ring(band)
+        region = with_ring(band, surface.layout)
         zero = u0.new_zeros(())
         exponent = self.p - 2.0
         normal, weight, haloed = surface.normal, surface.weight, surface.haloed()
         spacing, eps, path = surface.spacing, self.eps, self.path
+        pad = None if surface.layout is None else surface.layout.halo
 
         def rate(u: Tensor) -> Tensor:
             diffusion = functional.edge_stopping_form(
                 u, normal, weight, spacing, power_diffusivity, exponent, eps, True, self.scheme,
-                path, haloed=haloed,
+                path, haloed=haloed, pad=pad,
             )
-            energy = functional.tangential_gradient_energy(u, normal, spacing, path) + eps**2
+            energy = functional.tangential_gradient_energy(u, normal, spacing, path, pad) + eps**2
             return torch.where(band, diffusion + u * energy ** (self.p / 2.0), zero)
 
         def project(u: Tensor) -> Tensor:
+            # in the band and its ring only, as Flow promises: the closest-point taps of a node
+            # near a medial axis reach beyond the ring, where a brick surface's normals are not
+            # the dense ones (they are equal only within the stencils' reach of the band)
+            v = u
             if self.tangent:
                 n = surface.normal
-                u = u - (u * n).sum(dim=1, keepdim=True) * n
-            return torch.where(region, normalize(u), u)
+                v = v - (v * n).sum(dim=1, keepdim=True) * n
+            return torch.where(region, normalize(v), u)
 
         rho = self.eps**exponent * self.operator_bound(surface, self.scheme)
         return System(rate, band, rho, project=project,

@@ -3,7 +3,9 @@
 ``a_t = s (16 - a b) + D_a L a``, ``b_t = s (a b - b - beta) + D_b L b``, with ``L`` the
 intrinsic Laplacian or, for anisotropic patterns, ``D_a (1/W) div(W (T . P grad a) T)`` along a
 unit tangent field ``T``. ``beta = 12 + uniform noise in [-noise, noise]`` is drawn once per call
-from the given ``torch.Generator``, so a seeded generator reproduces the pattern.
+from the given ``torch.Generator``, so a seeded generator reproduces the pattern; on a
+:class:`~torchsurf.bricks.BrickSurface` the same numbers at the same nodes as on the dense grid
+(:meth:`torchsurf.bricks.BrickLayout.rand`), so the pattern is the dense one.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ from .._checks import check_batch, check_nonnegative, check_positive, check_real
 from ..operators import directional_diffusion, laplace_beltrami
 from ..surface import ImplicitSurface, check_data, tangent_unit
 from ._integrators import System, tensors
-from .base import Flow
+from .base import Flow, data_shape
 
 
 class ReactionDiffusion(Flow):
@@ -46,7 +48,12 @@ class ReactionDiffusion(Flow):
     Call: ``flow(u0, surface, direction=None, generator=None)``, ``u0`` ``(B, 2, D, H, W)``
     (``a``, ``b``; :meth:`initial` gives Turk's ``a = b = 4``), ``direction`` an optional
     tangent field ``(B or 1, 3, D, H, W)`` for anisotropic patterns. Returns ``(B, 2, D, H, W)``.
+    On a :class:`~torchsurf.bricks.BrickSurface`, ``u0`` and ``direction`` are packed
+    ``(N, C, 8, 8, 8)``; the reaction terms are pointwise and apply to the packed values as
+    they are.
     """
+
+    supports_bricks = True
 
     def __init__(
         self,
@@ -70,8 +77,9 @@ class ReactionDiffusion(Flow):
 
     @staticmethod
     def initial(surface: ImplicitSurface, batch: int = 1) -> Tensor:
-        """Turk's start ``a = b = 4``, ``(batch, 2, D, H, W)`` in the surface's dtype."""
-        return torch.full((batch, 2, *surface.grid.shape), 4.0, dtype=surface.phi.dtype,
+        """Turk's start ``a = b = 4``, ``(batch, 2, D, H, W)`` in the surface's dtype (on a
+        :class:`~torchsurf.bricks.BrickSurface`, packed ``(N, 2, 8, 8, 8)``)."""
+        return torch.full(data_shape(surface, batch, 2), 4.0, dtype=surface.phi.dtype,
                           device=surface.phi.device)
 
     def _diffusivities(self, surface: ImplicitSurface) -> tuple[float, float]:
@@ -84,8 +92,11 @@ class ReactionDiffusion(Flow):
             raise ValueError(f"u0 must have 2 channels (a, b), got shape {tuple(u0.shape)}")
         band = self.band_mask(surface)
         d_a, d_b = self._diffusivities(surface)
-        noise = torch.rand((u0.shape[0], 1, *u0.shape[2:]), generator=generator,
-                           dtype=u0.dtype, device="cpu").to(u0.device)
+        if surface.layout is None:
+            noise = torch.rand((u0.shape[0], 1, *u0.shape[2:]), generator=generator,
+                               dtype=u0.dtype, device="cpu").to(u0.device)
+        else:
+            noise = surface.layout.rand(1, generator, u0.dtype)
         beta = self.beta + self.noise * (2.0 * noise - 1.0)
         if direction is not None:
             check_data(direction, "direction", surface, channels=3)

@@ -9,7 +9,7 @@ from .._checks import check_positive
 from ..operators import functional
 from ..surface import ImplicitSurface, check_data, tangent_unit
 from ._integrators import Linear, System, tensors
-from .base import Flow
+from .base import Flow, data_shape
 
 
 class FlowVisualization(Flow):
@@ -21,6 +21,9 @@ class FlowVisualization(Flow):
     Spectral bound: ``(1 + iso) rho``, ``rho`` the Gershgorin bound of the band's
     Laplace–Beltrami operator (``|T| = 1``, ``P <= I``).
 
+    Runs on a :class:`~torchsurf.bricks.BrickSurface` too (``u0`` and ``T`` packed
+    ``(N, C, 8, 8, 8)``), equal to the dense flow on the band (docs/bricks.md).
+
     Args:
         time: physical end time, world units squared (streak length about ``sqrt(time)``).
         isotropic: weight ``iso`` of a small isotropic term (0 by default).
@@ -29,6 +32,8 @@ class FlowVisualization(Flow):
     Call: ``flow(u0, surface, direction=T)`` with ``u0`` ``(B, C, D, H, W)`` (e.g.
     :meth:`noise`) and ``T`` ``(B or 1, 3, D, H, W)``; returns ``(B, C, D, H, W)``.
     """
+
+    supports_bricks = True
 
     def __init__(self, time: float, isotropic: float = 0.0, **kwargs: object) -> None:
         super().__init__(time, **kwargs)
@@ -39,9 +44,16 @@ class FlowVisualization(Flow):
     @staticmethod
     def noise(surface: ImplicitSurface, batch: int = 1,
               generator: torch.Generator | None = None) -> Tensor:
-        """Uniform noise in ``[0, 1)``, ``(batch, 1, D, H, W)`` in the surface's dtype."""
-        values = torch.rand((batch, 1, *surface.grid.shape), generator=generator,
-                            dtype=surface.phi.dtype)
+        """Uniform noise in ``[0, 1)``, ``(batch, 1, D, H, W)`` in the surface's dtype.
+
+        On a :class:`~torchsurf.bricks.BrickSurface`, packed ``(N, 1, 8, 8, 8)``: the same
+        numbers, node for node, as on the dense grid of each entry
+        (:meth:`~torchsurf.bricks.BrickLayout.rand`).
+        """
+        shape = data_shape(surface, batch, 1)
+        if surface.layout is not None:
+            return surface.layout.rand(1, generator, surface.phi.dtype)
+        values = torch.rand(shape, generator=generator, dtype=surface.phi.dtype)
         return values.to(surface.phi.device)
 
     def system(self, u0: Tensor, surface: ImplicitSurface, direction: Tensor | None = None
@@ -54,28 +66,41 @@ class FlowVisualization(Flow):
         band = self.band_mask(surface)
         zero = u0.new_zeros(())
         spacing, isotropic = surface.spacing, self.isotropic
+        pad = None if surface.layout is None else surface.layout.halo
 
         def laplacian(u: Tensor, weight: Tensor, normal: Tensor, direction: Tensor,
-                      weighted: bool = False, haloed: tuple[Tensor, Tensor] | None = None
-                      ) -> Tensor:
+                      haloed: tuple[Tensor, Tensor] | None = None,
+                      haloed_direction: Tensor | None = None, weighted: bool = False) -> Tensor:
             result = functional.directional_form(
                 u, normal, weight, spacing, direction, "symmetric", weighted=weighted,
-                haloed=haloed,
+                haloed=haloed, pad=pad, haloed_direction=haloed_direction,
             )
             if isotropic:
                 result = result + isotropic * functional.divergence_form(
-                    u, normal, weight, spacing, "symmetric", weighted=weighted, haloed=haloed
+                    u, normal, weight, spacing, "symmetric", weighted=weighted, haloed=haloed,
+                    pad=pad,
                 )
             return result
 
-        def operator(x: Tensor, weight: Tensor, normal: Tensor, direction: Tensor) -> Tensor:
-            return laplacian(x, weight, normal, direction, weighted=True)
-
-        geometry = (surface.weight, surface.normal, direction)
-        rho = (1.0 + self.isotropic) * self.operator_bound(surface, "symmetric")
-        # the rate reads the surface's kept halos; the implicit operator pads its own
-        # parameters, through which conjugate gradients' backward differentiates
+        # the rate reads the surface's kept halos; the implicit operator reads its parameters,
+        # through which conjugate gradients' backward differentiates: on a dense volume it pads
+        # them itself, on bricks their halos are parameters too (one gather per flow, not per
+        # iteration)
         haloed = surface.haloed()
-        return System(lambda u: torch.where(band, laplacian(u, *geometry, haloed=haloed), zero),
-                      band, rho,
-                      linear=Linear(operator, geometry), params=tensors(*geometry))
+        geometry = (surface.weight, surface.normal, direction)
+        haloed_direction = None if pad is None else pad(direction, 1)
+        if pad is not None:
+            geometry = (*geometry, haloed[0], haloed[1], haloed_direction)
+
+        def operator(x: Tensor, weight: Tensor, normal: Tensor, direction: Tensor,
+                     *halos: Tensor) -> Tensor:
+            kept = (halos[0], halos[1]) if halos else None
+            return laplacian(x, weight, normal, direction, kept, halos[2] if halos else None,
+                             weighted=True)
+
+        def rate(u: Tensor) -> Tensor:
+            return torch.where(band, laplacian(u, *geometry[:3], haloed, haloed_direction), zero)
+
+        rho = (1.0 + self.isotropic) * self.operator_bound(surface, "symmetric")
+        return System(rate, band, rho, linear=Linear(operator, geometry),
+                      params=tensors(*geometry))

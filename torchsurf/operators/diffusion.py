@@ -101,10 +101,12 @@ def directional_diffusion(
     Explicit steps are stable for ``dt <= h^2 / (6 max |T|^2)``.
 
     Args:
-        u: ``(B, C, D, H, W)``.
+        u: ``(B, C, D, H, W)``; on a :class:`~torchsurf.bricks.BrickSurface`, a packed field
+            ``(N, C, 8, 8, 8)``.
         surface: the implicit surface (batch 1 or B).
-        direction: ``T``, ``(B or 1, 3, D, H, W)`` in ``(x, y, z)`` order, tangent to the level
-            sets and usually of unit length (e.g. a principal direction).
+        direction: ``T``, ``(B or 1, 3, D, H, W)`` in ``(x, y, z)`` order (packed
+            ``(N, 3, 8, 8, 8)`` on bricks), tangent to the level sets and usually of unit
+            length (e.g. a principal direction).
         scheme: ``"symmetric"`` (default), ``"conservative"`` or ``"octant"``.
         path: how stencils are applied.
 
@@ -118,7 +120,7 @@ def directional_diffusion(
     check_choice(path, "path", backend.PATHS)
     return functional.directional_form(
         u, surface.normal, surface.weight, surface.spacing, direction, scheme, path,
-        haloed=surface.haloed(),
+        haloed=surface.haloed(), pad=None if surface.layout is None else surface.layout.halo,
     )
 
 

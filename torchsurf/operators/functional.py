@@ -293,9 +293,10 @@ def _directional_eager(u, normal, weight, spacing, direction, scheme, weighted, 
 
 
 def _directional_fused(padded_u, haloed_normal, haloed_weight, weight, spacing, haloed_direction,  # noqa: ANN001, ANN202
-                       scheme, weighted):
+                       scheme, weighted, box_faces=True):
     return fused_flux_form(padded_u, haloed_normal, haloed_weight, weight, spacing,
-                           directional_flux, (haloed_direction,), scheme, weighted)
+                           directional_flux, (haloed_direction,), scheme, weighted,
+                           box_faces=box_faces)
 
 
 def _directional_halo(u, normal, weight, spacing, direction, scheme, weighted, haloed):  # noqa: ANN001, ANN202
@@ -306,23 +307,45 @@ def _directional_halo(u, normal, weight, spacing, direction, scheme, weighted, h
 _DIRECTIONAL = backend.Kernel("directional", _directional_eager, _directional_fused, _directional_halo)
 
 
+def _directional_fused_open(padded_u, haloed_normal, haloed_weight, weight, spacing,  # noqa: ANN001, ANN202
+                            haloed_direction, scheme, weighted):
+    return _directional_fused(padded_u, haloed_normal, haloed_weight, weight, spacing,
+                              haloed_direction, scheme, weighted, box_faces=False)
+
+
+_DIRECTIONAL_OPEN = backend.Kernel("directional_open", _directional_eager, _directional_fused_open)
+
+
 def directional_form(
     u: Tensor, normal: Tensor, weight: Tensor, spacing: float, direction: Tensor,
     scheme: str = "symmetric", path: str = "auto", weighted: bool = False, haloed: Haloed = None,
+    pad: Pad | None = None, haloed_direction: Tensor | None = None,
 ) -> Tensor:
     """Diffusion along a tangent field ``(1/W) div(W (T . P grad u) T)``.
 
     Args:
-        u: ``(B, C, D, H, W)``.
+        u: ``(B, C, D, H, W)``, or packed band bricks ``(N, C, 8, 8, 8)`` with ``pad``.
         normal, weight, spacing, haloed: the geometry (module docstring).
-        direction: ``T``, ``(B or 1, 3, D, H, W)`` in ``(x, y, z)`` order.
+        direction: ``T``, ``(B or 1, 3, D, H, W)`` in ``(x, y, z)`` order (packed
+            ``(N, 3, 8, 8, 8)`` with ``pad``).
         scheme: ``"symmetric"`` (default), ``"conservative"`` or ``"octant"``.
         path: how the stencils run.
         weighted: return ``W L u`` (symmetric negative semi-definite) instead.
+        pad: how ``u`` gets its halo (:data:`Pad`); ``None`` for a dense volume.
+        haloed_direction: with ``pad``, ``direction`` with its halo of one node when the caller
+            keeps it (a flow applies the operator many times to one field); default
+            ``pad(direction, 1)``.
 
     Returns:
-        ``(B, C, D, H, W)``.
+        ``u``'s shape.
     """
+    if pad is not None:
+        haloed_normal, haloed_weight = _require_haloed(haloed)
+        if haloed_direction is None:
+            haloed_direction = pad(direction, 1)
+        return backend.run_haloed(_DIRECTIONAL_OPEN, path, u, pad(u, 2), haloed_normal,
+                                  haloed_weight, weight, spacing, haloed_direction, scheme,
+                                  weighted)
     return backend.run(_DIRECTIONAL, path, u, u, normal, weight, spacing, direction, scheme,
                        weighted, haloed)
 
@@ -386,18 +409,22 @@ def _energy_eager(u, normal, spacing, *, path):  # noqa: ANN001, ANN202
 _ENERGY = backend.Kernel("tangential_gradient_energy", _energy_eager, _energy_padded, _gradient_halo)
 
 
-def tangential_gradient_energy(u: Tensor, normal: Tensor, spacing: float, path: str = "auto"
-                               ) -> Tensor:
+def tangential_gradient_energy(u: Tensor, normal: Tensor, spacing: float, path: str = "auto",
+                               pad: Pad | None = None) -> Tensor:
     """``sum_c |P grad u_c|^2`` by central differences, without forming the gradient.
 
     Args:
-        u: ``(B, C, D, H, W)``.
+        u: ``(B, C, D, H, W)``, or packed band bricks ``(N, C, 8, 8, 8)`` with ``pad``.
         normal, spacing: the geometry (module docstring).
         path: how the stencils run.
+        pad: how ``u`` gets its halo (:data:`Pad`); ``None`` for a dense volume.
 
     Returns:
-        ``(B, 1, D, H, W)``, units of ``u`` squared per world length squared.
+        ``(B, 1, D, H, W)`` (or ``(N, 1, 8, 8, 8)``), units of ``u`` squared per world length
+        squared.
     """
+    if pad is not None:
+        return backend.run_haloed(_ENERGY, path, u, pad(u, 1), normal, spacing)
     return backend.run(_ENERGY, path, u, u, normal, spacing)
 
 
