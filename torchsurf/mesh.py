@@ -124,20 +124,25 @@ class MeshAdapter(nn.Module):
     angle), so trilinear weights at a vertex average values from points that do not average
     to the vertex: an error ``O(h |grad u| angle)``, first order in ``h`` for a fixed mesh
     (docs/benchmarks.md, "Mesh transfer"). The ``order=2`` weights are the trilinear weights
-    corrected, by least change (a 7x7 regularised solve per vertex, done once), so that
-    ``sum_n w_n = 1``, ``sum_n w_n c_n = v`` for the mesh closest points ``c_n`` (what
-    :meth:`encode` wrote) and ``sum_n w_n g_n = v`` for the grid's closest points
-    ``g_n = x_n - phi grad phi / |grad phi|^2`` (what the flows' re-extension writes,
-    :mod:`torchsurf.flows.extension`). A smooth function held at either set of closest points
-    then comes back with an error ``O(h^2 |u''|)``. Measured relative max error of the round
-    trip of ``sin(2 pi a . x)``, ``|a| = 2``, on meshes scaled to a box diagonal of 1, at
-    64^3 / 96^3 / 128^3: spot 1.7e-2 / 1.1e-2 / 8.1e-3, armadillo 1.3e-2 / 6.8e-3 / 3.7e-3,
-    bunny_closed 1.7e-2 / 8.2e-3 / 4.7e-3 (``order=1``: 3.3e-2 / 1.8e-2 / 1.2e-2,
-    4.7e-2 / 2.7e-2 / 2.0e-2, 3.4e-2 / 2.5e-2 / 1.9e-2). What remains, for a fixed mesh, is
-    the piecewise-linear interpolation of the vertex data between vertices (the data bends at
-    every edge too): the error falls at about second order while the facets are smaller than
-    the cells, more slowly once they span several cells (spot at 128^3). Building the weights
-    adds 25-50% to the adapter's setup.
+    corrected, by least change (a small regularised solve per vertex, done once), so that
+    they sum to 1 and reproduce
+
+    - every piecewise-linear function of the mesh (each hat function ``hat_j`` the vertex's
+      nodes read: ``sum_n w_n hat_j(c_n) = [j = i]``, ``c_n`` the mesh closest points), which
+      is what :meth:`encode` writes: the round trip returns the vertex values to about 1e-5
+      whatever they are, where the nodes read at most 16 vertices (facets as large as the
+      cells or larger); where they read more (small facets), every affine function of the
+      mesh closest points instead, the mesh's own interpolation error being below the grid's;
+    - every affine function of the grid's closest points ``g_n = x_n - phi grad phi /
+      |grad phi|^2`` (what the flows' re-extension writes, :mod:`torchsurf.flows.extension`),
+      so that a smooth field left by a flow comes back with an error ``O(h^2 |u''|)``.
+
+    Measured relative max error of the round trip of ``sin(2 pi a . x)``, ``|a| = 2``, on
+    meshes scaled to a box diagonal of 1, at 64^3 / 96^3 / 128^3: spot (2.9k vertices, facets
+    of several cells) 9.3e-3 / 3.9e-3 / 2.6e-3, median 6e-4 / 2e-6 / 1e-6; armadillo 1.3e-2 /
+    6.8e-3 / 3.7e-3; bunny_closed 1.7e-2 / 8.2e-3 / 4.7e-3 (``order=1``: 3.3e-2 / 1.8e-2 /
+    1.2e-2, 4.7e-2 / 2.7e-2 / 2.0e-2, 3.4e-2 / 2.5e-2 / 1.9e-2). Building the weights adds
+    25-50% to the adapter's setup.
 
     Both maps are linear and differentiable. Tensors follow ``.to()``.
 
@@ -223,6 +228,7 @@ class MeshAdapter(nn.Module):
             decode_index, decode_weights = _decode_stencil(
                 grid, torch.as_tensor(vertices), torch.as_tensor(flat),
                 [torch.as_tensor(mesh_points), _grid_closest_points(self.surface, flat)],
+                hats=(torch.as_tensor(faces[found.face[inside]]), torch.as_tensor(weights)),
             )
             outside = ~grid.contains(torch.as_tensor(vertices), tolerance=1e-4)
             if bool(outside.any()):
@@ -283,8 +289,8 @@ def _grid_closest_points(surface: ImplicitSurface, flat: np.ndarray) -> Tensor:
     return points - step.T.to("cpu", torch.float64)
 
 
-def _decode_stencil(grid: Grid, vertices: Tensor, band_index: Tensor, references: list[Tensor]
-                    ) -> tuple[Tensor, Tensor]:
+def _decode_stencil(grid: Grid, vertices: Tensor, band_index: Tensor, references: list[Tensor],
+                    hats: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor]:
     """Decoding weights of the ``4^3`` nodes around each vertex, float64.
 
     Args:
@@ -293,11 +299,19 @@ def _decode_stencil(grid: Grid, vertices: Tensor, band_index: Tensor, references
         band_index: ``(N,)`` flat indices of the nodes that hold data.
         references: ``(N, 3)`` world points, per band node, that the weights must reproduce
             (``sum_n w_n p_n = v``).
+        hats: the mesh closest point of each band node as its triangle's corners ``(N, 3)``
+            (vertex indices) and barycentric weights ``(N, 3)``. At a vertex whose 64 nodes
+            read at most :data:`_HAT_LIMIT` vertices' hat functions, the weights reproduce each
+            of them (``sum_n w_n hat_j(c_n) = [j = i]``) instead of the first reference (the
+            mesh closest points, which the hats reproduce): the decode of every
+            piecewise-linear function of the mesh, which is what :meth:`MeshAdapter.encode`
+            writes, is then exact at the vertex.
 
     Returns:
         ``index`` ``(V, 64)`` flat node indices and ``weights`` ``(V, 64)``: the trilinear
         weights plus the least change (Tikhonov-regularised) that makes them sum to 1 and
-        reproduce every reference point set at the vertex; 0 on nodes outside the band.
+        reproduce every reference point set (or hat function) at the vertex; 0 on nodes
+        outside the band.
     """
     depth, height, width = grid.shape
     offsets = torch.arange(-1, 3)
@@ -327,16 +341,66 @@ def _decode_stencil(grid: Grid, vertices: Tensor, band_index: Tensor, references
     row = row.clamp(min=0)
     offsets_world = [(points[row] - vertices[:, None]).permute(0, 2, 1) / grid.spacing
                      for points in references]
+    target = torch.zeros(len(vertices), 1 + 3 * len(references), dtype=torch.float64)
+    target[:, 0] = 1.0
+    if hats is not None:
+        hat_values, hat_target, covered = _hat_constraints(row, usable, *hats)
+        offsets_world[0] = offsets_world[0] * ~covered[:, None, None]
+        offsets_world.append(_HAT_EMPHASIS * hat_values)
+        target = torch.cat([target, _HAT_EMPHASIS * hat_target], dim=1)
     constraints = torch.cat([torch.ones_like(trilinear)[:, None], *offsets_world], dim=1)
     constraints = constraints * usable[:, None]
-    target = torch.zeros(constraints.shape[1], dtype=torch.float64)
-    target[0] = 1.0
     start = trilinear * usable
     residual = target - (constraints @ start[..., None])[..., 0]
     normal = constraints @ constraints.transpose(1, 2)
     normal = normal + _DECODE_REGULARISATION * torch.eye(constraints.shape[1], dtype=torch.float64)
     correction = constraints.transpose(1, 2) @ torch.linalg.solve(normal, residual[..., None])
     return index, (start + correction[..., 0]) * usable
+
+
+_HAT_EMPHASIS = 30.0
+"""Scale of the hat-function rows against the regularisation: they hold to about
+``_DECODE_REGULARISATION / _HAT_EMPHASIS^2`` of their residual instead of 1e-3."""
+
+_HAT_LIMIT = 16
+"""Most hat functions a vertex's decoding weights reproduce: more means facets smaller than
+the cells, where the mesh's own interpolation error is below the grid's."""
+
+
+def _hat_constraints(row: Tensor, usable: Tensor, corners: Tensor, barycentric: Tensor
+                     ) -> tuple[Tensor, Tensor, Tensor]:
+    """The hat functions read by each vertex's 64 decoding nodes, as constraints.
+
+    Args:
+        row: ``(V, 64)`` band-node index of each decoding node (any value where not usable).
+        usable: ``(V, 64)`` bool, the nodes that hold data.
+        corners, barycentric: ``(N, 3)`` the triangle corners and barycentric weights of each
+            band node's closest point on the mesh.
+
+    Returns:
+        ``values`` ``(V, L, 64)``: ``hat_j(c_n)`` for the (at most ``L`` = :data:`_HAT_LIMIT`)
+        vertices ``j`` read, in slots; ``target`` ``(V, L)``: 1 in the slot of the vertex
+        itself; ``covered`` ``(V,)`` bool: all the vertices read fit in the slots (elsewhere
+        values and target are 0, and the reference points decide instead).
+    """
+    count, nodes = row.shape
+    own = torch.arange(count)[:, None, None]
+    ids = torch.where(usable[..., None], corners[row], own).flatten(1)  # (V, 64 * 3)
+    weights = (barycentric[row] * usable[..., None]).flatten(1)
+    ordered, order = ids.sort(dim=1)
+    first = torch.ones_like(ordered, dtype=torch.bool)
+    first[:, 1:] = ordered[:, 1:] != ordered[:, :-1]
+    slot = torch.empty_like(order).scatter_(1, order, first.cumsum(1) - 1)
+    mine = torch.where(ids == own[:, :, 0], slot, -1).amax(1)
+    covered = (first.sum(1) <= _HAT_LIMIT) & (mine >= 0)
+    keep = covered[:, None] & (slot < _HAT_LIMIT)
+    node = torch.arange(nodes).repeat_interleave(3)[None].expand(count, -1)
+    values = torch.zeros(count, _HAT_LIMIT * nodes, dtype=torch.float64)
+    values.scatter_add_(1, torch.where(keep, slot * nodes + node, 0),
+                        torch.where(keep, weights, 0.0).to(torch.float64))
+    target = torch.zeros(count, _HAT_LIMIT, dtype=torch.float64)
+    target[covered, mine[covered]] = 1.0
+    return values.reshape(count, _HAT_LIMIT, nodes), target, covered
 
 
 def _scatter_to_band(values: Tensor, band_index: Tensor, corners: Tensor, weights: Tensor,
