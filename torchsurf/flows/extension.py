@@ -80,6 +80,22 @@ def _cubic_weights(t: Tensor) -> list[Tensor]:
     ]
 
 
+TIE_EPS = 64
+"""A fractional index within ``TIE_EPS`` units of rounding (relative to its size) below a node
+plane counts as on it (:func:`_cell`)."""
+
+
+def _cell(at: Tensor) -> Tensor:
+    """The first node of the cell that holds each fractional index ``at``, a point within
+    rounding below a node plane taken as on it. A closest point on a face aligned with the grid
+    lies on a node plane exactly; rounding would put it in either cell, and the limiter's range
+    (that cell's 8 nodes) with it: the snap makes the choice the same in any frame (a shape
+    scaled and moved with its grid)."""
+    at = at.detach()
+    slack = TIE_EPS * torch.finfo(at.dtype).eps * (1.0 + at.abs())
+    return (at + slack).floor()
+
+
 def _cubic_stencil(index: Tensor, mask: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """The tricubic interpolation of one volume at ``index``, for the nodes of ``mask``.
 
@@ -98,7 +114,7 @@ def _cubic_stencil(index: Tensor, mask: Tensor) -> tuple[Tensor, Tensor, Tensor]
     depth, height, width = mask.shape
     targets = mask.reshape(-1).nonzero().squeeze(1)
     at = index.reshape(-1, 3)[targets]
-    base = at.detach().floor()
+    base = _cell(at)
     offsets = torch.arange(-1, 3, device=at.device)
     corners = torch.stack([
         (base[:, axis: axis + 1].long() + offsets).clamp(0, size - 1)
@@ -344,7 +360,7 @@ class BrickCubicStencil:
         at = (world - origins[batch]) / surface.spacing
         shapes = torch.tensor([g.shape[::-1] for g in layout.grids], device=device)[batch]
         extent_z, extent_y, extent_x = layout.extent
-        base = at.detach().floor()
+        base = _cell(at)
         offsets = torch.arange(-1, 3, device=device)
         x, y, z = ((base[:, axis: axis + 1].long() + offsets).clamp(
             torch.zeros_like(shapes[:, axis: axis + 1]), shapes[:, axis: axis + 1] - 1)
