@@ -4,12 +4,15 @@
   and conversions to and from dense volumes;
 - :class:`BrickSurface`: an :class:`~torchsurf.ImplicitSurface` stored on a layout;
 - :func:`from_dense` (the small-case route, and the reference) and :func:`from_mesh` (straight
-  from triangle meshes, no dense volume at any point); :func:`cat` batches surfaces of any box.
+  from triangle meshes, no dense volume at any point); :func:`cat` batches surfaces of any box;
+- :func:`fit_grids`: several meshes, each at its own resolution, on grids of one spacing (one
+  batch).
 
 docs/bricks.md describes the layout, what runs on it and its measured cost.
 """
 
 from .build import cat, from_dense, from_mesh
+from .fit import FittedMeshes, fit_grids
 from .layout import BRICK, BrickLayout, bricks_of_mask
 from .surface import BrickSurface
 
@@ -17,8 +20,10 @@ __all__ = [
     "BRICK",
     "BrickLayout",
     "BrickSurface",
+    "FittedMeshes",
     "bricks_of_mask",
     "cat",
+    "fit_grids",
     "from_dense",
     "from_mesh",
 ]
