@@ -15,7 +15,7 @@ import torch
 import trimesh
 from torch import Tensor, nn
 
-from . import _isosurface, _memory, _mesh_sdf, sdf
+from . import _isosurface, _memory, _mesh_sdf, _vertex_decode, sdf
 from ._checks import (
     check_count,
     check_dtype,
@@ -268,9 +268,6 @@ class MeshAdapter(nn.Module):
 
 
 DECODE_ORDERS = (1, 2)
-_DECODE_REGULARISATION = 1e-3
-"""Tikhonov term of the decoding solve, in units of cells^2: where the closest points around a
-vertex are (nearly) coplanar, their normal constraint is dropped instead of amplified."""
 
 
 def _grid_closest_points(surface: ImplicitSurface, flat: np.ndarray) -> Tensor:
@@ -285,7 +282,8 @@ def _grid_closest_points(surface: ImplicitSurface, flat: np.ndarray) -> Tensor:
 
 def _decode_stencil(grid: Grid, vertices: Tensor, band_index: Tensor, references: list[Tensor]
                     ) -> tuple[Tensor, Tensor]:
-    """Decoding weights of the ``4^3`` nodes around each vertex, float64.
+    """Decoding weights of the ``4^3`` nodes around each vertex, float64
+    (:func:`torchsurf._vertex_decode.weights`).
 
     Args:
         grid: the grid.
@@ -295,48 +293,21 @@ def _decode_stencil(grid: Grid, vertices: Tensor, band_index: Tensor, references
             (``sum_n w_n p_n = v``).
 
     Returns:
-        ``index`` ``(V, 64)`` flat node indices and ``weights`` ``(V, 64)``: the trilinear
-        weights plus the least change (Tikhonov-regularised) that makes them sum to 1 and
-        reproduce every reference point set at the vertex; 0 on nodes outside the band.
+        ``index`` ``(V, 64)`` flat node indices and ``weights`` ``(V, 64)``, 0 on nodes
+        outside the band.
     """
     depth, height, width = grid.shape
-    offsets = torch.arange(-1, 3)
-    position = grid.world_to_index(vertices)
-    base = position.floor()
-    fraction = position - base
-    nodes, valid, linear = [], [], []
-    for axis, size in enumerate((width, height, depth)):
-        raw = base[:, axis:axis + 1].long() + offsets
-        nodes.append(raw.clamp(0, size - 1))
-        valid.append((raw >= 0) & (raw < size))
-        t = fraction[:, axis:axis + 1]
-        linear.append(torch.where(offsets == 0, 1 - t, torch.where(offsets == 1, t, 0.0)))
-
-    def combine(x: Tensor, y: Tensor, z: Tensor, op) -> Tensor:  # noqa: ANN001
-        return op(op(z[:, :, None, None], y[:, None, :, None]), x[:, None, None, :]).flatten(1)
-
-    x, y, z = nodes
+    found = _vertex_decode.cells(grid, vertices)
+    x, y, z = found.nodes
     index = ((z[:, :, None, None] * height + y[:, None, :, None]) * width
              + x[:, None, None, :]).flatten(1)
-    inside = combine(*valid, op=torch.logical_and)
-    trilinear = combine(*linear, op=torch.mul)
     row = torch.full((depth * height * width,), -1, dtype=torch.long)
     row[band_index] = torch.arange(len(band_index))
     row = row[index]
-    usable = inside & (row >= 0)
+    usable = found.inside & (row >= 0)
     row = row.clamp(min=0)
-    offsets_world = [(points[row] - vertices[:, None]).permute(0, 2, 1) / grid.spacing
-                     for points in references]
-    constraints = torch.cat([torch.ones_like(trilinear)[:, None], *offsets_world], dim=1)
-    constraints = constraints * usable[:, None]
-    target = torch.zeros(constraints.shape[1], dtype=torch.float64)
-    target[0] = 1.0
-    start = trilinear * usable
-    residual = target - (constraints @ start[..., None])[..., 0]
-    normal = constraints @ constraints.transpose(1, 2)
-    normal = normal + _DECODE_REGULARISATION * torch.eye(constraints.shape[1], dtype=torch.float64)
-    correction = constraints.transpose(1, 2) @ torch.linalg.solve(normal, residual[..., None])
-    return index, (start + correction[..., 0]) * usable
+    return index, _vertex_decode.weights(found, usable, vertices,
+                                         [points[row] for points in references], grid.spacing)
 
 
 def _scatter_to_band(values: Tensor, band_index: Tensor, corners: Tensor, weights: Tensor,
