@@ -126,5 +126,3 @@ def test_flows_not_ported_to_bricks_say_so(torus):
     u = torch.zeros(len(surface.layout), 3, 8, 8, 8, dtype=torch.float64)
     with pytest.raises(NotImplementedError, match="BrickSurface"):
         ts.flows.HarmonicMapFlow(time=0.01)(u, surface)
-    with pytest.raises(NotImplementedError, match="BrickSurface"):
-        ts.flows.HeatFlow(time=0.01, method="chebyshev")(u[:, :1], surface)

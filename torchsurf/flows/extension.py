@@ -272,17 +272,22 @@ def _corner_base(bases: list[Tensor], second: tuple[Tensor, Tensor, Tensor], k: 
     return torch.where(x[:, i], pair[1], pair[0])
 
 
-def _brick_gathered(flat: Tensor, bases: Tensor, second: Tensor, local: Tensor, weights: Tensor,
-                    limited: bool, *, path: str = "slicing") -> Tensor:
-    """Bricks' :func:`_interpolate_gathered`: one gather of ``(C, M, 64)``."""
+def _brick_sources(bases: Tensor, second: Tensor, local: Tensor) -> Tensor:
+    """The packed index of each of the 64 taps of each node, ``(M, 64)`` in the order of
+    ``_CELL``, from a :class:`BrickCubicStencil`'s ``bases``, ``second`` and ``local``."""
     corners = [b.long() for b in bases.unbind(0)]
     bits = second.unbind(0)
     zl, yl, xl = local.long().unbind(0)
-    sources = torch.stack([
+    return torch.stack([
         _corner_base(corners, bits, k, j, i) + zl[:, k] + yl[:, j] + xl[:, i]
         for k in range(4) for j in range(4) for i in range(4)
     ], dim=1)
-    return _gathered_sum(flat, sources, weights, limited)
+
+
+def _brick_gathered(flat: Tensor, bases: Tensor, second: Tensor, local: Tensor, weights: Tensor,
+                    limited: bool, *, path: str = "slicing") -> Tensor:
+    """Bricks' :func:`_interpolate_gathered`: one gather of ``(C, M, 64)``."""
+    return _gathered_sum(flat, _brick_sources(bases, second, local), weights, limited)
 
 
 def _brick_terms(flat: Tensor, bases: Tensor, second: Tensor, local: Tensor, weights: Tensor,
@@ -384,6 +389,27 @@ class BrickCubicStencil:
                             self.local, self.weights.to(u.dtype), self.limited)
         result = flat.index_copy(1, self.targets, value)
         return result.view(channels, *u.shape[:1], *u.shape[2:]).transpose(0, 1)
+
+    def transpose(self, v: Tensor) -> Tensor:
+        """The transpose of :meth:`apply` (``limited=False`` only, where it is linear), as
+        :meth:`CubicStencil.transpose`: ``v`` ``(N, C, 8, 8, 8)`` with each masked node's value
+        zeroed and scattered back, with its 64 tricubic weights, to the nodes :meth:`apply`
+        reads it from; a new tensor. Scattered :data:`STENCIL_CHUNK` nodes at a time."""
+        if self.limited:
+            raise ValueError("BrickCubicStencil.transpose: a limited stencil is not linear")
+        channels = v.shape[1]
+        flat = v.transpose(0, 1).reshape(channels, -1)
+        result = flat.index_fill(1, self.targets, 0.0)
+        weights = self.weights.to(v.dtype)
+        for start in range(0, len(self.targets), STENCIL_CHUNK):
+            part = slice(start, start + STENCIL_CHUNK)
+            sources = _brick_sources(self.bases[:, part], self.second[:, part],
+                                     self.local[:, part])
+            wx, wy, wz = weights[:, part].unbind(0)
+            taps = (wz[:, :, None, None] * wy[:, None, :, None] * wx[:, None, None, :]).flatten(1)
+            moved = flat[:, self.targets[part], None] * taps
+            result = result.index_add(1, sources.flatten(), moved.flatten(1))
+        return result.view(channels, *v.shape[:1], *v.shape[2:]).transpose(0, 1)
 
 
 def _brick_closest_points(surface: ImplicitSurface, targets: Tensor) -> tuple[Tensor, Tensor]:
