@@ -1,6 +1,6 @@
 """Band storage as bricks: scale on a mesh, cost against the dense volume, time to solution.
 
-Three parts, each against a baseline measured in the same run:
+Four parts, each against a baseline measured in the same run:
 
 - **scale**: ``bunny_closed.obj`` (``--mesh``) on a ``--resolution``^3 grid (512 by default)
   built straight into bricks (:func:`torchsurf.bricks.from_mesh`): build time, bricks, stored
@@ -14,24 +14,34 @@ Three parts, each against a baseline measured in the same run:
   on bricks with the default RKC, sampled error at 2000 points, against the mesh peer of
   ``bench_heat_flow.py`` (cotangent Laplacian, lumped mass, SuperLU backward Euler on the
   icosphere of matching resolution, fewest steps reaching 1e-3).
+- **batch** (``--parts batch``, its own section): the five shared shapes (``--batch-meshes``),
+  each at its own resolution (``--batch-resolutions``, :func:`torchsurf.bricks.fit_grids`) in
+  one brick batch, float32, eager stencils: build and heat flow to ``t = (4 h)^2`` (each shape's
+  own 4 cells), against each shape alone in its own units on its own grid to its own time, each
+  run in a fresh process: times, peak resident memory and live peak, the largest difference of
+  an entry to its shape alone and the maximum principle on each entry.
 
     PYTHONPATH=. python benchmarks/bench_bricks.py --output docs/benchmarks.md
     PYTHONPATH=. python benchmarks/bench_bricks.py --resolution 128 --ratio-resolution 96 --sizes 49
+    PYTHONPATH=. python benchmarks/bench_bricks.py --parts batch --output docs/benchmarks.md
 
 Peak memory is the process's maximum resident set (``ru_maxrss``), so it is cumulative: the
-scale part runs first.
+scale part runs first (the batch part's runs each have a process of their own).
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib.util
+import json
 import math
 import os
 import platform
 import resource
 import statistics
+import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -58,6 +68,7 @@ def _load_sibling(name: str):
 
 _lb_bench = _load_sibling("bench_laplace_beltrami")
 _heat_bench = _load_sibling("bench_heat_flow")
+_learned_bench = _load_sibling("bench_learned_diffusion")
 
 
 def cpu_model() -> str:
@@ -179,6 +190,165 @@ def _solution(sizes: list[int], target: float) -> tuple[list[dict], object]:
     return rows, (best, peer)
 
 
+BATCH_SECTION = "bench_bricks_batch"
+BATCH_MESHES = ("bunny_closed", "spot", "armadillo", "teapot_closed", "fandisk")
+BATCH_RESOLUTIONS = (96, 64, 80, 56, 48)
+BATCH_CELLS = 4.0
+"""The batch's heat flow runs to ``(BATCH_CELLS h)^2``: that many of each shape's own cells."""
+
+
+def _batch_signal(points: torch.Tensor, spacing: float) -> torch.Tensor:
+    """Smooth data at batch-frame points ``(N, 3, 8, 8, 8)``, waves of about ten cells."""
+    x, y, z = (points[:, axis: axis + 1] / spacing for axis in range(3))
+    return torch.sin(0.6 * x) * torch.cos(0.45 * (y + z))
+
+
+class _Clock:
+    """Wall seconds and this thread's CPU seconds since it was made: on a machine shared with
+    other jobs the CPU time is the work (the library runs on one thread; the memory sampler's
+    thread is not counted), the wall time what a user waits."""
+
+    def __init__(self) -> None:
+        self.wall, self.cpu = time.perf_counter(), time.thread_time()
+
+    def read(self) -> tuple[float, float]:
+        return time.perf_counter() - self.wall, time.thread_time() - self.cpu
+
+
+def batch_run(meshes: list[Path], resolutions: list[int], cells: float, which: int | None,
+              output: Path, repeats: int = 2) -> dict:
+    """One run of the batch part in this process: the batch (``which`` is ``None``) or shape
+    ``which`` alone in its own units; the flow's first call, then the fastest of ``repeats``
+    more. Saves the flow's result, band and start to ``output``."""
+    _learned_bench._eager_everywhere()
+    loaded = [ts.mesh.load(path) for path in meshes]
+    fitted = bricks.fit_grids(loaded, resolutions)
+    before, live = _learned_bench._resident_mb(), _learned_bench.LivePeak()
+    allocated = live.now()
+    clock = _Clock()
+    if which is None:
+        surface = bricks.from_mesh(fitted.meshes, fitted.grids, dtype=torch.float32)
+        points = surface.layout.points(torch.float32)
+    else:
+        surface = bricks.from_mesh(loaded[which], fitted.own_grid(which), dtype=torch.float32)
+        centre = fitted.centre[which].to(torch.float32).view(1, 3, 1, 1, 1)
+        points = float(fitted.scale[which]) * (surface.layout.points(torch.float32) - centre)
+    build = clock.read()
+    u0 = _batch_signal(points, fitted.spacing)
+    flow_time = (cells * fitted.spacing) ** 2
+    if which is not None:
+        flow_time = float(fitted.shape_time(flow_time)[which])
+    flow = ts.flows.HeatFlow(time=flow_time)
+    calls = []
+    with torch.no_grad():
+        for _ in range(1 + repeats):
+            clock = _Clock()
+            result = flow(u0, surface)
+            calls.append(clock.read())
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024 - before
+    band = surface.band_mask()
+    torch.save({"u": result, "u0": u0, "band": band,
+                "region": surface.layout.dilate(band), "counts": surface.layout.counts()}, output)
+    return {"which": which, "bricks": len(surface.layout), "band": int(band.sum()),
+            "build_wall": build[0], "first_cpu": calls[0][1],
+            "steady_cpu": min(cpu for _, cpu in calls[1:]),
+            "steady_wall": min(wall for wall, _ in calls[1:]),
+            "peak_mb": peak, "live_mb": live.stop() - allocated}
+
+
+def _spawn_batch_run(meshes: list[Path], resolutions: list[int], cells: float,
+                     which: int | None, output: Path) -> dict:
+    arguments = [sys.executable, __file__, "--batch-meshes", *map(str, meshes),
+                 "--batch-resolutions", *map(str, resolutions), "--batch-cells", str(cells),
+                 "--batch-run", "batch" if which is None else str(which), str(output)]
+    done = subprocess.run(arguments, capture_output=True, text=True, check=True)
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def batch(meshes: list[Path], resolutions: list[int], cells: float) -> dict:
+    """The batch and each shape alone, each in a fresh process; their figures, the largest
+    difference of each entry to its shape alone, and the maximum principle on each entry."""
+    with tempfile.TemporaryDirectory() as folder:
+        folder = Path(folder)
+        together = _spawn_batch_run(meshes, resolutions, cells, None, folder / "batch.pt")
+        alone = [_spawn_batch_run(meshes, resolutions, cells, b, folder / f"{b}.pt")
+                 for b in range(len(meshes))]
+        saved = torch.load(folder / "batch.pt")
+        differences, excess = [], []
+        start = 0
+        for b, count in enumerate(saved["counts"]):
+            rows = slice(start, start + count)
+            start += count
+            own = torch.load(folder / f"{b}.pt")
+            band, u = saved["band"][rows], saved["u"][rows]
+            differences.append(float((u - own["u"])[band].abs().max()))
+            before = saved["u0"][rows][saved["region"][rows]]
+            excess.append(max(float(u[band].max() - before.max()),
+                              float(before.min() - u[band].min())))
+    return {"batch": together, "alone": alone, "differences": differences, "excess": excess,
+            "names": [Path(m).stem for m in meshes], "resolutions": resolutions, "cells": cells}
+
+
+def batch_markdown(result: dict) -> str:
+    """The batch part's section body."""
+    threads = torch.get_num_threads()
+    names, resolutions = result["names"], result["resolutions"]
+    together, alone = result["batch"], result["alone"]
+    lines = [
+        f"Run of {time.strftime('%Y-%m-%d')}, {cpu_model()}, {os.cpu_count()} cores, torch "
+        f"{torch.__version__}, {threads} thread(s), float32, eager stencils, allocator: "
+        f"GLIBC_TUNABLES={os.environ.get('GLIBC_TUNABLES', 'default')}, load average at the "
+        f"end {os.getloadavg()[0]:.1f}. Command: `PYTHONPATH=. python "
+        f"benchmarks/bench_bricks.py {' '.join(sys.argv[1:])}`.",
+        "",
+        f"{len(names)} shapes ({', '.join(names)}), each at its own resolution "
+        "(`bricks.fit_grids`: one spacing, each shape scaled to span its grid), built "
+        "straight into one brick batch (`bricks.from_mesh`), then `HeatFlow` (RKC) to "
+        f"t = ({result['cells']:g} h)^2, each shape's own cells; against each shape alone "
+        "in its own units on its own grid, to its own time (`FittedMeshes.shape_time`). Each "
+        "run in a fresh process. Times: the build's wall seconds (libigl runs threads of its "
+        "own), the flow's CPU seconds on its one thread (the machine is shared: its wall time "
+        "depends on the other jobs), first call (with the surface's bound and stencils) and "
+        "the fastest of two more calls (its wall time too). Memory above what the process "
+        "held before the build: resident peak (`ru_maxrss`) and live peak (`mallinfo2`).",
+        "",
+        "| run | bricks | band voxels | build (wall s) | flow, first (CPU s) | flow (CPU s) | "
+        "flow (wall s) | resident peak (MB) | live peak (MB) | max difference to alone | "
+        "maximum principle excess |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+
+    def row(label: str, run: dict, difference: str = "", excess: str = "") -> str:
+        return (f"| {label} | {run['bricks']:,} | {run['band']:,} | "
+                f"{run['build_wall']:.1f} | {run['first_cpu']:.1f} | {run['steady_cpu']:.1f} | "
+                f"{run['steady_wall']:.1f} | {run['peak_mb']:.0f} | {run['live_mb']:.0f} | "
+                f"{difference} | {excess} |")
+
+    for b, (name, n, run) in enumerate(zip(names, resolutions, alone, strict=True)):
+        lines.append(row(f"{name} alone, {n}^3", run, f"{result['differences'][b]:.1e}",
+                         f"{result['excess'][b]:.1e}"))
+    total = {key: sum(run[key] for run in alone)
+             for key in ("bricks", "band", "build_wall", "first_cpu", "steady_cpu",
+                         "steady_wall", "peak_mb", "live_mb")}
+    lines.append(row(f"sum of the {len(names)} alone", total))
+    lines.append(row("**the batch**", together))
+    lines += [
+        "",
+        "Batch against the sum of the shapes alone: build "
+        f"x{together['build_wall'] / total['build_wall']:.2f} (wall), flow "
+        f"x{together['first_cpu'] / total['first_cpu']:.2f} (first call) and "
+        f"x{together['steady_cpu'] / total['steady_cpu']:.2f} (CPU); resident peak "
+        f"x{together['peak_mb'] / total['peak_mb']:.2f} "
+        f"(x{together['peak_mb'] / max(run['peak_mb'] for run in alone):.2f} the largest "
+        f"alone), live peak x{together['live_mb'] / total['live_mb']:.2f} "
+        f"(x{together['live_mb'] / max(run['live_mb'] for run in alone):.2f} the largest "
+        "alone). Differences are the largest over each entry's band (data of size 1, float32);"
+        " the maximum principle excess is how far the result leaves the range of the start "
+        "over the band and its ring (negative: inside).",
+    ]
+    return "\n".join(lines)
+
+
 def markdown(args, bandwidth: float, scaled: dict | None, ratioed: dict | None,
              solved: tuple | None) -> str:
     threads = torch.get_num_threads()
@@ -239,14 +409,20 @@ def markdown(args, bandwidth: float, scaled: dict | None, ratioed: dict | None,
     return "\n".join(lines)
 
 
-def write_section(path: Path, body: str) -> None:
-    """Write or replace this benchmark's section in ``path`` (temporary file, then rename)."""
-    begin, end = f"<!-- BEGIN {SECTION} -->", f"<!-- END {SECTION} -->"
-    section = f"{begin}\n## Band storage as bricks\n\n{body}\n{end}\n"
+def write_section(path: Path, body: str, name: str = SECTION,
+                  heading: str = "## Band storage as bricks") -> None:
+    """Write or replace the section ``name`` in ``path`` (temporary file, then rename); a new
+    section goes after this benchmark's main section, or at the end."""
+    begin, end = f"<!-- BEGIN {name} -->", f"<!-- END {name} -->"
+    section = f"{begin}\n{heading}\n\n{body}\n{end}\n"
     text = path.read_text() if path.exists() else "# torchsurf benchmarks\n"
+    after = f"<!-- END {SECTION} -->"
     if begin in text and end in text:
         head, rest = text.split(begin, 1)
         text = head + section + rest.split(end, 1)[1].lstrip("\n")
+    elif after in text:
+        head, rest = text.split(after, 1)
+        text = head + after + "\n\n" + section + rest.lstrip("\n")
     else:
         text = text.rstrip("\n") + "\n\n" + section
     tmp = path.with_suffix(".tmp")
@@ -262,11 +438,33 @@ def main(argv: list[str] | None = None) -> str:
     parser.add_argument("--sizes", type=int, nargs="+", default=[65, 81, 97])
     parser.add_argument("--target", type=float, default=1e-3)
     parser.add_argument("--parts", nargs="+", default=["scale", "ratio", "solution"],
-                        choices=["scale", "ratio", "solution"])
+                        choices=["scale", "ratio", "solution", "batch"])
+    parser.add_argument("--batch-meshes", nargs="+", type=Path,
+                        default=[MESHES / f"{name}.obj" for name in BATCH_MESHES])
+    parser.add_argument("--batch-resolutions", type=int, nargs="+",
+                        default=list(BATCH_RESOLUTIONS))
+    parser.add_argument("--batch-cells", type=float, default=BATCH_CELLS)
+    parser.add_argument("--batch-run", nargs=2, metavar=("WHICH", "OUTPUT"),
+                        help=argparse.SUPPRESS)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--output", type=Path, default=None)
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
+    if args.batch_run is not None:
+        which = None if args.batch_run[0] == "batch" else int(args.batch_run[0])
+        figures = batch_run(args.batch_meshes, args.batch_resolutions, args.batch_cells, which,
+                            Path(args.batch_run[1]))
+        print(json.dumps(figures))
+        return json.dumps(figures)
+    if "batch" in args.parts:
+        body = batch_markdown(batch(args.batch_meshes, args.batch_resolutions,
+                                    args.batch_cells))
+        print(body)
+        if args.output is not None:
+            write_section(args.output, body, BATCH_SECTION,
+                          "### Bricks: five shapes at their own resolutions in one batch")
+        if args.parts == ["batch"]:
+            return body
     bandwidth = max(_lb_bench.memory_bandwidth().values())
     scaled = scale(Path(args.mesh), args.resolution, bandwidth) if "scale" in args.parts else None
     ratioed = ratio(args.ratio_resolution) if "ratio" in args.parts else None

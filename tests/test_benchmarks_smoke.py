@@ -102,3 +102,25 @@ def test_learned_diffusion_bench_summary_reads_the_ratios(learned_bench):
     assert lines[0].endswith("meets the targets")
     assert "live memory x8.00" in lines[1] and lines[1].endswith("misses the targets")
     assert "| learned | 4.4 | 0.01 | 5.00 | 5.00 | 110 | 150 |" in learned_bench.table(runs)
+
+
+def test_bricks_benchmark_batch_runs_and_reports(tmp_path, monkeypatch):
+    import trimesh
+
+    monkeypatch.setattr(ts.backend, "COMPILE_MIN_VOXELS", ts.backend.COMPILE_MIN_VOXELS)
+    monkeypatch.setattr(ts.backend, "COMPILE_PAYBACK_SECONDS", ts.backend.COMPILE_PAYBACK_SECONDS)
+    spec = importlib.util.spec_from_file_location("bench_bricks", BRICKS)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    meshes = [tmp_path / "sphere.obj", tmp_path / "box.obj"]
+    trimesh.creation.icosphere(2, radius=5.0).export(meshes[0])
+    trimesh.creation.box((0.1, 0.2, 0.3)).export(meshes[1])
+    runs = [module.batch_run(meshes, [24, 20], 1.0, which, tmp_path / f"{which}.pt")
+            for which in (None, 0, 1)]
+    assert runs[0]["bricks"] == runs[1]["bricks"] + runs[2]["bricks"]
+    result = {"batch": runs[0], "alone": runs[1:], "differences": [1e-7, 2e-7],
+              "excess": [-0.1, -0.2], "names": ["sphere", "box"], "resolutions": [24, 20],
+              "cells": 1.0}
+    text = module.batch_markdown(result)
+    assert "| sphere alone, 24^3 |" in text and "sum of the 2 alone" in text

@@ -15,7 +15,7 @@ import torch
 import trimesh
 from torch import Tensor, nn
 
-from . import _isosurface, _memory, _mesh_sdf, sdf
+from . import _isosurface, _memory, _mesh_sdf, _vertex_decode, sdf
 from ._checks import (
     check_count,
     check_dtype,
@@ -228,7 +228,7 @@ class MeshAdapter(nn.Module):
             decode_index, decode_weights = _decode_stencil(
                 grid, torch.as_tensor(vertices), torch.as_tensor(flat),
                 [torch.as_tensor(mesh_points), _grid_closest_points(self.surface, flat)],
-                hats=(torch.as_tensor(faces[found.face[inside]]), torch.as_tensor(weights)),
+                (torch.as_tensor(faces[found.face[inside]]), torch.as_tensor(weights)),
             )
             outside = ~grid.contains(torch.as_tensor(vertices), tolerance=1e-4)
             if bool(outside.any()):
@@ -274,9 +274,6 @@ class MeshAdapter(nn.Module):
 
 
 DECODE_ORDERS = (1, 2)
-_DECODE_REGULARISATION = 1e-3
-"""Tikhonov term of the decoding solve, in units of cells^2: where the closest points around a
-vertex are (nearly) coplanar, their normal constraint is dropped instead of amplified."""
 
 
 def _grid_closest_points(surface: ImplicitSurface, flat: np.ndarray) -> Tensor:
@@ -290,8 +287,9 @@ def _grid_closest_points(surface: ImplicitSurface, flat: np.ndarray) -> Tensor:
 
 
 def _decode_stencil(grid: Grid, vertices: Tensor, band_index: Tensor, references: list[Tensor],
-                    hats: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor]:
-    """Decoding weights of the ``4^3`` nodes around each vertex, float64.
+                    triangles: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor]:
+    """Decoding weights of the ``4^3`` nodes around each vertex, float64
+    (:func:`torchsurf._vertex_decode.weights`).
 
     Args:
         grid: the grid.
@@ -299,108 +297,31 @@ def _decode_stencil(grid: Grid, vertices: Tensor, band_index: Tensor, references
         band_index: ``(N,)`` flat indices of the nodes that hold data.
         references: ``(N, 3)`` world points, per band node, that the weights must reproduce
             (``sum_n w_n p_n = v``).
-        hats: the mesh closest point of each band node as its triangle's corners ``(N, 3)``
-            (vertex indices) and barycentric weights ``(N, 3)``. At a vertex whose 64 nodes
-            read at most :data:`_HAT_LIMIT` vertices' hat functions, the weights reproduce each
-            of them (``sum_n w_n hat_j(c_n) = [j = i]``) instead of the first reference (the
-            mesh closest points, which the hats reproduce): the decode of every
-            piecewise-linear function of the mesh, which is what :meth:`MeshAdapter.encode`
-            writes, is then exact at the vertex.
+        triangles: each band node's mesh closest point as its triangle's corners ``(N, 3)``
+            (vertex indices) and barycentric weights ``(N, 3)``: the weights then reproduce
+            the mesh's hat functions where they can (:class:`torchsurf._vertex_decode.Hats`).
 
     Returns:
-        ``index`` ``(V, 64)`` flat node indices and ``weights`` ``(V, 64)``: the trilinear
-        weights plus the least change (Tikhonov-regularised) that makes them sum to 1 and
-        reproduce every reference point set (or hat function) at the vertex; 0 on nodes
+        ``index`` ``(V, 64)`` flat node indices and ``weights`` ``(V, 64)``, 0 on nodes
         outside the band.
     """
     depth, height, width = grid.shape
-    offsets = torch.arange(-1, 3)
-    position = grid.world_to_index(vertices)
-    base = position.floor()
-    fraction = position - base
-    nodes, valid, linear = [], [], []
-    for axis, size in enumerate((width, height, depth)):
-        raw = base[:, axis:axis + 1].long() + offsets
-        nodes.append(raw.clamp(0, size - 1))
-        valid.append((raw >= 0) & (raw < size))
-        t = fraction[:, axis:axis + 1]
-        linear.append(torch.where(offsets == 0, 1 - t, torch.where(offsets == 1, t, 0.0)))
-
-    def combine(x: Tensor, y: Tensor, z: Tensor, op) -> Tensor:  # noqa: ANN001
-        return op(op(z[:, :, None, None], y[:, None, :, None]), x[:, None, None, :]).flatten(1)
-
-    x, y, z = nodes
+    found = _vertex_decode.cells(grid, vertices)
+    x, y, z = found.nodes
     index = ((z[:, :, None, None] * height + y[:, None, :, None]) * width
              + x[:, None, None, :]).flatten(1)
-    inside = combine(*valid, op=torch.logical_and)
-    trilinear = combine(*linear, op=torch.mul)
     row = torch.full((depth * height * width,), -1, dtype=torch.long)
     row[band_index] = torch.arange(len(band_index))
     row = row[index]
-    usable = inside & (row >= 0)
+    usable = found.inside & (row >= 0)
     row = row.clamp(min=0)
-    offsets_world = [(points[row] - vertices[:, None]).permute(0, 2, 1) / grid.spacing
-                     for points in references]
-    target = torch.zeros(len(vertices), 1 + 3 * len(references), dtype=torch.float64)
-    target[:, 0] = 1.0
-    if hats is not None:
-        hat_values, hat_target, covered = _hat_constraints(row, usable, *hats)
-        offsets_world[0] = offsets_world[0] * ~covered[:, None, None]
-        offsets_world.append(_HAT_EMPHASIS * hat_values)
-        target = torch.cat([target, _HAT_EMPHASIS * hat_target], dim=1)
-    constraints = torch.cat([torch.ones_like(trilinear)[:, None], *offsets_world], dim=1)
-    constraints = constraints * usable[:, None]
-    start = trilinear * usable
-    residual = target - (constraints @ start[..., None])[..., 0]
-    normal = constraints @ constraints.transpose(1, 2)
-    normal = normal + _DECODE_REGULARISATION * torch.eye(constraints.shape[1], dtype=torch.float64)
-    correction = constraints.transpose(1, 2) @ torch.linalg.solve(normal, residual[..., None])
-    return index, (start + correction[..., 0]) * usable
-
-
-_HAT_EMPHASIS = 30.0
-"""Scale of the hat-function rows against the regularisation: they hold to about
-``_DECODE_REGULARISATION / _HAT_EMPHASIS^2`` of their residual instead of 1e-3."""
-
-_HAT_LIMIT = 16
-"""Most hat functions a vertex's decoding weights reproduce: more means facets smaller than
-the cells, where the mesh's own interpolation error is below the grid's."""
-
-
-def _hat_constraints(row: Tensor, usable: Tensor, corners: Tensor, barycentric: Tensor
-                     ) -> tuple[Tensor, Tensor, Tensor]:
-    """The hat functions read by each vertex's 64 decoding nodes, as constraints.
-
-    Args:
-        row: ``(V, 64)`` band-node index of each decoding node (any value where not usable).
-        usable: ``(V, 64)`` bool, the nodes that hold data.
-        corners, barycentric: ``(N, 3)`` the triangle corners and barycentric weights of each
-            band node's closest point on the mesh.
-
-    Returns:
-        ``values`` ``(V, L, 64)``: ``hat_j(c_n)`` for the (at most ``L`` = :data:`_HAT_LIMIT`)
-        vertices ``j`` read, in slots; ``target`` ``(V, L)``: 1 in the slot of the vertex
-        itself; ``covered`` ``(V,)`` bool: all the vertices read fit in the slots (elsewhere
-        values and target are 0, and the reference points decide instead).
-    """
-    count, nodes = row.shape
-    own = torch.arange(count)[:, None, None]
-    ids = torch.where(usable[..., None], corners[row], own).flatten(1)  # (V, 64 * 3)
-    weights = (barycentric[row] * usable[..., None]).flatten(1)
-    ordered, order = ids.sort(dim=1)
-    first = torch.ones_like(ordered, dtype=torch.bool)
-    first[:, 1:] = ordered[:, 1:] != ordered[:, :-1]
-    slot = torch.empty_like(order).scatter_(1, order, first.cumsum(1) - 1)
-    mine = torch.where(ids == own[:, :, 0], slot, -1).amax(1)
-    covered = (first.sum(1) <= _HAT_LIMIT) & (mine >= 0)
-    keep = covered[:, None] & (slot < _HAT_LIMIT)
-    node = torch.arange(nodes).repeat_interleave(3)[None].expand(count, -1)
-    values = torch.zeros(count, _HAT_LIMIT * nodes, dtype=torch.float64)
-    values.scatter_add_(1, torch.where(keep, slot * nodes + node, 0),
-                        torch.where(keep, weights, 0.0).to(torch.float64))
-    target = torch.zeros(count, _HAT_LIMIT, dtype=torch.float64)
-    target[covered, mine[covered]] = 1.0
-    return values.reshape(count, _HAT_LIMIT, nodes), target, covered
+    hats = None
+    if triangles is not None:
+        corners, barycentric = triangles
+        hats = _vertex_decode.Hats(corners[row], barycentric[row], torch.arange(len(vertices)))
+    return index, _vertex_decode.weights(found, usable, vertices,
+                                         [points[row] for points in references], grid.spacing,
+                                         hats)
 
 
 def _scatter_to_band(values: Tensor, band_index: Tensor, corners: Tensor, weights: Tensor,

@@ -128,5 +128,3 @@ def test_flows_not_ported_to_bricks_say_so(torus):
         ts.flows.Flow(time=0.01)(u, surface)  # a flow that does not declare supports_bricks
     with pytest.raises(NotImplementedError, match="Flow does not run on a BrickSurface"):
         ts.flows.ColorDenoise(0.01, brightness=ts.flows.Flow(time=0.01))(u, surface)
-    with pytest.raises(NotImplementedError, match="BrickSurface"):
-        ts.flows.HeatFlow(time=0.01, method="chebyshev")(u[:, :1], surface)

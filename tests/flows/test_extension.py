@@ -146,3 +146,25 @@ def test_interpolation_forms_agree(limited):
     eager = _interpolate_gathered(flat, corners, weights, height, width, limited)
     terms = _interpolate_terms(flat, corners, weights, height, width, limited)
     torch.testing.assert_close(terms, eager, rtol=1e-12, atol=1e-12)
+
+
+def test_limited_closest_point_stencil_is_the_same_in_a_scaled_and_moved_frame():
+    """Closest points on faces aligned with the grid lie on node planes: the limiter's cell
+    must not depend on how rounding falls in the frame the shape is given in."""
+    from torchsurf.flows.extension import CubicStencil
+
+    grid = ts.Grid.cube(29, 1.4)
+    scale, shift = 3.7, (0.31, -2.2, 5.0)
+    moved = ts.Grid(grid.shape, scale * grid.spacing,
+                    tuple(scale * o + s for o, s in zip(grid.origin, shift, strict=True)))
+    half, centre = (0.62, 0.47, 0.81), (0.05, -0.1, 0.0)
+    phi = ts.sdf.box(grid, half, centre, dtype=torch.float64)
+    phi_moved = ts.sdf.box(moved, tuple(scale * a for a in half),
+                           tuple(scale * c + s for c, s in zip(centre, shift, strict=True)),
+                           dtype=torch.float64)
+    u = torch.rand(1, 1, *grid.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(7))
+    results = []
+    for surface in (ts.ImplicitSurface(phi, grid), ts.ImplicitSurface(phi_moved, moved)):
+        band = surface.band_mask()
+        results.append(CubicStencil(surface, band, limited=True).apply(u))
+    torch.testing.assert_close(results[1], results[0], rtol=0, atol=1e-12)

@@ -95,6 +95,17 @@ def from_mesh(meshes: MeshLike | Sequence[MeshLike], grids: Grid | Sequence[Grid
         >>> surface.phi.shape[1:]
         torch.Size([1, 8, 8, 8])
     """
+    meshes, grids = mesh_list(meshes, grids)
+    check_choice(sign, "sign", _mesh_sdf.SIGN_METHODS)
+    spacing = grids[0].spacing
+    width = check_positive(3.0 * spacing if band_width is None else band_width, "band_width")
+    surface, _ = signed_bricks(meshes, grids, width, width + EXACT_REACH * spacing, dtype, sign)
+    return surface
+
+
+def mesh_list(meshes: MeshLike | Sequence[MeshLike], grids: Grid | Sequence[Grid]
+              ) -> tuple[list[MeshLike], list[Grid]]:
+    """``meshes`` and ``grids`` as two lists of one entry per mesh; raises unless they pair up."""
     if not isinstance(meshes, (list, tuple)) or _is_array_pair(meshes):
         meshes = [meshes]
     if isinstance(grids, Grid):
@@ -102,25 +113,36 @@ def from_mesh(meshes: MeshLike | Sequence[MeshLike], grids: Grid | Sequence[Grid
     grids = list(grids)
     if len(grids) != len(meshes):
         raise ValueError(f"grids must hold one Grid per mesh ({len(meshes)}), got {len(grids)}")
-    check_choice(sign, "sign", _mesh_sdf.SIGN_METHODS)
+    return list(meshes), grids
+
+
+MeshBand = tuple[np.ndarray, np.ndarray, _mesh_sdf.SignedBand]
+"""A mesh's float64 vertices ``(V, 3)``, int64 faces ``(F, 3)`` and its signed band."""
+
+
+def signed_bricks(meshes: list[MeshLike], grids: list[Grid], band_width: float, reach: float,
+                  dtype: torch.dtype | None, sign: str,
+                  device: torch.device | str | None = None
+                  ) -> tuple[BrickSurface, list[MeshBand]]:
+    """:func:`from_mesh` with exact distances within ``reach`` (at least ``band_width + 3.5 h``),
+    on ``device``, returning each mesh's arrays and signed band too (its nodes' closest points
+    on the mesh)."""
     dtype = check_dtype(dtype)
-    spacing = grids[0].spacing
-    width = check_positive(3.0 * spacing if band_width is None else band_width, "band_width")
-    reach = width + EXACT_REACH * spacing
-    coords, batch, values = [], [], []
+    coords, batch, values, bands = [], [], [], []
     for b, (mesh, grid) in enumerate(zip(meshes, grids, strict=True)):
         vertices, faces = triangle_arrays(as_trimesh(mesh, f"meshes[{b}]"))
         signed = _mesh_sdf.signed_near(vertices, faces, grid, reach, sign)
-        in_band = np.abs(signed.near) <= width
+        in_band = np.abs(signed.near) <= band_width
         check_clear_of_faces(torch.from_numpy(signed.band.nodes[in_band][:, ::-1].copy()), grid, b)
         entry_coords, entry_values = _brick_values(signed, grid, reach)
         coords.append(entry_coords)
         batch.append(np.full(len(entry_coords), b))
         values.append(entry_values)
+        bands.append((vertices, faces, signed))
     layout = BrickLayout(torch.from_numpy(np.concatenate(coords)),
                          torch.from_numpy(np.concatenate(batch)), grids)
-    phi = torch.from_numpy(np.concatenate(values)).to(dtype)[:, None]
-    return BrickSurface(phi, layout, width)
+    phi = torch.from_numpy(np.concatenate(values)).to(dtype=dtype, device=device)[:, None]
+    return BrickSurface(phi, layout, band_width), bands
 
 
 def check_clear_of_faces(band_nodes: Tensor, grid: Grid, entry: int) -> None:

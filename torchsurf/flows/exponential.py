@@ -35,40 +35,49 @@ from ..operators.spectrum import laplace_beltrami_bound
 from ..surface import ImplicitSurface
 from . import chebyshev
 from ._integrators import with_ring
-from .extension import CubicStencil
+from .extension import BrickCubicStencil, CubicStencil, cubic_stencil
 
 BOUND_MARGIN = 1.1
 """The expansion's interval is ``[-BOUND_MARGIN rho, 0]``: the re-extended ring makes ``L``
 slightly non-normal, and the cost of the margin is ``sqrt(1.1)``, 5% more terms."""
 
-_STENCILS: weakref.WeakKeyDictionary[ImplicitSurface, dict[tuple[float, str], CubicStencil]] = (
+Stencil = CubicStencil | BrickCubicStencil
+
+_STENCILS: weakref.WeakKeyDictionary[ImplicitSurface, dict[tuple[float, str], Stencil]] = (
     weakref.WeakKeyDictionary()
 )
 
 
 def _linear_stencil(surface: ImplicitSurface, width: float, kind: str, mask: Tensor
-                    ) -> CubicStencil:
+                    ) -> Stencil:
     """The linear closest-point stencil of ``mask`` (``kind`` names it: ``"ring"`` or
-    ``"region"``), kept while the surface lives unless ``phi`` requires grad."""
+    ``"region"``) for the surface's storage, kept while the surface lives unless ``phi``
+    requires grad."""
     if surface.phi.requires_grad:
-        return CubicStencil(surface, mask, limited=False)
+        return cubic_stencil(surface, mask, limited=False)
     cached = _STENCILS.setdefault(surface, {})
     if (width, kind) not in cached:
-        cached[(width, kind)] = CubicStencil(surface, mask, limited=False)
+        cached[(width, kind)] = cubic_stencil(surface, mask, limited=False)
     return cached[(width, kind)]
 
 
 class BandLaplacian:
     """``L`` of the module docstring on one surface: ``apply``, ``transpose`` and its bound.
 
+    On a :class:`~torchsurf.bricks.BrickSurface` every field is packed ``(N, C, 8, 8, 8)``:
+    ``A`` reads the haloed bricks, ``E`` and ``E^T`` are the :class:`BrickCubicStencil`'s, and
+    a batch of several entries shares one bound (the largest entry's: each entry's result is
+    its own ``exp(t L)`` to the expansion's tolerance).
+
     Args:
-        surface: the implicit surface (batch 1 or B).
+        surface: the implicit surface (batch 1 or B), or a brick surface.
         scheme: ``"octant"`` (default), ``"symmetric"`` or ``"conservative"``.
         band_width: half-width of the band, world units (default ``surface.band_width``).
         path: how the stencils run (:mod:`torchsurf.backend`).
 
     Attributes:
-        band: ``(B or 1, 1, D, H, W)`` bool, the nodes that evolve.
+        band: ``(B or 1, 1, D, H, W)`` (or packed ``(N, 1, 8, 8, 8)``) bool, the nodes that
+            evolve.
         region: the band and its ring (the nodes the result is written to).
         ring, extension: the closest-point stencils of the ring and of the whole region.
         bound: ``BOUND_MARGIN`` times the Gershgorin bound of ``Lap_S`` on the band,
@@ -81,16 +90,10 @@ class BandLaplacian:
             raise ValueError(
                 f"scheme must be one of {functional.SCHEMES} (the divergence forms), got {scheme!r}"
             )
-        if surface.layout is not None:
-            raise NotImplementedError(
-                "the Chebyshev heat semigroup (HeatFlow(method='chebyshev'), LearnedDiffusion) "
-                "does not run on a BrickSurface yet; use the dense ImplicitSurface "
-                "(docs/bricks.md)"
-            )
         width = surface.band_width if band_width is None else float(band_width)
         self.surface, self.scheme, self.path = surface, scheme, path
         self.band = surface.band_mask(width)
-        self.region = with_ring(self.band)
+        self.region = with_ring(self.band, surface.layout)
         self.ring = _linear_stencil(surface, width, "ring", self.region & ~self.band)
         self.extension = _linear_stencil(surface, width, "region", self.region)
         self.bound = BOUND_MARGIN * laplace_beltrami_bound(surface, scheme, width)
@@ -106,6 +109,7 @@ class BandLaplacian:
         return functional.divergence_form(
             x, surface.normal, surface.weight, surface.spacing, self.scheme, self.path,
             weighted=True, haloed=surface.haloed(),
+            pad=None if surface.layout is None else surface.layout.halo,
         )
 
     def apply(self, x: Tensor) -> Tensor:

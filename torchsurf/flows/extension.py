@@ -10,7 +10,8 @@ Two ways:
   CFL number 1/2 until the largest change per step falls below ``tolerance`` (the paper's §2).
   Information flows outwards from S, so nodes where ``phi = 0`` are not changed at all.
 
-Both update only the band ``|phi| <= width`` and keep ``u`` elsewhere.
+Both update only the band ``|phi| <= width`` and keep ``u`` elsewhere. Both run on a
+:class:`~torchsurf.bricks.BrickSurface` (packed fields), with the dense results' values.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from torch import Tensor, nn
 
 from .. import backend, stencils
 from .._checks import check_choice, check_positive
-from ..bricks.layout import BRICK
+from ..bricks.layout import BRICK, BrickLayout
 from ..surface import ImplicitSurface, check_data
 
 METHODS = ("closest_point", "pde")
@@ -39,25 +40,28 @@ def closest_point_extension(
     """``u(x - phi grad phi / |grad phi|^2)`` inside the band, interpolated from the grid.
 
     Args:
-        u: ``(B, C, D, H, W)``; ``surface`` has batch 1 or B.
+        u: ``(B, C, D, H, W)``; ``surface`` has batch 1 or B. On a
+            :class:`~torchsurf.bricks.BrickSurface`, a packed field ``(N, C, 8, 8, 8)``.
         surface: the implicit surface.
         width: half-width of the band to extend in, world units (default the surface's).
         interpolation: ``"linear"`` (trilinear, error ``O(h^2)``: repeated every few steps
             of a flow, it smooths the data and costs second-order flows their accuracy) or
             ``"cubic"`` (tricubic Lagrange on the 4^3 nodes around each point, error
             ``O(h^4)``, evaluated at band nodes only).
-        mask: bool ``(B or 1, 1, D, H, W)``: the nodes to extend to, instead of the band of
-            ``width``.
+        mask: bool ``(B or 1, 1, D, H, W)`` (packed ``(N, 1, 8, 8, 8)`` on bricks): the nodes
+            to extend to, instead of the band of ``width``.
 
     Returns:
-        ``(B, C, D, H, W)``.
+        ``(B, C, D, H, W)`` (packed ``(N, C, 8, 8, 8)`` on bricks: the dense result's values).
     """
     check_data(u, "u", surface)
     check_choice(interpolation, "interpolation", INTERPOLATIONS)
-    grid = surface.grid
     band = surface.band_mask(width) if mask is None else mask
     if interpolation == "cubic":
-        return CubicStencil(surface, band).apply(u)
+        return cubic_stencil(surface, band).apply(u)
+    if surface.layout is not None:
+        return _brick_linear_extension(u, surface, band)
+    grid = surface.grid
     closest = _closest_points(surface, u.dtype)
     batch = max(u.shape[0], closest.shape[0])
     sampled = F.grid_sample(
@@ -80,6 +84,22 @@ def _cubic_weights(t: Tensor) -> list[Tensor]:
     ]
 
 
+TIE_EPS = 64
+"""A fractional index within ``TIE_EPS`` units of rounding (relative to its size) below a node
+plane counts as on it (:func:`_cell`)."""
+
+
+def _cell(at: Tensor) -> Tensor:
+    """The first node of the cell that holds each fractional index ``at``, a point within
+    rounding below a node plane taken as on it. A closest point on a face aligned with the grid
+    lies on a node plane exactly; rounding would put it in either cell, and the limiter's range
+    (that cell's 8 nodes) with it: the snap makes the choice the same in any frame (a shape
+    scaled and moved with its grid)."""
+    at = at.detach()
+    slack = TIE_EPS * torch.finfo(at.dtype).eps * (1.0 + at.abs())
+    return (at + slack).floor()
+
+
 def _cubic_stencil(index: Tensor, mask: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """The tricubic interpolation of one volume at ``index``, for the nodes of ``mask``.
 
@@ -98,7 +118,7 @@ def _cubic_stencil(index: Tensor, mask: Tensor) -> tuple[Tensor, Tensor, Tensor]
     depth, height, width = mask.shape
     targets = mask.reshape(-1).nonzero().squeeze(1)
     at = index.reshape(-1, 3)[targets]
-    base = at.detach().floor()
+    base = _cell(at)
     offsets = torch.arange(-1, 3, device=at.device)
     corners = torch.stack([
         (base[:, axis: axis + 1].long() + offsets).clamp(0, size - 1)
@@ -252,17 +272,22 @@ def _corner_base(bases: list[Tensor], second: tuple[Tensor, Tensor, Tensor], k: 
     return torch.where(x[:, i], pair[1], pair[0])
 
 
-def _brick_gathered(flat: Tensor, bases: Tensor, second: Tensor, local: Tensor, weights: Tensor,
-                    limited: bool, *, path: str = "slicing") -> Tensor:
-    """Bricks' :func:`_interpolate_gathered`: one gather of ``(C, M, 64)``."""
+def _brick_sources(bases: Tensor, second: Tensor, local: Tensor) -> Tensor:
+    """The packed index of each of the 64 taps of each node, ``(M, 64)`` in the order of
+    ``_CELL``, from a :class:`BrickCubicStencil`'s ``bases``, ``second`` and ``local``."""
     corners = [b.long() for b in bases.unbind(0)]
     bits = second.unbind(0)
     zl, yl, xl = local.long().unbind(0)
-    sources = torch.stack([
+    return torch.stack([
         _corner_base(corners, bits, k, j, i) + zl[:, k] + yl[:, j] + xl[:, i]
         for k in range(4) for j in range(4) for i in range(4)
     ], dim=1)
-    return _gathered_sum(flat, sources, weights, limited)
+
+
+def _brick_gathered(flat: Tensor, bases: Tensor, second: Tensor, local: Tensor, weights: Tensor,
+                    limited: bool, *, path: str = "slicing") -> Tensor:
+    """Bricks' :func:`_interpolate_gathered`: one gather of ``(C, M, 64)``."""
+    return _gathered_sum(flat, _brick_sources(bases, second, local), weights, limited)
 
 
 def _brick_terms(flat: Tensor, bases: Tensor, second: Tensor, local: Tensor, weights: Tensor,
@@ -325,26 +350,12 @@ class BrickCubicStencil:
         those nodes only."""
         layout = surface.layout
         device, dtype = surface.phi.device, surface.phi.dtype
-        row = targets // BRICK**3
-        batch = layout.batch.to(device)[row]
-        inside = targets % BRICK**3
-        local_index = torch.stack([inside // (BRICK * BRICK), (inside // BRICK) % BRICK,
-                                   inside % BRICK], dim=1)
-        index = (layout.coords.to(device)[row] * BRICK + local_index).flip(1).to(dtype)
-        # world points first, as the dense stencil computes them: the same rounding of the
-        # closest points, so that the limiter picks the same cell
+        world, batch = _brick_closest_points(surface, targets)
         origins = torch.tensor([g.origin for g in layout.grids], dtype=dtype, device=device)
-        points = origins[batch] + surface.spacing * index
-        def at_targets(field: Tensor) -> Tensor:
-            return field.reshape(field.shape[0], field.shape[1], -1)[row, :, inside]
-
-        normal = at_targets(surface.normal)
-        distance = at_targets(surface.phi)[:, 0] / at_targets(surface.weight)[:, 0]
-        world = points - distance[:, None] * normal
         at = (world - origins[batch]) / surface.spacing
         shapes = torch.tensor([g.shape[::-1] for g in layout.grids], device=device)[batch]
         extent_z, extent_y, extent_x = layout.extent
-        base = at.detach().floor()
+        base = _cell(at)
         offsets = torch.arange(-1, 3, device=device)
         x, y, z = ((base[:, axis: axis + 1].long() + offsets).clamp(
             torch.zeros_like(shapes[:, axis: axis + 1]), shapes[:, axis: axis + 1] - 1)
@@ -379,6 +390,70 @@ class BrickCubicStencil:
         result = flat.index_copy(1, self.targets, value)
         return result.view(channels, *u.shape[:1], *u.shape[2:]).transpose(0, 1)
 
+    def transpose(self, v: Tensor) -> Tensor:
+        """The transpose of :meth:`apply` (``limited=False`` only, where it is linear), as
+        :meth:`CubicStencil.transpose`: ``v`` ``(N, C, 8, 8, 8)`` with each masked node's value
+        zeroed and scattered back, with its 64 tricubic weights, to the nodes :meth:`apply`
+        reads it from; a new tensor. Scattered :data:`STENCIL_CHUNK` nodes at a time."""
+        if self.limited:
+            raise ValueError("BrickCubicStencil.transpose: a limited stencil is not linear")
+        channels = v.shape[1]
+        flat = v.transpose(0, 1).reshape(channels, -1)
+        result = flat.index_fill(1, self.targets, 0.0)
+        weights = self.weights.to(v.dtype)
+        for start in range(0, len(self.targets), STENCIL_CHUNK):
+            part = slice(start, start + STENCIL_CHUNK)
+            sources = _brick_sources(self.bases[:, part], self.second[:, part],
+                                     self.local[:, part])
+            wx, wy, wz = weights[:, part].unbind(0)
+            taps = (wz[:, :, None, None] * wy[:, None, :, None] * wx[:, None, None, :]).flatten(1)
+            moved = flat[:, self.targets[part], None] * taps
+            result = result.index_add(1, sources.flatten(), moved.flatten(1))
+        return result.view(channels, *v.shape[:1], *v.shape[2:]).transpose(0, 1)
+
+
+def _brick_closest_points(surface: ImplicitSurface, targets: Tensor) -> tuple[Tensor, Tensor]:
+    """``x - (phi / W) n`` at the packed node indices ``targets`` ``(M,)`` of a brick surface:
+    world ``(M, 3)`` and each node's batch entry ``(M,)``.
+
+    World points first, as the dense closest points are computed: the same rounding, so that
+    the limiter of a stencil picks the same cell."""
+    layout = surface.layout
+    device, dtype = surface.phi.device, surface.phi.dtype
+    row = targets // BRICK**3
+    batch = layout.batch.to(device)[row]
+    inside = targets % BRICK**3
+    local_index = torch.stack([inside // (BRICK * BRICK), (inside // BRICK) % BRICK,
+                               inside % BRICK], dim=1)
+    index = (layout.coords.to(device)[row] * BRICK + local_index).flip(1).to(dtype)
+    origins = torch.tensor([g.origin for g in layout.grids], dtype=dtype, device=device)
+    points = origins[batch] + surface.spacing * index
+
+    def at_targets(field: Tensor) -> Tensor:
+        return field.reshape(field.shape[0], field.shape[1], -1)[row, :, inside]
+
+    normal = at_targets(surface.normal)
+    distance = at_targets(surface.phi)[:, 0] / at_targets(surface.weight)[:, 0]
+    return points - distance[:, None] * normal, batch
+
+
+def _brick_linear_extension(u: Tensor, surface: ImplicitSurface, mask: Tensor) -> Tensor:
+    """The trilinear closest-point extension of a packed ``u`` ``(N, C, 8, 8, 8)`` at the
+    nodes of ``mask`` (:meth:`~torchsurf.bricks.BrickSurface.sample` at their closest points,
+    entry by entry)."""
+    targets = mask.reshape(-1).nonzero().squeeze(1)
+    points, batch = _brick_closest_points(surface, targets)
+    channels = u.shape[1]
+    flat = u.transpose(0, 1).reshape(channels, -1)
+    value = flat.new_zeros((channels, len(targets)))
+    for entry in range(surface.batch_size):
+        selected = (batch == entry).nonzero().squeeze(1)
+        if len(selected):
+            value = value.index_copy(1, selected,
+                                     surface.sample(u, points[selected].to(u.dtype), entry))
+    result = flat.index_copy(1, targets, value)
+    return result.view(channels, *u.shape[:1], *u.shape[2:]).transpose(0, 1)
+
 
 def cubic_stencil(surface: ImplicitSurface, mask: Tensor, limited: bool = False
                   ) -> CubicStencil | BrickCubicStencil:
@@ -395,15 +470,29 @@ def _closest_points(surface: ImplicitSurface, dtype: torch.dtype) -> Tensor:
     return points - step.permute(0, 2, 3, 4, 1)
 
 
-def _upwind_step(u: Tensor, velocity: Tensor, spacing: float, cfl: float) -> Tensor:
-    """One upwind step of ``u_t + velocity . grad u = 0``; ``velocity`` ``(B or 1, 3, D, H, W)``."""
-    padded = stencils.pad(u, "replicate")
+def _upwind_step(u: Tensor, velocity: Tensor, spacing: float, cfl: float,
+                 layout: BrickLayout | None) -> Tensor:
+    """One upwind step of ``u_t + velocity . grad u = 0``; ``velocity`` ``(B or 1, 3, D, H, W)``
+    (packed ``(N, 3, 8, 8, 8)`` with ``layout``)."""
+    padded = stencils.pad(u, "replicate") if layout is None else layout.halo(u, 1)
     forward = stencils.apply(padded, stencils.FORWARD) / spacing
     backward = stencils.apply(padded, stencils.BACKWARD) / spacing
     c = velocity[:, None]
     derivative = torch.where(c > 0, backward, forward)
     dt = cfl * spacing / 3.0
     return u - dt * (c * derivative).sum(dim=2)
+
+
+def _volume_max(x: Tensor, layout: BrickLayout | None) -> Tensor:
+    """The largest value of each volume and channel of ``x``, shaped to broadcast over it:
+    ``(B, C, 1, 1, 1)``; with ``layout``, each brick gets its batch entry's, ``(N, C, 1, 1, 1)``."""
+    if layout is None:
+        return x.amax(dim=(2, 3, 4), keepdim=True)
+    per_brick = x.amax(dim=(2, 3, 4))
+    batch = layout.batch.to(x.device)
+    per_entry = per_brick.new_full((layout.batch_size, x.shape[1]), -torch.inf).scatter_reduce(
+        0, batch[:, None].expand_as(per_brick), per_brick, "amax")
+    return per_entry[batch][..., None, None, None]
 
 
 def pde_extension(
@@ -420,15 +509,19 @@ def pde_extension(
     when the largest change of a step is at most ``tolerance`` times its largest ``|u|``; the
     loop ends when all have, or after ``max_steps`` (default: enough to cross the band twice).
 
+    On a :class:`~torchsurf.bricks.BrickSurface` each batch entry and channel stops on its own
+    too, its largest ``|u|`` taken over its stored nodes (equal to the dense result wherever the
+    largest ``|u|`` of the volume lies in the stored bricks, as data on S does).
+
     Args:
-        u: ``(B, C, D, H, W)``.
+        u: ``(B, C, D, H, W)``, or packed ``(N, C, 8, 8, 8)`` on bricks.
         surface: the implicit surface.
         width: half-width of the band, world units (default the surface's).
         tolerance: relative change per step at which to stop.
         max_steps: upper bound on the steps.
 
     Returns:
-        ``(B, C, D, H, W)``.
+        ``u``'s shape.
     """
     check_data(u, "u", surface)
     check_positive(tolerance, "tolerance")
@@ -439,13 +532,16 @@ def pde_extension(
     band = surface.band_mask(width)
     sign = surface.phi / torch.sqrt(surface.phi**2 + h**2)
     velocity = sign * surface.normal
+    layout = surface.layout
     # each volume and channel stops on its own, so that its result does not depend on its batch
-    volume = (2, 3, 4)
-    scale = u.detach().abs().amax(dim=volume, keepdim=True).clamp(min=torch.finfo(u.dtype).tiny)
+    size = u.detach().abs()
+    if layout is not None:
+        size = torch.where(layout.inside, size, 0.0)
+    scale = _volume_max(size, layout).clamp(min=torch.finfo(u.dtype).tiny)
     active = torch.ones_like(scale, dtype=torch.bool)
     for _ in range(max_steps):
-        updated = torch.where(band & active, _upwind_step(u, velocity, h, cfl=0.5), u)
-        change = (updated - u).detach().abs().amax(dim=volume, keepdim=True)
+        updated = torch.where(band & active, _upwind_step(u, velocity, h, 0.5, layout), u)
+        change = _volume_max((updated - u).detach().abs(), layout)
         u = updated
         active = active & (change > tolerance * scale)
         if not bool(active.any()):
@@ -464,7 +560,8 @@ class Extension(nn.Module):
         interpolation: ``"closest_point"`` only: ``"linear"`` (default) or ``"cubic"`` (see
             :func:`closest_point_extension`).
 
-    Shapes: ``(B, C, D, H, W) -> (B, C, D, H, W)``.
+    Shapes: ``(B, C, D, H, W) -> (B, C, D, H, W)``; on a
+    :class:`~torchsurf.bricks.BrickSurface`, packed ``(N, C, 8, 8, 8) -> (N, C, 8, 8, 8)``.
     """
 
     def __init__(

@@ -131,11 +131,6 @@ class HeatFlow(Flow):
                 f"scheme={self.scheme!r}"
             )
         check_surface(surface)
-        if surface.layout is not None:
-            raise NotImplementedError(
-                "method='chebyshev' does not run on a BrickSurface yet: use method='rkc' (or "
-                "the other built-in methods) there, or the dense ImplicitSurface (docs/bricks.md)"
-            )
         check_data(u0, "u0", surface)
         operator = BandLaplacian(surface, self.scheme, self.band_width, self.path)
         if not torch.compiler.is_compiling():  # a host read: it would break a compiled graph

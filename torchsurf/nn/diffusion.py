@@ -54,7 +54,8 @@ class LearnedDiffusion(nn.Module):
             (:func:`torchsurf.laplace_beltrami`).
         path: how the stencils run (:mod:`torchsurf.backend`).
 
-    Shapes: ``u`` ``(B, C, D, H, W)`` on a surface of batch 1 or ``B`` -> ``(B, C, D, H, W)``.
+    Shapes: ``u`` ``(B, C, D, H, W)`` on a surface of batch 1 or ``B`` -> ``(B, C, D, H, W)``;
+    on a :class:`~torchsurf.bricks.BrickSurface`, packed ``(N, C, 8, 8, 8)`` -> the same.
 
     Example:
         >>> import torch

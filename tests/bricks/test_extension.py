@@ -1,0 +1,77 @@
+"""Extension on bricks: every method equals the dense extension on the band; batches; gradients."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+import torchsurf as ts
+from torchsurf import bricks
+from torchsurf.flows import Extension, closest_point_extension, pde_extension
+
+
+def _data(grid, channels=2, seed=0):
+    """Data that varies along the normals (so that extending changes it), scaled so that its
+    largest value lies near S (the pde method's stopping scale)."""
+    points = grid.points(dtype=torch.float64)
+    radius = points.norm(dim=-1)
+    u = torch.stack([torch.sin(3 * points[..., c]) * torch.exp(-(radius - 1.0) ** 2)
+                     for c in range(channels)])
+    return u[None]
+
+
+@pytest.mark.parametrize("settings", [
+    {"method": "closest_point"},
+    {"method": "closest_point", "interpolation": "cubic"},
+    {"method": "pde"},
+    {"method": "pde", "width": 0.2, "tolerance": 1e-4},
+])
+def test_extension_equals_the_dense_extension_on_the_band(torus, settings):
+    dense, surface = torus
+    u = _data(dense.grid)
+    extension = Extension(**settings)
+    expected = extension(u, dense)
+    (result,) = surface.to_dense(extension(surface.from_dense(u), surface))
+    band = dense.band_mask(settings.get("width"))
+    assert not torch.allclose(expected * band, u * band)  # it did extend
+    assert torch.allclose(result * band, expected * band, atol=1e-12, rtol=0)
+
+
+def test_extension_of_a_batch_equals_each_entry_alone(two_boxes):
+    sphere, torus, both = two_boxes
+    u = torch.randn(len(both.layout), 2, 8, 8, 8, dtype=torch.float64,
+                    generator=torch.Generator().manual_seed(1))
+    count = len(sphere.layout)
+    band = both.band_mask()
+    for function in (closest_point_extension, pde_extension):
+        together = function(u, both)
+        alone = torch.cat([function(u[:count], sphere), function(u[count:], torus)])
+        assert torch.allclose(together * band, alone * band, atol=1e-13, rtol=0), function
+    mask = both.band_mask(0.15)
+    together = closest_point_extension(u, both, interpolation="cubic", mask=mask)
+    assert torch.equal(together[~mask.expand_as(u)], u[~mask.expand_as(u)])
+
+
+def test_gradcheck_linear_closest_point_extension_on_bricks_in_data_and_phi():
+    grid = ts.Grid.cube(21, 2.0)
+    reference = bricks.from_dense(ts.sdf.sphere(grid, 1.0).double(), grid)
+    band = reference.band_mask()
+    picked = band.flatten().nonzero().flatten()[::61]
+    u = torch.randn(len(reference.layout), 1, 8, 8, 8, dtype=torch.float64,
+                    generator=torch.Generator().manual_seed(2), requires_grad=True)
+    assert torch.autograd.gradcheck(
+        lambda x: closest_point_extension(x, reference).flatten()[picked], (u,), fast_mode=True)
+    base = reference.phi.detach()
+
+    def in_phi(scale):
+        surface = bricks.BrickSurface(base * scale, reference.layout, reference.band_width)
+        return closest_point_extension(u.detach(), surface).flatten()[picked]
+
+    scale = torch.ones((), dtype=torch.float64).add(0.05).requires_grad_()
+    assert torch.autograd.gradcheck(in_phi, (scale,))
+
+
+def test_packed_data_is_required_on_bricks(torus):
+    dense, surface = torus
+    with pytest.raises(ValueError, match=r"u must be a packed band field"):
+        Extension()(torch.zeros(1, 1, *dense.grid.shape, dtype=torch.float64), surface)

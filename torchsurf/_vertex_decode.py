@@ -1,0 +1,152 @@
+"""Decoding weights at mesh vertices (``MeshAdapter(order=2)``), for any storage of the band.
+
+Around each vertex, the ``4^3`` nodes of the cells next to it carry the trilinear weights of the
+vertex (on the inner ``2^3``, zero on the outer ring), corrected by least change so that the
+weights sum to 1 and reproduce the vertex from the closest points the band nodes stand for
+(:class:`torchsurf.mesh.MeshAdapter` says why). The dense adapter and the bricks' one
+(:class:`torchsurf.bricks.BrickMeshAdapter`) differ only in where a node's value is stored.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from .grid import Grid
+
+REGULARISATION = 1e-3
+"""Tikhonov term of the decoding solve, in units of cells^2: where the closest points around a
+vertex are (nearly) coplanar, their normal constraint is dropped instead of amplified."""
+
+
+@dataclass(frozen=True)
+class Cells:
+    """The ``4^3`` nodes around each of ``V`` vertices, taps in ``(z, y, x)`` order.
+
+    Attributes:
+        nodes: ``(x, y, z)``, each ``(V, 4)`` int64 node indices along that axis, clamped to
+            the box.
+        inside: ``(V, 64)`` bool, the tap's node lies in the box (before clamping).
+        trilinear: ``(V, 64)`` float64 trilinear weights of the vertex (0 on the outer ring).
+    """
+
+    nodes: tuple[Tensor, Tensor, Tensor]
+    inside: Tensor
+    trilinear: Tensor
+
+
+def _combine(x: Tensor, y: Tensor, z: Tensor, op) -> Tensor:  # noqa: ANN001
+    return op(op(z[:, :, None, None], y[:, None, :, None]), x[:, None, None, :]).flatten(1)
+
+
+def cells(grid: Grid, vertices: Tensor) -> Cells:
+    """The :class:`Cells` of float64 world ``vertices`` ``(V, 3)`` on ``grid``."""
+    depth, height, width = grid.shape
+    offsets = torch.arange(-1, 3)
+    position = grid.world_to_index(vertices)
+    base = position.floor()
+    fraction = position - base
+    nodes, valid, linear = [], [], []
+    for axis, size in enumerate((width, height, depth)):
+        raw = base[:, axis:axis + 1].long() + offsets
+        nodes.append(raw.clamp(0, size - 1))
+        valid.append((raw >= 0) & (raw < size))
+        t = fraction[:, axis:axis + 1]
+        linear.append(torch.where(offsets == 0, 1 - t, torch.where(offsets == 1, t, 0.0)))
+    return Cells(tuple(nodes), _combine(*valid, op=torch.logical_and),
+                 _combine(*linear, op=torch.mul))
+
+
+HAT_EMPHASIS = 30.0
+"""Scale of the hat-function rows against the regularisation: they hold to about
+``REGULARISATION / HAT_EMPHASIS^2`` of their residual (measured round trip 4e-6, against 1e-3
+unscaled)."""
+
+HAT_LIMIT = 16
+"""Most hat functions a vertex's weights reproduce: more means facets smaller than the cells,
+where the mesh's own interpolation error is below the grid's and affine reproduction suffices."""
+
+
+@dataclass(frozen=True)
+class Hats:
+    """The mesh closest point of each tap's node, as a triangle: what the hat functions need.
+
+    Attributes:
+        corners: ``(V, 64, 3)`` int64 vertex indices of the triangle (anything where the tap is
+            not usable), numbered as ``own``.
+        barycentric: ``(V, 64, 3)`` float64 barycentric weights of the closest point.
+        own: ``(V,)`` int64 index of each vertex, in the same numbering.
+    """
+
+    corners: Tensor
+    barycentric: Tensor
+    own: Tensor
+
+
+def _hat_constraints(usable: Tensor, hats: Hats) -> tuple[Tensor, Tensor, Tensor]:
+    """The hat functions read by each vertex's 64 taps, as constraint rows.
+
+    Returns ``values`` ``(V, L, 64)``: ``hat_j(c_n)`` for the (at most ``L`` = :data:`HAT_LIMIT`)
+    vertices ``j`` read, one slot each; ``target`` ``(V, L)``: 1 in the vertex's own slot; and
+    ``covered`` ``(V,)`` bool: every vertex read has a slot, the vertex itself among them
+    (elsewhere values and target are 0 and the reference points decide alone).
+    """
+    count, taps = usable.shape
+    own = hats.own[:, None, None]
+    ids = torch.where(usable[..., None], hats.corners, own).flatten(1)  # (V, 64 * 3)
+    weights = (hats.barycentric * usable[..., None]).flatten(1)
+    ordered, order = ids.sort(dim=1)
+    first = torch.ones_like(ordered, dtype=torch.bool)
+    first[:, 1:] = ordered[:, 1:] != ordered[:, :-1]
+    slot = torch.empty_like(order).scatter_(1, order, first.cumsum(1) - 1)
+    mine = torch.where(ids == own[:, :, 0], slot, -1).amax(1)
+    covered = (first.sum(1) <= HAT_LIMIT) & (mine >= 0)
+    keep = covered[:, None] & (slot < HAT_LIMIT)
+    tap = torch.arange(taps).repeat_interleave(3)[None].expand(count, -1)
+    values = torch.zeros(count, HAT_LIMIT * taps, dtype=torch.float64)
+    values.scatter_add_(1, torch.where(keep, slot * taps + tap, 0),
+                        torch.where(keep, weights, 0.0).to(torch.float64))
+    target = torch.zeros(count, HAT_LIMIT, dtype=torch.float64)
+    target[covered, mine[covered]] = 1.0
+    return values.reshape(count, HAT_LIMIT, taps), target, covered
+
+
+def weights(found: Cells, usable: Tensor, vertices: Tensor, references: list[Tensor],
+            spacing: float, hats: Hats | None = None) -> Tensor:
+    """Decoding weights ``(V, 64)``, float64: the trilinear weights plus the least change
+    (Tikhonov-regularised) that makes them sum to 1 and reproduce the vertex from each set of
+    reference points; 0 on taps that are not ``usable``.
+
+    Args:
+        found: the vertices' :class:`Cells`.
+        usable: ``(V, 64)`` bool, the tap's node is in the box and holds data.
+        vertices: ``(V, 3)`` float64 world.
+        references: per set, ``(V, 64, 3)`` float64 world points at the taps' nodes (anything
+            where not ``usable``) that the weights must reproduce (``sum_n w_n p_n = v``).
+        spacing: the grid's spacing, world units.
+        hats: the taps' mesh closest points as triangles. At a vertex whose taps read at most
+            :data:`HAT_LIMIT` vertices, the weights reproduce each of their hat functions
+            (``sum_n w_n hat_j(c_n) = [j = i]``) in place of the first reference set (the mesh
+            closest points, which the hats reproduce): the decode of every piecewise-linear
+            function of the mesh, what the adapters' ``encode`` writes, is then exact there.
+    """
+    offsets_world = [(points - vertices[:, None]).permute(0, 2, 1) / spacing
+                     for points in references]
+    target = torch.zeros(len(vertices), 1 + 3 * len(references), dtype=torch.float64)
+    target[:, 0] = 1.0
+    if hats is not None:
+        hat_values, hat_target, covered = _hat_constraints(usable, hats)
+        offsets_world[0] = offsets_world[0] * ~covered[:, None, None]
+        offsets_world.append(HAT_EMPHASIS * hat_values)
+        target = torch.cat([target, HAT_EMPHASIS * hat_target], dim=1)
+    trilinear = found.trilinear
+    constraints = torch.cat([torch.ones_like(trilinear)[:, None], *offsets_world], dim=1)
+    constraints = constraints * usable[:, None]
+    start = trilinear * usable
+    residual = target - (constraints @ start[..., None])[..., 0]
+    normal = constraints @ constraints.transpose(1, 2)
+    normal = normal + REGULARISATION * torch.eye(constraints.shape[1], dtype=torch.float64)
+    correction = constraints.transpose(1, 2) @ torch.linalg.solve(normal, residual[..., None])
+    return (start + correction[..., 0]) * usable
