@@ -84,7 +84,13 @@ def check_volume(value: object, name: str, channels: int | None = None) -> Tenso
 
 
 def check_finite(value: Tensor, name: str) -> Tensor:
-    """Raise ``ValueError`` naming ``name`` if ``value`` holds NaN or infinity."""
+    """Raise ``ValueError`` naming ``name`` if ``value`` holds NaN or infinity.
+
+    Not checked while ``torch.compile`` traces: the check reads the data on the host, which
+    would break the graph (a traced flow then returns NaN where the eager one raises).
+    """
+    if torch.compiler.is_compiling():
+        return value
     if not bool(torch.isfinite(value).all()):
         raise ValueError(f"{name} must hold finite values only, found NaN or infinity")
     return value

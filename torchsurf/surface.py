@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import TypeVar
+
 import torch
 from torch import Tensor, nn
 
@@ -14,6 +17,8 @@ from ._checks import (
     check_volume,
 )
 from .grid import Grid
+
+T = TypeVar("T")
 
 WEIGHT_FLOOR = 0.5
 """The operators' weight ``W`` is never below this fraction of ``gradient_scale``."""
@@ -127,6 +132,24 @@ class ImplicitSurface(nn.Module):
         self.register_buffer("_mean_curvature", None, persistent=False)
         self.register_buffer("_haloed_normal", None, persistent=False)
         self.register_buffer("_haloed_weight", None, persistent=False)
+        self._kept: dict[tuple, object] = {}
+
+    def kept(self, key: tuple, compute: Callable[[], T]) -> T:
+        """``compute()``, computed on the first call with ``key`` and kept on this surface.
+
+        What flows and layers derive from a surface once (the band's spectral bound, its
+        closest-point stencils). Kept on the surface, not in a module-level table keyed by
+        surfaces: ``torch.compile`` then guards on an attribute of its input, where it would
+        guard on the position of the surface among a table's weak keys, which moves when
+        another surface is collected (the guard then fails to build).
+        """
+        if key not in self._kept:
+            self._kept[key] = compute()
+        return self._kept[key]
+
+    def is_kept(self, key: tuple) -> bool:
+        """Whether :meth:`kept` holds a value for ``key``."""
+        return key in self._kept
 
     def _pad(self, volume: Tensor, mode: str) -> Tensor:
         """``volume`` with a halo of one node (``mode`` at the box's faces)."""

@@ -10,7 +10,7 @@ import torch
 import torchsurf as ts
 from torchsurf.flows import chebyshev
 from torchsurf.flows.exponential import BandLaplacian, heat_semigroup
-from torchsurf.nn import LearnedDiffusion
+from torchsurf.nn import DiffusionBlock, LearnedDiffusion
 from torchsurf.sampling import sample
 
 
@@ -245,16 +245,51 @@ def test_bad_arguments_are_named(sphere33):
         diverged(u0, surface)
 
 
-def test_compile_breaks_only_at_the_term_count():
-    """``torch._dynamo.explain``: the one break is the host-read number of terms (reported once
-    per enclosing frame); the operators, the stencils and the expansion trace."""
+def _break_reasons(layer: torch.nn.Module, grad: bool = False) -> list[str]:
+    """``torch._dynamo.explain``'s graph-break reasons for ``layer`` on a small sphere, after
+    one eager call (the surface's band, bound and stencils, computed once and kept)."""
     grid = ts.Grid.cube(13, 1.5)
     surface = ts.ImplicitSurface(ts.sdf.sphere(grid), grid)
-    layer = LearnedDiffusion(2, time=[0.05, 0.1])  # four terms: a short trace
     u = torch.rand(1, 2, *grid.shape, generator=torch.Generator().manual_seed(0))
-    layer(u, surface)  # the surface's band, bound and stencils, computed once and kept
-    torch._dynamo.reset()
-    explanation = torch._dynamo.explain(layer)(u, surface)
-    torch._dynamo.reset()
-    reasons = [str(reason.reason) for reason in explanation.break_reasons]
+    with torch.set_grad_enabled(grad):
+        layer(u, surface)
+        torch._dynamo.reset()
+        try:
+            explanation = torch._dynamo.explain(layer)(u, surface)
+        finally:
+            torch._dynamo.reset()
+    return [str(reason.reason) for reason in explanation.break_reasons]
+
+
+def test_compile_breaks_only_at_the_term_count():
+    """Learned times without ``max_time``: the one break is the host-read number of terms
+    (reported once per enclosing frame); the operators, the stencils and the expansion trace."""
+    reasons = _break_reasons(LearnedDiffusion(2, time=[0.05, 0.1]))  # four terms: a short trace
     assert reasons and all("_terms_for" in reason for reason in reasons), reasons
+
+
+@pytest.mark.parametrize("bounded", ["fixed times", "max_time"])
+def test_compile_traces_whole_when_the_terms_are_planned_on_the_host(bounded):
+    layer = (LearnedDiffusion(2, time=[0.05, 0.1], learn_time=False) if bounded == "fixed times"
+             else LearnedDiffusion(2, time=[0.05, 0.1], max_time=0.2))
+    assert _break_reasons(layer) == []
+
+
+@pytest.mark.slow
+def test_compile_traces_the_block_and_the_backward_whole():
+    assert _break_reasons(DiffusionBlock(2, time=[0.05, 0.1], max_time=0.2), grad=True) == []
+
+
+def test_max_time_clamps_the_times_and_plans_the_terms_for_it(sphere33):
+    u0, surface = sphere33
+    layer = LearnedDiffusion(4, time=[0.5, 1.0, 2.0, 3.0], max_time=3.0)
+    with torch.no_grad():
+        layer.raw_time[3] = 10.0
+    torch.testing.assert_close(layer.time[3], torch.tensor(3.0))
+    assert layer.largest_time() == 3.0
+    free = LearnedDiffusion(4, time=[0.5, 1.0, 2.0, 3.0])
+    torch.testing.assert_close(layer(u0, surface), free(u0, surface), rtol=1e-5, atol=1e-6)
+    with pytest.raises(ValueError, match="max_time=1 is below the initial time"):
+        LearnedDiffusion(2, time=[0.5, 2.0], max_time=1.0)
+    with pytest.raises(ValueError, match="learn_time=False"):
+        LearnedDiffusion(2, learn_time=False, max_time=1.0)

@@ -11,7 +11,6 @@ symmetric; the flow refreshes them between steps (:class:`Schedule`'s ``after_st
 
 from __future__ import annotations
 
-import functools
 import math
 import warnings
 from collections.abc import Callable, Iterator, Sequence
@@ -90,6 +89,7 @@ class System:
     linear: Linear | None = None
     params: tuple[Tensor, ...] = field(default_factory=tuple)
     layout: BrickLayout | None = None
+    _region: Tensor | None = field(default=None, init=False, repr=False)
 
     def __post_init__(self) -> None:
         if not self.spectral_radius > 0 or not math.isfinite(self.spectral_radius):
@@ -103,10 +103,13 @@ class System:
         """The largest stable forward-Euler (and Heun) step, ``2 / rho``, physical time."""
         return 2.0 / self.spectral_radius
 
-    @functools.cached_property
+    @property
     def region(self) -> Tensor:
         """The band and the ring of nodes its 3x3x3 stencils read, a bool mask like ``band``."""
-        return with_ring(self.band, self.layout)
+        # kept by hand: functools.cached_property takes a lock, which torch.compile cannot trace
+        if self._region is None:
+            self._region = with_ring(self.band, self.layout)
+        return self._region
 
 
 @dataclass

@@ -5,6 +5,11 @@ A learnable value is stored as an unconstrained ``nn.Parameter`` ``raw`` and rea
 optimiser can never make it zero or negative (softplus alone underflows to exactly 0 for
 ``raw`` below about -100 in float32); a fixed value stays a Python float (exact, no round trip
 through the parametrisation).
+
+What sets a flow's steps is :meth:`Positive.maximum`, a Python float. It reads no tensor for a
+fixed value (kept on the host), nor for a learnable one given a ``bound`` (the value is clamped
+to it and the bound is the maximum), so that ``torch.compile`` traces a flow's forward whole;
+only a learnable value without a bound is read from its parameter (a graph break).
 """
 
 from __future__ import annotations
@@ -50,13 +55,18 @@ class Positive(nn.Module):
             array or tensor of shape ``(C,)``, all finite and > 0; never a bool or a string.
         name: the argument's name, used in error messages.
         learnable: register ``softplus^-1(value - floor)`` as an ``nn.Parameter``.
+        bound: for a learnable value, its largest value: :meth:`value` is clamped to it (its
+            gradient is zero beyond) and :meth:`maximum` returns it without reading the
+            parameter. ``bound_name`` names it in errors.
 
     Raises:
         TypeError: ``value`` is not made of real numbers (bools, strings).
-        ValueError: it has more than one dimension, or an entry that is not finite and > 0.
+        ValueError: it has more than one dimension, or an entry that is not finite and > 0;
+            ``bound`` is given for a fixed value, or is below an entry of ``value``.
     """
 
-    def __init__(self, value: float | Tensor, name: str, learnable: bool = False) -> None:
+    def __init__(self, value: float | Tensor, name: str, learnable: bool = False,
+                 bound: float | None = None, bound_name: str = "bound") -> None:
         super().__init__()
         self.name = name
         tensor = _as_tensor(value, name)
@@ -66,8 +76,17 @@ class Positive(nn.Module):
                 f"{name} must be a finite positive number or a vector (C,) of them, got {value!r}"
             )
         self.learnable = bool(learnable)
+        self.bound = None if bound is None else check_positive(bound, bound_name)
+        if self.bound is not None and not self.learnable:
+            raise ValueError(f"{bound_name} bounds a learnable {name}; {name} is fixed here")
+        if self.bound is not None and float(tensor.max()) > self.bound:
+            raise ValueError(
+                f"{bound_name}={self.bound:g} is below the initial {name} {value!r}; it must be "
+                "at least as large"
+            )
         self.fixed: float | Tensor | None = None
         self.floor = max(FLOOR * float(tensor.min()), torch.finfo(tensor.dtype).tiny)
+        self._largest = float(tensor.max())
         if self.learnable:
             self.raw = nn.Parameter(_inverse_softplus(tensor.clone() - self.floor))
         elif tensor.dim() == 0:
@@ -82,19 +101,27 @@ class Positive(nn.Module):
         return None if value is None or value.dim() == 0 else value.shape[0]
 
     def value(self) -> float | Tensor:
-        """The positive value: a float, or a tensor ``()`` / ``(C,)`` in the graph of ``raw``."""
+        """The positive value: a float, or a tensor ``()`` / ``(C,)`` in the graph of ``raw``
+        (clamped to ``bound`` when one is given)."""
         if self.learnable:
-            return F.softplus(self.raw) + self.floor
+            value = F.softplus(self.raw) + self.floor
+            return value if self.bound is None else torch.clamp(value, max=self.bound)
         return self.fixed if self.fixed is not None else self.values
 
     def maximum(self) -> float:
         """The largest entry, as a float (for step-size bounds); raises if it is not finite.
 
-        A learnable value can only stop being finite through its raw parameter (an optimiser
-        step that went NaN or infinite); the error names the user's parameter.
+        Read from the parameter only for a learnable value without ``bound`` (a host read: a
+        graph break under ``torch.compile``); a fixed value's is kept on the host, a bound is
+        returned as it is. A learnable value can only stop being finite through its raw
+        parameter (an optimiser step that went NaN or infinite); the error names the user's
+        parameter.
         """
-        value = self.value()
-        largest = value if isinstance(value, float) else float(value.detach().max())
+        if not self.learnable:
+            return self._largest
+        if self.bound is not None:
+            return self.bound
+        largest = float(self.value().detach().max())
         if not math.isfinite(largest):  # max propagates NaN
             raise ValueError(
                 f"{self.name} is no longer finite: its learnable parameter holds "
@@ -102,6 +129,11 @@ class Positive(nn.Module):
                 "diverged"
             )
         return largest
+
+    def _load_from_state_dict(self, state_dict: dict, prefix: str, *args: object) -> None:
+        super()._load_from_state_dict(state_dict, prefix, *args)
+        if not self.learnable and self.fixed is None:  # the host copy follows the loaded values
+            self._largest = float(self.values.max())
 
     def volume(self, like: Tensor) -> float | Tensor:
         """The value shaped to broadcast over a volume ``(B, C, D, H, W)`` like ``like``."""
@@ -117,4 +149,5 @@ class Positive(nn.Module):
         return value.view(1, -1, 1, 1, 1) if value.dim() == 1 else value
 
     def extra_repr(self) -> str:
-        return f"{self.name}, learnable={self.learnable}"
+        bound = "" if self.bound is None else f", bound={self.bound:g}"
+        return f"{self.name}, learnable={self.learnable}{bound}"

@@ -16,7 +16,6 @@ stages) smoothed no better and cost 20% more time.
 
 from __future__ import annotations
 
-import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -54,11 +53,21 @@ def _chebyshev(stages: int, w0: float) -> tuple[list[float], list[float], list[f
     return t, d1, d2
 
 
-@functools.cache
+_COEFFICIENTS: dict[int, Coefficients] = {}
+"""Coefficients already computed, by stages: a plain dict, which ``torch.compile`` reads as
+constants (it traces through ``functools.cache`` and would recompute them while tracing)."""
+
+
 def coefficients(stages: int) -> Coefficients:
-    """The RKC2 coefficients of ``stages >= 2`` stages."""
+    """The RKC2 coefficients of ``stages >= 2`` stages (kept in :data:`_COEFFICIENTS`)."""
     if stages < 2:
         raise ValueError(f"RKC2 needs at least 2 stages, got {stages}")
+    if stages not in _COEFFICIENTS:
+        _COEFFICIENTS[stages] = _coefficients(stages)
+    return _COEFFICIENTS[stages]
+
+
+def _coefficients(stages: int) -> Coefficients:
     s = stages
     w0 = 1.0 + DAMPING / s**2
     t, d1, d2 = _chebyshev(s, w0)

@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import math
 import numbers
-import weakref
 from collections.abc import Sequence
 
 import numpy as np
@@ -52,6 +51,7 @@ from ..surface import ImplicitSurface, check_data, check_surface
 from ._integrators import (
     IMPLICIT,
     INTEGRATORS,
+    Linear,
     Plan,
     Schedule,
     System,
@@ -117,22 +117,19 @@ node within ``band_width + h / sqrt(3)`` of S."""
 
 Stencil = CubicStencil | BrickCubicStencil
 
-_STENCILS: weakref.WeakKeyDictionary[ImplicitSurface, dict[tuple[float | None, str], Stencil]] = (
-    weakref.WeakKeyDictionary()
-)
+
+def _stencil_key(width: float | None, kind: str) -> tuple:
+    return ("flow stencil", width, kind)
 
 
 def _stencil(surface: ImplicitSurface, width: float | None, kind: str, mask: Tensor
              ) -> Stencil:
-    """The closest-point stencil of ``mask`` (``kind`` names it), kept while the surface lives
-    unless ``phi`` requires grad (its weights are then in ``phi``'s graph)."""
+    """The closest-point stencil of ``mask`` (``kind`` names it), kept on the surface unless
+    ``phi`` requires grad (its weights are then in ``phi``'s graph)."""
     if surface.phi.requires_grad:
         return cubic_stencil(surface, mask, limited=True)
-    cached = _STENCILS.setdefault(surface, {})
-    key = (width, kind)
-    if key not in cached:
-        cached[key] = cubic_stencil(surface, mask, limited=True)
-    return cached[key]
+    return surface.kept(_stencil_key(width, kind),
+                        lambda: cubic_stencil(surface, mask, limited=True))
 
 
 def data_shape(surface: ImplicitSurface, batch: int, channels: int) -> tuple[int, ...]:
@@ -155,6 +152,26 @@ def _diagonal_cells(surface: ImplicitSurface) -> float:
     return max(math.dist(grid.shape, (1, 1, 1)) for grid in grids)
 
 
+def _learned_time(system: System, time: float | Tensor, nominal: float) -> None:
+    """Make ``system`` integrate a learned ``time`` over the float time ``nominal >= time``.
+
+    With ``s = t nominal / time``, ``du/ds = (time / nominal) rate(u)``: the integrators see
+    plain floats (steps planned on the host, no read of the parameter) and the gradient reaches
+    ``time`` through the scale of the rate. Every explicit and implicit step multiplies the rate
+    (or ``A``) by its step, so they compute what steps of ``time / count`` would.
+    """
+    if not isinstance(time, Tensor):
+        return
+    scale = time / nominal
+    rate = system.rate
+    system.rate = lambda u: scale * rate(u)
+    if system.linear is not None:
+        operator = system.linear.operator
+        system.linear = Linear(lambda x, *params: params[-1] * operator(x, *params[:-1]),
+                               (*system.linear.params, scale))
+    system.params = (*system.params, scale)
+
+
 class Flow(nn.Module):
     """Base of the surface flows: integration settings and the call ``flow(u0, surface)``.
 
@@ -169,6 +186,12 @@ class Flow(nn.Module):
             than ``10**6`` steps or evaluations of the rate (RKC's stages counted) is refused
             before any work; more than ``10**5`` evaluations warn with the count.
         learn_time: make ``time`` an ``nn.Parameter`` (kept positive by softplus).
+        max_time: with ``learn_time``, the largest time the flow takes: the learned time is
+            clamped to it (no gradient beyond) and the steps are planned for it, so the forward
+            reads nothing from the parameter and ``torch.compile`` traces it whole. ``None``
+            (default): the steps follow the current time, read on the host at each call (a
+            graph break). With ``times=``, the requested times are fractions of ``max_time``
+            (or of the current time), applied to the learned time.
         tolerance, max_iterations: conjugate-gradient stopping rule of the implicit methods.
         options: extra keyword options for torchdiffeq (``rtol``, ``atol``, ``step_size``...).
         adjoint: integrate with ``torchdiffeq.odeint_adjoint``.
@@ -199,6 +222,7 @@ class Flow(nn.Module):
         method: str = "rkc",
         steps: int | None = None,
         learn_time: bool = False,
+        max_time: float | None = None,
         tolerance: float | None = None,
         max_iterations: int = 1000,
         options: dict | None = None,
@@ -211,7 +235,8 @@ class Flow(nn.Module):
         super().__init__()
         if not isinstance(method, str):
             raise TypeError(f"method must be a string, got {type(method).__name__}")
-        self.time_value = Positive(time, "time", learnable=learn_time)
+        self.time_value = Positive(time, "time", learnable=learn_time, bound=max_time,
+                                   bound_name="max_time")
         if self.time_value.channels is not None:
             raise ValueError(f"time must be a single number, got {time!r}")
         self.method = method
@@ -253,16 +278,13 @@ class Flow(nn.Module):
         """The flow's equation for ``u0`` on ``surface``; subclasses implement it."""
         raise NotImplementedError
 
-    def _schedule(self, times: list[float] | None, after_step: object) -> Schedule:
-        """``times`` checked by :func:`_check_times`, all ``> 0``, or ``None`` for the end."""
-        end = self.time
-        if times is None:
-            times = [end]
-        elif isinstance(end, Tensor):
-            times = [end * (t / self.time_value.maximum()) for t in times]
+    def _schedule(self, end: float, times: list[float] | None, after_step: object) -> Schedule:
+        """``times`` checked by :func:`_check_times`, all ``> 0``, or ``None`` for ``end``:
+        floats of the nominal time (:func:`_learned_time`)."""
         return Schedule(
-            times=times, steps=self.steps, solver=self.solver, options=self.options,
-            adjoint=self.adjoint, after_step=after_step,
+            times=[end] if times is None else times, steps=self.steps,
+            solver=self.solver, options=self.options, adjoint=self.adjoint,
+            after_step=after_step,
         )
 
     def _progress_bar(self, total: int | None):  # noqa: ANN202
@@ -313,9 +335,12 @@ class Flow(nn.Module):
         return after_step
 
     def _check_memory(self, u0: Tensor, surface: ImplicitSurface, band: Tensor) -> None:
-        """Raise ``MemoryError`` before any work if the call cannot fit (:mod:`torchsurf._memory`)."""
+        """Raise ``MemoryError`` before any work if the call cannot fit (:mod:`torchsurf._memory`);
+        not while ``torch.compile`` traces (the band's size and the memory are host reads)."""
+        if torch.compiler.is_compiling():
+            return
         cached = (not surface.phi.requires_grad
-                  and (self.band_width, "region") in _STENCILS.get(surface, {}))
+                  and surface.is_kept(_stencil_key(self.band_width, "region")))
         band_nodes = None if cached else int(band.sum())
         _memory.check_fits(
             _memory.flow_bytes(tuple(u0.shape), surface.batch_size, u0.dtype,
@@ -358,7 +383,8 @@ class Flow(nn.Module):
         check_data(u0, "u0", surface)
         if surface.layout is not None and surface.batch_size > 1:
             return self._each_entry(u0, surface, times, inputs)
-        wanted = None if times is None else _check_times(times, self.time_value.maximum())
+        end = self.time_value.maximum()  # a host read only for a learned time without max_time
+        wanted = None if times is None else _check_times(times, end)
         width = surface.band_width if self.band_width is None else self.band_width
         if self.reextend_every is not None and width < MIN_BAND_CELLS * surface.spacing * (1 - 1e-6):
             raise ValueError(
@@ -374,6 +400,7 @@ class Flow(nn.Module):
                      "u0 (in the band and its ring)")
         system = self.system(u0, surface, **inputs)
         system.layout = surface.layout
+        _learned_time(system, self.time, end)
         if self.method in IMPLICIT and system.linear is None:
             raise ValueError(
                 f"method={self.method!r} needs a linear symmetric flow; {type(self).__name__} "
@@ -383,12 +410,12 @@ class Flow(nn.Module):
         if wanted is not None and len(initial) == len(wanted):
             return torch.stack(initial)
         wanted = None if wanted is None else wanted[len(initial):]
-        plan = plan_steps(self.method, system, self.time_value.maximum(), self.steps,
+        plan = plan_steps(self.method, system, end, self.steps,
                           band_cells=width / surface.spacing,
                           diagonal_cells=_diagonal_cells(surface))
         bar = self._progress_bar(plan.count)
         every = self._reextension_period(system, plan)
-        schedule = self._schedule(wanted, self._after_step(surface, system, bar, every))
+        schedule = self._schedule(end, wanted, self._after_step(surface, system, bar, every))
         schedule.step = plan.step
         schedule.segment = 12.0 * (width / surface.spacing) ** 2 / system.spectral_radius
         schedule.checkpoint = self._checkpointing(u0, surface, system)
@@ -401,13 +428,14 @@ class Flow(nn.Module):
         finally:
             if bar is not None:
                 bar.close()
-        for value in result:
-            if not bool(torch.isfinite(torch.where(system.region, value.detach(), 0.0)).all()):
-                raise FloatingPointError(
-                    f"{type(self).__name__} (method={self.method!r}, {plan.count} steps of "
-                    f"{plan.step:.3g}) diverged: u holds NaN or infinity in the band though u0 "
-                    "did not; use method='rkc', more steps, or smaller parameters"
-                )
+        if not torch.compiler.is_compiling():  # a host read: it would break a traced graph
+            for value in result:
+                if not bool(torch.isfinite(torch.where(system.region, value.detach(), 0.0)).all()):
+                    raise FloatingPointError(
+                        f"{type(self).__name__} (method={self.method!r}, {plan.count} steps of "
+                        f"{plan.step:.3g}) diverged: u holds NaN or infinity in the band though "
+                        "u0 did not; use method='rkc', more steps, or smaller parameters"
+                    )
         return result[-1] if times is None else torch.stack(initial + result)
 
     def _each_entry(self, u0: Tensor, surface: ImplicitSurface, times: object,

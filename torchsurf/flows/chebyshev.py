@@ -92,12 +92,30 @@ def coefficients(kind: str, times: Tensor, bound: float, terms: int,
     return result.to(times.dtype)
 
 
+_COUNTS: dict[tuple[str, float, float, torch.dtype], int] = {}
+"""Term counts already computed: a call that ``torch.compile`` traces finds the count of an
+earlier (eager) call with the same floats as a constant, instead of breaking the graph to
+compute it on the host."""
+
+MAX_COUNTS = 1024
+"""Entries of :data:`_COUNTS` kept at most (it is emptied beyond: learned times vary)."""
+
+
 def count_terms(kind: str, time: float, bound: float, dtype: torch.dtype) -> int:
     """The fewest terms ``K`` whose omitted coefficients sum below :func:`tolerance` times
     their total, for the largest time ``time`` (a float: the host decides the loop).
 
-    Raises ``ValueError`` beyond :data:`MAX_TERMS`.
+    Kept per arguments (:data:`_COUNTS`). Raises ``ValueError`` beyond :data:`MAX_TERMS`.
     """
+    key = (kind, time, bound, dtype)
+    if key not in _COUNTS:
+        if len(_COUNTS) >= MAX_COUNTS:
+            _COUNTS.clear()
+        _COUNTS[key] = _count_terms(kind, time, bound, dtype)
+    return _COUNTS[key]
+
+
+def _count_terms(kind: str, time: float, bound: float, dtype: torch.dtype) -> int:
     a = 0.5 * time * bound
     tol = tolerance(dtype)
     cap = math.ceil(1.3 * math.sqrt(2.0 * a * math.log(1.0 / tol)) + 2.0 * math.log(1.0 / tol) + 8)

@@ -25,8 +25,6 @@ spectrum of ``L`` is real to rounding in every case measured and lies within the
 
 from __future__ import annotations
 
-import weakref
-
 import torch
 from torch import Tensor
 
@@ -43,22 +41,16 @@ slightly non-normal, and the cost of the margin is ``sqrt(1.1)``, 5% more terms.
 
 Stencil = CubicStencil | BrickCubicStencil
 
-_STENCILS: weakref.WeakKeyDictionary[ImplicitSurface, dict[tuple[float, str], Stencil]] = (
-    weakref.WeakKeyDictionary()
-)
-
 
 def _linear_stencil(surface: ImplicitSurface, width: float, kind: str, mask: Tensor
                     ) -> Stencil:
     """The linear closest-point stencil of ``mask`` (``kind`` names it: ``"ring"`` or
-    ``"region"``) for the surface's storage, kept while the surface lives unless ``phi``
-    requires grad."""
+    ``"region"``) for the surface's storage, kept on the surface unless ``phi`` requires
+    grad."""
     if surface.phi.requires_grad:
         return cubic_stencil(surface, mask, limited=False)
-    cached = _STENCILS.setdefault(surface, {})
-    if (width, kind) not in cached:
-        cached[(width, kind)] = cubic_stencil(surface, mask, limited=False)
-    return cached[(width, kind)]
+    return surface.kept(("linear stencil", width, kind),
+                        lambda: cubic_stencil(surface, mask, limited=False))
 
 
 class BandLaplacian:
@@ -141,7 +133,8 @@ class _Extend(torch.autograd.Function):
         return None, grad if grad.shape[0] == ctx.batch else grad.sum(dim=0, keepdim=True)
 
 
-def heat_semigroup(u0: Tensor, operator: BandLaplacian, times: Tensor) -> Tensor:
+def heat_semigroup(u0: Tensor, operator: BandLaplacian, times: Tensor,
+                   largest: float | None = None) -> Tensor:
     """``exp(t_c L) u0`` per channel on the band, then re-extended along normals.
 
     As the flows do after each step, the result is re-extended from its values near S to the
@@ -152,6 +145,10 @@ def heat_semigroup(u0: Tensor, operator: BandLaplacian, times: Tensor) -> Tensor
         u0: ``(B, C, D, H, W)``; only its band values are read.
         operator: the band's :class:`BandLaplacian`.
         times: ``(C,)`` or ``()``, positive, world units squared (may require grad).
+        largest: a float no smaller than any of ``times``: the expansion's terms are counted
+            for it on the host, and nothing is read from ``times`` (``torch.compile`` traces the
+            call whole). ``None``: counted for the largest of ``times``, read on the host (a
+            graph break).
 
     Returns:
         ``(B, C, D, H, W)``: the band and its ring hold ``u(t)`` (constant along normals),
@@ -160,9 +157,12 @@ def heat_semigroup(u0: Tensor, operator: BandLaplacian, times: Tensor) -> Tensor
     """
     zero = u0.new_zeros(())
     inside = torch.where(operator.band, u0, zero)
+    terms = None if largest is None else chebyshev.count_terms(
+        "exp", largest, operator.bound, u0.dtype
+    )
     result = chebyshev.expansion(
         operator.apply, inside, times, operator.bound, adjoint=operator.transpose,
-        differentiable_operator=operator.differentiable,
+        differentiable_operator=operator.differentiable, terms=terms,
     )
     if operator.differentiable:
         extended = operator.extension.apply(result)

@@ -51,6 +51,8 @@ class HeatFlow(Flow):
         time: physical end time, world units squared (with ``D = 1``).
         diffusivity: ``D``, a positive number or one per channel ``(C,)``.
         learn_diffusivity: make ``D`` an ``nn.Parameter`` (kept positive by softplus).
+        max_diffusivity: with ``learn_diffusivity``, the largest ``D``: ``D`` is clamped to it
+            and the steps are planned for it (no host read of the parameter, as ``max_time``).
         scheme: ``"octant"`` (default), ``"symmetric"``, ``"conservative"`` or ``"central"``
             (explicit and torchdiffeq methods only: not symmetric).
         path: how stencils are applied (see :func:`torchsurf.laplace_beltrami`).
@@ -72,6 +74,7 @@ class HeatFlow(Flow):
         time: float,
         diffusivity: float | Tensor = 1.0,
         learn_diffusivity: bool = False,
+        max_diffusivity: float | None = None,
         scheme: str = "octant",
         path: str = "auto",
         **kwargs: object,
@@ -82,7 +85,8 @@ class HeatFlow(Flow):
                 "method='chebyshev' takes no steps, options or adjoint: it applies "
                 "exp(t D Lap_S) in one expansion whose length follows the time"
             )
-        self.diffusivity = Positive(diffusivity, "diffusivity", learnable=learn_diffusivity)
+        self.diffusivity = Positive(diffusivity, "diffusivity", learnable=learn_diffusivity,
+                                    bound=max_diffusivity, bound_name="max_diffusivity")
         self.scheme = check_choice(scheme, "scheme", SCHEMES)
         self.path = check_choice(path, "path", PATHS)
 
@@ -138,11 +142,15 @@ class HeatFlow(Flow):
         d = self.diffusivity.volume(u0)
         rate = (d.reshape(-1) if isinstance(d, Tensor) else u0.new_tensor(d)).expand(u0.shape[1])
         horizon = self.time * rate
-        if times is None:
-            return heat_semigroup(u0, operator, horizon)
+        # host floats (read from the parameters only when learned without a bound)
         end = self.time_value.maximum()
-        return torch.stack([u0 if t == 0 else heat_semigroup(u0, operator, horizon * (t / end))
-                            for t in _check_times(times, end)])
+        largest = end * self.diffusivity.maximum()
+        if times is None:
+            return heat_semigroup(u0, operator, horizon, largest)
+        return torch.stack([
+            u0 if t == 0 else heat_semigroup(u0, operator, horizon * (t / end), largest * t / end)
+            for t in _check_times(times, end)
+        ])
 
     def extra_repr(self) -> str:
         return f"{super().extra_repr()}, scheme={self.scheme!r}"

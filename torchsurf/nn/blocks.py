@@ -3,6 +3,8 @@ block on an implicit surface's band)."""
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor, nn
 
@@ -10,6 +12,14 @@ from .._checks import check_count
 from ..surface import ImplicitSurface, check_data, check_surface
 from .diffusion import LearnedDiffusion
 from .features import feature_count, gradient_features
+
+
+def _band_nodes(surface: ImplicitSurface) -> Tensor:
+    """Indices ``(N,)`` of the nodes of ``surface.band_mask()`` among its ``B * D * H * W``,
+    found once per surface: a forward that ``torch.compile`` traces then reads a tensor of
+    known size instead of selecting by a mask (a size known only from the data: a graph
+    break)."""
+    return surface.kept(("band nodes",), lambda: surface.band_mask().flatten().nonzero()[:, 0])
 
 
 class DiffusionBlock(nn.Module):
@@ -49,13 +59,14 @@ class DiffusionBlock(nn.Module):
         check_data(u, "u", surface, channels=self.channels)
         diffused = self.diffusion(u, surface)
         features = torch.cat([diffused, gradient_features(diffused, surface, self.pairs)], dim=1)
-        band = surface.band_mask().expand(u.shape[0], 1, *u.shape[2:])[:, 0]
-        nodes = features.permute(0, 2, 3, 4, 1)[band]  # (N, C + features)
-        update = self.mlp(nodes)
-        scattered = u.new_zeros(u.shape[0], *u.shape[2:], self.channels).masked_scatter(
-            band[..., None], update
-        )
-        return u + scattered.permute(0, 4, 1, 2, 3)
+        batch, size = u.shape[0], math.prod(u.shape[2:])
+        index = _band_nodes(surface).to(u.device)
+        if surface.batch_size != batch:  # one surface for every entry
+            index = (torch.arange(batch, device=u.device)[:, None] * size + index).flatten()
+        nodes = features.permute(0, 2, 3, 4, 1).reshape(batch * size, -1).index_select(0, index)
+        update = self.mlp(nodes)  # (N, C)
+        scattered = u.new_zeros(batch * size, self.channels).index_copy(0, index, update)
+        return u + scattered.view(batch, *u.shape[2:], self.channels).permute(0, 4, 1, 2, 3)
 
     def extra_repr(self) -> str:
         return f"channels={self.channels}, pairs={self.pairs}"

@@ -17,7 +17,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .._checks import check_choice, check_count
+from .._checks import check_choice, check_count, check_positive
 from ..backend import PATHS
 from ..flows.exponential import BandLaplacian, heat_semigroup
 from ..operators import functional
@@ -50,6 +50,12 @@ class LearnedDiffusion(nn.Module):
         time: initial times, ``h^2`` units: a positive number or ``C`` of them.
         learn_time: make the times an ``nn.Parameter`` (``softplus(raw) + 1e-6``); otherwise
             they are a buffer.
+        max_time: with ``learn_time``, the largest time, ``h^2`` units: the times are clamped
+            to it (no gradient beyond) and the expansion's length is planned for it on the host,
+            so that the forward reads nothing from the parameter and ``torch.compile`` traces
+            it whole (docs/learning.md). ``None`` (default): the length follows the largest
+            current time, read on the host at each call (one graph break). Costs
+            ``sqrt(max_time)`` operator applications whatever the times.
         scheme: ``"octant"`` (default), ``"symmetric"`` or ``"conservative"``
             (:func:`torchsurf.laplace_beltrami`).
         path: how the stencils run (:mod:`torchsurf.backend`).
@@ -68,7 +74,8 @@ class LearnedDiffusion(nn.Module):
     """
 
     def __init__(self, channels: int, time: float | list[float] | Tensor = 1.0,
-                 learn_time: bool = True, scheme: str = "octant", path: str = "auto") -> None:
+                 learn_time: bool = True, scheme: str = "octant", path: str = "auto",
+                 max_time: float | None = None) -> None:
         super().__init__()
         self.channels = check_count(channels, "channels")
         initial = torch.as_tensor(time, dtype=torch.get_default_dtype()).detach().clone()
@@ -81,6 +88,15 @@ class LearnedDiffusion(nn.Module):
                 f"{time!r}"
             )
         self.learn_time = bool(learn_time)
+        self.max_time = None if max_time is None else check_positive(max_time, "max_time")
+        if self.max_time is not None and not self.learn_time:
+            raise ValueError("max_time bounds learned times; learn_time=False here")
+        if self.max_time is not None and float(initial.max()) > self.max_time:
+            raise ValueError(
+                f"max_time={self.max_time:g} is below the initial time {time!r}; it must be at "
+                "least as large"
+            )
+        self._largest = float(initial.max())
         if self.learn_time:
             self.raw_time = nn.Parameter(_inverse_softplus(initial - FLOOR))
         else:
@@ -90,18 +106,35 @@ class LearnedDiffusion(nn.Module):
 
     @property
     def time(self) -> Tensor:
-        """The times ``(C,)``, ``h^2`` units (in the graph of the parameter when learned)."""
-        if self.learn_time:
-            return F.softplus(self.raw_time) + FLOOR
-        return self.fixed_time
+        """The times ``(C,)``, ``h^2`` units (in the graph of the parameter when learned;
+        clamped to ``max_time`` when given)."""
+        if not self.learn_time:
+            return self.fixed_time
+        time = F.softplus(self.raw_time) + FLOOR
+        return time if self.max_time is None else torch.clamp(time, max=self.max_time)
+
+    def largest_time(self) -> float | None:
+        """A host float no smaller than every time, ``h^2`` units, read from no tensor:
+        ``max_time``, or the largest fixed time; ``None`` for learned times without
+        ``max_time``."""
+        return self.max_time if self.learn_time else self._largest
+
+    def _load_from_state_dict(self, state_dict: dict, prefix: str, *args: object) -> None:
+        super()._load_from_state_dict(state_dict, prefix, *args)
+        if not self.learn_time:  # the host copy follows the loaded times
+            self._largest = float(self.fixed_time.max())
 
     def forward(self, u: Tensor, surface: ImplicitSurface) -> Tensor:
         """Diffuse ``u`` ``(B, C, D, H, W)``; returns ``(B, C, D, H, W)`` (class docstring)."""
         check_surface(surface)
         check_data(u, "u", surface, channels=self.channels)
         operator = BandLaplacian(surface, self.scheme, path=self.path)
-        times = self.time.to(u.dtype) * surface.spacing**2
-        return heat_semigroup(u, operator, times)
+        area = surface.spacing**2
+        largest = self.largest_time()
+        return heat_semigroup(u, operator, self.time.to(u.dtype) * area,
+                              None if largest is None else largest * area)
 
     def extra_repr(self) -> str:
-        return f"channels={self.channels}, scheme={self.scheme!r}, learn_time={self.learn_time}"
+        bound = "" if self.max_time is None else f", max_time={self.max_time:g}"
+        return (f"channels={self.channels}, scheme={self.scheme!r}, learn_time={self.learn_time}"
+                f"{bound}")

@@ -12,7 +12,6 @@ coefficients there, and the bound with them, instead of blowing up a step chosen
 
 from __future__ import annotations
 
-import weakref
 from collections.abc import Callable
 
 import torch
@@ -75,17 +74,12 @@ def gershgorin_bound(
         return float(total.max())
 
 
-_BOUNDS: weakref.WeakKeyDictionary[ImplicitSurface, dict[tuple[str, float], float]] = (
-    weakref.WeakKeyDictionary()
-)
-
-
 def laplace_beltrami_bound(
     surface: ImplicitSurface, scheme: str = "octant", width: float | None = None
 ) -> float:
     """Gershgorin bound of ``Lap_S`` (:func:`laplace_beltrami`) restricted to the band.
 
-    Computed once per surface, scheme and width, and kept while the surface lives. On a
+    Computed once per surface, scheme and width, and kept on the surface. On a
     distance function it is close to ``12 / h^2``; where ``|grad phi|`` departs from 1 the
     floored weight of :class:`ImplicitSurface` keeps it within a small factor of that.
 
@@ -98,21 +92,21 @@ def laplace_beltrami_bound(
         The bound, ``1 / world length^2``.
     """
     width = surface.band_width if width is None else float(width)
-    key = (scheme, width)
-    cached = _BOUNDS.setdefault(surface, {})
-    if key not in cached:
-        check_choice(scheme, "scheme", SCHEMES)
-        mask = surface.band_mask(width)
-        dtype = surface.phi.dtype
-        if surface.layout is None:
-            cached[key] = gershgorin_bound(
-                lambda x: laplace_beltrami(x, surface, scheme, "slicing"), mask, dtype
-            )
-        else:
-            # bricks: one colour at a time, on the path "auto" picks, keeps the memory to a few
-            # fields (nine eager colours held 1 GB at 192^3, three compiled 1.4 GB at 512^3)
-            cached[key] = gershgorin_bound(
-                lambda x: laplace_beltrami(x, surface, scheme, "auto"), mask, dtype, chunk=1,
-                colour=surface.layout.colours().to(mask.device),
-            )
-    return cached[key]
+    return surface.kept(("laplace_beltrami_bound", scheme, width),
+                        lambda: _band_bound(surface, scheme, width))
+
+
+def _band_bound(surface: ImplicitSurface, scheme: str, width: float) -> float:
+    check_choice(scheme, "scheme", SCHEMES)
+    mask = surface.band_mask(width)
+    dtype = surface.phi.dtype
+    if surface.layout is None:
+        return gershgorin_bound(
+            lambda x: laplace_beltrami(x, surface, scheme, "slicing"), mask, dtype
+        )
+    # bricks: one colour at a time, on the path "auto" picks, keeps the memory to a few
+    # fields (nine eager colours held 1 GB at 192^3, three compiled 1.4 GB at 512^3)
+    return gershgorin_bound(
+        lambda x: laplace_beltrami(x, surface, scheme, "auto"), mask, dtype, chunk=1,
+        colour=surface.layout.colours().to(mask.device),
+    )
