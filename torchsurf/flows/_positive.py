@@ -117,8 +117,8 @@ class Positive(nn.Module):
         parameter (an optimiser step that went NaN or infinite); the error names the user's
         parameter.
         """
-        if not self.learnable:
-            return self._largest
+        if not self.learnable:  # a single fixed number exactly as given, not rounded
+            return self.fixed if self.fixed is not None else self._largest
         if self.bound is not None:
             return self.bound
         largest = float(self.value().detach().max())
