@@ -1,0 +1,67 @@
+"""Smoke test of examples/train_denoise.py: a ``--quick`` run writes its table, pictures and
+weights, with finite numbers, and leaves torchsurf's compile thresholds as they were."""
+
+from __future__ import annotations
+
+import csv
+import importlib.util
+import math
+import sys
+from pathlib import Path
+
+import pytest
+
+import torchsurf as ts
+
+EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "train_denoise.py"
+
+
+@pytest.fixture(scope="module")
+def example():
+    spec = importlib.util.spec_from_file_location("train_denoise", EXAMPLE)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses resolve annotations through sys.modules
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_quick_run_writes_table_and_pictures(example, tmp_path):
+    thresholds = ts.backend.COMPILE_MIN_VOXELS, ts.backend.COMPILE_PAYBACK_SECONDS
+    scores = example.main(["--quick", "--output", str(tmp_path / "out")])
+    output = tmp_path / "out"
+
+    assert (ts.backend.COMPILE_MIN_VOXELS, ts.backend.COMPILE_PAYBACK_SECONDS) == thresholds
+    with open(output / "results.csv", newline="") as stream:
+        rows = list(csv.DictReader(stream))
+    cells = {(row["method"], row["set"], row["kind"]) for row in rows}
+    assert cells == {(m, s, k) for m in example.METHODS for s in example.SETS
+                     for k in ts.datasets.KINDS}
+    assert len(rows) == len(cells)
+    for row in rows:
+        value = float(row["psnr_db"])
+        assert math.isfinite(value) and 5.0 < value < 80.0, row
+        assert value == pytest.approx(scores[row["method"], row["set"], row["kind"]], abs=1e-4)
+
+    markdown = (output / "results.md").read_text()
+    assert "| learned - heat |" in markdown and markdown.count("\n| ") == 2 + len(example.METHODS)
+    for kind in ts.datasets.KINDS:
+        picture = (output / f"heldout_{kind}.png").read_bytes()
+        assert picture.startswith(b"\x89PNG\r\n\x1a\n") and len(picture) > 1000
+    assert (output / "denoiser.pt").stat().st_size > 0
+    assert not list(output.glob(".*")), "a temporary file was left behind"
+
+
+@pytest.mark.parametrize(("argv", "named"), [
+    (["--resolution", "8"], "--resolution"),
+    (["--iterations", "0"], "--iterations"),
+    (["--noise", "-1"], "--noise"),
+])
+def test_bad_arguments_are_named(example, capsys, argv, named):
+    with pytest.raises(SystemExit):
+        example.parse(argv)
+    assert named in capsys.readouterr().err
+
+
+def test_relative_mesh_without_folder_is_refused(example):
+    with pytest.raises(FileNotFoundError, match="--meshes 'spot.obj'"):
+        example.mesh_paths(["spot.obj"], None)
