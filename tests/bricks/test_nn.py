@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import torch
 
+import torchsurf as ts
 from torchsurf.nn import DiffusionBlock, GradientFeatures, band_mse, psnr
 
 
@@ -53,3 +54,20 @@ def test_band_losses_are_per_entry_of_a_brick_batch(two_boxes):
                for r, (_, entry) in zip(rows, both.entries(), strict=True)]
     torch.testing.assert_close(band_mse(prediction, target, both) * both.band_mask().sum(),
                                sum(squared))
+
+
+def test_training_signals_on_a_brick_batch_are_the_dense_signals_on_each_band():
+    from torchsurf import Grid, bricks
+    from torchsurf.datasets import piecewise_constant_signal, smooth_signal
+
+    grid = Grid(shape=(33, 41, 39), spacing=0.1, origin=(-1.9, -2.0, -1.6))
+    phi = torch.cat([ts.sdf.sphere(grid, 0.9), ts.sdf.torus(grid, 1.0, 0.4)]).double()
+    dense = ts.ImplicitSurface(phi, grid)
+    packed_surface = bricks.from_dense(dense)
+    band = dense.band_mask()
+    for make in (smooth_signal, piecewise_constant_signal):
+        packed = make(packed_surface, channels=2, seed=5)
+        assert packed.shape == (len(packed_surface.layout), 2, 8, 8, 8)
+        result = torch.cat(packed_surface.to_dense(packed))
+        expected = make(dense, channels=2, seed=5)
+        assert torch.allclose(result * band, expected * band, atol=1e-12), make.__name__
