@@ -120,11 +120,11 @@ def test_values_outside_the_band_and_ring_do_not_reach_the_result(shape, flow):
         assert float(clean[band].min()) >= float(u0[region].min()) - 1e-6
 
 
-def test_a_node_whose_taps_leave_the_sources_is_left_out_and_keeps_its_value():
+def test_a_node_whose_taps_leave_what_it_may_read_is_left_out_and_keeps_its_value():
     surface = _sign_flip()
     region = with_ring(surface.band_mask())
     assert _tap_count_outside(surface, CubicStencil(surface, region), region) > 0
-    stencil = CubicStencil(surface, region, limited=True, sources=region)
+    stencil = CubicStencil(surface, region, limited=True, readable=region)
     assert _tap_count_outside(surface, stencil, region) == 0
     left_out = int(region.sum()) - len(stencil.parts[0][0])
     assert 0 < left_out < 20

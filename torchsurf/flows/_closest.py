@@ -154,12 +154,12 @@ def brick_reader(distance: Tensor, normal: Tensor, lookup_table: Tensor, batch: 
     return read
 
 
-def taps_inside(sources: Tensor, tap_indices: Callable[[slice], Tensor], count: int,
+def taps_inside(readable: Tensor, tap_indices: Callable[[slice], Tensor], count: int,
                 chunk: int = 2**16) -> Tensor:
-    """Which of ``count`` nodes read only nodes of ``sources``.
+    """Which of ``count`` nodes read only nodes of ``readable``.
 
     Args:
-        sources: flat bool ``(K,)``, the nodes that may be read.
+        readable: flat bool ``(K,)``, the nodes that may be read.
         tap_indices: a slice of the nodes -> their flat tap positions ``(n, T)``, negative for
             a tap that is not stored.
         count: the number of nodes.
@@ -168,9 +168,9 @@ def taps_inside(sources: Tensor, tap_indices: Callable[[slice], Tensor], count: 
     Returns:
         ``(count,)`` bool.
     """
-    keep = torch.ones(count, dtype=torch.bool, device=sources.device)
+    keep = torch.ones(count, dtype=torch.bool, device=readable.device)
     for start in range(0, count, chunk):
         part = slice(start, start + chunk)
         taps = tap_indices(part)
-        keep[part] = ((taps >= 0) & sources[taps.clamp(min=0)]).all(dim=1)
+        keep[part] = ((taps >= 0) & readable[taps.clamp(min=0)]).all(dim=1)
     return keep

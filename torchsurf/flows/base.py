@@ -128,9 +128,9 @@ def _stencil(surface: ImplicitSurface, width: float | None, kind: str, mask: Ten
     band and its ring), kept on the surface unless ``phi`` requires grad (its weights are then
     in ``phi``'s graph)."""
     if surface.phi.requires_grad:
-        return cubic_stencil(surface, mask, limited=True, sources=region)
+        return cubic_stencil(surface, mask, limited=True, readable=region)
     return surface.kept(_stencil_key(width, kind),
-                        lambda: cubic_stencil(surface, mask, limited=True, sources=region))
+                        lambda: cubic_stencil(surface, mask, limited=True, readable=region))
 
 
 def data_shape(surface: ImplicitSurface, batch: int, channels: int) -> tuple[int, ...]:

@@ -48,9 +48,9 @@ def _linear_stencil(surface: ImplicitSurface, width: float, kind: str, mask: Ten
     ``"region"``) reading only ``region``, for the surface's storage, kept on the surface
     unless ``phi`` requires grad."""
     if surface.phi.requires_grad:
-        return cubic_stencil(surface, mask, limited=False, sources=region)
+        return cubic_stencil(surface, mask, limited=False, readable=region)
     return surface.kept(("linear stencil", width, kind),
-                        lambda: cubic_stencil(surface, mask, limited=False, sources=region))
+                        lambda: cubic_stencil(surface, mask, limited=False, readable=region))
 
 
 class BandLaplacian:

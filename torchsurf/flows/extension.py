@@ -142,19 +142,19 @@ def _dense_tap_indices(corners: Tensor, height: int, width: int) -> Callable[[sl
     return taps
 
 
-def _dense_part(surface: ImplicitSurface, index: Tensor, mask: Tensor, sources: Tensor | None,
+def _dense_part(surface: ImplicitSurface, index: Tensor, mask: Tensor, readable: Tensor | None,
                 entry: int) -> tuple[Tensor, Tensor, Tensor]:
     """One volume's stencil: the masked nodes' closest points (``index`` ``(D, H, W, 3)``,
-    first order) refined (:mod:`._closest`), without the nodes whose taps leave ``sources``
+    first order) refined (:mod:`._closest`), without the nodes whose taps leave ``readable``
     ``(D, H, W)`` (when given)."""
     targets = mask.reshape(-1).nonzero().squeeze(1)
     phi, weight = surface.phi[entry, 0], surface.weight[entry, 0]
     read = _closest.dense_reader(phi / (weight * surface.spacing), surface.normal[entry])
     at = _closest.refine(index.reshape(-1, 3)[targets], read)
     targets, corners, weights = _cubic_stencil(at, targets, mask.shape)
-    if sources is None:
+    if readable is None:
         return targets, corners, weights
-    keep = _closest.taps_inside(sources.reshape(-1),
+    keep = _closest.taps_inside(readable.reshape(-1),
                                 _dense_tap_indices(corners, *mask.shape[1:]), len(targets))
     if bool(keep.all()):
         return targets, corners, weights
@@ -241,21 +241,21 @@ class CubicStencil:
         mask: ``(B or 1, 1, D, H, W)`` bool, the nodes to fill.
         limited: clamp each value to the range of the 8 nodes of the cell around its point, so
             that re-extension never creates a new extremum (data with jumps, maximum principle).
-        sources: ``(B or 1, 1, D, H, W)`` bool, the nodes the stencil may read; a masked node
+        readable: ``(B or 1, 1, D, H, W)`` bool, the nodes the stencil may read; a masked node
             whose taps leave it is left out (it keeps its value): only where ``phi`` is not a
             distance, once its closest point is refined (:mod:`torchsurf.flows._closest`).
             ``None``: every node may be read.
     """
 
     def __init__(self, surface: ImplicitSurface, mask: Tensor, limited: bool = False,
-                 sources: Tensor | None = None) -> None:
+                 readable: Tensor | None = None) -> None:
         self.limited = bool(limited)
         index = surface.grid.world_to_index(_closest_points(surface, surface.phi.dtype))
         batch = max(index.shape[0], mask.shape[0])
         self.parts = [
             _dense_part(surface, index[min(b, index.shape[0] - 1)],
                         mask[min(b, mask.shape[0] - 1), 0],
-                        None if sources is None else sources[min(b, sources.shape[0] - 1), 0],
+                        None if readable is None else readable[min(b, readable.shape[0] - 1), 0],
                         min(b, surface.phi.shape[0] - 1))
             for b in range(batch)
         ]
@@ -365,16 +365,16 @@ class BrickCubicStencil:
         surface: a :class:`~torchsurf.bricks.BrickSurface`.
         mask: ``(N, 1, 8, 8, 8)`` bool, the nodes to fill.
         limited: as in :class:`CubicStencil`.
-        sources: ``(N, 1, 8, 8, 8)`` bool, as in :class:`CubicStencil` (taps in bricks that
+        readable: ``(N, 1, 8, 8, 8)`` bool, as in :class:`CubicStencil` (taps in bricks that
             are not stored are outside it).
 
     Raises:
-        ValueError: without ``sources``, a tap falls in a brick that is not stored (a closest
+        ValueError: without ``readable``, a tap falls in a brick that is not stored (a closest
             point too near the edge of the stored band).
     """
 
     def __init__(self, surface: ImplicitSurface, mask: Tensor, limited: bool = False,
-                 sources: Tensor | None = None) -> None:
+                 readable: Tensor | None = None) -> None:
         self.limited = bool(limited)
         self.targets = mask.reshape(-1).nonzero().squeeze(1)
         distance = surface.phi / (surface.weight * surface.spacing)
@@ -384,8 +384,8 @@ class BrickCubicStencil:
             parts = [self._assemble(surface, self.targets, distance)]
         self.bases, self.second, self.local, self.weights = (
             torch.cat(pieces, dim=1) for pieces in zip(*parts, strict=True))
-        if sources is not None:
-            keep = _closest.taps_inside(sources.reshape(-1), self._tap_indices,
+        if readable is not None:
+            keep = _closest.taps_inside(readable.reshape(-1), self._tap_indices,
                                         len(self.targets))
             if not bool(keep.all()):
                 self.targets = self.targets[keep]
@@ -513,11 +513,11 @@ def _brick_linear_extension(u: Tensor, surface: ImplicitSurface, mask: Tensor) -
 
 
 def cubic_stencil(surface: ImplicitSurface, mask: Tensor, limited: bool = False,
-                  sources: Tensor | None = None) -> CubicStencil | BrickCubicStencil:
+                  readable: Tensor | None = None) -> CubicStencil | BrickCubicStencil:
     """The closest-point stencil for ``surface``'s storage: dense or bricks."""
     if surface.layout is not None:
-        return BrickCubicStencil(surface, mask, limited, sources)
-    return CubicStencil(surface, mask, limited, sources)
+        return BrickCubicStencil(surface, mask, limited, readable)
+    return CubicStencil(surface, mask, limited, readable)
 
 
 def _closest_points(surface: ImplicitSurface, dtype: torch.dtype) -> Tensor:
