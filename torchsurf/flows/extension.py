@@ -310,8 +310,36 @@ _BRICK_INTERPOLATION = backend.Kernel(
 )
 
 
+def _kept_gathered(flat: Tensor, sources: Tensor, weights: Tensor, limited: bool, *,
+                   path: str = "slicing") -> Tensor:
+    """:func:`_brick_gathered` from the kept ``(M, 64)`` packed sources of each node."""
+    return _gathered_sum(flat, sources.long(), weights, limited)
+
+
+def _kept_terms(flat: Tensor, sources: Tensor, weights: Tensor, limited: bool) -> Tensor:
+    """:func:`_brick_terms` from the kept ``(M, 64)`` packed sources: one load a tap instead
+    of picking its brick among 8 (4x faster at 128^3, identical numbers)."""
+
+    def tap(k: int, j: int, i: int) -> Tensor:
+        return flat[:, sources[:, 16 * k + 4 * j + i].long()]
+
+    return _summed_terms(tap, weights, limited)
+
+
+_KEPT_INTERPOLATION = backend.Kernel(
+    "tricubic_interpolation_kept", _kept_gathered, _kept_terms, lambda *args: args,
+    dynamic=True,
+)
+
+
 STENCIL_CHUNK = 2**17
 """Nodes whose brick stencil is assembled at once (about 1 kB of temporaries a node)."""
+
+KEEP_SOURCES_NODES = 2**21
+"""A brick stencil of at most this many nodes keeps the packed index of each of its 64 taps
+(256 bytes a node, 512 MB at most) instead of forming them at every application: 4x faster
+(65,574 ring nodes of the bunny at 128^3, two channels: 8.8 ms against 38 ms). Larger
+stencils (a 512^3 band) form them, to keep memory to about 125 bytes a node."""
 
 
 class BrickCubicStencil:
@@ -320,8 +348,9 @@ class BrickCubicStencil:
 
     Each node keeps the first packed index of the (at most) 8 bricks its 4^3 taps meet, and per
     axis whether each tap lies in the second brick, its in-brick offset and its weight (about
-    125 bytes per node). Taps are clamped to each entry's box, as the dense stencil replicates
-    its data.
+    125 bytes per node); a stencil of at most :data:`KEEP_SOURCES_NODES` nodes also keeps the
+    packed index of each tap (256 bytes more a node, 4x faster to apply). Taps are clamped to
+    each entry's box, as the dense stencil replicates its data.
 
     Args:
         surface: a :class:`~torchsurf.bricks.BrickSurface`.
@@ -342,6 +371,14 @@ class BrickCubicStencil:
             parts = [self._assemble(surface, self.targets)]
         self.bases, self.second, self.local, self.weights = (
             torch.cat(pieces, dim=1) for pieces in zip(*parts, strict=True))
+        self.sources = None
+        if len(self.targets) <= KEEP_SOURCES_NODES:
+            self.sources = torch.cat([
+                _brick_sources(self.bases[:, part], self.second[:, part],
+                               self.local[:, part]).to(self.bases.dtype)
+                for part in (slice(start, start + STENCIL_CHUNK)
+                             for start in range(0, max(len(self.targets), 1), STENCIL_CHUNK))
+            ])
 
     @staticmethod
     def _assemble(surface: ImplicitSurface, targets: Tensor
@@ -385,8 +422,13 @@ class BrickCubicStencil:
         """``u`` ``(N, C, 8, 8, 8)`` with the masked nodes re-extended; a new tensor."""
         channels = u.shape[1]
         flat = u.transpose(0, 1).reshape(channels, -1)
-        value = backend.run(_BRICK_INTERPOLATION, "auto", u, flat, self.bases, self.second,
-                            self.local, self.weights.to(u.dtype), self.limited)
+        weights = self.weights.to(u.dtype)
+        if self.sources is not None:
+            value = backend.run(_KEPT_INTERPOLATION, "auto", u, flat, self.sources, weights,
+                                self.limited)
+        else:
+            value = backend.run(_BRICK_INTERPOLATION, "auto", u, flat, self.bases, self.second,
+                                self.local, weights, self.limited)
         result = flat.index_copy(1, self.targets, value)
         return result.view(channels, *u.shape[:1], *u.shape[2:]).transpose(0, 1)
 
