@@ -335,11 +335,12 @@ _KEPT_INTERPOLATION = backend.Kernel(
 STENCIL_CHUNK = 2**17
 """Nodes whose brick stencil is assembled at once (about 1 kB of temporaries a node)."""
 
-KEEP_SOURCES_NODES = 2**21
+KEEP_SOURCES_NODES = 2**20
 """A brick stencil of at most this many nodes keeps the packed index of each of its 64 taps
-(256 bytes a node, 512 MB at most) instead of forming them at every application: 4x faster
+(256 bytes a node, 256 MB at most) instead of forming them at every application: 4x faster
 (65,574 ring nodes of the bunny at 128^3, two channels: 8.8 ms against 38 ms). Larger
-stencils (a 512^3 band) form them, to keep memory to about 125 bytes a node."""
+stencils (the band and ring of a 512^3 bunny, 1.1 M ring nodes) form them, to keep memory to
+about 125 bytes a node (docs/bricks.md: 512^3 under 4 GB)."""
 
 
 class BrickCubicStencil:
