@@ -9,12 +9,20 @@ device (by shifted slices or by conv3d), and optionally a one-pass form over hal
   device when it stays eager.
 - ``"compiled"``: the one-pass form, compiled once per shape (docs/benchmarks.md: the octant
   Laplace–Beltrami at 128^3 runs at 1.5x the memory-traffic limit, 7x faster than eager).
-- ``"auto"``: compiled when it pays. Compiling costs seconds for each kernel and shape, so
-  ``"auto"`` compiles a volume of at least :data:`COMPILE_MIN_VOXELS` voxels at once, and a
-  smaller one, when autograd does not record the call, as soon as the eager time measured on
-  that kernel and shape in this process reaches :data:`COMPILE_PAYBACK_SECONDS`, the measured
-  cost of compiling it: a flow run many times is compiled after a few seconds of eager work,
-  while a one-off call never waits for a compiler.
+- ``"auto"``: compiled when it pays, by measurement. Compiling costs seconds for each kernel
+  and shape, and the first compile in a process more (the compiler's start-up:
+  docs/benchmarks.md, "Compile cost"), so on the CPU ``"auto"`` runs a kernel eagerly until
+  the eager time measured on that kernel and shape in this process reaches
+  :data:`COMPILE_PAYBACK_SECONDS`, about what compiling it costs, and compiles it then: a call
+  with less eager work than that never waits for a compiler, a flow run or a training loop is
+  compiled after seconds of eager work, and no run spends more than about twice what the
+  better choice in hindsight would have. It then times the compiled kernel too, and goes back
+  to eager for good if its fastest call is slower than the fastest eager one. While autograd
+  records the call, volumes below :data:`COMPILE_MIN_VOXELS` stay eager (gradcheck and double
+  backward on small grids). Volumes of :data:`COMPILE_AT_ONCE_VOXELS` voxels are compiled on
+  their first call, and off the CPU (where nothing is timed) those of
+  :data:`COMPILE_MIN_VOXELS`. A kernel compiled for one batch size of two or more serves the
+  others (a dynamic batch size). :func:`warm_up` compiles at once, for a warm-up call.
 
 Inside a function that ``torch.compile`` is tracing every operator stays eager, so that the
 outer compiler sees plain tensor operations. Compiled kernels have no double backward: pass an
@@ -26,8 +34,9 @@ from __future__ import annotations
 import contextlib
 import contextvars
 import functools
+import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 
 import torch
@@ -41,15 +50,26 @@ PATHS = ("auto", "slicing", "conv3d", "compiled")
 EAGER_PATHS = ("slicing", "conv3d")
 
 COMPILE_MIN_VOXELS = 64**3
-"""Volumes (batch x channels x voxels) at least this large are compiled on their first call."""
+"""Smallest volume (batch x channels x voxels) that ``"auto"`` compiles while autograd records
+the call (a compiled backward cannot be differentiated again, as gradcheck and double backward
+on small grids do); off the CPU, the volumes it compiles at once."""
 
-COMPILE_PAYBACK_SECONDS = 4.0
-"""Eager seconds spent on one kernel and shape after which ``"auto"`` compiles it.
+COMPILE_AT_ONCE_VOXELS = 2**23
+"""Volumes at least this large (``203^3``; batch x channels x voxels) are compiled on their
+first call: one eager application of a Laplace–Beltrami costs about 0.3 s there (77 ms at
+``128^3``, docs/benchmarks.md), so a flow spends a compile's time in eager work within its
+first call; the brick layout's figures at ``512^3`` (docs/bricks.md) were measured so."""
 
-About the time ``torch.compile`` takes for one of the operators on this machine class
-(2-6 s per kernel and shape, docs/benchmarks.md), so that ``"auto"`` never spends more than
-about twice what the better choice in hindsight would have.
-"""
+COMPILE_PAYBACK_SECONDS = 10.0
+"""Eager seconds measured on one kernel and shape (and grad mode) after which ``"auto"``
+compiles it: about what compiling it costs, the compiler's start-up included, with a warm
+inductor cache on this machine class (docs/benchmarks.md, "Compile cost"; an empty cache costs
+2-4x more), so that ``"auto"`` never spends more than about twice what the better choice in
+hindsight would have."""
+
+COMPARED_CALLS = 3
+"""Compiled calls of a kernel and shape that ``"auto"`` times (besides the one that compiles)
+before comparing the fastest with the fastest eager call."""
 
 RECOMPILE_LIMIT = 64
 """Dynamo's per-function limit on compiled variants, raised to at least this on first compile."""
@@ -122,13 +142,89 @@ def compiled(function: Callable[..., Tensor], dynamic: bool = False) -> Callable
     return torch.compile(function, dynamic=dynamic)
 
 
-_EAGER_SECONDS: dict[tuple, float] = {}
-"""Eager time measured per (kernel, shape, dtype, device, grad mode) in this process."""
+@dataclass
+class _Timings:
+    """Wall times of one kernel and shape (and grad mode) under ``"auto"`` in this process."""
+
+    eager_seconds: float = 0.0
+    eager_fastest: float = math.inf
+    compiled_calls: int = 0
+    compiled_fastest: float = math.inf
+
+    def record(self, path: str, seconds: float) -> None:
+        if path != "compiled":
+            self.eager_seconds += seconds
+            self.eager_fastest = min(self.eager_fastest, seconds)
+            return
+        if self.compiled_calls > 0:  # the first compiled call compiles
+            self.compiled_fastest = min(self.compiled_fastest, seconds)
+        self.compiled_calls += 1
+
+    @property
+    def compiled_slower(self) -> bool:
+        """The compiled kernel's fastest call, once compared, is slower than the eager one's."""
+        return self.compiled_calls > COMPARED_CALLS and self.compiled_fastest > self.eager_fastest
 
 
-def _ledger_key(kernel: Kernel, volume: Tensor) -> tuple:
-    return (kernel.name, tuple(volume.shape), volume.dtype, volume.device.type,
+_TIMINGS: dict[tuple, _Timings] = {}
+"""What :func:`run` measured per (kernel, shape, dtype, device, grad mode) in this process."""
+
+
+def _timings(kernel: Kernel, volume: Tensor) -> _Timings:
+    key = (kernel.name, tuple(volume.shape), volume.dtype, volume.device.type,
+           torch.is_grad_enabled())
+    if key not in _TIMINGS:
+        _TIMINGS[key] = _Timings()
+    return _TIMINGS[key]
+
+
+def _family(kernel: Kernel, volume: Tensor) -> tuple:
+    """What a compiled variant of ``kernel`` is specialised on besides the batch size."""
+    return (kernel.name, tuple(volume.shape[1:]), volume.dtype, volume.device.type,
             torch.is_grad_enabled())
+
+
+_ANY_BATCH: set[tuple] = set()
+"""The :func:`_family` of every kernel compiled for a batch of two or more in this process."""
+
+
+def _run_compiled(kernel: Kernel, volume: Tensor, args: tuple) -> Tensor:
+    """``kernel.fused(*args)`` compiled. For a batch of two or more, the size of every tensor
+    with that batch is dynamic (one variant serves every such batch size, as fast as the
+    specialised one: docs/benchmarks.md, "Compile cost"), so that a new batch size, such as an
+    epoch's last batch, neither recompiles nor waits for its own eager time to pay back."""
+    batch = volume.shape[0]
+    if batch > 1:
+        for arg in args:
+            if isinstance(arg, Tensor) and arg.dim() > 0 and arg.shape[0] == batch:
+                torch._dynamo.maybe_mark_dynamic(arg, 0)
+        _ANY_BATCH.add(_family(kernel, volume))
+    return compiled(kernel.fused, kernel.dynamic)(*args)
+
+
+_AT_ONCE: contextvars.ContextVar[bool] = contextvars.ContextVar(
+    "torchsurf_backend_compile_at_once", default=False
+)
+
+
+@contextlib.contextmanager
+def warm_up() -> Iterator[None]:
+    """Inside, ``"auto"`` compiles every kernel it runs at once (where it has a compiled form
+    not measured slower than eager), instead of after :data:`COMPILE_PAYBACK_SECONDS` of
+    eager work.
+
+    For a warm-up call: one forward and backward of a model at the shapes, dtype and grad
+    modes it will run with compiles the kernels it will need, so that the calls that follow
+    run compiled from the start (docs/learning.md, "Warm-up and torch.compile")::
+
+        with torchsurf.backend.warm_up():
+            model(u, surface).sum().backward()
+    """
+    token = _AT_ONCE.set(True)
+    try:
+        yield
+    finally:
+        _AT_ONCE.reset(token)
 
 
 @dataclass
@@ -178,11 +274,11 @@ def resolve(path: str, volume: Tensor, kernel: Kernel | None = None,
     Args:
         path: one of :data:`PATHS`.
         volume: the data the operator is applied to, ``(B, C, D, H, W)``.
-        kernel: the operator, when known: ``"auto"`` then also weighs the eager time already
-            spent on it (see the module's docstring).
-        recording: autograd records the call. The eager-time rule then never switches a
-            small volume to the compiled kernel, whose backward cannot be differentiated
-            again (gradcheck, double backward) and would change in the middle of a run.
+        kernel: the operator: ``"auto"`` weighs the times measured on it (see the module's
+            docstring); without it, or without a compiled form, ``"auto"`` stays eager.
+        recording: autograd records the call. ``"auto"`` then never switches a volume
+            smaller than :data:`COMPILE_MIN_VOXELS` to the compiled kernel, whose backward
+            cannot be differentiated again (gradcheck, double backward).
     """
     check_choice(path, "path", PATHS)
     if path != "auto":
@@ -198,15 +294,22 @@ def resolve(path: str, volume: Tensor, kernel: Kernel | None = None,
 
 
 def _choose(volume: Tensor, kernel: Kernel | None, recording: bool) -> str:
-    if torch.compiler.is_compiling() or (kernel is not None and kernel.fused is None):
-        return eager_path(volume)
-    if volume.numel() >= COMPILE_MIN_VOXELS:
+    eager = eager_path(volume)
+    if torch.compiler.is_compiling() or kernel is None or kernel.fused is None:
+        return eager
+    large = volume.numel() >= COMPILE_MIN_VOXELS
+    if recording and not large:
+        return eager
+    if volume.device.type != "cpu":
+        return "compiled" if large or _AT_ONCE.get() else eager
+    timings = _timings(kernel, volume)
+    if timings.compiled_slower:
+        return eager
+    if (_AT_ONCE.get() or volume.numel() >= COMPILE_AT_ONCE_VOXELS
+            or timings.eager_seconds >= COMPILE_PAYBACK_SECONDS
+            or (volume.shape[0] > 1 and _family(kernel, volume) in _ANY_BATCH)):
         return "compiled"
-    if not recording and kernel is not None and _EAGER_SECONDS.get(
-        _ledger_key(kernel, volume), 0.0
-    ) >= COMPILE_PAYBACK_SECONDS:
-        return "compiled"
-    return eager_path(volume)
+    return eager
 
 
 def run(kernel: Kernel, path: str, volume: Tensor, *args: object) -> Tensor:
@@ -232,22 +335,27 @@ def run(kernel: Kernel, path: str, volume: Tensor, *args: object) -> Tensor:
         isinstance(a, Tensor) and a.requires_grad for a in args
     )
     concrete = resolve(path, volume, kernel, recording)
-    if concrete == "compiled":
-        if kernel.fused is None:
-            raise ValueError(f"path='compiled': {kernel.name} has no compiled form")
-        return compiled(kernel.fused, kernel.dynamic)(*kernel.halo(*args))
-    if concrete == "slicing" and kernel.fused_when_eager:
-        def evaluate() -> Tensor:
+    if concrete == "compiled" and kernel.fused is None:
+        raise ValueError(f"path='compiled': {kernel.name} has no compiled form")
+
+    def evaluate() -> Tensor:
+        if concrete == "compiled":
+            return _run_compiled(kernel, volume, kernel.halo(*args))
+        if concrete == "slicing" and kernel.fused_when_eager:
             return kernel.fused(*kernel.halo(*args))
-    else:
-        def evaluate() -> Tensor:
-            return kernel.eager(*args, path=concrete)
+        return kernel.eager(*args, path=concrete)
+
+    return _timed(kernel, path, concrete, volume, evaluate)
+
+
+def _timed(kernel: Kernel, path: str, concrete: str, volume: Tensor,
+           evaluate: Callable[[], Tensor]) -> Tensor:
+    """``evaluate()``, its wall time recorded when ``"auto"`` chose ``concrete`` on the CPU."""
     if path != "auto" or kernel.fused is None or volume.device.type != "cpu":
         return evaluate()
     start = time.perf_counter()
     result = evaluate()
-    key = _ledger_key(kernel, volume)
-    _EAGER_SECONDS[key] = _EAGER_SECONDS.get(key, 0.0) + time.perf_counter() - start
+    _timings(kernel, volume).record(concrete, time.perf_counter() - start)
     return result
 
 
@@ -269,12 +377,8 @@ def run_haloed(kernel: Kernel, path: str, volume: Tensor, *haloed_args: object) 
     recording = torch.is_grad_enabled() and any(
         isinstance(a, Tensor) and a.requires_grad for a in haloed_args
     )
-    if resolve(path, volume, kernel, recording) == "compiled":
-        return compiled(kernel.fused, kernel.dynamic)(*haloed_args)
-    if path != "auto" or volume.device.type != "cpu":
-        return kernel.fused(*haloed_args)
-    start = time.perf_counter()
-    result = kernel.fused(*haloed_args)
-    key = _ledger_key(kernel, volume)
-    _EAGER_SECONDS[key] = _EAGER_SECONDS.get(key, 0.0) + time.perf_counter() - start
-    return result
+    concrete = resolve(path, volume, kernel, recording)
+    if concrete == "compiled":
+        return _timed(kernel, path, concrete, volume,
+                      lambda: _run_compiled(kernel, volume, haloed_args))
+    return _timed(kernel, path, concrete, volume, lambda: kernel.fused(*haloed_args))
