@@ -240,6 +240,18 @@ def _child(args: argparse.Namespace, item: str, path: str, cache: str, cache_dir
     return Measurement(**json.loads(lines[-1]))
 
 
+def _read_record(path: Path | None) -> dict[tuple[str, str], tuple[Measurement, Measurement | None]]:
+    """The rows a run interrupted earlier wrote to ``path`` (one JSON pair a line), by
+    ``(item, path)``: they are not measured again."""
+    if path is None or not path.exists():
+        return {}
+    rows = {}
+    for line in path.read_text().splitlines():
+        cold, warm = json.loads(line)
+        rows[cold["item"], cold["path"]] = (Measurement(**cold), warm and Measurement(**warm))
+    return rows
+
+
 def _seconds(value: float) -> str:
     return "—" if value != value else f"{value:.1f}"
 
@@ -329,6 +341,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--warm-paths", nargs="*", default=["auto", "compiled", "warm_up"],
                         choices=paths, help="paths also run with the cache a cold run left")
     parser.add_argument("--output", type=Path, help="write the table into this markdown file")
+    parser.add_argument("--record", type=Path,
+                        help="append each row to this JSON-lines file, and skip the rows it "
+                        "already holds (to resume an interrupted run)")
     parser.add_argument("--child", nargs=3, metavar=("ITEM", "PATH", "CACHE"),
                         help=argparse.SUPPRESS)
     return parser.parse_args(argv)
@@ -346,16 +361,23 @@ def main(argv: list[str] | None = None) -> None:
         return
     started = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
     load_start = os.getloadavg()[0]
+    recorded = _read_record(args.record)
     rows: list[tuple[Measurement, Measurement | None]] = []
     jobs = [(item, args.paths) for item in args.operators]
     jobs += [(item, args.layer_paths or args.paths) for item in args.layers]
     for item, paths in jobs:
         for path in paths:
+            if (item, path) in recorded:
+                rows.append(recorded[item, path])
+                continue
             with tempfile.TemporaryDirectory(prefix="inductor-") as cache_dir:
                 cold = _child(args, item, path, "cold", cache_dir)
                 warm = (_child(args, item, path, "warm", cache_dir) if path in args.warm_paths
                         else None)
             rows.append((cold, warm))
+            if args.record is not None:
+                with args.record.open("a") as record:
+                    record.write(json.dumps([asdict(cold), warm and asdict(warm)]) + "\n")
             print(table([rows[-1]]).splitlines()[-1], flush=True)
     load_end = os.getloadavg()[0]
     command = " ".join(["python", "benchmarks/bench_compile.py", *map(shlex.quote, argv or sys.argv[1:])])
