@@ -176,8 +176,7 @@ def _recorded(function: Callable[[], object]) -> tuple[float, dict[str, int]]:
 def _pending() -> bool:
     """Whether ``"auto"`` has a kernel it has not decided on yet: still eager and not paid
     back, or compiled and not yet compared with eager (the backend's own record)."""
-    return any(not timing.compiled_slower and timing.compiled_calls <= backend.COMPARED_CALLS
-               for timing in backend._TIMINGS.values())
+    return any(timing.pending for timing in backend._TIMINGS.values())
 
 
 def measure(item: str, path: str, cache: str, n: int, batch: int, dtype: torch.dtype,
@@ -229,7 +228,7 @@ def _child(args: argparse.Namespace, item: str, path: str, cache: str, cache_dir
                str(args.threads), "--repeats", str(args.repeats), "--warmup-budget",
                str(args.warmup_budget)]
     environment = dict(os.environ, TORCHINDUCTOR_CACHE_DIR=cache_dir,
-                       OMP_NUM_THREADS=str(args.threads))
+                       OMP_NUM_THREADS=str(args.threads), TORCHSURF_COMPILE="auto")
     result = subprocess.run(command, capture_output=True, text=True, env=environment,
                             timeout=args.timeout)
     lines = [line for line in result.stdout.splitlines() if line.startswith("{")]

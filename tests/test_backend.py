@@ -12,6 +12,13 @@ from torchsurf import backend
 from torchsurf.operators import functional
 
 
+@pytest.fixture(autouse=True)
+def auto_compiles(monkeypatch):
+    """These tests are about what ``"auto"`` compiles: as in a user's process (the suite's
+    conftest sets ``TORCHSURF_COMPILE=never``)."""
+    monkeypatch.setattr(backend, "COMPILE", "auto")
+
+
 def _kernel(name: str, calls: list[str], fused: bool = True) -> backend.Kernel:
     def eager(x, *, path):
         calls.append(path)
@@ -224,5 +231,6 @@ def test_one_compiled_variant_serves_every_batch_size_of_two_or_more(monkeypatch
     for actual, expected in results.values():
         torch.testing.assert_close(actual, expected)
     monkeypatch.setattr(backend, "COMPILE_PAYBACK_SECONDS", math.inf)
-    assert backend.resolve("auto", torch.rand(4, 1, 5, 5, 5), kernel) == "compiled"
-    assert backend.resolve("auto", torch.rand(1, 1, 5, 5, 5), kernel) == "slicing"
+    for batch, expected in ((4, "compiled"), (1, "slicing")):
+        x = torch.rand(batch, 1, 5, 5, 5)
+        assert backend.resolve("auto", x, kernel, args=(x, weight)) == expected
