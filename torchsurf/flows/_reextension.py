@@ -46,7 +46,7 @@ def reextend(stencil: Stencil, u: Tensor, path: str = "auto") -> Tensor:
 
 class _Reextend(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, stencil, u, path):  # noqa: ANN001, ANN205
+    def forward(ctx, stencil, u, path="auto"):  # noqa: ANN001, ANN205
         ctx.stencil = stencil
         ctx.save_for_backward(u)
         with torch.no_grad():

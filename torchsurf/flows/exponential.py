@@ -123,7 +123,7 @@ class _Extend(torch.autograd.Function):
     (autograd through the gather would keep 64 values per node)."""
 
     @staticmethod
-    def forward(ctx, stencil, x, path):  # noqa: ANN001, ANN205
+    def forward(ctx, stencil, x, path="auto"):  # noqa: ANN001, ANN205
         ctx.stencil, ctx.batch = stencil, x.shape[0]
         return stencil.apply(x, path)
 
