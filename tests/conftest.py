@@ -8,10 +8,23 @@ Everything here takes and returns tensors; points are ``(..., 3)`` world ``(x, y
 from __future__ import annotations
 
 import math
+import os
 
-import pytest
-import torch
-from torch import Tensor
+# "auto" never compiles in the tests (it would after seconds of eager work on a kernel, which
+# many tests reach: a compile costs 10-90 s here and would land in whichever test crosses
+# the threshold). The compiled kernels are tested where they are asked for by name
+# (path="compiled", warm_up, tests/test_compiled_kernels.py, tests marked ``compiled``: long
+# runs compiled from their first call), and "auto"'s choice in tests/test_backend.py.
+# TORCHSURF_COMPILE=auto runs the whole suite as a user's process would.
+os.environ.setdefault("TORCHSURF_COMPILE", "never")
+
+import pytest  # noqa: E402
+import torch  # noqa: E402
+from torch import Tensor  # noqa: E402
+
+from torchsurf import backend  # noqa: E402
+
+backend.COMPILE = backend._compile_mode_from_environment()  # were torchsurf imported already
 
 
 def channels(field: Tensor) -> Tensor:
@@ -106,6 +119,15 @@ def ellipsoid_gaussian_curvature(points: Tensor, a: Tensor | float, b: Tensor | 
 def generator() -> torch.Generator:
     """A seeded generator, so that random inputs are the same on every run."""
     return torch.Generator().manual_seed(0)
+
+
+@pytest.fixture(autouse=True)
+def _compile_when_marked(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A test marked ``compiled`` (minutes of eager work on a few kernels, which a user's run
+    would compile) runs with ``TORCHSURF_COMPILE=always``: compiled from the first call, not
+    after a payback that would land the compile in the middle of the test."""
+    if request.node.get_closest_marker("compiled") is not None:
+        monkeypatch.setattr(backend, "COMPILE", "always")
 
 
 @pytest.fixture(autouse=True)

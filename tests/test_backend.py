@@ -2,12 +2,21 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
 import torchsurf as ts
 from torchsurf import backend
 from torchsurf.operators import functional
+
+
+@pytest.fixture(autouse=True)
+def auto_compiles(monkeypatch):
+    """These tests are about what ``"auto"`` compiles: as in a user's process (the suite's
+    conftest sets ``TORCHSURF_COMPILE=never``)."""
+    monkeypatch.setattr(backend, "COMPILE", "auto")
 
 
 def _kernel(name: str, calls: list[str], fused: bool = True) -> backend.Kernel:
@@ -42,13 +51,45 @@ def test_auto_stays_eager_until_the_measured_eager_time_pays_for_compiling(monke
     assert backend.resolve("auto", torch.zeros(1, 1, 5, 4, 4), kernel) == "slicing"
 
 
-def test_auto_compiles_large_volumes_at_once_and_never_a_kernel_without_fused_form():
+def test_auto_never_compiles_on_a_first_call_but_inside_warm_up():
+    """Even a large volume runs eagerly until its eager time pays for compiling it (the first
+    compile in a process costs seconds to a minute); :func:`backend.warm_up` compiles at once,
+    never a kernel without a compiled form."""
     calls: list[str] = []
     big = torch.zeros(1, 1, 64, 64, 64)
-    assert backend.resolve("auto", big, _kernel("big", calls)) == "compiled"
-    assert backend.resolve("auto", big, _kernel("plain", calls, fused=False)) == "slicing"
+    assert backend.resolve("auto", big, _kernel("big", calls)) == "slicing"
+    assert backend.resolve("auto", big, _kernel("big", calls), recording=True) == "slicing"
+    with backend.warm_up():
+        assert backend.resolve("auto", big, _kernel("big", calls)) == "compiled"
+        assert backend.resolve("auto", big, _kernel("plain", calls, fused=False)) == "slicing"
+    assert backend.resolve("auto", big, _kernel("big", calls)) == "slicing"
     with pytest.raises(ValueError, match="no compiled form"):
         backend.run(_kernel("plain", calls, fused=False), "compiled", big, big)
+
+
+def test_auto_goes_back_to_eager_for_good_when_compiled_is_measured_slower(monkeypatch):
+    calls: list[str] = []
+    kernel = _kernel("test_slower", calls)
+    volume = torch.zeros(1, 1, 4, 4, 4)
+    monkeypatch.setattr(backend, "compiled", lambda f, dynamic=False: f)
+    monkeypatch.setattr(backend, "COMPILE_PAYBACK_SECONDS", 2.0)
+    # eager calls take one second each, compiled ones two (the first of them compiles)
+    durations = iter([1.0, 1.0] + [5.0] + [2.0] * backend.COMPARED_CALLS)
+    clock = {"now": 0.0, "start": True}
+
+    def perf_counter() -> float:
+        if not clock["start"]:
+            clock["now"] += next(durations)
+        clock["start"] = not clock["start"]
+        return clock["now"]
+
+    monkeypatch.setattr(backend.time, "perf_counter", perf_counter)
+    for _ in range(2 + 1 + backend.COMPARED_CALLS):
+        backend.run(kernel, "auto", volume, volume)
+    assert calls == ["slicing"] * 2 + ["fused"] * (1 + backend.COMPARED_CALLS)
+    assert backend.resolve("auto", volume, kernel) == "slicing"
+    with backend.warm_up():
+        assert backend.resolve("auto", volume, kernel) == "slicing"
 
 
 def test_explicit_paths_are_taken_as_given_and_unknown_ones_refused():
@@ -138,13 +179,18 @@ def test_recorded_decisions_replay_what_auto_chose(monkeypatch):
         assert backend.resolve("auto", volume, kernel) == "slicing"
 
 
-def test_recorded_calls_never_switch_by_eager_time(monkeypatch):
-    """A gradcheck or a double backward must not find a compiled kernel under it mid-run."""
+def test_recorded_calls_switch_by_eager_time_only_on_large_volumes(monkeypatch):
+    """A gradcheck or a double backward on a small grid must not find a compiled kernel under
+    it mid-run; training at 64^3 is compiled once it pays."""
     kernel = _kernel("test_recording", [])
     volume = torch.zeros(1, 1, 4, 4, 4)
     monkeypatch.setattr(backend, "COMPILE_PAYBACK_SECONDS", 0.0)
     assert backend.resolve("auto", volume, kernel, recording=False) == "compiled"
     assert backend.resolve("auto", volume, kernel, recording=True) == "slicing"
+    with backend.warm_up():
+        assert backend.resolve("auto", volume, kernel, recording=True) == "slicing"
+    big = torch.zeros(1, 1, 64, 64, 64)
+    assert backend.resolve("auto", big, kernel, recording=True) == "compiled"
 
 
 
@@ -161,3 +207,30 @@ def test_compiled_kernels_allow_backward_with_retain_graph():
     loss = value.square().sum()
     loss.backward(retain_graph=True)
     loss.backward()
+
+
+def _scaled(x: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    return x * weight + 1
+
+
+def test_one_compiled_variant_serves_every_batch_size_of_two_or_more(monkeypatch):
+    """A new batch size (an epoch's last batch) neither recompiles nor waits for its own eager
+    time to pay back."""
+    kernel = backend.Kernel("test_any_batch", lambda x, weight, *, path: _scaled(x, weight),
+                            _scaled, lambda x, weight: (x, weight))
+    monkeypatch.setattr(backend, "COMPILE_PAYBACK_SECONDS", 0.0)
+    weight = torch.rand(1, 1, 5, 5, 5)
+    counters = torch._dynamo.utils.counters["stats"]
+    results = {}
+    for batch in (2, 3, 5):
+        x = torch.rand(batch, 1, 5, 5, 5)
+        if batch == 3:
+            compiled_before = counters["unique_graphs"]
+        results[batch] = (backend.run(kernel, "auto", x, x, weight), _scaled(x, weight))
+    assert counters["unique_graphs"] == compiled_before
+    for actual, expected in results.values():
+        torch.testing.assert_close(actual, expected)
+    monkeypatch.setattr(backend, "COMPILE_PAYBACK_SECONDS", math.inf)
+    for batch, expected in ((4, "compiled"), (1, "slicing")):
+        x = torch.rand(batch, 1, 5, 5, 5)
+        assert backend.resolve("auto", x, kernel, args=(x, weight)) == expected

@@ -124,3 +124,21 @@ def test_bricks_benchmark_batch_runs_and_reports(tmp_path, monkeypatch):
               "cells": 1.0}
     text = module.batch_markdown(result)
     assert "| sphere alone, 24^3 |" in text and "sum of the 2 alone" in text
+
+
+COMPILE = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_compile.py"
+
+
+def test_compile_bench_measures_every_item_and_tabulates():
+    spec = importlib.util.spec_from_file_location("bench_compile", COMPILE)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    for item in (*module.OPERATORS, *module.LAYERS):
+        call, data, _ = module.build(item, "slicing", 9, 2, torch.float32)
+        with torch.no_grad():
+            assert call(data).shape[0] == 2, item
+    cold = module.measure("lb_octant", "slicing", "cold", 9, 2, torch.float32, 1, 0.0)
+    assert cold.first_forward_s > 0 and cold.steady_train_ms > 0 and not cold.error
+    text = module.table([(cold, None)])
+    assert text.splitlines()[-1].startswith("| lb_octant | slicing |")

@@ -9,12 +9,33 @@ device (by shifted slices or by conv3d), and optionally a one-pass form over hal
   device when it stays eager.
 - ``"compiled"``: the one-pass form, compiled once per shape (docs/benchmarks.md: the octant
   Laplace–Beltrami at 128^3 runs at 1.5x the memory-traffic limit, 7x faster than eager).
-- ``"auto"``: compiled when it pays. Compiling costs seconds for each kernel and shape, so
-  ``"auto"`` compiles a volume of at least :data:`COMPILE_MIN_VOXELS` voxels at once, and a
-  smaller one, when autograd does not record the call, as soon as the eager time measured on
-  that kernel and shape in this process reaches :data:`COMPILE_PAYBACK_SECONDS`, the measured
-  cost of compiling it: a flow run many times is compiled after a few seconds of eager work,
-  while a one-off call never waits for a compiler.
+- ``"auto"``: compiled when it pays, by measurement. Compiling costs seconds for each kernel
+  and shape, and the first compile in a process more (the compiler's start-up:
+  docs/benchmarks.md, "Compile cost"), so on the CPU ``"auto"`` runs a kernel eagerly until
+  the eager time measured on that kernel and shape in this process reaches
+  :data:`COMPILE_PAYBACK_SECONDS`, about what compiling it costs, and compiles it then: a call
+  with less eager work than that never waits for a compiler, a flow run or a training loop is
+  compiled after seconds of eager work, and no run spends more than about twice what the
+  better choice in hindsight would have. It then times the compiled kernel too, and goes back
+  to eager for good if its fastest call is slower than the fastest eager one. While autograd
+  records the call, volumes below :data:`COMPILE_MIN_VOXELS` stay eager (gradcheck and double
+  backward on small grids). Volumes of :data:`COMPILE_AT_ONCE_VOXELS` voxels are compiled on
+  their first call, and off the CPU (where nothing is timed) those of
+  :data:`COMPILE_MIN_VOXELS`. A kernel compiled for one batch size of two or more serves the
+  others (a dynamic batch size). :func:`warm_up` compiles at once, for a warm-up call.
+
+What ``"auto"`` measures and compiles is per *variant*: what one compiled graph is specialised
+on (the kernel, its arguments' shapes unless the kernel is dynamic, dtype, device, its flags
+and other non-tensor arguments, and whether autograd records the call and for which inputs).
+Each variant pays back its own compile, so that a flag or a grad mode seen once in a run of
+another never brings a compile of its own. A call autograd does not record runs the compiled
+kernel without grad on detached inputs: one inference variant, whatever the grad mode and the
+inputs' ``requires_grad``.
+
+The environment variable ``TORCHSURF_COMPILE`` (read at import, kept in :data:`COMPILE`) sets
+what ``"auto"`` does: ``auto`` (default) as above, ``never`` (always eager, for short scripts,
+test suites and debugging; ``path="compiled"`` and :func:`warm_up` still compile), ``always``
+(compile every kernel on its first call, as inside :func:`warm_up`).
 
 Inside a function that ``torch.compile`` is tracing every operator stays eager, so that the
 outer compiler sees plain tensor operations. Compiled kernels have no double backward: pass an
@@ -26,8 +47,10 @@ from __future__ import annotations
 import contextlib
 import contextvars
 import functools
+import math
+import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 
 import torch
@@ -40,16 +63,45 @@ PATHS = ("auto", "slicing", "conv3d", "compiled")
 
 EAGER_PATHS = ("slicing", "conv3d")
 
+COMPILE_MODES = ("auto", "never", "always")
+"""Values of :data:`COMPILE` (and of the environment variable ``TORCHSURF_COMPILE``)."""
+
+
+def _compile_mode_from_environment() -> str:
+    value = os.environ.get("TORCHSURF_COMPILE", "auto").strip().lower() or "auto"
+    if value not in COMPILE_MODES:
+        raise ValueError(
+            f"TORCHSURF_COMPILE must be one of {COMPILE_MODES}, got {value!r}"
+        )
+    return value
+
+
+COMPILE = _compile_mode_from_environment()
+"""What ``path="auto"`` does in this process: ``"auto"`` compiles a variant once its eager
+time pays back, ``"never"`` stays eager, ``"always"`` compiles on the first call. Read from
+``TORCHSURF_COMPILE`` at import; assign another of :data:`COMPILE_MODES` to change it."""
+
 COMPILE_MIN_VOXELS = 64**3
-"""Volumes (batch x channels x voxels) at least this large are compiled on their first call."""
+"""Smallest volume (batch x channels x voxels) that ``"auto"`` compiles while autograd records
+the call (a compiled backward cannot be differentiated again, as gradcheck and double backward
+on small grids do); off the CPU, the volumes it compiles at once."""
 
-COMPILE_PAYBACK_SECONDS = 4.0
-"""Eager seconds spent on one kernel and shape after which ``"auto"`` compiles it.
+COMPILE_AT_ONCE_VOXELS = 2**23
+"""Volumes at least this large (``203^3``; batch x channels x voxels) are compiled on their
+first call: one eager application of a Laplace–Beltrami costs about 0.3 s there (77 ms at
+``128^3``, docs/benchmarks.md), so a flow spends a compile's time in eager work within its
+first call; the brick layout's figures at ``512^3`` (docs/bricks.md) were measured so."""
 
-About the time ``torch.compile`` takes for one of the operators on this machine class
-(2-6 s per kernel and shape, docs/benchmarks.md), so that ``"auto"`` never spends more than
-about twice what the better choice in hindsight would have.
-"""
+COMPILE_PAYBACK_SECONDS = 10.0
+"""Eager seconds measured on one kernel and shape (and grad mode) after which ``"auto"``
+compiles it: about what compiling it costs, the compiler's start-up included, with a warm
+inductor cache on this machine class (docs/benchmarks.md, "Compile cost"; an empty cache costs
+2-4x more), so that ``"auto"`` never spends more than about twice what the better choice in
+hindsight would have."""
+
+COMPARED_CALLS = 3
+"""Compiled calls of a kernel and shape that ``"auto"`` times (besides the one that compiles)
+before comparing the fastest with the fastest eager call."""
 
 RECOMPILE_LIMIT = 64
 """Dynamo's per-function limit on compiled variants, raised to at least this on first compile."""
@@ -122,13 +174,154 @@ def compiled(function: Callable[..., Tensor], dynamic: bool = False) -> Callable
     return torch.compile(function, dynamic=dynamic)
 
 
-_EAGER_SECONDS: dict[tuple, float] = {}
-"""Eager time measured per (kernel, shape, dtype, device, grad mode) in this process."""
+def _tensors(values: tuple | list) -> Iterator[Tensor]:
+    """The tensors among ``values``, also inside tuples and lists (a ``haloed`` pair)."""
+    for value in values:
+        if isinstance(value, Tensor):
+            yield value
+        elif isinstance(value, (tuple, list)):
+            yield from _tensors(value)
 
 
-def _ledger_key(kernel: Kernel, volume: Tensor) -> tuple:
-    return (kernel.name, tuple(volume.shape), volume.dtype, volume.device.type,
-            torch.is_grad_enabled())
+def _describe(value: object, batch: int, dynamic: bool, recording: bool) -> object:
+    """What a compiled graph of a kernel is specialised on in one argument ``value``.
+
+    A tensor: its dtype, whether autograd records it (only while the call is recorded: other
+    calls run the compiled kernel on detached inputs), and its shape, with the batch size
+    ``batch`` of two or more generalised (one variant serves them all) and every size left out
+    for a ``dynamic`` kernel. Numbers are left out for a dynamic kernel (symbolic), other
+    values (flags, scheme names, functions) are kept as they are.
+    """
+    if isinstance(value, Tensor):
+        grad = recording and value.requires_grad
+        if dynamic:
+            return ("tensor", value.dim(), value.dtype, grad)
+        shape = tuple(value.shape)
+        if batch > 1 and shape and shape[0] == batch:
+            shape = ("batch", *shape[1:])
+        return ("tensor", shape, value.dtype, grad)
+    if isinstance(value, (tuple, list)):
+        return tuple(_describe(item, batch, dynamic, recording) for item in value)
+    if dynamic and isinstance(value, (int, float)) and not isinstance(value, bool):
+        return type(value).__name__
+    try:
+        hash(value)
+    except TypeError:
+        return (type(value).__name__, id(value))
+    return value
+
+
+def _variant(kernel: Kernel, volume: Tensor, args: tuple, recording: bool) -> tuple:
+    """The compiled variant a call of ``kernel`` on ``args`` runs (or would run): the key of
+    :data:`_TIMINGS`. Calls with the same key share one compiled graph, and so one payback."""
+    batch = volume.shape[0]
+    return (kernel.name, volume.device.type, recording, batch > 1,
+            tuple(_describe(arg, batch, kernel.dynamic, recording) for arg in args))
+
+
+def _shapes(args: tuple) -> tuple:
+    """The exact shapes of the tensors among ``args``: calls comparable in time."""
+    return tuple(tuple(t.shape) for t in _tensors(args))
+
+
+@dataclass
+class _Timings:
+    """Wall times of one compiled variant (:func:`_variant`) under ``"auto"`` in this process.
+
+    ``eager_seconds`` sums every eager call of the variant (what pays for compiling it); the
+    fastest eager and compiled calls are kept per exact shape, and the compiled kernel is
+    :attr:`slower` once, at some shape, its fastest of more than :data:`COMPARED_CALLS` calls
+    (the first one, which compiles, left out) is slower than the fastest eager call there.
+    """
+
+    eager_seconds: float = 0.0
+    compiled: bool = False
+    slower: bool = False
+    compared: bool = False
+    eager_fastest: dict[tuple, float] = field(default_factory=dict)
+    compiled_calls: dict[tuple, int] = field(default_factory=dict)
+    compiled_fastest: dict[tuple, float] = field(default_factory=dict)
+
+    def record(self, path: str, shapes: tuple, seconds: float) -> None:
+        """Add one call of ``seconds`` on ``path`` with tensors of ``shapes``."""
+        if path != "compiled":
+            self.eager_seconds += seconds
+            self.eager_fastest[shapes] = min(self.eager_fastest.get(shapes, math.inf), seconds)
+            return
+        self.compiled = True
+        calls = self.compiled_calls.get(shapes, 0)
+        self.compiled_calls[shapes] = calls + 1
+        if calls == 0:  # the first compiled call at a shape may compile
+            return
+        fastest = min(self.compiled_fastest.get(shapes, math.inf), seconds)
+        self.compiled_fastest[shapes] = fastest
+        if calls >= COMPARED_CALLS and shapes in self.eager_fastest:
+            self.compared = True
+            self.slower = self.slower or fastest > self.eager_fastest[shapes]
+
+    @property
+    def compiled_slower(self) -> bool:
+        """The compiled kernel was measured slower than eager: ``"auto"`` stays eager."""
+        return self.slower
+
+    @property
+    def pending(self) -> bool:
+        """``"auto"`` has not decided on this variant yet: still eager, or compiled and not
+        yet compared with eager."""
+        return not self.slower and not self.compared
+
+
+_TIMINGS: dict[tuple, _Timings] = {}
+"""What :func:`run` measured per compiled variant (:func:`_variant`) in this process."""
+
+
+def _run_compiled(kernel: Kernel, volume: Tensor, args: tuple, recording: bool) -> Tensor:
+    """``kernel.fused(*args)`` compiled.
+
+    For a batch of two or more, the size of every tensor with that batch is dynamic (one
+    variant serves every such batch size, as fast as the specialised one: docs/benchmarks.md,
+    "Compile cost"), so that a new batch size, such as an epoch's last batch, neither
+    recompiles nor waits for its own eager time to pay back. A call autograd does not record
+    runs without grad on detached inputs: the same inference graph whatever the grad mode and
+    the inputs' ``requires_grad`` (dynamo guards on both).
+    """
+    if not recording:  # before marking: a detached tensor is a new object, unmarked
+        args = tuple(arg.detach() if isinstance(arg, Tensor) else arg for arg in args)
+    batch = volume.shape[0]
+    if batch > 1:
+        for arg in args:
+            if isinstance(arg, Tensor) and arg.dim() > 0 and arg.shape[0] == batch:
+                torch._dynamo.maybe_mark_dynamic(arg, 0)
+    function = compiled(kernel.fused, kernel.dynamic)
+    if recording:
+        return function(*args)
+    with torch.no_grad():
+        return function(*args)
+
+
+_AT_ONCE: contextvars.ContextVar[bool] = contextvars.ContextVar(
+    "torchsurf_backend_compile_at_once", default=False
+)
+
+
+@contextlib.contextmanager
+def warm_up() -> Iterator[None]:
+    """Inside, ``"auto"`` compiles every kernel it runs at once (where it has a compiled form
+    not measured slower than eager), instead of after :data:`COMPILE_PAYBACK_SECONDS` of
+    eager work.
+
+    For a warm-up call: one forward and backward of a model at the shapes, dtype and grad
+    modes it will run with compiles the kernels it will need, so that the calls that follow
+    run compiled from the start (docs/learning.md, "Warm-up and torch.compile")::
+
+        with torchsurf.backend.warm_up():
+            model(u, surface).sum().backward()
+    """
+    token = _AT_ONCE.set(True)
+    try:
+        yield
+    finally:
+        _AT_ONCE.reset(token)
 
 
 @dataclass
@@ -172,41 +365,66 @@ def recorded_decisions() -> tuple[contextlib.AbstractContextManager, contextlib.
 
 
 def resolve(path: str, volume: Tensor, kernel: Kernel | None = None,
-            recording: bool = False) -> str:
+            recording: bool = False, args: tuple | None = None) -> str:
     """The concrete path for ``volume``: ``"slicing"``, ``"conv3d"`` or ``"compiled"``.
 
     Args:
         path: one of :data:`PATHS`.
         volume: the data the operator is applied to, ``(B, C, D, H, W)``.
-        kernel: the operator, when known: ``"auto"`` then also weighs the eager time already
-            spent on it (see the module's docstring).
-        recording: autograd records the call. The eager-time rule then never switches a
-            small volume to the compiled kernel, whose backward cannot be differentiated
-            again (gradcheck, double backward) and would change in the middle of a run.
+        kernel: the operator: ``"auto"`` weighs the times measured on it (see the module's
+            docstring); without it, or without a compiled form, ``"auto"`` stays eager.
+        recording: autograd records the call. ``"auto"`` then never switches a volume
+            smaller than :data:`COMPILE_MIN_VOXELS` to the compiled kernel, whose backward
+            cannot be differentiated again (gradcheck, double backward).
+        args: the kernel's arguments, which name its compiled variant (default: ``volume``
+            alone).
     """
+    return _resolve(path, volume, kernel, recording, (volume,) if args is None else args)[0]
+
+
+def _resolve(path: str, volume: Tensor, kernel: Kernel | None, recording: bool, args: tuple
+             ) -> tuple[str, tuple | None]:
+    """:func:`resolve`, and the variant whose ledger times the call (``None``: not timed)."""
     check_choice(path, "path", PATHS)
     if path != "auto":
-        return path
+        return path, None
+    timed = (kernel is not None and kernel.fused is not None and volume.device.type == "cpu"
+             and not torch.compiler.is_compiling())
+    variant = _variant(kernel, volume, args, recording) if timed else None
     decisions = _DECISIONS.get()
     if decisions is not None and decisions.replaying:
         decisions.position += 1
-        return decisions.paths[decisions.position - 1]
-    chosen = _choose(volume, kernel, recording)
+        return decisions.paths[decisions.position - 1], variant
+    chosen = _choose(volume, kernel, recording, variant)
     if decisions is not None:
         decisions.paths.append(chosen)
-    return chosen
+    return chosen, variant
 
 
-def _choose(volume: Tensor, kernel: Kernel | None, recording: bool) -> str:
-    if torch.compiler.is_compiling() or (kernel is not None and kernel.fused is None):
-        return eager_path(volume)
-    if volume.numel() >= COMPILE_MIN_VOXELS:
+def _choose(volume: Tensor, kernel: Kernel | None, recording: bool, variant: tuple | None
+            ) -> str:
+    eager = eager_path(volume)
+    if torch.compiler.is_compiling() or kernel is None or kernel.fused is None:
+        return eager
+    large = volume.numel() >= COMPILE_MIN_VOXELS
+    if recording and not large:
+        return eager
+    at_once = _AT_ONCE.get() or COMPILE == "always"
+    if COMPILE == "never" and not _AT_ONCE.get():
+        return eager
+    if volume.device.type != "cpu":
+        return "compiled" if large or at_once else eager
+    timings = _TIMINGS.get(variant) or _Timings()
+    if timings.slower:
+        return eager
+    if (at_once or volume.numel() >= COMPILE_AT_ONCE_VOXELS or timings.compiled
+            or timings.eager_seconds >= COMPILE_PAYBACK_SECONDS):
         return "compiled"
-    if not recording and kernel is not None and _EAGER_SECONDS.get(
-        _ledger_key(kernel, volume), 0.0
-    ) >= COMPILE_PAYBACK_SECONDS:
-        return "compiled"
-    return eager_path(volume)
+    return eager
+
+
+def _recording(args: tuple) -> bool:
+    return torch.is_grad_enabled() and any(t.requires_grad for t in _tensors(args))
 
 
 def run(kernel: Kernel, path: str, volume: Tensor, *args: object) -> Tensor:
@@ -228,26 +446,32 @@ def run(kernel: Kernel, path: str, volume: Tensor, *args: object) -> Tensor:
         if concrete == "slicing" and kernel.fused_when_eager:
             return kernel.fused(*kernel.halo(*args))
         return kernel.eager(*args, path=concrete)
-    recording = torch.is_grad_enabled() and any(
-        isinstance(a, Tensor) and a.requires_grad for a in args
-    )
-    concrete = resolve(path, volume, kernel, recording)
-    if concrete == "compiled":
-        if kernel.fused is None:
-            raise ValueError(f"path='compiled': {kernel.name} has no compiled form")
-        return compiled(kernel.fused, kernel.dynamic)(*kernel.halo(*args))
-    if concrete == "slicing" and kernel.fused_when_eager:
-        def evaluate() -> Tensor:
+    recording = _recording(args)
+    concrete, variant = _resolve(path, volume, kernel, recording, args)
+    if concrete == "compiled" and kernel.fused is None:
+        raise ValueError(f"path='compiled': {kernel.name} has no compiled form")
+
+    def evaluate() -> Tensor:
+        if concrete == "compiled":
+            return _run_compiled(kernel, volume, kernel.halo(*args), recording)
+        if concrete == "slicing" and kernel.fused_when_eager:
             return kernel.fused(*kernel.halo(*args))
-    else:
-        def evaluate() -> Tensor:
-            return kernel.eager(*args, path=concrete)
-    if path != "auto" or kernel.fused is None or volume.device.type != "cpu":
+        return kernel.eager(*args, path=concrete)
+
+    return _timed(variant, concrete, args, evaluate)
+
+
+def _timed(variant: tuple | None, concrete: str, args: tuple,
+           evaluate: Callable[[], Tensor]) -> Tensor:
+    """``evaluate()``, its wall time recorded under ``variant`` (``"auto"`` on the CPU)."""
+    if variant is None:
         return evaluate()
     start = time.perf_counter()
     result = evaluate()
-    key = _ledger_key(kernel, volume)
-    _EAGER_SECONDS[key] = _EAGER_SECONDS.get(key, 0.0) + time.perf_counter() - start
+    seconds = time.perf_counter() - start
+    if variant not in _TIMINGS:
+        _TIMINGS[variant] = _Timings()
+    _TIMINGS[variant].record(concrete, _shapes(args), seconds)
     return result
 
 
@@ -266,15 +490,9 @@ def run_haloed(kernel: Kernel, path: str, volume: Tensor, *haloed_args: object) 
     """
     if kernel.fused is None:
         raise ValueError(f"{kernel.name} has no one-pass form to run on haloed inputs")
-    recording = torch.is_grad_enabled() and any(
-        isinstance(a, Tensor) and a.requires_grad for a in haloed_args
-    )
-    if resolve(path, volume, kernel, recording) == "compiled":
-        return compiled(kernel.fused, kernel.dynamic)(*haloed_args)
-    if path != "auto" or volume.device.type != "cpu":
-        return kernel.fused(*haloed_args)
-    start = time.perf_counter()
-    result = kernel.fused(*haloed_args)
-    key = _ledger_key(kernel, volume)
-    _EAGER_SECONDS[key] = _EAGER_SECONDS.get(key, 0.0) + time.perf_counter() - start
-    return result
+    recording = _recording(haloed_args)
+    concrete, variant = _resolve(path, volume, kernel, recording, haloed_args)
+    if concrete == "compiled":
+        return _timed(variant, concrete, haloed_args,
+                      lambda: _run_compiled(kernel, volume, haloed_args, recording))
+    return _timed(variant, concrete, haloed_args, lambda: kernel.fused(*haloed_args))

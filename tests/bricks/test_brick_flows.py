@@ -36,7 +36,7 @@ def eager():
     the same kernels and shapes compile."""
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(backend, "COMPILE_PAYBACK_SECONDS", math.inf)
-        patch.setattr(backend, "_EAGER_SECONDS", {})
+        patch.setattr(backend, "_TIMINGS", {})
         yield
 
 

@@ -23,6 +23,7 @@ def variance_on_surface(u, surface):
     return float(u[0, 1][near].var())
 
 
+@pytest.mark.compiled
 def test_pattern_grows_from_the_homogeneous_start(surface):
     u0 = ReactionDiffusion.initial(surface)
     flow = ReactionDiffusion(time=400.0)
@@ -98,6 +99,7 @@ def assert_scale_follows_the_rate(rates, cells):
     assert -0.65 < slope < -0.35, f"slope {slope:.3f}; {report}"
 
 
+@pytest.mark.compiled
 def test_pattern_scale_follows_the_rate(sphere41):
     """The pattern's wavelength scales like ``1 / sqrt(s)``: ``s`` = 1/128 and 1/32, ratio 2.
 
@@ -121,6 +123,7 @@ def test_pattern_scale_follows_the_rate(sphere41):
 
 
 @pytest.mark.slow
+@pytest.mark.compiled
 @pytest.mark.parametrize("seed", [1, 2, 3])
 def test_pattern_scale_follows_the_rate_over_seeds(sphere41, seed):
     """As :func:`test_pattern_scale_follows_the_rate` over three rates (1/128, 1/64, 1/32) and
@@ -131,6 +134,7 @@ def test_pattern_scale_follows_the_rate_over_seeds(sphere41, seed):
     assert_scale_follows_the_rate(rates, cells)
 
 
+@pytest.mark.compiled
 def test_long_run_stays_finite_with_b_nonnegative(sphere41):
     """Without Turk's clamp of ``b`` at 0 this run (``s t = 20``) ended in NaN."""
     u0 = ReactionDiffusion.initial(sphere41)

@@ -26,35 +26,36 @@ CHUNK = 2**15
 """Nodes whose taps are formed at once in backward (about 1 kB of temporaries a node)."""
 
 
-def reextend(stencil: Stencil, u: Tensor) -> Tensor:
+def reextend(stencil: Stencil, u: Tensor, path: str = "auto") -> Tensor:
     """``stencil.apply(u)``; under autograd with fixed weights, through :class:`_Reextend`.
 
     Args:
         stencil: a closest-point stencil whose weights are not in ``phi``'s graph (built from a
             ``phi`` that does not require grad), dense or on bricks.
         u: ``(B, C, D, H, W)`` dense or ``(N, C, 8, 8, 8)`` packed, matching the stencil.
+        path: how the stencil's gather runs (:data:`torchsurf.backend.PATHS`).
 
     Returns:
         The re-extended field, like ``u``; a new tensor.
     """
     weights = stencil.parts[0][2] if isinstance(stencil, CubicStencil) else stencil.weights
     if torch.is_grad_enabled() and u.requires_grad and not weights.requires_grad:
-        return _Reextend.apply(stencil, u)
-    return stencil.apply(u)
+        return _Reextend.apply(stencil, u, path)
+    return stencil.apply(u, path)
 
 
 class _Reextend(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, stencil, u):  # noqa: ANN001, ANN205
+    def forward(ctx, stencil, u, path="auto"):  # noqa: ANN001, ANN205
         ctx.stencil = stencil
         ctx.save_for_backward(u)
         with torch.no_grad():
-            return stencil.apply(u)
+            return stencil.apply(u, path)
 
     @staticmethod
     def backward(ctx, grad_output):  # noqa: ANN001, ANN205
         (u,) = ctx.saved_tensors
-        return None, _vector_jacobian(ctx.stencil, u.detach(), grad_output)
+        return None, _vector_jacobian(ctx.stencil, u.detach(), grad_output), None
 
 
 def _vector_jacobian(stencil: Stencil, u: Tensor, g: Tensor) -> Tensor:

@@ -217,6 +217,10 @@ class Flow(nn.Module):
     supports_bricks = False
     """Whether the flow runs on a :class:`~torchsurf.bricks.BrickSurface` (packed fields)."""
 
+    path = "auto"
+    """How the stencils run (:data:`torchsurf.backend.PATHS`); flows whose operators take a
+    ``path`` set it, and the closest-point re-extension follows it."""
+
     def __init__(
         self,
         time: float,
@@ -324,7 +328,8 @@ class Flow(nn.Module):
             hooks.append(lambda u, k: (bar.update(1), u)[1])
         if every is not None:
             stencil = _stencil(surface, self.band_width, "region", system.region, system.region)
-            hooks.append(lambda u, k: reextend(stencil, u) if k % every == 0 else u)
+            path = self.path
+            hooks.append(lambda u, k: reextend(stencil, u, path) if k % every == 0 else u)
         if not hooks:
             return None
 
@@ -424,7 +429,8 @@ class Flow(nn.Module):
             ring = _stencil(surface, self.band_width, "ring", system.region & ~system.band,
                             system.region)
             rate = system.rate
-            system.rate = lambda u: rate(reextend(ring, u))
+            path = self.path
+            system.rate = lambda u: rate(reextend(ring, u, path))
         try:
             result = integrate(self.method, system, u0, schedule)
         finally:

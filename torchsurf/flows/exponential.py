@@ -109,7 +109,7 @@ class BandLaplacian:
         """``L x = M W^-1 A E (M x)`` for ``x`` ``(B, C, D, H, W)``."""
         zero = x.new_zeros(())
         inside = torch.where(self.band, x, zero)
-        image = self._weighted(self.ring.apply(inside)) / self.surface.weight
+        image = self._weighted(self.ring.apply(inside, self.path)) / self.surface.weight
         return torch.where(self.band, image, zero)
 
     def transpose(self, g: Tensor) -> Tensor:
@@ -124,14 +124,14 @@ class _Extend(torch.autograd.Function):
     (autograd through the gather would keep 64 values per node)."""
 
     @staticmethod
-    def forward(ctx, stencil, x):  # noqa: ANN001, ANN205
+    def forward(ctx, stencil, x, path="auto"):  # noqa: ANN001, ANN205
         ctx.stencil, ctx.batch = stencil, x.shape[0]
-        return stencil.apply(x)
+        return stencil.apply(x, path)
 
     @staticmethod
     def backward(ctx, grad_output):  # noqa: ANN001, ANN205
         grad = ctx.stencil.transpose(grad_output)
-        return None, grad if grad.shape[0] == ctx.batch else grad.sum(dim=0, keepdim=True)
+        return None, grad if grad.shape[0] == ctx.batch else grad.sum(dim=0, keepdim=True), None
 
 
 def heat_semigroup(u0: Tensor, operator: BandLaplacian, times: Tensor,
@@ -166,7 +166,7 @@ def heat_semigroup(u0: Tensor, operator: BandLaplacian, times: Tensor,
         differentiable_operator=operator.differentiable, terms=terms,
     )
     if operator.differentiable:
-        extended = operator.extension.apply(result)
+        extended = operator.extension.apply(result, operator.path)
     else:
-        extended = _Extend.apply(operator.extension, result)
+        extended = _Extend.apply(operator.extension, result, operator.path)
     return torch.where(operator.region, extended, u0)

@@ -260,8 +260,12 @@ class CubicStencil:
             for b in range(batch)
         ]
 
-    def apply(self, u: Tensor) -> Tensor:
-        """``u`` ``(B, C, D, H, W)`` with the masked nodes re-extended; a new tensor."""
+    def apply(self, u: Tensor, path: str = "auto") -> Tensor:
+        """``u`` ``(B, C, D, H, W)`` with the masked nodes re-extended; a new tensor.
+
+        ``path``: how the gather runs (:data:`torchsurf.backend.PATHS`; the flow's own path).
+        """
+        check_choice(path, "path", backend.PATHS)
         batch = max(u.shape[0], len(self.parts))
         results = []
         for b in range(batch):
@@ -269,7 +273,7 @@ class CubicStencil:
             volume = u[min(b, u.shape[0] - 1)]
             flat = volume.reshape(volume.shape[0], -1)
             height, width = volume.shape[-2:]
-            value = backend.run(_INTERPOLATION, "auto", volume[None], flat, corners,
+            value = backend.run(_INTERPOLATION, path, volume[None], flat, corners,
                                 weights.to(u.dtype), height, width, self.limited)
             results.append(flat.index_copy(1, targets, value).reshape(volume.shape))
         return torch.stack(results)
@@ -474,16 +478,20 @@ class BrickCubicStencil:
         ])
         return bases, second, local, weights
 
-    def apply(self, u: Tensor) -> Tensor:
-        """``u`` ``(N, C, 8, 8, 8)`` with the masked nodes re-extended; a new tensor."""
+    def apply(self, u: Tensor, path: str = "auto") -> Tensor:
+        """``u`` ``(N, C, 8, 8, 8)`` with the masked nodes re-extended; a new tensor.
+
+        ``path``: how the gather runs (:data:`torchsurf.backend.PATHS`; the flow's own path).
+        """
+        check_choice(path, "path", backend.PATHS)
         channels = u.shape[1]
         flat = u.transpose(0, 1).reshape(channels, -1)
         weights = self.weights.to(u.dtype)
         if self.sources is not None:
-            value = backend.run(_KEPT_INTERPOLATION, "auto", u, flat, self.sources, weights,
+            value = backend.run(_KEPT_INTERPOLATION, path, u, flat, self.sources, weights,
                                 self.limited)
         else:
-            value = backend.run(_BRICK_INTERPOLATION, "auto", u, flat, self.bases, self.second,
+            value = backend.run(_BRICK_INTERPOLATION, path, u, flat, self.bases, self.second,
                                 self.local, weights, self.limited)
         result = flat.index_copy(1, self.targets, value)
         return result.view(channels, *u.shape[:1], *u.shape[2:]).transpose(0, 1)
