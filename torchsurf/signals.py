@@ -5,8 +5,8 @@ Every function returns a volume ``(B, C, D, H, W)`` on the surface's grid (or ta
 the surface's dtype; on a :class:`~torchsurf.bricks.BrickSurface`, a packed field
 ``(N, C, 8, 8, 8)`` of its stored nodes instead. Patterns are evaluated at the first-order
 closest point of each node on S (:func:`closest_points`), so they are constant along the
-normals, as the flows expect
-(the paper's §2). Colour conversions are kornia's, applied to the channels of a volume.
+normals, as the flows expect (the paper's §2). Colour conversions are kornia's, applied to
+the channels of a volume.
 """
 
 from __future__ import annotations

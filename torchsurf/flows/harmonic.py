@@ -34,7 +34,10 @@ class HarmonicMapFlow(Flow):
     field is kept tangent to the level sets (``u <- P u / |P u|``), for direction fields on S.
 
     Spectral bound: ``eps^(p-2) rho`` (``max g = eps^(p-2)``), ``rho`` the Gershgorin bound of
-    the band's Laplace–Beltrami operator (about ``12 / h^2``).
+    the band's Laplace–Beltrami operator (about ``12 / h^2``). Growth: the largest
+    ``|P grad u0|^p`` in the band, the rate at which the energy term pushes ``u`` outwards
+    before it is renormalised; RKC steps are kept short against it (a field with sign jumps,
+    ``4 / h^2`` at p = 2, takes more steps).
 
     Args:
         time: physical end time.
@@ -102,8 +105,12 @@ class HarmonicMapFlow(Flow):
             return torch.where(region, normalize(v), u)
 
         rho = self.eps**exponent * self.operator_bound(surface, self.scheme)
+        with torch.no_grad():
+            energy = functional.tangential_gradient_energy(u0.detach(), normal, spacing, path,
+                                                           pad) + eps**2
+            growth = float(torch.where(band, energy ** (self.p / 2.0), zero).max())
         return System(rate, band, rho, project=project,
-                      params=tensors(surface.normal, surface.weight))
+                      params=tensors(surface.normal, surface.weight), growth=growth)
 
     def extra_repr(self) -> str:
         return f"{super().extra_repr()}, p={self.p:g}, eps={self.eps:g}, tangent={self.tangent}"
