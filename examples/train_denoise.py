@@ -3,8 +3,8 @@
 Signals (smooth and piecewise constant, :mod:`torchsurf.datasets`) are drawn on four training
 shapes and one held-out shape, all put on one grid at a normalised size
 (:class:`torchsurf.MeshBatchAdapter`), and Gaussian noise is added at every node. A network of
-learned diffusions and diffusion blocks (:class:`Denoiser`) is trained with Adam on the band's
-mean squared error, then evaluated on held-out signals on the training shapes and on signals on
+learned diffusions and diffusion blocks (:class:`Denoiser`) is trained with Adam to raise the
+signals' mean PSNR over the band, then evaluated on held-out signals on the training shapes and on signals on
 the held-out shape against two tuned baselines: the heat flow at the best fixed time and
 total-variation flow at the best fixed time, each picked by a sweep on the training signals of
 each kind. Writes a table (``results.md``, ``results.csv``), pictures of the held-out shape
@@ -80,10 +80,11 @@ def eager_stencils(eager: bool) -> Iterator[None]:
     """Within the block, keep every stencil eager when ``eager`` (no ``torch.compile``).
 
     ``path="auto"`` (:mod:`torchsurf.backend`) compiles a kernel once a call's volume reaches
-    ``COMPILE_MIN_VOXELS`` or its eager time ``COMPILE_PAYBACK_SECONDS``; the closest-point
-    re-extension inside every diffusion then compiles one variant per flag and batch entry
-    layout, seconds each, which a run of a few minutes never earns back. Both thresholds are
-    raised to infinity and restored on exit.
+    ``COMPILE_MIN_VOXELS`` voxels or its eager time ``COMPILE_PAYBACK_SECONDS``. The default
+    run earns that back (a training iteration at 32^3 costs 2.5x less compiled), a
+    ``--quick`` run of seconds does not: the closest-point re-extension inside every diffusion
+    alone compiles five variants (limited or not, first batch entry or not), seconds each.
+    Both thresholds are raised to infinity and restored on exit.
     """
     saved = ts.backend.COMPILE_MIN_VOXELS, ts.backend.COMPILE_PAYBACK_SECONDS
     if eager:
@@ -94,11 +95,13 @@ def eager_stencils(eager: bool) -> Iterator[None]:
         ts.backend.COMPILE_MIN_VOXELS, ts.backend.COMPILE_PAYBACK_SECONDS = saved
 
 
-def mesh_paths(names: Sequence[str], directory: str | None) -> list[Path]:
+def mesh_paths(names: Sequence[str], directory: str | None, flag: str = "--meshes"
+               ) -> list[Path]:
     """``names`` resolved against ``directory`` (``--mesh-dir``); absolute paths as given.
 
     Raises:
-        FileNotFoundError: a name that is no file, naming ``--meshes`` and the folder tried.
+        FileNotFoundError: a name that is no mesh file, naming ``flag`` (the option that gave
+            it) and the path tried.
     """
     paths = []
     for name in names:
@@ -106,11 +109,11 @@ def mesh_paths(names: Sequence[str], directory: str | None) -> list[Path]:
         if not path.is_absolute():
             if directory is None:
                 raise FileNotFoundError(
-                    f"--meshes {name!r}: a relative name needs --mesh-dir or $TORCHSURF_MESH_DIR"
+                    f"{flag} {name!r}: a relative name needs --mesh-dir or $TORCHSURF_MESH_DIR"
                 )
             path = Path(directory) / path
         if not path.is_file() or path.suffix.lower() not in MESH_SUFFIXES:
-            raise FileNotFoundError(f"--meshes {name!r}: no mesh file {str(path)!r} "
+            raise FileNotFoundError(f"{flag} {name!r}: no mesh file {str(path)!r} "
                                     f"(one of {', '.join(MESH_SUFFIXES)})")
         paths.append(path)
     return paths
@@ -249,13 +252,15 @@ class Denoiser(nn.Module):
         return (out + update).movedim(-1, 1)
 
 
-def heat(time: float, spacing: float) -> Method:
-    """The heat flow for ``time`` ``h^2`` (Chebyshev semigroup, :class:`torchsurf.HeatFlow`)."""
+def heat(time: float, spacing: float) -> ts.HeatFlow:
+    """The heat flow for ``time`` ``h^2`` (Chebyshev semigroup, :class:`torchsurf.HeatFlow`),
+    on a grid of spacing ``h`` (world units)."""
     return ts.HeatFlow(time * spacing**2, method="chebyshev")
 
 
-def total_variation(time: float, spacing: float) -> Method:
-    """Total-variation flow for ``time`` ``h`` units (:class:`torchsurf.AnisotropicFlow`)."""
+def total_variation(time: float, spacing: float) -> ts.AnisotropicFlow:
+    """Total-variation flow for ``time`` ``h`` units (:class:`torchsurf.AnisotropicFlow`), on a
+    grid of spacing ``h`` (world units), ``|grad_S u|`` regularised by :data:`TV_EPS`."""
     return ts.AnisotropicFlow(time * spacing, "total_variation", eps=TV_EPS / spacing)
 
 
@@ -337,9 +342,10 @@ def save_model(model: nn.Module, path: Path) -> None:
         raise
 
 
-def tables(scores: dict[tuple[str, str, str], float], chosen: dict[str, dict[str, tuple]]
-           ) -> tuple[str, str]:
-    """The Markdown and CSV tables of mean PSNR (dB) per method, set and kind."""
+def tables(scores: dict[tuple[str, str, str], float],
+           chosen: dict[str, dict[str, tuple[float, float]]]) -> tuple[str, str]:
+    """The Markdown and CSV tables of ``scores`` (mean PSNR in dB per method, set and kind);
+    ``chosen`` names each baseline's time per kind (:func:`sweep`)."""
     columns = [(s, k) for s in SETS for k in KINDS]
     lines = [
         "| method | " + " | ".join(f"{s}, {k.replace('_', '-')}" for s, k in columns) + " |",
@@ -367,26 +373,29 @@ def pictures(data: SignalSet, grid: ts.Grid, methods: dict[str, dict[str, Method
              output: Path, width: int) -> list[Path]:
     """One PNG per kind, ``heldout_<kind>.png``: the first item of that kind in ``data`` on
     its surface, clean, noisy and denoised by each of ``methods`` (``{name: {kind: method}}``),
-    coloured on ``[0, 1]``, each panel's PSNR (dB) in its title."""
+    coloured on ``[0, 1]``, each panel's PSNR (dB) in its title.
+
+    The methods run on the whole first chunk, on the surface they were run on before: a
+    surface of another batch size would build its stencils and compile its kernels again."""
     noisy, clean = data.chunk(0)
     written = []
     for kind in KINDS:
         b = data.kinds.index(kind)
-        surface = ts.ImplicitSurface(data.surface.phi[b:b + 1], grid)
-        mesh = ts.mesh.extract(surface.phi, grid)
-        volumes = {"clean": clean[b:b + 1]}
+        mesh = ts.mesh.extract(data.surface.phi[b:b + 1], grid)
+        volumes = {"clean": clean}
         with torch.no_grad():
             for name, by_kind in methods.items():
-                volumes[name] = by_kind[kind](noisy[b:b + 1], surface)
+                volumes[name] = by_kind[kind](noisy, data.surface)
         panels = []
         for name, volume in volumes.items():
             title = name
             if name != "clean":
-                title += f" {float(ts.nn.psnr(volume, clean[b:b + 1], surface)[0]):.1f} dB"
-            values = render.vertex_values(volume, mesh, grid)
+                title += f" {float(ts.nn.psnr(volume, clean, data.surface)[b]):.1f} dB"
+            values = render.vertex_values(volume[b:b + 1], mesh, grid)
             panels.append((title, render.colours(values, limits=(0.0, 1.0))))
         written.append(render.render_panels(mesh, panels, output / f"heldout_{kind}.png",
-                                            width=width, height=width, renderer="matplotlib"))
+                                            width=width, height=3 * width // 4,
+                                            elevation=40.0))
     return written
 
 
@@ -394,7 +403,8 @@ def parse(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--output", type=Path, default=Path("outputs/train_denoise"),
                         help="folder for results.md, results.csv, the pictures and the weights")
-    parser.add_argument("--resolution", type=int, default=32, help="grid nodes per axis")
+    parser.add_argument("--resolution", type=int, default=32,
+                        help="grid nodes per axis (at least 16: a band of 3 cells per shape)")
     parser.add_argument("--channels", type=int, default=4, help="channels of the network")
     parser.add_argument("--blocks", type=int, default=1, help="DiffusionBlocks in the network")
     parser.add_argument("--hidden", type=int, default=32, help="hidden width of the MLPs")
@@ -425,19 +435,17 @@ def parse(argv: Sequence[str] | None = None) -> argparse.Namespace:
     args = parser.parse_args(argv)
     if args.quick:
         args.resolution, args.channels, args.blocks, args.hidden = 24, 2, 1, 8
-        args.iterations, args.train_rounds, args.test_rounds, args.picture_size = 3, 2, 1, 120
+        args.iterations, args.train_rounds, args.test_rounds, args.picture_size = 2, 1, 1, 120
         args.eager = True
-    for name in ("resolution", "channels", "hidden", "iterations", "train_rounds", "test_rounds",
-                 "cells", "picture_size"):
-        if getattr(args, name) < 1:
-            parser.error(f"--{name.replace('_', '-')} must be a positive integer, "
+    for name, least in (("resolution", 16), ("channels", 2), ("blocks", 0), ("hidden", 1),
+                        ("iterations", 1), ("train_rounds", 1), ("test_rounds", 1), ("cells", 1),
+                        ("picture_size", 16)):
+        if getattr(args, name) < least:
+            parser.error(f"--{name.replace('_', '-')} must be an integer of at least {least}, "
                          f"got {getattr(args, name)}")
-    if args.resolution < 16:
-        parser.error(f"--resolution must be at least 16 (a band of 3 cells around each shape), "
-                     f"got {args.resolution}")
     for name in ("lr", "noise", "frequency"):
-        if not args.__dict__[name] > 0:
-            parser.error(f"--{name} must be positive, got {args.__dict__[name]}")
+        if not getattr(args, name) > 0:
+            parser.error(f"--{name} must be positive, got {getattr(args, name)}")
     return args
 
 
@@ -457,7 +465,7 @@ def run(args: argparse.Namespace) -> dict[tuple[str, str, str], float]:
     begin = time.perf_counter()
     shapes = training_shapes()
     shapes += [ts.mesh.load(path) for path in mesh_paths(args.meshes, args.mesh_dir)]
-    held = (ts.mesh.load(mesh_paths([args.heldout_mesh], args.mesh_dir)[0])
+    held = (ts.mesh.load(mesh_paths([args.heldout_mesh], args.mesh_dir, "--heldout-mesh")[0])
             if args.heldout_mesh else heldout_shape())
     print(f"shapes: {len(shapes)} for training and 1 held out on a {args.resolution}^3 grid",
           flush=True)
@@ -476,10 +484,8 @@ def run(args: argparse.Namespace) -> dict[tuple[str, str, str], float]:
           f"({time.perf_counter() - begin:.0f} s)", flush=True)
 
     sweep_data = training.first(SWEEP_CHUNKS)
-    heat_best = sweep(sweep_data, ts.HeatFlow(max(HEAT_TIMES) * spacing**2, method="chebyshev"),
-                      HEAT_TIMES, spacing**2)
-    tv_flow = ts.AnisotropicFlow(max(TV_TIMES) * spacing, "total_variation", eps=TV_EPS / spacing)
-    tv_best = sweep(sweep_data, tv_flow, TV_TIMES, spacing)
+    heat_best = sweep(sweep_data, heat(max(HEAT_TIMES), spacing), HEAT_TIMES, spacing**2)
+    tv_best = sweep(sweep_data, total_variation(max(TV_TIMES), spacing), TV_TIMES, spacing)
     for name, best in (("heat (h^2)", heat_best), ("total variation (h)", tv_best)):
         print(f"best {name} times on training signals: " + ", ".join(
             f"{kind} {t:g} ({p:.2f} dB)" for kind, (t, p) in best.items())

@@ -136,6 +136,8 @@ def test_mesh_path_resolves_against_the_config_folder_then_the_mesh_dir(tmp_path
         (["flowtime"], "--set"),
         (["signal.grain=0"], "signal.grain"),
         (["render.renderer=povray"], "render.renderer"),
+        (["grid.layout=sparse"], "grid.layout"),
+        (["grid.layout=bricks", "grid.size=24"], "grid.margin"),
     ],
 )
 def test_bad_settings_are_refused_with_their_key(overrides, key, tmp_path, capsys):
@@ -195,3 +197,38 @@ def test_scale_free_time_gives_the_same_run_on_a_scaled_shape(tmp_path):
     assert ten["time"] == pytest.approx(10 * one["time"])
     assert ten["eps"] == pytest.approx(one["eps"] / 10)
     assert np.isfinite(list(one.values())).all()
+
+
+def test_layout_auto_takes_bricks_on_large_grids():
+    experiment, _ = config.load("heat_sphere")
+    assert experiment.grid.layout is config.Layout.auto
+    experiment.grid.size = config.BRICKS_FROM - 1
+    assert config.layout(experiment.grid) is config.Layout.dense
+    experiment.grid.size = config.BRICKS_FROM
+    assert config.layout(experiment.grid) is config.Layout.bricks
+    experiment.grid.layout = config.Layout.dense
+    assert config.layout(experiment.grid) is config.Layout.dense
+
+
+@pytest.mark.parametrize("name", [
+    "tv_torus",
+    pytest.param("spots_torus", marks=pytest.mark.slow),
+    pytest.param("flowvis_trefoil", marks=pytest.mark.slow),
+])
+def test_bricks_layout_gives_the_dense_run(name, tmp_path):
+    """The same experiment on bricks: the same marching-cubes mesh, signal and flow, so the
+    same numbers at the vertices to rounding (and the same picture)."""
+    from torchsurf import experiment
+
+    tiny = [*_tiny_args(name), "grid.size=32", "grid.margin=0.3"]
+    results = {}
+    for layout in ("dense", "bricks"):
+        prepared = experiment.prepare(name, [*tiny, f"grid.layout={layout}"])
+        results[layout] = experiment.run(prepared, tmp_path / layout, log=lambda m: None)
+    record = json.loads(results["bricks"].record.read_text())
+    assert record["grid"]["layout"] == "bricks" and record["grid"]["bricks"] > 0
+    dense, packed = (mpimg.imread(results[k].picture)[..., :3] for k in ("dense", "bricks"))
+    assert dense.shape == packed.shape
+    assert np.abs(dense - packed).mean() < 2e-3
+    for key, value in results["dense"].metrics.items():
+        assert results["bricks"].metrics[key] == pytest.approx(value, abs=1e-5)

@@ -34,6 +34,22 @@ def test_extract_level_and_world_coordinates() -> None:
     np.testing.assert_allclose(radius, 1.0, atol=0.01)
 
 
+def test_extract_skips_the_cells_outside_the_mask() -> None:
+    grid = ts.Grid.cube(24, bound=1.3)
+    phi = ts.sdf.sphere(grid, radius=1.0, dtype=torch.float64)
+    whole = tsm.extract(phi, grid)
+    everywhere = tsm.extract(phi, grid, mask=torch.ones_like(phi, dtype=torch.bool))
+    np.testing.assert_array_equal(whole.faces, everywhere.faces)
+    # nodes at x > 0.3 unknown and filled with a wrong sign: no surface there, none made up
+    known = grid.points(dtype=torch.float64)[..., 0][None, None] <= 0.3
+    half = tsm.extract(torch.where(known, phi, -1.0), grid, mask=known)
+    assert 0 < len(half.faces) < len(whole.faces)
+    assert half.vertices[:, 0].max() <= 0.3 + 1e-9
+    assert np.abs(np.linalg.norm(half.vertices, axis=1) - 1).max() < 0.1 * grid.spacing
+    with pytest.raises(ValueError, match="mask"):
+        tsm.extract(phi, grid, mask=known.double())
+
+
 def test_extract_bad_input_raises() -> None:
     grid = ts.Grid.cube(9, bound=1.0)
     phi = ts.sdf.sphere(grid, radius=0.5)

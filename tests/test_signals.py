@@ -180,3 +180,21 @@ def test_gray_and_chroma_brightness():
     with pytest.raises(ValueError, match="space"):
         signals.rgb_to(rgb, "cmyk")
     assert math.isfinite(float(brightness.min()))
+
+
+def test_signals_on_bricks_equal_the_dense_ones_in_the_band():
+    from torchsurf import bricks
+
+    grid = ts.Grid.cube(32, bound=2.0)
+    dense = ts.ImplicitSurface(ts.sdf.torus(grid), grid)
+    packed = bricks.from_dense(dense)
+    band = packed.band_mask().expand(-1, 3, -1, -1, -1)
+    for make in (signals.node_points, signals.closest_points,
+                 lambda s: signals.surface_noise(s, 2, seed=5, grain=1.5),
+                 lambda s: signals.swirl_field(s, "z", (0.1, 0.0, 0.0)),
+                 lambda s: signals.gaussian_noise(signals.node_points(s), 0.3, 2, s)):
+        expected = packed.from_dense(make(dense))
+        got = make(packed)
+        assert got.shape == expected.shape
+        where = band[:, :got.shape[1]]
+        assert torch.allclose(got[where], expected[where], atol=1e-5)

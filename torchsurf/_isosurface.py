@@ -9,14 +9,16 @@ from . import _mesh_sdf
 from .grid import Grid
 
 
-def level_set(volume: np.ndarray, grid: Grid, level: float = 0.0
-              ) -> tuple[np.ndarray, np.ndarray]:
+def level_set(volume: np.ndarray, grid: Grid, level: float = 0.0,
+              mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Marching cubes (scikit-image, Lewiner) of ``volume == level``.
 
     Args:
         volume: ``(D, H, W)`` samples at the nodes of ``grid``.
         grid: the grid.
         level: the iso-value.
+        mask: ``(D, H, W)`` bool, the nodes that hold samples (cells with a node outside it
+            are skipped), or ``None`` for all.
 
     Returns:
         vertices ``(V, 3)`` float64 world ``(x, y, z)`` and faces ``(F, 3)`` int64, wound so
@@ -25,12 +27,15 @@ def level_set(volume: np.ndarray, grid: Grid, level: float = 0.0
     Raises:
         ValueError: ``volume`` never crosses ``level``.
     """
-    if not (volume.min() <= level <= volume.max()) or volume.min() == volume.max():
+    held = volume if mask is None else volume[mask]
+    if held.size == 0 or not (held.min() <= level <= held.max()) or held.min() == held.max():
+        low, high = (held.min(), held.max()) if held.size else (np.nan, np.nan)
         raise ValueError(
-            f"phi never crosses the level {level:g} (range [{volume.min():g}, "
-            f"{volume.max():g}]): there is no surface to extract"
+            f"phi never crosses the level {level:g} (range [{low:g}, {high:g}]): there is no "
+            "surface to extract"
         )
-    index, faces, _, _ = measure.marching_cubes(volume, level=level, gradient_direction="ascent")
+    index, faces, _, _ = measure.marching_cubes(volume, level=level, gradient_direction="ascent",
+                                                mask=mask)
     index = _crossings_in_float64(volume, index, level)
     # scikit-image orders vertex coordinates like the array axes, (z, y, x).
     vertices = grid.spacing * index[:, ::-1] + np.asarray(grid.origin)

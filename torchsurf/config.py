@@ -17,6 +17,7 @@ Perona–Malik, flow visualisation and harmonic maps with ``p = 2``; ``p`` for h
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass
 from dataclasses import field as _field
@@ -108,6 +109,23 @@ class TimeUnit(Enum):
     turk = "turk"
 
 
+class Layout(Enum):
+    """How the run stores its volumes (docs/bricks.md): the dense box, the band's 8^3 bricks,
+    or ``auto`` (bricks from :data:`BRICKS_FROM` nodes per axis)."""
+
+    auto = "auto"
+    dense = "dense"
+    bricks = "bricks"
+
+
+BRICKS_FROM = 128
+"""Grid size from which ``layout: auto`` stores bricks."""
+
+BRICK_MARGIN_CELLS = 5.0
+"""Free cells the bricks layout needs around the shape's box: the 3-cell band and the 2 nodes
+its stencils read (:func:`torchsurf.bricks.from_mesh` refuses less)."""
+
+
 class Renderer(Enum):
     """What draws the pictures (:func:`torchsurf.render.resolve_renderer`)."""
 
@@ -130,10 +148,12 @@ class SurfaceConfig:
 @dataclass
 class GridConfig:
     """``size``: nodes per axis (a cube); ``margin``: free space on each side of the shape's
-    box, a fraction of its longest side."""
+    box, a fraction of its longest side; ``layout``: dense volumes, the band's bricks, or
+    ``auto`` (bricks from :data:`BRICKS_FROM` nodes per axis)."""
 
     size: int = 64
     margin: float = 0.15
+    layout: Layout = Layout.auto
 
 
 @dataclass
@@ -256,6 +276,13 @@ def time_unit(flow: FlowConfig) -> TimeUnit:
     return TimeUnit.turk if flow.kind is FlowKind.reaction_diffusion else TimeUnit.diagonal
 
 
+def layout(grid: GridConfig) -> Layout:
+    """``grid.layout`` with ``auto`` resolved: bricks from :data:`BRICKS_FROM` nodes per axis."""
+    if grid.layout is not Layout.auto:
+        return grid.layout
+    return Layout.bricks if grid.size >= BRICKS_FROM else Layout.dense
+
+
 def builtin_folder() -> Path:
     """The folder of the configs shipped with the package."""
     return Path(str(resources.files("torchsurf") / "configs"))
@@ -351,6 +378,17 @@ def check(experiment: Experiment) -> None:
         raise ConfigError("grid.size", f"must be an integer >= 8, got {experiment.grid.size}")
     if not 0 <= experiment.grid.margin <= 1:
         raise ConfigError("grid.margin", f"must be in [0, 1], got {experiment.grid.margin}")
+    if layout(experiment.grid) is Layout.bricks:
+        size, margin = experiment.grid.size, experiment.grid.margin
+        cells = margin * (size - 1) / (1 + 2 * margin)
+        if cells < BRICK_MARGIN_CELLS:
+            needed = BRICK_MARGIN_CELLS / (size - 1 - 2 * BRICK_MARGIN_CELLS)
+            advice = (f"use grid.margin >= {math.ceil(needed * 1000) / 1000:g}"
+                      if 0 < needed <= 1 else "use a larger grid.size")
+            raise ConfigError("grid.margin", f"{margin:g} leaves {cells:.1f} cells around the "
+                              f"shape at grid.size={size}; the bricks layout needs "
+                              f"{BRICK_MARGIN_CELLS:g} (the band and the nodes its stencils "
+                              f"read): {advice}, or grid.layout=dense")
     signal = experiment.signal
     _positive(signal.tiles, "signal.tiles")
     _positive(signal.grain, "signal.grain")

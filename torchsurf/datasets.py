@@ -29,15 +29,36 @@ def derived_seed(seed: int, *keys: int) -> int:
     return int(np.random.SeedSequence([int(seed), *map(int, keys)]).generate_state(1)[0])
 
 
-def _rescale(values: Tensor, band: Tensor) -> Tensor:
+def _rescale(values: Tensor, band: Tensor, surface: ImplicitSurface) -> Tensor:
     """Each entry and channel of ``values`` ``(B, C, ...)`` mapped to ``[0, 1]`` by its min and
-    max over ``band`` ``(B or 1, 1, ...)``."""
+    max over ``band`` ``(B or 1, 1, ...)``; on a brick surface the rows are bricks and each
+    batch entry's bricks share its min and max."""
     inside = band.expand_as(values)
     low = torch.where(inside, values, torch.inf).flatten(2).amin(-1)
     high = torch.where(inside, values, -torch.inf).flatten(2).amax(-1)
+    if surface.layout is not None:
+        entry = surface.layout.batch.to(values.device)[:, None].expand_as(low)
+        per_entry = low.new_empty((surface.batch_size, low.shape[1]))
+        low = per_entry.fill_(torch.inf).scatter_reduce(0, entry, low, "amin")[entry[:, 0]]
+        high = per_entry.clone().fill_(-torch.inf).scatter_reduce(
+            0, entry, high, "amax")[entry[:, 0]]
     shape = (*values.shape[:2],) + (1,) * (values.dim() - 2)
     low, high = low.view(shape), high.view(shape)
     return ((values - low) / (high - low).clamp(min=torch.finfo(values.dtype).tiny)).clamp(0, 1)
+
+
+def _field_shape(surface: ImplicitSurface, channels: int) -> tuple[int, ...]:
+    """``(B, C, D, H, W)``, or packed ``(N, C, 8, 8, 8)`` on a brick surface."""
+    if surface.layout is None:
+        return (surface.batch_size, channels, *surface.grid.shape)
+    return (len(surface.layout), channels, *surface.phi.shape[2:])
+
+
+def _rows_of_entries(surface: ImplicitSurface) -> Tensor:
+    """The batch entry of each row of a field: ``(B,)`` dense, ``(N,)`` on bricks."""
+    if surface.layout is None:
+        return torch.arange(surface.batch_size, device=surface.phi.device)
+    return surface.layout.batch.to(surface.phi.device)
 
 
 def smooth_signal(surface: ImplicitSurface, channels: int = 1, frequency: float = 2.0,
@@ -50,14 +71,16 @@ def smooth_signal(surface: ImplicitSurface, channels: int = 1, frequency: float 
     rescaled to ``[0, 1]`` over the surface's band.
 
     Args:
-        surface: ``B`` surfaces.
+        surface: ``B`` surfaces, dense or a :class:`~torchsurf.bricks.BrickSurface` (whose
+            band gets the dense grid's values for the same seed).
         channels: ``C``.
         frequency: the highest wave number, periods per unit length of the grid.
         modes: waves per channel.
         seed: the same seed gives the same signal.
 
     Returns:
-        ``(B, C, D, H, W)`` in ``[0, 1]``, the surface's dtype and device.
+        ``(B, C, D, H, W)`` (packed ``(N, C, 8, 8, 8)`` on bricks) in ``[0, 1]``, the
+        surface's dtype and device.
     """
     channels = check_count(channels, "channels")
     frequency = check_positive(frequency, "frequency")
@@ -74,13 +97,15 @@ def smooth_signal(surface: ImplicitSurface, channels: int = 1, frequency: float 
                                       dtype=torch.float64)
     device = surface.phi.device
     wave, amplitude, phase = (t.to(dtype=dtype, device=device) for t in (wave, amplitude, phase))
-    points = closest_points(surface)  # (B, 3, D, H, W)
-    values = torch.zeros(batch, channels, *surface.grid.shape, dtype=dtype, device=device)
+    rows = _rows_of_entries(surface)
+    wave, amplitude, phase = wave[rows], amplitude[rows], phase[rows]
+    points = closest_points(surface)  # (B, 3, D, H, W), or packed
+    values = torch.zeros(_field_shape(surface, channels), dtype=dtype, device=device)
     for m in range(modes):  # one wave at a time: memory of one (B, C, D, H, W) volume
         angle = torch.einsum("bck,bkdhw->bcdhw", wave[:, :, m], points)
         values += amplitude[:, :, m, None, None, None] * torch.sin(
             angle + phase[:, :, m, None, None, None])
-    return _rescale(values, surface.band_mask())
+    return _rescale(values, surface.band_mask(), surface)
 
 
 def piecewise_constant_signal(surface: ImplicitSurface, channels: int = 1, cells: int = 12,
@@ -92,29 +117,47 @@ def piecewise_constant_signal(surface: ImplicitSurface, channels: int = 1, cells
     point falls in, so the regions are patches of S bounded by curves, constant along normals.
 
     Args:
-        surface: ``B`` surfaces.
+        surface: ``B`` surfaces, dense or a :class:`~torchsurf.bricks.BrickSurface` (whose
+            band gets the dense grid's values for the same seed).
         channels: ``C``; the channels share the regions and differ in their values.
         cells: regions per surface.
         seed: the same seed gives the same signal.
 
     Returns:
-        ``(B, C, D, H, W)``, values uniform in ``[0, 1)``, the surface's dtype and device.
+        ``(B, C, D, H, W)`` (packed ``(N, C, 8, 8, 8)`` on bricks), values uniform in
+        ``[0, 1)``, the surface's dtype and device.
     """
     channels = check_count(channels, "channels")
     cells = check_count(cells, "cells")
     random = generator(seed)
-    points = closest_points(surface).flatten(2)  # (B, 3, N)
-    near = (surface.distance() <= surface.spacing).flatten(2)[:, 0]  # (B, N)
-    result = []
+    points = closest_points(surface).flatten(2)  # (B, 3, n), or (N, 3, 512) on bricks
+    near = (surface.distance() <= surface.spacing).flatten(2)[:, 0]  # (B, n)
+    rows = _rows_of_entries(surface)
+    order = None if surface.layout is None else _dense_order(surface)
+    result = torch.empty(_field_shape(surface, channels), dtype=points.dtype,
+                         device=points.device).flatten(2)
     for b in range(surface.batch_size):
-        candidates = near[b].nonzero().squeeze(1).cpu()
+        mine = (rows == b).nonzero().squeeze(1)
+        entry_points = points[mine].transpose(0, 1).flatten(1)  # (3, n)
+        candidates = near[mine].flatten().nonzero().squeeze(1)
+        if order is not None:  # the dense grid's order, so that the same nodes are drawn
+            candidates = candidates[order[mine].flatten()[candidates].argsort()]
         pick = torch.randint(len(candidates), (cells,), generator=random)
-        centres = points[b][:, candidates[pick].to(points.device)]  # (3, cells)
-        nearest = torch.cdist(points[b].T, centres.T).argmin(dim=1)  # (N,)
+        centres = entry_points[:, candidates[pick.to(points.device)]]  # (3, cells)
+        nearest = torch.cdist(entry_points.T, centres.T).argmin(dim=1)  # (n,)
         values = torch.rand(channels, cells, generator=random, dtype=torch.float64)
         values = values.to(dtype=points.dtype, device=points.device)
-        result.append(values[:, nearest])
-    return torch.stack(result).reshape(surface.batch_size, channels, *surface.grid.shape)
+        result[mine] = values[:, nearest].view(channels, len(mine), -1).transpose(0, 1)
+    return result.view(_field_shape(surface, channels))
+
+
+def _dense_order(surface: ImplicitSurface) -> Tensor:
+    """Each stored node's flat index in its entry's dense grid, packed ``(N, 8, 8, 8)``."""
+    index = surface.layout.node_index().to(surface.phi.device)  # (N, 3, 8, 8, 8), (k, j, i)
+    shapes = torch.tensor([g.shape for g in surface.grids], device=index.device)
+    height, width = (shapes[surface.layout.batch.to(index.device), axis] for axis in (1, 2))
+    view = (-1, 1, 1, 1)
+    return (index[:, 0] * height.view(view) + index[:, 1]) * width.view(view) + index[:, 2]
 
 
 def signal(kind: str, surface: ImplicitSurface, channels: int = 1, seed: int = 0,

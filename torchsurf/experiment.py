@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import inspect
 import json
+import math
 import os
 import platform
 import sys
@@ -24,12 +25,14 @@ from typing import Any
 
 import numpy as np
 import torch
+import trimesh
 from torch import Tensor
 
+from . import bricks, flows, render, sdf, signals
 from . import config as cfg
-from . import flows, render, sdf, signals
 from . import mesh as meshes
-from .config import ConfigError, Experiment, FlowKind, Shape, SignalKind, TimeUnit
+from .bricks.layout import bricks_along
+from .config import ConfigError, Experiment, FlowKind, Layout, Shape, SignalKind, TimeUnit
 from .grid import Grid
 from .surface import ImplicitSurface
 
@@ -132,12 +135,17 @@ def _builtin_box(shape: Shape, p: dict[str, Any]) -> tuple[np.ndarray, np.ndarra
 
 
 def build_surface(prepared: Prepared) -> ImplicitSurface:
-    """The grid and signed distance the config names, as an :class:`ImplicitSurface`."""
+    """The grid and signed distance the config names, as an :class:`ImplicitSurface`, or a
+    :class:`~torchsurf.bricks.BrickSurface` when the config's layout is bricks (a mesh then
+    goes straight into bricks, without a dense volume)."""
     experiment = prepared.experiment
     size, margin = experiment.grid.size, experiment.grid.margin
+    packed = cfg.layout(experiment.grid) is Layout.bricks
     if prepared.mesh_path is not None:
         mesh = meshes.load(str(prepared.mesh_path))
         grid = meshes.fit_grid(mesh, size, margin)
+        if packed:
+            return bricks.from_mesh(mesh, grid)
         phi = sdf.from_mesh(mesh, grid)
     else:
         low, high = _builtin_box(experiment.surface.shape, prepared.params)
@@ -145,7 +153,19 @@ def build_surface(prepared: Prepared) -> ImplicitSurface:
         origin = tuple(float(x) for x in 0.5 * (low + high) - 0.5 * side)
         grid = Grid((size,) * 3, side / (size - 1), origin)
         phi = SHAPES[experiment.surface.shape](grid, **prepared.params)
+        if packed:
+            return bricks.from_dense(phi, grid)
     return ImplicitSurface(phi, grid)
+
+
+def extract_mesh(surface: ImplicitSurface) -> trimesh.Trimesh:
+    """The marching-cubes mesh of ``surface``'s zero level set (on bricks, from the stored
+    nodes made dense: the cells next to a node that is not stored are skipped)."""
+    if surface.layout is None:
+        return meshes.extract(surface.phi, surface.grid)
+    phi, = surface.to_dense(surface.phi, fill=surface.band_width)
+    stored, = surface.to_dense(torch.ones_like(surface.phi, dtype=torch.bool), fill=False)
+    return meshes.extract(phi, surface.grid, mask=stored)
 
 
 def tangent_field(config: cfg.FieldConfig, surface: ImplicitSurface,
@@ -193,7 +213,7 @@ def build_signal(prepared: Prepared, surface: ImplicitSurface, box: tuple[Tensor
         return clean, clean
     if kind is SignalKind.field:
         return clean, signals.perturb_field(clean, surface, signal.noise, signal.seed)
-    return clean, clean + signals.gaussian_noise(clean, signal.noise, signal.seed)
+    return clean, clean + signals.gaussian_noise(clean, signal.noise, signal.seed, surface)
 
 
 def physical_settings(experiment: Experiment, diagonal: float, spacing: float
@@ -326,13 +346,18 @@ def run(prepared: Prepared, out: str | os.PathLike, progress: bool = False,
 
     with _threads(experiment.threads):
         surface = build_surface(prepared)
-        extracted = meshes.extract(surface.phi, surface.grid)
+        extracted = extract_mesh(surface)
         low, high = (torch.tensor(b, dtype=surface.phi.dtype) for b in extracted.bounds)
         diagonal = float((high - low).norm())
         spacing = surface.spacing
         n = experiment.grid.size
-        log(f"{experiment.name}: {experiment.surface.shape.name} on {n}^3 nodes, spacing "
-            f"h = {spacing:.4g}, box diagonal L = {diagonal:.4g} ({diagonal / spacing:.0f} cells)")
+        layout = cfg.layout(experiment.grid)
+        stored = "dense" if surface.layout is None else (
+            f"bricks: {len(surface.layout)} of {math.prod(bricks_along(surface.grid.shape))} "
+            "stored")
+        log(f"{experiment.name}: {experiment.surface.shape.name} on {n}^3 nodes ({stored}), "
+            f"spacing h = {spacing:.4g}, box diagonal L = {diagonal:.4g} "
+            f"({diagonal / spacing:.0f} cells)")
         stage("surface")
         centre = tuple(float(c) for c in 0.5 * (low + high))
         field = (tangent_field(experiment.field, surface, centre)
@@ -370,7 +395,7 @@ def run(prepared: Prepared, out: str | os.PathLike, progress: bool = False,
             # Shown sign-free, |T| per component at the nodes: sampling T itself would
             # average opposite signs of a line field to nothing.
             volumes = {name: volume.abs() for name, volume in volumes.items()}
-        values = {name: render.vertex_values(volumes[name], extracted, surface.grid)
+        values = {name: render.vertex_values(volumes[name], extracted, surface)
                   for name in ("clean", "input", "output")}
         metrics: dict[str, float] = {}
         if experiment.signal.noise > 0 and kind not in (FlowKind.reaction_diffusion,
@@ -395,7 +420,9 @@ def run(prepared: Prepared, out: str | os.PathLike, progress: bool = False,
     record = write_json({
         "config": cfg.to_dict(experiment),
         "mesh": None if prepared.mesh_path is None else str(prepared.mesh_path),
-        "grid": {"size": n, "spacing": spacing, "origin": list(surface.grid.origin)},
+        "grid": {"size": n, "spacing": spacing, "origin": list(surface.grid.origin),
+                 "layout": layout.name,
+                 "bricks": None if surface.layout is None else len(surface.layout)},
         "diagonal": diagonal,
         "physical": physical,
         "metrics": metrics,

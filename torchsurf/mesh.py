@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 import trimesh
 from torch import Tensor, nn
 
@@ -76,13 +77,18 @@ def fit_grid(mesh: MeshLike, resolution: int = 64, margin: float = 0.1) -> Grid:
     return Grid((resolution,) * 3, extent / (resolution - 1), tuple(float(x) for x in origin))
 
 
-def extract(phi: Tensor, grid: Grid, level: float = 0.0) -> trimesh.Trimesh:
+def extract(phi: Tensor, grid: Grid, level: float = 0.0, mask: Tensor | None = None
+            ) -> trimesh.Trimesh:
     """The level set ``phi == level`` as a triangle mesh, by marching cubes (scikit-image).
 
     Args:
         phi: ``(1, 1, D, H, W)``, one surface (index a batch as ``phi[b:b + 1]``).
         grid: the grid ``phi`` is sampled on.
         level: the iso-value, units of ``phi``.
+        mask: ``(1, 1, D, H, W)`` bool, the nodes where ``phi`` is known (e.g. the stored
+            bricks of a :class:`~torchsurf.bricks.BrickSurface` made dense): every cell within
+            one node of an unknown node is skipped, so that no value outside it is read;
+            ``None``: every node.
 
     Returns:
         A ``trimesh.Trimesh`` in world coordinates ``(x, y, z)``, normals pointing towards
@@ -98,9 +104,18 @@ def extract(phi: Tensor, grid: Grid, level: float = 0.0) -> trimesh.Trimesh:
             "extract batch entry b with phi[b:b + 1]"
         )
     volume = phi.detach().to("cpu", torch.float64).numpy()[0, 0]
-    if not np.isfinite(volume).all():
+    known = None
+    if mask is not None:
+        if tuple(mask.shape) != tuple(phi.shape) or mask.dtype != torch.bool:
+            raise ValueError(f"mask must be a bool tensor of phi's shape {tuple(phi.shape)}, got "
+                             f"{mask.dtype} of shape {tuple(mask.shape)}")
+        # scikit-image checks one corner of each cell against its mask: keep only the nodes
+        # whose 3x3x3 neighbourhood is known
+        unknown = (~mask.detach().cpu()).to(torch.float32)
+        known = (F.max_pool3d(unknown, 3, stride=1, padding=1) == 0).numpy()[0, 0]
+    if not np.isfinite(volume if known is None else volume[known]).all():
         raise ValueError("phi must hold finite values only, found NaN or infinity")
-    vertices, faces = _isosurface.level_set(volume, grid, float(level))
+    vertices, faces = _isosurface.level_set(volume, grid, float(level), known)
     return trimesh.Trimesh(vertices, faces, process=False)
 
 

@@ -29,6 +29,7 @@ from torch import Tensor
 
 from .grid import Grid
 from .sampling import sample
+from .surface import ImplicitSurface
 
 AXES = ("x", "y", "z")
 MODES = ("scalar", "rgb", "field")
@@ -54,10 +55,21 @@ def _matplotlib():  # noqa: ANN202
     return Figure, FigureCanvasAgg, PolyCollection
 
 
-def vertex_values(volume: Tensor, mesh: trimesh.Trimesh, grid: Grid) -> np.ndarray:
-    """``volume`` ``(1, C, D, H, W)`` sampled trilinearly at ``mesh``'s vertices: ``(V, C)``."""
+def vertex_values(volume: Tensor, mesh: trimesh.Trimesh, grid: Grid | ImplicitSurface
+                  ) -> np.ndarray:
+    """``volume`` sampled trilinearly at ``mesh``'s vertices: ``(V, C)`` float64.
+
+    Args:
+        volume: ``(1, C, D, H, W)`` on ``grid``, or packed ``(N, C, 8, 8, 8)`` when ``grid`` is
+            a :class:`~torchsurf.bricks.BrickSurface` (of one shape).
+        mesh: vertices in world units, near the surface (on bricks, within the stored nodes).
+        grid: the volume's grid, or the surface that holds it.
+    """
     points = torch.as_tensor(np.asarray(mesh.vertices), dtype=volume.dtype, device=volume.device)
-    values = sample(volume.detach(), points, grid)[0]
+    if isinstance(grid, ImplicitSurface) and grid.layout is not None:
+        values = grid.sample(volume.detach(), points)
+    else:
+        values = sample(volume.detach(), points, grid if isinstance(grid, Grid) else grid.grid)[0]
     return values.T.to("cpu", torch.float64).numpy()
 
 

@@ -2,8 +2,10 @@
 fields and colour conversions.
 
 Every function returns a volume ``(B, C, D, H, W)`` on the surface's grid (or takes one), in
-the surface's dtype. Patterns are evaluated at the first-order closest point of each node on S
-(:func:`closest_points`), so they are constant along the normals, as the flows expect
+the surface's dtype; on a :class:`~torchsurf.bricks.BrickSurface`, a packed field
+``(N, C, 8, 8, 8)`` of its stored nodes instead. Patterns are evaluated at the first-order
+closest point of each node on S (:func:`closest_points`), so they are constant along the
+normals, as the flows expect
 (the paper's §2). Colour conversions are kornia's, applied to the channels of a volume.
 """
 
@@ -31,15 +33,22 @@ IMAGES = ("colour_wheel", "colour_checker", "checker")
 COLOUR_SPACES = ("hsv", "hls", "lab", "luv", "xyz", "ycbcr", "yuv")
 
 
+def node_points(surface: ImplicitSurface) -> Tensor:
+    """World ``(x, y, z)`` of every node: ``(1, 3, D, H, W)``, or packed ``(N, 3, 8, 8, 8)`` on a
+    :class:`~torchsurf.bricks.BrickSurface`."""
+    if surface.layout is not None:
+        return surface.layout.points(surface.phi.dtype).to(surface.phi.device)
+    points = surface.grid.points(dtype=surface.phi.dtype, device=surface.phi.device)
+    return points.permute(3, 0, 1, 2)[None]
+
+
 def closest_points(surface: ImplicitSurface) -> Tensor:
     """``x - phi grad phi / |grad phi|^2``, the first-order closest point on S of every node.
 
     Returns:
-        ``(B, 3, D, H, W)`` world ``(x, y, z)``.
+        ``(B, 3, D, H, W)`` world ``(x, y, z)`` (packed ``(N, 3, 8, 8, 8)`` on bricks).
     """
-    points = surface.grid.points(dtype=surface.phi.dtype, device=surface.phi.device)
-    points = points.permute(3, 0, 1, 2)[None]
-    return points - surface.phi / surface.grad_norm * surface.normal
+    return node_points(surface) - surface.phi / surface.grad_norm * surface.normal
 
 
 def _axis_index(axis: str) -> int:
@@ -178,9 +187,20 @@ def generator(seed: int) -> torch.Generator:
     return torch.Generator().manual_seed(int(seed))
 
 
-def gaussian_noise(like: Tensor, std: float, seed: int) -> Tensor:
-    """Gaussian noise of standard deviation ``std``, shaped and typed like ``like``, seeded."""
+def gaussian_noise(like: Tensor, std: float, seed: int, surface: ImplicitSurface | None = None
+                   ) -> Tensor:
+    """Gaussian noise of standard deviation ``std``, shaped and typed like ``like``, seeded.
+
+    With a :class:`~torchsurf.bricks.BrickSurface` ``surface`` (``like`` packed
+    ``(N, C, 8, 8, 8)``), the numbers the dense grid of each entry gets, node for node (drawn
+    densely, one entry at a time, then packed).
+    """
     check_nonnegative(std, "std")
+    if surface is not None and surface.layout is not None:
+        draw = generator(seed)
+        volumes = [torch.randn((1, like.shape[1], *grid.shape), generator=draw, dtype=like.dtype)
+                   for grid in surface.grids]
+        return std * surface.layout.from_dense(volumes).to(like.device)
     noise = torch.randn(like.shape, generator=generator(seed), dtype=like.dtype)
     return std * noise.to(like.device)
 
@@ -194,7 +214,8 @@ def uniform_noise(surface: ImplicitSurface, channels: int, seed: int) -> Tensor:
 
 def surface_noise(surface: ImplicitSurface, channels: int, seed: int, grain: float = 1.0
                   ) -> Tensor:
-    """Seeded value noise on S, constant along the normals: ``(1, channels, D, H, W)``.
+    """Seeded value noise on S, constant along the normals: ``(1, channels, D, H, W)`` (packed
+    ``(N, channels, 8, 8, 8)`` on bricks, the same values at the same nodes).
 
     Uniform values in ``[0, 1)`` on a lattice of spacing ``grain`` cells, interpolated
     trilinearly at each node's closest point on S (:func:`closest_points`). ``grain`` sets the
@@ -209,6 +230,8 @@ def surface_noise(surface: ImplicitSurface, channels: int, seed: int, grain: flo
     """
     grain = check_positive(grain, "grain")
     grid = surface.grid
+    if surface.batch_size != 1:
+        raise ValueError(f"surface must hold one shape, got a batch of {surface.batch_size}")
     lattice = Grid(tuple(math.ceil((n - 1) / grain) + 1 for n in grid.shape),
                    grain * grid.spacing, grid.origin)
     values = torch.rand((1, channels, *lattice.shape), generator=generator(seed),
@@ -216,9 +239,12 @@ def surface_noise(surface: ImplicitSurface, channels: int, seed: int, grain: flo
     low = torch.tensor(grid.origin, dtype=values.dtype, device=values.device)
     high = low + torch.tensor(grid.size, dtype=values.dtype, device=values.device)
     # nodes far from S can have closest points outside the box: their values are never read
-    points = closest_points(surface)[0].permute(1, 2, 3, 0).reshape(-1, 3)
+    points = closest_points(surface)
+    shape = (points.shape[0], channels, *points.shape[2:])
+    points = points.permute(0, 2, 3, 4, 1).reshape(-1, 3)
     points = torch.minimum(torch.maximum(points, low), high)
-    return sample(values, points, lattice).reshape(1, channels, *grid.shape)
+    values = sample(values, points, lattice)[0]  # (C, M), M nodes in the order of `shape`
+    return values.view(channels, shape[0], -1).transpose(0, 1).reshape(shape)
 
 
 def axis_field(surface: ImplicitSurface, axis: str = "z") -> Tensor:
@@ -236,8 +262,8 @@ def swirl_field(surface: ImplicitSurface, axis: str = "z",
     and unit: ``(B, 3, D, H, W)``. On a surface of revolution about that axis it is already
     tangent (the parallels: on a torus, the minor principal direction, oriented); it vanishes
     only on the axis."""
-    points = surface.grid.points(dtype=surface.phi.dtype, device=surface.phi.device)
-    offset = points.permute(3, 0, 1, 2)[None] - points.new_tensor(centre).view(1, 3, 1, 1, 1)
+    points = node_points(surface)
+    offset = points - points.new_tensor(centre).view(1, 3, 1, 1, 1)
     direction = torch.zeros_like(offset)
     direction[:, _axis_index(axis)] = 1.0
     return tangent_unit(torch.cross(direction, offset, dim=1), surface)
@@ -312,7 +338,7 @@ def principal_direction(surface: ImplicitSurface, which: str = "max", smoothing:
 
 def perturb_field(field: Tensor, surface: ImplicitSurface, std: float, seed: int) -> Tensor:
     """``field`` plus seeded Gaussian noise of ``std`` per component, made tangent and unit."""
-    return tangent_unit(field + gaussian_noise(field, std, seed), surface)
+    return tangent_unit(field + gaussian_noise(field, std, seed, surface), surface)
 
 
 def rgb_to(rgb: Tensor, space: str) -> Tensor:

@@ -42,6 +42,8 @@ class ImplicitSurface(nn.Module):
     ``|grad phi|`` and the unit normals are computed once, by central differences with
     ``phi`` extrapolated linearly beyond the grid, and reused by every operator. When ``phi``
     requires grad they stay in its graph (build the surface again after each optimiser step).
+    ``surface.to(...)`` (``.double()``, a device) moves ``phi`` and derives the rest again from
+    it: the same numbers as a surface built from the moved ``phi``.
 
     Nothing assumes that ``phi`` is a distance in world units: widths are measured as
     ``|phi| / W`` (so ``1000 * phi`` is the same surface with the same band), and where
@@ -133,6 +135,16 @@ class ImplicitSurface(nn.Module):
         self.register_buffer("_haloed_normal", None, persistent=False)
         self.register_buffer("_haloed_weight", None, persistent=False)
         self._kept: dict[tuple, object] = {}
+
+    def _apply(self, fn, recurse=True):  # noqa: ANN001, ANN202
+        # .to(), .double(), .cuda(): the normals, the weight and what flows kept are derived
+        # again from phi in its new dtype and place, as a surface built from the moved phi
+        result = super()._apply(fn, recurse)
+        self._reassemble()
+        return result
+
+    def _reassemble(self) -> None:
+        self._assemble(self.phi)
 
     def kept(self, key: tuple, compute: Callable[[], T]) -> T:
         """``compute()``, computed on the first call with ``key`` and kept on this surface.

@@ -85,3 +85,22 @@ def test_gradcheck_chebyshev_on_bricks_in_the_data_and_the_times():
 
     along = torch.zeros(4, dtype=torch.float64, requires_grad=True)
     assert torch.autograd.gradcheck(run, (along, times.requires_grad_(True)), fast_mode=True)
+
+
+def test_gradcheck_chebyshev_on_bricks_in_phi():
+    """Through ``phi`` (closest points, normals and ``W`` recomputed in backward), along a
+    one-parameter family of shapes on one layout."""
+    grid = Grid.cube(21, 2.0)
+    phi = ts.sdf.sphere(grid, 1.0).double()
+    layout = bricks.from_dense(phi, grid).layout
+    generator = torch.Generator().manual_seed(7)
+    bump = torch.rand(phi.shape, dtype=torch.float64, generator=generator)
+    u0 = torch.rand(len(layout), 1, 8, 8, 8, dtype=torch.float64, generator=generator)
+    times = torch.tensor([1.5 * grid.spacing**2], dtype=torch.float64, requires_grad=True)
+
+    def run(scale: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        surface = bricks.BrickSurface(layout.from_dense(phi + scale * bump), layout)
+        return heat_semigroup(u0, BandLaplacian(surface, path="slicing"), t)
+
+    scale = torch.tensor(0.01, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(run, (scale, times), fast_mode=True)

@@ -62,6 +62,10 @@ class BrickSurface(ImplicitSurface):
         self.eps = check_positive(eps, "eps")
         self._assemble(phi)
 
+    def _reassemble(self) -> None:
+        self.layout = self.layout.to(self.phi.device)  # its tables are not buffers
+        super()._reassemble()
+
     @property
     def grids(self) -> tuple[Grid, ...]:
         """One grid per batch entry."""

@@ -122,14 +122,15 @@ def _stencil_key(width: float | None, kind: str) -> tuple:
     return ("flow stencil", width, kind)
 
 
-def _stencil(surface: ImplicitSurface, width: float | None, kind: str, mask: Tensor
-             ) -> Stencil:
-    """The closest-point stencil of ``mask`` (``kind`` names it), kept on the surface unless
-    ``phi`` requires grad (its weights are then in ``phi``'s graph)."""
+def _stencil(surface: ImplicitSurface, width: float | None, kind: str, mask: Tensor,
+             region: Tensor) -> Stencil:
+    """The closest-point stencil of ``mask`` (``kind`` names it), reading only ``region`` (the
+    band and its ring), kept on the surface unless ``phi`` requires grad (its weights are then
+    in ``phi``'s graph)."""
     if surface.phi.requires_grad:
-        return cubic_stencil(surface, mask, limited=True)
+        return cubic_stencil(surface, mask, limited=True, readable=region)
     return surface.kept(_stencil_key(width, kind),
-                        lambda: cubic_stencil(surface, mask, limited=True))
+                        lambda: cubic_stencil(surface, mask, limited=True, readable=region))
 
 
 def data_shape(surface: ImplicitSurface, batch: int, channels: int) -> tuple[int, ...]:
@@ -326,7 +327,7 @@ class Flow(nn.Module):
         if bar is not None:
             hooks.append(lambda u, k: (bar.update(1), u)[1])
         if every is not None:
-            stencil = _stencil(surface, self.band_width, "region", system.region)
+            stencil = _stencil(surface, self.band_width, "region", system.region, system.region)
             path = self.path
             hooks.append(lambda u, k: reextend(stencil, u, path) if k % every == 0 else u)
         if not hooks:
@@ -425,7 +426,8 @@ class Flow(nn.Module):
         schedule.segment = 12.0 * (width / surface.spacing) ** 2 / system.spectral_radius
         schedule.checkpoint = self._checkpointing(u0, surface, system)
         if self.reextend_every is not None and self.method not in IMPLICIT:
-            ring = _stencil(surface, self.band_width, "ring", system.region & ~system.band)
+            ring = _stencil(surface, self.band_width, "ring", system.region & ~system.band,
+                            system.region)
             rate = system.rate
             path = self.path
             system.rate = lambda u: rate(reextend(ring, u, path))

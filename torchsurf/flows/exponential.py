@@ -42,15 +42,15 @@ slightly non-normal, and the cost of the margin is ``sqrt(1.1)``, 5% more terms.
 Stencil = CubicStencil | BrickCubicStencil
 
 
-def _linear_stencil(surface: ImplicitSurface, width: float, kind: str, mask: Tensor
-                    ) -> Stencil:
+def _linear_stencil(surface: ImplicitSurface, width: float, kind: str, mask: Tensor,
+                    region: Tensor) -> Stencil:
     """The linear closest-point stencil of ``mask`` (``kind`` names it: ``"ring"`` or
-    ``"region"``) for the surface's storage, kept on the surface unless ``phi`` requires
-    grad."""
+    ``"region"``) reading only ``region``, for the surface's storage, kept on the surface
+    unless ``phi`` requires grad."""
     if surface.phi.requires_grad:
-        return cubic_stencil(surface, mask, limited=False)
+        return cubic_stencil(surface, mask, limited=False, readable=region)
     return surface.kept(("linear stencil", width, kind),
-                        lambda: cubic_stencil(surface, mask, limited=False))
+                        lambda: cubic_stencil(surface, mask, limited=False, readable=region))
 
 
 class BandLaplacian:
@@ -86,8 +86,9 @@ class BandLaplacian:
         self.surface, self.scheme, self.path = surface, scheme, path
         self.band = surface.band_mask(width)
         self.region = with_ring(self.band, surface.layout)
-        self.ring = _linear_stencil(surface, width, "ring", self.region & ~self.band)
-        self.extension = _linear_stencil(surface, width, "region", self.region)
+        self.ring = _linear_stencil(surface, width, "ring", self.region & ~self.band,
+                                    self.region)
+        self.extension = _linear_stencil(surface, width, "region", self.region, self.region)
         self.bound = BOUND_MARGIN * laplace_beltrami_bound(surface, scheme, width)
 
     @property

@@ -26,6 +26,7 @@ from .. import backend, stencils
 from .._checks import check_choice, check_positive
 from ..bricks.layout import BRICK, BrickLayout
 from ..surface import ImplicitSurface, check_data
+from . import _closest
 
 METHODS = ("closest_point", "pde")
 
@@ -100,35 +101,64 @@ def _cell(at: Tensor) -> Tensor:
     return (at + slack).floor()
 
 
-def _cubic_stencil(index: Tensor, mask: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """The tricubic interpolation of one volume at ``index``, for the nodes of ``mask``.
+def _cubic_stencil(at: Tensor, targets: Tensor, shape: tuple[int, int, int]
+                   ) -> tuple[Tensor, Tensor, Tensor]:
+    """The tricubic interpolation of one volume of ``shape`` at ``at``, for the nodes
+    ``targets``.
 
     Stored by axis: the 4 node indices and 4 Lagrange weights along each of ``x, y, z``
     (96 bytes per node in float32), from which the 64 taps are formed where they are read.
 
     Args:
-        index: ``(D, H, W, 3)`` fractional ``(x, y, z)`` node indices of the points to read.
-        mask: ``(D, H, W)`` bool, the nodes to fill.
+        at: ``(N, 3)`` fractional ``(x, y, z)`` node indices of the points to read.
+        targets: ``(N,)`` flat indices of the nodes to fill.
+        shape: ``(D, H, W)``.
 
     Returns:
-        ``targets`` ``(N,)`` flat indices of the masked nodes; ``corners`` ``(3, N, 4)`` the
-        node indices along ``x, y, z`` around each point (clamped to the box: replicated data);
-        ``weights`` ``(3, N, 4)`` their Lagrange weights (in ``index``'s graph).
+        ``targets``; ``corners`` ``(3, N, 4)`` the node indices along ``x, y, z`` around each
+        point (clamped to the box: replicated data); ``weights`` ``(3, N, 4)`` their Lagrange
+        weights (in ``at``'s graph).
     """
-    depth, height, width = mask.shape
-    targets = mask.reshape(-1).nonzero().squeeze(1)
-    at = index.reshape(-1, 3)[targets]
+    depth, height, width = shape
     base = _cell(at)
     offsets = torch.arange(-1, 3, device=at.device)
     corners = torch.stack([
         (base[:, axis: axis + 1].long() + offsets).clamp(0, size - 1)
         for axis, size in enumerate((width, height, depth))
     ])
-    if mask.numel() < 2**31:
+    if depth * height * width < 2**31:
         corners = corners.to(torch.int32)
     weights = torch.stack([torch.stack(_cubic_weights(at[:, axis] - base[:, axis]), dim=1)
                            for axis in range(3)])
     return targets, corners, weights
+
+
+def _dense_tap_indices(corners: Tensor, height: int, width: int) -> Callable[[slice], Tensor]:
+    """Flat positions ``(n, 64)`` of the taps of a slice of a dense stencil's nodes."""
+    def taps(part: slice) -> Tensor:
+        x, y, z = corners[:, part].long().unbind(0)
+        return ((z[:, :, None, None] * height + y[:, None, :, None]) * width
+                + x[:, None, None, :]).flatten(1)
+    return taps
+
+
+def _dense_part(surface: ImplicitSurface, index: Tensor, mask: Tensor, readable: Tensor | None,
+                entry: int) -> tuple[Tensor, Tensor, Tensor]:
+    """One volume's stencil: the masked nodes' closest points (``index`` ``(D, H, W, 3)``,
+    first order) refined (:mod:`._closest`), without the nodes whose taps leave ``readable``
+    ``(D, H, W)`` (when given)."""
+    targets = mask.reshape(-1).nonzero().squeeze(1)
+    phi, weight = surface.phi[entry, 0], surface.weight[entry, 0]
+    read = _closest.dense_reader(phi / (weight * surface.spacing), surface.normal[entry])
+    at = _closest.refine(index.reshape(-1, 3)[targets], read)
+    targets, corners, weights = _cubic_stencil(at, targets, mask.shape)
+    if readable is None:
+        return targets, corners, weights
+    keep = _closest.taps_inside(readable.reshape(-1),
+                                _dense_tap_indices(corners, *mask.shape[1:]), len(targets))
+    if bool(keep.all()):
+        return targets, corners, weights
+    return targets[keep], corners[:, keep], weights[:, keep]
 
 
 def _interpolate_gathered(flat: Tensor, corners: Tensor, weights: Tensor, height: int,
@@ -211,14 +241,22 @@ class CubicStencil:
         mask: ``(B or 1, 1, D, H, W)`` bool, the nodes to fill.
         limited: clamp each value to the range of the 8 nodes of the cell around its point, so
             that re-extension never creates a new extremum (data with jumps, maximum principle).
+        readable: ``(B or 1, 1, D, H, W)`` bool, the nodes the stencil may read; a masked node
+            whose taps leave it is left out (it keeps its value): only where ``phi`` is not a
+            distance, once its closest point is refined (:mod:`torchsurf.flows._closest`).
+            ``None``: every node may be read.
     """
 
-    def __init__(self, surface: ImplicitSurface, mask: Tensor, limited: bool = False) -> None:
+    def __init__(self, surface: ImplicitSurface, mask: Tensor, limited: bool = False,
+                 readable: Tensor | None = None) -> None:
         self.limited = bool(limited)
         index = surface.grid.world_to_index(_closest_points(surface, surface.phi.dtype))
         batch = max(index.shape[0], mask.shape[0])
         self.parts = [
-            _cubic_stencil(index[min(b, index.shape[0] - 1)], mask[min(b, mask.shape[0] - 1), 0])
+            _dense_part(surface, index[min(b, index.shape[0] - 1)],
+                        mask[min(b, mask.shape[0] - 1), 0],
+                        None if readable is None else readable[min(b, readable.shape[0] - 1), 0],
+                        min(b, surface.phi.shape[0] - 1))
             for b in range(batch)
         ]
 
@@ -314,8 +352,37 @@ _BRICK_INTERPOLATION = backend.Kernel(
 )
 
 
+def _kept_gathered(flat: Tensor, sources: Tensor, weights: Tensor, limited: bool, *,
+                   path: str = "slicing") -> Tensor:
+    """:func:`_brick_gathered` from the kept ``(M, 64)`` packed sources of each node."""
+    return _gathered_sum(flat, sources.long(), weights, limited)
+
+
+def _kept_terms(flat: Tensor, sources: Tensor, weights: Tensor, limited: bool) -> Tensor:
+    """:func:`_brick_terms` from the kept ``(M, 64)`` packed sources: one load a tap instead
+    of picking its brick among 8 (4x faster at 128^3, identical numbers)."""
+
+    def tap(k: int, j: int, i: int) -> Tensor:
+        return flat[:, sources[:, 16 * k + 4 * j + i].long()]
+
+    return _summed_terms(tap, weights, limited)
+
+
+_KEPT_INTERPOLATION = backend.Kernel(
+    "tricubic_interpolation_kept", _kept_gathered, _kept_terms, lambda *args: args,
+    dynamic=True,
+)
+
+
 STENCIL_CHUNK = 2**17
 """Nodes whose brick stencil is assembled at once (about 1 kB of temporaries a node)."""
+
+KEEP_SOURCES_NODES = 2**20
+"""A brick stencil of at most this many nodes keeps the packed index of each of its 64 taps
+(256 bytes a node, 256 MB at most) instead of forming them at every application: 4x faster
+(65,574 ring nodes of the bunny at 128^3, two channels: 8.8 ms against 38 ms). Larger
+stencils (the band and ring of a 512^3 bunny, 1.1 M ring nodes) form them, to keep memory to
+about 125 bytes a node (docs/bricks.md: 512^3 under 4 GB)."""
 
 
 class BrickCubicStencil:
@@ -324,40 +391,71 @@ class BrickCubicStencil:
 
     Each node keeps the first packed index of the (at most) 8 bricks its 4^3 taps meet, and per
     axis whether each tap lies in the second brick, its in-brick offset and its weight (about
-    125 bytes per node). Taps are clamped to each entry's box, as the dense stencil replicates
-    its data.
+    125 bytes per node); a stencil of at most :data:`KEEP_SOURCES_NODES` nodes also keeps the
+    packed index of each tap (256 bytes more a node, 4x faster to apply). Taps are clamped to
+    each entry's box, as the dense stencil replicates its data.
 
     Args:
         surface: a :class:`~torchsurf.bricks.BrickSurface`.
         mask: ``(N, 1, 8, 8, 8)`` bool, the nodes to fill.
         limited: as in :class:`CubicStencil`.
+        readable: ``(N, 1, 8, 8, 8)`` bool, as in :class:`CubicStencil` (taps in bricks that
+            are not stored are outside it).
 
     Raises:
-        ValueError: a tap falls in a brick that is not stored (a closest point too near the
-            edge of the stored band).
+        ValueError: without ``readable``, a tap falls in a brick that is not stored (a closest
+            point too near the edge of the stored band).
     """
 
-    def __init__(self, surface: ImplicitSurface, mask: Tensor, limited: bool = False) -> None:
+    def __init__(self, surface: ImplicitSurface, mask: Tensor, limited: bool = False,
+                 readable: Tensor | None = None) -> None:
         self.limited = bool(limited)
         self.targets = mask.reshape(-1).nonzero().squeeze(1)
-        parts = [self._assemble(surface, self.targets[start: start + STENCIL_CHUNK])
+        distance = surface.phi / (surface.weight * surface.spacing)
+        parts = [self._assemble(surface, self.targets[start: start + STENCIL_CHUNK], distance)
                  for start in range(0, len(self.targets), STENCIL_CHUNK)]
         if not parts:
-            parts = [self._assemble(surface, self.targets)]
+            parts = [self._assemble(surface, self.targets, distance)]
         self.bases, self.second, self.local, self.weights = (
             torch.cat(pieces, dim=1) for pieces in zip(*parts, strict=True))
+        if readable is not None:
+            keep = _closest.taps_inside(readable.reshape(-1), self._tap_indices,
+                                        len(self.targets))
+            if not bool(keep.all()):
+                self.targets = self.targets[keep]
+                self.bases, self.second, self.local, self.weights = (
+                    part[:, keep] for part in (self.bases, self.second, self.local, self.weights))
+        elif bool((self.bases < 0).any()):
+            raise ValueError(
+                "closest-point re-extension reads nodes outside the stored bricks: build the "
+                "BrickSurface with torchsurf.bricks.from_dense or from_mesh at this band width"
+            )
+        self.sources = None
+        if len(self.targets) <= KEEP_SOURCES_NODES:
+            self.sources = torch.cat([
+                self._tap_indices(slice(start, start + STENCIL_CHUNK)).to(self.bases.dtype)
+                for start in range(0, max(len(self.targets), 1), STENCIL_CHUNK)
+            ])
+
+    def _tap_indices(self, part: slice) -> Tensor:
+        """Packed positions ``(n, 64)`` of the taps of a slice of the nodes, negative for a
+        tap in a brick that is not stored."""
+        return _brick_sources(self.bases[:, part], self.second[:, part], self.local[:, part])
 
     @staticmethod
-    def _assemble(surface: ImplicitSurface, targets: Tensor
+    def _assemble(surface: ImplicitSurface, targets: Tensor, distance: Tensor
                   ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """The stencil of ``targets`` (packed node indices), read from the surface's fields at
-        those nodes only."""
+        those nodes only; ``distance`` is the packed ``phi / (W h)``. Bases of bricks that are
+        not stored are negative."""
         layout = surface.layout
         device, dtype = surface.phi.device, surface.phi.dtype
         world, batch = _brick_closest_points(surface, targets)
         origins = torch.tensor([g.origin for g in layout.grids], dtype=dtype, device=device)
-        at = (world - origins[batch]) / surface.spacing
         shapes = torch.tensor([g.shape[::-1] for g in layout.grids], device=device)[batch]
+        lookup = layout.lookup.to(device)
+        at = _closest.refine((world - origins[batch]) / surface.spacing, _closest.brick_reader(
+            distance, surface.normal, lookup, batch, shapes))
         extent_z, extent_y, extent_x = layout.extent
         base = _cell(at)
         offsets = torch.arange(-1, 3, device=device)
@@ -366,14 +464,9 @@ class BrickCubicStencil:
             for axis in range(3))
         block = ((batch[:, None] * extent_z + z // BRICK) * extent_y * extent_x,
                  (y // BRICK) * extent_x, x // BRICK)
-        lookup = layout.lookup.to(device).reshape(-1)
+        lookup = lookup.reshape(-1)
         bases = torch.stack([lookup[block[0][:, a] + block[1][:, b] + block[2][:, c]]
                              for a in (0, 3) for b in (0, 3) for c in (0, 3)])
-        if bool((bases < 0).any()):
-            raise ValueError(
-                "closest-point re-extension reads nodes outside the stored bricks: build the "
-                "BrickSurface with torchsurf.bricks.from_dense or from_mesh at this band width"
-            )
         bases = bases * BRICK**3
         if len(layout) * BRICK**3 < 2**31:
             bases = bases.to(torch.int32)
@@ -393,8 +486,13 @@ class BrickCubicStencil:
         check_choice(path, "path", backend.PATHS)
         channels = u.shape[1]
         flat = u.transpose(0, 1).reshape(channels, -1)
-        value = backend.run(_BRICK_INTERPOLATION, path, u, flat, self.bases, self.second,
-                            self.local, self.weights.to(u.dtype), self.limited)
+        weights = self.weights.to(u.dtype)
+        if self.sources is not None:
+            value = backend.run(_KEPT_INTERPOLATION, path, u, flat, self.sources, weights,
+                                self.limited)
+        else:
+            value = backend.run(_BRICK_INTERPOLATION, path, u, flat, self.bases, self.second,
+                                self.local, weights, self.limited)
         result = flat.index_copy(1, self.targets, value)
         return result.view(channels, *u.shape[:1], *u.shape[2:]).transpose(0, 1)
 
@@ -463,12 +561,12 @@ def _brick_linear_extension(u: Tensor, surface: ImplicitSurface, mask: Tensor) -
     return result.view(channels, *u.shape[:1], *u.shape[2:]).transpose(0, 1)
 
 
-def cubic_stencil(surface: ImplicitSurface, mask: Tensor, limited: bool = False
-                  ) -> CubicStencil | BrickCubicStencil:
+def cubic_stencil(surface: ImplicitSurface, mask: Tensor, limited: bool = False,
+                  readable: Tensor | None = None) -> CubicStencil | BrickCubicStencil:
     """The closest-point stencil for ``surface``'s storage: dense or bricks."""
     if surface.layout is not None:
-        return BrickCubicStencil(surface, mask, limited)
-    return CubicStencil(surface, mask, limited)
+        return BrickCubicStencil(surface, mask, limited, readable)
+    return CubicStencil(surface, mask, limited, readable)
 
 
 def _closest_points(surface: ImplicitSurface, dtype: torch.dtype) -> Tensor:

@@ -93,9 +93,8 @@ class HarmonicMapFlow(Flow):
             return torch.where(band, diffusion + u * energy ** (self.p / 2.0), zero)
 
         def project(u: Tensor) -> Tensor:
-            # in the band and its ring only, as Flow promises: the closest-point taps of a node
-            # near a medial axis reach beyond the ring, where a brick surface's normals are not
-            # the dense ones (they are equal only within the stencils' reach of the band)
+            # in the band and its ring only, as Flow promises (a brick surface's normals equal
+            # the dense ones only within the stencils' reach of the band)
             v = u
             if self.tangent:
                 n = surface.normal

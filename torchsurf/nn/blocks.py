@@ -37,9 +37,10 @@ class DiffusionBlock(nn.Module):
         time: initial diffusion times, ``h^2`` units (:class:`LearnedDiffusion`).
         pairs: use the products of pairs of channels' gradients as features.
         **diffusion: other arguments of :class:`LearnedDiffusion` (``scheme``, ``path``,
-            ``learn_time``).
+            ``learn_time``); ``path`` also applies to the gradient features.
 
-    Shapes: ``(B, C, D, H, W)`` on a surface of batch 1 or ``B`` -> ``(B, C, D, H, W)``.
+    Shapes: ``(B, C, D, H, W)`` on a surface of batch 1 or ``B`` -> ``(B, C, D, H, W)``; on a
+    :class:`~torchsurf.bricks.BrickSurface`, packed ``(N, C, 8, 8, 8)`` -> the same.
     """
 
     def __init__(self, channels: int, hidden: int | None = None, time: float | list[float] = 1.0,
@@ -58,10 +59,12 @@ class DiffusionBlock(nn.Module):
         check_surface(surface)
         check_data(u, "u", surface, channels=self.channels)
         diffused = self.diffusion(u, surface)
-        features = torch.cat([diffused, gradient_features(diffused, surface, self.pairs)], dim=1)
+        features = torch.cat([
+            diffused, gradient_features(diffused, surface, self.pairs, path=self.diffusion.path)
+        ], dim=1)
         batch, size = u.shape[0], math.prod(u.shape[2:])
         index = _band_nodes(surface).to(u.device)
-        if surface.batch_size != batch:  # one surface for every entry
+        if surface.layout is None and surface.batch_size != batch:  # one surface for every entry
             index = (torch.arange(batch, device=u.device)[:, None] * size + index).flatten()
         nodes = features.permute(0, 2, 3, 4, 1).reshape(batch * size, -1).index_select(0, index)
         update = self.mlp(nodes)  # (N, C)

@@ -30,7 +30,9 @@ def gradient_features(u: Tensor, surface: ImplicitSurface, pairs: bool = True,
     """``|h grad_S u_c|`` per channel, then ``<h grad_S u_i, h grad_S u_j>`` for ``i < j``.
 
     Args:
-        u: ``(B, C, D, H, W)``; ``surface`` has batch 1 or B.
+        u: ``(B, C, D, H, W)``; ``surface`` has batch 1 or B. On a
+            :class:`~torchsurf.bricks.BrickSurface`, packed ``(N, C, 8, 8, 8)`` (the result
+            is packed too).
         surface: the implicit surface.
         pairs: include the products of every pair of channels.
         eps: the norms are ``sqrt(|h grad_S u_c|^2 + eps^2)``, units of ``u``: finite
@@ -46,7 +48,8 @@ def gradient_features(u: Tensor, surface: ImplicitSurface, pairs: bool = True,
     check_positive(eps, "eps")
     check_choice(path, "path", PATHS)
     channels = u.shape[1]
-    gradient = functional.tangential_gradient(u, surface.normal, surface.spacing, path)
+    pad = None if surface.layout is None else surface.layout.halo
+    gradient = functional.tangential_gradient(u, surface.normal, surface.spacing, path, pad)
     gradient = (gradient * surface.spacing).unflatten(1, (channels, 3))
     features = [torch.sqrt((gradient * gradient).sum(dim=2) + eps * eps)]
     if pairs and channels > 1:

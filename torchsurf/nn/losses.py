@@ -11,7 +11,8 @@ from ..surface import ImplicitSurface, check_data, check_surface
 
 def _squared_errors(prediction: Tensor, target: Tensor, surface: ImplicitSurface,
                     width: float | None) -> tuple[Tensor, Tensor]:
-    """Per batch entry: the sum of squared errors over the band and the count of its values."""
+    """Per batch entry: the sum of squared errors over the band and the count of its values
+    (on a :class:`~torchsurf.bricks.BrickSurface`, per entry of its batch)."""
     check_surface(surface)
     check_data(prediction, "prediction", surface)
     check_data(target, "target", surface)
@@ -22,8 +23,14 @@ def _squared_errors(prediction: Tensor, target: Tensor, surface: ImplicitSurface
         )
     band = surface.band_mask(width).expand(prediction.shape[0], 1, *prediction.shape[2:])
     errors = torch.where(band, prediction - target, prediction.new_zeros(()))
-    counts = band.sum(dim=(1, 2, 3, 4)) * prediction.shape[1]
-    return (errors * errors).sum(dim=(1, 2, 3, 4)), counts.to(prediction.dtype)
+    counts = (band.sum(dim=(1, 2, 3, 4)) * prediction.shape[1]).to(prediction.dtype)
+    totals = (errors * errors).sum(dim=(1, 2, 3, 4))
+    if surface.layout is None:
+        return totals, counts
+    # packed rows are bricks: sum them into their batch entries
+    entry = surface.layout.batch.to(prediction.device)
+    per_entry = prediction.new_zeros((2, surface.batch_size))
+    return per_entry.index_add(1, entry, torch.stack([totals, counts])).unbind(0)
 
 
 def band_mse(prediction: Tensor, target: Tensor, surface: ImplicitSurface,
@@ -31,7 +38,8 @@ def band_mse(prediction: Tensor, target: Tensor, surface: ImplicitSurface,
     """Mean squared error over the band's nodes (all batch entries and channels).
 
     Args:
-        prediction, target: ``(B, C, D, H, W)``, same shape; ``surface`` has batch 1 or B.
+        prediction, target: ``(B, C, D, H, W)``, same shape; ``surface`` has batch 1 or B. On
+            a :class:`~torchsurf.bricks.BrickSurface`, packed ``(N, C, 8, 8, 8)``.
         surface: the implicit surface.
         width: the band's half-width, world units (default ``surface.band_width``).
 
@@ -47,13 +55,15 @@ def psnr(prediction: Tensor, target: Tensor, surface: ImplicitSurface, peak: flo
     """Peak signal-to-noise ratio over the band, ``10 log10(peak^2 / MSE)``, per batch entry.
 
     Args:
-        prediction, target: ``(B, C, D, H, W)``, same shape.
+        prediction, target: ``(B, C, D, H, W)``, same shape (packed ``(N, C, 8, 8, 8)`` on a
+            :class:`~torchsurf.bricks.BrickSurface`).
         surface: the implicit surface.
         peak: the data's peak-to-peak range (1 for data in ``[0, 1]``), units of the data.
         width: the band's half-width, world units (default ``surface.band_width``).
 
     Returns:
-        ``(B,)``, decibels (``inf`` where the prediction is exact).
+        ``(B,)`` (one per batch entry of a brick surface), decibels (``inf`` where the
+        prediction is exact).
     """
     check_positive(peak, "peak")
     total, counts = _squared_errors(prediction, target, surface, width)

@@ -14,8 +14,9 @@ def intrinsic_gradient(u: Tensor, surface: ImplicitSurface, path: str = "auto") 
     """Surface gradient ``grad_S u = P grad u`` (the paper's §2), central differences, second order.
 
     Args:
-        u: ``(B, C, D, H, W)``.
-        surface: the implicit surface (batch 1 or B).
+        u: ``(B, C, D, H, W)`` (on a :class:`~torchsurf.bricks.BrickSurface`, packed
+            ``(N, C, 8, 8, 8)``).
+        surface: the implicit surface (batch 1 or B), dense or bricks.
         path: how stencils are applied (see :func:`torchsurf.laplace_beltrami`).
 
     Returns:
@@ -35,12 +36,14 @@ def intrinsic_divergence(v: Tensor, surface: ImplicitSurface, path: str = "auto"
     part of ``v`` is removed first.
 
     Args:
-        v: ``(B, 3C, D, H, W)``, ``C`` vector fields laid out as by :func:`intrinsic_gradient`.
-        surface: the implicit surface (batch 1 or B).
+        v: ``(B, 3C, D, H, W)``, ``C`` vector fields laid out as by :func:`intrinsic_gradient`
+            (on a :class:`~torchsurf.bricks.BrickSurface`, packed ``(N, 3C, 8, 8, 8)``).
+        surface: the implicit surface (batch 1 or B), dense or bricks.
         path: how stencils are applied.
 
     Returns:
-        ``(B, C, D, H, W)``, units of ``v`` per world length.
+        ``(B, C, D, H, W)`` (packed ``(N, C, 8, 8, 8)`` on bricks), units of ``v`` per world
+        length.
     """
     check_data(v, "v", surface)
     if v.shape[1] % 3 != 0:
@@ -48,7 +51,9 @@ def intrinsic_divergence(v: Tensor, surface: ImplicitSurface, path: str = "auto"
             f"v must have 3C channels (x, y, z per field), got shape {tuple(v.shape)}"
         )
     check_choice(path, "path", backend.PATHS)
-    return functional.tangential_divergence(v, surface.normal, surface.weight, surface.spacing, path)
+    pad = None if surface.layout is None else surface.layout.halo
+    return functional.tangential_divergence(v, surface.normal, surface.weight, surface.spacing,
+                                            path, pad)
 
 
 class IntrinsicGradient(nn.Module):

@@ -428,15 +428,25 @@ def tangential_gradient_energy(u: Tensor, normal: Tensor, spacing: float, path: 
     return backend.run(_ENERGY, path, u, u, normal, spacing)
 
 
+def _tangential_flux(v: Tensor, normal: Tensor, weight: Tensor) -> Tensor:
+    """``W P v`` for ``v`` ``(B, 3C, ...)``, laid out the same way."""
+    field = v.unflatten(1, (-1, 3))
+    n = normal[:, None]
+    return ((field - (field * n).sum(dim=2, keepdim=True) * n) * weight[:, None]).flatten(1, 2)
+
+
+def _flux_divergence(padded_flux: Tensor, weight: Tensor, spacing: float, path: str = "slicing"
+                     ) -> Tensor:
+    padded = padded_flux.unflatten(1, (-1, 3))
+    return stencils.contract(padded, stencils.CENTRAL, path) / (spacing * weight)
+
+
 def _divergence(v: Tensor, normal: Tensor, weight: Tensor, spacing: float, path: str = "slicing"
                 ) -> Tensor:
     # the flux is padded here, inside any compiled kernel: haloing v, the normals and W
     # outside instead measured slower (13.9 ms against 7.9 ms at 128^3, three channels)
-    field = v.unflatten(1, (-1, 3))
-    n = normal[:, None]
-    flux = (field - (field * n).sum(dim=2, keepdim=True) * n) * weight[:, None]
-    padded = stencils.pad(flux.flatten(1, 2), "replicate").unflatten(1, (-1, 3))
-    return stencils.contract(padded, stencils.CENTRAL, path) / (spacing * weight)
+    padded = stencils.pad(_tangential_flux(v, normal, weight), "replicate")
+    return _flux_divergence(padded, weight, spacing, path)
 
 
 def _divergence_eager(v, normal, weight, spacing, *, path):  # noqa: ANN001, ANN202
@@ -448,18 +458,33 @@ _DIVERGENCE = backend.Kernel(
 )
 
 
+def _flux_divergence_eager(padded_flux, weight, spacing, *, path):  # noqa: ANN001, ANN202
+    return _flux_divergence(padded_flux, weight, spacing, path)
+
+
+_FLUX_DIVERGENCE = backend.Kernel(
+    "tangential_divergence_of_haloed_flux", _flux_divergence_eager, _flux_divergence,
+    lambda *args: args,
+)
+
+
 def tangential_divergence(v: Tensor, normal: Tensor, weight: Tensor, spacing: float,
-                          path: str = "auto") -> Tensor:
+                          path: str = "auto", pad: Pad | None = None) -> Tensor:
     """``(1/W) div(W P v)`` by central differences.
 
     Args:
-        v: ``(B, 3C, D, H, W)``, laid out as :func:`tangential_gradient` returns.
+        v: ``(B, 3C, D, H, W)``, laid out as :func:`tangential_gradient` returns, or packed
+            band bricks ``(N, 3C, 8, 8, 8)`` with ``pad``.
         normal, weight, spacing: the geometry (module docstring).
         path: how the stencils run.
+        pad: how the flux ``W P v`` gets its halo (:data:`Pad`); ``None`` for a dense volume.
 
     Returns:
-        ``(B, C, D, H, W)``, units of ``v`` per world length.
+        ``(B, C, D, H, W)`` (or ``(N, C, 8, 8, 8)``), units of ``v`` per world length.
     """
+    if pad is not None:
+        return backend.run_haloed(_FLUX_DIVERGENCE, path, v,
+                                  pad(_tangential_flux(v, normal, weight), 1), weight, spacing)
     return backend.run(_DIVERGENCE, path, v, v, normal, weight, spacing)
 
 
@@ -489,19 +514,23 @@ _CENTRAL = backend.Kernel("laplace_beltrami_central", _central_eager, _central_p
 
 
 def central_laplace_beltrami(
-    u: Tensor, normal: Tensor, mean_curvature: Tensor, spacing: float, path: str = "auto"
+    u: Tensor, normal: Tensor, mean_curvature: Tensor, spacing: float, path: str = "auto",
+    pad: Pad | None = None,
 ) -> Tensor:
     """``Lap u - n^T (Hess u) n - H dn u`` by central differences (not in divergence form).
 
     Args:
-        u: ``(B, C, D, H, W)``.
+        u: ``(B, C, D, H, W)``, or packed band bricks ``(N, C, 8, 8, 8)`` with ``pad``.
         normal, spacing: the geometry (module docstring).
-        mean_curvature: ``H = div n``, ``(B or 1, 1, D, H, W)``, 1 / world length.
+        mean_curvature: ``H = div n``, ``(B or 1, 1, D, H, W)`` (or packed), 1 / world length.
         path: how the stencils run.
+        pad: how ``u`` gets its halo (:data:`Pad`); ``None`` for a dense volume.
 
     Returns:
-        ``(B, C, D, H, W)``, units of ``u`` per world length squared.
+        ``(B, C, D, H, W)`` (or ``(N, C, 8, 8, 8)``), units of ``u`` per world length squared.
     """
+    if pad is not None:
+        return backend.run_haloed(_CENTRAL, path, u, pad(u, 1), normal, mean_curvature, spacing)
     return backend.run(_CENTRAL, path, u, u, normal, mean_curvature, spacing)
 
 

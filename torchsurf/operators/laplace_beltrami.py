@@ -64,8 +64,10 @@ def laplace_beltrami(
     check_choice(path, "path", backend.PATHS)
     if surface.layout is not None:
         if scheme == "central":
-            raise ValueError("scheme='central' is not available on a BrickSurface: use a "
-                             "divergence form ('octant', 'symmetric' or 'conservative')")
+            return functional.central_laplace_beltrami(
+                u, surface.normal, surface.mean_curvature(), surface.spacing, path,
+                pad=surface.layout.halo,
+            )
         return functional.divergence_form(
             u, surface.normal, surface.weight, surface.spacing, scheme, path,
             haloed=surface.haloed(), pad=surface.layout.halo,
