@@ -37,11 +37,10 @@ def _rescale(values: Tensor, band: Tensor, surface: ImplicitSurface) -> Tensor:
     low = torch.where(inside, values, torch.inf).flatten(2).amin(-1)
     high = torch.where(inside, values, -torch.inf).flatten(2).amax(-1)
     if surface.layout is not None:
-        entry = surface.layout.batch.to(values.device)[:, None].expand_as(low)
-        per_entry = low.new_empty((surface.batch_size, low.shape[1]))
-        low = per_entry.fill_(torch.inf).scatter_reduce(0, entry, low, "amin")[entry[:, 0]]
-        high = per_entry.clone().fill_(-torch.inf).scatter_reduce(
-            0, entry, high, "amax")[entry[:, 0]]
+        rows = surface.layout.batch.to(values.device)
+        entry, size = rows[:, None].expand_as(low), (surface.batch_size, low.shape[1])
+        low = low.new_full(size, torch.inf).scatter_reduce(0, entry, low, "amin")[rows]
+        high = high.new_full(size, -torch.inf).scatter_reduce(0, entry, high, "amax")[rows]
     shape = (*values.shape[:2],) + (1,) * (values.dim() - 2)
     low, high = low.view(shape), high.view(shape)
     return ((values - low) / (high - low).clamp(min=torch.finfo(values.dtype).tiny)).clamp(0, 1)

@@ -78,7 +78,7 @@ def _tap_count_outside(surface: ts.ImplicitSurface, stencil: CubicStencil, regio
 def test_refined_closest_points_read_only_the_band_and_its_ring(shape):
     surface = SHAPES[shape]()
     region = with_ring(surface.band_mask())
-    # without the refinement these shapes have 24, 96 and 100+ such nodes at these sizes
+    # without the refinement these shapes have 24, 30 and 48 such nodes at these sizes
     assert _tap_count_outside(surface, CubicStencil(surface, region, limited=True), region) == 0
 
 

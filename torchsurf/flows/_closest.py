@@ -1,11 +1,11 @@
 """Closest points of S for the re-extension stencils: the first-order step, refined where it misses.
 
-The first-order closest point of a node is ``x - (phi / W) n`` (:func:`first_order`'s step). It
-lies on S when ``phi`` is a distance and ``n`` its gradient; near a medial axis, a thin feature
-or a sharp edge the central-difference normal is not the distance's gradient, and the point
-lands off S: up to 3 cells on a 33^3 torus and 4-10 cells on the shared meshes at 64^3-128^3,
-so that its 4^3 interpolation taps reach nodes outside the band and its ring, where nothing is
-evolved (0.05-0.6% of the region's nodes). :func:`refine` repeats the step from such a point,
+The first-order closest point of a node is ``x - (phi / W) n``. It lies on S when ``phi`` is a
+distance and ``n`` its gradient; near a medial axis, a thin feature or a sharp edge the central-
+difference normal is not the distance's gradient, and the point lands off S: up to 3 cells on a
+33^3 torus and 4-10 cells on the shared meshes at 64^3-128^3, so that its 4^3 interpolation taps
+reach nodes outside the band and its ring, where nothing is evolved (0.05-0.6% of the region's
+nodes). :func:`refine` repeats the step from such a point,
 ``y <- y - d(y) n(y) / max(|n(y)|, NORMAL_FLOOR)`` with ``d = phi / W`` and ``n`` read
 trilinearly, while ``|d(y)|`` exceeds :data:`REFINE_TOLERANCE` cells, at most
 :data:`REFINE_STEPS` times: on those meshes and tori every point then reads the region only,
