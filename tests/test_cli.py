@@ -232,3 +232,20 @@ def test_bricks_layout_gives_the_dense_run(name, tmp_path):
     assert np.abs(dense - packed).mean() < 2e-3
     for key, value in results["dense"].metrics.items():
         assert results["bricks"].metrics[key] == pytest.approx(value, abs=1e-5)
+
+
+@pytest.mark.parametrize(("size", "smoothing", "floor", "expected"), [
+    (256, 16.0, 64, 128), (128, 16.0, 64, 64), (64, 16.0, 64, 64), (512, 16.0, 64, 256),
+    (512, 64.0, 64, 64), (256, 16.0, 0, 256), (256, 4.0, 64, 256), (128, 16.0, 96, 128),
+])
+def test_smoothing_runs_on_a_coarser_grid_where_it_spans_enough_cells(size, smoothing, floor,
+                                                                      expected):
+    field = config.FieldConfig(smoothing=smoothing, smoothing_grid=floor)
+    assert config.smoothing_size(size, field) == expected
+
+
+def test_bad_smoothing_grid_is_refused_with_its_key(tmp_path, capsys):
+    code = cli.main(["run", "stripes_torus", "--set", "field.smoothing_grid=4",
+                     "--out", str(tmp_path / "out")])
+    assert code == cli.EXIT_USAGE
+    assert "config error: field.smoothing_grid:" in capsys.readouterr().err

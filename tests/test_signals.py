@@ -198,3 +198,49 @@ def test_signals_on_bricks_equal_the_dense_ones_in_the_band():
         assert got.shape == expected.shape
         where = band[:, :got.shape[1]]
         assert torch.allclose(got[where], expected[where], atol=1e-5)
+
+
+def test_smoothing_on_a_coarse_grid_follows_the_shape():
+    """On a capsule's cylinder the larger principal curvature 1/r turns around the axis: the
+    field smoothed on a grid half as fine and read back at the closest points follows it, and
+    equals on bricks what it is on the dense grid."""
+    from torchsurf import bricks
+
+    def capsule(n):
+        grid = ts.Grid.cube(n, bound=2.2)
+        phi = ts.sdf.capsule(grid, (0.0, 0.0, -0.6), (0.0, 0.0, 0.6), radius=0.6)
+        return ts.ImplicitSurface(phi, grid)
+
+    fine, coarse = capsule(48), capsule(24)
+    points = signals.node_points(fine)[0]
+    cylinder = fine.band_mask()[0, 0] & (points[2].abs() < 0.35)
+    around = torch.stack((-points[1], points[0], torch.zeros_like(points[0])))
+    around = around / around.norm(dim=0).clamp(min=1e-9)
+    smoothed = signals.principal_direction(fine, "max", smoothing=4.0, coarse=coarse)
+    _unit_and_tangent(smoothed, fine)
+    agreement = (around * smoothed[0]).sum(0)[cylinder].abs()
+    assert agreement.min() > 0.999
+    minor = signals.principal_direction(fine, "min", smoothing=4.0, coarse=coarse)
+    assert (minor * smoothed).sum(1)[0][fine.band_mask()[0, 0]].abs().max() < 1e-4
+
+    packed, packed_coarse = bricks.from_dense(fine), bricks.from_dense(coarse)
+    where = packed.band_mask()[:, 0]
+    expected = packed.from_dense(smoothed)
+    for surface in (packed_coarse, coarse):
+        got = signals.principal_direction(packed, "max", smoothing=4.0, coarse=surface)
+        assert (got * expected).sum(1)[where].abs().min() > 1 - 1e-4
+
+
+def test_coarse_smoothing_refuses_what_it_cannot_use():
+    fine_grid, coarse_grid = ts.Grid.cube(20, bound=1.6), ts.Grid.cube(12, bound=1.6)
+    fine = ts.ImplicitSurface(ts.sdf.torus(fine_grid), fine_grid)
+    coarse = ts.ImplicitSurface(ts.sdf.torus(coarse_grid), coarse_grid)
+    with pytest.raises(ValueError, match="coarse: only used with smoothing > 0"):
+        signals.principal_direction(fine, "max", coarse=coarse)
+    with pytest.raises(ValueError, match="coarse must be coarser"):
+        signals.principal_direction(coarse, "max", 2.0, coarse=fine)
+    pair = ts.ImplicitSurface(ts.sdf.torus(coarse_grid).expand(2, -1, -1, -1, -1), coarse_grid)
+    with pytest.raises(ValueError, match="batch size 1"):
+        signals.principal_direction(fine, "max", 2.0, coarse=pair)
+    with pytest.raises(TypeError, match="coarse must be"):
+        signals.principal_direction(fine, "max", 2.0, coarse=coarse.phi)

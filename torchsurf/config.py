@@ -178,12 +178,31 @@ class FieldConfig:
     """A unit tangent field: principal directions (``smoothing``: length in cells of the
     sign-free smoothing, 0 for none; ``orient``: an axis whose swirl fixes their signs), the
     projection of an ``axis``, or the ``swirl``, the rotation about ``axis`` through the
-    shape's centre."""
+    shape's centre. ``smoothing_grid``: on finer grids the smoothing runs on a coarser one of
+    at least this many nodes per axis (:func:`smoothing_size`); 0 keeps it on the run's grid."""
 
     kind: FieldKind = FieldKind.principal_max
     axis: Axis = Axis.z
     smoothing: float = 2.0
     orient: Axis | None = None
+    smoothing_grid: int = 64
+
+
+SMOOTHING_MIN_CELLS = 8.0
+"""The fewest cells of the coarse grid a coarsened smoothing may span (:func:`smoothing_size`)."""
+
+
+def smoothing_size(size: int, field: FieldConfig) -> int:
+    """Nodes per axis of the grid ``field``'s smoothing runs on, for a run of ``size`` nodes:
+    ``size / f`` for the largest power of two ``f`` that keeps at least ``smoothing_grid`` nodes
+    and :data:`SMOOTHING_MIN_CELLS` cells of smoothing there (``size`` itself when ``f = 1``).
+    The cost of the smoothing grows with the area in cells times the smoothing in cells
+    squared, so each halving saves about 16x."""
+    factor = 1
+    while (field.smoothing_grid > 0 and size // (2 * factor) >= field.smoothing_grid
+           and field.smoothing / (2 * factor) >= SMOOTHING_MIN_CELLS):
+        factor *= 2
+    return size if factor == 1 else size // factor
 
 
 @dataclass
@@ -431,6 +450,10 @@ def check(experiment: Experiment) -> None:
                           f"{signal.kind.name} needs a tangent field (field: {{kind: ...}})")
     if experiment.field is not None and not experiment.field.smoothing >= 0:
         raise ConfigError("field.smoothing", f"must be >= 0, got {experiment.field.smoothing}")
+    if experiment.field is not None and not (experiment.field.smoothing_grid == 0
+                                             or experiment.field.smoothing_grid >= 8):
+        raise ConfigError("field.smoothing_grid",
+                          f"must be 0 or >= 8, got {experiment.field.smoothing_grid}")
     render = experiment.render
     for key in ("width", "height"):
         if not 16 <= getattr(render, key) <= 4096:

@@ -19,7 +19,7 @@ import tempfile
 import time
 from collections.abc import Callable
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -168,17 +168,34 @@ def extract_mesh(surface: ImplicitSurface) -> trimesh.Trimesh:
     return meshes.extract(phi, surface.grid, mask=stored)
 
 
+def coarse_surface(prepared: Prepared) -> ImplicitSurface | None:
+    """The config's shape on the grid its field's smoothing runs on
+    (:func:`torchsurf.config.smoothing_size`; the layout as the config says for that size), or
+    ``None`` when that is the run's own grid."""
+    experiment = prepared.experiment
+    field = experiment.field
+    if field is None or field.kind in (cfg.FieldKind.axis, cfg.FieldKind.swirl):
+        return None
+    size = cfg.smoothing_size(experiment.grid.size, field)
+    if size == experiment.grid.size:
+        return None
+    grid = replace(experiment.grid, size=size)
+    return build_surface(replace(prepared, experiment=replace(experiment, grid=grid)))
+
+
 def tangent_field(config: cfg.FieldConfig, surface: ImplicitSurface,
-                  centre: tuple[float, float, float]) -> Tensor:
+                  centre: tuple[float, float, float], coarse: ImplicitSurface | None = None
+                  ) -> Tensor:
     """The unit tangent field ``(1, 3, D, H, W)`` a ``field:`` section describes; ``centre``
-    is the shape's, world ``(x, y, z)``."""
+    is the shape's, world ``(x, y, z)``; ``coarse`` the surface its smoothing runs on, if not
+    ``surface`` (:func:`coarse_surface`)."""
     kind = config.kind
     if kind is cfg.FieldKind.axis:
         return signals.axis_field(surface, config.axis.name)
     if kind is cfg.FieldKind.swirl:
         return signals.swirl_field(surface, config.axis.name, centre)
     which = "max" if kind is cfg.FieldKind.principal_max else "min"
-    field = signals.principal_direction(surface, which, config.smoothing)
+    field = signals.principal_direction(surface, which, config.smoothing, coarse)
     if config.orient is not None:
         field = signals.orient(field, signals.swirl_field(surface, config.orient.name, centre))
     return field
@@ -360,8 +377,13 @@ def run(prepared: Prepared, out: str | os.PathLike, progress: bool = False,
             f"({diagonal / spacing:.0f} cells)")
         stage("surface")
         centre = tuple(float(c) for c in 0.5 * (low + high))
-        field = (tangent_field(experiment.field, surface, centre)
-                 if experiment.field is not None else None)
+        field = None
+        if experiment.field is not None:
+            coarse = coarse_surface(prepared)
+            if coarse is not None:
+                log(f"field: smoothed over {experiment.field.smoothing:g} cells on a coarser "
+                    f"{coarse.grid.shape[0]}^3 grid")
+            field = tangent_field(experiment.field, surface, centre, coarse)
         clean, start = build_signal(prepared, surface, (low, high), diagonal, field)
         stage("signal")
         physical = physical_settings(experiment, diagonal, spacing)

@@ -106,8 +106,11 @@ CASES = {
     # steps fixed (dt = 0.5, under the stable h^2 / (6 D_a) = 2/3): the automatic step also
     # reads the largest a and b of the whole batch
     "reaction_diffusion": Case(lambda: ReactionDiffusion(10.0, steps=20), turk, generator=True),
+    # the automatic re-extension period, like the automatic step, follows the batch's bound,
+    # which the directional operator takes from each element's own field: fixed, like the steps
     "reaction_diffusion_directional": Case(
-        lambda: ReactionDiffusion(10.0, steps=20), turk, direction=True, generator=True
+        lambda: ReactionDiffusion(10.0, steps=20, reextend_every=4), turk, direction=True,
+        generator=True,
     ),
     "flow_visualization": Case(lambda: FlowVisualization(0.02, isotropic=0.1), scalar, direction=True),
     "flow_visualization_implicit": Case(

@@ -155,3 +155,22 @@ def test_direction_batch_mismatch_names_direction_and_u0(surface):
     direction = torch.zeros(3, 3, *surface.grid.shape)
     with pytest.raises(ValueError, match="direction has batch size 3 but u0 has 2"):
         ReactionDiffusion(1.0, steps=1)(u0, surface, direction=direction)
+
+
+def test_directional_step_comes_from_each_chemicals_own_operator():
+    """With a direction, ``a`` diffuses along it only: the bound is ``max(D_a rho_T, D_b rho)``
+    (``rho_T`` the directional operator's Gershgorin bound), not ``D_a`` times Laplace-Beltrami's,
+    so the stable Euler step is longer and the run takes fewer steps."""
+    from torchsurf.operators import directional_bound, laplace_beltrami_bound
+
+    grid = ts.Grid.cube(24, bound=1.6)
+    torus = ts.ImplicitSurface(ts.sdf.torus(grid), grid)
+    u0 = ReactionDiffusion.initial(torus)
+    e1, _ = torus.principal_directions()
+    flow = ReactionDiffusion(time=10.0, rate=1.0 / 16.0)
+    d_a, d_b = grid.spacing**2 / 4.0, grid.spacing**2 / 16.0
+    system = flow.system(u0, torus, direction=e1)
+    rho_t, rho = directional_bound(torus, e1), laplace_beltrami_bound(torus)
+    assert system.spectral_radius == pytest.approx(
+        max(d_a * rho_t, d_b * rho) + (4.0 + 4.0 + 1.0) / 16.0, rel=1e-6)
+    assert d_a * rho_t < d_a * laplace_beltrami_bound(torus, "symmetric")

@@ -62,3 +62,35 @@ def test_floored_weight_bounds_the_operator_at_thin_features():
     surface = ts.ImplicitSurface(ts.sdf.trefoil(grid, tube_radius=0.2), grid)
     assert float(surface.grad_norm[surface.band_mask()].min()) < 0.3
     assert laplace_beltrami_bound(surface) * grid.spacing**2 < 1.5 * 10.0
+
+
+def test_directional_bound_is_the_largest_row_sum_of_the_directional_operator():
+    from torchsurf import bricks
+    from torchsurf.operators import directional_bound, directional_diffusion
+    from torchsurf.surface import tangent_unit
+
+    grid = ts.Grid.cube(11, 1.5)
+    phi = ts.sdf.torus(grid, 0.9, 0.4, dtype=torch.float64)
+    surface = ts.ImplicitSurface(phi, grid)
+    mask = surface.band_mask()
+    generator = torch.Generator().manual_seed(3)
+    direction = tangent_unit(torch.randn(1, 3, 11, 11, 11, generator=generator,
+                                         dtype=torch.float64), surface)
+
+    def operator(x):
+        inside = torch.where(mask, x, 0.0)
+        return torch.where(mask, directional_diffusion(inside, surface, direction), 0.0)
+
+    matrix = dense_matrix(operator, mask)
+    expected = float(matrix.abs().sum(dim=1).max())
+    assert directional_bound(surface, direction) == pytest.approx(expected, rel=1e-12)
+    assert float(torch.linalg.eigvals(matrix).abs().max()) <= expected * (1 + 1e-12)
+    # one direction carries about half Laplace-Beltrami's coefficients
+    assert expected < laplace_beltrami_bound(surface, "symmetric")
+
+    big = ts.Grid.cube(24, 2.2)
+    dense = ts.ImplicitSurface(ts.sdf.torus(big, 0.9, 0.4, dtype=torch.float64), big)
+    field = dense.principal_directions()[0]
+    packed = bricks.from_dense(dense)
+    assert directional_bound(packed, packed.from_dense(field)) == pytest.approx(
+        directional_bound(dense, field), rel=1e-9)

@@ -217,6 +217,25 @@ class BrickSurface(ImplicitSurface):
             value = term if value is None else value + term
         return value
 
+    def samplable(self, points: Tensor, entry: int = 0) -> Tensor:
+        """``(V,)`` bool: ``points`` ``(V, 3)`` (world ``(x, y, z)``) that :meth:`sample` can
+        read, inside the entry's box with the 8 nodes of their cell stored."""
+        check_tensor(points, "points")
+        if points.dim() != 2 or points.shape[1] != 3:
+            raise ValueError(f"points must have shape (V, 3), got {tuple(points.shape)}")
+        grid = self.grids[entry]
+        index = grid.world_to_index(points)
+        high = torch.tensor(grid.shape[::-1], dtype=points.dtype, device=points.device) - 1
+        inside = ((index >= -1e-4) & (index <= high + 1e-4)).all(dim=1)
+        low = torch.minimum(index.clamp(min=0), high).floor().clamp(max=high - 1).long()
+        lookup = self.layout.lookup.to(points.device)
+        for corner in range(8):
+            offset = torch.tensor([corner & 1, (corner >> 1) & 1, corner >> 2],
+                                  device=points.device)
+            x, y, z = (low + offset).unbind(1)
+            inside &= lookup[entry, z // BRICK, y // BRICK, x // BRICK] >= 0
+        return inside
+
     def to_dense(self, field: Tensor, fill: float = 0.0) -> list[Tensor]:
         """One dense ``(1, C, D_b, H_b, W_b)`` volume per entry (:meth:`BrickLayout.to_dense`)."""
         return self.layout.to_dense(field, fill)

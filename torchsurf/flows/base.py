@@ -19,8 +19,9 @@ a constructor choice:
 The computational domain is a band of fixed width around S (``surface.band_width``, 3 cells by
 default, or ``band_width=``), measured as ``|phi| / W`` so that it does not depend on the scale of
 ``phi``, and independent of the time. The ring of nodes its stencils read around it is
-refreshed by closest-point re-extension (tricubic, limited) at every evaluation of the rate, and
-the whole band after every step (``reextend_every``); the implicit methods, whose operator must
+refreshed by closest-point re-extension (tricubic, limited) at every evaluation of RKC's and
+torchdiffeq's rate, and the whole band after every step (``reextend_every``); Euler and Heun,
+whose steps are short, refresh both every few steps; the implicit methods, whose operator must
 stay symmetric, hold the ring fixed during a step (a Dirichlet condition) and refresh it between
 steps. The explicit steps and RKC's stages come from a Gershgorin bound
 ``rho`` of the operator assembled on that band (:mod:`torchsurf.operators.spectrum`), never from
@@ -173,6 +174,13 @@ def _learned_time(system: System, time: float | Tensor, nominal: float) -> None:
     system.params = (*system.params, scale)
 
 
+RING_HELD = (*IMPLICIT, "euler", "heun")
+"""Methods that do not re-extend the ring at every evaluation of the rate: the implicit ones
+(their operator must stay symmetric) and Euler and Heun, whose steps are short enough that the
+re-extension every few steps keeps them second order, with smaller errors than refreshing the
+ring at every evaluation (docs/band.md)."""
+
+
 class Flow(nn.Module):
     """Base of the surface flows: integration settings and the call ``flow(u0, surface)``.
 
@@ -201,8 +209,8 @@ class Flow(nn.Module):
             tricubic, limited to the range of the cell around each closest point) every this
             many steps; ``"auto"`` (default) after every RKC or implicit step and after as many
             Euler or Heun steps as the fastest diffusion takes to cross one cell. Between
-            re-extensions, the ring around the band is re-extended at every evaluation of the
-            rate (except by the implicit methods, whose operator must stay symmetric). ``None``:
+            re-extensions, RKC and torchdiffeq methods re-extend the ring around the band at
+            every evaluation of the rate (Euler and Heun need not: docs/band.md). ``None``:
             never (the ring keeps ``u0``: only right for a band as wide as the diffusion
             length).
         band_width: half-width of the evolving band, world units (default
@@ -425,7 +433,7 @@ class Flow(nn.Module):
         schedule.step = plan.step
         schedule.segment = 12.0 * (width / surface.spacing) ** 2 / system.spectral_radius
         schedule.checkpoint = self._checkpointing(u0, surface, system)
-        if self.reextend_every is not None and self.method not in IMPLICIT:
+        if self.reextend_every is not None and self.method not in RING_HELD:
             ring = _stencil(surface, self.band_width, "ring", system.region & ~system.band,
                             system.region)
             rate = system.rate

@@ -15,7 +15,7 @@ from torch import Tensor
 
 from .. import backend
 from .._checks import check_batch, check_nonnegative, check_positive, check_real
-from ..operators import directional_diffusion, laplace_beltrami
+from ..operators import directional_bound, functional, laplace_beltrami
 from ..surface import ImplicitSurface, check_data, tangent_unit
 from ._integrators import System, tensors
 from .base import Flow, data_shape
@@ -32,9 +32,11 @@ class ReactionDiffusion(Flow):
     After every step ``b`` is clamped at 0 (Turk's rule; with torchdiffeq methods only at
     the output times).
 
-    Spectral bound: ``max D * rho + s (max a + max b + 1)``, the diffusion's (``rho`` the
-    Gershgorin bound of the band's Laplace–Beltrami operator, about ``12 / h^2``) and the
-    reaction's (its Jacobian has entries ``s a``, ``s b``, ``s``); Euler steps ``2 /`` that.
+    Spectral bound: ``max(D_a rho_a, D_b rho) + s (max a + max b + 1)``, the diffusion's
+    (``rho`` the Gershgorin bound of the band's Laplace–Beltrami operator, about ``12 / h^2``;
+    ``rho_a`` that of the directional operator along ``direction`` if one is given, or ``rho``)
+    and the reaction's (its Jacobian has entries ``s a``, ``s b``, ``s``); Euler steps ``2 /``
+    that.
 
     Args:
         time: end time (Turk's iterations).
@@ -103,23 +105,28 @@ class ReactionDiffusion(Flow):
             check_batch(direction, "direction", u0.shape[0], "u0")
             direction = tangent_unit(direction, surface)
         s = self.rate
+        pad = None if surface.layout is None else surface.layout.halo
+        # on bricks the field's halo is gathered once per flow, not at every evaluation
+        haloed_direction = None if pad is None or direction is None else pad(direction, 1)
 
         def rate(u: Tensor) -> Tensor:
             a, b = u[:, :1], u[:, 1:]
             if direction is None:
                 diffusion_a = laplace_beltrami(a, surface)
             else:
-                diffusion_a = directional_diffusion(a, surface, direction)
+                diffusion_a = functional.directional_form(
+                    a, surface.normal, surface.weight, surface.spacing, direction,
+                    haloed=surface.haloed(), pad=pad, haloed_direction=haloed_direction)
             return backend.run(_TURK, "auto", u, a, b, diffusion_a,
                                laplace_beltrami(b, surface), beta, band, s, d_a, d_b)
 
         # the largest a and b in the band: values outside it are never read
         largest = torch.where(band, u0.detach(), -torch.inf).amax(dim=(0, 2, 3, 4))
         reaction = float(largest.sum() + 1.0)
-        bound = self.operator_bound(surface)
-        if direction is not None:
-            bound = max(bound, self.operator_bound(surface, "symmetric"))
-        rho = max(d_a, d_b) * bound + s * max(reaction, 1.0)
+        bound_b = self.operator_bound(surface)
+        bound_a = bound_b if direction is None else directional_bound(
+            surface, direction, width=self.band_width)
+        rho = max(d_a * bound_a, d_b * bound_b) + s * max(reaction, 1.0)
         return System(rate, band, rho, project=_nonnegative_b,
                       params=tensors(surface.normal, surface.weight))
 

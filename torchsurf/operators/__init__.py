@@ -15,7 +15,7 @@ from .diffusion import (
 )
 from .diffusivity import DIFFUSIVITIES, charbonnier, perona_malik, total_variation
 from .laplace_beltrami import LaplaceBeltrami, laplace_beltrami
-from .spectrum import gershgorin_bound, laplace_beltrami_bound
+from .spectrum import directional_bound, gershgorin_bound, laplace_beltrami_bound
 
 __all__ = [
     "DIFFUSIVITIES",
@@ -26,6 +26,7 @@ __all__ = [
     "LaplaceBeltrami",
     "anisotropic_diffusion",
     "charbonnier",
+    "directional_bound",
     "directional_diffusion",
     "functional",
     "gershgorin_bound",

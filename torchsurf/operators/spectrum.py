@@ -19,6 +19,7 @@ from torch import Tensor
 
 from .._checks import check_choice
 from ..surface import ImplicitSurface
+from .diffusion import directional_diffusion
 from .laplace_beltrami import SCHEMES, laplace_beltrami
 
 COLOURS = 27
@@ -96,17 +97,48 @@ def laplace_beltrami_bound(
                         lambda: _band_bound(surface, scheme, width))
 
 
+def directional_bound(
+    surface: ImplicitSurface, direction: Tensor, scheme: str = "symmetric",
+    width: float | None = None,
+) -> float:
+    """Gershgorin bound of :func:`directional_diffusion` along ``direction``, restricted to the
+    band.
+
+    Diffusion along one tangent direction has about half the coefficients of
+    Laplace–Beltrami's (``T T^T`` against ``P``): on the teapot's smoothed principal direction
+    at 64^3, 12.2 against 15.4 for the symmetric Laplace–Beltrami scheme (units ``1 / h^2``).
+    Not kept: it depends on ``direction``.
+
+    Args:
+        surface: the implicit surface.
+        direction: ``T``, as in :func:`directional_diffusion`.
+        scheme: as in :func:`directional_diffusion`.
+        width: the band's half-width, world units (default ``surface.band_width``).
+
+    Returns:
+        The bound, ``1 / world length^2``.
+    """
+    width = surface.band_width if width is None else float(width)
+    return _bound_on_band(
+        surface, width, lambda x, path: directional_diffusion(x, surface, direction, scheme, path)
+    )
+
+
 def _band_bound(surface: ImplicitSurface, scheme: str, width: float) -> float:
     check_choice(scheme, "scheme", SCHEMES)
+    return _bound_on_band(surface, width,
+                          lambda x, path: laplace_beltrami(x, surface, scheme, path))
+
+
+def _bound_on_band(surface: ImplicitSurface, width: float,
+                   operator: Callable[[Tensor, str], Tensor]) -> float:
     mask = surface.band_mask(width)
     dtype = surface.phi.dtype
     if surface.layout is None:
-        return gershgorin_bound(
-            lambda x: laplace_beltrami(x, surface, scheme, "slicing"), mask, dtype
-        )
+        return gershgorin_bound(lambda x: operator(x, "slicing"), mask, dtype)
     # bricks: one colour at a time, on the path "auto" picks, keeps the memory to a few
     # fields (nine eager colours held 1 GB at 192^3, three compiled 1.4 GB at 512^3)
     return gershgorin_bound(
-        lambda x: laplace_beltrami(x, surface, scheme, "auto"), mask, dtype, chunk=1,
+        lambda x: operator(x, "auto"), mask, dtype, chunk=1,
         colour=surface.layout.colours().to(mask.device),
     )
