@@ -24,6 +24,7 @@ from ._checks import check_choice, check_nonnegative, check_positive, check_volu
 from .curvature import tangent_basis
 from .flows import HeatFlow
 from .grid import Grid
+from .operators import laplace_beltrami_bound
 from .sampling import sample
 from .surface import ImplicitSurface, tangent_unit
 
@@ -351,13 +352,21 @@ def principal_direction(surface: ImplicitSurface, which: str = "max", smoothing:
     return tangent_unit(torch.cross(surface.normal, major, dim=1), surface)
 
 
+EULER_SMOOTHING_STEPS = 32
+"""Smoothings that explicit Euler does in at most this many steps take it instead of RKC."""
+
+
 def _smoothed_line_tensor(surface: ImplicitSurface, length: float) -> Tensor:
     """``|k1 - k2| e1 e1^T`` (packed, :func:`_line_tensor`) after a heat flow of diffusion
     length ``length`` (world units)."""
     e1, _ = surface.principal_directions()
     k1, k2 = surface.principal_curvatures()
     tensor = (k1 - k2).abs() * _line_tensor(e1)
-    flow = HeatFlow(0.5 * length**2)
+    time = 0.5 * length**2
+    explicit_steps = time * laplace_beltrami_bound(surface) / 2.0
+    # Short smoothings take Euler: RKC's fewest steps re-extend the ring at every stage (over
+    # 2 cells on the knot at 256^3: 4.2 s against 32.5 s, the same field to 1e-3 on average)
+    flow = HeatFlow(time, method="euler" if explicit_steps <= EULER_SMOOTHING_STEPS else "rkc")
     # One channel at a time: the octant operator is far slower on several channels at once
     # than on each alone (measured 60x at 32^3 on the CPU).
     return torch.cat([flow(tensor[:, c:c + 1], surface) for c in range(tensor.shape[1])], dim=1)
