@@ -123,6 +123,8 @@ class Kernel:
             faster eager form.
         dynamic: compile with dynamic shapes (one variant for every size; for kernels whose
             sizes vary from call to call, such as a gather over a surface's band nodes).
+        eager_fused: ``fused``'s numbers arranged for eager evaluation (fewer full-volume
+            temporaries), run instead of ``fused`` whenever the one-pass form runs eagerly.
     """
 
     name: str
@@ -131,6 +133,11 @@ class Kernel:
     halo: Callable[..., tuple] | None = None
     fused_when_eager: bool = False
     dynamic: bool = False
+    eager_fused: Callable[..., Tensor] | None = None
+
+    def fused_eagerly(self, *haloed_args: object) -> Tensor:
+        """The one-pass form evaluated eagerly (:attr:`eager_fused` if given)."""
+        return (self.eager_fused or self.fused)(*haloed_args)
 
 
 def eager_path(volume: Tensor) -> str:
@@ -455,7 +462,7 @@ def run(kernel: Kernel, path: str, volume: Tensor, *args: object) -> Tensor:
         if concrete == "compiled":
             return _run_compiled(kernel, volume, kernel.halo(*args), recording)
         if concrete == "slicing" and kernel.fused_when_eager:
-            return kernel.fused(*kernel.halo(*args))
+            return kernel.fused_eagerly(*kernel.halo(*args))
         return kernel.eager(*args, path=concrete)
 
     return _timed(variant, concrete, args, evaluate)
@@ -495,4 +502,4 @@ def run_haloed(kernel: Kernel, path: str, volume: Tensor, *haloed_args: object) 
     if concrete == "compiled":
         return _timed(variant, concrete, haloed_args,
                       lambda: _run_compiled(kernel, volume, haloed_args, recording))
-    return _timed(variant, concrete, haloed_args, lambda: kernel.fused(*haloed_args))
+    return _timed(variant, concrete, haloed_args, lambda: kernel.fused_eagerly(*haloed_args))

@@ -39,7 +39,7 @@ from ._flux_form import (
     fused_flux_form,
     haloed_projected_gradient,
 )
-from ._octant import fused_octant
+from ._octant import eager_octant, fused_octant
 from .diffusivity import Diffusivity
 
 SCHEMES = ("octant", "symmetric", "conservative")
@@ -80,7 +80,8 @@ def _octant_halo(u, normal, weight, spacing, weighted, haloed):  # noqa: ANN001,
 
 
 _OCTANT = backend.Kernel(
-    "laplace_beltrami_octant", _octant_eager, fused_octant, _octant_halo, fused_when_eager=True
+    "laplace_beltrami_octant", _octant_eager, fused_octant, _octant_halo, fused_when_eager=True,
+    eager_fused=eager_octant,
 )
 
 
