@@ -16,6 +16,7 @@ Both update only the band ``|phi| <= width`` and keep ``u`` elsewhere. Both run 
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import torch
@@ -175,11 +176,13 @@ def _interpolate_gathered(flat: Tensor, corners: Tensor, weights: Tensor, height
 
 
 def _gathered_sum(flat: Tensor, sources: Tensor, weights: Tensor, limited: bool) -> Tensor:
-    """The tricubic sum of ``flat[:, sources]`` (``sources`` ``(N, 64)`` in the order of
-    ``_CELL``) with separable ``weights`` ``(3, N, 4)``, optionally limited."""
+    """The tricubic sum of ``flat[:, sources]`` (``sources`` ``(N, 64)``, int32 or int64, in
+    the order of ``_CELL``) with separable ``weights`` ``(3, N, 4)``, optionally limited."""
     wx, wy, wz = weights.unbind(0)
     taps = (wz[:, :, None, None] * wy[:, None, :, None] * wx[:, None, None, :]).flatten(1)
-    gathered = flat[:, sources]
+    # index_select takes int32 sources as they are kept, and gathers twice as fast as
+    # flat[:, sources] (30k nodes, 4 channels: 37 against 80 ms, one thread)
+    gathered = flat.index_select(1, sources.flatten()).view(flat.shape[0], *sources.shape)
     value = (gathered * taps).sum(dim=-1)
     if limited:
         cell = gathered[..., _CELL]
@@ -259,6 +262,16 @@ class CubicStencil:
                         min(b, surface.phi.shape[0] - 1))
             for b in range(batch)
         ]
+        # each node's 64 flat tap positions, kept (4 bytes a tap) up to KEEP_SOURCES_NODES
+        # nodes: the eager gather then skips forming them at every call
+        height, width = mask.shape[-2:]
+        small = math.prod(mask.shape[-3:]) < 2**31
+        self.sources = [
+            _dense_tap_indices(corners, height, width)(slice(None)).to(
+                torch.int32 if small else torch.long)
+            if len(targets) <= KEEP_SOURCES_NODES else None
+            for targets, corners, _ in self.parts
+        ]
 
     def apply(self, u: Tensor, path: str = "auto") -> Tensor:
         """``u`` ``(B, C, D, H, W)`` with the masked nodes re-extended; a new tensor.
@@ -269,12 +282,17 @@ class CubicStencil:
         batch = max(u.shape[0], len(self.parts))
         results = []
         for b in range(batch):
-            targets, corners, weights = self.parts[min(b, len(self.parts) - 1)]
+            part = min(b, len(self.parts) - 1)
+            targets, corners, weights = self.parts[part]
             volume = u[min(b, u.shape[0] - 1)]
             flat = volume.reshape(volume.shape[0], -1)
             height, width = volume.shape[-2:]
-            value = backend.run(_INTERPOLATION, path, volume[None], flat, corners,
-                                weights.to(u.dtype), height, width, self.limited)
+            if self.sources[part] is not None:
+                value = backend.run(_KEPT_INTERPOLATION, path, volume[None], flat,
+                                    self.sources[part], weights.to(u.dtype), self.limited)
+            else:
+                value = backend.run(_INTERPOLATION, path, volume[None], flat, corners,
+                                    weights.to(u.dtype), height, width, self.limited)
             results.append(flat.index_copy(1, targets, value).reshape(volume.shape))
         return torch.stack(results)
 
@@ -355,7 +373,7 @@ _BRICK_INTERPOLATION = backend.Kernel(
 def _kept_gathered(flat: Tensor, sources: Tensor, weights: Tensor, limited: bool, *,
                    path: str = "slicing") -> Tensor:
     """:func:`_brick_gathered` from the kept ``(M, 64)`` packed sources of each node."""
-    return _gathered_sum(flat, sources.long(), weights, limited)
+    return _gathered_sum(flat, sources, weights, limited)
 
 
 def _kept_terms(flat: Tensor, sources: Tensor, weights: Tensor, limited: bool) -> Tensor:
