@@ -46,6 +46,7 @@ import time
 from pathlib import Path
 
 import torch
+from _report import write_section  # benchmarks/_report.py, beside this script
 
 import torchsurf as ts
 from torchsurf import bricks
@@ -409,27 +410,6 @@ def markdown(args, bandwidth: float, scaled: dict | None, ratioed: dict | None,
     return "\n".join(lines)
 
 
-def write_section(path: Path, body: str, name: str = SECTION,
-                  heading: str = "## Band storage as bricks") -> None:
-    """Write or replace the section ``name`` in ``path`` (temporary file, then rename); a new
-    section goes after this benchmark's main section, or at the end."""
-    begin, end = f"<!-- BEGIN {name} -->", f"<!-- END {name} -->"
-    section = f"{begin}\n{heading}\n\n{body}\n{end}\n"
-    text = path.read_text() if path.exists() else "# torchsurf benchmarks\n"
-    after = f"<!-- END {SECTION} -->"
-    if begin in text and end in text:
-        head, rest = text.split(begin, 1)
-        text = head + section + rest.split(end, 1)[1].lstrip("\n")
-    elif after in text:
-        head, rest = text.split(after, 1)
-        text = head + after + "\n\n" + section + rest.lstrip("\n")
-    else:
-        text = text.rstrip("\n") + "\n\n" + section
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(text)
-    tmp.replace(path)
-
-
 def main(argv: list[str] | None = None) -> str:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--mesh", default=str(MESHES / "bunny_closed.obj"))
@@ -461,8 +441,9 @@ def main(argv: list[str] | None = None) -> str:
                                     args.batch_cells))
         print(body)
         if args.output is not None:
-            write_section(args.output, body, BATCH_SECTION,
-                          "### Bricks: five shapes at their own resolutions in one batch")
+            write_section(args.output, BATCH_SECTION,
+                          "### Bricks: five shapes at their own resolutions in one batch", body,
+                          after=SECTION)
         if args.parts == ["batch"]:
             return body
     bandwidth = max(_lb_bench.memory_bandwidth().values())
@@ -472,7 +453,7 @@ def main(argv: list[str] | None = None) -> str:
     body = markdown(args, bandwidth, scaled, ratioed, solved)
     print(body)
     if args.output is not None:
-        write_section(args.output, body)
+        write_section(args.output, SECTION, "## Band storage as bricks", body)
     return body
 
 

@@ -55,6 +55,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import torch
+from _report import write_section  # benchmarks/_report.py, beside this script
 
 import torchsurf as ts
 from torchsurf import backend
@@ -305,21 +306,6 @@ def machine(args: argparse.Namespace) -> str:
             f"thread(s), allocator `GLIBC_TUNABLES={allocator}`")
 
 
-def write_section(path: Path, body: str) -> None:
-    """Write or replace this benchmark's section in ``path`` (temporary file, then rename)."""
-    begin, end = f"<!-- BEGIN {SECTION} -->", f"<!-- END {SECTION} -->"
-    section = f"{begin}\n## Compile cost: first calls, steady calls, the path auto picks\n\n{body}\n{end}\n"
-    text = path.read_text() if path.exists() else "# torchsurf benchmarks\n"
-    if begin in text and end in text:
-        head, rest = text.split(begin, 1)
-        text = head + section + rest.split(end, 1)[1].lstrip("\n")
-    else:
-        text = text.rstrip("\n") + "\n\n" + section
-    temporary = path.with_suffix(".tmp")
-    temporary.write_text(text)
-    temporary.replace(path)
-
-
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--size", type=int, default=64, help="n: grid of n^3 nodes")
@@ -401,7 +387,8 @@ def main(argv: list[str] | None = None) -> None:
     print()
     print(body)
     if args.output is not None:
-        write_section(args.output, body)
+        write_section(args.output, SECTION,
+                      "## Compile cost: first calls, steady calls, the path auto picks", body)
 
 
 if __name__ == "__main__":

@@ -44,6 +44,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from _report import write_section  # benchmarks/_report.py, beside this script
 
 import torchsurf as ts
 
@@ -506,26 +507,6 @@ def section_key() -> str:
     return "team GLIBC_TUNABLES" if tunables == TEAM_TUNABLES else f"GLIBC_TUNABLES={tunables}"
 
 
-def write_section(path: Path, body: str) -> None:
-    """Write or replace this benchmark's section (one per allocator setting) in ``path``."""
-    key = section_key()
-    begin = f"<!-- BEGIN {SECTION} [{key}] -->"
-    end = f"<!-- END {SECTION} [{key}] -->"
-    section = f"{begin}\n## Laplace–Beltrami forward and backward ({key})\n\n{body}\n{end}\n"
-    if path.exists():
-        text = path.read_text()
-    else:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        text = ("# torchsurf benchmarks\n\nFigures measured by the scripts in `benchmarks/`; "
-                "each section says how to reproduce it.\n\n")
-    pattern = re.compile(re.escape(begin) + r".*?" + re.escape(end) + r"\n?", re.DOTALL)
-    if pattern.search(text):
-        text = pattern.sub(lambda _: section, text)
-    else:
-        text = text.rstrip("\n") + "\n\n" + section
-    path.write_text(text)
-
-
 def main(argv: list[str] | None = None) -> list[SizeResult]:
     argv = sys.argv[1:] if argv is None else argv
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -585,7 +566,9 @@ def run(args: argparse.Namespace, argv: list[str]) -> list[SizeResult]:
     body = markdown(results, bandwidth, argv, run_notes)
     print(body)
     if args.output is not None:
-        write_section(args.output, body)
+        key = section_key()  # one section per allocator setting
+        write_section(args.output, f"{SECTION} [{key}]",
+                      f"## Laplace–Beltrami forward and backward ({key})", body)
         log(f"wrote section to {args.output}")
     return results
 

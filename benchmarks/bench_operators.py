@@ -36,6 +36,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import torch
+from _report import write_section  # benchmarks/_report.py, beside this script
 
 import torchsurf as ts
 from torchsurf.flows import ColorDenoise, HarmonicMapFlow
@@ -199,22 +200,6 @@ def markdown(results: dict[int, list[Row]], bandwidth: dict[str, float], path: s
     return "\n".join(lines)
 
 
-def write_section(path: Path, body: str) -> None:
-    """Write or replace this benchmark's section in ``path``."""
-    begin, end = f"<!-- BEGIN {SECTION} -->", f"<!-- END {SECTION} -->"
-    section = f"{begin}\n## Every operator against Laplace–Beltrami\n\n{body}\n{end}\n"
-    text = path.read_text() if path.exists() else "# torchsurf benchmarks\n"
-    if begin in text and end in text:
-        head, rest = text.split(begin, 1)
-        tail = rest.split(end, 1)[1].lstrip("\n")
-        text = head + section + tail
-    else:
-        text = text.rstrip("\n") + "\n\n" + section
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(text)
-    tmp.replace(path)
-
-
 def main(argv: list[str] | None = None) -> dict[int, list[Row]]:
     argv = sys.argv[1:] if argv is None else argv
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -231,7 +216,7 @@ def main(argv: list[str] | None = None) -> dict[int, list[Row]]:
     body = markdown(results, bandwidth, args.path, argv)
     print(body)
     if args.output is not None:
-        write_section(args.output, body)
+        write_section(args.output, SECTION, "## Every operator against Laplace–Beltrami", body)
     return results
 
 

@@ -12,16 +12,23 @@ import torch
 
 import torchsurf as ts
 
-BENCHMARK = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_laplace_beltrami.py"
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 
 
-@pytest.fixture(scope="module")
-def bench():
-    spec = importlib.util.spec_from_file_location("bench_laplace_beltrami", BENCHMARK)
+def load_benchmark(name: str):  # noqa: ANN201
+    """The script ``benchmarks/<name>.py`` as a module (its folder on the path, as when run)."""
+    if str(BENCHMARKS) not in sys.path:
+        sys.path.insert(0, str(BENCHMARKS))
+    spec = importlib.util.spec_from_file_location(name, BENCHMARKS / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = module  # dataclasses resolve annotations through sys.modules
     spec.loader.exec_module(module)
     return module
+
+
+@pytest.fixture(scope="module")
+def bench():
+    return load_benchmark("bench_laplace_beltrami")
 
 
 def test_numpy_reference_is_the_conservative_scheme(bench):
@@ -54,14 +61,10 @@ def test_numpy_reference_float32_buffers_are_reused(bench):
     np.testing.assert_array_equal(first, second)
 
 
-BRICKS = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_bricks.py"
 
 
 def test_bricks_benchmark_time_to_solution_and_report():
-    spec = importlib.util.spec_from_file_location("bench_bricks", BRICKS)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
+    module = load_benchmark("bench_bricks")
     rows, (best, peer) = module.solution([41], target=0.05)
     assert rows[0]["error"] < 0.05 and best is rows[0]
     assert peer.error <= 0.05 or not peer.reached
@@ -70,15 +73,11 @@ def test_bricks_benchmark_time_to_solution_and_report():
     assert "| 41 |" in text and "Mesh peer" in text
 
 
-LEARNED = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_learned_diffusion.py"
 
 
 @pytest.fixture(scope="module")
 def learned_bench():
-    spec = importlib.util.spec_from_file_location("bench_learned_diffusion", LEARNED)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
+    module = load_benchmark("bench_learned_diffusion")
     return module
 
 
@@ -109,10 +108,7 @@ def test_bricks_benchmark_batch_runs_and_reports(tmp_path, monkeypatch):
 
     monkeypatch.setattr(ts.backend, "COMPILE_MIN_VOXELS", ts.backend.COMPILE_MIN_VOXELS)
     monkeypatch.setattr(ts.backend, "COMPILE_PAYBACK_SECONDS", ts.backend.COMPILE_PAYBACK_SECONDS)
-    spec = importlib.util.spec_from_file_location("bench_bricks", BRICKS)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
+    module = load_benchmark("bench_bricks")
     meshes = [tmp_path / "sphere.obj", tmp_path / "box.obj"]
     trimesh.creation.icosphere(2, radius=5.0).export(meshes[0])
     trimesh.creation.box((0.1, 0.2, 0.3)).export(meshes[1])
@@ -126,14 +122,10 @@ def test_bricks_benchmark_batch_runs_and_reports(tmp_path, monkeypatch):
     assert "| sphere alone, 24^3 |" in text and "sum of the 2 alone" in text
 
 
-COMPILE = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_compile.py"
 
 
 def test_compile_bench_measures_every_item_and_tabulates():
-    spec = importlib.util.spec_from_file_location("bench_compile", COMPILE)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
+    module = load_benchmark("bench_compile")
     for item in (*module.OPERATORS, *module.LAYERS):
         call, data, _ = module.build(item, "slicing", 9, 2, torch.float32)
         with torch.no_grad():
@@ -142,3 +134,17 @@ def test_compile_bench_measures_every_item_and_tabulates():
     assert cold.first_forward_s > 0 and cold.steady_train_ms > 0 and not cold.error
     text = module.table([(cold, None)])
     assert text.splitlines()[-1].startswith("| lb_octant | slicing |")
+
+
+def test_sections_are_replaced_in_place_or_added_after_their_neighbour(tmp_path):
+    report = load_benchmark("_report")
+    path = tmp_path / "sub" / "benchmarks.md"
+    report.write_section(path, "a", "## A", "first")
+    report.write_section(path, "c", "## C", "third")
+    report.write_section(path, "b", "## B", "second", after="a")
+    report.write_section(path, "a", "## A", "first again")
+    text = path.read_text()
+    assert text.startswith(report.NEW_FILE)
+    assert text.index("first again") < text.index("second") < text.index("third")
+    assert "first\n" not in text and text.count("<!-- BEGIN a -->") == 1
+    assert not path.with_suffix(".tmp").exists()

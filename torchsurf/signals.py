@@ -397,7 +397,7 @@ def _at_closest_points(field: Tensor, coarse: ImplicitSurface, surface: Implicit
     for b, (rows, _) in enumerate(entries):
         flat = points[rows].permute(0, 2, 3, 4, 1).reshape(-1, 3)
         if coarse.layout is None:
-            readable = _inside_box(flat, coarse.grid)
+            readable = coarse.grid.contains(flat)
             values = sample(field[b:b + 1], flat[readable], coarse.grid)[0]
         else:
             readable = coarse.samplable(flat, b)
@@ -406,13 +406,6 @@ def _at_closest_points(field: Tensor, coarse: ImplicitSurface, surface: Implicit
         spread[:, readable] = values
         out[rows] = spread.view(channels, len(rows), *points.shape[2:]).transpose(0, 1)
     return out
-
-
-def _inside_box(points: Tensor, grid: Grid) -> Tensor:
-    """``(V,)`` bool: ``points`` ``(V, 3)`` inside ``grid``'s box."""
-    index = grid.world_to_index(points)
-    high = index.new_tensor(grid.shape[::-1]) - 1
-    return ((index >= 0) & (index <= high)).all(dim=1)
 
 
 def perturb_field(field: Tensor, surface: ImplicitSurface, std: float, seed: int) -> Tensor:

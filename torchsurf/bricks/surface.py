@@ -183,35 +183,19 @@ class BrickSurface(ImplicitSurface):
                 stored.
         """
         self.check_field(field, "field")
-        check_tensor(points, "points")
-        if points.dim() != 2 or points.shape[1] != 3:
-            raise ValueError(f"points must have shape (V, 3), got {tuple(points.shape)}")
-        if not 0 <= entry < self.batch_size:
-            raise ValueError(f"entry must be in [0, {self.batch_size}), got {entry}")
-        grid = self.grids[entry]
-        index = grid.world_to_index(points)
-        high = torch.tensor(grid.shape[::-1], dtype=points.dtype, device=points.device) - 1
-        if bool(((index < -1e-4) | (index > high + 1e-4)).any()):
-            raise ValueError(f"points: some lie outside the box of entry {entry} ({grid})")
-        index = torch.minimum(index.clamp(min=0), high)
-        low = index.detach().floor().clamp(max=high - 1).long()
-        fraction = index - low
-        lookup = self.layout.lookup.to(points.device)
+        self._check_points(points, entry)
+        inside, fraction, corners = self._cell_corners(points, entry)
+        if not bool(inside.all()):
+            raise ValueError(f"points: some lie outside the box of entry {entry} "
+                             f"({self.grids[entry]})")
         flat = field.transpose(0, 1).reshape(field.shape[1], -1)
         value = None
-        for corner in range(8):
-            offset = torch.tensor([corner & 1, (corner >> 1) & 1, corner >> 2],
-                                  device=points.device)
-            node = low + offset
-            x, y, z = node.unbind(1)
-            brick = lookup[entry, z // BRICK, y // BRICK, x // BRICK]
+        for offset, brick, source in corners:
             if bool((brick < 0).any()):
                 raise ValueError(
                     "points: some lie next to a brick that is not stored (farther from S than "
                     "the band and its reach)"
                 )
-            source = brick * BRICK**3 + (z % BRICK) * BRICK * BRICK + (y % BRICK) * BRICK \
-                + x % BRICK
             weight = torch.where(offset.bool(), fraction, 1 - fraction).prod(dim=1)
             term = flat[:, source] * weight
             value = term if value is None else value + term
@@ -220,21 +204,41 @@ class BrickSurface(ImplicitSurface):
     def samplable(self, points: Tensor, entry: int = 0) -> Tensor:
         """``(V,)`` bool: ``points`` ``(V, 3)`` (world ``(x, y, z)``) that :meth:`sample` can
         read, inside the entry's box with the 8 nodes of their cell stored."""
+        self._check_points(points, entry)
+        inside, _, corners = self._cell_corners(points, entry)
+        for _, brick, _ in corners:
+            inside = inside & (brick >= 0)
+        return inside
+
+    def _check_points(self, points: Tensor, entry: int) -> None:
         check_tensor(points, "points")
         if points.dim() != 2 or points.shape[1] != 3:
             raise ValueError(f"points must have shape (V, 3), got {tuple(points.shape)}")
+        if not 0 <= entry < self.batch_size:
+            raise ValueError(f"entry must be in [0, {self.batch_size}), got {entry}")
+
+    def _cell_corners(self, points: Tensor, entry: int
+                      ) -> tuple[Tensor, Tensor, list[tuple[Tensor, Tensor, Tensor]]]:
+        """For ``points`` ``(V, 3)`` of ``entry``: inside its box ``(V,)``, the fraction
+        ``(V, 3)`` within the cell (points outside clamped to the box), and per corner of the
+        cell its offset ``(3,)``, brick row ``(V,)`` (-1: not stored) and packed node ``(V,)``."""
         grid = self.grids[entry]
+        inside = grid.contains(points.detach(), tolerance=1e-4)
         index = grid.world_to_index(points)
         high = torch.tensor(grid.shape[::-1], dtype=points.dtype, device=points.device) - 1
-        inside = ((index >= -1e-4) & (index <= high + 1e-4)).all(dim=1)
-        low = torch.minimum(index.clamp(min=0), high).floor().clamp(max=high - 1).long()
+        index = torch.minimum(index.clamp(min=0), high)
+        low = index.detach().floor().clamp(max=high - 1).long()
         lookup = self.layout.lookup.to(points.device)
+        corners = []
         for corner in range(8):
             offset = torch.tensor([corner & 1, (corner >> 1) & 1, corner >> 2],
                                   device=points.device)
             x, y, z = (low + offset).unbind(1)
-            inside &= lookup[entry, z // BRICK, y // BRICK, x // BRICK] >= 0
-        return inside
+            brick = lookup[entry, z // BRICK, y // BRICK, x // BRICK]
+            source = brick * BRICK**3 + (z % BRICK) * BRICK * BRICK + (y % BRICK) * BRICK \
+                + x % BRICK
+            corners.append((offset, brick, source))
+        return inside, index - low, corners
 
     def to_dense(self, field: Tensor, fill: float = 0.0) -> list[Tensor]:
         """One dense ``(1, C, D_b, H_b, W_b)`` volume per entry (:meth:`BrickLayout.to_dense`)."""
