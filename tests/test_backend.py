@@ -92,6 +92,56 @@ def test_auto_goes_back_to_eager_for_good_when_compiled_is_measured_slower(monke
         assert backend.resolve("auto", volume, kernel) == "slicing"
 
 
+class _Costly(torch.autograd.Function):
+    """``x + 1``, advancing a fake clock by ``forward`` and ``backward`` seconds."""
+
+    @staticmethod
+    def forward(ctx, x, clock, forward, backward):
+        clock["now"] += forward
+        ctx.clock, ctx.backward_seconds = clock, backward
+        return x + 1
+
+    @staticmethod
+    def backward(ctx, grad):
+        ctx.clock["now"] += ctx.backward_seconds
+        return grad, None, None, None
+
+
+def test_auto_weighs_forward_and_backward_when_autograd_records_the_call(monkeypatch):
+    """A compiled kernel whose forward is faster but whose backward is slower than eager's,
+    summed, is measured slower: ``"auto"`` goes back to eager for good."""
+    clock = {"now": 0.0}
+    calls: list[str] = []
+
+    def eager(x, *, path):
+        calls.append(path)
+        return _Costly.apply(x, clock, 1.0, 1.0)
+
+    def fused(x):
+        calls.append("fused")
+        return _Costly.apply(x, clock, 0.5, 5.0)
+
+    kernel = backend.Kernel("test_backward_slower", eager, fused, lambda x: (x,))
+    monkeypatch.setattr(backend, "compiled", lambda f, dynamic=False: f)
+    monkeypatch.setattr(backend, "COMPILE_PAYBACK_SECONDS", 4.0)
+    monkeypatch.setattr(backend, "COMPILE_MIN_VOXELS", 1)
+    monkeypatch.setattr(backend.time, "perf_counter", lambda: clock["now"])
+    volume = torch.zeros(1, 1, 4, 4, 4, requires_grad=True)
+    for _ in range(2 + 1 + backend.COMPARED_CALLS):
+        backend.run(kernel, "auto", volume, volume).sum().backward()
+    # two eager calls of 1 + 1 s pay for compiling; the compiled ones take 0.5 + 5 s
+    assert calls == ["slicing"] * 2 + ["fused"] * (1 + backend.COMPARED_CALLS)
+    assert backend.resolve("auto", volume, kernel, recording=True) == "slicing"
+    torch.testing.assert_close(volume.grad, torch.full_like(volume, 6.0))
+    # forward alone the compiled kernel is faster: calls autograd does not record (a variant of
+    # their own, paid by four eager seconds) stay compiled
+    detached, calls[:] = volume.detach(), []
+    for _ in range(4 + 1 + backend.COMPARED_CALLS):
+        backend.run(kernel, "auto", detached, detached)
+    assert calls == ["slicing"] * 4 + ["fused"] * (1 + backend.COMPARED_CALLS)
+    assert backend.resolve("auto", detached, kernel) == "compiled"
+
+
 def test_explicit_paths_are_taken_as_given_and_unknown_ones_refused():
     volume = torch.zeros(1, 1, 4, 4, 4)
     for path in ("slicing", "conv3d", "compiled"):

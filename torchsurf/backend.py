@@ -17,7 +17,9 @@ device (by shifted slices or by conv3d), and optionally a one-pass form over hal
   with less eager work than that never waits for a compiler, a flow run or a training loop is
   compiled after seconds of eager work, and no run spends more than about twice what the
   better choice in hindsight would have. It then times the compiled kernel too, and goes back
-  to eager for good if its fastest call is slower than the fastest eager one. While autograd
+  to eager for good if its fastest call is slower than the fastest eager one; a call autograd
+  records is timed forward and backward together, so a compiled backward slower than eager's
+  keeps the kernel eager. While autograd
   records the call, volumes below :data:`COMPILE_MIN_VOXELS` stay eager (gradcheck and double
   backward on small grids). Volumes of :data:`COMPILE_AT_ONCE_VOXELS` voxels are compiled on
   their first call, and off the CPU (where nothing is timed) those of
@@ -235,8 +237,9 @@ def _shapes(args: tuple) -> tuple:
 class _Timings:
     """Wall times of one compiled variant (:func:`_variant`) under ``"auto"`` in this process.
 
-    ``eager_seconds`` sums every eager call of the variant (what pays for compiling it); the
-    fastest eager and compiled calls are kept per exact shape, and the compiled kernel is
+    ``eager_seconds`` sums every eager call of the variant, forward and backward (what pays for
+    compiling it); the fastest eager and compiled calls are kept per exact shape (a call autograd
+    records counts its forward and its backward together), and the compiled kernel is
     :attr:`slower` once, at some shape, its fastest of more than :data:`COMPARED_CALLS` calls
     (the first one, which compiles, left out) is slower than the fastest eager call there.
     """
@@ -251,8 +254,18 @@ class _Timings:
 
     def record(self, path: str, shapes: tuple, seconds: float) -> None:
         """Add one call of ``seconds`` on ``path`` with tensors of ``shapes``."""
+        self.charge(path, seconds)
+        self.compare(path, shapes, seconds)
+
+    def charge(self, path: str, seconds: float) -> None:
+        """Add ``seconds`` of work on ``path`` to what pays for compiling (eager work only)."""
         if path != "compiled":
             self.eager_seconds += seconds
+
+    def compare(self, path: str, shapes: tuple, seconds: float) -> None:
+        """Weigh one whole call of ``seconds`` on ``path`` (forward, and backward when
+        autograd recorded it) against the other path's fastest at ``shapes``."""
+        if path != "compiled":
             self.eager_fastest[shapes] = min(self.eager_fastest.get(shapes, math.inf), seconds)
             return
         self.compiled = True
@@ -458,28 +471,112 @@ def run(kernel: Kernel, path: str, volume: Tensor, *args: object) -> Tensor:
     if concrete == "compiled" and kernel.fused is None:
         raise ValueError(f"path='compiled': {kernel.name} has no compiled form")
 
-    def evaluate() -> Tensor:
+    def evaluate(args: tuple) -> Tensor:
         if concrete == "compiled":
             return _run_compiled(kernel, volume, kernel.halo(*args), recording)
         if concrete == "slicing" and kernel.fused_when_eager:
             return kernel.fused_eagerly(*kernel.halo(*args))
         return kernel.eager(*args, path=concrete)
 
-    return _timed(variant, concrete, args, evaluate)
+    return _timed(variant, concrete, volume, args, evaluate)
 
 
-def _timed(variant: tuple | None, concrete: str, args: tuple,
-           evaluate: Callable[[], Tensor]) -> Tensor:
-    """``evaluate()``, its wall time recorded under ``variant`` (``"auto"`` on the CPU)."""
+def _timed(variant: tuple | None, concrete: str, volume: Tensor, args: tuple,
+           evaluate: Callable[[tuple], Tensor]) -> Tensor:
+    """``evaluate(args)``, its wall time recorded under ``variant`` (``"auto"`` on the CPU).
+
+    While ``"auto"`` has not decided a variant that autograd records (and could compile), the
+    call's backward is timed too, and the call is weighed by forward and backward together: a
+    compiled kernel whose backward is slower than eager's loses even when its forward wins.
+    """
     if variant is None:
-        return evaluate()
+        return evaluate(args)
+    timings = _TIMINGS.setdefault(variant, _Timings())
+    shapes = _shapes(args)
+    recording = variant[2]
+    watched = (recording and timings.pending and COMPILE != "never"
+               and volume.numel() >= COMPILE_MIN_VOXELS)
+    if not watched:
+        start = time.perf_counter()
+        result = evaluate(args)
+        timings.record(concrete, shapes, time.perf_counter() - start)
+        return result
+    clock = _BackwardClock()
+    args = clock.watch_inputs(args)
     start = time.perf_counter()
-    result = evaluate()
-    seconds = time.perf_counter() - start
-    if variant not in _TIMINGS:
-        _TIMINGS[variant] = _Timings()
-    _TIMINGS[variant].record(concrete, _shapes(args), seconds)
-    return result
+    result = evaluate(args)
+    forward = time.perf_counter() - start
+    timings.charge(concrete, forward)
+
+    def backward_done(backward: float) -> None:
+        timings.charge(concrete, backward)
+        timings.compare(concrete, shapes, forward + backward)
+
+    return clock.watch_output(result, backward_done)
+
+
+class _BackwardClock:
+    """Times the backward of what runs between :meth:`watch_inputs` and :meth:`watch_output`.
+
+    Identity nodes on the inputs and on the output: autograd runs a graph's nodes latest-made
+    first, so on the CPU the output's node starts the call's backward and the inputs' node,
+    reached once every gradient of the call's own nodes is formed, ends it.
+    """
+
+    def __init__(self) -> None:
+        self.started: float | None = None
+        self.done: Callable[[float], None] | None = None
+
+    def watch_inputs(self, args: tuple) -> tuple:
+        positions = [i for i, arg in enumerate(args)
+                     if isinstance(arg, Tensor) and arg.requires_grad]
+        watched = _ClockEnd.apply(self, *(args[i] for i in positions))
+        if len(positions) == 1:
+            watched = (watched,)
+        args = list(args)
+        for i, tensor in zip(positions, watched, strict=True):
+            args[i] = tensor
+        return tuple(args)
+
+    def watch_output(self, result: Tensor, done: Callable[[float], None]) -> Tensor:
+        if not isinstance(result, Tensor) or not result.requires_grad:
+            return result
+        self.done = done
+        return _ClockStart.apply(self, result)
+
+    def start(self) -> None:
+        self.started = time.perf_counter()
+
+    def stop(self) -> None:
+        if self.started is not None and self.done is not None:
+            self.done(time.perf_counter() - self.started)
+        self.started = None
+
+
+class _ClockStart(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, clock: _BackwardClock, result: Tensor) -> Tensor:
+        ctx.clock = clock
+        return result.view_as(result)
+
+    @staticmethod
+    def backward(ctx, grad: Tensor) -> tuple:
+        ctx.clock.start()
+        return None, grad
+
+
+class _ClockEnd(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, clock: _BackwardClock, *inputs: Tensor) -> Tensor | tuple[Tensor, ...]:
+        ctx.clock = clock
+        ctx.set_materialize_grads(False)
+        views = tuple(tensor.view_as(tensor) for tensor in inputs)
+        return views[0] if len(views) == 1 else views
+
+    @staticmethod
+    def backward(ctx, *grads: Tensor | None) -> tuple:
+        ctx.clock.stop()
+        return (None, *grads)
 
 
 def run_haloed(kernel: Kernel, path: str, volume: Tensor, *haloed_args: object) -> Tensor:
@@ -500,6 +597,7 @@ def run_haloed(kernel: Kernel, path: str, volume: Tensor, *haloed_args: object) 
     recording = _recording(haloed_args)
     concrete, variant = _resolve(path, volume, kernel, recording, haloed_args)
     if concrete == "compiled":
-        return _timed(variant, concrete, haloed_args,
-                      lambda: _run_compiled(kernel, volume, haloed_args, recording))
-    return _timed(variant, concrete, haloed_args, lambda: kernel.fused_eagerly(*haloed_args))
+        return _timed(variant, concrete, volume, haloed_args,
+                      lambda args: _run_compiled(kernel, volume, args, recording))
+    return _timed(variant, concrete, volume, haloed_args,
+                  lambda args: kernel.fused_eagerly(*args))
