@@ -11,17 +11,17 @@ symmetric; the flow refreshes them between steps (:class:`Schedule`'s ``after_st
 
 from __future__ import annotations
 
+import functools
 import math
 import warnings
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 
 import torch
-import torch.utils.checkpoint
 from torch import Tensor
 
-from .. import backend
 from ..bricks.layout import BrickLayout
+from ._recompute import independent, recomputed
 from ._rkc import MAX_STAGES, largest_step_times_rho, rkc_step, stages_for
 from ._solve import SolverOptions, solve_symmetric
 
@@ -78,7 +78,10 @@ class System:
             on the band, ``1 / time``.
         project: applied after every step (e.g. ``u / |u|``), or ``None``.
         linear: the symmetric linear form, for the implicit integrators; ``None`` if nonlinear.
-        params: tensors ``rate`` reads that may need gradients (for ``odeint_adjoint``).
+        params: tensors ``rate`` reads that may need gradients (for ``odeint_adjoint`` and
+            the recomputed segments of a checkpointed run, which check that no other is read);
+            those computed from others among them are dropped where they are differentiated
+            (:func:`~torchsurf.flows._recompute.independent`).
         layout: the :class:`~torchsurf.bricks.BrickLayout` of packed fields, or ``None``.
         growth: a bound of the fastest growth the rate allows (a positive eigenvalue of its
             Jacobian, ``1 / time``; e.g. a reaction term), 0 for none: RKC steps keep
@@ -132,8 +135,9 @@ class Schedule:
             call ``after_step`` between them; ``None``: one piece.
         checkpoint: the explicit methods (RKC, Euler, Heun) keep for backward only ``u`` at
             the start of each group of about ``sqrt(steps)`` steps and recompute the group's
-            stages in backward (``torch.utils.checkpoint``): memory ``O(sqrt(steps))``
-            volumes instead of every stage's, for about 1.3-2x the time.
+            stages in backward (:func:`~torchsurf.flows._recompute.recomputed`: the forward
+            runs without a graph): memory ``O(sqrt(steps))`` volumes instead of every
+            stage's, for about 1.3-2x the time.
     """
 
     times: Sequence[float | Tensor]
@@ -311,15 +315,17 @@ def _explicit(
     def integrate(system: System, u0: Tensor, schedule: Schedule) -> list[Tensor]:
         u, out, done = u0, [], 0
         if schedule.checkpoint:
-            system = replace(system, rate=_checkpointed_rate(system.rate))
+            reads = independent((*_tensor_times(schedule), *system.params))
+            system = replace(system, rate=_checkpointed_rate(system.rate, reads))
         for _, dt, count in _intervals(schedule):
             group = max(1, math.isqrt(count)) if schedule.checkpoint else count
             for first in range(done, done + count, group):
                 length = min(group, done + count - first)
                 if schedule.checkpoint:
-                    u = torch.utils.checkpoint.checkpoint(
-                        advance, u, dt, first, length, schedule, system, use_reentrant=False,
-                        context_fn=backend.recorded_decisions,
+                    u = recomputed(
+                        functools.partial(_advance_from, advance, dt, first, length, schedule,
+                                          system),
+                        u, reads,
                     )
                 else:
                     u = advance(u, dt, first, length, schedule, system)
@@ -330,17 +336,23 @@ def _explicit(
     return integrate
 
 
-def _checkpointed_rate(rate: Rate) -> Rate:
+def _tensor_times(schedule: Schedule) -> tuple[Tensor, ...]:
+    return tuple(t for t in schedule.times if isinstance(t, Tensor))
+
+
+def _advance_from(advance: Callable[..., Tensor], dt: Tensor | float, first: int, count: int,
+                  schedule: Schedule, system: System, u: Tensor) -> Tensor:
+    return advance(u, dt, first, count, schedule, system)
+
+
+def _checkpointed_rate(rate: Rate, reads: Sequence[Tensor]) -> Rate:
     """``rate`` keeping for backward only its input: a stage's operator (a nonlinear flux form
     keeps a dozen volumes under autograd) is recomputed when its gradient is needed, so that
-    the recomputed group of steps holds about two volumes a stage."""
+    the recomputed group of steps holds about two volumes a stage. ``reads``: the tensors
+    needing gradients that ``rate`` reads (:attr:`System.params`)."""
 
     def checkpointed(u: Tensor) -> Tensor:
-        if not torch.is_grad_enabled():
-            return rate(u)
-        return torch.utils.checkpoint.checkpoint(
-            rate, u, use_reentrant=False, context_fn=backend.recorded_decisions,
-        )
+        return recomputed(rate, u, reads)
 
     return checkpointed
 
@@ -435,7 +447,7 @@ def _torchdiffeq(method: str) -> Callable[[System, Tensor, Schedule], list[Tenso
             if schedule.adjoint:
                 return torchdiffeq.odeint_adjoint(
                     _RateModule(func), u, times, method=method, options=options or None,
-                    adjoint_params=tuple(p for p in system.params if p.requires_grad), **kwargs,
+                    adjoint_params=independent(system.params), **kwargs,
                 )
             return torchdiffeq.odeint(func, u, times, method=method,
                                       options=options or None, **kwargs)

@@ -415,6 +415,8 @@ class Flow(nn.Module):
         system = self.system(u0, surface, **inputs)
         system.layout = surface.layout
         _learned_time(system, self.time, end)
+        # re-extension's stencils read phi itself, not only the geometry computed from it
+        system.params = (*system.params, surface.phi)
         if self.method in IMPLICIT and system.linear is None:
             raise ValueError(
                 f"method={self.method!r} needs a linear symmetric flow; {type(self).__name__} "
