@@ -55,6 +55,19 @@ def _world(grid: Grid, index: np.ndarray) -> np.ndarray:
     return np.asarray(grid.origin) + grid.spacing * index
 
 
+def _world_nodes(grid: Grid, nodes: np.ndarray) -> np.ndarray:
+    """:func:`_world` of integer ``nodes`` ``(N, 3)``, the same numbers, with no temporaries."""
+    points = nodes.astype(np.float64)
+    points *= grid.spacing
+    points += np.asarray(grid.origin)
+    return points
+
+
+_BOUND_MARGIN = 1e-6
+"""Cells whose distance bound clears the reach by less than this many cells are queried: the
+bound's rounding then cannot turn a far cell into a near one."""
+
+
 def refine_band(vertices: np.ndarray, faces: np.ndarray, grid: Grid, band: float) -> Band:
     """Find every node of ``grid`` within ``band`` of the mesh, with exact distances.
 
@@ -64,6 +77,17 @@ def refine_band(vertices: np.ndarray, faces: np.ndarray, grid: Grid, band: float
         grid: the grid.
         band: half-width of the band, world units.
     """
+    return _refine(vertices, faces, grid, band)[0]
+
+
+def _refine(vertices: np.ndarray, faces: np.ndarray, grid: Grid, band: float
+            ) -> tuple[Band, np.ndarray]:
+    """:func:`refine_band`, and the world points ``(N, 3)`` of its nodes.
+
+    A cell whose parent's centre lies within ``d`` of the mesh lies within ``d`` plus the
+    distance between the two centres: when that bound is inside the cell's reach, the cell is
+    split without asking the tree (most cells that straddle the surface).
+    """
     tree = igl.AABB()
     tree.init(vertices, faces)
     extent = np.array(grid.shape[::-1], dtype=np.int64)
@@ -72,18 +96,26 @@ def refine_band(vertices: np.ndarray, faces: np.ndarray, grid: Grid, band: float
         size *= 2
     axes = [np.arange(0, n, size, dtype=np.int64) for n in extent]
     corners = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    bound = np.full(len(corners), np.inf)
+    half_diagonal = 0.5 * math.sqrt(3.0) * grid.spacing
     far_corners = []
     while size > 1:
-        centres = _world(grid, corners + 0.5 * (size - 1))
-        distance = np.sqrt(tree.squared_distance(vertices, faces, centres)[0])
-        reach = band + grid.spacing * 0.5 * (size - 1) * math.sqrt(3.0)
-        far = distance > reach
+        reach = band + half_diagonal * (size - 1)
+        asked = bound > reach - _BOUND_MARGIN * grid.spacing
+        centres = _world(grid, corners[asked] + 0.5 * (size - 1))
+        bound[asked] = np.sqrt(tree.squared_distance(vertices, faces, centres)[0])
+        far = bound > reach
         far_corners.append((size, corners[far]))
         size //= 2
-        corners = (corners[~far][:, None, :] + size * _CHILDREN).reshape(-1, 3)
-        corners = corners[(corners < extent).all(axis=1)]
-    squared, face, closest = tree.squared_distance(vertices, faces, _world(grid, corners))
-    return Band(corners, np.sqrt(squared), face, closest, far_corners)
+        near = ~far
+        corners = (corners[near][:, None, :] + size * _CHILDREN).reshape(-1, 3)
+        bound = np.repeat(bound[near] + half_diagonal * size, len(_CHILDREN))
+        if (corners[:: len(_CHILDREN)] + size >= extent).any():
+            inside = (corners < extent).all(axis=1)
+            corners, bound = corners[inside], bound[inside]
+    points = _world_nodes(grid, corners)
+    squared, face, closest = tree.squared_distance(vertices, faces, points)
+    return Band(corners, np.sqrt(squared, out=squared), face, closest, far_corners), points
 
 
 def to_volume(grid: Grid, nodes: np.ndarray, values: np.ndarray, fill: np.ndarray | float
@@ -269,8 +301,7 @@ def signed_near(vertices: np.ndarray, faces: np.ndarray, grid: Grid, band: float
         sign = "pseudonormal" if _is_closed(faces, len(vertices)) else "winding"
     if sign == "pseudonormal" and _signed_volume(vertices, faces) < 0:
         faces = faces[:, ::-1].copy()
-    found = refine_band(vertices, faces, grid, band)
-    points = _world(grid, found.nodes)
+    found, points = _refine(vertices, faces, grid, band)
     centres = [_world(grid, corners + 0.5 * (size - 1)) for size, corners in found.far_corners]
     counts = [len(c) for c in centres]
     if sign == "winding":
