@@ -11,6 +11,7 @@ import torch
 import trimesh
 
 import torchsurf as ts
+from torchsurf import _mesh_sdf
 from torchsurf.mesh import fit_grid
 
 MESH_DIR = Path(
@@ -92,6 +93,41 @@ def test_distances_are_exact_in_float64(
     assert near.sum() > 1000
     np.testing.assert_allclose(phi[near], expected[near], rtol=0, atol=1e-12)
     np.testing.assert_array_equal(phi[~near], np.sign(expected[~near]) * band)
+
+
+def test_refined_band_holds_every_node_within_the_band_with_its_exact_distance() -> None:
+    # cells whose parent's distance bounds them near are split without a query, and children
+    # beyond the box of an odd-sized grid are dropped: every node within the band must still be
+    # found once, with libigl's distance, and a cell split exactly when its centre lies within
+    # the band and its half-diagonal
+    igl = pytest.importorskip("igl")
+    mesh = trimesh.creation.torus(major_radius=1.0, minor_radius=0.35)
+    vertices, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces, dtype=np.int64)
+    grid = ts.Grid(shape=(27, 71, 73), spacing=0.04, origin=(-1.47, -1.41, -0.53))
+    band = 3.5 * grid.spacing
+    found = _mesh_sdf.refine_band(vertices, faces, grid, band)
+
+    def distance(index: np.ndarray) -> np.ndarray:
+        points = np.asarray(grid.origin) + grid.spacing * index
+        return np.sqrt(igl.point_mesh_squared_distance(points, vertices, faces)[0])
+
+    extent = np.array(grid.shape[::-1])
+    nodes = np.stack(np.meshgrid(*(np.arange(n) for n in extent), indexing="ij"), axis=-1)
+    everywhere = distance(nodes.reshape(-1, 3))
+    rows = (found.nodes[:, 0] * extent[1] + found.nodes[:, 1]) * extent[2] + found.nodes[:, 2]
+    assert (found.nodes < extent).all()
+    assert len(np.unique(rows)) == len(rows)
+    assert np.isin(np.flatnonzero(everywhere <= band), rows).all()
+    np.testing.assert_allclose(found.distance, everywhere[rows], rtol=0, atol=1e-12)
+    half_diagonal = 0.5 * np.sqrt(3.0) * grid.spacing
+    assert (distance(found.nodes // 2 * 2 + 0.5) <= band + half_diagonal).all()
+    assert [size for size, _ in found.far_corners] == [8, 4, 2]
+    for level, (size, corners) in enumerate(found.far_corners):
+        reach = band + half_diagonal * (size - 1)
+        assert (distance(corners + 0.5 * (size - 1)) > reach).all()
+        if level > 0:  # the parent was split
+            parent = corners // (2 * size) * (2 * size) + size - 0.5
+            assert (distance(parent) <= reach + half_diagonal * size).all()
 
 
 def test_sign_methods_agree_on_a_closed_mesh() -> None:

@@ -55,6 +55,19 @@ def _world(grid: Grid, index: np.ndarray) -> np.ndarray:
     return np.asarray(grid.origin) + grid.spacing * index
 
 
+def _world_nodes(grid: Grid, nodes: np.ndarray) -> np.ndarray:
+    """:func:`_world` of integer ``nodes`` ``(N, 3)``, the same numbers, with no temporaries."""
+    points = nodes.astype(np.float64)
+    points *= grid.spacing
+    points += np.asarray(grid.origin)
+    return points
+
+
+_BOUND_MARGIN = 1e-6
+"""Cells whose distance bound clears the reach by less than this many cells are queried: the
+bound's rounding then cannot turn a far cell into a near one."""
+
+
 def refine_band(vertices: np.ndarray, faces: np.ndarray, grid: Grid, band: float) -> Band:
     """Find every node of ``grid`` within ``band`` of the mesh, with exact distances.
 
@@ -64,6 +77,17 @@ def refine_band(vertices: np.ndarray, faces: np.ndarray, grid: Grid, band: float
         grid: the grid.
         band: half-width of the band, world units.
     """
+    return _refine(vertices, faces, grid, band)[0]
+
+
+def _refine(vertices: np.ndarray, faces: np.ndarray, grid: Grid, band: float
+            ) -> tuple[Band, np.ndarray]:
+    """:func:`refine_band`, and the world points ``(N, 3)`` of its nodes.
+
+    A cell whose parent's centre lies within ``d`` of the mesh lies within ``d`` plus the
+    distance between the two centres: when that bound is inside the cell's reach, the cell is
+    split without asking the tree (most cells that straddle the surface).
+    """
     tree = igl.AABB()
     tree.init(vertices, faces)
     extent = np.array(grid.shape[::-1], dtype=np.int64)
@@ -72,18 +96,26 @@ def refine_band(vertices: np.ndarray, faces: np.ndarray, grid: Grid, band: float
         size *= 2
     axes = [np.arange(0, n, size, dtype=np.int64) for n in extent]
     corners = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    bound = np.full(len(corners), np.inf)
+    half_diagonal = 0.5 * math.sqrt(3.0) * grid.spacing
     far_corners = []
     while size > 1:
-        centres = _world(grid, corners + 0.5 * (size - 1))
-        distance = np.sqrt(tree.squared_distance(vertices, faces, centres)[0])
-        reach = band + grid.spacing * 0.5 * (size - 1) * math.sqrt(3.0)
-        far = distance > reach
+        reach = band + half_diagonal * (size - 1)
+        asked = bound > reach - _BOUND_MARGIN * grid.spacing
+        centres = _world(grid, corners[asked] + 0.5 * (size - 1))
+        bound[asked] = np.sqrt(tree.squared_distance(vertices, faces, centres)[0])
+        far = bound > reach
         far_corners.append((size, corners[far]))
         size //= 2
-        corners = (corners[~far][:, None, :] + size * _CHILDREN).reshape(-1, 3)
-        corners = corners[(corners < extent).all(axis=1)]
-    squared, face, closest = tree.squared_distance(vertices, faces, _world(grid, corners))
-    return Band(corners, np.sqrt(squared), face, closest, far_corners)
+        near = ~far
+        corners = (corners[near][:, None, :] + size * _CHILDREN).reshape(-1, 3)
+        bound = np.repeat(bound[near] + half_diagonal * size, len(_CHILDREN))
+        if (corners[:: len(_CHILDREN)] + size >= extent).any():
+            inside = (corners < extent).all(axis=1)
+            corners, bound = corners[inside], bound[inside]
+    points = _world_nodes(grid, corners)
+    squared, face, closest = tree.squared_distance(vertices, faces, points)
+    return Band(corners, np.sqrt(squared, out=squared), face, closest, far_corners), points
 
 
 def to_volume(grid: Grid, nodes: np.ndarray, values: np.ndarray, fill: np.ndarray | float
@@ -131,6 +163,60 @@ def _is_closed(faces: np.ndarray, vertex_count: int) -> bool:
     return bool((np.diff(forward) > 0).all() and np.array_equal(forward, backward))
 
 
+@dataclass
+class _Triangles:
+    """What barycentric coordinates need of each triangle, computed once per mesh.
+
+    Attributes:
+        frame: ``(F, 9)`` first corner, first edge and second edge (from the first corner).
+        d11, d12, d22: ``(F,)`` dot products of the edges.
+        denominator: ``(F,)`` ``d11 d22 - d12^2`` (1 for degenerate triangles).
+        degenerate: ``(F,)`` zero-area triangles.
+    """
+
+    frame: np.ndarray
+    d11: np.ndarray
+    d12: np.ndarray
+    d22: np.ndarray
+    denominator: np.ndarray
+    degenerate: np.ndarray
+
+
+def _triangles(vertices: np.ndarray, faces: np.ndarray) -> _Triangles:
+    corner = vertices[faces]
+    edge1 = corner[:, 1] - corner[:, 0]
+    edge2 = corner[:, 2] - corner[:, 0]
+    d11 = np.einsum("ij,ij->i", edge1, edge1)
+    d12 = np.einsum("ij,ij->i", edge1, edge2)
+    d22 = np.einsum("ij,ij->i", edge2, edge2)
+    denominator = d11 * d22 - d12**2
+    degenerate = denominator <= 1e-12 * d11 * d22
+    return _Triangles(np.concatenate((corner[:, 0], edge1, edge2), axis=1), d11, d12, d22,
+                      np.where(degenerate, 1.0, denominator), degenerate)
+
+
+def _barycentric(triangles: _Triangles, face: np.ndarray, points: np.ndarray
+                 ) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], np.ndarray]:
+    """The three barycentric coordinates ``(N,)`` of ``points`` in triangles ``face``,
+    clipped to ``[0, 1]`` and summing to 1, and the degenerate mask ``(N,)`` (coordinates
+    meaningless there). Gathers by ``np.take``: several times faster than fancy indexing."""
+    frame = np.take(triangles.frame, face, axis=0)
+    offset = points - frame[:, 0:3]
+    d1p = np.einsum("ij,ij->i", frame[:, 3:6], offset)
+    d2p = np.einsum("ij,ij->i", frame[:, 6:9], offset)
+    d11, d12, d22, denominator = (np.take(value, face) for value in (
+        triangles.d11, triangles.d12, triangles.d22, triangles.denominator))
+    second = (d22 * d1p - d12 * d2p) / denominator
+    third = (d11 * d2p - d12 * d1p) / denominator
+    first = 1.0 - second - third
+    for weight in (first, second, third):
+        np.clip(weight, 0.0, 1.0, out=weight)
+    total = first + second + third
+    for weight in (first, second, third):
+        weight /= total
+    return (first, second, third), np.take(triangles.degenerate, face)
+
+
 def barycentric(vertices: np.ndarray, faces: np.ndarray, face: np.ndarray, points: np.ndarray
                 ) -> tuple[np.ndarray, np.ndarray]:
     """Barycentric coordinates ``(N, 3)`` of ``points`` ``(N, 3)`` in triangles ``face`` ``(N,)``.
@@ -139,24 +225,11 @@ def barycentric(vertices: np.ndarray, faces: np.ndarray, face: np.ndarray, point
     Returns the coordinates and a boolean ``(N,)`` that marks degenerate (zero-area)
     triangles, where the coordinates put all weight on the nearest corner.
     """
-    corner = vertices[faces[face]]
-    edge1 = corner[:, 1] - corner[:, 0]
-    edge2 = corner[:, 2] - corner[:, 0]
-    offset = points - corner[:, 0]
-    d11 = np.einsum("ij,ij->i", edge1, edge1)
-    d12 = np.einsum("ij,ij->i", edge1, edge2)
-    d22 = np.einsum("ij,ij->i", edge2, edge2)
-    d1p = np.einsum("ij,ij->i", edge1, offset)
-    d2p = np.einsum("ij,ij->i", edge2, offset)
-    denominator = d11 * d22 - d12**2
-    degenerate = denominator <= 1e-12 * d11 * d22
-    safe = np.where(degenerate, 1.0, denominator)
-    second = (d22 * d1p - d12 * d2p) / safe
-    third = (d11 * d2p - d12 * d1p) / safe
-    weights = np.clip(np.stack((1.0 - second - third, second, third), axis=1), 0.0, 1.0)
-    weights /= weights.sum(axis=1, keepdims=True)
+    columns, degenerate = _barycentric(_triangles(vertices, faces), face, points)
+    weights = np.stack(columns, axis=1)
     if degenerate.any():
-        nearest = np.linalg.norm(corner[degenerate] - points[degenerate, None], axis=2).argmin(1)
+        corner = vertices[faces[face[degenerate]]]
+        nearest = np.linalg.norm(corner - points[degenerate, None], axis=2).argmin(1)
         weights[degenerate] = np.eye(3)[nearest]
     return weights, degenerate
 
@@ -195,8 +268,8 @@ def _pseudonormals(vertices: np.ndarray, faces: np.ndarray
     return face_normal, edge_normal, vertex_normal
 
 
-PSEUDONORMAL_CHUNK = 2**20
-"""Points signed per pass: the temporaries cost about 300 bytes a point."""
+PSEUDONORMAL_CHUNK = 2**18
+"""Points signed per pass: the temporaries cost about 250 bytes a point."""
 
 
 def _pseudonormal_inside(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray,
@@ -206,28 +279,31 @@ def _pseudonormal_inside(vertices: np.ndarray, faces: np.ndarray, points: np.nda
     points it cannot decide (closest triangle degenerate); in chunks of
     :data:`PSEUDONORMAL_CHUNK` points."""
     normals = _pseudonormals(vertices, faces)
+    triangles = _triangles(vertices, faces)
     inside = np.empty(len(points), dtype=bool)
     degenerate = np.empty(len(points), dtype=bool)
     for start in range(0, len(points), PSEUDONORMAL_CHUNK):
         part = slice(start, start + PSEUDONORMAL_CHUNK)
         inside[part], degenerate[part] = _pseudonormal_chunk(
-            vertices, faces, normals, points[part], face[part], closest[part])
+            faces, triangles, normals, points[part], face[part], closest[part])
     return inside, degenerate
 
 
-def _pseudonormal_chunk(vertices: np.ndarray, faces: np.ndarray, normals: tuple,
+def _pseudonormal_chunk(faces: np.ndarray, triangles: _Triangles, normals: tuple,
                         points: np.ndarray, face: np.ndarray, closest: np.ndarray
                         ) -> tuple[np.ndarray, np.ndarray]:
     face_normal, edge_normal, vertex_normal = normals
-    weights, degenerate = barycentric(vertices, faces, face, closest)
-    on_zero = weights < _BARYCENTRIC_TOLERANCE
-    zeros = on_zero.sum(axis=1)
-    normal = face_normal[face]
-    on_edge = zeros == 1
-    normal[on_edge] = edge_normal[face[on_edge], on_zero[on_edge].argmax(axis=1)]
-    on_vertex = zeros == 2
-    corner = (~on_zero[on_vertex]).argmax(axis=1)
-    normal[on_vertex] = vertex_normal[faces[face[on_vertex], corner]]
+    weights, degenerate = _barycentric(triangles, face, points=closest)
+    first, second, third = (weight < _BARYCENTRIC_TOLERANCE for weight in weights)
+    zeros = first.view(np.uint8) + second.view(np.uint8) + third.view(np.uint8)
+    which = second.view(np.uint8) + 2 * third.view(np.uint8)  # the zero, or 3 - the non-zero
+    normal = np.take(face_normal, face, axis=0)
+    edge = np.flatnonzero(zeros == 1)
+    normal[edge] = np.take(edge_normal.reshape(-1, 3),
+                           3 * np.take(face, edge) + np.take(which, edge), axis=0)
+    vertex = np.flatnonzero(zeros == 2)
+    corner = 3 * np.take(face, vertex) + 3 - np.take(which, vertex)
+    normal[vertex] = np.take(vertex_normal, np.take(faces.reshape(-1), corner), axis=0)
     inside = np.einsum("ij,ij->i", points - closest, normal) < 0
     return inside, degenerate
 
@@ -269,8 +345,7 @@ def signed_near(vertices: np.ndarray, faces: np.ndarray, grid: Grid, band: float
         sign = "pseudonormal" if _is_closed(faces, len(vertices)) else "winding"
     if sign == "pseudonormal" and _signed_volume(vertices, faces) < 0:
         faces = faces[:, ::-1].copy()
-    found = refine_band(vertices, faces, grid, band)
-    points = _world(grid, found.nodes)
+    found, points = _refine(vertices, faces, grid, band)
     centres = [_world(grid, corners + 0.5 * (size - 1)) for size, corners in found.far_corners]
     counts = [len(c) for c in centres]
     if sign == "winding":

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -128,20 +129,21 @@ def signed_bricks(meshes: list[MeshLike], grids: list[Grid], band_width: float, 
     on ``device``, returning each mesh's arrays and signed band too (its nodes' closest points
     on the mesh)."""
     dtype = check_dtype(dtype)
+    numpy_dtype = torch.empty(0, dtype=dtype).numpy().dtype
     coords, batch, values, bands = [], [], [], []
     for b, (mesh, grid) in enumerate(zip(meshes, grids, strict=True)):
         vertices, faces = triangle_arrays(as_trimesh(mesh, f"meshes[{b}]"))
         signed = _mesh_sdf.signed_near(vertices, faces, grid, reach, sign)
         in_band = np.abs(signed.near) <= band_width
         check_clear_of_faces(torch.from_numpy(signed.band.nodes[in_band][:, ::-1].copy()), grid, b)
-        entry_coords, entry_values = _brick_values(signed, grid, reach)
+        entry_coords, entry_values = _brick_values(signed, grid, reach, numpy_dtype)
         coords.append(entry_coords)
         batch.append(np.full(len(entry_coords), b))
         values.append(entry_values)
         bands.append((vertices, faces, signed))
     layout = BrickLayout(torch.from_numpy(np.concatenate(coords)),
                          torch.from_numpy(np.concatenate(batch)), grids)
-    phi = torch.from_numpy(np.concatenate(values)).to(dtype=dtype, device=device)[:, None]
+    phi = torch.from_numpy(np.concatenate(values)).to(device=device)[:, None]
     return BrickSurface(phi, layout, band_width), bands
 
 
@@ -187,37 +189,50 @@ def _is_array_pair(value: object) -> bool:
             and all(hasattr(v, "shape") for v in value))
 
 
-def _brick_values(signed: _mesh_sdf.SignedBand, grid: Grid, reach: float
+def _brick_values(signed: _mesh_sdf.SignedBand, grid: Grid, reach: float, dtype: np.dtype
                   ) -> tuple[np.ndarray, np.ndarray]:
-    """The bricks holding a node within ``reach`` and their values ``(M, 8, 8, 8)``.
+    """The bricks holding a node within ``reach`` and their values ``(M, 8, 8, 8)`` in
+    ``dtype``, bricks in ``(bz, by, bx)`` order.
 
     Nodes of those bricks outside ``reach`` lie in far bricks of the refinement finer than a
     brick; each takes ``+-reach`` by its side.
     """
     nodes = signed.band.nodes
-    extent = np.array([-(-n // BRICK) for n in grid.shape[::-1]])  # x, y, z
-    brick_of = nodes // BRICK
-    key = (brick_of[:, 2] * extent[1] + brick_of[:, 1]) * extent[0] + brick_of[:, 0]
-    unique, row = np.unique(key, return_inverse=True)
-    values = np.full((len(unique), BRICK, BRICK, BRICK), reach)
+    extent = [-(-n // BRICK) for n in grid.shape[::-1]]  # x, y, z
+    key = _brick_key(nodes, extent)
+    stored = np.zeros(math.prod(extent), dtype=bool)
+    stored[key] = True
+    unique = np.flatnonzero(stored)
+    row_of = np.zeros(len(stored), dtype=np.int64)
+    row_of[unique] = np.arange(len(unique))
+    values = np.full((len(unique), BRICK, BRICK, BRICK), reach, dtype=dtype)
     for (size, corners), inside in zip(signed.band.far_corners, signed.far_inside, strict=True):
         if size >= BRICK or len(corners) == 0:
             continue
-        corner_key = ((corners[:, 2] // BRICK) * extent[1] + corners[:, 1] // BRICK) * extent[0] \
-            + corners[:, 0] // BRICK
-        slot = np.searchsorted(unique, corner_key)
-        kept = (slot < len(unique)) & (unique[np.minimum(slot, len(unique) - 1)] == corner_key)
-        local = corners % BRICK
-        side = np.where(inside, -reach, reach)
-        span = np.arange(size)
-        for dz in span:
-            for dy in span:
-                for dx in span:
-                    values[slot[kept], local[kept, 2] + dz, local[kept, 1] + dy,
-                           local[kept, 0] + dx] = side[kept]
-    local = nodes % BRICK
-    values[row, local[:, 2], local[:, 1], local[:, 0]] = signed.near
+        corner_key = _brick_key(corners, extent)
+        kept = stored[corner_key]
+        block = (corners[kept] % BRICK) // size
+        blocks = BRICK // size
+        view = values.reshape(-1, blocks, size, blocks, size, blocks, size)
+        view[row_of[corner_key[kept]], block[:, 2], :, block[:, 1], :, block[:, 0], :] = \
+            np.where(inside[kept], -reach, reach)[:, None, None, None]
+    flat = row_of[key]
+    for axis in (2, 1, 0):
+        flat *= BRICK
+        flat += nodes[:, axis] % BRICK
+    values.reshape(-1)[flat] = signed.near
     bz = unique // (extent[0] * extent[1])
     by = (unique // extent[0]) % extent[1]
     bx = unique % extent[0]
     return np.stack([bz, by, bx], axis=1), values
+
+
+def _brick_key(nodes: np.ndarray, extent: list[int]) -> np.ndarray:
+    """``(N,)`` index of the brick of each node ``(i, j, k)`` among ``extent`` ``(x, y, z)``
+    bricks, ``z`` slowest."""
+    key = nodes[:, 2] // BRICK
+    key *= extent[1]
+    key += nodes[:, 1] // BRICK
+    key *= extent[0]
+    key += nodes[:, 0] // BRICK
+    return key

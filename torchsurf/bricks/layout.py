@@ -209,10 +209,12 @@ class BrickLayout:
                  + offset[None, None, :] + 1).flatten()
         inside = (local[:, None, None] * BRICK * BRICK + local[None, :, None] * BRICK
                   + local[None, None, :]).flatten()
-        source = self.neighbours[:, which] * BRICK**3 + inside
-        source = torch.where(self.present[:, which], source, len(self) * BRICK**3).flatten()
         dtype = torch.int32 if len(self) * BRICK**3 < 2**31 else torch.long
-        cached = source.to(dtype=dtype, device=device)
+        source = self.neighbours.to(dtype)[:, which]
+        source *= BRICK**3
+        source += inside.to(dtype)
+        source.masked_fill_(~self.present[:, which], len(self) * BRICK**3)
+        cached = source.flatten().to(device)
         self._halo_indices[key] = cached
         return cached
 

@@ -111,8 +111,7 @@ class BrickSurface(ImplicitSurface):
         batch = self.layout.batch.to(phi.device)
         scales = []
         for b in range(self.layout.batch_size):
-            entry = batch == b
-            values = grad_norm[entry][crossing[entry]]
+            values = grad_norm[crossing & (batch == b).view(-1, 1, 1, 1, 1)]
             if values.numel() == 0:
                 raise ValueError(
                     f"phi has no zero crossing in batch entry {b}: every entry must be negative "
