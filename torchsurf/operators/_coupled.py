@@ -161,8 +161,10 @@ def eager_coupled_rate(
     padded_u: Tensor, haloed_normal: Tensor, haloed_weight: Tensor, grad_norm: Tensor,
     spacing: float, diffusivity: Diffusivity, contrast: float | Tensor, eps: float, scheme: str,
     power: float | None = None, mask: Tensor | None = None, box_faces: bool = True,
+    coupled: bool = True,
 ) -> Tensor:
-    """:func:`fused_coupled_rate`'s numbers, arranged for eager evaluation (same arguments).
+    """:func:`fused_coupled_rate`'s numbers, arranged for eager evaluation (same arguments;
+    ``coupled=False`` measures ``|P grad u|`` per channel, the uncoupled edge-stopping form).
 
     Differences of ``u`` are formed once per face and shared by every composition and the
     energy; ``a_s`` and ``a_s m_s`` once per node; each face's flux once. In-place updates
@@ -187,7 +189,7 @@ def eager_coupled_rate(
             tangential = torch.addcmul(g, n, along, value=-1.0)
             squared = (tangential * tangential if squared is None
                        else squared.addcmul_(tangential, tangential))
-        total = squared.sum(dim=1, keepdim=True) / (spacing * spacing)
+        total = (squared.sum(dim=1, keepdim=True) if coupled else squared) / (spacing * spacing)
         scale = haloed_weight * diffusivity(torch.sqrt(total + eps * eps), contrast)
         scales.append(scale)
         fluxes.append(scale * along)

@@ -229,7 +229,15 @@ def _edge_halo(u, normal, weight, spacing, diffusivity, contrast, eps, coupled, 
             diffusivity, contrast, eps, coupled, scheme)
 
 
-_EDGE_STOPPING = backend.Kernel("edge_stopping", _edge_eager, _edge_fused, _edge_halo)
+def _edge_fused_eagerly(padded_u, haloed_normal, haloed_weight, weight, spacing, diffusivity,  # noqa: ANN001, ANN202
+                        contrast, eps, coupled, scheme, box_faces=True):
+    return eager_coupled_rate(padded_u, haloed_normal, haloed_weight, weight, spacing,
+                              diffusivity, contrast, eps, scheme, box_faces=box_faces,
+                              coupled=coupled)
+
+
+_EDGE_STOPPING = backend.Kernel("edge_stopping", _edge_eager, _edge_fused, _edge_halo,
+                                fused_when_eager=True, eager_fused=_edge_fused_eagerly)
 
 
 def _edge_fused_open(padded_u, haloed_normal, haloed_weight, weight, spacing, diffusivity,  # noqa: ANN001, ANN202
@@ -238,7 +246,14 @@ def _edge_fused_open(padded_u, haloed_normal, haloed_weight, weight, spacing, di
                        contrast, eps, coupled, scheme, box_faces=False)
 
 
-_EDGE_STOPPING_OPEN = backend.Kernel("edge_stopping_open", _edge_eager, _edge_fused_open)
+def _edge_open_eagerly(padded_u, haloed_normal, haloed_weight, weight, spacing, diffusivity,  # noqa: ANN001, ANN202
+                       contrast, eps, coupled, scheme):
+    return _edge_fused_eagerly(padded_u, haloed_normal, haloed_weight, weight, spacing,
+                               diffusivity, contrast, eps, coupled, scheme, box_faces=False)
+
+
+_EDGE_STOPPING_OPEN = backend.Kernel("edge_stopping_open", _edge_eager, _edge_fused_open,
+                                     eager_fused=_edge_open_eagerly)
 
 
 def edge_stopping_form(
