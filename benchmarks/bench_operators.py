@@ -3,10 +3,13 @@
 For each size ``n`` (unit sphere on ``Grid.cube(n, 1.5)``, float32) and each operator the
 script times the forward with data not requiring grad (median of ``--repeats`` calls after
 warm-up), the forward that records the graph plus its backward, and the first call (compile
-time on the compiled path). Each figure is divided by the channels the operator acts on and by
-the octant Laplace–Beltrami's time measured in the same run, so the ratios hold on a loaded or
-slower machine. The traffic limit of one Laplace–Beltrami application (24 bytes per voxel at the
-measured copy bandwidth) is printed beside them.
+time on the compiled path). The first no-grad call and the first recorded one run inside
+:func:`torchsurf.backend.warm_up`, so that ``"auto"`` runs what it settles on in a long run
+(compiled) rather than the eager calls before its payback. Each figure is divided by the
+channels the operator acts on and by the octant Laplace–Beltrami's time measured in the same
+run, so the ratios hold on a loaded or slower machine. The traffic limit of one
+Laplace–Beltrami application (24 bytes per voxel at the measured copy bandwidth) is printed
+beside them.
 
 Operators: the Laplace–Beltrami schemes; edge-stopping diffusion (total variation,
 Perona–Malik; per channel and coupled over 3 channels, as the harmonic-map and colour flows use
@@ -98,7 +101,7 @@ def cases(surface: ts.ImplicitSurface, n: int, path: str) -> list[Case]:
     direction = unit(3)
     harmonic_u0 = unit(3)
     harmonic = _flow_rate(HarmonicMapFlow(1e-3, path=path), surface, harmonic_u0)
-    colour = ColorDenoise(1e-3)
+    colour = ColorDenoise(1e-3, path=path)
     colour_rates = colour.chroma.system(harmonic_u0, surface).rate, \
         colour.brightness.system(scalar(1), surface).rate
 
@@ -131,15 +134,19 @@ def cases(surface: ts.ImplicitSurface, n: int, path: str) -> list[Case]:
 
 def time_case(case: Case, repeats: int) -> Row:
     u = case.data(case.channels)
+    # the first calls inside warm_up: "auto" compiles at once what a flow run or a training
+    # loop compiles after seconds of eager work, so that the rows are its steady state
     with torch.no_grad():
         start = time.perf_counter()
-        case.call(u)
+        with ts.backend.warm_up():
+            case.call(u)
         first = time.perf_counter() - start
         case.call(u)
         forward = statistics.median(_lb_bench.sample_times(lambda: case.call(u), repeats))
     leaf = u.clone().requires_grad_(True)
-    out = case.call(leaf)
-    out.backward(torch.ones_like(out))
+    with ts.backend.warm_up():
+        out = case.call(leaf)
+        out.backward(torch.ones_like(out))
 
     def forward_backward() -> None:
         value = case.call(leaf)

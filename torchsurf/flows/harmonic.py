@@ -88,12 +88,10 @@ class HarmonicMapFlow(Flow):
         pad = None if surface.layout is None else surface.layout.halo
 
         def rate(u: Tensor) -> Tensor:
-            diffusion = functional.edge_stopping_form(
-                u, normal, weight, spacing, power_diffusivity, exponent, eps, True, self.scheme,
-                path, haloed=haloed, pad=pad,
+            return functional.harmonic_map_rate(
+                u, normal, weight, spacing, power_diffusivity, exponent, eps, self.p / 2.0,
+                self.scheme, path, band, haloed, pad,
             )
-            energy = functional.tangential_gradient_energy(u, normal, spacing, path, pad) + eps**2
-            return torch.where(band, diffusion + u * energy ** (self.p / 2.0), zero)
 
         def project(u: Tensor) -> Tensor:
             # in the band and its ring only, as Flow promises (a brick surface's normals equal

@@ -31,13 +31,13 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from .. import backend, stencils
+from ._coupled import eager_coupled_rate, fused_coupled_rate
 from ._flux_form import (
     SIDES,
     Components,
     FluxMap,
     flux_form,
     fused_flux_form,
-    haloed_projected_gradient,
 )
 from ._octant import eager_octant, fused_octant
 from .diffusivity import Diffusivity
@@ -203,11 +203,6 @@ def _edge_scale(v: Components, diffusivity: Diffusivity, contrast: float | Tenso
     return diffusivity(torch.sqrt(squared + eps * eps), contrast)
 
 
-def _scaled_flux(v: Components, fields: Sequence[Tensor], side: int) -> Components:
-    scale = fields[0][:, side: side + 1]
-    return scale * v[0], scale * v[1], scale * v[2]
-
-
 def directional_flux(v: Components, fields: Sequence[Tensor], side: int) -> Components:
     """The flux map ``v -> (T . v) T`` of directional diffusion, ``T = fields[0]`` ``(B, 3, ...)``."""
     t = fields[0]
@@ -224,21 +219,9 @@ def _edge_eager(u, normal, weight, spacing, diffusivity, contrast, eps, coupled,
 
 def _edge_fused(padded_u, haloed_normal, haloed_weight, weight, spacing, diffusivity, contrast,  # noqa: ANN001, ANN202
                 eps, coupled, scheme, box_faces=True):
-    if not coupled or padded_u.shape[1] == 1:
-        flux = edge_stopping_flux(diffusivity, contrast, eps, coupled)
-        return fused_flux_form(padded_u, haloed_normal, haloed_weight, weight, spacing, flux, (),
-                               scheme, box_faces=box_faces)
-    # Coupled: g depends on every channel. Fused into one kernel, each channel's output
-    # recomputed it from all channels (3.5x slower at 3 channels); the graph break makes
-    # the compiler store g per composition, then the divergence reads it.
-    scales = torch.cat([
-        _edge_scale(haloed_projected_gradient(padded_u, haloed_normal, spacing, side),
-                    diffusivity, contrast, eps, True)
-        for side in SIDES[scheme]
-    ], dim=1)
-    torch._dynamo.graph_break()
-    return fused_flux_form(padded_u, haloed_normal, haloed_weight, weight, spacing, _scaled_flux,
-                           (scales,), scheme, box_faces=box_faces)
+    flux = edge_stopping_flux(diffusivity, contrast, eps, coupled)
+    return fused_flux_form(padded_u, haloed_normal, haloed_weight, weight, spacing, flux, (),
+                           scheme, box_faces=box_faces)
 
 
 def _edge_halo(u, normal, weight, spacing, diffusivity, contrast, eps, coupled, scheme, haloed):  # noqa: ANN001, ANN202
@@ -246,7 +229,15 @@ def _edge_halo(u, normal, weight, spacing, diffusivity, contrast, eps, coupled, 
             diffusivity, contrast, eps, coupled, scheme)
 
 
-_EDGE_STOPPING = backend.Kernel("edge_stopping", _edge_eager, _edge_fused, _edge_halo)
+def _edge_fused_eagerly(padded_u, haloed_normal, haloed_weight, weight, spacing, diffusivity,  # noqa: ANN001, ANN202
+                        contrast, eps, coupled, scheme, box_faces=True):
+    return eager_coupled_rate(padded_u, haloed_normal, haloed_weight, weight, spacing,
+                              diffusivity, contrast, eps, scheme, box_faces=box_faces,
+                              coupled=coupled)
+
+
+_EDGE_STOPPING = backend.Kernel("edge_stopping", _edge_eager, _edge_fused, _edge_halo,
+                                fused_when_eager=True, eager_fused=_edge_fused_eagerly)
 
 
 def _edge_fused_open(padded_u, haloed_normal, haloed_weight, weight, spacing, diffusivity,  # noqa: ANN001, ANN202
@@ -255,7 +246,14 @@ def _edge_fused_open(padded_u, haloed_normal, haloed_weight, weight, spacing, di
                        contrast, eps, coupled, scheme, box_faces=False)
 
 
-_EDGE_STOPPING_OPEN = backend.Kernel("edge_stopping_open", _edge_eager, _edge_fused_open)
+def _edge_open_eagerly(padded_u, haloed_normal, haloed_weight, weight, spacing, diffusivity,  # noqa: ANN001, ANN202
+                       contrast, eps, coupled, scheme):
+    return _edge_fused_eagerly(padded_u, haloed_normal, haloed_weight, weight, spacing,
+                               diffusivity, contrast, eps, coupled, scheme, box_faces=False)
+
+
+_EDGE_STOPPING_OPEN = backend.Kernel("edge_stopping_open", _edge_eager, _edge_fused_open,
+                                     eager_fused=_edge_open_eagerly)
 
 
 def edge_stopping_form(
@@ -279,6 +277,9 @@ def edge_stopping_form(
     Returns:
         ``u``'s shape.
     """
+    if coupled and u.shape[1] > 1:
+        return harmonic_map_rate(u, normal, weight, spacing, diffusivity, contrast, eps, None,
+                                 scheme, path, None, haloed, pad)
     if pad is not None:
         haloed_normal, haloed_weight = _require_haloed(haloed)
         return backend.run_haloed(_EDGE_STOPPING_OPEN, path, u, pad(u, 2), haloed_normal,
@@ -286,6 +287,82 @@ def edge_stopping_form(
                                   coupled, scheme)
     return backend.run(_EDGE_STOPPING, path, u, u, normal, weight, spacing, diffusivity,
                        contrast, eps, coupled, scheme, haloed)
+
+
+def _coupled_eager(u, normal, weight, spacing, diffusivity, contrast, eps, power, scheme, mask,  # noqa: ANN001, ANN202
+                   haloed, *, path):
+    flux = edge_stopping_flux(diffusivity, contrast, eps, True)
+    result = flux_form(u, normal, weight, spacing, flux, (), scheme, path)
+    if power is not None:
+        energy = _energy_eager(u, normal, spacing, path=path) + eps * eps
+        result = result + u * energy**power
+    return result if mask is None else torch.where(mask, result, 0.0)
+
+
+def _coupled_halo(u, normal, weight, spacing, diffusivity, contrast, eps, power, scheme, mask,  # noqa: ANN001, ANN202
+                  haloed):
+    return (_replicated(u, 2), *_geometry_halo(normal, weight, haloed), weight, spacing,
+            diffusivity, contrast, eps, scheme, power, mask)
+
+
+_COUPLED = backend.Kernel("coupled_flux_form", _coupled_eager, fused_coupled_rate, _coupled_halo,
+                          fused_when_eager=True, eager_fused=eager_coupled_rate)
+
+
+def _coupled_open(padded_u, haloed_normal, haloed_weight, weight, spacing, diffusivity, contrast,  # noqa: ANN001, ANN202
+                  eps, scheme, power, mask):
+    return fused_coupled_rate(padded_u, haloed_normal, haloed_weight, weight, spacing,
+                              diffusivity, contrast, eps, scheme, power, mask, box_faces=False)
+
+
+def _coupled_open_eagerly(padded_u, haloed_normal, haloed_weight, weight, spacing, diffusivity,  # noqa: ANN001, ANN202
+                          contrast, eps, scheme, power, mask):
+    return eager_coupled_rate(padded_u, haloed_normal, haloed_weight, weight, spacing,
+                              diffusivity, contrast, eps, scheme, power, mask, box_faces=False)
+
+
+_COUPLED_OPEN = backend.Kernel("coupled_flux_form_open", _coupled_eager, _coupled_open,
+                               eager_fused=_coupled_open_eagerly)
+
+
+def harmonic_map_rate(
+    u: Tensor, normal: Tensor, weight: Tensor, spacing: float, diffusivity: Diffusivity,
+    contrast: float | Tensor, eps: float, power: float | None, scheme: str = "symmetric",
+    path: str = "auto", mask: Tensor | None = None, haloed: Haloed = None,
+    pad: Pad | None = None,
+) -> Tensor:
+    """Coupled edge-stopping diffusion plus the harmonic map's energy term, in one kernel.
+
+    ``(1/W) div(W g(|P grad u|) P grad u_i) + u_i (|P grad u|^2 + eps^2)^power``, with
+    ``|P grad u|^2`` summed over the channels: regularised by ``eps`` in ``g`` as in
+    :func:`edge_stopping_form` (``coupled=True``), by central differences in the energy term as
+    in :func:`tangential_gradient_energy`. With ``g(s) = s^(p-2)`` and ``power = p / 2`` it is
+    the p-harmonic map flow's rate (the paper's eq. 11). Two passes over memory when compiled:
+    docs/benchmarks.md.
+
+    Args:
+        u: ``(B, C, D, H, W)``, or packed band bricks ``(N, C, 8, 8, 8)`` with ``pad``.
+        normal, weight, spacing, haloed: the geometry (module docstring).
+        diffusivity, contrast: ``g(magnitude, contrast)``, as in :func:`edge_stopping_form`.
+        eps: regularisation of ``|P grad u|``, units of ``u`` per world length.
+        power: the energy term's exponent; ``None`` leaves the term out (then this is
+            :func:`edge_stopping_form` with ``coupled=True``).
+        scheme: ``"symmetric"`` (default), ``"conservative"`` or ``"octant"``.
+        path: how the stencils run.
+        mask: ``(B or 1, 1, D, H, W)`` bool (packed like ``u`` with ``pad``): the result is zero
+            where it is false (a flow's band).
+        pad: how ``u`` gets its halo (:data:`Pad`); ``None`` for a dense volume.
+
+    Returns:
+        ``u``'s shape.
+    """
+    if pad is not None:
+        haloed_normal, haloed_weight = _require_haloed(haloed)
+        return backend.run_haloed(_COUPLED_OPEN, path, u, pad(u, 2), haloed_normal,
+                                  haloed_weight, weight, spacing, diffusivity, contrast, eps,
+                                  scheme, power, mask)
+    return backend.run(_COUPLED, path, u, u, normal, weight, spacing, diffusivity, contrast, eps,
+                       power, scheme, mask, haloed)
 
 
 def _directional_eager(u, normal, weight, spacing, direction, scheme, weighted, haloed, *, path):  # noqa: ANN001, ANN202
