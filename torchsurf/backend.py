@@ -478,10 +478,10 @@ def run(kernel: Kernel, path: str, volume: Tensor, *args: object) -> Tensor:
             return kernel.fused_eagerly(*kernel.halo(*args))
         return kernel.eager(*args, path=concrete)
 
-    return _timed(variant, concrete, volume, args, evaluate)
+    return _timed(variant, concrete, volume, recording, args, evaluate)
 
 
-def _timed(variant: tuple | None, concrete: str, volume: Tensor, args: tuple,
+def _timed(variant: tuple | None, concrete: str, volume: Tensor, recording: bool, args: tuple,
            evaluate: Callable[[tuple], Tensor]) -> Tensor:
     """``evaluate(args)``, its wall time recorded under ``variant`` (``"auto"`` on the CPU).
 
@@ -493,7 +493,6 @@ def _timed(variant: tuple | None, concrete: str, volume: Tensor, args: tuple,
         return evaluate(args)
     timings = _TIMINGS.setdefault(variant, _Timings())
     shapes = _shapes(args)
-    recording = variant[2]
     watched = (recording and timings.pending and COMPILE != "never"
                and volume.numel() >= COMPILE_MIN_VOXELS)
     if not watched:
@@ -597,7 +596,7 @@ def run_haloed(kernel: Kernel, path: str, volume: Tensor, *haloed_args: object) 
     recording = _recording(haloed_args)
     concrete, variant = _resolve(path, volume, kernel, recording, haloed_args)
     if concrete == "compiled":
-        return _timed(variant, concrete, volume, haloed_args,
+        return _timed(variant, concrete, volume, recording, haloed_args,
                       lambda args: _run_compiled(kernel, volume, args, recording))
-    return _timed(variant, concrete, volume, haloed_args,
+    return _timed(variant, concrete, volume, recording, haloed_args,
                   lambda args: kernel.fused_eagerly(*args))

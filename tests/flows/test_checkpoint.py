@@ -122,3 +122,14 @@ def test_a_segment_that_reads_an_undeclared_tensor_needing_gradients_raises():
     hidden = recomputed(lambda x: (scale * 1.5) * x.sin(), u, [])
     with pytest.raises(RuntimeError, match="declared inputs"):
         hidden.sum().backward()
+
+
+def test_a_segment_whose_input_changed_in_place_before_backward_raises():
+    from torchsurf.flows._recompute import recomputed
+
+    u = torch.rand(1, 1, 3, 3, 3, dtype=torch.float64, requires_grad=True)
+    start = u * 1.0
+    result = recomputed(lambda x: x.sin(), start, [])
+    start.add_(1.0)  # the recomputation would read the changed values
+    with pytest.raises(RuntimeError, match="inplace"):
+        result.sum().backward()

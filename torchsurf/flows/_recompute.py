@@ -43,12 +43,12 @@ class _Recompute(torch.autograd.Function):
     @staticmethod
     def forward(ctx, function, result, u, *reads):
         ctx.function = function
-        ctx.u, ctx.reads = u, reads  # inputs, not outputs: no reference cycle
+        ctx.save_for_backward(u, *reads)  # saved: an in-place change before backward raises
         return result
 
     @staticmethod
     def backward(ctx, grad):
-        u, reads = ctx.u, ctx.reads
+        u, *reads = ctx.saved_tensors
         with torch.enable_grad():
             x = u.detach().requires_grad_(u.requires_grad)
             out = ctx.function(x)
