@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
@@ -86,3 +88,105 @@ def test_points_outside_the_grid_raise() -> None:
 def test_bad_input_raises(field: torch.Tensor, points: torch.Tensor, error: type) -> None:
     with pytest.raises(error):
         sample(field, points, GRID)
+
+
+def cubic_field(grid: ts.Grid, dtype: torch.dtype = torch.float64) -> tuple[torch.Tensor, object]:
+    """A polynomial of degree 3 in each coordinate, on ``grid`` and as a function of points."""
+
+    def value(points: torch.Tensor) -> torch.Tensor:
+        x, y, z = points.unbind(-1)
+        return 0.3 * x**3 * y - 1.1 * (y**2) * (z**3) + 0.7 * x * y * z + 2 * z**2 - 0.5
+
+    return value(grid.points(dtype=dtype))[None, None], value
+
+
+def test_cubic_exact_for_polynomials_of_degree_three_per_axis() -> None:
+    field, value = cubic_field(GRID)
+    points = random_points(GRID, 200)  # including cells at the box's faces
+    inner = GRID.contains(points, tolerance=-1.0)  # at least a cell inside: no repeated node
+    result = sample(field, points, GRID, interpolation="cubic")[0, 0]
+    torch.testing.assert_close(result[inner], value(points)[inner], atol=1e-12, rtol=0)
+    assert not torch.allclose(sample(field, points, GRID)[0, 0][inner], value(points)[inner],
+                              atol=1e-6)
+
+
+def test_cubic_nodes_are_exact_and_faces_repeat_the_border() -> None:
+    field = torch.randn(2, 3, *GRID.shape, dtype=torch.float64)
+    nodes = GRID.points(dtype=torch.float64).reshape(-1, 3)
+    values = sample(field, nodes, GRID, interpolation="cubic")
+    torch.testing.assert_close(values, field.flatten(2), atol=1e-12, rtol=0)
+    # a point on the box's last face in x, between nodes in y and z: the linear sampler's
+    # border condition along x, cubic along the face
+    point = torch.tensor([[GRID.origin[0] + GRID.size[0], 0.1, 0.9]], dtype=torch.float64)
+    face = sample(field, point, GRID, interpolation="cubic")
+    index = GRID.world_to_index(point)[0]
+    assert float(index[0]) == GRID.shape[2] - 1
+    torch.testing.assert_close(face[..., 0], _cubic_on_face(field, index), atol=1e-12, rtol=0)
+
+
+def _cubic_on_face(field: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """The 2-D Lagrange interpolant in ``y, z`` on the last ``x`` plane, written out."""
+    from torchsurf.sampling import cubic_lagrange_weights
+
+    result = 0
+    (j0, tj), (k0, tk) = [(int(index[a].floor()), index[a] - index[a].floor()) for a in (1, 2)]
+    wy, wz = cubic_lagrange_weights(tj), cubic_lagrange_weights(tk)
+    for b in range(4):
+        for a in range(4):
+            j = min(max(j0 - 1 + a, 0), field.shape[-2] - 1)
+            k = min(max(k0 - 1 + b, 0), field.shape[-3] - 1)
+            result = result + wy[a] * wz[b] * field[:, :, k, j, -1]
+    return result
+
+
+@pytest.mark.parametrize("interpolation", ["linear", "cubic"])
+def test_order_of_accuracy_on_a_smooth_field(interpolation) -> None:
+    """Error at 400 random points of ``sin(x) cos(2y) exp(z/2)`` in the inner 80% of the box
+    (beside a face the repeated border node is first order): order 2 and 4."""
+    errors = []
+    for n in (17, 33):
+        grid = ts.Grid.cube(n, 1.0)
+        points = grid.points(dtype=torch.float64)
+        x, y, z = points.unbind(-1)
+        field = (torch.sin(x) * torch.cos(2 * y) * torch.exp(z / 2))[None, None]
+        probe = random_points(grid, 400) * 0.8
+        px, py, pz = probe.unbind(-1)
+        exact = torch.sin(px) * torch.cos(2 * py) * torch.exp(pz / 2)
+        errors.append(float((sample(field, probe, grid, interpolation)[0, 0] - exact).abs().max()))
+    order = math.log2(errors[0] / errors[1])
+    expected = {"linear": 2.0, "cubic": 4.0}[interpolation]
+    assert abs(order - expected) < 0.4, (errors, order)
+
+
+def test_cubic_batches_like_linear_and_broadcasts() -> None:
+    field = torch.randn(3, 2, *GRID.shape, dtype=torch.float64)
+    points = random_points(GRID, 10, batch=3)
+    together = sample(field, points, GRID, interpolation="cubic")
+    assert together.shape == (3, 2, 10)
+    for b in range(3):
+        alone = sample(field[b:b + 1], points[b], GRID, interpolation="cubic")
+        torch.testing.assert_close(together[b:b + 1], alone, atol=0, rtol=0)
+    shared = sample(field, points[0], GRID, interpolation="cubic")
+    torch.testing.assert_close(shared[1], sample(field[1:2], points[0], GRID, "cubic")[0])
+
+
+def test_cubic_gradcheck() -> None:
+    grid = ts.Grid(shape=(4, 5, 6), spacing=0.5, origin=(0.0, 0.0, 0.0))
+    field = torch.randn(1, 2, *grid.shape, dtype=torch.float64, requires_grad=True)
+    points = (random_points(grid, 5) * 0.8 + 0.1).requires_grad_(True)
+    assert torch.autograd.gradcheck(
+        lambda f, p: sample(f, p, grid, interpolation="cubic"), (field, points))
+
+
+def test_cubic_chunks_agree(monkeypatch) -> None:
+    field = torch.randn(1, 1, *GRID.shape, dtype=torch.float64)
+    points = random_points(GRID, 37)
+    whole = sample(field, points, GRID, interpolation="cubic")
+    monkeypatch.setattr(ts.sampling, "CUBIC_CHUNK", 8)
+    torch.testing.assert_close(sample(field, points, GRID, interpolation="cubic"), whole,
+                               atol=0, rtol=0)
+
+
+def test_unknown_interpolation_is_refused() -> None:
+    with pytest.raises(ValueError, match="interpolation"):
+        sample(torch.zeros(1, 1, *GRID.shape), torch.zeros(1, 3), GRID, interpolation="spline")

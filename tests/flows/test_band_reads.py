@@ -90,7 +90,7 @@ def test_refinement_leaves_good_closest_points_exactly_as_they_were():
         grid.points() - ((surface.phi / surface.weight) * surface.normal)[0].permute(1, 2, 3, 0))
     targets, _, weights = CubicStencil(surface, region).parts[0]
     at = index.reshape(-1, 3)[targets]
-    expected = torch.stack([torch.stack(ts.flows.extension._cubic_weights(a - a.floor()), 1)
+    expected = torch.stack([torch.stack(ts.sampling.cubic_lagrange_weights(a - a.floor()), 1)
                             for a in at.unbind(1)])
     assert torch.equal(weights, expected)
 

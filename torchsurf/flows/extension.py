@@ -26,6 +26,7 @@ from torch import Tensor, nn
 from .. import backend, stencils
 from .._checks import check_choice, check_positive
 from ..bricks.layout import BRICK, BrickLayout
+from ..sampling import cubic_lagrange_weights
 from ..surface import ImplicitSurface, check_data
 from . import _closest
 
@@ -76,16 +77,6 @@ def closest_point_extension(
     return torch.where(band, sampled, u)
 
 
-def _cubic_weights(t: Tensor) -> list[Tensor]:
-    """Lagrange weights of the nodes at offsets -1, 0, 1, 2 for a point at ``t`` in [0, 1)."""
-    return [
-        -t * (t - 1) * (t - 2) / 6,
-        (t + 1) * (t - 1) * (t - 2) / 2,
-        -(t + 1) * t * (t - 2) / 2,
-        (t + 1) * t * (t - 1) / 6,
-    ]
-
-
 TIE_EPS = 64
 """A fractional index within ``TIE_EPS`` units of rounding (relative to its size) below a node
 plane counts as on it (:func:`_cell`)."""
@@ -129,7 +120,7 @@ def _cubic_stencil(at: Tensor, targets: Tensor, shape: tuple[int, int, int]
     ])
     if depth * height * width < 2**31:
         corners = corners.to(torch.int32)
-    weights = torch.stack([torch.stack(_cubic_weights(at[:, axis] - base[:, axis]), dim=1)
+    weights = torch.stack([torch.stack(cubic_lagrange_weights(at[:, axis] - base[:, axis]), dim=1)
                            for axis in range(3)])
     return targets, corners, weights
 
@@ -492,7 +483,7 @@ class BrickCubicStencil:
         local = torch.stack([(z % BRICK) * BRICK * BRICK, (y % BRICK) * BRICK,
                              x % BRICK]).to(torch.int16)
         weights = torch.stack([
-            torch.stack(_cubic_weights(at[:, axis] - base[:, axis]), dim=1) for axis in range(3)
+            torch.stack(cubic_lagrange_weights(at[:, axis] - base[:, axis]), dim=1) for axis in range(3)
         ])
         return bases, second, local, weights
 
