@@ -48,4 +48,4 @@ def test_summary_takes_the_fastest_run_within_the_target(bench):
     text = "\n".join(bench.time_to_accuracy(rows, 1e-3))
     assert "| euler | 81 | 0.400 |" in text
     assert "(target >= 20): 300.0" in text
-    assert "(target <= 10): 4.0" in text
+    assert "(target <= 0.25): 4.0" in text

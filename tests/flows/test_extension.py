@@ -107,8 +107,9 @@ def test_fixed_band_with_reextension_is_as_accurate_as_evolving_a_wide_band():
         return float((values - exact).abs().max() / exact.abs().max())
 
     wide = error(ts.HeatFlow(0.05, method="euler", band_width=0.75, reextend_every=None))
-    fixed = error(ts.HeatFlow(0.05))
-    stale = error(ts.HeatFlow(0.05, reextend_every=None))
+    narrow = 3 * grid.spacing  # on this exact distance the flows' default band is 5 cells
+    fixed = error(ts.HeatFlow(0.05, band_width=narrow))
+    stale = error(ts.HeatFlow(0.05, reextend_every=None, band_width=narrow))
     assert fixed < wide, (fixed, wide)
     assert stale > 2.5 * fixed, (stale, fixed)
 

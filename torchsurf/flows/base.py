@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import math
 import numbers
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 
 import numpy as np
 import torch
@@ -116,6 +116,62 @@ around a closest point lie within ``2 sqrt(3) h`` of S, and the band with its ri
 node within ``band_width + h / sqrt(3)`` of S."""
 
 
+WIDE_BAND_CELLS = 5.0
+"""Half-width (cells) of the band a flow evolves on a dense surface whose ``phi`` is a distance
+out to it and its ring (:meth:`Flow.evolving_width`): wide enough that RKC steps of up to
+``12 (5 - 3)^2 / rho`` may hold the ring (:data:`HELD_RING_CELLS`), which costs nothing in the
+dense operators (they run over the whole box) and saves the ring's re-extension at every
+stage: 1.5x faster to the same error on a sphere at 37^3-65^3 (docs/band.md)."""
+
+DISTANCE_TOLERANCE = 0.1
+"""``phi`` counts as a distance where ``|grad phi|`` is within this fraction of
+``gradient_scale``: the medial axis, thin features and the edge of the band in which a mesh's
+distance was computed all fall outside it."""
+
+HELD_RING_CELLS = 3.0
+"""An RKC step of ``dt rho <= 12 (w - HELD_RING_CELLS)^2`` on a band of ``w`` cells holds the
+ring during the step and re-extends it with the band after the step: the stale ring's error
+then diffuses less than ``w - 3`` cells inward, short of the nodes (within ``2 sqrt(3)`` cells
+of S) that the band's re-extension reads. Measured on the sphere at 33^3-65^3 (docs/band.md):
+no loss within the bound, a loss beyond it (5 cells, ``dt rho = 65``: 1.7e-3 against
+2.8e-4)."""
+
+
+def ring_held(method: str, step_times_rho: float, band_cells: float) -> bool:
+    """Whether ``method``'s steps of ``dt * rho = step_times_rho`` on a band of ``band_cells``
+    cells keep the ring fixed during each step (see :data:`RING_HELD`, :data:`HELD_RING_CELLS`)."""
+    if method in RING_HELD:
+        return True
+    margin = band_cells - HELD_RING_CELLS
+    return method == "rkc" and margin > 0 and step_times_rho <= 12.0 * margin**2
+
+
+def _distance_band_widths(surface: ImplicitSurface) -> tuple[float, ...]:
+    """For each entry: :data:`WIDE_BAND_CELLS` cells if its ``phi`` is a distance
+    (:data:`DISTANCE_TOLERANCE`) at every node within that width and its ring, else
+    ``surface.band_width``."""
+    wide = WIDE_BAND_CELLS * surface.spacing
+    if wide <= surface.band_width:
+        return (surface.band_width,) * surface.batch_size
+    reach = surface.distance() <= wide + surface.spacing * math.sqrt(3.0)
+    deviation = (surface.grad_norm.detach() / surface.gradient_scale.detach() - 1.0).abs()
+    far = ((deviation > DISTANCE_TOLERANCE) & reach).flatten(1).any(dim=1)
+    return tuple(surface.band_width if bool(f) else wide for f in far)
+
+
+def _entry_surface(surface: ImplicitSurface, entry: int) -> ImplicitSurface:
+    """Entry ``entry`` of a dense batch as a surface of its own (its ``phi`` a slice, in
+    ``phi``'s graph), kept on ``surface`` unless ``phi`` requires grad."""
+
+    def build() -> ImplicitSurface:
+        return ImplicitSurface(surface.phi[entry:entry + 1], surface.grid,
+                               band_width=surface.band_width, eps=surface.eps)
+
+    if surface.phi.requires_grad:
+        return build()
+    return surface.kept(("entry surface", entry), build)
+
+
 Stencil = CubicStencil | BrickCubicStencil
 
 
@@ -178,7 +234,8 @@ RING_HELD = (*IMPLICIT, "euler", "heun")
 """Methods that do not re-extend the ring at every evaluation of the rate: the implicit ones
 (their operator must stay symmetric) and Euler and Heun, whose steps are short enough that the
 re-extension every few steps keeps them second order, with smaller errors than refreshing the
-ring at every evaluation (docs/band.md)."""
+ring at every evaluation (docs/band.md). RKC too, on a band wide enough for its steps
+(:func:`ring_held`)."""
 
 
 class Flow(nn.Module):
@@ -213,8 +270,9 @@ class Flow(nn.Module):
             every evaluation of the rate (Euler and Heun need not: docs/band.md). ``None``:
             never (the ring keeps ``u0``: only right for a band as wide as the diffusion
             length).
-        band_width: half-width of the evolving band, world units (default
-            ``surface.band_width``).
+        band_width: half-width of the evolving band, world units. Default: on a dense
+            surface whose ``phi`` is a distance out to :data:`WIDE_BAND_CELLS` cells and its
+            ring, that width; otherwise ``surface.band_width`` (:meth:`evolving_width`).
         checkpoint: keep only ``u`` every ``sqrt(steps)`` steps for backward and recompute
             the stages in between (explicit methods: RKC, Euler, Heun): memory
             ``O(sqrt(steps))`` volumes instead of every stage's, for about 1.3-2x the time.
@@ -279,13 +337,38 @@ class Flow(nn.Module):
         """The end time: a float, or a positive 0-d tensor when learnable."""
         return self.time_value.value()
 
+    def evolving_width(self, surface: ImplicitSurface) -> float:
+        """Half-width of the band this flow evolves on ``surface``, world units.
+
+        ``band_width`` when given. Otherwise, on a dense surface whose ``phi`` is a distance
+        (``|grad phi|`` within :data:`DISTANCE_TOLERANCE` of its scale) at every node out to
+        :data:`WIDE_BAND_CELLS` cells and the ring beyond, that width (an analytic distance, a
+        ``redistance``d phi); elsewhere (``sdf.from_mesh``'s 5-cell distances, thin features,
+        bricks, which store the surface's band only) ``surface.band_width``. Decided for each
+        entry of a batch, once per surface and kept (each call while ``phi`` requires grad);
+        entries that differ are integrated one at a time, and this returns the narrowest.
+        """
+        return min(self._entry_widths(surface))
+
+    def _entry_widths(self, surface: ImplicitSurface) -> tuple[float, ...]:
+        """:meth:`evolving_width` of each entry (a batch whose entries differ is integrated
+        one entry at a time, each on its own band)."""
+        if self.band_width is not None:
+            return (self.band_width,)
+        if surface.layout is not None:
+            return (surface.band_width,)
+        if surface.phi.requires_grad:
+            return _distance_band_widths(surface)
+        return surface.kept(("flow band widths",), lambda: _distance_band_widths(surface))
+
     def band_mask(self, surface: ImplicitSurface) -> Tensor:
-        """The evolving band, a bool mask ``(B or 1, 1, D, H, W)``: within ``band_width`` of S."""
-        return surface.band_mask(self.band_width)
+        """The evolving band, a bool mask ``(B or 1, 1, D, H, W)``: within
+        :meth:`evolving_width` of S."""
+        return surface.band_mask(self.evolving_width(surface))
 
     def operator_bound(self, surface: ImplicitSurface, scheme: str = "octant") -> float:
         """Gershgorin bound of ``Lap_S`` restricted to this flow's band, ``1 / world length^2``."""
-        return laplace_beltrami_bound(surface, scheme, self.band_width)
+        return laplace_beltrami_bound(surface, scheme, self.evolving_width(surface))
 
     def system(self, u0: Tensor, surface: ImplicitSurface, **inputs: Tensor) -> System:
         """The flow's equation for ``u0`` on ``surface``; subclasses implement it."""
@@ -335,7 +418,8 @@ class Flow(nn.Module):
         if bar is not None:
             hooks.append(lambda u, k: (bar.update(1), u)[1])
         if every is not None:
-            stencil = _stencil(surface, self.band_width, "region", system.region, system.region)
+            stencil = _stencil(surface, self.evolving_width(surface), "region", system.region,
+                               system.region)
             path = self.path
             hooks.append(lambda u, k: reextend(stencil, u, path) if k % every == 0 else u)
         if not hooks:
@@ -354,7 +438,7 @@ class Flow(nn.Module):
         if torch.compiler.is_compiling():
             return
         cached = (not surface.phi.requires_grad
-                  and surface.is_kept(_stencil_key(self.band_width, "region")))
+                  and surface.is_kept(_stencil_key(self.evolving_width(surface), "region")))
         band_nodes = None if cached else int(band.sum())
         _memory.check_fits(
             _memory.flow_bytes(tuple(u0.shape), surface.batch_size, u0.dtype,
@@ -396,10 +480,14 @@ class Flow(nn.Module):
             )
         check_data(u0, "u0", surface)
         if surface.layout is not None and surface.batch_size > 1:
-            return self._each_entry(u0, surface, times, inputs)
+            return self._each_entry(u0, surface.entries(), len(surface.layout), times, inputs)
+        if surface.layout is None and len(set(self._entry_widths(surface))) > 1:
+            entries = ((torch.tensor([b]), _entry_surface(surface, b))
+                       for b in range(surface.batch_size))
+            return self._each_entry(u0, entries, surface.batch_size, times, inputs)
         end = self.time_value.maximum()  # a host read only for a learned time without max_time
         wanted = None if times is None else _check_times(times, end)
-        width = surface.band_width if self.band_width is None else self.band_width
+        width = self.evolving_width(surface)
         if self.reextend_every is not None and width < MIN_BAND_CELLS * surface.spacing * (1 - 1e-6):
             raise ValueError(
                 f"band_width={width:g} is {width / surface.spacing:.2f} cells of this grid; "
@@ -435,9 +523,10 @@ class Flow(nn.Module):
         schedule.step = plan.step
         schedule.segment = 12.0 * (width / surface.spacing) ** 2 / system.spectral_radius
         schedule.checkpoint = self._checkpointing(u0, surface, system)
-        if self.reextend_every is not None and self.method not in RING_HELD:
-            ring = _stencil(surface, self.band_width, "ring", system.region & ~system.band,
-                            system.region)
+        held = ring_held(self.method, plan.step * system.spectral_radius,
+                         width / surface.spacing)
+        if self.reextend_every is not None and not held:
+            ring = _stencil(surface, width, "ring", system.region & ~system.band, system.region)
             rate = system.rate
             path = self.path
             system.rate = lambda u: rate(reextend(ring, u, path))
@@ -456,16 +545,17 @@ class Flow(nn.Module):
                     )
         return result[-1] if times is None else torch.stack(initial + result)
 
-    def _each_entry(self, u0: Tensor, surface: ImplicitSurface, times: object,
-                    inputs: dict[str, Tensor]) -> Tensor:
-        """A batch of brick entries, each integrated alone with its own steps and stages (its
-        own operator bound): each entry's result is what it would be without the others."""
+    def _each_entry(self, u0: Tensor, entries: Iterator[tuple[Tensor, ImplicitSurface]],
+                    count: int, times: object, inputs: dict[str, Tensor]) -> Tensor:
+        """A batch's entries ``(rows of u0 along its first dimension of size count, surface)``
+        (the bricks of an entry; a dense batch's entries whose bands differ), each integrated
+        alone with its own band, steps and stages: each entry's result is what it would be
+        without the others."""
         result = None
-        count = len(surface.layout)
-        for rows, entry in surface.entries():
+        for rows, entry in entries:
             own = {name: value[rows] if isinstance(value, Tensor) and value.shape[:1] == (count,)
                    else value for name, value in inputs.items()}
-            part = self.forward(u0[rows], entry, times, **own)
+            part = self.forward(u0[rows.clamp(max=u0.shape[0] - 1)], entry, times, **own)
             if result is None:
                 shape = list(part.shape)
                 shape[-5] = count

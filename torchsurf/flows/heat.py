@@ -136,7 +136,7 @@ class HeatFlow(Flow):
             )
         check_surface(surface)
         check_data(u0, "u0", surface)
-        operator = BandLaplacian(surface, self.scheme, self.band_width, self.path)
+        operator = BandLaplacian(surface, self.scheme, self.evolving_width(surface), self.path)
         if not torch.compiler.is_compiling():  # a host read: it would break a compiled graph
             check_finite(torch.where(operator.band, u0, 0.0), "u0 (in the band)")
         d = self.diffusivity.volume(u0)

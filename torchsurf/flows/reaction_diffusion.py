@@ -125,7 +125,7 @@ class ReactionDiffusion(Flow):
         reaction = float(largest.sum() + 1.0)
         bound_b = self.operator_bound(surface)
         bound_a = bound_b if direction is None else directional_bound(
-            surface, direction, width=self.band_width)
+            surface, direction, width=self.evolving_width(surface))
         rho = max(d_a * bound_a, d_b * bound_b) + s * max(reaction, 1.0)
         return System(rate, band, rho, project=_nonnegative_b,
                       params=tensors(surface.normal, surface.weight))

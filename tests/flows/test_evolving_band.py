@@ -1,0 +1,118 @@
+"""The band a flow evolves: 5 cells where phi is a distance that far, the surface's band
+elsewhere; RKC holds the ring during steps short enough for that band (docs/band.md)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+import trimesh
+
+import torchsurf as ts
+import torchsurf.flows.base as flow_base
+from torchsurf.flows import HeatFlow
+from torchsurf.flows.base import ring_held
+
+
+def cells(flow: HeatFlow, surface: ts.ImplicitSurface) -> float:
+    return flow.evolving_width(surface) / surface.spacing
+
+
+def sphere_case(n: int, dtype: torch.dtype = torch.float64):
+    """Unit sphere in ``[-1.4, 1.4]^3``, ``3 z^2 - 1`` extended along normals, 500 points on S
+    and the exact heat flow there at ``t = 0.05``."""
+    grid = ts.Grid.cube(n, bound=1.4)
+    phi = ts.sdf.sphere(grid, radius=1.0, dtype=dtype)
+    points = grid.points(dtype=dtype)
+    z = points[..., 2] / points.norm(dim=-1).clamp(min=1e-9)
+    count = 500
+    i = torch.arange(count, dtype=dtype) + 0.5
+    height = 1 - 2 * i / count
+    angle = math.pi * (1 + 5**0.5) * i
+    ring = torch.sqrt(1 - height**2)
+    on_s = torch.stack((ring * torch.cos(angle), ring * torch.sin(angle), height), dim=-1)
+    exact = (3 * height**2 - 1) * math.exp(-6 * 0.05)
+    return grid, phi, (3 * z**2 - 1)[None, None], on_s, exact
+
+
+def error_on_s(u, grid, on_s, exact) -> float:
+    values = ts.sample(u, on_s, grid, interpolation="cubic")[0, 0]
+    return float((values - exact).abs().max() / exact.abs().max())
+
+
+def test_an_analytic_distance_gets_the_wide_band_at_any_scale():
+    grid, phi, *_ = sphere_case(25)
+    flow = HeatFlow(0.01)
+    assert cells(flow, ts.ImplicitSurface(phi, grid)) == pytest.approx(5.0)
+    assert cells(flow, ts.ImplicitSurface(1000 * phi, grid)) == pytest.approx(5.0)
+    # the flow's own band_width and a surface band wider than 5 cells are kept as given
+    assert cells(HeatFlow(0.01, band_width=3 * grid.spacing), ts.ImplicitSurface(phi, grid)) \
+        == pytest.approx(3.0)
+    wide = ts.ImplicitSurface(phi, grid, band_width=6 * grid.spacing)
+    assert cells(flow, wide) == pytest.approx(6.0)
+
+
+@pytest.mark.parametrize("case", ["not a distance", "mesh band", "thin tube", "small grid"])
+def test_where_phi_is_not_a_distance_that_far_the_band_stays_the_surfaces(case):
+    grid = ts.Grid.cube(33, 1.5)
+    if case == "not a distance":
+        phi = ts.sdf.sphere(grid, dtype=torch.float64)
+        phi = phi * (1 + phi**2)  # the same surface, |grad phi| = 1 only on S
+    elif case == "mesh band":  # distances computed in 5 cells only
+        phi = ts.sdf.from_mesh(trimesh.creation.icosphere(subdivisions=3), grid)
+    elif case == "thin tube":  # its medial circle 3 cells from S
+        phi = ts.sdf.torus(grid, major_radius=0.8, minor_radius=3 * grid.spacing)
+    else:  # the sphere's centre 6 cells from S
+        grid = ts.Grid.cube(17, 1.4)
+        phi = ts.sdf.sphere(grid, radius=0.55)
+    surface = ts.ImplicitSurface(phi, grid)
+    assert cells(HeatFlow(0.01), surface) == pytest.approx(surface.band_width / grid.spacing)
+
+
+def test_ring_held_bound():
+    assert ring_held("rkc", 12.0 * 2.0**2, 5.0)
+    assert not ring_held("rkc", 12.0 * 2.0**2 + 1e-6, 5.0)
+    assert not ring_held("rkc", 1e-3, 3.0)
+    for method in ("euler", "heun", "implicit", "crank_nicolson"):
+        assert ring_held(method, 1e6, 3.0)
+    assert not ring_held("dopri5", 1.0, 5.0)
+
+
+def test_holding_the_ring_within_the_bound_loses_nothing(monkeypatch):
+    """33^3, default band (5 cells), 8 steps of ``dt rho = 8``: the same error as refreshing
+    the ring at every stage, to 5%."""
+    grid, phi, u0, on_s, exact = sphere_case(33)
+    held = error_on_s(HeatFlow(0.05)(u0, ts.ImplicitSurface(phi, grid)), grid, on_s, exact)
+    monkeypatch.setattr(flow_base, "HELD_RING_CELLS", 100.0)  # never held
+    refreshed = error_on_s(HeatFlow(0.05)(u0, ts.ImplicitSurface(phi, grid)), grid, on_s, exact)
+    assert held < 1.3e-3 and refreshed < 1.3e-3, (held, refreshed)
+    assert held < 1.05 * refreshed, (held, refreshed)
+
+
+def test_holding_the_ring_beyond_the_bound_would_cost_accuracy(monkeypatch):
+    """A 4-cell band and 2 steps of ``dt rho = 32`` (bound 12): the rule refreshes the ring at
+    every stage; holding it anyway doubles the error (1.5e-3 against 2.9e-3 at 33^3)."""
+    grid, phi, u0, on_s, exact = sphere_case(33)
+    flow = HeatFlow(0.05, steps=2, band_width=4 * grid.spacing)
+    ruled = error_on_s(flow(u0, ts.ImplicitSurface(phi, grid)), grid, on_s, exact)
+    monkeypatch.setattr(flow_base, "HELD_RING_CELLS", -100.0)  # always held
+    forced = error_on_s(flow(u0, ts.ImplicitSurface(phi, grid)), grid, on_s, exact)
+    assert forced > 1.5 * ruled, (forced, ruled)
+
+
+def test_a_batch_whose_bands_differ_runs_each_entry_alone():
+    grid = ts.Grid.cube(25, 1.5)
+    phi = torch.cat([ts.sdf.sphere(grid, dtype=torch.float64),
+                     ts.sdf.torus(grid, major_radius=0.8, minor_radius=0.2, dtype=torch.float64)])
+    surface = ts.ImplicitSurface(phi, grid)
+    flow = HeatFlow(4 * grid.spacing**2)
+    assert [w / grid.spacing for w in flow._entry_widths(surface)] == pytest.approx([5.0, 3.0])
+    u0 = torch.rand(1, 2, *grid.shape, dtype=torch.float64,
+                    generator=torch.Generator().manual_seed(0))
+    together = flow(u0, surface, times=[2 * grid.spacing**2, 4 * grid.spacing**2])
+    assert together.shape == (2, 2, 2, *grid.shape)
+    for b in range(2):
+        alone = flow(u0, ts.ImplicitSurface(phi[b:b + 1], grid),
+                     times=[2 * grid.spacing**2, 4 * grid.spacing**2])
+        torch.testing.assert_close(together[:, b:b + 1], alone, atol=0, rtol=0)
