@@ -149,6 +149,34 @@ def test_interpolation_forms_agree(limited):
     torch.testing.assert_close(terms, eager, rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.parametrize("limited", [False, True])
+def test_anchored_form_agrees_with_the_kept_sources(limited):
+    """A stencil with no tap clamped at the box keeps each node's first tap; the compiled path's
+    form reads its 64 taps at fixed offsets from it: the same numbers as the eager gather, and
+    as a stencil that keeps all 64 sources."""
+    from torchsurf.flows.extension import (
+        CubicStencil,
+        _anchored_gathered,
+        _anchored_terms,
+        _kept_gathered,
+    )
+
+    grid = ts.Grid.cube(21, 1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, radius=0.8, dtype=torch.float64), grid)
+    stencil = CubicStencil(surface, surface.band_mask(), limited=limited)
+    assert stencil.anchors[0] is not None
+    touching = ts.ImplicitSurface(ts.sdf.sphere(grid, radius=1.4, dtype=torch.float64), grid)
+    near_face = CubicStencil(touching, touching.band_mask(), limited=limited)
+    assert near_face.anchors[0] is None  # S a cell from the box's faces: taps clamped there
+    flat = torch.randn(2, 21**3, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
+    sources, anchors, by_offset = stencil.sources[0], stencil.anchors[0], stencil.weights_by_offset[0]
+    weights = stencil.parts[0][2]
+    kept = _kept_gathered(flat, sources, weights, limited)
+    arguments = (flat, sources, anchors, by_offset, 21 * 21, 21, limited)
+    torch.testing.assert_close(_anchored_gathered(*arguments), kept, rtol=0, atol=0)
+    torch.testing.assert_close(_anchored_terms(*arguments), kept, rtol=1e-12, atol=1e-12)
+
+
 def test_limited_closest_point_stencil_is_the_same_in_a_scaled_and_moved_frame():
     """Closest points on faces aligned with the grid lie on node planes: the limiter's cell
     must not depend on how rounding falls in the frame the shape is given in."""

@@ -20,6 +20,7 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import torch
 from torch import Tensor
 
 DAMPING = 3.0
@@ -109,9 +110,21 @@ def rkc_step(rate: Callable[[Tensor], Tensor], u: Tensor, dt: float | Tensor,
     rate0 = rate(u)
     previous, current = u, u + (c.mu_tilde[1] * dt) * rate0
     for j in range(2, stages + 1):
-        following = (
-            (1.0 - c.mu[j] - c.nu[j]) * u + c.mu[j] * current + c.nu[j] * previous
-            + (c.mu_tilde[j] * dt) * rate(current) + (c.gamma_tilde[j] * dt) * rate0
-        )
+        following = _stage(c, j, dt, u, current, previous, rate(current), rate0)
         previous, current = current, following
     return current
+
+
+def _stage(c: Coefficients, j: int, dt: float | Tensor, u: Tensor, current: Tensor,
+           previous: Tensor, rate: Tensor, rate0: Tensor) -> Tensor:
+    """Stage ``j``: ``(1 - mu - nu) u + mu current + nu previous + mu~ dt rate + gamma~ dt
+    rate0``; for a float ``dt`` in one new tensor updated in place (five passes, no
+    temporaries), else as tensor arithmetic (``dt`` a learned 0-d tensor)."""
+    if isinstance(dt, Tensor):
+        return ((1.0 - c.mu[j] - c.nu[j]) * u + c.mu[j] * current + c.nu[j] * previous
+                + (c.mu_tilde[j] * dt) * rate + (c.gamma_tilde[j] * dt) * rate0)
+    following = torch.mul(current, c.mu[j])
+    following.add_(u, alpha=1.0 - c.mu[j] - c.nu[j])
+    following.add_(previous, alpha=c.nu[j])
+    following.add_(rate, alpha=c.mu_tilde[j] * dt)
+    return following.add_(rate0, alpha=c.gamma_tilde[j] * dt)
