@@ -10,9 +10,9 @@ import torch
 import trimesh
 
 import torchsurf as ts
-import torchsurf.flows.base as flow_base
+import torchsurf.flows._integrators as integrators
 from torchsurf.flows import HeatFlow
-from torchsurf.flows.base import ring_held
+from torchsurf.flows._integrators import ring_held
 
 
 def cells(flow: HeatFlow, surface: ts.ImplicitSurface) -> float:
@@ -84,7 +84,7 @@ def test_holding_the_ring_within_the_bound_loses_nothing(monkeypatch):
     the ring at every stage, to 5%."""
     grid, phi, u0, on_s, exact = sphere_case(33)
     held = error_on_s(HeatFlow(0.05)(u0, ts.ImplicitSurface(phi, grid)), grid, on_s, exact)
-    monkeypatch.setattr(flow_base, "HELD_RING_CELLS", 100.0)  # never held
+    monkeypatch.setattr(integrators, "HELD_RING_CELLS", 100.0)  # never held
     refreshed = error_on_s(HeatFlow(0.05)(u0, ts.ImplicitSurface(phi, grid)), grid, on_s, exact)
     assert held < 1.3e-3 and refreshed < 1.3e-3, (held, refreshed)
     assert held < 1.05 * refreshed, (held, refreshed)
@@ -96,7 +96,7 @@ def test_holding_the_ring_beyond_the_bound_would_cost_accuracy(monkeypatch):
     grid, phi, u0, on_s, exact = sphere_case(33)
     flow = HeatFlow(0.05, steps=2, band_width=4 * grid.spacing)
     ruled = error_on_s(flow(u0, ts.ImplicitSurface(phi, grid)), grid, on_s, exact)
-    monkeypatch.setattr(flow_base, "HELD_RING_CELLS", -100.0)  # always held
+    monkeypatch.setattr(integrators, "HELD_RING_CELLS", -100.0)  # always held
     forced = error_on_s(flow(u0, ts.ImplicitSurface(phi, grid)), grid, on_s, exact)
     assert forced > 1.5 * ruled, (forced, ruled)
 

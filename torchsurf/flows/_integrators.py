@@ -177,6 +177,28 @@ bunny's raw principal direction at 256^3 (``step * growth`` about 20) overflowed
 steps (2.5) did not."""
 
 
+HELD_RING_CELLS = 3.0
+"""An RKC step of ``dt rho <= 12 (w - HELD_RING_CELLS)^2`` on a band of ``w`` cells holds the
+ring during the step and re-extends it with the band after the step: the stale ring's error
+then diffuses less than ``w - 3`` cells inward, short of the nodes (within ``2 sqrt(3)`` cells
+of S) that the band's re-extension reads. Measured on the sphere at 33^3-65^3 (docs/band.md):
+no loss within the bound, a loss beyond it (5 cells, ``dt rho = 65``: 1.7e-3 against
+2.4e-4)."""
+
+HELD_RING_STEPS = 2.0
+"""RKC takes up to this many times the steps it would otherwise when that lets it hold the ring
+(:func:`ring_held`): the stages grow as the square root of the step count, and each costs
+about half as much without the ring's re-extension (81^3 sphere: 9 steps instead of 8)."""
+
+def ring_held(method: str, step_times_rho: float, band_cells: float) -> bool:
+    """Whether ``method``'s steps of ``dt * rho = step_times_rho`` on a band of ``band_cells``
+    cells keep the ring fixed during each step (:data:`RING_HELD`, :data:`HELD_RING_CELLS`)."""
+    if method in RING_HELD:
+        return True
+    margin = band_cells - HELD_RING_CELLS
+    return method == "rkc" and margin > 0 and step_times_rho <= 12.0 * margin**2 * (1 + 1e-9)
+
+
 @dataclass(frozen=True)
 class Plan:
     """How many steps of which size a method takes to ``end``.
@@ -206,7 +228,8 @@ def plan_steps(method: str, system: System, end: float, steps: int | None,
     :data:`RKC_STEPS` steps (or Euler's count, if smaller) or more, none longer than
     ``12 band_cells^2 / rho``: about the time the diffusion takes to cross a band
     ``band_cells`` cells wide, after which the data must be re-extended (docs/band.md), nor
-    than ``RKC_GROWTH / growth`` (:data:`RKC_GROWTH`).
+    than ``RKC_GROWTH / growth`` (:data:`RKC_GROWTH`); and up to :data:`HELD_RING_STEPS` times
+    as many where that lets each step hold the ring (:func:`ring_held`).
 
     Refused (``ValueError``): more than :data:`MAX_STEPS` steps or evaluations of the rate; for
     a linear flow, a time above :data:`EQUILIBRIUM_CROSSINGS` times the time its diffusion
@@ -230,6 +253,11 @@ def plan_steps(method: str, system: System, end: float, steps: int | None,
             longest = min(12.0 * band_cells**2, largest_step_times_rho())
             count = max(min(RKC_STEPS, explicit), math.ceil(end * rho / longest * (1 - 1e-9)),
                         math.ceil(end * system.growth / RKC_GROWTH * (1 - 1e-9)))
+            margin = band_cells - HELD_RING_CELLS
+            if margin > 0:
+                holding = math.ceil(end * rho / (12.0 * margin**2) * (1 - 1e-9))
+                if count < holding <= HELD_RING_STEPS * count:
+                    count = holding
         elif method in INTEGRATORS:
             count = explicit
         else:
@@ -511,6 +539,13 @@ INTEGRATORS: dict[str, Callable[[System, Tensor, Schedule], list[Tensor]]] = {
 """Built-in integrators by name; any other name is handed to torchdiffeq (``"dopri5"``, ``"rk4"``...)."""
 
 IMPLICIT = ("implicit", "crank_nicolson")
+
+RING_HELD = (*IMPLICIT, "euler", "heun")
+"""Methods that do not re-extend the ring at every evaluation of the rate: the implicit ones
+(their operator must stay symmetric) and Euler and Heun, whose steps are short enough that the
+re-extension every few steps keeps them second order, with smaller errors than refreshing the
+ring at every evaluation (docs/band.md). RKC too, on a band wide enough for its steps
+(:func:`ring_held`)."""
 
 
 def integrate(method: str, system: System, u0: Tensor, schedule: Schedule) -> list[Tensor]:

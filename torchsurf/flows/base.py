@@ -17,10 +17,12 @@ a constructor choice:
   (``pip install torchdiffeq``); ``adjoint=True`` uses ``odeint_adjoint``.
 
 The computational domain is a band of fixed width around S (``surface.band_width``, 3 cells by
-default, or ``band_width=``), measured as ``|phi| / W`` so that it does not depend on the scale of
-``phi``, and independent of the time. The ring of nodes its stencils read around it is
-refreshed by closest-point re-extension (tricubic, limited) at every evaluation of RKC's and
-torchdiffeq's rate, and the whole band after every step (``reextend_every``); Euler and Heun,
+default, widened to 5 cells on a dense surface whose phi is a distance that far, or
+``band_width=``), measured as ``|phi| / W`` so that it does not depend on the scale of ``phi``,
+and independent of the time. The ring of nodes its stencils read around it is refreshed by
+closest-point re-extension (tricubic, limited) at every evaluation of RKC's and torchdiffeq's
+rate (RKC: only after each step where the band is wide enough for the step), and the whole
+band after every step (``reextend_every``); Euler and Heun,
 whose steps are short, refresh both every few steps; the implicit methods, whose operator must
 stay symmetric, hold the ring fixed during a step (a Dirichlet condition) and refresh it between
 steps. The explicit steps and RKC's stages come from a Gershgorin bound
@@ -58,6 +60,7 @@ from ._integrators import (
     System,
     integrate,
     plan_steps,
+    ring_held,
     with_ring,
 )
 from ._positive import Positive
@@ -119,32 +122,15 @@ node within ``band_width + h / sqrt(3)`` of S."""
 WIDE_BAND_CELLS = 5.0
 """Half-width (cells) of the band a flow evolves on a dense surface whose ``phi`` is a distance
 out to it and its ring (:meth:`Flow.evolving_width`): wide enough that RKC steps of up to
-``12 (5 - 3)^2 / rho`` may hold the ring (:data:`HELD_RING_CELLS`), which costs nothing in the
-dense operators (they run over the whole box) and saves the ring's re-extension at every
-stage: 1.5x faster to the same error on a sphere at 37^3-65^3 (docs/band.md)."""
+``12 (5 - 3)^2 / rho`` may hold the ring (:func:`~torchsurf.flows._integrators.ring_held`),
+which costs nothing in the dense operators (they run over the whole box) and saves the ring's
+re-extension at every stage: 1.5x faster to the same error on a sphere at 37^3-65^3
+(docs/band.md)."""
 
 DISTANCE_TOLERANCE = 0.1
 """``phi`` counts as a distance where ``|grad phi|`` is within this fraction of
 ``gradient_scale``: the medial axis, thin features and the edge of the band in which a mesh's
 distance was computed all fall outside it."""
-
-HELD_RING_CELLS = 3.0
-"""An RKC step of ``dt rho <= 12 (w - HELD_RING_CELLS)^2`` on a band of ``w`` cells holds the
-ring during the step and re-extends it with the band after the step: the stale ring's error
-then diffuses less than ``w - 3`` cells inward, short of the nodes (within ``2 sqrt(3)`` cells
-of S) that the band's re-extension reads. Measured on the sphere at 33^3-65^3 (docs/band.md):
-no loss within the bound, a loss beyond it (5 cells, ``dt rho = 65``: 1.7e-3 against
-2.8e-4)."""
-
-
-def ring_held(method: str, step_times_rho: float, band_cells: float) -> bool:
-    """Whether ``method``'s steps of ``dt * rho = step_times_rho`` on a band of ``band_cells``
-    cells keep the ring fixed during each step (see :data:`RING_HELD`, :data:`HELD_RING_CELLS`)."""
-    if method in RING_HELD:
-        return True
-    margin = band_cells - HELD_RING_CELLS
-    return method == "rkc" and margin > 0 and step_times_rho <= 12.0 * margin**2
-
 
 def _distance_band_widths(surface: ImplicitSurface) -> tuple[float, ...]:
     """For each entry: :data:`WIDE_BAND_CELLS` cells if its ``phi`` is a distance
@@ -228,14 +214,6 @@ def _learned_time(system: System, time: float | Tensor, nominal: float) -> None:
         system.linear = Linear(lambda x, *params: params[-1] * operator(x, *params[:-1]),
                                (*system.linear.params, scale))
     system.params = (*system.params, scale)
-
-
-RING_HELD = (*IMPLICIT, "euler", "heun")
-"""Methods that do not re-extend the ring at every evaluation of the rate: the implicit ones
-(their operator must stay symmetric) and Euler and Heun, whose steps are short enough that the
-re-extension every few steps keeps them second order, with smaller errors than refreshing the
-ring at every evaluation (docs/band.md). RKC too, on a band wide enough for its steps
-(:func:`ring_held`)."""
 
 
 class Flow(nn.Module):
