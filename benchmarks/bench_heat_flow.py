@@ -228,7 +228,11 @@ def time_to_accuracy(rows: list[Row], target: float) -> list[str]:
             continue
         other = best[name]
         ratio = other.seconds / fastest.seconds if name == REFERENCE_NAME else fastest.seconds / other.seconds
-        lines.append(f"{wording}: {ratio:.1f}")
+        lines.append(f"{wording}: {ratio:.2f}")
+    default = best.get("rkc")
+    if default is not None and "mesh peer" in best:
+        lines.append(f"default (rkc) ÷ mesh peer (target <= 0.25): "
+                     f"{default.seconds / best['mesh peer'].seconds:.2f}")
     return lines
 
 
