@@ -214,21 +214,6 @@ def test_compiled_fused_kernels_match_the_eager_reference(operator):
     torch.testing.assert_close(results[1][1], results[0][1], rtol=1e-4, atol=1e-5 * gradient_scale)
 
 
-def test_recorded_decisions_replay_what_auto_chose(monkeypatch):
-    """A checkpoint's recomputation must run the kernels the forward ran."""
-    calls: list[str] = []
-    kernel = _kernel("test_replay", calls)
-    volume = torch.zeros(1, 1, 4, 4, 4)
-    monkeypatch.setattr(backend, "compiled", lambda f, dynamic=False: f)
-    record, replay = backend.recorded_decisions()
-    with record:
-        assert backend.resolve("auto", volume, kernel) == "slicing"
-    monkeypatch.setattr(backend, "COMPILE_PAYBACK_SECONDS", 0.0)
-    assert backend.resolve("auto", volume, kernel) == "compiled"
-    with replay:
-        assert backend.resolve("auto", volume, kernel) == "slicing"
-
-
 def test_recorded_calls_switch_by_eager_time_only_on_large_volumes(monkeypatch):
     """A gradcheck or a double backward on a small grid must not find a compiled kernel under
     it mid-run; training at 64^3 is compiled once it pays."""

@@ -344,46 +344,6 @@ def warm_up() -> Iterator[None]:
         _AT_ONCE.reset(token)
 
 
-@dataclass
-class _Decisions:
-    paths: list[str] = field(default_factory=list)
-    replaying: bool = False
-    position: int = 0
-
-
-_DECISIONS: contextvars.ContextVar[_Decisions | None] = contextvars.ContextVar(
-    "torchsurf_backend_decisions", default=None
-)
-
-
-class _Using:
-    """Makes ``decisions`` the active record while entered; re-entrant (a checkpoint's
-    recomputation may run once per backward)."""
-
-    def __init__(self, decisions: _Decisions, replaying: bool) -> None:
-        self.decisions, self.replaying = decisions, replaying
-        self.tokens: list[contextvars.Token] = []
-
-    def __enter__(self) -> None:
-        if self.replaying:
-            self.decisions.replaying, self.decisions.position = True, 0
-        self.tokens.append(_DECISIONS.set(self.decisions))
-
-    def __exit__(self, *exc: object) -> None:
-        _DECISIONS.reset(self.tokens.pop())
-
-
-def recorded_decisions() -> tuple[contextlib.AbstractContextManager, contextlib.AbstractContextManager]:
-    """Two context managers: the first records every path :func:`resolve` picks, the second
-    replays them in the same order (as often as it is entered).
-
-    For ``torch.utils.checkpoint(context_fn=...)``: the recomputation in backward must run the
-    same kernels as the forward did, although ``"auto"`` may have decided to compile since.
-    """
-    decisions = _Decisions()
-    return _Using(decisions, replaying=False), _Using(decisions, replaying=True)
-
-
 def resolve(path: str, volume: Tensor, kernel: Kernel | None = None,
             recording: bool = False, args: tuple | None = None) -> str:
     """The concrete path for ``volume``: ``"slicing"``, ``"conv3d"`` or ``"compiled"``.
@@ -411,14 +371,7 @@ def _resolve(path: str, volume: Tensor, kernel: Kernel | None, recording: bool, 
     timed = (kernel is not None and kernel.fused is not None and volume.device.type == "cpu"
              and not torch.compiler.is_compiling())
     variant = _variant(kernel, volume, args, recording) if timed else None
-    decisions = _DECISIONS.get()
-    if decisions is not None and decisions.replaying:
-        decisions.position += 1
-        return decisions.paths[decisions.position - 1], variant
-    chosen = _choose(volume, kernel, recording, variant)
-    if decisions is not None:
-        decisions.paths.append(chosen)
-    return chosen, variant
+    return _choose(volume, kernel, recording, variant), variant
 
 
 def _choose(volume: Tensor, kernel: Kernel | None, recording: bool, variant: tuple | None

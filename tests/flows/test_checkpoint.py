@@ -133,3 +133,35 @@ def test_a_segment_whose_input_changed_in_place_before_backward_raises():
     start.add_(1.0)  # the recomputation would read the changed values
     with pytest.raises(RuntimeError, match="inplace"):
         result.sum().backward()
+
+
+def test_chebyshev_expansion_with_a_learned_phi_recomputes_its_groups(monkeypatch):
+    """The heat semigroup by Chebyshev expansion on a ``phi`` that requires grad: its groups of
+    terms run without a graph (what stays is the geometry's graph from ``phi`` and the first two
+    terms, not a dozen nodes a term) and backward gives the gradients in ``u``, the time and
+    ``phi`` that the recurrence recorded whole gives."""
+    import torchsurf.flows.chebyshev as chebyshev
+
+    grid = ts.Grid.cube(13, 1.5)
+    generator = torch.Generator().manual_seed(4)
+    base = ts.sdf.sphere(grid, dtype=torch.float64) * 1.3
+    u0 = torch.rand((1, 2, *grid.shape), dtype=torch.float64, generator=generator)
+    weights = torch.rand(u0.shape, dtype=torch.float64, generator=generator)
+    results, nodes = {}, {}
+    for recorded in (True, False):
+        if recorded:
+            monkeypatch.setattr(chebyshev, "recomputed", lambda function, u, reads: function(u))
+        else:
+            monkeypatch.undo()
+        flow = ts.HeatFlow(6 * grid.spacing**2, method="chebyshev", learn_time=True).double()
+        phi = base.clone().requires_grad_(True)
+        start = u0.clone().requires_grad_(True)
+        value = flow(start, ts.ImplicitSurface(phi, grid))
+        nodes[recorded] = _graph_nodes(value)
+        (value * weights).sum().backward()
+        results[recorded] = (value.detach(), start.grad, phi.grad,
+                             *(p.grad for p in flow.parameters()))
+    assert nodes[False] < nodes[True] / 4, nodes  # 1359 against 8635
+    for kept, plain in zip(results[False], results[True], strict=True):
+        assert plain is not None and kept is not None
+        torch.testing.assert_close(kept, plain, rtol=1e-9, atol=1e-12)

@@ -23,21 +23,22 @@ inner products ``s_k = <x, W T_k(Y)(g / W)>`` per channel, the gradient of the t
 coefficients: ``dL/dt_c = sum_k (dc_k / dt_c) s_k``, the exact derivative of the expansion
 computed (equal to ``<g, L exp(t L) x>`` for ``f = exp``, to the tolerance). Nothing but ``x``,
 the times and ``W`` is kept for backward. When the operator's tensors require grad (a learned
-``phi``), the recurrence runs under autograd instead, checkpointed in groups of ``sqrt(K)``
-terms: ``O(sqrt(K))`` volumes kept, the terms of a group recomputed in backward.
+``phi``), the recurrence runs in groups of ``sqrt(K)`` terms without a graph, each recomputed
+under autograd in backward (:func:`~torchsurf.flows._recompute.recomputed`): ``O(sqrt(K))``
+volumes kept, and no graph held between forward and backward.
 """
 
 from __future__ import annotations
 
+import functools
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import numpy as np
 import torch
-import torch.utils.checkpoint
 from torch import Tensor
 
-from .. import backend
+from ._recompute import independent, recomputed
 
 KINDS = ("exp", "phi1")
 """``"exp"``: ``exp(t L)``; ``"phi1"``: ``t phi1(t L) = (exp(t L) - 1) / L`` (which maps a
@@ -245,30 +246,40 @@ def _group(operator: Callable[..., Tensor], scale: float, c: Tensor, first: int,
     return previous, current, total
 
 
+def _stacked_group(operator: Callable[..., Tensor], scale: float, c: Tensor, first: int,
+                   params: tuple[Tensor, ...], state: Tensor) -> Tensor:
+    """:func:`_group` on ``state`` = ``(previous, current, total)`` stacked along a new first
+    dimension (one tensor, as :func:`recomputed` takes)."""
+    return torch.stack(_group(operator, scale, c, first, *state.unbind(0), *params))
+
+
 def _checkpointed(operator: Callable[..., Tensor], x: Tensor, c: Tensor, bound: float,
-                  params: tuple[Tensor, ...]) -> Tensor:
-    """The recurrence under autograd, checkpointed every ``sqrt(K)`` terms."""
+                  params: tuple[Tensor, ...], reads: Sequence[Tensor] = ()) -> Tensor:
+    """The recurrence under autograd, in groups of ``sqrt(K)`` terms run without a graph and
+    recomputed in backward; ``reads``: what ``operator`` reads that needs gradients."""
     terms, scale = c.shape[1], 2.0 / bound
     total = _channelwise(c[:, 0]) * x
     if terms == 1:
         return total
-    previous = x
     current = torch.add(x, operator(x, *params), alpha=scale)
     total = total + _channelwise(c[:, 1]) * current
+    state = torch.stack((x, current, total))
+    declared = independent((*reads, *params, c))
     group = max(1, math.isqrt(terms))
     for first in range(2, terms, group):
         chunk = c[:, first: min(first + group, terms)]
-        previous, current, total = torch.utils.checkpoint.checkpoint(
-            _group, operator, scale, chunk, first, previous, current, total, *params,
-            use_reentrant=False, context_fn=backend.recorded_decisions,
+        state = recomputed(
+            functools.partial(_stacked_group, operator, scale, chunk, first, params), state,
+            declared,
         )
-    return total
+    return state[2]
 
 
 def expansion(
     operator: Callable[[Tensor], Tensor], x: Tensor, times: Tensor, bound: float,
     weight: Tensor | None = None, adjoint: Callable[[Tensor], Tensor] | None = None,
     kind: str = "exp", differentiable_operator: bool = False, terms: int | None = None,
+    reads: Sequence[Tensor] = (),
 ) -> Tensor:
     """``f_t(L) x`` by Chebyshev expansion, one time per channel (module docstring).
 
@@ -283,9 +294,11 @@ def expansion(
         adjoint: ``g -> L^T g`` otherwise (one of ``weight`` and ``adjoint`` is needed).
         kind: ``"exp"`` (``exp(t L) x``) or ``"phi1"`` (``(exp(t L) - 1) L^-1 x``).
         differentiable_operator: ``operator`` reads tensors that require grad (``phi``'s
-            geometry): the recurrence then runs under autograd, checkpointed every
-            ``sqrt(K)`` terms, instead of the transposed expansion.
+            geometry): the recurrence then runs in groups of ``sqrt(K)`` terms recomputed
+            under autograd in backward, instead of the transposed expansion.
         terms: number of terms ``K`` (default :func:`count_terms` of the largest time).
+        reads: with ``differentiable_operator``, the tensors ``operator`` reads that need
+            gradients (``phi``): backward raises if it reads another.
 
     Returns:
         ``(B, C, D, H, W)``. Operator applications: ``K - 1`` forward, as many in backward.
@@ -299,7 +312,7 @@ def expansion(
         terms = _terms_for(kind, times, bound, x.dtype)
     if differentiable_operator and torch.is_grad_enabled():
         c = coefficients(kind, times, bound, terms)
-        return _checkpointed(operator, x, c, bound, ())
+        return _checkpointed(operator, x, c, bound, (), reads)
     if weight is None:
         weight = x.new_ones(())
     return _Expansion.apply(operator, adjoint, kind, bound, terms, x, weight, times)

@@ -164,6 +164,7 @@ def heat_semigroup(u0: Tensor, operator: BandLaplacian, times: Tensor,
     result = chebyshev.expansion(
         operator.apply, inside, times, operator.bound, adjoint=operator.transpose,
         differentiable_operator=operator.differentiable, terms=terms,
+        reads=(operator.surface.phi,),
     )
     if operator.differentiable:
         extended = operator.extension.apply(result, operator.path)
