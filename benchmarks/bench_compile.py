@@ -160,18 +160,13 @@ def build(item: str, path: str, n: int, batch: int, dtype: torch.dtype
     return (lambda u: layer(u, surface)), data, list(layer.parameters())
 
 
-def _picks(record: backend._Decisions) -> dict[str, int]:
-    return dict(collections.Counter(record.paths))
-
-
 def _recorded(function: Callable[[], object]) -> tuple[float, dict[str, int]]:
     """Wall seconds of ``function()`` and the paths ``"auto"`` picked inside it."""
-    record, _ = backend.recorded_decisions()
-    with record:
+    with backend.recorded_paths() as picks:
         start = time.perf_counter()
         function()
         seconds = time.perf_counter() - start
-    return seconds, _picks(record.decisions)
+    return seconds, dict(collections.Counter(picks))
 
 
 def _pending() -> bool:

@@ -37,6 +37,7 @@ torchsurf method's (target >= 20) and the fastest torchsurf method's over the me
 
     python benchmarks/bench_heat_flow.py --sizes 65 129 --implicit-steps 10
     python benchmarks/bench_heat_flow.py --sizes 65 129 --mesh-peer-only --subdivisions 4 5 6
+    python benchmarks/bench_heat_flow.py --paired 37 --pairs 9   # the default against the peer, alternated
 """
 
 from __future__ import annotations
@@ -236,6 +237,32 @@ def time_to_accuracy(rows: list[Row], target: float) -> list[str]:
     return lines
 
 
+def paired(n: int, pairs: int, target: float, warm: bool = True) -> list[str]:
+    """The default flow at ``n^3`` and the mesh peer at ``target``, timed alternately ``pairs``
+    times in this process: each pair's ratio, so that the machine's drift falls on both."""
+    grid, phi, u0 = case(n, torch.float32)
+    surface = ts.ImplicitSurface(phi, grid)
+    flow = HeatFlow(TIME)
+    with ts.backend.warm_up() if warm else contextlib.nullcontext():
+        u = flow(u0, surface)
+    error = sampled_error(u, grid)
+    peer = accuracy_matched(target)
+    vertices, faces = icosphere(peer.subdivisions)
+    ratios, ours, theirs = [], [], []
+    for _ in range(pairs):
+        ours.append(timed(lambda: flow(u0, surface))[1])
+        theirs.append(timed(lambda: mesh_heat_flow(vertices, faces, peer.steps))[1])
+        ratios.append(ours[-1] / theirs[-1])
+    return [
+        f"Paired: rkc (default) at {n}^3 (error {error:.2e}) against the mesh peer "
+        f"icosphere({peer.subdivisions}), {peer.steps} BE steps (error {peer.error:.2e}), "
+        f"alternated {pairs} times:",
+        f"rkc s: {' '.join(f'{t:.3f}' for t in ours)}",
+        f"mesh s: {' '.join(f'{t:.3f}' for t in theirs)}",
+        f"ratios: {' '.join(f'{r:.2f}' for r in ratios)}; median {statistics.median(ratios):.2f}",
+    ]
+
+
 def surface_samples(phi: torch.Tensor, grid: ts.Grid) -> int:
     """Half the nodes within one cell of S (``|phi| <= h``): about ``area / h^2``."""
     return int((phi.abs() <= grid.spacing).sum()) // 2
@@ -420,6 +447,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--sizes", type=int, nargs="+", default=[65, 129])
     parser.add_argument("--implicit-steps", type=int, default=10)
     parser.add_argument("--float64", action="store_true")
+    parser.add_argument("--paired", type=int, metavar="N",
+                        help="only time the default flow at N^3 against the mesh peer, alternated")
+    parser.add_argument("--pairs", type=int, default=9)
     parser.add_argument("--eager", action="store_true",
                         help="no warm-up: the untimed first call is not in backend.warm_up()")
     parser.add_argument("--no-reference", action="store_true")
@@ -446,6 +476,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 def main(argv: list[str] | None = None) -> None:
     """Print the markdown table for the requested sizes."""
     args = parse_args(argv)
+    if args.paired is not None:
+        print("\n".join(paired(args.paired, args.pairs, args.mesh_target, warm=not args.eager)))
+        return
     dtype = torch.float64 if args.float64 else torch.float32
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, {dtype}; "
           f"mesh peer float64, scipy splu, {args.mesh_operators} operators")

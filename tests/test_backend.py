@@ -214,6 +214,19 @@ def test_compiled_fused_kernels_match_the_eager_reference(operator):
     torch.testing.assert_close(results[1][1], results[0][1], rtol=1e-4, atol=1e-5 * gradient_scale)
 
 
+def test_recorded_paths_list_what_auto_picked(monkeypatch):
+    kernel = _kernel("test_picks", [])
+    volume = torch.zeros(1, 1, 4, 4, 4)
+    monkeypatch.setattr(backend, "compiled", lambda f, dynamic=False: f)
+    with backend.recorded_paths() as picks:
+        backend.resolve("auto", volume, kernel)
+        backend.resolve("slicing", volume, kernel)  # not a choice of "auto": not listed
+        monkeypatch.setattr(backend, "COMPILE_PAYBACK_SECONDS", 0.0)
+        backend.resolve("auto", volume, kernel)
+    backend.resolve("auto", volume, kernel)  # outside: not listed
+    assert picks == ["slicing", "compiled"]
+
+
 def test_recorded_calls_switch_by_eager_time_only_on_large_volumes(monkeypatch):
     """A gradcheck or a double backward on a small grid must not find a compiled kernel under
     it mid-run; training at 64^3 is compiled once it pays."""

@@ -344,6 +344,28 @@ def warm_up() -> Iterator[None]:
         _AT_ONCE.reset(token)
 
 
+_PICKS: contextvars.ContextVar[list[str] | None] = contextvars.ContextVar(
+    "torchsurf_backend_picks", default=None
+)
+
+
+@contextlib.contextmanager
+def recorded_paths() -> Iterator[list[str]]:
+    """Inside, every path ``"auto"`` picks is appended to the list this yields, in order (for
+    benchmarks and diagnostics: which kernels ran compiled)::
+
+        with torchsurf.backend.recorded_paths() as picks:
+            flow(u, surface)
+        collections.Counter(picks)  # e.g. {"compiled": 40, "slicing": 8}
+    """
+    picks: list[str] = []
+    token = _PICKS.set(picks)
+    try:
+        yield picks
+    finally:
+        _PICKS.reset(token)
+
+
 def resolve(path: str, volume: Tensor, kernel: Kernel | None = None,
             recording: bool = False, args: tuple | None = None) -> str:
     """The concrete path for ``volume``: ``"slicing"``, ``"conv3d"`` or ``"compiled"``.
@@ -371,7 +393,11 @@ def _resolve(path: str, volume: Tensor, kernel: Kernel | None, recording: bool, 
     timed = (kernel is not None and kernel.fused is not None and volume.device.type == "cpu"
              and not torch.compiler.is_compiling())
     variant = _variant(kernel, volume, args, recording) if timed else None
-    return _choose(volume, kernel, recording, variant), variant
+    chosen = _choose(volume, kernel, recording, variant)
+    picks = _PICKS.get()
+    if picks is not None:
+        picks.append(chosen)
+    return chosen, variant
 
 
 def _choose(volume: Tensor, kernel: Kernel | None, recording: bool, variant: tuple | None
