@@ -92,11 +92,10 @@ def measure(item: str, size: int, batch: int, repeats: int, payback: float, budg
         row[f"{path}_fwd_ms"] = round(1e3 * fastest(forward, repeats), 2)
         row[f"{path}_train_ms"] = round(1e3 * fastest(train, repeats), 2)
         if path == "auto":
-            record, _ = backend.recorded_decisions()
-            with record:
+            with backend.recorded_paths() as picks:
                 forward()
                 train()
-            row["auto_picks"] = dict(collections.Counter(record.decisions.paths))
+            row["auto_picks"] = dict(collections.Counter(picks))
     return row
 
 
