@@ -190,6 +190,7 @@ HELD_RING_STEPS = 2.0
 (:func:`ring_held`): the stages grow as the square root of the step count, and each costs
 about half as much without the ring's re-extension (81^3 sphere: 9 steps instead of 8)."""
 
+
 def ring_held(method: str, step_times_rho: float, band_cells: float) -> bool:
     """Whether ``method``'s steps of ``dt * rho = step_times_rho`` on a band of ``band_cells``
     cells keep the ring fixed during each step (:data:`RING_HELD`, :data:`HELD_RING_CELLS`)."""

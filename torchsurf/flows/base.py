@@ -132,6 +132,7 @@ DISTANCE_TOLERANCE = 0.1
 ``gradient_scale``: the medial axis, thin features and the edge of the band in which a mesh's
 distance was computed all fall outside it."""
 
+
 def _distance_band_widths(surface: ImplicitSurface) -> tuple[float, ...]:
     """For each entry: :data:`WIDE_BAND_CELLS` cells if its ``phi`` is a distance
     (:data:`DISTANCE_TOLERANCE`) at every node within that width and its ring, else
@@ -460,7 +461,7 @@ class Flow(nn.Module):
         if surface.layout is not None and surface.batch_size > 1:
             return self._each_entry(u0, surface.entries(), len(surface.layout), times, inputs)
         if surface.layout is None and len(set(self._entry_widths(surface))) > 1:
-            entries = ((torch.tensor([b]), _entry_surface(surface, b))
+            entries = ((torch.tensor([b], device=u0.device), _entry_surface(surface, b))
                        for b in range(surface.batch_size))
             return self._each_entry(u0, entries, surface.batch_size, times, inputs)
         end = self.time_value.maximum()  # a host read only for a learned time without max_time

@@ -270,7 +270,7 @@ class CubicStencil:
                                      height, width)(slice(None))[0]
         self.anchors = [
             None if sources is None or not bool(
-                (sources == sources[:, :1] + offsets.to(sources.dtype)).all())
+                (sources == sources[:, :1] + offsets.to(sources)).all())
             else sources[:, 0].contiguous()
             for sources in self.sources
         ]
