@@ -43,7 +43,7 @@ def sample(field: Tensor, points: Tensor, grid: Grid, interpolation: str = "line
     beside the box's faces the nodes beyond it repeat the face's (the linear sampler's border).
     Reading a second-order solution trilinearly adds an ``O(h^2)`` error of the read-out's
     own, often larger than the solution's (heat flow on a sphere at 65^3: 1.2e-3 read
-    trilinearly, 3.8e-4 tricubically; docs/benchmarks.md). Both are differentiable with
+    trilinearly, 2.4e-4 tricubically; docs/benchmarks.md). Both are differentiable with
     respect to ``field`` and ``points``.
 
     Args:

@@ -266,16 +266,18 @@ class CubicStencil:
         ]
         # where no tap is clamped at the box's faces, the 64 taps sit at fixed offsets from
         # the first: the compiled gather then loads one index a node instead of 64
-        offsets = _dense_tap_indices(torch.zeros(3, 1, 4, dtype=torch.long) + torch.arange(4),
-                                     height, width)(slice(None))[0]
+        offsets = _dense_tap_indices(torch.arange(4).expand(3, 1, 4), height, width)(
+            slice(None))[0]
         self.anchors = [
             None if sources is None or not bool(
                 (sources == sources[:, :1] + offsets.to(sources)).all())
             else sources[:, 0].contiguous()
             for sources in self.sources
         ]
-        self.weights_by_offset = [weights.transpose(1, 2).contiguous()
-                                  for _, _, weights in self.parts]
+        self.weights_by_offset = [
+            None if anchors is None else weights.transpose(1, 2).contiguous()
+            for anchors, (_, _, weights) in zip(self.anchors, self.parts, strict=True)
+        ]
 
     def apply(self, u: Tensor, path: str = "auto") -> Tensor:
         """``u`` ``(B, C, D, H, W)`` with the masked nodes re-extended; a new tensor.
