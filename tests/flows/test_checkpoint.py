@@ -6,6 +6,7 @@ import pytest
 import torch
 
 import torchsurf as ts
+from torchsurf.flows._recompute import recomputed
 
 
 def _saved_bytes(run) -> tuple[torch.Tensor, int]:
@@ -165,3 +166,15 @@ def test_chebyshev_expansion_with_a_learned_phi_recomputes_its_groups(monkeypatc
     for kept, plain in zip(results[False], results[True], strict=True):
         assert plain is not None and kept is not None
         torch.testing.assert_close(kept, plain, rtol=1e-9, atol=1e-12)
+
+
+def test_recomputing_the_identity_passes_the_input_through():
+    """A step that changes nothing (a re-extension not due) returns its input itself; an
+    autograd Function may not, so ``recomputed`` passes it through and gradients keep flowing
+    (a bounded learned time once lost its whole gradient this way)."""
+    u = torch.rand(1, 1, 3, 3, 3, dtype=torch.float64, requires_grad=True)
+    scale = torch.tensor(2.0, dtype=torch.float64, requires_grad=True)
+    value = recomputed(lambda v: v, u * scale, [scale])
+    value.sum().backward()
+    assert torch.allclose(scale.grad, u.detach().sum())
+    assert torch.allclose(u.grad, torch.full_like(u, 2.0))

@@ -73,7 +73,10 @@ def test_rkc_and_chebyshev_forward_trace_without_graph_break(sphere):
 @pytest.mark.parametrize("method", ["rkc", "implicit"])
 def test_bounded_learned_time_integrates_the_same_flow(method):
     """``max_time`` at the time (above its float32 rounding): the same steps, the same numbers
-    and gradient; twice the time: more, shorter steps of the same flow."""
+    and gradient; twice the time: more, shorter steps of the same flow (the band is re-extended
+    once per cell-crossing time and at the end, so the two hold the ring for different steps:
+    2.5 % of the scale apart at one band-edge node of this 13^3 grid, 0.7 % when both
+    re-extended after every step)."""
     case = ts.exact.sphere_harmonic(2, 13, dtype=torch.float64)  # smooth: no stiff modes
     u, surface = case.u, ts.ImplicitSurface(case.phi, case.grid)
     h2 = surface.spacing**2
@@ -86,7 +89,7 @@ def test_bounded_learned_time_integrates_the_same_flow(method):
     torch.testing.assert_close(results[1][0], results[0][0], rtol=1e-12, atol=1e-12)
     torch.testing.assert_close(results[1][1], results[0][1], rtol=1e-10, atol=1e-12)
     scale = results[0][0].abs().max()
-    torch.testing.assert_close(results[2][0], results[0][0], rtol=0, atol=2e-2 * scale)
+    torch.testing.assert_close(results[2][0], results[0][0], rtol=0, atol=3e-2 * scale)
     torch.testing.assert_close(results[2][1], results[0][1], rtol=5e-2, atol=0)
 
 

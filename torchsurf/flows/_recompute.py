@@ -36,6 +36,8 @@ def recomputed(function: Callable[[Tensor], Tensor], u: Tensor, reads: Sequence[
         return function(u)
     with torch.no_grad():
         result = function(u)
+    if result is u:  # nothing to recompute (an autograd Function must not return its input)
+        return u
     return _Recompute.apply(function, result, u, *reads)
 
 

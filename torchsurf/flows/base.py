@@ -22,10 +22,11 @@ default, widened to 5 cells on a dense surface whose phi is a distance that far,
 and independent of the time. The ring of nodes its stencils read around it is refreshed by
 closest-point re-extension (tricubic, limited) at every evaluation of RKC's and torchdiffeq's
 rate (RKC: only after each step where the band is wide enough for the step), and the whole
-band after every step (``reextend_every``); Euler and Heun,
-whose steps are short, refresh both every few steps; the implicit methods, whose operator must
-stay symmetric, hold the ring fixed during a step (a Dirichlet condition) and refresh it between
-steps. The explicit steps and RKC's stages come from a Gershgorin bound
+band with it after each step, or, where steps are shorter than the time the fastest diffusion
+takes to cross a cell, after as many steps as that takes, and at each requested time
+(``reextend_every``): every re-extension errs a little, so more steps must not mean more of
+them. Euler and Heun do not refresh the ring in between; the implicit methods, whose operator
+must stay symmetric, hold the ring fixed during a step (a Dirichlet condition). The explicit steps and RKC's stages come from a Gershgorin bound
 ``rho`` of the operator assembled on that band (:mod:`torchsurf.operators.spectrum`), never from
 the nominal ``h^2 / 6`` alone. docs/band.md has the measurements behind these choices.
 """
@@ -243,8 +244,9 @@ class Flow(nn.Module):
         progress: show a tqdm progress bar over the steps (tqdm is optional).
         reextend_every: re-extend the band and its ring along normals (closest point,
             tricubic, limited to the range of the cell around each closest point) every this
-            many steps; ``"auto"`` (default) after every RKC or implicit step and after as many
-            Euler or Heun steps as the fastest diffusion takes to cross one cell. Between
+            many steps; ``"auto"`` (default) after as many steps as the fastest diffusion takes
+            to cross one cell, ``floor(12 / (rho dt))``, or after every step where steps are
+            longer, and into each result at the requested times (docs/band.md). Between
             re-extensions, RKC and torchdiffeq methods re-extend the ring around the band at
             every evaluation of the rate (Euler and Heun need not: docs/band.md). ``None``:
             never (the ring keeps ``u0``: only right for a band as wide as the diffusion
@@ -378,8 +380,9 @@ class Flow(nn.Module):
             return None
         if self.reextend_every != "auto":
             return self.reextend_every
-        if self.method in ("euler", "heun"):
-            # the time the fastest diffusion takes to cross one cell, 12 / rho
+        if self.method in ("euler", "heun", "rkc", *IMPLICIT):
+            # the time the fastest diffusion takes to cross one cell, 12 / rho: each
+            # re-extension of the band errs by a little, so many short steps must not each add one
             return max(1, math.floor(12.0 / (system.spectral_radius * plan.step)))
         return 1
 
@@ -393,23 +396,36 @@ class Flow(nn.Module):
 
     def _after_step(self, surface: ImplicitSurface, system: System, bar: object | None,
                     every: int | None):  # noqa: ANN202
+        """The schedule's ``after_step`` and ``output`` hooks: the progress bar, and the band's
+        re-extension every ``every`` steps and at each requested time (there into the result
+        only, so that the results do not depend on which times were requested)."""
         hooks = []
         if bar is not None:
             hooks.append(lambda u, k: (bar.update(1), u)[1])
+        output = None
         if every is not None:
             stencil = _stencil(surface, self.evolving_width(surface), "region", system.region,
                                system.region)
             path = self.path
-            hooks.append(lambda u, k: reextend(stencil, u, path) if k % every == 0 else u)
+            last = [0]
+
+            def periodic(u: Tensor, k: int) -> Tensor:
+                last[0] = k
+                return reextend(stencil, u, path) if k % every == 0 else u
+
+            def output(u: Tensor) -> Tensor:
+                return u if last[0] % every == 0 else reextend(stencil, u, path)
+
+            hooks.append(periodic)
         if not hooks:
-            return None
+            return None, output
 
         def after_step(u: Tensor, k: int) -> Tensor:
             for hook in hooks:
                 u = hook(u, k)
             return u
 
-        return after_step
+        return after_step, output
 
     def _check_memory(self, u0: Tensor, surface: ImplicitSurface, band: Tensor) -> None:
         """Raise ``MemoryError`` before any work if the call cannot fit (:mod:`torchsurf._memory`);
@@ -498,7 +514,9 @@ class Flow(nn.Module):
                           diagonal_cells=_diagonal_cells(surface))
         bar = self._progress_bar(plan.count)
         every = self._reextension_period(system, plan)
-        schedule = self._schedule(end, wanted, self._after_step(surface, system, bar, every))
+        after_step, output = self._after_step(surface, system, bar, every)
+        schedule = self._schedule(end, wanted, after_step)
+        schedule.output = output
         schedule.step = plan.step
         schedule.segment = 12.0 * (width / surface.spacing) ** 2 / system.spectral_radius
         schedule.checkpoint = self._checkpointing(u0, surface, system)
