@@ -26,9 +26,10 @@ band with it after each step, or, where steps are shorter than the time the fast
 takes to cross a cell, after as many steps as that takes, and at each requested time
 (``reextend_every``): every re-extension errs a little, so more steps must not mean more of
 them. Euler and Heun do not refresh the ring in between; the implicit methods, whose operator
-must stay symmetric, hold the ring fixed during a step (a Dirichlet condition). The explicit steps and RKC's stages come from a Gershgorin bound
-``rho`` of the operator assembled on that band (:mod:`torchsurf.operators.spectrum`), never from
-the nominal ``h^2 / 6`` alone. docs/band.md has the measurements behind these choices.
+must stay symmetric, hold the ring fixed during a step (a Dirichlet condition). The explicit
+steps and RKC's stages come from a Gershgorin bound ``rho`` of the operator assembled on that
+band (:mod:`torchsurf.operators.spectrum`), never from the nominal ``h^2 / 6`` alone.
+docs/band.md has the measurements behind these choices.
 """
 
 from __future__ import annotations
