@@ -120,6 +120,19 @@ def test_more_steps_do_not_add_reextension_error(method, few, many):
         assert fine[degree] < 1.1 * coarse[degree], (coarse, fine)
 
 
+def test_requested_times_do_not_add_reextension_error():
+    """Requested times split RKC's steps (at least one step each); the re-extension period
+    follows the steps actually taken, so fifty results cost no accuracy at the last (17^3,
+    l = 1: 2.9e-3 against 1.7e-3 when the period followed the planned steps)."""
+    u0, surface = harmonics(17, torch.float64)
+    flow = HeatFlow(TIME)
+    single = decay_errors(flow(u0, surface), surface, TIME, interpolation="cubic")
+    times = [TIME * (k + 1) / 50 for k in range(50)]
+    last = decay_errors(flow(u0, surface, times=times)[-1], surface, TIME, interpolation="cubic")
+    for degree in range(4):
+        assert last[degree] < 1.1 * single[degree], (single, last)
+
+
 def small_case(n: int = 17, dtype: torch.dtype = torch.float64, seed: int = 0):
     grid = ts.Grid.cube(n, bound=1.5)
     surface = ts.ImplicitSurface(ts.sdf.sphere(grid, radius=1.0, dtype=dtype), grid)

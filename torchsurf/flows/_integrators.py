@@ -328,6 +328,11 @@ def _intervals(schedule: Schedule) -> Iterator[tuple[int, Tensor | float, int]]:
         previous = time
 
 
+def shortest_step(schedule: Schedule) -> float:
+    """The shortest step ``schedule`` takes (requested times split the steps), physical time."""
+    return min(_value(dt) for _, dt, _ in _intervals(schedule))
+
+
 def _finish(system: System, u: Tensor) -> Tensor:
     return u if system.project is None else system.project(u)
 

@@ -57,12 +57,12 @@ from ._integrators import (
     IMPLICIT,
     INTEGRATORS,
     Linear,
-    Plan,
     Schedule,
     System,
     integrate,
     plan_steps,
     ring_held,
+    shortest_step,
     with_ring,
 )
 from ._positive import Positive
@@ -376,7 +376,8 @@ class Flow(nn.Module):
             ) from error
         return tqdm(total=total, desc=type(self).__name__, unit="step", leave=False)
 
-    def _reextension_period(self, system: System, plan: Plan) -> int | None:
+    def _reextension_period(self, system: System, step: float) -> int | None:
+        """Steps between re-extensions of the band, ``step`` the shortest (physical time)."""
         if self.reextend_every is None:
             return None
         if self.reextend_every != "auto":
@@ -384,7 +385,7 @@ class Flow(nn.Module):
         if self.method in ("euler", "heun", "rkc", *IMPLICIT):
             # the time the fastest diffusion takes to cross one cell, 12 / rho: each
             # re-extension of the band errs by a little, so many short steps must not each add one
-            return max(1, math.floor(12.0 / (system.spectral_radius * plan.step)))
+            return max(1, math.floor(12.0 / (system.spectral_radius * step)))
         return 1
 
     def _checkpointing(self, u0: Tensor, surface: ImplicitSurface, system: System) -> bool:
@@ -514,11 +515,10 @@ class Flow(nn.Module):
                           band_cells=width / surface.spacing,
                           diagonal_cells=_diagonal_cells(surface))
         bar = self._progress_bar(plan.count)
-        every = self._reextension_period(system, plan)
-        after_step, output = self._after_step(surface, system, bar, every)
-        schedule = self._schedule(end, wanted, after_step)
-        schedule.output = output
+        schedule = self._schedule(end, wanted, None)
         schedule.step = plan.step
+        every = self._reextension_period(system, shortest_step(schedule))
+        schedule.after_step, schedule.output = self._after_step(surface, system, bar, every)
         schedule.segment = 12.0 * (width / surface.spacing) ** 2 / system.spectral_radius
         schedule.checkpoint = self._checkpointing(u0, surface, system)
         held = ring_held(self.method, plan.step * system.spectral_radius,
