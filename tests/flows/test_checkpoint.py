@@ -178,3 +178,25 @@ def test_recomputing_the_identity_passes_the_input_through():
     value.sum().backward()
     assert torch.allclose(scale.grad, u.detach().sum())
     assert torch.allclose(u.grad, torch.full_like(u, 2.0))
+
+
+def test_checkpointed_results_at_several_times_keep_their_gradients():
+    """Each requested result is re-extended into what is returned (not into the state), by a
+    step recomputed in backward; its choice depends on the step count at that time only, so
+    the gradients equal the recorded run's whatever backward recomputes first (here, the
+    re-extension period is 15 steps: backward recomputes steps 11-15 before the result at
+    step 10, which a choice read from the last step seen got wrong)."""
+    grid = ts.Grid.cube(13, 1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, dtype=torch.float64), grid)
+    generator = torch.Generator().manual_seed(2)
+    u0 = torch.rand((1, 1, *grid.shape), dtype=torch.float64, generator=generator)
+    weights = torch.rand((3, *u0.shape), dtype=torch.float64, generator=generator)
+    results = {}
+    for checkpoint in (False, True):
+        flow = ts.HeatFlow(0.2, steps=40, learn_time=True, checkpoint=checkpoint).double()
+        start = u0.clone().requires_grad_(True)
+        value = flow(start, surface, times=[0.05, 0.175, 0.2])
+        (value * weights).sum().backward()
+        results[checkpoint] = (value.detach(), start.grad, flow.time_value.raw.grad)
+    for kept, plain in zip(results[True], results[False], strict=True):
+        torch.testing.assert_close(kept, plain, rtol=1e-9, atol=1e-12)

@@ -131,8 +131,8 @@ class Schedule:
         options: extra keyword options passed to torchdiffeq.
         adjoint: use ``torchdiffeq.odeint_adjoint``.
         after_step: ``(u, step_index) -> u`` hook (progress bar, re-extension), or ``None``.
-        output: applied to ``u`` at each requested time before it is returned, not to the
-            state integrated on (a final re-extension), or ``None``.
+        output: ``(u, step_index) -> u`` applied to ``u`` at each requested time before it is
+            returned, not to the state integrated on (a final re-extension), or ``None``.
         segment: torchdiffeq methods integrate pieces no longer than this (physical time) and
             call ``after_step`` between them; ``None``: one piece.
         checkpoint: the explicit methods (RKC, Euler, Heun) keep for backward only ``u`` at
@@ -149,7 +149,7 @@ class Schedule:
     options: dict = field(default_factory=dict)
     adjoint: bool = False
     after_step: Callable[[Tensor, int], Tensor] | None = None
-    output: Callable[[Tensor], Tensor] | None = None
+    output: Callable[[Tensor, int], Tensor] | None = None
     segment: float | None = None
     checkpoint: bool = False
 
@@ -337,16 +337,16 @@ def _finish(system: System, u: Tensor) -> Tensor:
     return u if system.project is None else system.project(u)
 
 
-def _returned(system: System, schedule: Schedule, u: Tensor,
+def _returned(system: System, schedule: Schedule, u: Tensor, done: int,
               reads: Sequence[Tensor] | None = None) -> Tensor:
-    """``u`` as returned at a requested time: through ``schedule.output`` if any, recomputed
-    in backward like the steps when they are checkpointed (``reads`` given)."""
+    """``u`` after ``done`` steps as returned at a requested time: through ``schedule.output``
+    if any, recomputed in backward like the steps when they are checkpointed (``reads``)."""
     if schedule.output is None:
         return u
     output = schedule.output
 
     def returned(v: Tensor) -> Tensor:
-        return _finish(system, output(v))
+        return _finish(system, output(v, done))
 
     return returned(u) if reads is None else recomputed(returned, u, reads)
 
@@ -381,7 +381,8 @@ def _explicit(
                 else:
                     u = advance(u, dt, first, length, schedule, system)
             done += count
-            out.append(_returned(system, schedule, u, reads if schedule.checkpoint else None))
+            out.append(_returned(system, schedule, u, done,
+                                 reads if schedule.checkpoint else None))
         return out
 
     return integrate
@@ -466,7 +467,7 @@ def _theta_method(theta: float) -> Callable[[System, Tensor, Schedule], list[Ten
                 if schedule.after_step is not None:
                     u = schedule.after_step(u, done)
                 u = _finish(system, u)
-            out.append(_returned(system, schedule, u))
+            out.append(_returned(system, schedule, u, done))
         return out
 
     return integrate
@@ -506,14 +507,14 @@ def _torchdiffeq(method: str) -> Callable[[System, Tensor, Schedule], list[Tenso
         out, u, start, done = [], u0, 0.0, 0
         for stop, inner, ends_wanted in _segments(schedule):
             solution = solve(u, [start, *inner, stop])
-            out.extend(_returned(system, schedule, _finish(system, v))
+            out.extend(_returned(system, schedule, _finish(system, v), done)
                        for v in solution[1:len(inner) + 1])
             u, start, done = solution[-1], stop, done + 1
             if schedule.after_step is not None:
                 u = schedule.after_step(u, done)
             u = _finish(system, u)
             if ends_wanted:
-                out.append(_returned(system, schedule, u))
+                out.append(_returned(system, schedule, u, done))
         return out
 
     return integrate

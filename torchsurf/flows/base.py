@@ -409,14 +409,12 @@ class Flow(nn.Module):
             stencil = _stencil(surface, self.evolving_width(surface), "region", system.region,
                                system.region)
             path = self.path
-            last = [0]
 
             def periodic(u: Tensor, k: int) -> Tensor:
-                last[0] = k
                 return reextend(stencil, u, path) if k % every == 0 else u
 
-            def output(u: Tensor) -> Tensor:
-                return u if last[0] % every == 0 else reextend(stencil, u, path)
+            def output(u: Tensor, k: int) -> Tensor:
+                return u if k % every == 0 else reextend(stencil, u, path)
 
             hooks.append(periodic)
         if not hooks:
