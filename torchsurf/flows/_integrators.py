@@ -346,7 +346,8 @@ def _returned(system: System, schedule: Schedule, u: Tensor, done: int,
     output = schedule.output
 
     def returned(v: Tensor) -> Tensor:
-        return _finish(system, output(v, done))
+        value = output(v, done)
+        return v if value is v else _finish(system, value)
 
     return returned(u) if reads is None else recomputed(returned, u, reads)
 
