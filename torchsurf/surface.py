@@ -59,15 +59,16 @@ class ImplicitSurface(nn.Module):
         grid: the grid ``phi`` is sampled on; ``grid.shape == (D, H, W)``.
         band_width: half-width of the band ``|phi| / W <= band_width``, world units
             (default ``3 * grid.spacing``); the flows evolve the data in this band.
-        eps: regularisation of ``|grad phi|`` as ``sqrt(|grad phi|^2 + eps^2)``, in the units
-            of ``|grad phi|`` (1 for a distance function); keeps normals and their gradients
-            finite where ``grad phi`` vanishes (the medial axis).
+        eps: regularisation of ``|grad phi|`` as ``sqrt(|grad phi|^2 + (eps s)^2)``, relative
+            to ``s = gradient_scale`` (the typical ``|grad phi|`` on S, 1 for a distance
+            function), so that it means the same for ``phi`` and ``c * phi``; keeps normals
+            and their gradients finite where ``grad phi`` vanishes (the medial axis).
 
     Attributes:
         phi: ``(B, 1, D, H, W)``.
-        grad_norm: ``sqrt(|grad phi|^2 + eps^2)``, ``(B, 1, D, H, W)``.
+        grad_norm: ``sqrt(|grad phi|^2 + (eps * gradient_scale)^2)``, ``(B, 1, D, H, W)``.
         normal: ``grad phi / grad_norm``, ``(B, 3, D, H, W)`` in ``(x, y, z)`` order.
-        gradient_scale: the median of ``grad_norm`` over the nodes next to a sign change of
+        gradient_scale: the median of ``|grad phi|`` over the nodes next to a sign change of
             ``phi`` (1 for a distance function), ``(B, 1, 1, 1, 1)``.
         weight: ``W = max(grad_norm, WEIGHT_FLOOR * gradient_scale)``, the weight of every
             divergence-form operator ``(1/W) div(W ...)``, ``(B, 1, D, H, W)``.
@@ -122,11 +123,16 @@ class ImplicitSurface(nn.Module):
         """``grad_norm``, ``normal``, ``gradient_scale`` and ``weight`` from ``phi``."""
         gradient = stencils.apply(self._pad(phi, "linear"), stencils.CENTRAL)[:, 0]
         gradient = gradient / self.spacing
-        grad_norm = torch.sqrt((gradient**2).sum(dim=1, keepdim=True) + self.eps**2)
+        squared = (gradient**2).sum(dim=1, keepdim=True)
         self.register_buffer("phi", phi, persistent=False)
+        # the median of the squares, then its root: no sqrt of zeros in phi's graph
+        scale = self._gradient_scale(phi.detach(), squared).sqrt()
+        # eps is relative to the typical |grad phi| on S, so that c * phi is the same surface
+        # for every c > 0 (an absolute eps swamps |grad phi| once phi is scaled down)
+        floor = self.eps * scale.detach().clamp_min(torch.finfo(phi.dtype).tiny)
+        grad_norm = torch.sqrt(squared + floor**2)
         self.register_buffer("grad_norm", grad_norm, persistent=False)
         self.register_buffer("normal", gradient / grad_norm, persistent=False)
-        scale = self._gradient_scale(phi.detach(), grad_norm)
         self.register_buffer("gradient_scale", scale, persistent=False)
         self.register_buffer(
             "weight", torch.maximum(grad_norm, WEIGHT_FLOOR * scale), persistent=False
@@ -167,10 +173,10 @@ class ImplicitSurface(nn.Module):
         """``volume`` with a halo of one node (``mode`` at the box's faces)."""
         return stencils.pad(volume, mode)
 
-    def _gradient_scale(self, phi: Tensor, grad_norm: Tensor) -> Tensor:
-        """Median ``|grad phi|`` over the nodes with a neighbour across S; ``(B, 1, 1, 1, 1)``."""
+    def _gradient_scale(self, phi: Tensor, values: Tensor) -> Tensor:
+        """Median of ``values`` over the nodes with a neighbour across S; ``(B, 1, 1, 1, 1)``."""
         crossing = _crossing(phi < 0)
-        scales = [grad_norm[b][crossing[b]].median() for b in range(phi.shape[0])]
+        scales = [values[b][crossing[b]].median() for b in range(phi.shape[0])]
         return torch.stack(scales).view(-1, 1, 1, 1, 1)
 
     def check_field(self, value: object, name: str, channels: int | None = None) -> Tensor:

@@ -97,7 +97,7 @@ class BrickSurface(ImplicitSurface):
     def _haloed_geometry(self) -> tuple[Tensor, Tensor]:
         return self.layout.halo(self.normal, 1), self.layout.halo(self.weight, 1)
 
-    def _gradient_scale(self, phi: Tensor, grad_norm: Tensor) -> Tensor:
+    def _gradient_scale(self, phi: Tensor, values: Tensor) -> Tensor:
         inside = phi < 0
         haloed = self.layout.halo(inside, 1)
         crossing = torch.zeros_like(inside)
@@ -111,13 +111,13 @@ class BrickSurface(ImplicitSurface):
         batch = self.layout.batch.to(phi.device)
         scales = []
         for b in range(self.layout.batch_size):
-            values = grad_norm[crossing & (batch == b).view(-1, 1, 1, 1, 1)]
-            if values.numel() == 0:
+            entry = values[crossing & (batch == b).view(-1, 1, 1, 1, 1)]
+            if entry.numel() == 0:
                 raise ValueError(
                     f"phi has no zero crossing in batch entry {b}: every entry must be negative "
                     "somewhere (inside) and positive somewhere (outside)"
                 )
-            scales.append(values.median())
+            scales.append(entry.median())
         return torch.stack(scales)[batch].view(-1, 1, 1, 1, 1)
 
     def band_mask(self, width: float | None = None) -> Tensor:
