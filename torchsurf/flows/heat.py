@@ -22,8 +22,6 @@ SYMMETRIC_SCHEMES = functional.SCHEMES
 
 
 class HeatFlow(Flow):
-    supports_bricks = True
-
     """Heat flow on the surface: ``u_t = D Lap_S u``, ``Lap_S`` by :func:`torchsurf.laplace_beltrami`.
 
     With the second-order schemes (the default octant, or symmetric), sampled on S, the flow
@@ -68,6 +66,9 @@ class HeatFlow(Flow):
         >>> ts.flows.HeatFlow(time=0.01)(case.u, surface).shape
         torch.Size([1, 1, 17, 17, 17])
     """
+
+    supports_bricks = True
+    extra_methods = ("chebyshev",)
 
     def __init__(
         self,
