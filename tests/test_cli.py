@@ -138,6 +138,9 @@ def test_mesh_path_resolves_against_the_config_folder_then_the_mesh_dir(tmp_path
         (["render.renderer=povray"], "render.renderer"),
         (["grid.layout=sparse"], "grid.layout"),
         (["grid.layout=bricks", "grid.size=24"], "grid.margin"),
+        (["flow.method=bogus"], "flow.method"),
+        (["flow.kind=total_variation", "flow.method=chebyshev"], "flow.method"),
+        (["surface.params.radius=-1"], "surface.params"),
     ],
 )
 def test_bad_settings_are_refused_with_their_key(overrides, key, tmp_path, capsys):
@@ -249,3 +252,21 @@ def test_bad_smoothing_grid_is_refused_with_its_key(tmp_path, capsys):
                      "--out", str(tmp_path / "out")])
     assert code == cli.EXIT_USAGE
     assert "config error: field.smoothing_grid:" in capsys.readouterr().err
+
+
+def test_an_output_folder_that_cannot_be_written_is_refused_before_any_work(tmp_path, capsys):
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    code = cli.main(["run", "heat_sphere", "--set", *TINY, "--out", str(blocker / "sub")])
+    assert code == cli.EXIT_USAGE
+    error = capsys.readouterr().err
+    assert "cannot write to" in error and "--out" in error
+    assert "stages" not in capsys.readouterr().out
+
+
+def test_a_failed_record_leaves_no_new_picture(tmp_path, capsys):
+    out = tmp_path / "out"
+    (out / "heat_sphere.json").mkdir(parents=True)  # the record cannot be written
+    code = cli.main(["run", "heat_sphere", "--set", *TINY, "--out", str(out), "--quiet"])
+    assert code == cli.EXIT_FAILED
+    assert sorted(p.name for p in out.iterdir()) == ["heat_sphere.json"]

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -59,6 +60,17 @@ def _progress_wanted(disabled: bool) -> bool:
     return True
 
 
+def _check_writable(folder: Path) -> None:
+    """Create ``folder`` if needed and write and remove a file in it, before any computation.
+
+    Raises:
+        OSError: the folder cannot be created or written.
+    """
+    folder.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryFile(dir=folder):
+        pass
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line ``argv`` (default ``sys.argv[1:]``); returns the exit code."""
     try:
@@ -76,13 +88,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"torchsurf: config error: {error}", file=sys.stderr)
         return EXIT_USAGE
     out = Path(args.out) if args.out else Path("outputs") / prepared.experiment.name
+    try:
+        _check_writable(out)
+    except OSError as error:
+        print(f"torchsurf: cannot write to {str(out)!r} (--out): {error}", file=sys.stderr)
+        return EXIT_USAGE
     log = (lambda message: None) if args.quiet else print
     try:
         result = experiment.run(prepared, out, progress=_progress_wanted(args.no_progress), log=log)
     except ImportError as error:
         print(f"torchsurf: {error}", file=sys.stderr)
         return EXIT_FAILED
-    except (ValueError, FloatingPointError, RuntimeError) as error:
+    except (ValueError, FloatingPointError, RuntimeError, OSError) as error:
         print(f"torchsurf: run failed: {type(error).__name__}: {error}", file=sys.stderr)
         return EXIT_FAILED
     times = ", ".join(f"{k} {v:.1f} s" for k, v in result.stages.items())

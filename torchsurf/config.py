@@ -417,6 +417,14 @@ def check(experiment: Experiment) -> None:
     _positive(flow.time, "flow.time")
     if flow.steps is not None and flow.steps < 1:
         raise ConfigError("flow.steps", f"must be an integer >= 1, got {flow.steps}")
+    if flow.method is not None:
+        from .flows import HeatFlow, check_method
+
+        extra = HeatFlow.extra_methods if flow.kind is FlowKind.heat else ()
+        try:
+            check_method(flow.method, extra)
+        except (TypeError, ValueError) as error:
+            raise ConfigError("flow.method", str(error)) from None
     allowed = FLOW_SETTINGS[flow.kind]
     for name in FLOW_DEFAULTS:
         value = getattr(flow, name)

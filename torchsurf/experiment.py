@@ -103,6 +103,10 @@ def prepare(config: str | os.PathLike, overrides: list[str] | None = None) -> Pr
         mesh_path = cfg.resolve_mesh(surface.mesh, folder)
     else:
         params = _shape_params(surface.shape, dict(surface.params))
+        try:  # the shape's own checks, on a grid of 27 nodes: before any real work
+            SHAPES[surface.shape](Grid((3, 3, 3), 1.0), **params)
+        except (TypeError, ValueError) as error:
+            raise ConfigError("surface.params", str(error)) from None
     if experiment.signal.kind is SignalKind.image and experiment.signal.image not in signals.IMAGES:
         image = Path(experiment.signal.image).expanduser()
         image = image if image.is_absolute() else folder / image
@@ -368,7 +372,6 @@ def run(prepared: Prepared, out: str | os.PathLike, progress: bool = False,
         diagonal = float((high - low).norm())
         spacing = surface.spacing
         n = experiment.grid.size
-        layout = cfg.layout(experiment.grid)
         stored = "dense" if surface.layout is None else (
             f"bricks: {len(surface.layout)} of {math.prod(bricks_along(surface.grid.shape))} "
             "stored")
@@ -433,13 +436,32 @@ def run(prepared: Prepared, out: str | os.PathLike, progress: bool = False,
         renderer, why = render.resolve_renderer(render_config.renderer.name)
         log(f"render: {renderer} ({why})")
         out = Path(out)
-        picture = render.render_panels(
+        picture = out / f"{experiment.name}.png"
+        # the picture is moved into place after the record is: a failure leaves neither new
+        drawn = render.render_panels(
             extracted, [(titles[p], colours[p]) for p in render_config.panels],
-            out / f"{experiment.name}.png", render_config.width, render_config.height,
-            render_config.elevation, render_config.azimuth, render_config.up.name, renderer,
+            out / f".{experiment.name}.{os.getpid()}.png", render_config.width,
+            render_config.height, render_config.elevation, render_config.azimuth,
+            render_config.up.name, renderer,
         )
         stage("render")
-    record = write_json({
+    try:
+        record = _write_record(prepared, surface, n, spacing, diagonal, physical, metrics, stages,
+                               picture, renderer, out / f"{experiment.name}.json")
+        os.replace(drawn, picture)
+    except BaseException:
+        drawn.unlink(missing_ok=True)
+        raise
+    return Result(picture, record, stages, physical, metrics)
+
+
+def _write_record(prepared: Prepared, surface: ImplicitSurface, n: int, spacing: float,
+                  diagonal: float, physical: float, metrics: dict[str, float],
+                  stages: dict[str, float], picture: Path, renderer: str, path: Path) -> Path:
+    """The run's JSON record (config, grid, metrics, timings, versions) written to ``path``."""
+    experiment = prepared.experiment
+    layout = cfg.layout(experiment.grid)
+    return write_json({
         "config": cfg.to_dict(experiment),
         "mesh": None if prepared.mesh_path is None else str(prepared.mesh_path),
         "grid": {"size": n, "spacing": spacing, "origin": list(surface.grid.origin),
@@ -453,5 +475,4 @@ def run(prepared: Prepared, out: str | os.PathLike, progress: bool = False,
         "renderer": renderer,
         "command": sys.argv,
         "versions": _versions(),
-    }, out / f"{experiment.name}.json")
-    return Result(picture, record, stages, physical, metrics)
+    }, path)

@@ -363,3 +363,13 @@ def test_torchdiffeq_settings_are_refused_with_built_in_methods():
         HeatFlow(0.01, method="rkc", options={"rtol": 1e-3})
     with pytest.raises(ValueError, match="adjoint"):
         HeatFlow(0.01, method="euler", adjoint=True)
+
+
+def test_an_unknown_method_is_refused_when_the_flow_is_built():
+    with pytest.raises(ValueError, match="method='bogus' is unknown.*rkc.*dopri5"):
+        HeatFlow(0.01, method="bogus")
+    with pytest.raises(ValueError, match="method='chebyshev' is unknown"):
+        ts.AnisotropicFlow(0.01, method="chebyshev")
+    with pytest.raises(TypeError, match="method must be a string"):
+        HeatFlow(0.01, method=3)
+    assert HeatFlow(0.01, method="chebyshev").method == "chebyshev"

@@ -2,7 +2,7 @@
 reaction–diffusion, flow visualisation and data extension, with explicit, implicit
 (conjugate gradients) and torchdiffeq integration."""
 
-from ._integrators import INTEGRATORS
+from ._integrators import INTEGRATORS, check_method
 from .anisotropic import AnisotropicFlow
 from .base import Flow
 from .color import ColorDenoise
@@ -22,6 +22,7 @@ __all__ = [
     "HarmonicMapFlow",
     "HeatFlow",
     "ReactionDiffusion",
+    "check_method",
     "closest_point_extension",
     "pde_extension",
 ]

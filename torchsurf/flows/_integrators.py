@@ -564,6 +564,35 @@ INTEGRATORS: dict[str, Callable[[System, Tensor, Schedule], list[Tensor]]] = {
 }
 """Built-in integrators by name; any other name is handed to torchdiffeq (``"dopri5"``, ``"rk4"``...)."""
 
+TORCHDIFFEQ_METHODS = ("adaptive_heun", "bosh3", "dopri5", "dopri8", "euler", "explicit_adams",
+                       "fehlberg2", "fixed_adams", "heun2", "heun3", "implicit_adams", "midpoint",
+                       "rk4", "scipy_solver")
+"""torchdiffeq's method names (0.2.x); the installed torchdiffeq's own list is used when it is
+importable."""
+
+
+def check_method(method: object, extra: Sequence[str] = ()) -> str:
+    """``method`` if it names a built-in integrator, one of ``extra`` or a torchdiffeq method.
+
+    Raises:
+        TypeError: ``method`` is not a string.
+        ValueError: an unknown name, listing the built-in and torchdiffeq methods.
+    """
+    if not isinstance(method, str):
+        raise TypeError(f"method must be a string, got {type(method).__name__}")
+    try:
+        from torchdiffeq._impl.odeint import SOLVERS
+        external = tuple(sorted(SOLVERS))
+    except ImportError:
+        external = TORCHDIFFEQ_METHODS
+    if method in INTEGRATORS or method in extra or method in external:
+        return method
+    raise ValueError(
+        f"method={method!r} is unknown: built in {[*INTEGRATORS, *extra]}, or a torchdiffeq "
+        f"method {list(external)}"
+    )
+
+
 IMPLICIT = ("implicit", "crank_nicolson")
 
 RING_HELD = (*IMPLICIT, "euler", "heun")

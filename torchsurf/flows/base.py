@@ -59,6 +59,7 @@ from ._integrators import (
     Linear,
     Schedule,
     System,
+    check_method,
     integrate,
     plan_steps,
     ring_held,
@@ -265,6 +266,9 @@ class Flow(nn.Module):
     supports_bricks = False
     """Whether the flow runs on a :class:`~torchsurf.bricks.BrickSurface` (packed fields)."""
 
+    extra_methods: tuple[str, ...] = ()
+    """Methods the flow integrates itself, beyond the built-in integrators and torchdiffeq's."""
+
     path = "auto"
     """How the stencils run (:data:`torchsurf.backend.PATHS`); flows whose operators take a
     ``path`` set it, and the closest-point re-extension follows it."""
@@ -286,8 +290,7 @@ class Flow(nn.Module):
         checkpoint: bool | str = "auto",
     ) -> None:
         super().__init__()
-        if not isinstance(method, str):
-            raise TypeError(f"method must be a string, got {type(method).__name__}")
+        method = check_method(method, self.extra_methods)
         self.time_value = Positive(time, "time", learnable=learn_time, bound=max_time,
                                    bound_name="max_time")
         if self.time_value.channels is not None:
