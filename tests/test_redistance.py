@@ -89,3 +89,49 @@ def test_bad_input_raises() -> None:
         ts.sdf.redistance(torch.full((1, 1, 9, 9, 9), float("nan")), grid)
     with pytest.raises(ValueError, match="band_width"):
         ts.sdf.redistance(ts.sdf.sphere(grid, 0.5), grid, band_width=-1.0)
+
+
+def test_curvature_of_the_redistanced_function_converges() -> None:
+    """Distances to the marching-cubes surface are flat between its vertices: their Hessian,
+    hence the curvature, stayed O(1) wrong at every resolution (K off by about 4 times its
+    value); refined on the tricubic interpolant the error is second order."""
+    points = on_ellipsoid(2000)
+    a, b, c = AXES
+    exact = 1.0 / (a * b * c) ** 2 / ((points**2 / points.new_tensor(AXES) ** 4).sum(-1)) ** 2
+    errors = []
+    for n in (25, 49):
+        grid = ts.Grid.cube(n, bound=1.3)
+        surface = ts.ImplicitSurface(ts.sdf.redistance(ellipsoid(grid), grid), grid)
+        gaussian = sample(surface.gaussian_curvature(), points, grid, "cubic")[0, 0]
+        errors.append(float(((gaussian - exact).abs() / exact).max()))
+    assert errors[1] < 0.04, errors  # 0.027 measured
+    assert errors[0] / errors[1] > 3.0, errors  # 4.4: second order
+
+
+def test_redistancing_a_union_with_a_crease_stays_a_distance() -> None:
+    """Two overlapping spheres meet in a crease, where ``phi``'s interpolant is not the
+    surface: the refinement must not wander there (it keeps the marching-cubes distance where
+    Newton does not settle), and is far closer than marching cubes elsewhere (median 5e-4 h
+    against 0.019 h before it)."""
+    grid = ts.Grid.cube(41, bound=1.5)
+    radius, centres = 0.7, ((-0.35, 0.0, 0.0), (0.35, 0.0, 0.0))
+    union = torch.minimum(*(ts.sdf.sphere(grid, radius, center=c, dtype=torch.float64)
+                            for c in centres))
+    points = grid.points(dtype=torch.float64)
+    candidates = []
+    for own, other in (centres, centres[::-1]):
+        offset = points - points.new_tensor(own)
+        closest = points.new_tensor(own) + radius * offset / offset.norm(dim=-1, keepdim=True)
+        on_boundary = (closest - points.new_tensor(other)).norm(dim=-1) >= radius
+        candidates.append(torch.where(on_boundary, (points - closest).norm(dim=-1), torch.inf))
+    crease = math.sqrt(radius**2 - 0.35**2)  # the circle where the spheres meet, in x = 0
+    candidates.append(torch.hypot(points[..., 0], points[..., 1:].norm(dim=-1) - crease))
+    exact = torch.sign(union[0, 0]) * torch.stack(candidates).min(dim=0).values
+
+    not_a_distance = torch.tanh(union / 0.3) * (2.0 + points[..., 0])  # same zero set
+    phi = ts.sdf.redistance(not_a_distance, grid)[0, 0]
+    assert torch.isfinite(phi).all()
+    near = exact.abs() < 3 * grid.spacing
+    error = (phi - exact)[near].abs() / grid.spacing
+    assert error.max() < 0.1, float(error.max())  # 0.067, at the crease
+    assert error.median() < 5e-3, float(error.median())

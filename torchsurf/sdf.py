@@ -331,11 +331,17 @@ def from_mesh(
 def redistance(phi: Tensor, grid: Grid, band_width: float | None = None) -> Tensor:
     """Turn any implicit function into a signed distance function in the band.
 
-    The zero set of ``phi`` is extracted by marching cubes (linear interpolation along grid
-    edges) and every node within ``band_width`` of it gets its exact distance to that surface, with
-    the sign of ``phi``; the others get ``+-band_width``. The zero set stays in place up to the
-    O(h^2) error of the linear interpolation, and ``|grad phi| = 1`` in the band, except at
-    the medial axis. Not differentiable: the result is detached from ``phi``'s graph.
+    Every node within ``band_width`` of the zero set gets its distance to the zero set of
+    ``phi``'s tricubic interpolant (:func:`torchsurf.sampling.sample`, ``O(h^4)`` for a smooth
+    ``phi``), with the sign of ``phi``; the others get ``+-band_width``. The closest points
+    start on the marching-cubes surface of ``phi`` and are refined by Newton's iteration on the
+    interpolant (Chopp 2001), so that the result is smooth enough for curvatures: distances to
+    the flat triangles alone left the mean curvature of a sphere 47 % off at every resolution,
+    now second order (``tests/test_redistance.py``). Where the iteration does not settle (near
+    the medial axis, at creases of ``phi``) a node keeps its distance to the triangles.
+    ``|grad phi| = 1`` in the band, except at the medial axis. Not differentiable: the result
+    is detached from ``phi``'s graph. About four times the cost of the triangles alone (97^3:
+    2.9 s against 0.65 s).
 
     Args:
         phi: ``(B, 1, D, H, W)``, negative inside, positive outside, any scale; every batch
