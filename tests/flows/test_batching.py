@@ -93,6 +93,7 @@ class Case:
 CASES = {
     "heat_euler": Case(lambda: HeatFlow(0.02), scalar),
     "heat_heun": Case(lambda: HeatFlow(0.02, method="heun"), scalar),
+    "heat_chebyshev": Case(lambda: HeatFlow(0.02, method="chebyshev"), scalar),
     "heat_crank_nicolson": Case(
         lambda: HeatFlow(0.02, method="crank_nicolson", steps=2), scalar, tolerance=SOLVED
     ),

@@ -477,12 +477,9 @@ class Flow(nn.Module):
                 "(docs/bricks.md)"
             )
         check_data(u0, "u0", surface)
-        if surface.layout is not None and surface.batch_size > 1:
-            return self._each_entry(u0, surface.entries(), len(surface.layout), times, inputs)
-        if surface.layout is None and len(set(self._entry_widths(surface))) > 1:
-            entries = ((torch.tensor([b], device=u0.device), _entry_surface(surface, b))
-                       for b in range(surface.batch_size))
-            return self._each_entry(u0, entries, surface.batch_size, times, inputs)
+        separately = self._entries_apart(u0, surface, times, inputs)
+        if separately is not None:
+            return separately
         end = self.time_value.maximum()  # a host read only for a learned time without max_time
         wanted = None if times is None else _check_times(times, end)
         width = self.evolving_width(surface)
@@ -543,6 +540,18 @@ class Flow(nn.Module):
                         "u0 did not; use method='rkc', more steps, or smaller parameters"
                     )
         return result[-1] if times is None else torch.stack(initial + result)
+
+    def _entries_apart(self, u0: Tensor, surface: ImplicitSurface, times: object,
+                       inputs: dict[str, Tensor]) -> Tensor | None:
+        """The result of integrating each entry of the batch alone where the entries need it
+        (a brick batch of several entries; dense entries whose bands differ), else ``None``."""
+        if surface.layout is not None and surface.batch_size > 1:
+            return self._each_entry(u0, surface.entries(), len(surface.layout), times, inputs)
+        if surface.layout is None and len(set(self._entry_widths(surface))) > 1:
+            entries = ((torch.tensor([b], device=u0.device), _entry_surface(surface, b))
+                       for b in range(surface.batch_size))
+            return self._each_entry(u0, entries, surface.batch_size, times, inputs)
+        return None
 
     def _each_entry(self, u0: Tensor, entries: Iterator[tuple[Tensor, ImplicitSurface]],
                     count: int, times: object, inputs: dict[str, Tensor]) -> Tensor:

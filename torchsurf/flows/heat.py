@@ -150,6 +150,9 @@ class HeatFlow(Flow):
             )
         check_surface(surface)
         check_data(u0, "u0", surface)
+        separately = self._entries_apart(u0, surface, times, {})
+        if separately is not None:
+            return separately
         width = self.evolving_width(surface)
         operator = BandLaplacian(surface, self.scheme, width, self.path)
         if not torch.compiler.is_compiling():  # a host read: it would break a compiled graph
