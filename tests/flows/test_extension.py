@@ -197,3 +197,31 @@ def test_limited_closest_point_stencil_is_the_same_in_a_scaled_and_moved_frame()
         band = surface.band_mask()
         results.append(CubicStencil(surface, band, limited=True).apply(u))
     torch.testing.assert_close(results[1], results[0], rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("scale", [1e-3, 1e3])
+def test_pde_extension_does_not_depend_on_the_scale_of_phi(scale):
+    """Its upwind sign was ``phi / sqrt(phi^2 + h^2)``, mixing phi's units with h: 1e-3 * phi
+    gave a result 74 % away. It now reads the distance ``phi / W``."""
+    grid = ts.Grid.cube(24, 1.5)
+    x, _, z = grid.points(dtype=torch.float64).unbind(-1)
+    u = torch.sin(3 * x + 2 * z)[None, None]
+    phi = ts.sdf.sphere(grid, 1.0, dtype=torch.float64)
+    extension = Extension("pde")
+    expected = extension(u, ts.ImplicitSurface(phi, grid))
+    torch.testing.assert_close(extension(u, ts.ImplicitSurface(scale * phi, grid)), expected)
+
+
+def test_extension_arguments_are_checked_by_name():
+    grid = ts.Grid.cube(12, 1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, 1.0), grid)
+    u = torch.rand(1, 1, *grid.shape)
+    for steps in (0, -5, 2.5):
+        with pytest.raises(ValueError, match="max_steps"):
+            Extension("pde", max_steps=steps)
+        with pytest.raises(ValueError, match="max_steps"):
+            ts.flows.pde_extension(u, surface, max_steps=steps)
+    with pytest.raises(TypeError, match="mask must be a bool tensor"):
+        ts.flows.closest_point_extension(u, surface, mask=torch.ones_like(u))
+    with pytest.raises(ValueError, match=r"mask must have shape \(B or 1, 1, 12, 12, 12\)"):
+        ts.flows.closest_point_extension(u, surface, mask=torch.ones(1, 1, 3, 3, 3, dtype=torch.bool))

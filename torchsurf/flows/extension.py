@@ -24,7 +24,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .. import backend, stencils
-from .._checks import check_choice, check_positive
+from .._checks import check_choice, check_count, check_positive
 from ..bricks.layout import BRICK, BrickLayout
 from ..sampling import cubic_lagrange_weights
 from ..surface import ImplicitSurface, check_data
@@ -59,7 +59,7 @@ def closest_point_extension(
     """
     check_data(u, "u", surface)
     check_choice(interpolation, "interpolation", INTERPOLATIONS)
-    band = surface.band_mask(width) if mask is None else mask
+    band = surface.band_mask(width) if mask is None else _check_mask(mask, u, surface)
     if interpolation == "cubic":
         return cubic_stencil(surface, band).apply(u)
     if surface.layout is not None:
@@ -75,6 +75,25 @@ def closest_point_extension(
         align_corners=True,
     )
     return torch.where(band, sampled, u)
+
+
+def _check_mask(mask: object, u: Tensor, surface: ImplicitSurface) -> Tensor:
+    """``mask`` if it is a bool tensor ``(B or 1, 1, D, H, W)`` matching ``u`` (packed
+    ``(N, 1, 8, 8, 8)`` on bricks); raises naming ``mask`` otherwise."""
+    if not isinstance(mask, Tensor) or mask.dtype != torch.bool:
+        kind = mask.dtype if isinstance(mask, Tensor) else type(mask).__name__
+        raise TypeError(f"mask must be a bool tensor, got {kind}")
+    if surface.layout is not None:
+        fits = mask.shape == (u.shape[0], 1, *u.shape[2:])
+        expected = f"({u.shape[0]}, 1, {', '.join(map(str, u.shape[2:]))})"
+    else:
+        fits = (mask.dim() == 5 and mask.shape[1] == 1 and mask.shape[2:] == u.shape[2:]
+                and mask.shape[0] in (1, u.shape[0], surface.batch_size))
+        expected = f"(B or 1, 1, {', '.join(map(str, u.shape[2:]))})"
+    if not fits:
+        raise ValueError(f"mask must have shape {expected}, like u {tuple(u.shape)}; got "
+                         f"{tuple(mask.shape)}")
+    return mask
 
 
 TIE_EPS = 64
@@ -690,8 +709,11 @@ def pde_extension(
     width = surface.band_width if width is None else check_positive(width, "width")
     if max_steps is None:
         max_steps = int(12 * width / h) + 10
+    else:
+        max_steps = check_count(max_steps, "max_steps")
     band = surface.band_mask(width)
-    sign = surface.phi / torch.sqrt(surface.phi**2 + h**2)
+    distance = surface.phi / surface.weight  # world units, whatever the scale of phi
+    sign = distance / torch.sqrt(distance**2 + h**2)
     velocity = sign * surface.normal
     layout = surface.layout
     # each volume and channel stops on its own, so that its result does not depend on its batch
@@ -738,7 +760,7 @@ class Extension(nn.Module):
         self.interpolation = check_choice(interpolation, "interpolation", INTERPOLATIONS)
         self.width = None if width is None else check_positive(width, "width")
         self.tolerance = check_positive(tolerance, "tolerance")
-        self.max_steps = max_steps
+        self.max_steps = None if max_steps is None else check_count(max_steps, "max_steps")
 
     def forward(self, u: Tensor, surface: ImplicitSurface) -> Tensor:
         if self.method == "closest_point":
