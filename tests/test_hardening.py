@@ -188,3 +188,29 @@ def test_harmonic_map_flow_checks_p_and_eps_by_name():
         HarmonicMapFlow(0.1, eps="0.1")
     with pytest.raises(ValueError, match="1 <= p <= 2"):
         HarmonicMapFlow(0.1, p=3)
+
+
+def test_tangent_fields_and_colour_images_are_checked_by_name():
+    grid = ts.Grid.cube(16, 1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, 1.0), grid)
+    field = torch.rand(3, 3, *grid.shape)
+    with pytest.raises(ValueError, match="direction has batch size 3 but u0 has 1"):
+        ts.ReactionDiffusion(10.0)(ts.ReactionDiffusion.initial(surface), surface, direction=field)
+    with pytest.raises(ValueError, match="direction has batch size 3 but u0 has 2"):
+        ts.FlowVisualization(1e-3)(torch.rand(2, 1, *grid.shape), surface, direction=field)
+    nan = torch.full((1, 3, *grid.shape), float("nan"))
+    with pytest.raises(ValueError, match=r"direction \(in the band\)"):
+        ts.FlowVisualization(1e-3)(torch.rand(1, 1, *grid.shape), surface, direction=nan)
+    image = torch.rand(1, 3, *grid.shape)
+    image[surface.band_mask().expand_as(image)] = float("nan")
+    with pytest.raises(ValueError, match=r"image \(in the band and its ring\)"):
+        ts.ColorDenoise(1e-3)(image, surface)
+
+
+def test_harmonic_maps_refuse_data_that_are_not_unit_vectors():
+    grid = ts.Grid.cube(16, 1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, 1.0), grid)
+    with pytest.raises(ValueError, match="at least 2 channels"):
+        ts.HarmonicMapFlow(1e-3)(torch.rand(1, 1, *grid.shape), surface)
+    with pytest.raises(ValueError, match="zero vectors"):
+        ts.HarmonicMapFlow(1e-3)(torch.zeros(1, 3, *grid.shape), surface)

@@ -317,6 +317,22 @@ def check_data(value: object, name: str, surface: object, channels: int | None =
     return volume
 
 
+def check_direction(direction: object, u0: Tensor, surface: ImplicitSurface) -> Tensor:
+    """``direction`` checked as a flow's tangent field for ``u0``: data on ``surface`` with 3
+    channels, batch 1 or ``u0``'s (dense), finite in the band.
+
+    Raises:
+        ValueError: naming ``direction``, its shape and what was expected.
+    """
+    field = check_data(direction, "direction", surface, channels=3)
+    if surface.layout is None and field.shape[0] not in (1, u0.shape[0]):
+        raise ValueError(f"direction has batch size {field.shape[0]} but u0 has "
+                         f"{u0.shape[0]}: it must be 1 or u0's")
+    if not torch.compiler.is_compiling():
+        check_finite(torch.where(surface.band_mask(), field, 0.0), "direction (in the band)")
+    return field
+
+
 def tangent_unit(field: Tensor, surface: ImplicitSurface) -> Tensor:
     """``P T / |P T|``: ``field`` ``(B, 3, D, H, W)`` made tangent to the level sets and unit.
 

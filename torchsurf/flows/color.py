@@ -5,8 +5,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from .._checks import check_positive
+from .._checks import check_finite, check_positive
 from ..surface import ImplicitSurface, check_data, check_surface
+from ._integrators import with_ring
 from .anisotropic import AnisotropicFlow
 from .base import Flow
 from .harmonic import HarmonicMapFlow
@@ -65,6 +66,9 @@ class ColorDenoise(nn.Module):
                 "use flows that do or the dense ImplicitSurface (docs/bricks.md)"
             )
         check_data(image, "image", surface)
+        if not torch.compiler.is_compiling() and isinstance(self.chroma, Flow):
+            region = with_ring(self.chroma.band_mask(surface), surface.layout)
+            check_finite(torch.where(region, image, 0.0), "image (in the band and its ring)")
         brightness = torch.sqrt((image**2).sum(dim=1, keepdim=True) + self.eps**2)
         chroma = image / brightness
         return self.brightness(brightness, surface) * self.chroma(chroma, surface)

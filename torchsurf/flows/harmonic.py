@@ -79,8 +79,16 @@ class HarmonicMapFlow(Flow):
             raise TypeError(f"HarmonicMapFlow takes no extra inputs, got {sorted(inputs)}")
         if self.tangent and u0.shape[1] != 3:
             raise ValueError(f"u0 must have 3 channels with tangent=True, got {u0.shape[1]}")
+        if u0.shape[1] < 2:
+            raise ValueError(f"u0 must have at least 2 channels (unit vectors), got shape "
+                             f"{tuple(u0.shape)}")
         band = self.band_mask(surface)
         region = with_ring(band, surface.layout)
+        if not torch.compiler.is_compiling():
+            length = torch.where(region, u0.detach().norm(dim=1, keepdim=True), 1.0)
+            if bool((length <= torch.finfo(u0.dtype).tiny ** 0.5).any()):
+                raise ValueError("u0 must be unit vectors in the band and its ring; it has zero "
+                                 "vectors there, which no renormalisation can make unit")
         zero = u0.new_zeros(())
         exponent = self.p - 2.0
         normal, weight, haloed = surface.normal, surface.weight, surface.haloed()

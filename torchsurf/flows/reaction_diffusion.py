@@ -14,9 +14,9 @@ import torch
 from torch import Tensor
 
 from .. import backend
-from .._checks import check_batch, check_nonnegative, check_positive, check_real
+from .._checks import check_nonnegative, check_positive, check_real
 from ..operators import directional_bound, functional, laplace_beltrami
-from ..surface import ImplicitSurface, check_data, tangent_unit
+from ..surface import ImplicitSurface, check_direction, tangent_unit
 from ._integrators import System, tensors
 from .base import Flow, data_shape
 
@@ -101,9 +101,7 @@ class ReactionDiffusion(Flow):
             noise = surface.layout.rand(1, generator, u0.dtype)
         beta = self.beta + self.noise * (2.0 * noise - 1.0)
         if direction is not None:
-            check_data(direction, "direction", surface, channels=3)
-            check_batch(direction, "direction", u0.shape[0], "u0")
-            direction = tangent_unit(direction, surface)
+            direction = tangent_unit(check_direction(direction, u0, surface), surface)
         s = self.rate
         pad = None if surface.layout is None else surface.layout.halo
         # on bricks the field's halo is gathered once per flow, not at every evaluation

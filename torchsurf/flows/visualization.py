@@ -7,7 +7,7 @@ from torch import Tensor
 
 from .._checks import check_positive
 from ..operators import functional
-from ..surface import ImplicitSurface, check_data, tangent_unit
+from ..surface import ImplicitSurface, check_direction, tangent_unit
 from ._integrators import Linear, System, tensors
 from .base import Flow, data_shape
 
@@ -61,8 +61,7 @@ class FlowVisualization(Flow):
         if direction is None:
             raise TypeError("direction: FlowVisualization needs a tangent field T, "
                             "flow(u0, surface, direction=T)")
-        check_data(direction, "direction", surface, channels=3)
-        direction = tangent_unit(direction, surface)
+        direction = tangent_unit(check_direction(direction, u0, surface), surface)
         band = self.band_mask(surface)
         zero = u0.new_zeros(())
         spacing, isotropic = surface.spacing, self.isotropic
