@@ -150,4 +150,9 @@ class Positive(nn.Module):
 
     def extra_repr(self) -> str:
         bound = "" if self.bound is None else f", bound={self.bound:g}"
-        return f"{self.name}, learnable={self.learnable}{bound}"
+        value = self.value()
+        values = torch.as_tensor(value).detach().flatten()
+        shown = (f"{float(values[0]):g}" if values.numel() == 1
+                 else "[" + ", ".join(f"{float(v):g}" for v in values[:4])
+                 + (", ...]" if values.numel() > 4 else "]"))
+        return f"{self.name}={shown}, learnable={self.learnable}{bound}"

@@ -9,7 +9,7 @@ from .._checks import check_choice, check_positive
 from ..backend import PATHS
 from ..operators import anisotropic_diffusion
 from ..operators.diffusion import FLUX_SCHEMES, resolve_diffusivity
-from ..operators.diffusivity import Diffusivity
+from ..operators.diffusivity import DIFFUSIVITIES, Diffusivity
 from ..surface import ImplicitSurface
 from ._integrators import System, tensors
 from ._positive import Positive
@@ -95,3 +95,9 @@ class AnisotropicFlow(Flow):
 
         rho = self.max_diffusivity * self.operator_bound(surface, self.scheme)
         return System(rate, band, rho, params=tensors(contrast, surface.normal, surface.weight))
+
+    def extra_repr(self) -> str:
+        name = next((key for key, value in DIFFUSIVITIES.items() if value is self.diffusivity),
+                    getattr(self.diffusivity, "__name__", "custom"))
+        return (f"{super().extra_repr()}, diffusivity={name!r}, eps={self.eps:g}, "
+                f"scheme={self.scheme!r}")

@@ -128,6 +128,10 @@ class ReactionDiffusion(Flow):
         return System(rate, band, rho, project=_nonnegative_b,
                       params=tensors(surface.normal, surface.weight))
 
+    def extra_repr(self) -> str:
+        return (f"{super().extra_repr()}, rate={self.rate:g}, beta={self.beta:g}, "
+                f"noise={self.noise:g}")
+
 
 def _turk_rate(a: Tensor, b: Tensor, diffusion_a: Tensor, diffusion_b: Tensor, beta: Tensor,
                band: Tensor, s: float, d_a: float, d_b: float, path: str = "slicing") -> Tensor:

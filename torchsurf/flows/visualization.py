@@ -103,3 +103,6 @@ class FlowVisualization(Flow):
         rho = (1.0 + self.isotropic) * self.operator_bound(surface, "symmetric")
         return System(rate, band, rho, linear=Linear(operator, geometry),
                       params=tensors(*geometry))
+
+    def extra_repr(self) -> str:
+        return f"{super().extra_repr()}, isotropic={self.isotropic:g}"

@@ -58,6 +58,10 @@ class DiffusionBlock(nn.Module):
     def forward(self, u: Tensor, surface: ImplicitSurface) -> Tensor:
         check_surface(surface)
         check_data(u, "u", surface, channels=self.channels)
+        weight = self.mlp[0].weight
+        if u.dtype != weight.dtype:
+            raise TypeError(f"u is {u.dtype} but the block's MLP is {weight.dtype}: convert one "
+                            f"of them (block.to({u.dtype}) or u.to({weight.dtype}))")
         diffused = self.diffusion(u, surface)
         features = torch.cat([
             diffused, gradient_features(diffused, surface, self.pairs, path=self.diffusion.path)

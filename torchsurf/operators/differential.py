@@ -66,6 +66,9 @@ class IntrinsicGradient(nn.Module):
     def forward(self, u: Tensor, surface: ImplicitSurface) -> Tensor:
         return intrinsic_gradient(u, surface, path=self.path)
 
+    def extra_repr(self) -> str:
+        return f"path={self.path!r}"
+
 
 class IntrinsicDivergence(nn.Module):
     """Module form of :func:`intrinsic_divergence`: ``(B, 3C, D, H, W) -> (B, C, D, H, W)``."""
@@ -76,3 +79,6 @@ class IntrinsicDivergence(nn.Module):
 
     def forward(self, v: Tensor, surface: ImplicitSurface) -> Tensor:
         return intrinsic_divergence(v, surface, path=self.path)
+
+    def extra_repr(self) -> str:
+        return f"path={self.path!r}"

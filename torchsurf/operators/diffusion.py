@@ -155,6 +155,14 @@ class AnisotropicDiffusion(nn.Module):
             self.path,
         )
 
+    def extra_repr(self) -> str:
+        name = next((key for key, value in DIFFUSIVITIES.items() if value is self.diffusivity),
+                    getattr(self.diffusivity, "__name__", repr(self.diffusivity)))
+        contrast = (f"{self.contrast:g}" if not isinstance(self.contrast, Tensor)
+                    else f"tensor{tuple(self.contrast.shape)}")
+        return (f"{name!r}, contrast={contrast}, eps={self.eps:g}, coupled={self.coupled}, "
+                f"scheme={self.scheme!r}, path={self.path!r}")
+
 
 class DirectionalDiffusion(nn.Module):
     """Module form of :func:`directional_diffusion`: ``(B, C, D, H, W) -> (B, C, D, H, W)``."""
@@ -166,3 +174,6 @@ class DirectionalDiffusion(nn.Module):
 
     def forward(self, u: Tensor, surface: ImplicitSurface, direction: Tensor) -> Tensor:
         return directional_diffusion(u, surface, direction, self.scheme, self.path)
+
+    def extra_repr(self) -> str:
+        return f"scheme={self.scheme!r}, path={self.path!r}"
