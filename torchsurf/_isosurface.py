@@ -15,6 +15,8 @@ NEWTON_ITERATIONS = 40
 the distance times the curvature: a few iterations near S, more at the band's edge."""
 NEWTON_TOLERANCE = 1e-7
 """A point is settled once its last move is below this many cells."""
+NEWTON_CHUNK = 2**17
+"""Points refined together (memory of the sampler's taps and their gradients)."""
 NEWTON_REACH = 0.5
 """A refined distance further than this many cells from the marching-cubes one is not
 trusted (medial axis, creases of ``phi``): that node keeps the marching-cubes distance."""
@@ -113,6 +115,12 @@ def interpolant_distance(volume: np.ndarray, grid: Grid, nodes: np.ndarray, star
         start: ``(N, 3)`` world closest points on the marching-cubes surface.
         fallback: ``(N,)`` distances to it.
     """
+    if len(nodes) > NEWTON_CHUNK:  # the cubic sampler's taps cost about 1.5 kB a point
+        return np.concatenate([
+            interpolant_distance(volume, grid, nodes[k:k + NEWTON_CHUNK],
+                                 start[k:k + NEWTON_CHUNK], fallback[k:k + NEWTON_CHUNK])
+            for k in range(0, len(nodes), NEWTON_CHUNK)
+        ])
     if len(nodes) == 0:
         return fallback
     field = torch.from_numpy(np.ascontiguousarray(volume))[None, None]
