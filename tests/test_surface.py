@@ -539,3 +539,19 @@ def test_phi_without_an_inside_is_refused():
         ImplicitSurface(torch.relu(phi), grid)
     with pytest.raises(ValueError, match="zero crossing"):
         ImplicitSurface(-torch.relu(phi), grid)
+
+
+def test_band_of_a_saturating_phi_stays_near_the_surface():
+    """``tanh(phi / h)`` has the sphere's zero set but ``|phi| / W`` below any width far from
+    it (its W is floored there): the band stays within reach of S, and a distance's band is
+    untouched by that rule."""
+    grid = Grid.cube(33, BOUND)
+    phi = sdf.sphere(grid, 1.0, dtype=torch.float64)
+    width = 3 * grid.spacing
+    distance = ImplicitSurface(phi, grid)
+    assert torch.equal(distance.band_mask(), distance.distance() <= width)
+    saturated = ImplicitSurface(torch.tanh(phi / grid.spacing), grid)
+    band = saturated.band_mask()
+    assert band[phi.abs() <= width].all()
+    assert phi[band].abs().max() <= width + 2 * math.sqrt(3) * grid.spacing
+    assert int(band.sum()) < 3 * int(distance.band_mask().sum())

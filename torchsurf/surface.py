@@ -5,7 +5,9 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import TypeVar
 
+import numpy as np
 import torch
+from scipy import ndimage
 from torch import Tensor, nn
 
 from . import _memory, curvature, stencils
@@ -34,6 +36,15 @@ def _crossing(inside: Tensor) -> Tensor:
         crossing.narrow(dim, 1, inside.shape[dim] - 1).logical_or_(change)
         crossing.narrow(dim, 0, inside.shape[dim] - 1).logical_or_(change)
     return crossing
+
+
+def _near_crossing(phi: Tensor, spacing: float, reach: float) -> Tensor:
+    """Nodes within ``reach`` (world units) of a node with a neighbour across S, by the exact
+    Euclidean distance transform of the grid; ``(B, 1, D, H, W)`` bool on ``phi``'s device."""
+    crossing = _crossing(phi < 0).cpu().numpy()
+    near = [ndimage.distance_transform_edt(~entry[0], sampling=spacing) <= reach
+            for entry in crossing]
+    return torch.from_numpy(np.stack(near)[:, None]).to(phi.device)
 
 
 class ImplicitSurface(nn.Module):
@@ -203,10 +214,22 @@ class ImplicitSurface(nn.Module):
     def band_mask(self, width: float | None = None) -> Tensor:
         """Boolean mask of the nodes within ``width`` of S (default ``band_width``).
 
-        Distances are :meth:`distance`'s ``|phi| / W``, world units; ``(B, 1, D, H, W)``.
+        Distances are :meth:`distance`'s ``|phi| / W``, world units; ``(B, 1, D, H, W)``. On a
+        dense grid, only nodes within ``width + 2 h`` (Euclidean) of a node with a neighbour
+        across S count: where ``phi`` saturates (``tanh(phi / h)``, an occupancy-like field)
+        ``|phi| / W`` is small far from S, and the band was the whole box (a sphere at 40^3:
+        64000 nodes against 13032 for its distance; now 25688).
         """
         width = self.band_width if width is None else check_positive(width, "width")
-        return self.distance() <= width
+        band = self.distance() <= width
+        if self.layout is not None:
+            return band
+        # |phi| / W is a distance only where phi is one: a saturating phi (tanh(phi / h), an
+        # occupancy-like field) has W floored far from S, and its |phi| / W there is below any
+        # width. Nodes are kept only within reach of a sign change of phi.
+        # (S crosses a cell whose corners include such a node: within sqrt(3) h of S)
+        return band & self.kept(("near_crossing", width), lambda: _near_crossing(
+            self.phi.detach(), self.spacing, width + 2.0 * self.spacing))
 
     def haloed(self) -> tuple[Tensor, Tensor]:
         """``normal`` and ``weight`` with a halo of one node on every side.
