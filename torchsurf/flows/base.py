@@ -458,7 +458,11 @@ class Flow(nn.Module):
             surface: the implicit surface.
             times: optional increasing times in ``[0, time]`` to return ``u`` at: a sequence
                 of numbers, a 1-D numpy array or a 1-D tensor (not requiring grad), e.g.
-                ``torch.linspace(0, time, 5)``; ``u`` at time 0 is ``u0``.
+                ``torch.linspace(0, time, 5)``; ``u`` at time 0 is ``u0``. The steps are
+                planned for ``time`` (requested times split them), so an early time is reached
+                in fewer steps than a call to that time alone would take, with a larger time
+                error (heat flow, RKC, a third of the way: 3 steps and 2.3e-2 against 8 steps
+                and 2.6e-3 on noise at 40^3); call the flow to that time for its own plan.
             inputs: flow-specific inputs (e.g. ``direction`` for tangent-field flows).
 
         Returns:
