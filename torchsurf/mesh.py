@@ -278,7 +278,8 @@ class MeshAdapter(nn.Module):
         return (flat * self._decode_weights.to(volume.dtype)).sum(dim=-1)
 
     def forward(self, values: Tensor) -> Tensor:
-        """:meth:`encode`."""
+        """:meth:`encode`: vertex values ``(B, C, V)`` -> volume ``(B, C, D, H, W)`` on
+        :attr:`grid`, constant along normals in the band."""
         return self.encode(values)
 
     def extra_repr(self) -> str:

@@ -71,6 +71,8 @@ class GradientFeatures(nn.Module):
         self.path = check_choice(path, "path", PATHS)
 
     def forward(self, u: Tensor, surface: ImplicitSurface) -> Tensor:
+        """:func:`gradient_features`: ``(B, C, D, H, W) -> (B, C + C(C-1)/2, D, H, W)`` (``C``
+        without pairs)."""
         return gradient_features(u, surface, self.pairs, self.eps, self.path)
 
     def extra_repr(self) -> str:

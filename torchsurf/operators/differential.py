@@ -64,6 +64,8 @@ class IntrinsicGradient(nn.Module):
         self.path = check_choice(path, "path", backend.PATHS)
 
     def forward(self, u: Tensor, surface: ImplicitSurface) -> Tensor:
+        """``P grad u`` per channel: ``(B, C, D, H, W) -> (B, 3C, D, H, W)``, units of ``u`` per
+        world length (:func:`intrinsic_gradient`)."""
         return intrinsic_gradient(u, surface, path=self.path)
 
     def extra_repr(self) -> str:
@@ -78,6 +80,8 @@ class IntrinsicDivergence(nn.Module):
         self.path = check_choice(path, "path", backend.PATHS)
 
     def forward(self, v: Tensor, surface: ImplicitSurface) -> Tensor:
+        """The intrinsic divergence of tangent fields: ``(B, 3C, D, H, W) -> (B, C, D, H, W)``
+        (:func:`intrinsic_divergence`)."""
         return intrinsic_divergence(v, surface, path=self.path)
 
     def extra_repr(self) -> str:

@@ -150,6 +150,8 @@ class AnisotropicDiffusion(nn.Module):
         self.path = check_choice(path, "path", backend.PATHS)
 
     def forward(self, u: Tensor, surface: ImplicitSurface) -> Tensor:
+        """``(1/W) div(W g(|P grad u|) P grad u)``: ``(B, C, D, H, W) -> (B, C, D, H, W)``, units
+        of ``u`` per world length squared (:func:`anisotropic_diffusion`)."""
         return anisotropic_diffusion(
             u, surface, self.diffusivity, self.contrast, self.eps, self.coupled, self.scheme,
             self.path,
@@ -173,6 +175,8 @@ class DirectionalDiffusion(nn.Module):
         self.path = check_choice(path, "path", backend.PATHS)
 
     def forward(self, u: Tensor, surface: ImplicitSurface, direction: Tensor) -> Tensor:
+        """Diffusion along ``direction`` ``(B or 1, 3, D, H, W)``: ``(B, C, D, H, W) ->
+        (B, C, D, H, W)`` (:func:`directional_diffusion`)."""
         return directional_diffusion(u, surface, direction, self.scheme, self.path)
 
     def extra_repr(self) -> str:

@@ -95,6 +95,8 @@ class LaplaceBeltrami(nn.Module):
         self.path = check_choice(path, "path", backend.PATHS)
 
     def forward(self, u: Tensor, surface: ImplicitSurface) -> Tensor:
+        """``Lap_S u``: ``(B, C, D, H, W) -> (B, C, D, H, W)``, units of ``u`` per world length
+        squared (:func:`laplace_beltrami`)."""
         return laplace_beltrami(u, surface, scheme=self.scheme, path=self.path)
 
     def extra_repr(self) -> str:
