@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import TypeVar
 
@@ -38,13 +39,14 @@ def _crossing(inside: Tensor) -> Tensor:
     return crossing
 
 
-def _near_crossing(phi: Tensor, spacing: float, reach: float) -> Tensor:
-    """Nodes within ``reach`` (world units) of a node with a neighbour across S, by the exact
-    Euclidean distance transform of the grid; ``(B, 1, D, H, W)`` bool on ``phi``'s device."""
+def _cells_to_crossing(phi: Tensor) -> Tensor:
+    """The chessboard distance, in cells, from each node to the nearest node with a neighbour
+    across S (at most 255), ``(B, 1, D, H, W)`` uint8 on ``phi``'s device. Chessboard: ten times
+    faster than the Euclidean transform (0.4 s against 3.8 s at 256^3), and never above it."""
     crossing = _crossing(phi < 0).cpu().numpy()
-    near = [ndimage.distance_transform_edt(~entry[0], sampling=spacing) <= reach
-            for entry in crossing]
-    return torch.from_numpy(np.stack(near)[:, None]).to(phi.device)
+    cells = [np.minimum(ndimage.distance_transform_cdt(~entry[0], metric="chessboard"), 255)
+             for entry in crossing]
+    return torch.from_numpy(np.stack(cells)[:, None].astype(np.uint8)).to(phi.device)
 
 
 class ImplicitSurface(nn.Module):
@@ -215,10 +217,11 @@ class ImplicitSurface(nn.Module):
         """Boolean mask of the nodes within ``width`` of S (default ``band_width``).
 
         Distances are :meth:`distance`'s ``|phi| / W``, world units; ``(B, 1, D, H, W)``. On a
-        dense grid, only nodes within ``width + 2 h`` (Euclidean) of a node with a neighbour
-        across S count: where ``phi`` saturates (``tanh(phi / h)``, an occupancy-like field)
-        ``|phi| / W`` is small far from S, and the band was the whole box (a sphere at 40^3:
-        64000 nodes against 13032 for its distance; now 25688).
+        dense grid, only nodes within ``width + sqrt(3) h`` of a node with a neighbour across S
+        count (by the chessboard distance, a superset of the Euclidean ball): where ``phi``
+        saturates (``tanh(phi / h)``, an occupancy-like field) ``|phi| / W`` is small far from
+        S, and the band was the whole box (a sphere at 40^3: 64000 nodes against 13032 for its
+        distance; now 38824).
         """
         width = self.band_width if width is None else check_positive(width, "width")
         band = self.distance() <= width
@@ -227,9 +230,10 @@ class ImplicitSurface(nn.Module):
         # |phi| / W is a distance only where phi is one: a saturating phi (tanh(phi / h), an
         # occupancy-like field) has W floored far from S, and its |phi| / W there is below any
         # width. Nodes are kept only within reach of a sign change of phi.
-        # (S crosses a cell whose corners include such a node: within sqrt(3) h of S)
-        return band & self.kept(("near_crossing", width), lambda: _near_crossing(
-            self.phi.detach(), self.spacing, width + 2.0 * self.spacing))
+        # (S crosses a cell whose corners include such a node: within sqrt(3) h of S); the
+        # chessboard distance is at most the Euclidean one, so no node within reach is lost
+        cells = self.kept(("cells_to_crossing",), lambda: _cells_to_crossing(self.phi.detach()))
+        return band & (cells <= math.ceil(width / self.spacing + math.sqrt(3.0)))
 
     def haloed(self) -> tuple[Tensor, Tensor]:
         """``normal`` and ``weight`` with a halo of one node on every side.
