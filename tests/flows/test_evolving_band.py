@@ -71,8 +71,14 @@ def test_where_phi_is_not_a_distance_that_far_the_band_stays_the_surfaces(case):
 
 
 def test_ring_held_bound():
-    assert ring_held("rkc", 12.0 * 2.0**2, 5.0)
-    assert not ring_held("rkc", 12.0 * 2.0**2 + 1e-6, 5.0)
+    """``dt rho <= 12 (w - 2 sqrt(3))^2``: the stale ring's error must stay short of the nodes
+    within ``2 sqrt(3)`` cells of S that the re-extension reads. The former ``12 (w - 3)^2``
+    held it at ``dt rho = 45`` on 5 cells, where the sphere's heat flow lost its order (81^3:
+    3.8e-4 as at 65^3; now 2.3e-4)."""
+    bound = 12.0 * (5.0 - 2.0 * math.sqrt(3.0)) ** 2  # 28.5
+    assert ring_held("rkc", bound, 5.0)
+    assert not ring_held("rkc", bound + 1e-6, 5.0)
+    assert not ring_held("rkc", 45.4, 5.0)
     assert not ring_held("rkc", 1e-3, 3.0)
     for method in ("euler", "heun", "implicit", "crank_nicolson"):
         assert ring_held(method, 1e6, 3.0)

@@ -180,18 +180,19 @@ bunny's raw principal direction at 256^3 (``step * growth`` about 20) overflowed
 steps (2.5) did not."""
 
 
-HELD_RING_CELLS = 3.0
+HELD_RING_CELLS = 2.0 * math.sqrt(3.0)
 """An RKC step of ``dt rho <= 12 (w - HELD_RING_CELLS)^2`` on a band of ``w`` cells holds the
 ring during the step and re-extends it with the band after the step: the stale ring's error
-then diffuses less than ``w - 3`` cells inward, short of the nodes (within ``2 sqrt(3)`` cells
-of S) that the band's re-extension reads. Measured on the sphere at 33^3-65^3 (docs/band.md):
-no loss within the bound, a loss beyond it (5 cells, ``dt rho = 65``: 1.7e-3 against
-2.4e-4)."""
+then diffuses less than ``w - 2 sqrt(3)`` cells inward (about ``sqrt(dt rho / 12)``), short of
+the nodes within ``2 sqrt(3)`` cells of S that the band's re-extension reads (28.5 for a 5-cell
+band). It was ``w - 3`` (48), which let the stale error reach those nodes: the sphere's heat
+flow lost its order at 81^3 (docs/band.md: 3.8e-4 at 65^3 and 81^3, now 4.0e-4 and 2.3e-4)."""
 
-HELD_RING_STEPS = 2.0
+HELD_RING_STEPS = 3.0
 """RKC takes up to this many times the steps it would otherwise when that lets it hold the ring
 (:func:`ring_held`): the stages grow as the square root of the step count, and each costs
-about half as much without the ring's re-extension (81^3 sphere: 9 steps instead of 8)."""
+about half as much without the ring's re-extension (97^3 sphere: 21 steps instead of 8, 1.35x
+the time, half the error)."""
 
 
 def ring_held(method: str, step_times_rho: float, band_cells: float) -> bool:
