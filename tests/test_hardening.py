@@ -199,7 +199,7 @@ def test_tangent_fields_and_colour_images_are_checked_by_name():
     with pytest.raises(ValueError, match="direction has batch size 3 but u0 has 2"):
         ts.FlowVisualization(1e-3)(torch.rand(2, 1, *grid.shape), surface, direction=field)
     nan = torch.full((1, 3, *grid.shape), float("nan"))
-    with pytest.raises(ValueError, match=r"direction \(in the band\)"):
+    with pytest.raises(ValueError, match=r"direction \(in the band and its ring\)"):
         ts.FlowVisualization(1e-3)(torch.rand(1, 1, *grid.shape), surface, direction=nan)
     image = torch.rand(1, 3, *grid.shape)
     image[surface.band_mask().expand_as(image)] = float("nan")

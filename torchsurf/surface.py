@@ -227,11 +227,9 @@ class ImplicitSurface(nn.Module):
         band = self.distance() <= width
         if self.layout is not None:
             return band
-        # |phi| / W is a distance only where phi is one: a saturating phi (tanh(phi / h), an
-        # occupancy-like field) has W floored far from S, and its |phi| / W there is below any
-        # width. Nodes are kept only within reach of a sign change of phi.
-        # (S crosses a cell whose corners include such a node: within sqrt(3) h of S); the
-        # chessboard distance is at most the Euclidean one, so no node within reach is lost
+        # A node within width of S is within width + sqrt(3) h of a crossing node (S crosses a
+        # cell whose corners include one), and the chessboard distance is at most the
+        # Euclidean one: no node of a distance's band is lost
         cells = self.kept(("cells_to_crossing",), lambda: _cells_to_crossing(self.phi.detach()))
         return band & (cells <= math.ceil(width / self.spacing + math.sqrt(3.0)))
 
@@ -344,9 +342,11 @@ def check_data(value: object, name: str, surface: object, channels: int | None =
     return volume
 
 
-def check_direction(direction: object, u0: Tensor, surface: ImplicitSurface) -> Tensor:
+def check_direction(direction: object, u0: Tensor, surface: ImplicitSurface,
+                    region: Tensor) -> Tensor:
     """``direction`` checked as a flow's tangent field for ``u0``: data on ``surface`` with 3
-    channels, batch 1 or ``u0``'s (dense), finite in the band.
+    channels, batch 1 or ``u0``'s (dense), finite where the flow reads it (``region``, bool,
+    the flow's band and its ring).
 
     Raises:
         ValueError: naming ``direction``, its shape and what was expected.
@@ -356,7 +356,7 @@ def check_direction(direction: object, u0: Tensor, surface: ImplicitSurface) -> 
         raise ValueError(f"direction has batch size {field.shape[0]} but u0 has "
                          f"{u0.shape[0]}: it must be 1 or u0's")
     if not torch.compiler.is_compiling():
-        check_finite(torch.where(surface.band_mask(), field, 0.0), "direction (in the band)")
+        check_finite(torch.where(region, field, 0.0), "direction (in the band and its ring)")
     return field
 
 

@@ -17,7 +17,7 @@ from .. import backend
 from .._checks import check_nonnegative, check_positive, check_real
 from ..operators import directional_bound, functional, laplace_beltrami
 from ..surface import ImplicitSurface, check_direction, tangent_unit
-from ._integrators import System, tensors
+from ._integrators import System, tensors, with_ring
 from .base import Flow, data_shape
 
 
@@ -101,7 +101,8 @@ class ReactionDiffusion(Flow):
             noise = surface.layout.rand(1, generator, u0.dtype)
         beta = self.beta + self.noise * (2.0 * noise - 1.0)
         if direction is not None:
-            direction = tangent_unit(check_direction(direction, u0, surface), surface)
+            region = with_ring(band, surface.layout)
+            direction = tangent_unit(check_direction(direction, u0, surface, region), surface)
         s = self.rate
         pad = None if surface.layout is None else surface.layout.halo
         # on bricks the field's halo is gathered once per flow, not at every evaluation

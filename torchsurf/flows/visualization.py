@@ -8,7 +8,7 @@ from torch import Tensor
 from .._checks import check_positive
 from ..operators import functional
 from ..surface import ImplicitSurface, check_direction, tangent_unit
-from ._integrators import Linear, System, tensors
+from ._integrators import Linear, System, tensors, with_ring
 from .base import Flow, data_shape
 
 
@@ -61,8 +61,9 @@ class FlowVisualization(Flow):
         if direction is None:
             raise TypeError("direction: FlowVisualization needs a tangent field T, "
                             "flow(u0, surface, direction=T)")
-        direction = tangent_unit(check_direction(direction, u0, surface), surface)
         band = self.band_mask(surface)
+        region = with_ring(band, surface.layout)
+        direction = tangent_unit(check_direction(direction, u0, surface, region), surface)
         zero = u0.new_zeros(())
         spacing, isotropic = surface.spacing, self.isotropic
         pad = None if surface.layout is None else surface.layout.halo
