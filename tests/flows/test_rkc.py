@@ -71,3 +71,44 @@ def test_fewest_stages_that_are_stable(load):
     stages = stages_for(load)
     assert coefficients(stages).stability >= load
     assert stages == 2 or coefficients(stages - 1).stability < load
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_stage_combination_is_the_same_on_every_path(dtype):
+    """One compiled pass, five eager passes and the tensor arithmetic of a learned step give
+    the same step (the compiled kernel's weights are 0-d tensors: one graph for every stage)."""
+    generator = torch.Generator().manual_seed(1)
+    u = torch.randn((2, 3, 9, 10, 11), dtype=dtype, generator=generator)
+    weights = torch.rand((1, 3, 1, 1, 1), dtype=dtype, generator=generator)
+
+    def rate(x):
+        return -weights * x + 0.1 * x.roll(1, dims=-1)
+
+    eager = rkc_step(rate, u, 0.3, 7, "slicing")
+    compiled = rkc_step(rate, u, 0.3, 7, "compiled")
+    learned = rkc_step(rate, u, torch.tensor(0.3, dtype=dtype), 7, "slicing")
+    tolerance = 1e-5 if dtype == torch.float32 else 1e-12
+    torch.testing.assert_close(compiled, eager, rtol=tolerance, atol=tolerance)
+    torch.testing.assert_close(learned, eager, rtol=tolerance, atol=tolerance)
+    assert not torch.equal(eager, u)
+
+
+@pytest.mark.parametrize("path", ["slicing", "auto"])
+def test_a_flow_runs_its_stages_on_its_own_path(path, monkeypatch):
+    import torchsurf as ts
+    from torchsurf.flows import _rkc
+
+    seen = []
+    run = _rkc.backend.run
+
+    def recording(kernel, chosen, *args):
+        if kernel is _rkc._STAGE:
+            seen.append(chosen)
+        return run(kernel, chosen, *args)
+
+    monkeypatch.setattr(_rkc.backend, "run", recording)
+    grid = ts.Grid.cube(13, 1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid), grid)
+    u = torch.rand((1, 1, *grid.shape), generator=torch.Generator().manual_seed(0))
+    ts.HeatFlow(0.01, path=path)(u, surface)
+    assert seen and set(seen) == {path}

@@ -86,6 +86,8 @@ class System:
         growth: a bound of the fastest growth the rate allows (a positive eigenvalue of its
             Jacobian, ``1 / time``; e.g. a reaction term), 0 for none: RKC steps keep
             ``step * growth`` at most :data:`RKC_GROWTH`.
+        path: how the integrator's own kernels run (RKC's stage combinations;
+            :data:`torchsurf.backend.PATHS`), the flow's ``path``.
     """
 
     rate: Rate
@@ -96,6 +98,7 @@ class System:
     params: tuple[Tensor, ...] = field(default_factory=tuple)
     layout: BrickLayout | None = None
     growth: float = 0.0
+    path: str = "auto"
     _region: Tensor | None = field(default=None, init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -425,7 +428,7 @@ def _euler_step(system: System, u: Tensor, dt: Tensor | float) -> Tensor:
 def _rkc_step(system: System, u: Tensor, dt: Tensor | float) -> Tensor:
     stages = stages_for(_value(dt) * system.spectral_radius)
     # the stages' combinations of u are exact only up to rounding: keep u outside the band as is
-    return torch.where(system.band, rkc_step(system.rate, u, dt, stages), u)
+    return torch.where(system.band, rkc_step(system.rate, u, dt, stages, system.path), u)
 
 
 def _heun_step(system: System, u: Tensor, dt: Tensor | float) -> Tensor:

@@ -501,6 +501,7 @@ class Flow(nn.Module):
                      "u0 (in the band and its ring)")
         system = self.system(u0, surface, **inputs)
         system.layout = surface.layout
+        system.path = getattr(self, "path", "auto")
         _learned_time(system, self.time, end)
         # re-extension's stencils read phi itself, not only the geometry computed from it
         system.params = (*system.params, surface.phi)
