@@ -36,7 +36,7 @@ def test_auto_stays_eager_until_the_measured_eager_time_pays_for_compiling(monke
     kernel = _kernel("test_payback", calls)
     volume = torch.zeros(1, 1, 4, 4, 4)
     compiled: list[object] = []
-    monkeypatch.setattr(backend, "compiled", lambda f, dynamic=False: compiled.append(f) or f)
+    monkeypatch.setattr(backend, "compiled", lambda f, *options: compiled.append(f) or f)
     clock = iter(float(t) for t in range(100))
     monkeypatch.setattr(backend.time, "perf_counter", lambda: next(clock))
     monkeypatch.setattr(backend, "COMPILE_PAYBACK_SECONDS", 3.0)
@@ -71,7 +71,7 @@ def test_auto_goes_back_to_eager_for_good_when_compiled_is_measured_slower(monke
     calls: list[str] = []
     kernel = _kernel("test_slower", calls)
     volume = torch.zeros(1, 1, 4, 4, 4)
-    monkeypatch.setattr(backend, "compiled", lambda f, dynamic=False: f)
+    monkeypatch.setattr(backend, "compiled", lambda f, *options: f)
     monkeypatch.setattr(backend, "COMPILE_PAYBACK_SECONDS", 2.0)
     # eager calls take one second each, compiled ones two (the first of them compiles)
     durations = iter([1.0, 1.0] + [5.0] + [2.0] * backend.COMPARED_CALLS)
@@ -122,7 +122,7 @@ def test_auto_weighs_forward_and_backward_when_autograd_records_the_call(monkeyp
         return _Costly.apply(x, clock, 0.5, 5.0)
 
     kernel = backend.Kernel("test_backward_slower", eager, fused, lambda x: (x,))
-    monkeypatch.setattr(backend, "compiled", lambda f, dynamic=False: f)
+    monkeypatch.setattr(backend, "compiled", lambda f, *options: f)
     monkeypatch.setattr(backend, "COMPILE_PAYBACK_SECONDS", 4.0)
     monkeypatch.setattr(backend, "COMPILE_MIN_VOXELS", 1)
     monkeypatch.setattr(backend.time, "perf_counter", lambda: clock["now"])
@@ -217,7 +217,7 @@ def test_compiled_fused_kernels_match_the_eager_reference(operator):
 def test_recorded_paths_list_what_auto_picked(monkeypatch):
     kernel = _kernel("test_picks", [])
     volume = torch.zeros(1, 1, 4, 4, 4)
-    monkeypatch.setattr(backend, "compiled", lambda f, dynamic=False: f)
+    monkeypatch.setattr(backend, "compiled", lambda f, *options: f)
     with backend.recorded_paths() as picks:
         backend.resolve("auto", volume, kernel)
         backend.resolve("slicing", volume, kernel)  # not a choice of "auto": not listed
@@ -282,3 +282,19 @@ def test_one_compiled_variant_serves_every_batch_size_of_two_or_more(monkeypatch
     for batch, expected in ((4, "compiled"), (1, "slicing")):
         x = torch.rand(batch, 1, 5, 5, 5)
         assert backend.resolve("auto", x, kernel, args=(x, weight)) == expected
+
+
+def test_only_kernels_that_build_their_indices_skip_inductors_bounds_checks(monkeypatch):
+    from torchsurf.flows import extension
+    from torchsurf.operators import functional
+
+    seen = []
+    monkeypatch.setattr(torch, "compile", lambda f, **kwargs: seen.append(kwargs) or f)
+    backend.compiled.cache_clear()
+    try:
+        for kernel in (extension._ANCHORED_INTERPOLATION, functional._OCTANT):
+            backend.compiled(kernel.fused, kernel.dynamic, kernel.trusted_indices)
+    finally:
+        backend.compiled.cache_clear()
+    assert seen[0]["options"] == {"assert_indirect_indexing": False}
+    assert seen[1]["options"] is None

@@ -127,6 +127,9 @@ class Kernel:
             sizes vary from call to call, such as a gather over a surface's band nodes).
         eager_fused: ``fused``'s numbers arranged for eager evaluation (fewer full-volume
             temporaries), run instead of ``fused`` whenever the one-pass form runs eagerly.
+        trusted_indices: ``fused``'s indirect loads read index tensors the library built, in
+            bounds by construction: compiled without inductor's check of every such load
+            (the tricubic gather of a 37^3 sphere's band: 1.5 ms against 2.9 ms).
     """
 
     name: str
@@ -136,6 +139,7 @@ class Kernel:
     fused_when_eager: bool = False
     dynamic: bool = False
     eager_fused: Callable[..., Tensor] | None = None
+    trusted_indices: bool = False
 
     def fused_eagerly(self, *haloed_args: object) -> Tensor:
         """The one-pass form evaluated eagerly (:attr:`eager_fused` if given)."""
@@ -177,10 +181,13 @@ def _keep_buffers() -> None:
 
 
 @functools.cache
-def compiled(function: Callable[..., Tensor], dynamic: bool = False) -> Callable[..., Tensor]:
-    """``function`` compiled once per process (shapes specialised unless ``dynamic``)."""
+def compiled(function: Callable[..., Tensor], dynamic: bool = False,
+             trusted_indices: bool = False) -> Callable[..., Tensor]:
+    """``function`` compiled once per process (shapes specialised unless ``dynamic``; without
+    bounds checks on indirect loads when ``trusted_indices``, :attr:`Kernel.trusted_indices`)."""
     _raise_recompile_limit()
-    return torch.compile(function, dynamic=dynamic)
+    options = {"assert_indirect_indexing": False} if trusted_indices else None
+    return torch.compile(function, dynamic=dynamic, options=options)
 
 
 def _tensors(values: tuple | list) -> Iterator[Tensor]:
@@ -312,7 +319,7 @@ def _run_compiled(kernel: Kernel, volume: Tensor, args: tuple, recording: bool) 
         for arg in args:
             if isinstance(arg, Tensor) and arg.dim() > 0 and arg.shape[0] == batch:
                 torch._dynamo.maybe_mark_dynamic(arg, 0)
-    function = compiled(kernel.fused, kernel.dynamic)
+    function = compiled(kernel.fused, kernel.dynamic, kernel.trusted_indices)
     if recording:
         return function(*args)
     with torch.no_grad():

@@ -239,7 +239,7 @@ _CELL = [16 * z + 4 * y + x for z in (1, 2) for y in (1, 2) for x in (1, 2)]
 
 _INTERPOLATION = backend.Kernel(
     "tricubic_interpolation", _interpolate_gathered, _interpolate_terms, lambda *args: args,
-    dynamic=True,
+    dynamic=True, trusted_indices=True,
 )
 
 
@@ -396,7 +396,7 @@ def _brick_terms(flat: Tensor, bases: Tensor, second: Tensor, local: Tensor, wei
 
 _BRICK_INTERPOLATION = backend.Kernel(
     "tricubic_interpolation_bricks", _brick_gathered, _brick_terms, lambda *args: args,
-    dynamic=True,
+    dynamic=True, trusted_indices=True,
 )
 
 
@@ -418,7 +418,7 @@ def _kept_terms(flat: Tensor, sources: Tensor, weights: Tensor, limited: bool) -
 
 _KEPT_INTERPOLATION = backend.Kernel(
     "tricubic_interpolation_kept", _kept_gathered, _kept_terms, lambda *args: args,
-    dynamic=True,
+    dynamic=True, trusted_indices=True,
 )
 
 
@@ -444,7 +444,7 @@ def _anchored_terms(flat: Tensor, sources: Tensor, anchors: Tensor, weights: Ten
 
 _ANCHORED_INTERPOLATION = backend.Kernel(
     "tricubic_interpolation_anchored", _anchored_gathered, _anchored_terms,
-    lambda *args: args, dynamic=True,
+    lambda *args: args, dynamic=True, trusted_indices=True,
 )
 
 
