@@ -132,12 +132,19 @@ def _stage(c: Coefficients, j: int, dt: float | Tensor, u: Tensor, current: Tens
         return (weights[0] * u + weights[1] * current + weights[2] * previous
                 + (c.mu_tilde[j] * dt) * rate + (c.gamma_tilde[j] * dt) * rate0)
     weights += (c.mu_tilde[j] * dt, c.gamma_tilde[j] * dt)
+    if path in backend.EAGER_PATHS or (path == "auto" and u.numel() < STAGE_COMPILE_MIN_VOXELS):
+        return _stage_eagerly(u, current, previous, rate, rate0, weights)
     scalars = tuple(torch.tensor(w, dtype=u.dtype) for w in weights)
     return backend.run(_STAGE, path, u, u, current, previous, rate, rate0, scalars)
 
 
+STAGE_COMPILE_MIN_VOXELS = 2**18
+"""Below this many values (``64^3``) a stage's combination stays eager under ``"auto"``: its
+five passes cost less there than the compiled call's dispatch (37^3: no faster compiled)."""
+
+
 def _stage_eagerly(u: Tensor, current: Tensor, previous: Tensor, rate: Tensor, rate0: Tensor,
-                   weights: tuple[Tensor, ...], *, path: str = "slicing") -> Tensor:
+                   weights: tuple[Tensor | float, ...], *, path: str = "slicing") -> Tensor:
     """The weighted sum of the five volumes in one new tensor updated in place: five passes
     over memory, no temporaries."""
     w = [float(weight) for weight in weights]
