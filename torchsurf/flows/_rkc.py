@@ -124,9 +124,9 @@ def rkc_step(rate: Callable[[Tensor], Tensor], u: Tensor, dt: float | Tensor,
 def _stage(c: Coefficients, j: int, dt: float | Tensor, u: Tensor, current: Tensor,
            previous: Tensor, rate: Tensor, rate0: Tensor, path: str = "auto") -> Tensor:
     """Stage ``j``: ``(1 - mu - nu) u + mu current + nu previous + mu~ dt rate + gamma~ dt
-    rate0``: for a float ``dt``, :data:`_STAGE` (its weights as 0-d tensors, so that one
-    compiled kernel serves every stage); else as tensor arithmetic (``dt`` a learned 0-d
-    tensor, or traced by ``torch.compile``)."""
+    rate0``. For a float ``dt``: five eager passes on an eager path or a small volume, else
+    :data:`_STAGE` (its weights as 0-d tensors, so that one compiled kernel serves every
+    stage); as tensor arithmetic for a learned 0-d ``dt`` or under ``torch.compile``."""
     weights = (1.0 - c.mu[j] - c.nu[j], c.mu[j], c.nu[j])
     if isinstance(dt, Tensor) or torch.compiler.is_compiling():
         return (weights[0] * u + weights[1] * current + weights[2] * previous
