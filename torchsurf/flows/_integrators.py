@@ -53,6 +53,18 @@ def with_ring(band: Tensor, layout: BrickLayout | None = None) -> Tensor:
     return grown
 
 
+def zero_outside(value: Tensor, outside: Tensor) -> Tensor:
+    """``value`` with zeros where ``outside`` (bool, broadcastable), for a flow's rate.
+
+    ``value`` must be a tensor the caller owns (an operator's fresh result): it is filled in
+    place unless autograd records it (then a new tensor), which saves a full-volume
+    allocation and pass an evaluation against ``torch.where``.
+    """
+    if torch.is_grad_enabled() and value.requires_grad:
+        return value.masked_fill(outside, 0.0)
+    return value.masked_fill_(outside, 0.0)
+
+
 @dataclass
 class Linear:
     """A linear symmetric flow ``W du/dt = A u`` (``L = W^-1 A``, docs/band.md).

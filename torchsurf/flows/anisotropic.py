@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import torch
 from torch import Tensor
 
 from .._checks import check_choice, check_positive
@@ -11,7 +10,7 @@ from ..operators import anisotropic_diffusion
 from ..operators.diffusion import FLUX_SCHEMES, resolve_diffusivity
 from ..operators.diffusivity import DIFFUSIVITIES, Diffusivity
 from ..surface import ImplicitSurface
-from ._integrators import System, tensors
+from ._integrators import System, tensors, zero_outside
 from ._positive import Positive
 from .base import Flow
 
@@ -89,15 +88,15 @@ class AnisotropicFlow(Flow):
         if inputs:
             raise TypeError(f"AnisotropicFlow takes no extra inputs, got {sorted(inputs)}")
         band = self.band_mask(surface)
-        zero = u0.new_zeros(())
+        outside = ~band
         contrast = self.contrast.value()
         if isinstance(contrast, Tensor):
             contrast = contrast.to(u0.dtype)
 
         def rate(u: Tensor) -> Tensor:
-            return torch.where(band, anisotropic_diffusion(
+            return zero_outside(anisotropic_diffusion(
                 u, surface, self.diffusivity, contrast, self.eps, False, self.scheme, self.path
-            ), zero)
+            ), outside)
 
         rho = self.max_diffusivity * self.operator_bound(surface, self.scheme)
         return System(rate, band, rho, params=tensors(contrast, surface.normal, surface.weight))

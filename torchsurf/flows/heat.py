@@ -14,7 +14,7 @@ from ..backend import PATHS
 from ..operators import functional, laplace_beltrami
 from ..operators.laplace_beltrami import SCHEMES
 from ..surface import ImplicitSurface, check_data, check_surface
-from ._integrators import Linear, System, tensors
+from ._integrators import Linear, System, tensors, zero_outside
 from ._positive import Positive
 from .base import Flow, _check_times
 from .exponential import BandLaplacian, heat_semigroup
@@ -115,9 +115,7 @@ class HeatFlow(Flow):
             value = laplace_beltrami(u, surface, self.scheme, self.path)
             if not (isinstance(d, float) and d == 1.0):
                 value = value * d
-            if torch.is_grad_enabled() and value.requires_grad:
-                return value.masked_fill(outside, 0.0)
-            return value.masked_fill_(outside, 0.0)  # a new tensor: two passes fewer
+            return zero_outside(value, outside)
 
         linear = None
         if self.scheme in SYMMETRIC_SCHEMES:

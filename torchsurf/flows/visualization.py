@@ -8,7 +8,7 @@ from torch import Tensor
 from .._checks import check_positive
 from ..operators import functional
 from ..surface import ImplicitSurface, check_direction, tangent_unit
-from ._integrators import Linear, System, tensors, with_ring
+from ._integrators import Linear, System, tensors, with_ring, zero_outside
 from .base import Flow, data_shape
 
 
@@ -64,7 +64,7 @@ class FlowVisualization(Flow):
         band = self.band_mask(surface)
         region = with_ring(band, surface.layout)
         direction = tangent_unit(check_direction(direction, u0, surface, region), surface)
-        zero = u0.new_zeros(())
+        outside = ~band
         spacing, isotropic = surface.spacing, self.isotropic
         pad = None if surface.layout is None else surface.layout.halo
 
@@ -99,7 +99,7 @@ class FlowVisualization(Flow):
                              weighted=True)
 
         def rate(u: Tensor) -> Tensor:
-            return torch.where(band, laplacian(u, *geometry[:3], haloed, haloed_direction), zero)
+            return zero_outside(laplacian(u, *geometry[:3], haloed, haloed_direction), outside)
 
         rho = (1.0 + self.isotropic) * self.operator_bound(surface, "symmetric")
         return System(rate, band, rho, linear=Linear(operator, geometry),
