@@ -134,7 +134,7 @@ def _stage(c: Coefficients, j: int, dt: float | Tensor, u: Tensor, current: Tens
     weights += (c.mu_tilde[j] * dt, c.gamma_tilde[j] * dt)
     if path in backend.EAGER_PATHS or (path == "auto" and u.numel() < STAGE_COMPILE_MIN_VOXELS):
         return _stage_eagerly(u, current, previous, rate, rate0, weights)
-    scalars = tuple(torch.tensor(w, dtype=u.dtype) for w in weights)
+    scalars = tuple(torch.tensor(w, dtype=u.dtype, device=u.device) for w in weights)
     return backend.run(_STAGE, path, u, u, current, previous, rate, rate0, scalars)
 
 
