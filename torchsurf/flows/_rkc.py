@@ -127,11 +127,10 @@ def _stage(c: Coefficients, j: int, dt: float | Tensor, u: Tensor, current: Tens
     rate0``. For a float ``dt``: five eager passes on an eager path or a small volume, else
     :data:`_STAGE` (its weights as 0-d tensors, so that one compiled kernel serves every
     stage); as tensor arithmetic for a learned 0-d ``dt`` or under ``torch.compile``."""
-    weights = (1.0 - c.mu[j] - c.nu[j], c.mu[j], c.nu[j])
+    weights = (1.0 - c.mu[j] - c.nu[j], c.mu[j], c.nu[j], c.mu_tilde[j] * dt,
+               c.gamma_tilde[j] * dt)
     if isinstance(dt, Tensor) or torch.compiler.is_compiling():
-        return (weights[0] * u + weights[1] * current + weights[2] * previous
-                + (c.mu_tilde[j] * dt) * rate + (c.gamma_tilde[j] * dt) * rate0)
-    weights += (c.mu_tilde[j] * dt, c.gamma_tilde[j] * dt)
+        return _stage_in_one_pass(u, current, previous, rate, rate0, weights)
     if path in backend.EAGER_PATHS or (path == "auto" and u.numel() < STAGE_COMPILE_MIN_VOXELS):
         return _stage_eagerly(u, current, previous, rate, rate0, weights)
     scalars = tuple(torch.tensor(w, dtype=u.dtype, device=u.device) for w in weights)
@@ -156,7 +155,7 @@ def _stage_eagerly(u: Tensor, current: Tensor, previous: Tensor, rate: Tensor, r
 
 
 def _stage_in_one_pass(u: Tensor, current: Tensor, previous: Tensor, rate: Tensor,
-                       rate0: Tensor, weights: tuple[Tensor, ...]) -> Tensor:
+                       rate0: Tensor, weights: tuple[Tensor | float, ...]) -> Tensor:
     """The weighted sum as one pointwise expression (one pass when compiled)."""
     return (weights[0] * u + weights[1] * current + weights[2] * previous + weights[3] * rate
             + weights[4] * rate0)
