@@ -21,9 +21,10 @@ default, widened to 5 cells on a dense surface whose phi is a distance that far,
 ``band_width=``), measured as ``|phi| / W`` so that it does not depend on the scale of ``phi``,
 and independent of the time. The ring of nodes its stencils read around it is refreshed by
 closest-point re-extension (tricubic, limited) at every evaluation of RKC's and torchdiffeq's
-rate (RKC: only after each step where the band is wide enough for the step), and the whole
-band with it after each step, or, where steps are shorter than the time the fastest diffusion
-takes to cross a cell, after as many steps as that takes, and at each requested time
+rate (RKC: only between steps where the band is wide enough for them), and the whole band
+with it after each step, or, where steps are shorter than the time the fastest diffusion takes
+to cross a cell, after as many steps as that takes (RKC steps that hold the ring: as many as
+one step could hold it for), and at each requested time
 (``reextend_every``): every re-extension errs a little, so more steps must not mean more of
 them. Euler and Heun do not refresh the ring in between; the implicit methods, whose operator
 must stay symmetric, hold the ring fixed during a step (a Dirichlet condition). The explicit
@@ -54,6 +55,7 @@ from ..bricks.layout import BRICK
 from ..operators.spectrum import laplace_beltrami_bound
 from ..surface import ImplicitSurface, check_data, check_surface
 from ._integrators import (
+    HELD_RING_CELLS,
     IMPLICIT,
     INTEGRATORS,
     Linear,
@@ -248,7 +250,9 @@ class Flow(nn.Module):
             tricubic, limited to the range of the cell around each closest point) every this
             many steps; ``"auto"`` (default) after as many steps as the fastest diffusion takes
             to cross one cell, ``floor(12 / (rho dt))``, or after every step where steps are
-            longer, and into each result at the requested times (docs/band.md). Between
+            longer (RKC steps that hold the ring: as many as one step could hold it for,
+            ``floor(12 (w - 2 sqrt(3))^2 / (rho dt))`` on a band of ``w`` cells), and into each
+            result at the requested times (docs/band.md). Between
             re-extensions, RKC and torchdiffeq methods re-extend the ring around the band at
             every evaluation of the rate (Euler and Heun need not: docs/band.md). ``None``:
             never (the ring keeps ``u0``: only right for a band as wide as the diffusion
@@ -379,17 +383,26 @@ class Flow(nn.Module):
             ) from error
         return tqdm(total=total, desc=type(self).__name__, unit="step", leave=False)
 
-    def _reextension_period(self, system: System, step: float) -> int | None:
-        """Steps between re-extensions of the band, ``step`` the shortest (physical time)."""
+    def _reextension_period(self, system: System, shortest: float, longest: float,
+                            band_cells: float) -> int | None:
+        """Steps between re-extensions of the band: ``shortest`` and ``longest`` the steps
+        (physical time; requested times split some), ``band_cells`` the band's width in cells."""
         if self.reextend_every is None:
             return None
         if self.reextend_every != "auto":
             return self.reextend_every
-        if self.method in ("euler", "heun", "rkc", *IMPLICIT):
-            # the time the fastest diffusion takes to cross one cell, 12 / rho: each
-            # re-extension of the band errs by a little, so many short steps must not each add one
-            return max(1, math.floor(12.0 / (system.spectral_radius * step)))
-        return 1
+        if self.method not in ("euler", "heun", "rkc", *IMPLICIT):
+            return 1
+        rho = system.spectral_radius
+        # the time the fastest diffusion takes to cross one cell, 12 / rho: each
+        # re-extension of the band errs by a little, so many short steps must not each add one
+        crossing = max(1, math.floor(12.0 / (rho * shortest)))
+        if self.method == "rkc" and ring_held("rkc", longest * rho, band_cells):
+            # the ring is held as long as one step could hold it (HELD_RING_CELLS): short
+            # steps, taken for their time error, share one re-extension
+            held = 12.0 * (band_cells - HELD_RING_CELLS) ** 2
+            return max(crossing, math.floor(held / (rho * longest) * (1 + 1e-9)))
+        return crossing
 
     def _checkpointing(self, u0: Tensor, surface: ImplicitSurface, system: System) -> bool:
         if self.checkpoint != "auto":
@@ -520,7 +533,8 @@ class Flow(nn.Module):
         bar = self._progress_bar(plan.count)
         schedule = self._schedule(end, wanted, None)
         schedule.step = plan.step
-        every = self._reextension_period(system, shortest_step(schedule))
+        every = self._reextension_period(system, shortest_step(schedule), plan.step,
+                                         width / surface.spacing)
         schedule.after_step, schedule.output = self._after_step(surface, system, bar, every)
         schedule.segment = 12.0 * (width / surface.spacing) ** 2 / system.spectral_radius
         schedule.checkpoint = self._checkpointing(u0, surface, system)
