@@ -109,18 +109,24 @@ class HeatFlow(Flow):
             raise TypeError(f"HeatFlow takes no inputs besides u0 and surface, got {sorted(inputs)}")
         band = self.band_mask(surface)
         d = self.diffusivity.volume(u0)
-        outside = ~band
+        unit = isinstance(d, float) and d == 1.0
+        scheme, path = self.scheme, self.path
+        pad = None if surface.layout is None else surface.layout.halo
+        outside = None if scheme in functional.SCHEMES else ~band
 
         def rate(u: Tensor) -> Tensor:
-            value = laplace_beltrami(u, surface, self.scheme, self.path)
-            if not (isinstance(d, float) and d == 1.0):
-                value = value * d
-            return zero_outside(value, outside)
+            if outside is None:
+                # the band's mask applied in the operator's own pass (octant)
+                value = functional.divergence_form(
+                    u, surface.normal, surface.weight, surface.spacing, scheme, path,
+                    haloed=surface.haloed(), pad=pad, mask=band)
+                return value if unit else value * d
+            value = laplace_beltrami(u, surface, scheme, path)
+            return zero_outside(value if unit else value * d, outside)
 
         linear = None
         if self.scheme in SYMMETRIC_SCHEMES:
-            spacing, scheme, path = surface.spacing, self.scheme, self.path
-            pad = None if surface.layout is None else surface.layout.halo
+            spacing = surface.spacing
 
             def operator(x: Tensor, weight: Tensor, normal: Tensor, haloed_weight: Tensor,
                          haloed_normal: Tensor, *diffusivity: Tensor) -> Tensor:

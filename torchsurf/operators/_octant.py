@@ -23,10 +23,15 @@ about half the arithmetic of the two-composition ``"symmetric"`` scheme's fused 
 
 from __future__ import annotations
 
+import torch
 from torch import Tensor
 
 from .. import stencils
 from ..stencils import Offset, shifted
+
+
+def _masked(result: Tensor, mask: Tensor | None) -> Tensor:
+    return result if mask is None else torch.where(mask, result, 0.0)
 
 
 def _step(offset: Offset, axis: int, sign: int) -> Offset:
@@ -35,7 +40,7 @@ def _step(offset: Offset, axis: int, sign: int) -> Offset:
 
 def fused_octant(
     padded_u: Tensor, padded_normal: Tensor, padded_weight: Tensor, grad_norm: Tensor,
-    spacing: float, weighted: bool = False,
+    spacing: float, weighted: bool = False, mask: Tensor | None = None,
 ) -> Tensor:
     """The octant scheme's ``L u`` as one pointwise expression over haloed inputs.
 
@@ -46,6 +51,8 @@ def fused_octant(
         padded_weight: ``W`` with a replicated halo, ``(B or 1, 1, D + 2, H + 2, W + 2)``.
         grad_norm: ``W``, ``(B or 1, 1, D, H, W)``.
         weighted: return ``W L u`` (symmetric negative semi-definite) instead of ``L u``.
+        mask: ``(B or 1, 1, D, H, W)`` bool or ``None``: the result is zero where it is false
+            (a flow's band), in the same pass.
 
     Returns:
         ``(B, C, D, H, W)``, units of ``u`` per world length squared.
@@ -83,7 +90,7 @@ def fused_octant(
         cross = term if cross is None else cross + term
     total = 2.0 * diagonal + cross
     scale = 4.0 * spacing * spacing
-    return total / scale if weighted else total / (scale * grad_norm)
+    return _masked(total / scale if weighted else total / (scale * grad_norm), mask)
 
 
 def _along(axis: int, piece: slice, others: slice | None = None) -> tuple:
@@ -96,7 +103,7 @@ def _along(axis: int, piece: slice, others: slice | None = None) -> tuple:
 
 def eager_octant(
     padded_u: Tensor, padded_normal: Tensor, padded_weight: Tensor, grad_norm: Tensor,
-    spacing: float, weighted: bool = False,
+    spacing: float, weighted: bool = False, mask: Tensor | None = None,
 ) -> Tensor:
     """:func:`fused_octant`'s numbers, arranged for eager evaluation (same arguments).
 
@@ -131,4 +138,4 @@ def eager_octant(
         term = term + q[_along(a, slice(0, -2))] - q[_along(a, slice(2, None))]
         total = term if total is None else total + term
     scale = 4.0 * spacing * spacing
-    return total / scale if weighted else total / (scale * grad_norm)
+    return _masked(total / scale if weighted else total / (scale * grad_norm), mask)

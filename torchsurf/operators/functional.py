@@ -67,16 +67,21 @@ def _weighted(result: Tensor, weight: Tensor, weighted: bool) -> Tensor:
     return weight * result if weighted else result
 
 
+def _masked(result: Tensor, mask: Tensor | None) -> Tensor:
+    return result if mask is None else torch.where(mask, result, 0.0)
+
+
 # --- Laplace–Beltrami: the octant scheme and the flux-form schemes -------------------------
 
 
-def _octant_eager(u, normal, weight, spacing, weighted, haloed, *, path):  # noqa: ANN001, ANN202
+def _octant_eager(u, normal, weight, spacing, weighted, haloed, mask, *, path):  # noqa: ANN001, ANN202
     result = flux_form(u, normal, weight, spacing, None, (), "octant", path)
-    return _weighted(result, weight, weighted)
+    return _masked(_weighted(result, weight, weighted), mask)
 
 
-def _octant_halo(u, normal, weight, spacing, weighted, haloed):  # noqa: ANN001, ANN202
-    return (_replicated(u, 1), *_geometry_halo(normal, weight, haloed), weight, spacing, weighted)
+def _octant_halo(u, normal, weight, spacing, weighted, haloed, mask):  # noqa: ANN001, ANN202
+    return (_replicated(u, 1), *_geometry_halo(normal, weight, haloed), weight, spacing, weighted,
+            mask)
 
 
 _OCTANT = backend.Kernel(
@@ -117,43 +122,50 @@ def _require_haloed(haloed: Haloed) -> tuple[Tensor, Tensor]:
     return haloed
 
 
-def _apply_linear(u, normal, weight, spacing, scheme, weighted, haloed, path, pad=None):  # noqa: ANN001, ANN202
+def _apply_linear(u, normal, weight, spacing, scheme, weighted, haloed, path, pad=None,  # noqa: ANN001, ANN202
+                  mask=None):
     if pad is not None:
         haloed_normal, haloed_weight = _require_haloed(haloed)
         if scheme == "octant":
             return backend.run_haloed(_OCTANT, path, u, pad(u, 1), haloed_normal, haloed_weight,
-                                      weight, spacing, weighted)
-        return backend.run_haloed(_FLUX_LB_OPEN, path, u, pad(u, 2), haloed_normal,
-                                  haloed_weight, weight, spacing, scheme, weighted)
+                                      weight, spacing, weighted, mask)
+        return _masked(backend.run_haloed(_FLUX_LB_OPEN, path, u, pad(u, 2), haloed_normal,
+                                          haloed_weight, weight, spacing, scheme, weighted), mask)
     if scheme == "octant":
-        return backend.run(_OCTANT, path, u, u, normal, weight, spacing, weighted, haloed)
-    return backend.run(_FLUX_LB, path, u, u, normal, weight, spacing, scheme, weighted, haloed)
+        return backend.run(_OCTANT, path, u, u, normal, weight, spacing, weighted, haloed, mask)
+    return _masked(backend.run(_FLUX_LB, path, u, u, normal, weight, spacing, scheme, weighted,
+                               haloed), mask)
 
 
 class _SelfAdjoint(torch.autograd.Function):
     """Backward of ``L`` w.r.t. ``u`` by its transpose ``L^T g = W L(g / W)``: one
     forward-sized pass, where backpropagating through the stencils costs about twice as much.
-    Only for a fixed geometry (no gradient to the normals or ``W``)."""
+    Only for a fixed geometry (no gradient to the normals or ``W``). With a mask ``M``
+    (``M L u``), ``L^T M g``."""
 
     @staticmethod
-    def forward(ctx, u, normal, weight, spacing, scheme, weighted, haloed, path, pad):  # noqa: ANN001, ANN205
-        ctx.geometry = (normal, weight, spacing, scheme, weighted, haloed, path, pad, u.shape[0])
-        return _apply_linear(u, normal, weight, spacing, scheme, weighted, haloed, path, pad)
+    def forward(ctx, u, normal, weight, spacing, scheme, weighted, haloed, path, pad, mask):  # noqa: ANN001, ANN205
+        ctx.geometry = (normal, weight, spacing, scheme, weighted, haloed, path, pad, mask,
+                        u.shape[0])
+        return _apply_linear(u, normal, weight, spacing, scheme, weighted, haloed, path, pad,
+                             mask)
 
     @staticmethod
     def backward(ctx, grad_output):  # noqa: ANN001, ANN205
-        normal, weight, spacing, scheme, weighted, haloed, path, pad, batch = ctx.geometry
+        normal, weight, spacing, scheme, weighted, haloed, path, pad, mask, batch = ctx.geometry
+        source = _masked(grad_output, mask)
         # A = W L is symmetric: (W^-1 A)^T g = A (g / W), and A^T g = A g
-        source = grad_output if weighted else grad_output / weight
+        source = source if weighted else source / weight
         grad_u = _apply_linear(source, normal, weight, spacing, scheme, True, haloed, path, pad)
         if grad_u.shape[0] != batch:
             grad_u = grad_u.sum(dim=0, keepdim=True)
-        return grad_u, None, None, None, None, None, None, None, None
+        return grad_u, None, None, None, None, None, None, None, None, None
 
 
 def divergence_form(
     u: Tensor, normal: Tensor, weight: Tensor, spacing: float, scheme: str = "octant",
     path: str = "auto", weighted: bool = False, haloed: Haloed = None, pad: Pad | None = None,
+    mask: Tensor | None = None,
 ) -> Tensor:
     """The Laplace–Beltrami operator ``L u = (1/W) div(W P grad u)`` in divergence form.
 
@@ -164,6 +176,8 @@ def divergence_form(
         path: how the stencils run (:mod:`torchsurf.backend`).
         weighted: return ``W L u`` (symmetric negative semi-definite) instead.
         pad: how ``u`` gets its halo (:data:`Pad`); ``None`` for a dense volume.
+        mask: ``(B or 1, 1, D, H, W)`` bool (packed like ``u`` with ``pad``): the result is zero
+            where it is false (a flow's band); the octant scheme applies it in its one pass.
 
     Returns:
         ``u``'s shape, units of ``u`` per world length squared (times ``W`` if weighted).
@@ -172,8 +186,10 @@ def divergence_form(
             torch.is_grad_enabled() and u.requires_grad):
         # no autograd node needed where autograd records nothing (a custom Function's call
         # costs as much as the stencil itself at 37^3)
-        return _apply_linear(u, normal, weight, spacing, scheme, weighted, haloed, path, pad)
-    return _SelfAdjoint.apply(u, normal, weight, spacing, scheme, weighted, haloed, path, pad)
+        return _apply_linear(u, normal, weight, spacing, scheme, weighted, haloed, path, pad,
+                             mask)
+    return _SelfAdjoint.apply(u, normal, weight, spacing, scheme, weighted, haloed, path, pad,
+                              mask)
 
 
 # --- Nonlinear and directional fluxes ------------------------------------------------------
