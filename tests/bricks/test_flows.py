@@ -36,6 +36,29 @@ def test_bound_ring_and_closest_point_stencil_equal_the_dense_ones(torus):
     assert torch.equal(result * region, expected * region)
 
 
+@pytest.mark.parametrize("kept", [True, False])
+@pytest.mark.parametrize("path", ["slicing", "compiled"])
+def test_closest_point_stencil_applied_in_chunks_equals_the_dense_one(torus, monkeypatch, kept,
+                                                                      path):
+    """A brick stencil gathers ``APPLY_CHUNK`` nodes at a time (bounded temporaries on large
+    bands): small chunks, with the taps' packed indices kept or formed, give the dense
+    stencil's numbers on every path."""
+    from torchsurf.flows import extension
+
+    dense, surface = torus
+    region = with_ring(dense.band_mask())
+    packed_region = with_ring(surface.band_mask(), surface.layout)
+    monkeypatch.setattr(extension, "APPLY_CHUNK", 1000)
+    monkeypatch.setattr(extension, "KEEP_SOURCES_NODES", 2**20 if kept else 0)
+    stencil = BrickCubicStencil(surface, packed_region, limited=True)
+    assert len(stencil.targets) > 3 * extension.APPLY_CHUNK
+    assert (stencil.sources is not None) == kept
+    u = _data(dense.grid).float()
+    expected = CubicStencil(dense, region, limited=True).apply(u)
+    (result,) = surface.to_dense(stencil.apply(surface.from_dense(u), path))
+    torch.testing.assert_close(result * region, expected * region, rtol=0, atol=1e-5)
+
+
 @pytest.mark.parametrize("method", ["rkc", "euler", "heun", "implicit", "crank_nicolson"])
 def test_heat_flow_equals_the_dense_flow_on_the_band(torus, method):
     dense, surface = torus
