@@ -6,11 +6,11 @@ from torch import Tensor
 
 from .._checks import check_choice, check_positive
 from ..backend import PATHS
-from ..operators import anisotropic_diffusion
-from ..operators.diffusion import FLUX_SCHEMES, resolve_diffusivity
+from ..operators import functional
+from ..operators.diffusion import FLUX_SCHEMES, channel_contrast, resolve_diffusivity
 from ..operators.diffusivity import DIFFUSIVITIES, Diffusivity
 from ..surface import ImplicitSurface
-from ._integrators import System, tensors, zero_outside
+from ._integrators import System, tensors
 from ._positive import Positive
 from .base import Flow
 
@@ -88,15 +88,19 @@ class AnisotropicFlow(Flow):
         if inputs:
             raise TypeError(f"AnisotropicFlow takes no extra inputs, got {sorted(inputs)}")
         band = self.band_mask(surface)
-        outside = ~band
         contrast = self.contrast.value()
         if isinstance(contrast, Tensor):
             contrast = contrast.to(u0.dtype)
+        shaped = channel_contrast(contrast, u0)
+        diffusivity = resolve_diffusivity(self.diffusivity)
+        pad = None if surface.layout is None else surface.layout.halo
 
         def rate(u: Tensor) -> Tensor:
-            return zero_outside(anisotropic_diffusion(
-                u, surface, self.diffusivity, contrast, self.eps, False, self.scheme, self.path
-            ), outside)
+            # the band's mask applied in the operator's own pass
+            return functional.edge_stopping_form(
+                u, surface.normal, surface.weight, surface.spacing, diffusivity, shaped,
+                self.eps, False, self.scheme, self.path, haloed=surface.haloed(), pad=pad,
+                mask=band)
 
         rho = self.max_diffusivity * self.operator_bound(surface, self.scheme)
         return System(rate, band, rho, params=tensors(contrast, surface.normal, surface.weight))

@@ -231,28 +231,29 @@ def directional_flux(v: Components, fields: Sequence[Tensor], side: int) -> Comp
 
 
 def _edge_eager(u, normal, weight, spacing, diffusivity, contrast, eps, coupled, scheme, haloed,  # noqa: ANN001, ANN202
-                *, path):
+                mask=None, *, path):
     flux = edge_stopping_flux(diffusivity, contrast, eps, coupled)
-    return flux_form(u, normal, weight, spacing, flux, (), scheme, path)
+    return _masked(flux_form(u, normal, weight, spacing, flux, (), scheme, path), mask)
 
 
 def _edge_fused(padded_u, haloed_normal, haloed_weight, weight, spacing, diffusivity, contrast,  # noqa: ANN001, ANN202
-                eps, coupled, scheme, box_faces=True):
+                eps, coupled, scheme, mask=None, box_faces=True):
     flux = edge_stopping_flux(diffusivity, contrast, eps, coupled)
-    return fused_flux_form(padded_u, haloed_normal, haloed_weight, weight, spacing, flux, (),
-                           scheme, box_faces=box_faces)
+    return _masked(fused_flux_form(padded_u, haloed_normal, haloed_weight, weight, spacing, flux,
+                                   (), scheme, box_faces=box_faces), mask)
 
 
-def _edge_halo(u, normal, weight, spacing, diffusivity, contrast, eps, coupled, scheme, haloed):  # noqa: ANN001, ANN202
+def _edge_halo(u, normal, weight, spacing, diffusivity, contrast, eps, coupled, scheme, haloed,  # noqa: ANN001, ANN202
+               mask=None):
     return (_replicated(u, 2), *_geometry_halo(normal, weight, haloed), weight, spacing,
-            diffusivity, contrast, eps, coupled, scheme)
+            diffusivity, contrast, eps, coupled, scheme, mask)
 
 
 def _edge_fused_eagerly(padded_u, haloed_normal, haloed_weight, weight, spacing, diffusivity,  # noqa: ANN001, ANN202
-                        contrast, eps, coupled, scheme, box_faces=True):
+                        contrast, eps, coupled, scheme, mask=None, box_faces=True):
     return eager_coupled_rate(padded_u, haloed_normal, haloed_weight, weight, spacing,
-                              diffusivity, contrast, eps, scheme, box_faces=box_faces,
-                              coupled=coupled)
+                              diffusivity, contrast, eps, scheme, mask=mask,
+                              box_faces=box_faces, coupled=coupled)
 
 
 _EDGE_STOPPING = backend.Kernel("edge_stopping", _edge_eager, _edge_fused, _edge_halo,
@@ -260,15 +261,16 @@ _EDGE_STOPPING = backend.Kernel("edge_stopping", _edge_eager, _edge_fused, _edge
 
 
 def _edge_fused_open(padded_u, haloed_normal, haloed_weight, weight, spacing, diffusivity,  # noqa: ANN001, ANN202
-                     contrast, eps, coupled, scheme):
+                     contrast, eps, coupled, scheme, mask=None):
     return _edge_fused(padded_u, haloed_normal, haloed_weight, weight, spacing, diffusivity,
-                       contrast, eps, coupled, scheme, box_faces=False)
+                       contrast, eps, coupled, scheme, mask, box_faces=False)
 
 
 def _edge_open_eagerly(padded_u, haloed_normal, haloed_weight, weight, spacing, diffusivity,  # noqa: ANN001, ANN202
-                       contrast, eps, coupled, scheme):
+                       contrast, eps, coupled, scheme, mask=None):
     return _edge_fused_eagerly(padded_u, haloed_normal, haloed_weight, weight, spacing,
-                               diffusivity, contrast, eps, coupled, scheme, box_faces=False)
+                               diffusivity, contrast, eps, coupled, scheme, mask,
+                               box_faces=False)
 
 
 _EDGE_STOPPING_OPEN = backend.Kernel("edge_stopping_open", _edge_eager, _edge_fused_open,
@@ -279,6 +281,7 @@ def edge_stopping_form(
     u: Tensor, normal: Tensor, weight: Tensor, spacing: float, diffusivity: Diffusivity,
     contrast: float | Tensor, eps: float, coupled: bool = False, scheme: str = "symmetric",
     path: str = "auto", haloed: Haloed = None, pad: Pad | None = None,
+    mask: Tensor | None = None,
 ) -> Tensor:
     """Edge-stopping diffusion ``(1/W) div(W g(|P grad u|) P grad u)``, ``|.|`` regularised by ``eps``.
 
@@ -292,20 +295,22 @@ def edge_stopping_form(
         scheme: ``"symmetric"`` (default), ``"conservative"`` or ``"octant"``.
         path: how the stencils run.
         pad: how ``u`` gets its halo (:data:`Pad`); ``None`` for a dense volume.
+        mask: ``(B or 1, 1, D, H, W)`` bool (packed like ``u`` with ``pad``): the result is zero
+            where it is false (a flow's band), in the kernel's own pass.
 
     Returns:
         ``u``'s shape.
     """
     if coupled and u.shape[1] > 1:
         return harmonic_map_rate(u, normal, weight, spacing, diffusivity, contrast, eps, None,
-                                 scheme, path, None, haloed, pad)
+                                 scheme, path, mask, haloed, pad)
     if pad is not None:
         haloed_normal, haloed_weight = _require_haloed(haloed)
         return backend.run_haloed(_EDGE_STOPPING_OPEN, path, u, pad(u, 2), haloed_normal,
                                   haloed_weight, weight, spacing, diffusivity, contrast, eps,
-                                  coupled, scheme)
+                                  coupled, scheme, mask)
     return backend.run(_EDGE_STOPPING, path, u, u, normal, weight, spacing, diffusivity,
-                       contrast, eps, coupled, scheme, haloed)
+                       contrast, eps, coupled, scheme, haloed, mask)
 
 
 def _coupled_eager(u, normal, weight, spacing, diffusivity, contrast, eps, power, scheme, mask,  # noqa: ANN001, ANN202
