@@ -220,6 +220,12 @@ def _concrete(path: str, volume: Tensor) -> str:
     return backend.eager_path(volume) if path == "auto" else path
 
 
+def masked(result: Tensor, mask: Tensor | None) -> Tensor:
+    """``result`` with zeros where ``mask`` (bool, broadcastable) is false; ``None``: as it is.
+    One pointwise step, so a compiled operator applies a flow's band in its own pass."""
+    return result if mask is None else torch.where(mask, result, 0.0)
+
+
 def shifted(padded: Tensor, offset: Offset) -> Tensor:
     """The interior of a halo-1 volume shifted by ``offset``: ``u[k + dz, j + dy, i + dx]``."""
     dz, dy, dx = offset

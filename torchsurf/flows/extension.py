@@ -455,7 +455,7 @@ APPLY_CHUNK = 2**18
 """Nodes a brick stencil's application gathers at once: the temporaries of the gather (the
 compiled kernel's index buffers, about 250 bytes a node; the eager ``(C, n, 64)`` values and
 indices) stay bounded by the chunk, not the band (the band's re-extension of a 512^3 bunny,
-4.6 M nodes: 1.1 GB of them at once, the flow's peak memory 4.15 -> 3.12 GB)."""
+4.6 M nodes: 1.1 GB of them at once, the flow's peak memory 4.13 -> 3.19 GB)."""
 
 KEEP_SOURCES_NODES = 2**20
 """A brick stencil of at most this many nodes keeps the packed index of each of its 64 taps

@@ -112,11 +112,12 @@ class HeatFlow(Flow):
         unit = isinstance(d, float) and d == 1.0
         scheme, path = self.scheme, self.path
         pad = None if surface.layout is None else surface.layout.halo
-        outside = None if scheme in functional.SCHEMES else ~band
+        divergence = scheme in functional.SCHEMES
+        outside = None if divergence else ~band
 
         def rate(u: Tensor) -> Tensor:
-            if outside is None:
-                # the band's mask applied in the operator's own pass (octant)
+            if divergence:
+                # the band's mask applied by the operator (in its own pass for the octant)
                 value = functional.divergence_form(
                     u, surface.normal, surface.weight, surface.spacing, scheme, path,
                     haloed=surface.haloed(), pad=pad, mask=band)

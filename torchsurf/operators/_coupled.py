@@ -37,7 +37,7 @@ import torch
 from torch import Tensor
 
 from .. import stencils
-from ..stencils import shifted
+from ..stencils import masked, shifted
 from ._flux_form import SIDES, Components, _haloed_slice, fused_flux_form
 from .diffusivity import Diffusivity
 
@@ -101,8 +101,7 @@ def _energy_factor(channels: Sequence[Tensor], haloed_normal: Tensor, spacing: f
 
 
 def _finish(total: Tensor, u: Tensor, energy: Tensor | None, mask: Tensor | None) -> Tensor:
-    result = total if energy is None else total + u * energy
-    return result if mask is None else torch.where(mask, result, 0.0)
+    return masked(total if energy is None else total + u * energy, mask)
 
 
 def _scaled_flux(v: Components, fields: Sequence[Tensor], side: int) -> Components:

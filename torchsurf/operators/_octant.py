@@ -23,15 +23,10 @@ about half the arithmetic of the two-composition ``"symmetric"`` scheme's fused 
 
 from __future__ import annotations
 
-import torch
 from torch import Tensor
 
 from .. import stencils
-from ..stencils import Offset, shifted
-
-
-def _masked(result: Tensor, mask: Tensor | None) -> Tensor:
-    return result if mask is None else torch.where(mask, result, 0.0)
+from ..stencils import Offset, masked, shifted
 
 
 def _step(offset: Offset, axis: int, sign: int) -> Offset:
@@ -90,7 +85,7 @@ def fused_octant(
         cross = term if cross is None else cross + term
     total = 2.0 * diagonal + cross
     scale = 4.0 * spacing * spacing
-    return _masked(total / scale if weighted else total / (scale * grad_norm), mask)
+    return masked(total / scale if weighted else total / (scale * grad_norm), mask)
 
 
 def _along(axis: int, piece: slice, others: slice | None = None) -> tuple:
@@ -138,4 +133,4 @@ def eager_octant(
         term = term + q[_along(a, slice(0, -2))] - q[_along(a, slice(2, None))]
         total = term if total is None else total + term
     scale = 4.0 * spacing * spacing
-    return _masked(total / scale if weighted else total / (scale * grad_norm), mask)
+    return masked(total / scale if weighted else total / (scale * grad_norm), mask)

@@ -31,6 +31,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from .. import backend, stencils
+from ..stencils import masked
 from ._coupled import eager_coupled_rate, fused_coupled_rate
 from ._flux_form import (
     SIDES,
@@ -67,16 +68,12 @@ def _weighted(result: Tensor, weight: Tensor, weighted: bool) -> Tensor:
     return weight * result if weighted else result
 
 
-def _masked(result: Tensor, mask: Tensor | None) -> Tensor:
-    return result if mask is None else torch.where(mask, result, 0.0)
-
-
 # --- Laplace–Beltrami: the octant scheme and the flux-form schemes -------------------------
 
 
 def _octant_eager(u, normal, weight, spacing, weighted, haloed, mask, *, path):  # noqa: ANN001, ANN202
     result = flux_form(u, normal, weight, spacing, None, (), "octant", path)
-    return _masked(_weighted(result, weight, weighted), mask)
+    return masked(_weighted(result, weight, weighted), mask)
 
 
 def _octant_halo(u, normal, weight, spacing, weighted, haloed, mask):  # noqa: ANN001, ANN202
@@ -129,11 +126,11 @@ def _apply_linear(u, normal, weight, spacing, scheme, weighted, haloed, path, pa
         if scheme == "octant":
             return backend.run_haloed(_OCTANT, path, u, pad(u, 1), haloed_normal, haloed_weight,
                                       weight, spacing, weighted, mask)
-        return _masked(backend.run_haloed(_FLUX_LB_OPEN, path, u, pad(u, 2), haloed_normal,
+        return masked(backend.run_haloed(_FLUX_LB_OPEN, path, u, pad(u, 2), haloed_normal,
                                           haloed_weight, weight, spacing, scheme, weighted), mask)
     if scheme == "octant":
         return backend.run(_OCTANT, path, u, u, normal, weight, spacing, weighted, haloed, mask)
-    return _masked(backend.run(_FLUX_LB, path, u, u, normal, weight, spacing, scheme, weighted,
+    return masked(backend.run(_FLUX_LB, path, u, u, normal, weight, spacing, scheme, weighted,
                                haloed), mask)
 
 
@@ -153,7 +150,7 @@ class _SelfAdjoint(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad_output):  # noqa: ANN001, ANN205
         normal, weight, spacing, scheme, weighted, haloed, path, pad, mask, batch = ctx.geometry
-        source = _masked(grad_output, mask)
+        source = masked(grad_output, mask)
         # A = W L is symmetric: (W^-1 A)^T g = A (g / W), and A^T g = A g
         source = source if weighted else source / weight
         grad_u = _apply_linear(source, normal, weight, spacing, scheme, True, haloed, path, pad)
@@ -233,13 +230,13 @@ def directional_flux(v: Components, fields: Sequence[Tensor], side: int) -> Comp
 def _edge_eager(u, normal, weight, spacing, diffusivity, contrast, eps, coupled, scheme, haloed,  # noqa: ANN001, ANN202
                 mask=None, *, path):
     flux = edge_stopping_flux(diffusivity, contrast, eps, coupled)
-    return _masked(flux_form(u, normal, weight, spacing, flux, (), scheme, path), mask)
+    return masked(flux_form(u, normal, weight, spacing, flux, (), scheme, path), mask)
 
 
 def _edge_fused(padded_u, haloed_normal, haloed_weight, weight, spacing, diffusivity, contrast,  # noqa: ANN001, ANN202
                 eps, coupled, scheme, mask=None, box_faces=True):
     flux = edge_stopping_flux(diffusivity, contrast, eps, coupled)
-    return _masked(fused_flux_form(padded_u, haloed_normal, haloed_weight, weight, spacing, flux,
+    return masked(fused_flux_form(padded_u, haloed_normal, haloed_weight, weight, spacing, flux,
                                    (), scheme, box_faces=box_faces), mask)
 
 
