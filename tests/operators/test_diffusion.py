@@ -143,3 +143,40 @@ def test_masked_edge_stopping_form_is_the_masked_operator(path, coupled):
         haloed=packed.haloed(), pad=packed.layout.halo, mask=packed.from_dense(mask))
     band = packed.band_mask().expand(-1, 2, -1, -1, -1)
     torch.testing.assert_close(on_bricks[band], packed.from_dense(results[0][0])[band])
+
+
+@pytest.mark.parametrize("scheme", ["symmetric", "conservative", "octant"])
+@pytest.mark.parametrize("power", [None, 0.5])
+def test_coupled_rate_arrangements_equal_the_modular_form(scheme, power):
+    """The coupled rate's two compiled arrangements (faces from kept ``a_s`` and ``a_s m_s``
+    without a graph to record; the compositions' fluxes while recording), run eagerly, against
+    the modular flux form plus the energy term: a box that is not a cube, ``phi`` not a
+    distance, two shapes in the batch, a mask; and the two arrangements against each other on
+    a brick's open faces."""
+    from torchsurf.flows.harmonic import power_diffusivity
+    from torchsurf.operators import _coupled
+    from torchsurf.operators.functional import _coupled_eager
+
+    grid = ts.Grid((9, 10, 11), spacing=0.15, origin=(-0.8, -0.7, -0.6))
+    points = grid.points(dtype=torch.float64)
+    phi = ((points / torch.tensor([0.5, 0.6, 0.4], dtype=torch.float64)) ** 2).sum(-1) - 1
+    phi = phi * (1.3 + 0.4 * points[..., 1])
+    surface = ts.ImplicitSurface(phi[None, None], grid)
+    generator = torch.Generator().manual_seed(5)
+    u = torch.nn.functional.normalize(
+        torch.randn(2, 3, 9, 10, 11, dtype=torch.float64, generator=generator), dim=1)
+    mask = surface.band_mask(2 * surface.spacing)
+    padded = torch.nn.functional.pad(u, (2,) * 6, mode="replicate")
+    common = (surface.weight, grid.spacing, power_diffusivity, -1.0, 0.2, scheme, power, mask)
+    expected = _coupled_eager(u, surface.normal, surface.weight, grid.spacing, power_diffusivity,
+                              -1.0, 0.2, power, scheme, mask, None, path="slicing")
+    recording = padded.clone().requires_grad_(True)
+    for box_faces in (True, False):
+        faces = _coupled.fused_coupled_rate(padded, *surface.haloed(), *common,
+                                            box_faces=box_faces)
+        compositions = _coupled.fused_coupled_rate(recording, *surface.haloed(), *common,
+                                                   box_faces=box_faces).detach()
+        torch.testing.assert_close(faces, compositions, rtol=1e-12, atol=1e-9)
+        if box_faces:
+            torch.testing.assert_close(faces, expected, rtol=1e-12, atol=1e-9)
+    assert faces.is_contiguous()

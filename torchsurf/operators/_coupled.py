@@ -10,12 +10,14 @@ central differences (the harmonic map's energy term), and zero outside a mask (t
 layer and kept (fused with the fluxes, each channel's fluxes would recompute it from all
 channels: 3.5x slower at 3 channels); the second pass differences the fluxes.
 
-- :func:`fused_coupled_rate`: the passes as two pointwise expressions for the compiler, the
-  first written per channel (as tensors of one channel the channel sums stay in one loop) and
-  also forming the energy factor, the second :func:`._flux_form.fused_flux_form` plus the
-  energy term and the mask. (Forming each face's flux from stored ``a_s m_s`` or recomputed
-  ``m_s``, as the eager arrangement does, is as fast forward but its compiled backward is
-  1.7-2x slower.)
+- :func:`fused_coupled_rate`: the passes as pointwise expressions for the compiler, in two
+  arrangements of the same numbers. Without a graph to record, by faces (the sum below): pass
+  one keeps ``a_s`` and, per channel, ``a_s m_s`` (and the energy factor) on the haloed grid;
+  pass two forms each face's flux from them and differences it, so no flux is stored (the p = 1
+  harmonic map's rate at 128^3, 3 channels: 37-41 against 48-61 ms by compositions, which
+  store every flux component of every channel, 18 volumes, and read them back). While autograd
+  records, by compositions (pass one :func:`_face_scales`, pass two
+  :func:`._flux_form.fused_flux_form`): their compiled backward is 1.7-2x faster.
 - :func:`eager_coupled_rate`: the same numbers op by op, by faces. Writing
   ``v_s = D_s u - n m_s`` with ``m_s = n . D_s u``, every composition that crosses the face
   between ``x`` and ``x + e_a`` differences ``u`` across it, so the face carries
@@ -60,35 +62,29 @@ def _channel_sum(values: list[Tensor]) -> Tensor:
 
 
 def _face_scales(
-    channels: Sequence[Tensor], haloed_normal: Tensor, spacing: float, diffusivity: Diffusivity,
+    padded_u: Tensor, haloed_normal: Tensor, spacing: float, diffusivity: Diffusivity,
     contrast: float | Tensor, eps: float, scheme: str,
 ) -> list[Tensor]:
-    """Pass one, fused: ``g(|P D_s u|)`` per composition on the haloed grid.
-
-    ``channels``: ``u`` with a halo of two nodes, whole or split into tensors of one channel.
-    Split, the compiler keeps the channel sums inside one loop (128^3, 3 channels: 8 ms against
-    37 ms whole, where it stores the projected gradient), but its backward scatters every
-    channel's reads over all channels (147 against 84 ms).
-    """
+    """Pass one by compositions: ``g(|P D_s u|)`` per composition on the haloed grid, from
+    ``u`` with a halo of two nodes as one tensor (split into channels, the compiled backward
+    scatters every channel's reads over all channels: 147 against 84 ms at 128^3)."""
     normal = [haloed_normal[:, a: a + 1] for a in range(3)]
     scales = []
     for side in SIDES[scheme]:
-        squared = []
-        for u in channels:
-            centre = _haloed_slice(u, stencils.CENTRE)
-            gradient = [(_haloed_slice(u, stencils.unit(a, s)) - centre) * (s / spacing)
-                        for a, s in enumerate(side)]
-            along = gradient[0] * normal[0] + gradient[1] * normal[1] + gradient[2] * normal[2]
-            squared.append(_squared_sum([g - along * n for g, n in zip(gradient, normal,
-                                                                        strict=True)]))
-        magnitude = torch.sqrt(_channel_sum(squared) + eps * eps)
+        centre = _haloed_slice(padded_u, stencils.CENTRE)
+        gradient = [(_haloed_slice(padded_u, stencils.unit(a, s)) - centre) * (s / spacing)
+                    for a, s in enumerate(side)]
+        along = gradient[0] * normal[0] + gradient[1] * normal[1] + gradient[2] * normal[2]
+        squared = _squared_sum([g - along * n for g, n in zip(gradient, normal, strict=True)])
+        magnitude = torch.sqrt(_channel_sum([squared]) + eps * eps)
         scales.append(diffusivity(magnitude, contrast))
     return scales
 
 
 def _energy_factor(channels: Sequence[Tensor], haloed_normal: Tensor, spacing: float,
                    eps: float, power: float) -> Tensor:
-    """``(E + eps^2)^power`` at the interior nodes, ``channels`` as in :func:`_face_scales`."""
+    """``(E + eps^2)^power`` at the interior nodes; ``channels``: ``u`` with a halo of two
+    nodes, split into tensors of one channel."""
     normal = [haloed_normal[:, a: a + 1, 1:-1, 1:-1, 1:-1] for a in range(3)]
     squared = []
     for u in channels:
@@ -107,6 +103,127 @@ def _finish(total: Tensor, u: Tensor, energy: Tensor | None, mask: Tensor | None
 def _scaled_flux(v: Components, fields: Sequence[Tensor], side: int) -> Components:
     scale = fields[side]
     return scale * v[0], scale * v[1], scale * v[2]
+
+
+def _sum(values: list[Tensor]) -> Tensor:
+    """``values[0] + values[1] + ...``; on tensors of one channel, where :func:`_channel_sum`'s
+    views would make the compiler store every term before the sum (5 ms at 128^3)."""
+    total = values[0]
+    for value in values[1:]:
+        total = total + value
+    return total
+
+
+def _face_products(
+    channels: Sequence[Tensor], haloed_normal: Tensor, haloed_weight: Tensor, spacing: float,
+    diffusivity: Diffusivity, contrast: float | Tensor, eps: float, scheme: str,
+    power: float | None,
+) -> tuple[list[Tensor], list[list[Tensor]], Tensor | None]:
+    """Pass one of the face arrangement, on the haloed grid: per composition ``s``
+    ``a_s = W g_s`` and, per channel, ``a_s m_s`` with ``m_s = n . D_s u`` (index units);
+    the energy factor ``(E + eps^2)^power`` (``None`` without ``power``).
+
+    ``channels``: ``u`` with a halo of two nodes, split into tensors of one channel.
+    """
+    normal = [haloed_normal[:, a: a + 1] for a in range(3)]
+    scales, products = [], []
+    for side in SIDES[scheme]:
+        squared, alongs = [], []
+        for u in channels:
+            centre = _haloed_slice(u, stencils.CENTRE)
+            difference = [(_haloed_slice(u, stencils.unit(a, s)) - centre) * s
+                          for a, s in enumerate(side)]
+            along = difference[0] * normal[0] + difference[1] * normal[1] \
+                + difference[2] * normal[2]
+            squared.append(_squared_sum([d - along * n for d, n in zip(difference, normal,
+                                                                        strict=True)]))
+            alongs.append(along)
+        magnitude = torch.sqrt(_sum(squared) / (spacing * spacing) + eps * eps)
+        scale = haloed_weight * diffusivity(magnitude, contrast)
+        scales.append(scale)
+        products.append([scale * along for along in alongs])
+    energy = None
+    if power is not None:
+        squared = []
+        for u in channels:
+            central = [0.5 * _haloed_slice(u, stencils.unit(a, 1))
+                       - 0.5 * _haloed_slice(u, stencils.unit(a, -1)) for a in range(3)]
+            along = central[0] * normal[0] + central[1] * normal[1] + central[2] * normal[2]
+            squared.append(_squared_sum(central) - along * along)
+        energy = (_sum(squared) / (spacing * spacing) + eps * eps) ** power
+    return scales, products, energy
+
+
+def _inner_faces(like: Tensor, axis: int, ahead: bool) -> Tensor:
+    """1 where a node's face towards ``+e_axis`` (``ahead``) or ``-e_axis`` lies inside the box,
+    else 0; broadcastable to ``like`` ``(..., D, H, W)``. Varies along ``axis`` only."""
+    dim = like.dim() - 1 - axis
+    length = like.shape[dim]
+    index = torch.arange(length, device=like.device, dtype=torch.int32)
+    shape = [1] * like.dim()
+    shape[dim] = length
+    return (index != (length - 1 if ahead else 0)).to(like.dtype).view(shape)
+
+
+def _face_divergence(
+    haloed_u: Tensor, haloed_normal: Tensor, grad_norm: Tensor, spacing: float,
+    scales: Sequence[Tensor], products: Sequence[Tensor], scheme: str, box_faces: bool,
+) -> Tensor:
+    """Pass two of the face arrangement for one channel: ``sum_a [Phi_a(x) - Phi_a(x - e_a)]
+    / (h^2 S W)`` (module docstring), ``Phi_a`` from ``u``, ``a_s`` and ``a_s m_s`` of the
+    haloed grid (``haloed_u`` ``(B, 1, D + 2, H + 2, W + 2)``); ``(B, 1, D, H, W)``."""
+    sides = SIDES[scheme]
+    total = None
+    for a in range(3):
+        normal = haloed_normal[:, a: a + 1]
+
+        def flux(node: stencils.Offset, a: int = a, normal: Tensor = normal) -> Tensor:
+            """``Phi_a`` through the face between ``node`` and ``node + e_a``."""
+            after = stencils.add(node, stencils.unit(a))
+            across = shifted(haloed_u, after) - shifted(haloed_u, node)
+            result = None
+            for scale, product, side in zip(scales, products, sides, strict=True):
+                at = node if side[a] == 1 else after
+                term = shifted(scale, at) * across - shifted(normal, at) * shifted(product, at)
+                result = term if result is None else result + term
+            return result
+
+        ahead, behind = flux(stencils.CENTRE), flux(stencils.unit(a, -1))
+        if box_faces:
+            ahead = ahead * _inner_faces(grad_norm, a, True)
+            behind = behind * _inner_faces(grad_norm, a, False)
+        term = ahead - behind
+        total = term if total is None else total + term
+    return total / (spacing * spacing * len(sides) * grad_norm)
+
+
+def _face_rate(
+    padded_u: Tensor, haloed_normal: Tensor, haloed_weight: Tensor, grad_norm: Tensor,
+    spacing: float, diffusivity: Diffusivity, contrast: float | Tensor, eps: float, scheme: str,
+    power: float | None, mask: Tensor | None, box_faces: bool,
+) -> Tensor:
+    """:func:`fused_coupled_rate` by the face arrangement (no graph to record)."""
+    channels = padded_u.split(1, dim=1)
+    scales, products, energy = _face_products(channels, haloed_normal, haloed_weight, spacing,
+                                              diffusivity, contrast, eps, scheme, power)
+    torch._dynamo.graph_break()  # keep a_s and a_s m_s: every face reads them
+    if energy is not None:
+        energy = energy[..., 1:-1, 1:-1, 1:-1]
+    rates = []
+    for c, u in enumerate(channels):
+        rate = _face_divergence(u[..., 1:-1, 1:-1, 1:-1], haloed_normal, grad_norm, spacing,
+                                scales, [product[c] for product in products], scheme, box_faces)
+        rates.append(_finish(rate, u[..., 2:-2, 2:-2, 2:-2], energy, mask))
+    return _stacked(rates)
+
+
+def _stacked(rates: Sequence[Tensor]) -> Tensor:
+    """``torch.cat(rates, dim=1)`` of ``(B, 1, ...)`` tensors, as a stack of ``(...)`` blocks in
+    memory order: the compiler writes each block in place, where for a concatenation along the
+    channels it stores channels-last and transposes (128^3, 3 channels: 20 against 27 ms)."""
+    batch = rates[0].shape[0]
+    blocks = [rate[b, 0] for b in range(batch) for rate in rates]
+    return torch.stack(blocks).view(batch, len(rates), *rates[0].shape[2:])
 
 
 def fused_coupled_rate(
@@ -129,23 +246,24 @@ def fused_coupled_rate(
     Returns:
         ``(B, C, D, H, W)``.
     """
+    recording = torch.is_grad_enabled() and any(
+        isinstance(t, Tensor) and t.requires_grad
+        for t in (padded_u, haloed_normal, haloed_weight, grad_norm, contrast))
+    if not recording:
+        return _face_rate(padded_u, haloed_normal, haloed_weight, grad_norm, spacing,
+                          diffusivity, contrast, eps, scheme, power, mask, box_faces)
     # While autograd records, the compiled backward decides the cost: g_s from whole tensors,
     # and g_s, the energy and the last pointwise step each as their own graph (128^3, 3
     # channels, forward and backward: 0.39 s against 0.60 s as two graphs per channel).
-    recording = torch.is_grad_enabled() and any(
-        t.requires_grad for t in (padded_u, haloed_normal, haloed_weight))
     channels = padded_u.split(1, dim=1)
-    scales = _face_scales((padded_u,) if recording else channels, haloed_normal, spacing,
-                          diffusivity, contrast, eps, scheme)
-    if recording:
-        torch._dynamo.graph_break()
+    scales = _face_scales(padded_u, haloed_normal, spacing, diffusivity, contrast, eps, scheme)
+    torch._dynamo.graph_break()
     energy = None if power is None else _energy_factor(channels, haloed_normal, spacing, eps,
                                                       power)
     torch._dynamo.graph_break()  # keep g_s in memory: every channel's fluxes read it
     total = fused_flux_form(padded_u, haloed_normal, haloed_weight, grad_norm, spacing,
                             _scaled_flux, scales, scheme, box_faces=box_faces)
-    if recording:
-        torch._dynamo.graph_break()
+    torch._dynamo.graph_break()
     return _finish(total, padded_u[..., 2:-2, 2:-2, 2:-2], energy, mask)
 
 

@@ -118,7 +118,7 @@ def _open_faces(like: Tensor, axis: int, side: int) -> Tensor:
     """
     dim = like.dim() - 1 - axis
     length = like.shape[dim]
-    index = torch.arange(length, device=like.device) - 1
+    index = torch.arange(length, device=like.device, dtype=torch.int32) - 1
     closed = length - 3 if side == 1 else 0
     inside = (index >= 0) & (index < length - 2) & (index != closed)
     shape = [1] * like.dim()
