@@ -46,6 +46,19 @@ def near_surface(phi: Tensor, width: float, margin: int = 1) -> Tensor:
     return (phi.abs() <= width) & interior(phi.shape[-3:], margin)
 
 
+def skewed_box_surface():
+    """A box that is not a cube (9 x 10 x 11 nodes) and an ellipsoid whose ``phi`` is not a
+    distance (``W`` varies across it), float64: ``(grid, surface)``, where every composition of
+    a flux-form kernel and the box's faces are in play."""
+    import torchsurf as ts
+
+    grid = ts.Grid((9, 10, 11), spacing=0.15, origin=(-0.8, -0.7, -0.6))
+    points = grid.points(dtype=torch.float64)
+    phi = ((points / torch.tensor([0.5, 0.6, 0.4], dtype=torch.float64)) ** 2).sum(-1) - 1
+    phi = phi * (1.3 + 0.4 * points[..., 1])
+    return grid, ts.ImplicitSurface(phi[None, None], grid)
+
+
 def observed_order(error_coarse: float, error_fine: float, h_coarse: float, h_fine: float
                    ) -> float:
     """Convergence order ``log(e_coarse / e_fine) / log(h_coarse / h_fine)``."""

@@ -6,6 +6,7 @@ import math
 
 import pytest
 import torch
+from conftest import skewed_box_surface
 
 import torchsurf as ts
 from torchsurf.exact import SPHERE_CENTER, SPHERE_RADIUS, polar_angle_frame, torus_function
@@ -157,11 +158,7 @@ def test_coupled_rate_arrangements_equal_the_modular_form(scheme, power):
     from torchsurf.operators import _coupled
     from torchsurf.operators.functional import _coupled_eager
 
-    grid = ts.Grid((9, 10, 11), spacing=0.15, origin=(-0.8, -0.7, -0.6))
-    points = grid.points(dtype=torch.float64)
-    phi = ((points / torch.tensor([0.5, 0.6, 0.4], dtype=torch.float64)) ** 2).sum(-1) - 1
-    phi = phi * (1.3 + 0.4 * points[..., 1])
-    surface = ts.ImplicitSurface(phi[None, None], grid)
+    grid, surface = skewed_box_surface()
     generator = torch.Generator().manual_seed(5)
     u = torch.nn.functional.normalize(
         torch.randn(2, 3, 9, 10, 11, dtype=torch.float64, generator=generator), dim=1)

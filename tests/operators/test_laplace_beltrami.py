@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from conftest import skewed_box_surface
 
 import torchsurf as ts
 from torchsurf.exact import max_error, near, sphere_harmonic, torus_function
@@ -202,11 +203,7 @@ def test_fused_formulation_equals_modular(scheme, flux_map):
     from torchsurf.operators._flux_form import flux_form, fused_flux_form
     from torchsurf.operators.functional import directional_flux
 
-    grid = ts.Grid((9, 10, 11), spacing=0.15, origin=(-0.8, -0.7, -0.6))
-    points = grid.points(dtype=torch.float64)
-    phi = ((points / torch.tensor([0.5, 0.6, 0.4], dtype=torch.float64)) ** 2).sum(-1) - 1
-    phi = phi * (1.3 + 0.4 * points[..., 1])
-    surface = ts.ImplicitSurface(phi[None, None], grid)
+    grid, surface = skewed_box_surface()
     generator = torch.Generator().manual_seed(2)
     u = torch.randn(2, 3, 9, 10, 11, dtype=torch.float64, generator=generator)
     fields = ()
@@ -235,11 +232,7 @@ def test_octant_one_pass_equals_the_eight_compositions():
     from torchsurf.operators._flux_form import flux_form
     from torchsurf.operators._octant import fused_octant
 
-    grid = ts.Grid((9, 10, 11), spacing=0.15, origin=(-0.8, -0.7, -0.6))
-    points = grid.points(dtype=torch.float64)
-    phi = ((points / torch.tensor([0.5, 0.6, 0.4], dtype=torch.float64)) ** 2).sum(-1) - 1
-    phi = phi * (1.3 + 0.4 * points[..., 1])
-    surface = ts.ImplicitSurface(phi[None, None], grid)
+    grid, surface = skewed_box_surface()
     u = torch.randn(2, 3, 9, 10, 11, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
     haloed_normal, haloed_weight = surface.haloed()
     weight = surface.weight
