@@ -193,12 +193,13 @@ class BrickLayout:
                 f"{BRICK}) for this layout of {len(self)} bricks, got {tuple(value.shape)}"
             )
 
-    def halo(self, field: Tensor, width: int = 1) -> Tensor:
+    def halo(self, field: Tensor, width: int = 1, path: str = "auto") -> Tensor:
         """``field`` ``(N, C, 8, 8, 8)`` with ``width`` nodes of its neighbours on every side.
 
         One gather from a table of the haloed bricks' sources (kept per width, 5 bytes per
-        haloed node), compiled where :mod:`torchsurf.backend` finds it pays; zeros where a
-        neighbour is not stored; differentiable.
+        haloed node), compiled where :mod:`torchsurf.backend` finds it pays (``path="auto"``;
+        ``"slicing"`` for a one-off halo, whose compiling would cost more than it saves);
+        zeros where a neighbour is not stored; differentiable.
 
         Returns:
             ``(N, C, 8 + 2 width, 8 + 2 width, 8 + 2 width)``.
@@ -209,7 +210,7 @@ class BrickLayout:
         side = BRICK + 2 * width
         sources, missing = self._halo_index(width, field.device)
         rows = field.reshape(n, channels, -1).transpose(0, 1).reshape(channels, -1)
-        gathered = backend.run(_HALO_GATHER, "auto", field, rows, sources, missing)
+        gathered = backend.run(_HALO_GATHER, path, field, rows, sources, missing)
         return gathered.view(channels, n, side, side, side).transpose(0, 1)
 
     def _halo_index(self, width: int, device: torch.device) -> tuple[Tensor, Tensor]:
