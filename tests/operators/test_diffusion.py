@@ -148,14 +148,16 @@ def test_masked_edge_stopping_form_is_the_masked_operator(path, coupled):
 
 @pytest.mark.parametrize("scheme", ["symmetric", "conservative", "octant"])
 @pytest.mark.parametrize("power", [None, 0.5])
-def test_coupled_rate_arrangements_equal_the_modular_form(scheme, power):
+@pytest.mark.parametrize("per_channel", [False, True])
+def test_coupled_rate_arrangements_equal_the_modular_form(scheme, power, per_channel):
     """The coupled rate's two compiled arrangements (faces from kept ``a_s`` and ``a_s m_s``
     without a graph to record; the compositions' fluxes while recording), run eagerly, against
     the modular flux form plus the energy term: a box that is not a cube, ``phi`` not a
-    distance, two shapes in the batch, a mask; and the two arrangements against each other on
-    a brick's open faces."""
+    distance, two shapes in the batch, a mask, a contrast per channel or not; and the two
+    arrangements against each other on a brick's open faces."""
     from torchsurf.flows.harmonic import power_diffusivity
     from torchsurf.operators import _coupled
+    from torchsurf.operators.diffusivity import perona_malik
     from torchsurf.operators.functional import _coupled_eager
 
     grid, surface = skewed_box_surface()
@@ -164,9 +166,12 @@ def test_coupled_rate_arrangements_equal_the_modular_form(scheme, power):
         torch.randn(2, 3, 9, 10, 11, dtype=torch.float64, generator=generator), dim=1)
     mask = surface.band_mask(2 * surface.spacing)
     padded = torch.nn.functional.pad(u, (2,) * 6, mode="replicate")
-    common = (surface.weight, grid.spacing, power_diffusivity, -1.0, 0.2, scheme, power, mask)
-    expected = _coupled_eager(u, surface.normal, surface.weight, grid.spacing, power_diffusivity,
-                              -1.0, 0.2, power, scheme, mask, None, path="slicing")
+    diffusivity, contrast = (
+        (perona_malik, torch.tensor([0.5, 1.0, 2.0], dtype=torch.float64).view(1, 3, 1, 1, 1))
+        if per_channel else (power_diffusivity, -1.0))
+    common = (surface.weight, grid.spacing, diffusivity, contrast, 0.2, scheme, power, mask)
+    expected = _coupled_eager(u, surface.normal, surface.weight, grid.spacing, diffusivity,
+                              contrast, 0.2, power, scheme, mask, None, path="slicing")
     recording = padded.clone().requires_grad_(True)
     for box_faces in (True, False):
         faces = _coupled.fused_coupled_rate(padded, *surface.haloed(), *common,

@@ -118,10 +118,11 @@ def _face_products(
     channels: Sequence[Tensor], haloed_normal: Tensor, haloed_weight: Tensor, spacing: float,
     diffusivity: Diffusivity, contrast: float | Tensor, eps: float, scheme: str,
     power: float | None,
-) -> tuple[list[Tensor], list[list[Tensor]], Tensor | None]:
-    """Pass one of the face arrangement, on the haloed grid: per composition ``s``
-    ``a_s = W g_s`` and, per channel, ``a_s m_s`` with ``m_s = n . D_s u`` (index units);
-    the energy factor ``(E + eps^2)^power`` (``None`` without ``power``).
+) -> tuple[list[list[Tensor]], list[list[Tensor]], Tensor | None]:
+    """Pass one of the face arrangement, on the haloed grid: per composition ``s`` and channel
+    ``c``, ``a_s = W g_s`` (one tensor for every channel, unless the contrast is per channel)
+    and ``a_s m_s`` with ``m_s = n . D_s u_c`` (index units); the energy factor
+    ``(E + eps^2)^power`` (``None`` without ``power``).
 
     ``channels``: ``u`` with a halo of two nodes, split into tensors of one channel.
     """
@@ -140,8 +141,10 @@ def _face_products(
             alongs.append(along)
         magnitude = torch.sqrt(_sum(squared) / (spacing * spacing) + eps * eps)
         scale = haloed_weight * diffusivity(magnitude, contrast)
-        scales.append(scale)
-        products.append([scale * along for along in alongs])
+        per_channel = (scale.split(1, dim=1) if scale.shape[1] > 1
+                       else [scale] * len(channels))
+        scales.append(per_channel)
+        products.append([a * along for a, along in zip(per_channel, alongs, strict=True)])
     energy = None
     if power is not None:
         squared = []
@@ -212,7 +215,8 @@ def _face_rate(
     rates = []
     for c, u in enumerate(channels):
         rate = _face_divergence(u[..., 1:-1, 1:-1, 1:-1], haloed_normal, grad_norm, spacing,
-                                scales, [product[c] for product in products], scheme, box_faces)
+                                [scale[c] for scale in scales],
+                                [product[c] for product in products], scheme, box_faces)
         rates.append(_finish(rate, u[..., 2:-2, 2:-2, 2:-2], energy, mask))
     return _stacked(rates)
 
