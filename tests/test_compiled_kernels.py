@@ -194,3 +194,37 @@ def test_every_operator_compiled_equals_eager(name):
         expected, actual = call("slicing"), call("compiled")
     scale = float(expected.abs().max())
     torch.testing.assert_close(actual, expected, rtol=1e-4, atol=1e-5 * scale)
+
+
+@pytest.mark.slow
+def test_coupled_rate_compiled_serves_every_batch_size_and_brick_count():
+    """The harmonic-map rate's compiled face arrangement: one graph for batches of 2 and 3 and
+    one for layouts of different brick counts (a per-entry unrolling would specialise each),
+    equal to eager."""
+    from torchsurf import bricks
+    from torchsurf.flows.harmonic import power_diffusivity
+    from torchsurf.operators import functional
+
+    def rate(u, surface, pad=None, path="compiled"):
+        return functional.harmonic_map_rate(
+            u, surface.normal, surface.weight, surface.spacing, power_diffusivity, -1.0, 0.1,
+            0.5, "symmetric", path, None, surface.haloed(), pad)
+
+    grid = ts.Grid.cube(21, 2.1)
+    generator = torch.Generator().manual_seed(4)
+    with torch.no_grad():
+        for surfaces in ([ts.ImplicitSurface(ts.sdf.sphere(grid, 0.8), grid)] * 2,
+                         [bricks.from_dense(ts.ImplicitSurface(ts.sdf.sphere(grid, r), grid))
+                          for r in (0.8, 0.6)]):
+            graphs = None
+            for batch, surface in zip((2, 3), surfaces, strict=True):
+                u = torch.nn.functional.normalize(
+                    torch.randn(batch, 3, 21, 21, 21, generator=generator), dim=1)
+                pad = None
+                if surface.layout is not None:
+                    u, pad = surface.from_dense(u[:1]), surface.layout.halo
+                compiled = rate(u, surface, pad)
+                torch.testing.assert_close(compiled, rate(u, surface, pad, "slicing"),
+                                           rtol=1e-4, atol=1e-4)
+                graphs = _graphs() if graphs is None else graphs
+            assert _graphs() == graphs
