@@ -16,7 +16,7 @@ channels: 3.5x slower at 3 channels); the second pass differences the fluxes.
   pass two forms each face's flux from them and differences it, so no flux is stored (the p = 1
   harmonic map's rate at 128^3, 3 channels: 37-41 against 48-61 ms by compositions, which
   store every flux component of every channel, 18 volumes, and read them back). While autograd
-  records, by compositions (pass one :func:`_face_scales`, pass two
+  records, by compositions (pass one :func:`_composition_scales`, pass two
   :func:`._flux_form.fused_flux_form`): their compiled backward is 1.7-2x faster.
 - :func:`eager_coupled_rate`: the same numbers op by op, by faces. Writing
   ``v_s = D_s u - n m_s`` with ``m_s = n . D_s u``, every composition that crosses the face
@@ -61,7 +61,7 @@ def _channel_sum(values: list[Tensor]) -> Tensor:
     return total[:, None]
 
 
-def _face_scales(
+def _composition_scales(
     padded_u: Tensor, haloed_normal: Tensor, spacing: float, diffusivity: Diffusivity,
     contrast: float | Tensor, eps: float, scheme: str,
 ) -> list[Tensor]:
@@ -134,8 +134,8 @@ def _face_products(
             centre = _haloed_slice(u, stencils.CENTRE)
             difference = [(_haloed_slice(u, stencils.unit(a, s)) - centre) * s
                           for a, s in enumerate(side)]
-            along = difference[0] * normal[0] + difference[1] * normal[1] \
-                + difference[2] * normal[2]
+            along = (difference[0] * normal[0] + difference[1] * normal[1]
+                     + difference[2] * normal[2])
             squared.append(_squared_sum([d - along * n for d, n in zip(difference, normal,
                                                                         strict=True)]))
             alongs.append(along)
@@ -263,7 +263,8 @@ def fused_coupled_rate(
     # and g_s, the energy and the last pointwise step each as their own graph (128^3, 3
     # channels, forward and backward: 0.39 s against 0.60 s as two graphs per channel).
     channels = padded_u.split(1, dim=1)
-    scales = _face_scales(padded_u, haloed_normal, spacing, diffusivity, contrast, eps, scheme)
+    scales = _composition_scales(padded_u, haloed_normal, spacing, diffusivity, contrast, eps,
+                                 scheme)
     torch._dynamo.graph_break()
     energy = None if power is None else _energy_factor(channels, haloed_normal, spacing, eps,
                                                       power)
