@@ -136,6 +136,18 @@ def test_compile_bench_measures_every_item_and_tabulates():
     assert text.splitlines()[-1].startswith("| lb_octant | slicing |")
 
 
+def test_operators_bench_alternates_with_its_baseline_and_tabulates():
+    module = load_benchmark("bench_operators")
+    calls = []
+    first, second = module.alternated_times(lambda: calls.append(1), lambda: calls.append(2), 3)
+    assert calls == [1, 2, 1, 2, 1, 2] and len(first) == len(second) == 3
+    rows = module.bench_size(9, 1, "slicing", log=lambda line: None, only=["colour"])
+    assert [row.name for row in rows] == ["laplace_beltrami octant", "colour rate (3 ch)"]
+    assert all(row.ratio > 0 and row.forward_ms > 0 for row in rows)
+    text = module.markdown({9: rows}, {"torch": 20.0}, "slicing", ["--sizes", "9"])
+    assert text.splitlines()[-1].startswith("| colour rate (3 ch) | 3 |")
+
+
 def test_sections_are_replaced_in_place_or_added_after_their_neighbour(tmp_path):
     report = load_benchmark("_report")
     path = tmp_path / "sub" / "benchmarks.md"
