@@ -317,7 +317,7 @@ def _coupled_eager(u, normal, weight, spacing, diffusivity, contrast, eps, power
     if power is not None:
         energy = _energy_eager(u, normal, spacing, path=path) + eps * eps
         result = result + u * energy**power
-    return result if mask is None else torch.where(mask, result, 0.0)
+    return masked(result, mask)
 
 
 def _coupled_halo(u, normal, weight, spacing, diffusivity, contrast, eps, power, scheme, mask,  # noqa: ANN001, ANN202
