@@ -293,11 +293,11 @@ DECODE_ORDERS = (1, 2)
 
 
 def _grid_closest_points(surface: ImplicitSurface, flat: np.ndarray) -> Tensor:
-    """``x - (phi / W) n`` (the closest points of the flows' re-extension,
+    """``x - d n``, ``d = surface.signed_distance()`` (the closest points of the flows' re-extension,
     :mod:`torchsurf.flows.extension`) at the flat node indices ``flat``, float64 world
     ``(N, 3)``."""
     index = torch.as_tensor(flat, device=surface.phi.device)
-    step = (surface.phi / surface.weight * surface.normal)[0].reshape(3, -1)[:, index]
+    step = (surface.signed_distance() * surface.normal)[0].reshape(3, -1)[:, index]
     points = surface.grid.points(dtype=torch.float64).reshape(-1, 3)[index.cpu()]
     return points - step.T.to("cpu", torch.float64)
 

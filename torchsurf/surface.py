@@ -24,7 +24,18 @@ from .grid import Grid
 T = TypeVar("T")
 
 WEIGHT_FLOOR = 0.5
-"""The operators' weight ``W`` is never below this fraction of ``gradient_scale``."""
+"""The operators' weight ``W`` is never below this fraction of the node's slope scale
+(:func:`_squared_slope`), which is ``|grad phi|`` to ``O(h)`` where ``phi`` is smooth: the floor
+acts only where central differences collapse (a kink or an extremum of phi), whatever the size
+of ``|grad phi|`` along S."""
+MINIMUM_WEIGHT = 0.05
+"""Nor below this fraction of ``gradient_scale`` (a plateau of ``phi`` at the band's edge):
+small enough for a ``|grad phi|`` that varies twentyfold along S to keep its own value."""
+DISTANCE_FLOOR = 0.5
+"""Distances to S are measured as ``|phi| / max(|grad phi|, DISTANCE_FLOOR * gradient_scale)``:
+where ``phi`` flattens away from S (``tanh(phi / h)``, an occupancy-like field)
+``|phi| / |grad phi|`` grows without bound, while ``phi``'s typical slope on S keeps the
+estimate within reach."""
 
 
 def _crossing(inside: Tensor) -> Tensor:
@@ -37,6 +48,26 @@ def _crossing(inside: Tensor) -> Tensor:
         crossing.narrow(dim, 1, inside.shape[dim] - 1).logical_or_(change)
         crossing.narrow(dim, 0, inside.shape[dim] - 1).logical_or_(change)
     return crossing
+
+
+def _squared_slope(padded: Tensor) -> Tensor:
+    """The square of the slope scale ``sqrt(sum_a max(|D+_a phi|, |D-_a phi|)^2)``, in phi's
+    units per cell, from ``phi`` with a halo of one node; ``(B, 1, D, H, W)``.
+
+    Never below ``|central gradient|``, and within ``O(h)`` of it where ``phi`` is smooth; where
+    the central difference shrinks because the slope changes within the cell (a kink of a
+    distance: the medial axis, features thinner than two cells, the edge of a clamped band),
+    the larger slope on either side."""
+    core = padded[:, :, 1:-1, 1:-1, 1:-1]
+    total = torch.zeros_like(core)
+    for dim in (2, 3, 4):
+        ahead = [slice(None), slice(None), slice(1, -1), slice(1, -1), slice(1, -1)]
+        behind = list(ahead)
+        ahead[dim], behind[dim] = slice(2, None), slice(0, -2)
+        larger = torch.maximum((padded[tuple(ahead)] - core).abs(),
+                               (core - padded[tuple(behind)]).abs())
+        total = total + larger**2
+    return total
 
 
 def _cells_to_crossing(phi: Tensor) -> Tensor:
@@ -59,12 +90,14 @@ class ImplicitSurface(nn.Module):
     it: the same numbers as a surface built from the moved ``phi``.
 
     Nothing assumes that ``phi`` is a distance in world units: widths are measured as
-    ``|phi| / W`` (so ``1000 * phi`` is the same surface with the same band), and where
-    ``|grad phi|`` collapses (the medial axis, features thinner than two cells, beyond the band
-    in which a mesh's distance was computed) the operators' weight ``W`` is floored at
-    :data:`WEIGHT_FLOOR` times ``gradient_scale``, the typical ``|grad phi|`` on S. Near S,
-    where phi is a distance, the floor does not act; where it does, it bounds the operators' coefficients,
-    so that an explicit step chosen for the surface stays stable there (docs/band.md).
+    :meth:`distance` (``|phi| / |grad phi|``, floored at half ``gradient_scale``; so
+    ``1000 * phi`` is the same surface with the same band), and where
+    central differences of ``phi`` collapse (the medial axis, features thinner than two cells,
+    the edge of the band in which a mesh's distance was computed) the operators' weight ``W``
+    is floored at :data:`WEIGHT_FLOOR` times the slopes on either side of the node, so that an
+    explicit step chosen for the surface stays stable there (docs/band.md). Where ``phi`` is
+    smooth the floor does not act, whatever ``|grad phi|`` is: ``W = |grad phi|`` keeps the
+    divergence forms intrinsic for any ``phi`` with the right zero set.
 
     Args:
         phi: ``(B, 1, D, H, W)``, negative inside, positive outside, world units; ideally a
@@ -83,8 +116,10 @@ class ImplicitSurface(nn.Module):
         normal: ``grad phi / grad_norm``, ``(B, 3, D, H, W)`` in ``(x, y, z)`` order.
         gradient_scale: the median of ``|grad phi|`` over the nodes next to a sign change of
             ``phi`` (1 for a distance function), ``(B, 1, 1, 1, 1)``.
-        weight: ``W = max(grad_norm, WEIGHT_FLOOR * gradient_scale)``, the weight of every
-            divergence-form operator ``(1/W) div(W ...)``, ``(B, 1, D, H, W)``.
+        weight: ``W = max(grad_norm, WEIGHT_FLOOR * slope, MINIMUM_WEIGHT *
+            gradient_scale)``, ``slope`` the larger one-sided differences of ``phi`` along
+            each axis (:func:`_squared_slope`); the weight of every divergence-form operator
+            ``(1/W) div(W ...)``, ``(B, 1, D, H, W)``.
 
     Example:
         >>> grid = Grid.cube(33, bound=1.5)
@@ -134,7 +169,8 @@ class ImplicitSurface(nn.Module):
 
     def _assemble(self, phi: Tensor) -> None:
         """``grad_norm``, ``normal``, ``gradient_scale`` and ``weight`` from ``phi``."""
-        gradient = stencils.apply(self._pad(phi, "linear"), stencils.CENTRAL)[:, 0]
+        padded = self._pad(phi, "linear")
+        gradient = stencils.apply(padded, stencils.CENTRAL)[:, 0]
         gradient = gradient / self.spacing
         squared = (gradient**2).sum(dim=1, keepdim=True)
         self.register_buffer("phi", phi, persistent=False)
@@ -147,8 +183,10 @@ class ImplicitSurface(nn.Module):
         self.register_buffer("grad_norm", grad_norm, persistent=False)
         self.register_buffer("normal", gradient / grad_norm, persistent=False)
         self.register_buffer("gradient_scale", scale, persistent=False)
+        slope = torch.sqrt(_squared_slope(padded) / self.spacing**2 + floor**2)
+        weight = torch.maximum(grad_norm, WEIGHT_FLOOR * slope)
         self.register_buffer(
-            "weight", torch.maximum(grad_norm, WEIGHT_FLOOR * scale), persistent=False
+            "weight", torch.maximum(weight, MINIMUM_WEIGHT * scale), persistent=False
         )
         self.register_buffer("_mean_curvature", None, persistent=False)
         self.register_buffer("_haloed_normal", None, persistent=False)
@@ -209,14 +247,23 @@ class ImplicitSurface(nn.Module):
         """Grid spacing ``h``, world units."""
         return self.grid.spacing
 
+    def signed_distance(self) -> Tensor:
+        """Signed distance to S to first order, world units; ``(B, 1, D, H, W)``, in ``phi``'s
+        graph: ``phi / max(grad_norm, DISTANCE_FLOOR * gradient_scale)``, the Newton step to S
+        where ``|grad phi|`` is not far below its typical value on S (:data:`DISTANCE_FLOOR`).
+        Closest points are ``x - signed_distance() * normal`` to first order."""
+        return self.phi / torch.maximum(self.grad_norm, DISTANCE_FLOOR * self.gradient_scale)
+
     def distance(self) -> Tensor:
-        """Unsigned distance to S to first order, ``|phi| / W``, world units; ``(B, 1, D, H, W)``."""
-        return self.phi.detach().abs() / self.weight.detach()
+        """Unsigned distance to S to first order, ``|signed_distance()|`` without autograd,
+        world units; ``(B, 1, D, H, W)``."""
+        with torch.no_grad():
+            return self.signed_distance().abs()
 
     def band_mask(self, width: float | None = None) -> Tensor:
         """Boolean mask of the nodes within ``width`` of S (default ``band_width``).
 
-        Distances are :meth:`distance`'s ``|phi| / W``, world units; ``(B, 1, D, H, W)``. On a
+        Distances are :meth:`distance`'s, world units; ``(B, 1, D, H, W)``. On a
         dense grid, only nodes within ``width + sqrt(3) h`` of a node with a neighbour across S
         count (by the chessboard distance, a superset of the Euclidean ball): where ``phi``
         saturates (``tanh(phi / h)``, an occupancy-like field) ``|phi| / W`` is small far from

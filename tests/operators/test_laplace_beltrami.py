@@ -99,7 +99,10 @@ def _appendix_b_reference(u: np.ndarray, phi: np.ndarray, h: float) -> np.ndarra
     crossing = np.zeros_like(inside)
     for a in range(3):
         crossing |= (shift(inside, a, 1) != inside) | (shift(inside, a, -1) != inside)
-    norm = np.maximum(gradient_norm, 0.5 * np.sort(gradient_norm[crossing])[(crossing.sum() - 1) // 2])
+    slope = np.sqrt(sum(np.maximum(np.abs(shift(phi, a, 1) - phi), np.abs(phi - shift(phi, a, -1)))**2
+                        for a in axes) / h**2 + 1e-12)
+    median = np.sort(gradient_norm[crossing])[(crossing.sum() - 1) // 2]
+    norm = np.maximum(np.maximum(gradient_norm, 0.5 * slope), 0.05 * median)
     forward = [(shift(u, a, 1) - u) / h for a in axes]
     along = sum(f * n for f, n in zip(forward, normal, strict=True))
     flux = [norm * (f - along * n) for f, n in zip(forward, normal, strict=True)]

@@ -149,7 +149,7 @@ class BrickMeshAdapter(nn.Module):
             origin = torch.tensor(grid.origin, dtype=torch.float64)
             grid_points.append(origin + grid.spacing * nodes[b].to(torch.float64))
         surface = self.surface
-        step = (surface.phi / surface.weight * surface.normal).transpose(0, 1).reshape(3, -1)
+        step = (surface.signed_distance() * surface.normal).transpose(0, 1).reshape(3, -1)
         step = step[:, band_index.to(step.device)].T.to("cpu", torch.float64)
         references = [torch.cat(mesh_points), torch.cat(grid_points) - step]
         corners = self._corners.to("cpu").long()

@@ -1,12 +1,13 @@
 """Closest points of S for the re-extension stencils: the first-order step, refined where it misses.
 
-The first-order closest point of a node is ``x - (phi / W) n``. It lies on S when ``phi`` is a
+The first-order closest point of a node is ``x - d n``, ``d`` the surface's
+:meth:`~torchsurf.ImplicitSurface.signed_distance`. It lies on S when ``phi`` is a
 distance and ``n`` its gradient; near a medial axis, a thin feature or a sharp edge the central-
 difference normal is not the distance's gradient, and the point lands off S: up to 3 cells on a
 33^3 torus and 4-10 cells on the shared meshes at 64^3-128^3, so that its 4^3 interpolation taps
 reach nodes outside the band and its ring, where nothing is evolved (0.05-0.6% of the region's
 nodes). :func:`refine` repeats the step from such a point,
-``y <- y - d(y) n(y) / max(|n(y)|, NORMAL_FLOOR)`` with ``d = phi / W`` and ``n`` read
+``y <- y - d(y) n(y) / max(|n(y)|, NORMAL_FLOOR)`` with ``d`` that distance and ``n`` read
 trilinearly, while ``|d(y)|`` exceeds :data:`REFINE_TOLERANCE` cells, at most
 :data:`REFINE_STEPS` times: on those meshes and tori every point then reads the region only,
 except where ``phi`` is not a distance at all (an open mesh's sign flips), which the stencils
@@ -25,7 +26,7 @@ import torch
 from torch import Tensor
 
 REFINE_TOLERANCE = 0.5
-"""A closest point farther than this from S (cells, ``|phi| / W`` read trilinearly) is refined."""
+"""A closest point farther than this from S (cells, ``|d|`` read trilinearly) is refined."""
 
 REFINE_STEPS = 4
 """Most refinement steps (measured: 2-3 reach the tolerance on the shared meshes at 64^3-128^3)."""
@@ -44,7 +45,7 @@ _CORNERS = [(corner & 1, (corner >> 1) & 1, corner >> 2) for corner in range(8)]
 
 Reader = Callable[[Tensor, Tensor | None], tuple[Tensor, Tensor]]
 """``(at (m, 3), rows (m,) or None) -> (values (4, m), readable (m,))``: the signed distance in
-cells (``phi / (W h)``) and the normal ``(x, y, z)`` at fractional node indices ``at`` of the
+cells (``d / h``) and the normal ``(x, y, z)`` at fractional node indices ``at`` of the
 points ``rows`` (all when ``None``), and whether they could be read."""
 
 
@@ -109,7 +110,7 @@ def dense_reader(distance: Tensor, normal: Tensor) -> Reader:
     """:func:`refine`'s ``read`` on one dense volume.
 
     Args:
-        distance: ``(D, H, W)`` signed distance in cells, ``phi / (W h)``.
+        distance: ``(D, H, W)`` signed distance in cells, ``signed_distance() / h``.
         normal: ``(3, D, H, W)`` unit normals, channels ``x, y, z``.
     """
     depth, height, width = distance.shape
@@ -129,7 +130,7 @@ def brick_reader(distance: Tensor, normal: Tensor, lookup_table: Tensor, batch: 
     """:func:`refine`'s ``read`` on packed fields of a brick layout.
 
     Args:
-        distance: ``(N, 1, 8, 8, 8)`` signed distance in cells, ``phi / (W h)``.
+        distance: ``(N, 1, 8, 8, 8)`` signed distance in cells, ``signed_distance() / h``.
         normal: ``(N, 3, 8, 8, 8)`` unit normals.
         lookup_table: ``(B, Z, Y, X)`` the packed row of each brick, ``-1`` if not stored.
         batch: ``(M,)`` each point's batch entry.

@@ -159,8 +159,8 @@ def _dense_part(surface: ImplicitSurface, index: Tensor, mask: Tensor, readable:
     first order) refined (:mod:`._closest`), without the nodes whose taps leave ``readable``
     ``(D, H, W)`` (when given)."""
     targets = mask.reshape(-1).nonzero().squeeze(1)
-    phi, weight = surface.phi[entry, 0], surface.weight[entry, 0]
-    read = _closest.dense_reader(phi / (weight * surface.spacing), surface.normal[entry])
+    distance = surface.signed_distance()[entry, 0] / surface.spacing
+    read = _closest.dense_reader(distance, surface.normal[entry])
     at = _closest.refine(index.reshape(-1, 3)[targets], read)
     targets, corners, weights = _cubic_stencil(at, targets, mask.shape)
     if readable is None:
@@ -491,7 +491,7 @@ class BrickCubicStencil:
                  readable: Tensor | None = None) -> None:
         self.limited = bool(limited)
         self.targets = mask.reshape(-1).nonzero().squeeze(1)
-        distance = surface.phi / (surface.weight * surface.spacing)
+        distance = surface.signed_distance() / surface.spacing
         parts = [self._assemble(surface, self.targets[start: start + STENCIL_CHUNK], distance)
                  for start in range(0, len(self.targets), STENCIL_CHUNK)]
         if not parts:
@@ -604,7 +604,8 @@ class BrickCubicStencil:
 
 
 def _brick_closest_points(surface: ImplicitSurface, targets: Tensor) -> tuple[Tensor, Tensor]:
-    """``x - (phi / W) n`` at the packed node indices ``targets`` ``(M,)`` of a brick surface:
+    """``x - d n`` (``d = surface.signed_distance()``) at the packed node indices ``targets``
+    ``(M,)`` of a brick surface:
     world ``(M, 3)`` and each node's batch entry ``(M,)``.
 
     World points first, as the dense closest points are computed: the same rounding, so that
@@ -624,7 +625,7 @@ def _brick_closest_points(surface: ImplicitSurface, targets: Tensor) -> tuple[Te
         return field.reshape(field.shape[0], field.shape[1], -1)[row, :, inside]
 
     normal = at_targets(surface.normal)
-    distance = at_targets(surface.phi)[:, 0] / at_targets(surface.weight)[:, 0]
+    distance = at_targets(surface.signed_distance())[:, 0]
     return points - distance[:, None] * normal, batch
 
 
@@ -655,9 +656,9 @@ def cubic_stencil(surface: ImplicitSurface, mask: Tensor, limited: bool = False,
 
 
 def _closest_points(surface: ImplicitSurface, dtype: torch.dtype) -> Tensor:
-    """``x - (phi / W) n`` at every node, world ``(B, D, H, W, 3)``."""
+    """``x - d n``, ``d = surface.signed_distance()``, at every node, world ``(B, D, H, W, 3)``."""
     points = surface.grid.points(dtype=dtype, device=surface.phi.device)
-    step = (surface.phi / surface.weight) * surface.normal
+    step = surface.signed_distance() * surface.normal
     return points - step.permute(0, 2, 3, 4, 1)
 
 
@@ -723,7 +724,7 @@ def pde_extension(
     else:
         max_steps = check_count(max_steps, "max_steps")
     band = surface.band_mask(width)
-    distance = surface.phi / surface.weight  # world units, whatever the scale of phi
+    distance = surface.signed_distance()  # world units, whatever the scale of phi
     sign = distance / torch.sqrt(distance**2 + h**2)
     velocity = sign * surface.normal
     layout = surface.layout
