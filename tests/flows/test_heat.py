@@ -283,6 +283,33 @@ def test_gradcheck_data_diffusivity_and_time(method):
     assert torch.autograd.gradcheck(run, inputs, eps=1e-6, atol=1e-7, fast_mode=True)
 
 
+@pytest.mark.parametrize("method", ["euler", "chebyshev"])
+def test_requested_times_of_a_learned_time_need_max_time(method):
+    """``times=`` are fractions of ``max_time`` applied to the learned time: gradcheck holds.
+    Without ``max_time`` they would be fractions of the time's current value, read anew at each
+    call: the output at ``t < time`` did not move with the parameter while autograd gave it a
+    gradient (-0.74 on this kind of case), so that combination is refused."""
+    u0, surface = small_case(9)
+    spacing = surface.spacing
+    with pytest.raises(ValueError, match="max_time"):
+        HeatFlow(2 * spacing**2, learn_time=True, method=method).double()(
+            u0, surface, times=[spacing**2])
+    steps = None if method == "chebyshev" else 16
+    flow = HeatFlow(2 * spacing**2, learn_time=True, max_time=3 * spacing**2, method=method,
+                    steps=steps, band_width=1.1).double()
+
+    weights = torch.rand((2, *u0.shape), dtype=u0.dtype, generator=torch.Generator().manual_seed(1))
+
+    def run(raw_time):
+        value = torch.func.functional_call(flow, {"time_value.raw": raw_time}, (u0, surface),
+                                           {"times": [spacing**2, 3 * spacing**2]})
+        return (value * weights).sum()  # one output: one backward per check
+
+    raw = flow.time_value.raw.detach().clone().requires_grad_()
+    assert float(torch.autograd.grad(run(raw), raw)[0].abs()) > 1e-3
+    assert torch.autograd.gradcheck(run, (raw,), eps=1e-6, atol=1e-7)
+
+
 @pytest.mark.parametrize("method", ["implicit", "rkc"])
 def test_gradcheck_phi_through_the_flow_and_its_reextension(method):
     """Off-centre sphere: on a centred one some closest points fall exactly on nodes, where the

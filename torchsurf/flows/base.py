@@ -197,6 +197,17 @@ def data_shape(surface: ImplicitSurface, batch: int, channels: int) -> tuple[int
     return (len(surface.layout), channels, BRICK, BRICK, BRICK)
 
 
+def check_times_of_learned_time(time_value: Positive, times: object) -> None:
+    """Refuse ``times=`` for a learned time without ``max_time`` (see :class:`Flow`)."""
+    if times is not None and time_value.learnable and time_value.bound is None:
+        raise ValueError(
+            "times= with learn_time=True needs max_time: the requested times are fractions of "
+            "max_time applied to the learned time. Without it they would be fractions of the "
+            "parameter's current value, read anew at each call, and the gradient of the result "
+            "would not be its derivative"
+        )
+
+
 def _diagonal_cells(surface: ImplicitSurface) -> float:
     grids = surface.grids if surface.layout is not None else (surface.grid,)
     return max(math.dist(grid.shape, (1, 1, 1)) for grid in grids)
@@ -240,8 +251,8 @@ class Flow(nn.Module):
             clamped to it (no gradient beyond) and the steps are planned for it, so the forward
             reads nothing from the parameter and ``torch.compile`` traces it whole. ``None``
             (default): the steps follow the current time, read on the host at each call (a
-            graph break). With ``times=``, the requested times are fractions of ``max_time``
-            (or of the current time), applied to the learned time.
+            graph break). ``times=`` needs ``max_time``: the requested times are fractions
+            of ``max_time``, applied to the learned time.
         tolerance, max_iterations: conjugate-gradient stopping rule of the implicit methods.
         options: extra keyword options for torchdiffeq (``rtol``, ``atol``, ``step_size``...).
         adjoint: integrate with ``torchdiffeq.odeint_adjoint``.
@@ -494,6 +505,7 @@ class Flow(nn.Module):
                 "(docs/bricks.md)"
             )
         check_data(u0, "u0", surface)
+        check_times_of_learned_time(self.time_value, times)
         separately = self._entries_apart(u0, surface, times, inputs)
         if separately is not None:
             return separately

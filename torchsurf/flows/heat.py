@@ -16,7 +16,7 @@ from ..operators.laplace_beltrami import SCHEMES
 from ..surface import ImplicitSurface, check_data, check_surface
 from ._integrators import Linear, System, tensors, zero_outside
 from ._positive import Positive
-from .base import Flow, _check_times
+from .base import Flow, _check_times, check_times_of_learned_time
 from .exponential import BandLaplacian, heat_semigroup
 
 SYMMETRIC_SCHEMES = functional.SCHEMES
@@ -160,6 +160,7 @@ class HeatFlow(Flow):
             )
         check_surface(surface)
         check_data(u0, "u0", surface)
+        check_times_of_learned_time(self.time_value, times)
         separately = self._entries_apart(u0, surface, times, {})
         if separately is not None:
             return separately
