@@ -61,7 +61,8 @@ class Positive(nn.Module):
 
     Raises:
         TypeError: ``value`` is not made of real numbers (bools, strings).
-        ValueError: it has more than one dimension, or an entry that is not finite and > 0;
+        ValueError: it is a tensor that requires grad (its gradient would be lost), has more
+            than one dimension, or an entry that is not finite and > 0;
             ``bound`` is given for a fixed value, or is below an entry of ``value``.
     """
 
@@ -69,6 +70,12 @@ class Positive(nn.Module):
                  bound: float | None = None, bound_name: str = "bound") -> None:
         super().__init__()
         self.name = name
+        if isinstance(value, Tensor) and value.requires_grad:
+            raise ValueError(
+                f"{name} is a tensor that requires grad: a flow takes its {name} as a setting and "
+                f"would drop that gradient; use learn_{name}=True (the flow then owns the "
+                f"parameter) or pass {name}.detach()"
+            )
         tensor = _as_tensor(value, name)
         valid = torch.isfinite(tensor) & (tensor > 0)
         if tensor.dim() > 1 or tensor.numel() == 0 or not bool(valid.all()):
