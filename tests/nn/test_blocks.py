@@ -114,3 +114,24 @@ def test_band_mse_and_psnr(sphere):
         band_mse(target, target[:, :1], surface)
     with pytest.raises(ValueError, match="peak"):
         psnr(target, target, surface, peak=0.0)
+
+
+def test_data_of_batch_one_on_a_surface_of_batch_two_gives_two_entries():
+    """As the flows and LearnedDiffusion do, the block and the losses take one datum on each
+    of the surface's entries (the block indexed out of range, the losses raised torch's own
+    expand error)."""
+    grid = ts.Grid.cube(17, 1.4)
+    phi = torch.cat([ts.sdf.sphere(grid, radius=0.9, dtype=torch.float64),
+                     ts.sdf.torus(grid, 0.8, 0.35, dtype=torch.float64)])
+    pair = ts.ImplicitSurface(phi, grid)
+    u = torch.rand((1, 2, *grid.shape), generator=torch.Generator().manual_seed(4),
+                   dtype=torch.float64)
+    block = DiffusionBlock(2).double()
+    torch.nn.init.normal_(block.mlp[-1].weight, generator=torch.Generator().manual_seed(5))
+    both = block(u, pair)
+    assert both.shape == (2, 2, *grid.shape)
+    for b in range(2):
+        alone = ts.ImplicitSurface(phi[b:b + 1], grid)
+        torch.testing.assert_close(both[b:b + 1], block(u, alone))
+        torch.testing.assert_close(psnr(u + 0.1, u, pair)[b], psnr(u + 0.1, u, alone)[0])
+    torch.testing.assert_close(band_mse(u + 0.1, u, pair), torch.tensor(0.01, dtype=torch.float64))

@@ -33,13 +33,15 @@ class DiffusionBlock(nn.Module):
 
     Args:
         channels: ``C``, channels in and out.
-        hidden: width of the MLP's hidden layer (default ``2 C + feature_count(C)``).
+        hidden: width of the MLP's hidden layer (default ``2 C`` plus its
+            ``C + feature_count(C, pairs)`` inputs).
         time: initial diffusion times, ``h^2`` units (:class:`LearnedDiffusion`).
         pairs: use the products of pairs of channels' gradients as features.
         **diffusion: other arguments of :class:`LearnedDiffusion` (``scheme``, ``path``,
             ``learn_time``); ``path`` also applies to the gradient features.
 
-    Shapes: ``(B, C, D, H, W)`` on a surface of batch 1 or ``B`` -> ``(B, C, D, H, W)``; on a
+    Shapes: ``(B, C, D, H, W)`` on a surface of batch 1 or ``B`` -> ``(B, C, D, H, W)`` (data
+    of batch 1 on a surface of batch ``B`` gives ``B`` entries, as the flows do); on a
     :class:`~torchsurf.bricks.BrickSurface`, packed ``(N, C, 8, 8, 8)`` -> the same.
     """
 
@@ -62,6 +64,8 @@ class DiffusionBlock(nn.Module):
         if u.dtype != weight.dtype:
             raise TypeError(f"u is {u.dtype} but the block's MLP is {weight.dtype}: convert one "
                             f"of them (block.to({u.dtype}) or u.to({weight.dtype}))")
+        if surface.layout is None and u.shape[0] == 1 and surface.batch_size > 1:
+            u = u.expand(surface.batch_size, *u.shape[1:])  # one datum on every surface
         diffused = self.diffusion(u, surface)
         features = torch.cat([
             diffused, gradient_features(diffused, surface, self.pairs, path=self.diffusion.path)

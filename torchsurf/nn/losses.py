@@ -21,7 +21,10 @@ def _squared_errors(prediction: Tensor, target: Tensor, surface: ImplicitSurface
             f"prediction has shape {tuple(prediction.shape)} but target has "
             f"{tuple(target.shape)}; they must match"
         )
-    band = surface.band_mask(width).expand(prediction.shape[0], 1, *prediction.shape[2:])
+    # data of batch 1 on a surface of batch B is measured on each of the B surfaces
+    batch = max(prediction.shape[0], surface.batch_size) if surface.layout is None else \
+        prediction.shape[0]
+    band = surface.band_mask(width).expand(batch, 1, *prediction.shape[2:])
     errors = torch.where(band, prediction - target, prediction.new_zeros(()))
     counts = (band.sum(dim=(1, 2, 3, 4)) * prediction.shape[1]).to(prediction.dtype)
     totals = (errors * errors).sum(dim=(1, 2, 3, 4))
