@@ -141,6 +141,9 @@ def test_mesh_path_resolves_against_the_config_folder_then_the_mesh_dir(tmp_path
         (["flow.method=bogus"], "flow.method"),
         (["flow.kind=total_variation", "flow.method=chebyshev"], "flow.method"),
         (["surface.params.radius=-1"], "surface.params"),
+        (["name=../escaped"], "name"),
+        (["name=a/b"], "name"),
+        (["name=.hidden"], "name"),
     ],
 )
 def test_bad_settings_are_refused_with_their_key(overrides, key, tmp_path, capsys):
@@ -270,3 +273,15 @@ def test_a_failed_record_leaves_no_new_picture(tmp_path, capsys):
     code = cli.main(["run", "heat_sphere", "--set", *TINY, "--out", str(out), "--quiet"])
     assert code == cli.EXIT_FAILED
     assert sorted(p.name for p in out.iterdir()) == ["heat_sphere.json"]
+
+
+def test_a_failed_run_leaves_no_folder_and_no_traceback(tmp_path, capsys):
+    """A run refused by the memory check (a MemoryError) exits 1 with one line, and the output
+    folder it had created for the run is gone again."""
+    out = tmp_path / "runs" / "big"
+    code = cli.main(["run", "heat_sphere", "--quiet", "--set", "grid.size=100000",
+                     "--out", str(out)])
+    assert code == cli.EXIT_FAILED
+    error = capsys.readouterr().err
+    assert error.startswith("torchsurf: run failed: MemoryError:") and "Traceback" not in error
+    assert not (tmp_path / "runs").exists()

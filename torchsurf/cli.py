@@ -60,15 +60,33 @@ def _progress_wanted(disabled: bool) -> bool:
     return True
 
 
-def _check_writable(folder: Path) -> None:
+def _check_writable(folder: Path) -> list[Path]:
     """Create ``folder`` if needed and write and remove a file in it, before any computation.
+
+    Returns:
+        The folders this created, deepest first (:func:`_remove_if_empty` takes them back).
 
     Raises:
         OSError: the folder cannot be created or written.
     """
-    folder.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryFile(dir=folder):
-        pass
+    created = [parent for parent in (folder, *folder.parents) if not parent.exists()]
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError:
+        _remove_if_empty(created)
+        raise
+    return created
+
+
+def _remove_if_empty(folders: list[Path]) -> None:
+    """Remove the ``folders`` (deepest first) that hold nothing: a failed run leaves no trace."""
+    for folder in folders:
+        try:
+            folder.rmdir()
+        except OSError:
+            return
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -89,7 +107,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_USAGE
     out = Path(args.out) if args.out else Path("outputs") / prepared.experiment.name
     try:
-        _check_writable(out)
+        created = _check_writable(out)
     except OSError as error:
         print(f"torchsurf: cannot write to {str(out)!r} (--out): {error}", file=sys.stderr)
         return EXIT_USAGE
@@ -97,9 +115,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         result = experiment.run(prepared, out, progress=_progress_wanted(args.no_progress), log=log)
     except ImportError as error:
+        _remove_if_empty(created)
         print(f"torchsurf: {error}", file=sys.stderr)
         return EXIT_FAILED
-    except (ValueError, FloatingPointError, RuntimeError, OSError) as error:
+    except (ValueError, FloatingPointError, RuntimeError, OSError, MemoryError) as error:
+        _remove_if_empty(created)
         print(f"torchsurf: run failed: {type(error).__name__}: {error}", file=sys.stderr)
         return EXIT_FAILED
     times = ", ".join(f"{k} {v:.1f} s" for k, v in result.stages.items())

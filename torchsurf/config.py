@@ -382,12 +382,22 @@ def _positive(value: float, key: str) -> None:
         raise ConfigError(key, f"must be a finite number > 0, got {value!r}")
 
 
+def _is_file_stem(name: str) -> bool:
+    """``name`` can name a file in the output folder: no separator, no leading dot."""
+    allowed = set("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_-.")
+    return bool(name) and not name.startswith(".") and set(name) <= allowed
+
+
 def check(experiment: Experiment) -> None:
     """Ranges and combinations of an experiment's settings (types are checked by omegaconf).
 
     Raises:
         ConfigError: naming the key.
     """
+    if not _is_file_stem(experiment.name):
+        raise ConfigError("name", f"must be a file name of letters, digits, '_', '-' and '.' "
+                          f"(it names the output files), not starting with '.', got "
+                          f"{experiment.name!r}")
     if experiment.surface.shape is Shape.mesh and not experiment.surface.mesh:
         raise ConfigError("surface.mesh", "shape: mesh needs a mesh file path")
     if experiment.surface.shape is not Shape.mesh and experiment.surface.mesh:
