@@ -214,3 +214,56 @@ def test_harmonic_maps_refuse_data_that_are_not_unit_vectors():
         ts.HarmonicMapFlow(1e-3)(torch.rand(1, 1, *grid.shape), surface)
     with pytest.raises(ValueError, match="zero vectors"):
         ts.HarmonicMapFlow(1e-3)(torch.zeros(1, 3, *grid.shape), surface)
+
+
+def test_flow_settings_that_require_grad_are_refused_not_detached():
+    """A tensor requiring grad given as a flow's time, diffusivity or contrast lost its gradient
+    silently; the learn_* options own such parameters."""
+    parameter = torch.nn.Parameter(torch.tensor(0.5))
+    for make, name in ((lambda: HeatFlow(parameter), "time"),
+                       (lambda: HeatFlow(0.01, diffusivity=parameter), "diffusivity"),
+                       (lambda: ts.AnisotropicFlow(0.01, "perona_malik", contrast=parameter),
+                        "contrast")):
+        with pytest.raises(ValueError, match=f"learn_{name}=True"):
+            make()
+    assert HeatFlow(parameter.detach()).time_value.maximum() == 0.5
+
+
+@pytest.mark.parametrize("time", ["1", None, True, [1.0, True], 1 + 2j, torch.tensor(True)])
+def test_learned_diffusion_refuses_times_that_are_not_numbers(time):
+    with pytest.raises(TypeError, match="time"):
+        ts.nn.LearnedDiffusion(2, time=time)
+
+
+def test_from_function_returns_the_requested_dtype_and_refuses_integers():
+    grid = ts.Grid.cube(8, 1.0)
+    phi = ts.sdf.from_function(grid, lambda p: p.double().norm(dim=-1) - 0.5, dtype=torch.float32)
+    assert phi.dtype == torch.float32
+    with pytest.raises(TypeError, match="floating-point"):
+        ts.sdf.from_function(grid, lambda p: (p.norm(dim=-1) > 0.5).long())
+
+
+def test_cubic_sampling_of_no_points_is_empty():
+    grid = ts.Grid.cube(8, 1.0)
+    field = torch.rand(2, 3, 8, 8, 8)
+    for interpolation in ("linear", "cubic"):
+        assert ts.sample(field, torch.zeros(0, 3), grid, interpolation).shape == (2, 3, 0)
+
+
+def test_functional_layer_checks_channel_counts_dtypes_spacing_and_scheme():
+    from torchsurf.operators import functional
+
+    grid = ts.Grid.cube(12, 1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid), grid)
+    u = torch.rand(1, 1, *grid.shape)
+    normal, weight, h = surface.normal, surface.weight, surface.spacing
+    with pytest.raises(ValueError, match="normal must be"):
+        functional.divergence_form(u, normal[:, :1], weight, h)
+    with pytest.raises(ValueError, match="direction must be"):
+        functional.directional_form(u, normal, weight, h, normal[:, :2])
+    with pytest.raises(TypeError, match="normal is torch.float32 but u is torch.float16"):
+        functional.tangential_gradient(u.half(), normal, h)
+    with pytest.raises(ValueError, match="spacing"):
+        functional.divergence_form(u, normal, weight, 0.0)
+    with pytest.raises(ValueError, match="scheme must be one of"):
+        functional.divergence_form(u, normal, weight, h, scheme="central")

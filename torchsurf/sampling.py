@@ -123,7 +123,7 @@ def _tricubic(field: Tensor, index: Tensor) -> Tensor:
     height, width = field.shape[-2:]
     flat = field.flatten(2)
     results = []
-    for start in range(0, index.shape[1], CUBIC_CHUNK):
+    for start in range(0, max(index.shape[1], 1), CUBIC_CHUNK):  # one (empty) chunk for no point
         part = slice(start, start + CUBIC_CHUNK)
         taps = ((z[:, part, :, None, None] * height + y[:, part, None, :, None]) * width
                 + x[:, part, None, None, :]).flatten(2)  # (B, v, 64)

@@ -59,7 +59,9 @@ def from_function(
             f"function must map points (D, H, W, 3) to a tensor (D, H, W) = {grid.shape}, "
             f"got {shape}"
         )
-    return values[None, None]
+    if not values.is_floating_point():
+        raise TypeError(f"function must return real floating-point values, got {values.dtype}")
+    return values.to(dtype)[None, None]
 
 
 def _centered(points: Tensor, center: Point) -> Tensor:

@@ -147,6 +147,9 @@ class BrickSurface(ImplicitSurface):
         self.layout.check_field(field, name)
         if channels is not None and field.shape[1] != channels:
             raise ValueError(f"{name} must have {channels} channels, got shape {tuple(field.shape)}")
+        if field.shape[1] == 0:
+            raise ValueError(f"{name} must have at least one channel, got shape "
+                             f"{tuple(field.shape)}")
         return field
 
     def entries(self) -> list[tuple[Tensor, BrickSurface]]:

@@ -13,8 +13,8 @@ autograd reaches every one of them and a flow can hand them to its integrator:
 
 Data ``u`` is ``(B, C, D, H, W)``. Every function takes ``path`` (:mod:`torchsurf.backend`):
 ``"auto"`` (default), ``"slicing"``, ``"conv3d"`` or ``"compiled"``, all giving the same numbers
-to rounding. Nothing here checks its inputs: the surface-level functions
-(:func:`torchsurf.laplace_beltrami`, ...) do.
+to rounding. Each checks its arguments' channel counts, dtypes, spacing and scheme only; the
+surface-level functions (:func:`torchsurf.laplace_beltrami`, ...) check everything.
 
 The divergence forms ``L u = (1/W) div(W f(P grad u))`` come in three schemes (see
 :func:`torchsurf.laplace_beltrami` for their orders and errors): ``"octant"``, ``"symmetric"``,
@@ -24,6 +24,7 @@ The divergence forms ``L u = (1/W) div(W f(P grad u))`` come in three schemes (s
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 
 import torch
@@ -45,6 +46,31 @@ from .diffusivity import Diffusivity
 
 SCHEMES = ("octant", "symmetric", "conservative")
 """The divergence-form schemes."""
+
+
+def _check_inputs(u: Tensor, normal: Tensor, spacing: float, weight: Tensor | None = None,
+                  scheme: str | None = None, schemes: Sequence[str] = SCHEMES,
+                  direction: Tensor | None = None) -> None:
+    """The cheap checks of this layer's arguments (shapes' channel counts, dtypes, the spacing
+    and the scheme): what would otherwise give a wrong shape or a bare ``KeyError`` deep in a
+    kernel. Channel counts and dtypes only; the surface-level functions check the rest."""
+    if u.dim() != 5 or not u.is_floating_point():
+        raise ValueError(f"u must be a floating-point (B, C, D, H, W) tensor, got shape "
+                         f"{tuple(u.shape)} and dtype {u.dtype}")
+    for name, value, channels in (("normal", normal, 3), ("weight", weight, 1),
+                                  ("direction", direction, 3)):
+        if value is None:
+            continue
+        if value.dim() != 5 or value.shape[1] != channels:
+            raise ValueError(f"{name} must be (B or 1, {channels}, D, H, W), got shape "
+                             f"{tuple(value.shape)}")
+        if value.dtype != u.dtype:
+            raise TypeError(f"{name} is {value.dtype} but u is {u.dtype}: they must match")
+    if not (isinstance(spacing, (int, float)) and math.isfinite(spacing) and spacing > 0):
+        raise ValueError(f"spacing must be a finite number > 0, got {spacing!r}")
+    if scheme is not None and scheme not in schemes:
+        raise ValueError(f"scheme must be one of {tuple(schemes)}, got {scheme!r}")
+
 
 Haloed = tuple[Tensor, Tensor] | None
 
@@ -179,6 +205,7 @@ def divergence_form(
     Returns:
         ``u``'s shape, units of ``u`` per world length squared (times ``W`` if weighted).
     """
+    _check_inputs(u, normal, spacing, weight, scheme)
     if normal.requires_grad or weight.requires_grad or not (
             torch.is_grad_enabled() and u.requires_grad):
         # no autograd node needed where autograd records nothing (a custom Function's call
@@ -298,6 +325,7 @@ def edge_stopping_form(
     Returns:
         ``u``'s shape.
     """
+    _check_inputs(u, normal, spacing, weight, scheme, FLUX_SCHEMES)
     if coupled and u.shape[1] > 1:
         return harmonic_map_rate(u, normal, weight, spacing, diffusivity, contrast, eps, None,
                                  scheme, path, mask, haloed, pad)
@@ -377,6 +405,7 @@ def harmonic_map_rate(
     Returns:
         ``u``'s shape.
     """
+    _check_inputs(u, normal, spacing, weight, scheme, FLUX_SCHEMES)
     if pad is not None:
         haloed_normal, haloed_weight = _require_haloed(haloed)
         return backend.run_haloed(_COUPLED_OPEN, path, u, pad(u, 2), haloed_normal,
@@ -438,6 +467,7 @@ def directional_form(
     Returns:
         ``u``'s shape.
     """
+    _check_inputs(u, normal, spacing, weight, scheme, FLUX_SCHEMES, direction)
     if pad is not None:
         haloed_normal, haloed_weight = _require_haloed(haloed)
         if haloed_direction is None:
@@ -485,6 +515,7 @@ def tangential_gradient(u: Tensor, normal: Tensor, spacing: float, path: str = "
         ``(B, 3C, D, H, W)`` (or ``(N, 3C, 8, 8, 8)``): channels ``3c, 3c+1, 3c+2`` are the
         ``x, y, z`` components for channel ``c``, units of ``u`` per world length.
     """
+    _check_inputs(u, normal, spacing)
     if pad is not None:
         return backend.run_haloed(_GRADIENT, path, u, pad(u, 1), normal, spacing)
     return backend.run(_GRADIENT, path, u, u, normal, spacing)
@@ -522,6 +553,7 @@ def tangential_gradient_energy(u: Tensor, normal: Tensor, spacing: float, path: 
         ``(B, 1, D, H, W)`` (or ``(N, 1, 8, 8, 8)``), units of ``u`` squared per world length
         squared.
     """
+    _check_inputs(u, normal, spacing)
     if pad is not None:
         return backend.run_haloed(_ENERGY, path, u, pad(u, 1), normal, spacing)
     return backend.run(_ENERGY, path, u, u, normal, spacing)
@@ -581,6 +613,7 @@ def tangential_divergence(v: Tensor, normal: Tensor, weight: Tensor, spacing: fl
     Returns:
         ``(B, C, D, H, W)`` (or ``(N, C, 8, 8, 8)``), units of ``v`` per world length.
     """
+    _check_inputs(v, normal, spacing, weight)
     if pad is not None:
         return backend.run_haloed(_FLUX_DIVERGENCE, path, v,
                                   pad(_tangential_flux(v, normal, weight), 1), weight, spacing)
