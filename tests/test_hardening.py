@@ -267,3 +267,12 @@ def test_functional_layer_checks_channel_counts_dtypes_spacing_and_scheme():
         functional.divergence_form(u, normal, weight, 0.0)
     with pytest.raises(ValueError, match="scheme must be one of"):
         functional.divergence_form(u, normal, weight, h, scheme="central")
+
+
+def test_directional_diffusion_refuses_a_direction_batch_that_u_does_not_have():
+    grid = ts.Grid.cube(12, 1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid), grid)
+    u = torch.rand(1, 1, *grid.shape)
+    direction = torch.zeros(2, 3, *grid.shape)
+    with pytest.raises(ValueError, match="direction has batch 2 but u has 1"):
+        ts.directional_diffusion(u, surface, direction)

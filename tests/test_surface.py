@@ -586,3 +586,18 @@ def test_band_of_a_saturating_phi_stays_near_the_surface():
     # a crossing node lies within h of S
     assert phi[band].abs().max() <= (math.sqrt(3) * reach + 1) * grid.spacing
     assert int(band.sum()) < 0.5 * band.numel()  # it was every node
+
+
+def test_curvatures_of_a_scaled_phi_are_the_same_in_float32_for_any_scale():
+    """c * phi is the same surface: H and K were formed with |grad phi|^3 and ^4, which
+    overflow or underflow float32 (NaN everywhere near S for c = 1e10 or 1e-12)."""
+    grid = Grid.cube(25, BOUND)
+    phi = sdf.sphere(grid, 1.0)
+    near = phi.abs() < grid.spacing
+    reference = ImplicitSurface(phi, grid)
+    for c in (1e-14, 1e-12, 1e10, 1e14):
+        scaled = ImplicitSurface(c * phi, grid)
+        for name in ("mean_curvature", "gaussian_curvature"):
+            expected = getattr(reference, name)()[near]
+            torch.testing.assert_close(getattr(scaled, name)()[near], expected, rtol=1e-4,
+                                       atol=1e-4, msg=f"{name} of {c:g} phi")

@@ -25,15 +25,23 @@ def _quadratic(matrix: Tensor, a: Tensor, b: Tensor) -> Tensor:
 
 
 def mean_curvature(gradient: Tensor, hessian: Tensor, grad_norm: Tensor) -> Tensor:
-    """``H = div(grad phi / |grad phi|) = (|g|^2 tr(Hess) - g^T Hess g) / |g|^3``; ``(B, 1, ...)``."""
-    trace = hessian[:, 0:1] + hessian[:, 1:2] + hessian[:, 2:3]
-    normal_part = _quadratic(_matrix(hessian), gradient, gradient)
-    return (grad_norm**2 * trace - normal_part) / grad_norm**3
+    """``H = div(grad phi / |grad phi|) = (|g|^2 tr(Hess) - g^T Hess g) / |g|^3``; ``(B, 1, ...)``.
+
+    Formed as ``tr(S) - n^T S n`` with ``S = Hess / |g|`` and ``n = g / |g|``: no power of
+    ``phi``'s scale above one, so ``c * phi`` gives the same numbers for any ``c`` float32 holds
+    (``|g|^3`` overflowed float32 from ``c = 1e13``)."""
+    scaled = hessian / grad_norm
+    normal = gradient / grad_norm
+    trace = scaled[:, 0:1] + scaled[:, 1:2] + scaled[:, 2:3]
+    return trace - _quadratic(_matrix(scaled), normal, normal)
 
 
 def gaussian_curvature(gradient: Tensor, hessian: Tensor, grad_norm: Tensor) -> Tensor:
-    """``K = g^T adj(Hess) g / |g|^4``; ``(B, 1, ...)``."""
-    xx, yy, zz, xy, xz, yz = hessian.unbind(dim=1)
+    """``K = g^T adj(Hess) g / |g|^4``; ``(B, 1, ...)``, formed as ``n^T adj(Hess / |g|) n``
+    (the adjugate is quadratic in its matrix) so that no power of ``phi``'s scale above one
+    appears (``|g|^4`` overflowed float32 from ``c = 1e10``)."""
+    gradient = gradient / grad_norm
+    xx, yy, zz, xy, xz, yz = (hessian / grad_norm).unbind(dim=1)
     adjugate = _matrix(
         torch.stack(
             (
@@ -47,7 +55,7 @@ def gaussian_curvature(gradient: Tensor, hessian: Tensor, grad_norm: Tensor) -> 
             dim=1,
         )
     )
-    return _quadratic(adjugate, gradient, gradient) / grad_norm**4
+    return _quadratic(adjugate, gradient, gradient)
 
 
 def _unit_vectors(normal: Tensor, index: Tensor) -> Tensor:

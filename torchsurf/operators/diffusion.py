@@ -16,7 +16,7 @@ from __future__ import annotations
 from torch import Tensor, nn
 
 from .. import backend
-from .._checks import check_batch, check_choice, check_positive, check_positive_tensor
+from .._checks import check_choice, check_positive, check_positive_tensor
 from ..surface import ImplicitSurface, check_data
 from . import functional
 from .diffusivity import DIFFUSIVITIES, Diffusivity
@@ -115,7 +115,9 @@ def directional_diffusion(
     """
     check_data(u, "u", surface)
     check_data(direction, "direction", surface, channels=3)
-    check_batch(direction, "direction", u.shape[0], "u")
+    if surface.layout is None and direction.shape[0] not in (1, u.shape[0]):
+        raise ValueError(f"direction has batch {direction.shape[0]} but u has {u.shape[0]}: "
+                         "it must be 1 or u's")
     check_choice(scheme, "scheme", FLUX_SCHEMES)
     check_choice(path, "path", backend.PATHS)
     return functional.directional_form(
