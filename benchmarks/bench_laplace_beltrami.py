@@ -68,7 +68,8 @@ def numpy_normals(phi: np.ndarray, spacing: float, eps: float = 1e-6
     One-sided first differences on the faces of the box (the same numbers as central
     differences with ``phi`` extrapolated linearly, which is what :class:`ImplicitSurface`
     does); ``|grad phi| = sqrt(|g|^2 + eps^2)``, ``n = g / |grad phi|`` and the operators'
-    weight ``W = max(|grad phi|, 0.5 * median |grad phi| over the nodes next to a sign change)``.
+    weight ``W = max(|grad phi|, 0.5 * slope, 0.05 * median |grad phi| over the nodes next to a
+    sign change)``, ``slope`` the larger one-sided differences along each axis.
     """
     gz, gy, gx = np.gradient(phi, spacing, edge_order=1)
     gradient = np.stack([gx, gy, gz])
@@ -84,7 +85,16 @@ def numpy_normals(phi: np.ndarray, spacing: float, eps: float = 1e-6
         crossing[tuple(behind)] |= change
     values = np.sort(norm[crossing])
     median = values[(len(values) - 1) // 2]
-    return gradient / norm, np.maximum(norm, 0.5 * median)
+    squared_slope = np.zeros_like(phi)
+    for axis in range(3):
+        steps = np.abs(np.diff(phi, axis=axis)) / spacing
+        first = np.take(steps, [0], axis=axis)
+        last = np.take(steps, [-1], axis=axis)
+        forward = np.concatenate([steps, last], axis=axis)  # linear extrapolation at the faces
+        backward = np.concatenate([first, steps], axis=axis)
+        squared_slope += np.maximum(forward, backward) ** 2
+    slope = np.sqrt(squared_slope + eps**2)
+    return gradient / norm, np.maximum(np.maximum(norm, 0.5 * slope), 0.05 * median)
 
 
 class AppendixB:

@@ -274,5 +274,5 @@ def test_directional_diffusion_refuses_a_direction_batch_that_u_does_not_have():
     surface = ts.ImplicitSurface(ts.sdf.sphere(grid), grid)
     u = torch.rand(1, 1, *grid.shape)
     direction = torch.zeros(2, 3, *grid.shape)
-    with pytest.raises(ValueError, match="direction has batch 2 but u has 1"):
+    with pytest.raises(ValueError, match="direction has batch size 2 but u has 1"):
         ts.directional_diffusion(u, surface, direction)

@@ -116,7 +116,7 @@ def directional_diffusion(
     check_data(u, "u", surface)
     check_data(direction, "direction", surface, channels=3)
     if surface.layout is None and direction.shape[0] not in (1, u.shape[0]):
-        raise ValueError(f"direction has batch {direction.shape[0]} but u has {u.shape[0]}: "
+        raise ValueError(f"direction has batch size {direction.shape[0]} but u has {u.shape[0]}: "
                          "it must be 1 or u's")
     check_choice(scheme, "scheme", FLUX_SCHEMES)
     check_choice(path, "path", backend.PATHS)
