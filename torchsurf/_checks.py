@@ -138,6 +138,21 @@ def as_float(value: object, name: str, expected: str) -> float:
     raise TypeError(f"{name} must be {expected}, got {value!r} ({kind})")
 
 
+def as_real_tensor(value: object, name: str, expected: str) -> Tensor:
+    """``value`` (a number, a sequence of numbers, an array or a tensor) as a new default-dtype
+    tensor, detached; bools, strings, ``None`` and complex numbers refused with ``TypeError``
+    naming ``name`` and saying ``expected``."""
+    if isinstance(value, (Tensor, np.ndarray)):
+        tensor = check_has_data(torch.as_tensor(value).detach(), name)
+        if tensor.dtype == torch.bool or tensor.is_complex():
+            raise TypeError(f"{name} must be {expected}, got a tensor of dtype {tensor.dtype}")
+        return tensor.to(torch.get_default_dtype()).clone()
+    if isinstance(value, Sequence) and not isinstance(value, str):
+        entries = [as_float(v, f"{name}[{i}]", expected) for i, v in enumerate(value)]
+        return torch.tensor(entries, dtype=torch.get_default_dtype())
+    return torch.tensor(as_float(value, name, expected), dtype=torch.get_default_dtype())
+
+
 def check_real(value: object, name: str) -> float:
     """A finite real number (Python, numpy or 0-d tensor) as a float; raise naming ``name``."""
     number = as_float(value, name, "a finite real number")

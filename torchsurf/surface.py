@@ -58,16 +58,9 @@ def _squared_slope(padded: Tensor) -> Tensor:
     the central difference shrinks because the slope changes within the cell (a kink of a
     distance: the medial axis, features thinner than two cells, the edge of a clamped band),
     the larger slope on either side."""
-    core = padded[:, :, 1:-1, 1:-1, 1:-1]
-    total = torch.zeros_like(core)
-    for dim in (2, 3, 4):
-        ahead = [slice(None), slice(None), slice(1, -1), slice(1, -1), slice(1, -1)]
-        behind = list(ahead)
-        ahead[dim], behind[dim] = slice(2, None), slice(0, -2)
-        larger = torch.maximum((padded[tuple(ahead)] - core).abs(),
-                               (core - padded[tuple(behind)]).abs())
-        total = total + larger**2
-    return total
+    forward = stencils.apply(padded, stencils.FORWARD)[:, 0].abs()
+    backward = stencils.apply(padded, stencils.BACKWARD)[:, 0].abs()
+    return (torch.maximum(forward, backward) ** 2).sum(dim=1, keepdim=True)
 
 
 def _cells_to_crossing(phi: Tensor) -> Tensor:
@@ -389,6 +382,15 @@ def check_data(value: object, name: str, surface: object, channels: int | None =
     return volume
 
 
+def check_direction_batch(direction: Tensor, u: Tensor, name: str,
+                          surface: ImplicitSurface) -> None:
+    """Raise ``ValueError`` unless a dense ``direction``'s batch is 1 or ``u``'s (named
+    ``name``): a tangent field never widens the data's batch."""
+    if surface.layout is None and direction.shape[0] not in (1, u.shape[0]):
+        raise ValueError(f"direction has batch size {direction.shape[0]} but {name} has "
+                         f"{u.shape[0]}: it must be 1 or {name}'s")
+
+
 def check_direction(direction: object, u0: Tensor, surface: ImplicitSurface,
                     region: Tensor) -> Tensor:
     """``direction`` checked as a flow's tangent field for ``u0``: data on ``surface`` with 3
@@ -399,9 +401,7 @@ def check_direction(direction: object, u0: Tensor, surface: ImplicitSurface,
         ValueError: naming ``direction``, its shape and what was expected.
     """
     field = check_data(direction, "direction", surface, channels=3)
-    if surface.layout is None and field.shape[0] not in (1, u0.shape[0]):
-        raise ValueError(f"direction has batch size {field.shape[0]} but u0 has "
-                         f"{u0.shape[0]}: it must be 1 or u0's")
+    check_direction_batch(field, u0, "u0", surface)
     if not torch.compiler.is_compiling():
         check_finite(torch.where(region, field, 0.0), "direction (in the band and its ring)")
     return field

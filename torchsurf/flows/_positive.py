@@ -15,14 +15,12 @@ only a learnable value without a bound is read from its parameter (a graph break
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 
-import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .._checks import as_float, check_has_data, check_positive
+from .._checks import as_real_tensor, check_positive
 
 FLOOR = 1e-12
 """The smallest value a learnable parameter can take, relative to its smallest initial entry."""
@@ -31,20 +29,6 @@ FLOOR = 1e-12
 def _inverse_softplus(value: Tensor) -> Tensor:
     """``x`` with ``softplus(x) == value`` for ``value > 0`` (stable for large values)."""
     return value + torch.log(-torch.expm1(-value))
-
-
-def _as_tensor(value: object, name: str) -> Tensor:
-    """``value`` as a default-dtype tensor; bools, strings and complex numbers refused."""
-    expected = "a finite positive number or a vector (C,) of them"
-    if isinstance(value, (Tensor, np.ndarray)):
-        tensor = check_has_data(torch.as_tensor(value).detach(), name)
-        if tensor.dtype == torch.bool or tensor.is_complex():
-            raise TypeError(f"{name} must be {expected}, got a tensor of dtype {tensor.dtype}")
-        return tensor.to(torch.get_default_dtype())
-    if isinstance(value, Sequence) and not isinstance(value, str):
-        entries = [as_float(v, f"{name}[{i}]", expected) for i, v in enumerate(value)]
-        return torch.tensor(entries, dtype=torch.get_default_dtype())
-    return torch.tensor(as_float(value, name, expected), dtype=torch.get_default_dtype())
 
 
 class Positive(nn.Module):
@@ -76,7 +60,7 @@ class Positive(nn.Module):
                 f"would drop that gradient; use learn_{name}=True (the flow then owns the "
                 f"parameter) or pass {name}.detach()"
             )
-        tensor = _as_tensor(value, name)
+        tensor = as_real_tensor(value, name, "a finite positive number or a vector (C,) of them")
         valid = torch.isfinite(tensor) & (tensor > 0)
         if tensor.dim() > 1 or tensor.numel() == 0 or not bool(valid.all()):
             raise ValueError(

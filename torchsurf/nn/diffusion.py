@@ -13,33 +13,15 @@ of the same resolution.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-
-import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .._checks import as_float, check_choice, check_count, check_positive
+from .._checks import as_real_tensor, check_choice, check_count, check_positive
 from ..backend import PATHS
 from ..flows.exponential import BandLaplacian, heat_semigroup
 from ..operators import functional
 from ..surface import ImplicitSurface, check_data, check_surface
-
-
-def _initial_times(time: object, channels: int) -> Tensor:
-    """``time`` as a new default-dtype tensor (a 0-d one for one number); bools, strings,
-    ``None`` and complex numbers refused by name."""
-    expected = f"a positive number or {channels} of them (h^2 units)"
-    if isinstance(time, (Tensor, np.ndarray)):
-        values = torch.as_tensor(time).detach()
-        if values.dtype == torch.bool or values.is_complex():
-            raise TypeError(f"time must be {expected}, got a tensor of dtype {values.dtype}")
-        return values.to(torch.get_default_dtype()).clone()
-    if isinstance(time, Sequence) and not isinstance(time, str):
-        return torch.tensor([as_float(v, f"time[{i}]", expected) for i, v in enumerate(time)],
-                            dtype=torch.get_default_dtype())
-    return torch.tensor(as_float(time, "time", expected), dtype=torch.get_default_dtype())
 
 
 def _inverse_softplus(value: Tensor) -> Tensor:
@@ -96,7 +78,8 @@ class LearnedDiffusion(nn.Module):
                  max_time: float | None = None) -> None:
         super().__init__()
         self.channels = check_count(channels, "channels")
-        initial = _initial_times(time, self.channels)
+        initial = as_real_tensor(time, "time",
+                                 f"a positive number or {self.channels} of them (h^2 units)")
         if initial.dim() == 0:
             initial = initial.expand(self.channels).clone()
         if (initial.shape != (self.channels,) or initial.is_complex()

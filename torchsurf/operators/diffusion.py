@@ -17,7 +17,7 @@ from torch import Tensor, nn
 
 from .. import backend
 from .._checks import check_choice, check_positive, check_positive_tensor
-from ..surface import ImplicitSurface, check_data
+from ..surface import ImplicitSurface, check_data, check_direction_batch
 from . import functional
 from .diffusivity import DIFFUSIVITIES, Diffusivity
 from .functional import FLUX_SCHEMES
@@ -115,9 +115,7 @@ def directional_diffusion(
     """
     check_data(u, "u", surface)
     check_data(direction, "direction", surface, channels=3)
-    if surface.layout is None and direction.shape[0] not in (1, u.shape[0]):
-        raise ValueError(f"direction has batch size {direction.shape[0]} but u has {u.shape[0]}: "
-                         "it must be 1 or u's")
+    check_direction_batch(direction, u, "u", surface)
     check_choice(scheme, "scheme", FLUX_SCHEMES)
     check_choice(path, "path", backend.PATHS)
     return functional.directional_form(
