@@ -131,3 +131,45 @@ def test_readme_mesh_route_stays_bounded():
     assert float(u.abs().max()) <= float(u0.abs().max()) * (1 + 1e-6)
     back = adapter.decode(u)
     assert float(back.std()) < float(x.std())
+
+
+FAST_MESHES = ["bunny.obj", "fandisk.obj", "trefoil_knot.obj"]
+"""Meshes the default run checks the Chebyshev semigroup on; the others run with ``-m slow``."""
+
+
+def _meshes_fast_first() -> list:
+    return [name if name in FAST_MESHES else pytest.param(name, marks=pytest.mark.slow)
+            for name in MESHES]
+
+
+@pytest.mark.parametrize("name", _meshes_fast_first())
+@pytest.mark.parametrize("fraction", [0.02, 0.1])
+def test_chebyshev_heat_semigroup_keeps_constants_and_the_maximum_principle(name, fraction):
+    """``method="chebyshev"`` on a mesh's 3-cell band, where 10-20% of the ring's nodes read
+    ring nodes: a constant stays constant (it came back in [0.991, 1.25] when the ring was read
+    as zeros) and noise stays within its range (it grew to 20 at long times)."""
+    surface = mesh_surface(name, 48)
+    flow = ts.HeatFlow((fraction * diagonal(surface)) ** 2, method="chebyshev", path="slicing")
+    band = flow.band_mask(surface)
+    with torch.no_grad():
+        constant = flow(torch.full((1, 1, *surface.grid.shape), 2.0), surface)
+    assert float((constant[band] - 2.0).abs().max()) < 2e-5
+    assert_maximum_principle(flow, surface)
+
+
+@pytest.mark.parametrize("name", ["bunny.obj", "fandisk.obj"])
+@pytest.mark.parametrize("time", [0.01, 16.0])
+def test_learned_diffusion_keeps_the_maximum_principle_on_meshes(name, time):
+    """``LearnedDiffusion`` (one expansion, ``h^2`` units): constants stay constant, noise within
+    its range at a short time (the unlimited re-extension of the result overshot it by 5%) and
+    a long one."""
+    surface = mesh_surface(name, 48)
+    layer = ts.nn.LearnedDiffusion(1, time=time, learn_time=False, path="slicing")
+    band = surface.band_mask()
+    u0 = noise(surface)
+    with torch.no_grad():
+        constant = layer(torch.ones_like(u0), surface)
+        u = layer(u0, surface)
+    assert float((constant[band] - 1.0).abs().max()) < 1e-5
+    assert float(u[band].max()) <= float(u0.max()) + 1e-6
+    assert float(u[band].min()) >= float(u0.min()) - 1e-6

@@ -6,6 +6,7 @@ import math
 
 import pytest
 import torch
+import trimesh
 
 import torchsurf as ts
 from torchsurf.flows import chebyshev
@@ -127,6 +128,28 @@ def test_transpose_is_exact(small):
     generator = torch.Generator().manual_seed(0)
     a, b = (torch.randn((2, 3, *grid.shape), generator=generator, dtype=torch.float64)
             for _ in range(2))
+    torch.testing.assert_close((operator.apply(a) * b).sum(), (a * operator.transpose(b)).sum())
+
+
+def test_the_ring_fill_reproduces_constants_and_its_transpose_is_exact():
+    """On a mesh's 3-cell band many ring nodes read ring nodes: ``E M`` still maps the band's
+    constant to the same constant on the whole ring (it gave 0.99-1.09 with the ring read as
+    zeros), and its transpose (the sweeps' in reverse) is the adjoint."""
+    mesh = trimesh.creation.annulus(r_min=0.25, r_max=0.7, height=0.5, sections=24)
+    grid = ts.mesh.fit_grid(mesh, 32)
+    surface = ts.ImplicitSurface(ts.sdf.from_mesh(mesh, grid).double(), grid)
+    operator = BandLaplacian(surface, path="slicing")
+    fill = operator.ring
+    assert fill.chained is not None and fill.sweeps >= 2
+    filled = fill.apply(torch.full((1, 1, *grid.shape), 3.0, dtype=torch.float64))
+    assert float((filled[operator.region] - 3.0).abs().max()) < 1e-9
+    assert float(filled[~operator.region].abs().max()) == 0.0
+    generator = torch.Generator().manual_seed(1)
+    a, b = (torch.randn((1, 2, *grid.shape), generator=generator, dtype=torch.float64)
+            for _ in range(2))
+    before = (a.clone(), b.clone())
+    torch.testing.assert_close((fill.apply(a) * b).sum(), (a * fill.transpose(b)).sum())
+    assert torch.equal(a, before[0]) and torch.equal(b, before[1])  # the sweeps write their own
     torch.testing.assert_close((operator.apply(a) * b).sum(), (a * operator.transpose(b)).sum())
 
 

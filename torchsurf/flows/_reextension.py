@@ -18,9 +18,27 @@ from collections.abc import Iterator
 import torch
 from torch import Tensor
 
-from .extension import _CELL, BrickCubicStencil, CubicStencil, _corner_base
+from ..surface import ImplicitSurface
+from .extension import _CELL, BrickCubicStencil, CubicStencil, _corner_base, cubic_stencil
 
 Stencil = CubicStencil | BrickCubicStencil
+
+
+def stencil_key(width: float | None, kind: str, limited: bool) -> tuple:
+    """The key under which :func:`kept_stencil` keeps a stencil on its surface."""
+    return ("closest-point stencil", width, kind, bool(limited))
+
+
+def kept_stencil(surface: ImplicitSurface, width: float | None, kind: str, mask: Tensor,
+                 region: Tensor, limited: bool) -> Stencil:
+    """The closest-point stencil of ``mask`` reading only ``region`` (the band of half-width
+    ``width`` and its ring; ``kind`` names the mask, e.g. ``"ring"`` or ``"region"``), for the
+    surface's storage; kept on the surface unless ``phi`` requires grad (its weights are then in
+    ``phi``'s graph)."""
+    if surface.phi.requires_grad:
+        return cubic_stencil(surface, mask, limited=limited, readable=region)
+    return surface.kept(stencil_key(width, kind, limited),
+                        lambda: cubic_stencil(surface, mask, limited=limited, readable=region))
 
 CHUNK = 2**15
 """Nodes whose taps are formed at once in backward (about 1 kB of temporaries a node)."""

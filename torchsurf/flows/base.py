@@ -69,9 +69,8 @@ from ._integrators import (
     with_ring,
 )
 from ._positive import Positive
-from ._reextension import reextend
+from ._reextension import kept_stencil, reextend, stencil_key
 from ._solve import SolverOptions
-from .extension import BrickCubicStencil, CubicStencil, cubic_stencil
 
 
 def _check_times(times: object, end: float) -> list[float]:
@@ -162,24 +161,6 @@ def _entry_surface(surface: ImplicitSurface, entry: int) -> ImplicitSurface:
     if surface.phi.requires_grad:
         return build()
     return surface.kept(("entry surface", entry), build)
-
-
-Stencil = CubicStencil | BrickCubicStencil
-
-
-def _stencil_key(width: float | None, kind: str) -> tuple:
-    return ("flow stencil", width, kind)
-
-
-def _stencil(surface: ImplicitSurface, width: float | None, kind: str, mask: Tensor,
-             region: Tensor) -> Stencil:
-    """The closest-point stencil of ``mask`` (``kind`` names it), reading only ``region`` (the
-    band and its ring), kept on the surface unless ``phi`` requires grad (its weights are then
-    in ``phi``'s graph)."""
-    if surface.phi.requires_grad:
-        return cubic_stencil(surface, mask, limited=True, readable=region)
-    return surface.kept(_stencil_key(width, kind),
-                        lambda: cubic_stencil(surface, mask, limited=True, readable=region))
 
 
 def data_shape(surface: ImplicitSurface, batch: int, channels: int) -> tuple[int, ...]:
@@ -433,8 +414,8 @@ class Flow(nn.Module):
             hooks.append(lambda u, k: (bar.update(1), u)[1])
         output = None
         if every is not None:
-            stencil = _stencil(surface, self.evolving_width(surface), "region", system.region,
-                               system.region)
+            stencil = kept_stencil(surface, self.evolving_width(surface), "region",
+                                   system.region, system.region, limited=True)
             path = self.path
 
             def periodic(u: Tensor, k: int) -> Tensor:
@@ -460,7 +441,7 @@ class Flow(nn.Module):
         if torch.compiler.is_compiling():
             return
         cached = (not surface.phi.requires_grad
-                  and surface.is_kept(_stencil_key(self.evolving_width(surface), "region")))
+                  and surface.is_kept(stencil_key(self.evolving_width(surface), "region", True)))
         band_nodes = None if cached else int(band.sum())
         _memory.check_fits(
             _memory.flow_bytes(tuple(u0.shape), surface.batch_size, u0.dtype,
@@ -553,7 +534,8 @@ class Flow(nn.Module):
         held = ring_held(self.method, plan.step * system.spectral_radius,
                          width / surface.spacing)
         if self.reextend_every is not None and not held:
-            ring = _stencil(surface, width, "ring", system.region & ~system.band, system.region)
+            ring = kept_stencil(surface, width, "ring", system.region & ~system.band,
+                                system.region, limited=True)
             rate = system.rate
             path = self.path
             system.rate = lambda u: rate(reextend(ring, u, path))

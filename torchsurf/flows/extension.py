@@ -298,12 +298,17 @@ class CubicStencil:
             for anchors, (_, _, weights) in zip(self.anchors, self.parts, strict=True)
         ]
 
-    def apply(self, u: Tensor, path: str = "auto") -> Tensor:
+    def apply(self, u: Tensor, path: str = "auto", in_place: bool = False) -> Tensor:
         """``u`` ``(B, C, D, H, W)`` with the masked nodes re-extended; a new tensor.
 
         ``path``: how the gather runs (:data:`torchsurf.backend.PATHS`; the flow's own path).
+        ``in_place``: write the masked nodes into ``u`` itself (contiguous, batch no smaller
+        than the stencil's, outside autograd) and return it: each volume's values are all read
+        before any is written, so the result is the same, without a copy of the volume.
         """
         check_choice(path, "path", backend.PATHS)
+        if in_place and (not u.is_contiguous() or u.shape[0] < len(self.parts)):
+            in_place = False
         batch = max(u.shape[0], len(self.parts))
         results = []
         for b in range(batch):
@@ -323,17 +328,22 @@ class CubicStencil:
             else:
                 value = backend.run(_INTERPOLATION, path, volume[None], flat, corners,
                                     weights.to(u.dtype), height, width, self.limited)
-            results.append(flat.index_copy(1, targets, value).reshape(volume.shape))
-        return torch.stack(results)
+            if in_place:
+                flat.index_copy_(1, targets, value)
+            else:
+                results.append(flat.index_copy(1, targets, value).reshape(volume.shape))
+        return u if in_place else torch.stack(results)
 
-    def transpose(self, v: Tensor) -> Tensor:
+    def transpose(self, v: Tensor, in_place: bool = False) -> Tensor:
         """The transpose of :meth:`apply` (``limited=False`` only, where it is linear).
 
         ``v`` ``(B, C, D, H, W)`` with each masked node's value zeroed and scattered back, with
-        its 64 tricubic weights, to the nodes :meth:`apply` reads it from; a new tensor.
+        its 64 tricubic weights, to the nodes :meth:`apply` reads it from; a new tensor, or
+        ``v`` itself written over if ``in_place`` (as in :meth:`apply`).
         """
         if self.limited:
             raise ValueError("CubicStencil.transpose: a limited stencil is not linear")
+        in_place = in_place and v.is_contiguous()
         results = []
         for b in range(v.shape[0]):
             targets, corners, weights = self.parts[min(b, len(self.parts) - 1)]
@@ -346,9 +356,12 @@ class CubicStencil:
             wx, wy, wz = weights.to(v.dtype).unbind(0)
             taps = (wz[:, :, None, None] * wy[:, None, :, None] * wx[:, None, None, :]).flatten(1)
             moved = (flat[:, targets, None] * taps).flatten(1)
-            kept = flat.index_fill(1, targets, 0.0)
-            results.append(kept.index_add(1, sources, moved).reshape(volume.shape))
-        return torch.stack(results)
+            if in_place:
+                flat.index_fill_(1, targets, 0.0).index_add_(1, sources, moved)
+            else:
+                kept = flat.index_fill(1, targets, 0.0)
+                results.append(kept.index_add(1, sources, moved).reshape(volume.shape))
+        return v if in_place else torch.stack(results)
 
 
 def _corner_base(bases: list[Tensor], second: tuple[Tensor, Tensor, Tensor], k: int, j: int,
