@@ -174,3 +174,33 @@ def test_directional_step_comes_from_each_chemicals_own_operator():
     assert system.spectral_radius == pytest.approx(
         max(d_a * rho_t, d_b * rho) + (4.0 + 4.0 + 1.0) / 16.0, rel=1e-6)
     assert d_a * rho_t < d_a * laplace_beltrami_bound(torus, "symmetric")
+
+
+def test_rkc_limits_its_steps_for_the_reactions_growth():
+    """RKC on a long run: its steps stay within the reaction's growth (``a`` rises to 8 as the
+    spots form, so ``b`` grows at up to ``s (a - 1)``); with no growth given it took 13 steps
+    of 96 here and returned NaN (and 86 steps of 116 at ``s = 1/128``, ``t = 10^4``)."""
+    grid = ts.Grid.cube(24, 1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, 1.0), grid)
+    flow = ReactionDiffusion(1250.0, rate=1.0 / 16.0, method="rkc")
+    with torch.no_grad():
+        u = flow(ReactionDiffusion.initial(surface), surface,
+                 generator=torch.Generator().manual_seed(0))
+    band = flow.band_mask(surface)[0, 0]
+    a, b = u[0, 0][band], u[0, 1][band]
+    assert torch.isfinite(u[0][:, band]).all()
+    assert float(b.min()) >= 0.0
+    assert float(a.max()) > 6.0 and float(b.std()) > 0.5  # spots, not the homogeneous start
+    assert float(a.max()) < 16.0
+
+
+@pytest.mark.parametrize("method", ["rkc", "euler"])
+def test_a_diverged_run_advises_another_method_only_when_there_is_one(monkeypatch, method):
+    import torchsurf.flows.base as base
+
+    monkeypatch.setattr(base, "integrate", lambda method, system, u0, schedule: [u0 * torch.nan])
+    grid = ts.Grid.cube(16, 1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, 1.0), grid)
+    with pytest.raises(FloatingPointError, match="diverged") as raised:
+        ReactionDiffusion(10.0, method=method)(ReactionDiffusion.initial(surface), surface)
+    assert ("use method='rkc'" in str(raised.value)) == (method != "rkc")

@@ -547,10 +547,11 @@ class Flow(nn.Module):
         if not torch.compiler.is_compiling():  # a host read: it would break a traced graph
             for value in result:
                 if not bool(torch.isfinite(torch.where(system.region, value.detach(), 0.0)).all()):
+                    other = "" if self.method == "rkc" else "method='rkc', "
                     raise FloatingPointError(
                         f"{type(self).__name__} (method={self.method!r}, {plan.count} steps of "
                         f"{plan.step:.3g}) diverged: u holds NaN or infinity in the band though "
-                        "u0 did not; use method='rkc', more steps, or smaller parameters"
+                        f"u0 did not; use {other}more steps, or smaller parameters"
                     )
         return result[-1] if times is None else torch.stack(initial + result)
 
