@@ -147,7 +147,9 @@ class MeshAdapter(nn.Module):
       is what :meth:`encode` writes: the round trip returns the vertex values to about 1e-5
       whatever they are, where the nodes read at most 16 vertices (facets as large as the
       cells or larger); where they read more (small facets), every affine function of the
-      mesh closest points instead, the mesh's own interpolation error being below the grid's;
+      mesh closest points instead, the mesh's own interpolation error being below the grid's,
+      and likewise where reproducing the hats would take weights of 1-norm above 4 (many
+      small coplanar facets: the fandisk's flat parts reached 47 and amplified data 1.8x);
     - every affine function of the grid's closest points ``g_n = x_n - phi grad phi /
       |grad phi|^2`` (what the flows' re-extension writes, :mod:`torchsurf.flows.extension`),
       so that a smooth field left by a flow comes back with an error ``O(h^2 |u''|)``.
