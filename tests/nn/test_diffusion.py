@@ -153,6 +153,31 @@ def test_the_ring_fill_reproduces_constants_and_its_transpose_is_exact():
     torch.testing.assert_close((operator.apply(a) * b).sum(), (a * operator.transpose(b)).sum())
 
 
+@pytest.mark.parametrize("storage", ["dense", "bricks"])
+def test_the_ring_fill_adopts_ring_nodes_whose_taps_leave_the_band(storage):
+    """``tanh(sdf / h)`` saturates: its band reaches nodes whose closest points are far, and most
+    ring nodes' taps leave the band and ring, some read only each other. They take their band
+    neighbours' mean: a constant stays constant through ``exp(t L)`` (it went to [0.002, 0.707]
+    for 0.7 on the 48^3 bunny's), and the transpose is still the adjoint."""
+    grid = ts.Grid.cube(33, 2.4)
+    phi = torch.tanh(ts.sdf.sphere(grid, 0.8, dtype=torch.float64) / grid.spacing)
+    surface = (ts.ImplicitSurface(phi, grid) if storage == "dense"
+               else ts.bricks.from_dense(phi, grid))
+    operator = BandLaplacian(surface, path="slicing")
+    assert operator.ring.orphans is not None
+    ones = torch.ones(operator.band.shape[0], 1, *operator.band.shape[2:], dtype=torch.float64)
+    filled = operator.ring.apply(0.7 * ones)
+    assert float((filled[operator.region] - 0.7).abs().max()) < 1e-12
+    diffused = heat_semigroup(0.7 * ones, operator, torch.tensor(30.0 * grid.spacing**2,
+                                                                 dtype=torch.float64))
+    assert float((diffused[operator.region] - 0.7).abs().max()) < 1e-9
+    generator = torch.Generator().manual_seed(3)
+    a, b = (torch.randn((ones.shape[0], 2, *ones.shape[2:]), generator=generator,
+                        dtype=torch.float64) for _ in range(2))
+    fill = operator.ring
+    torch.testing.assert_close((fill.apply(a) * b).sum(), (a * fill.transpose(b)).sum())
+
+
 def test_gradcheck_data_and_times(small):
     """Along six random directions of ``u0`` and the times; ``fast_mode`` checks a random
     projection of the output (every entry would take minutes)."""

@@ -32,8 +32,10 @@ spectrum of ``L`` is real to rounding in every case measured and lies within the
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from ..operators import functional
@@ -55,6 +57,10 @@ MAX_RING_SWEEPS = 32
 change of a constant's ring values 15-300 times on the shared meshes at 32^3-64^3, so float32
 settles in 3-5 sweeps and float64 in about twice as many."""
 
+BAND_SHARE = 0.5
+"""Least sum of the band taps' weights of a ring node that is re-extended from its closest
+point (:class:`RingFill`); 0.93-1.09 on the shared meshes' ``from_mesh`` phi."""
+
 SETTLED = 1e-6
 """A change of a constant's ring values below which sweeps that no longer shrink it stop
 without a warning (:func:`_sweeps_to_settle`)."""
@@ -68,15 +74,16 @@ def _chained_nodes(first: Stencil, band: Tensor, ring: Tensor, dtype: torch.dtyp
         return ring & torch.isnan(first.apply(probe))
 
 
-def _sweeps_to_settle(first: Stencil, chained: Stencil, band: Tensor,
+def _sweeps_to_settle(start: Callable[[Tensor], Tensor], chained: Stencil, band: Tensor,
                       dtype: torch.dtype) -> int:
-    """Sweeps of ``chained`` after ``first`` until the ring values of a constant change by at
+    """Sweeps of ``chained`` after ``start`` (the band's values to the ring's first values)
+    until the ring values of a constant change by at
     most four rounding units, or stop shrinking (a node whose closest point is itself, on a
     medial axis, reads itself with weight near 1 and keeps its value); warns if a change of more
     than :data:`SETTLED` is left."""
     with torch.no_grad():
         ones = torch.ones(band.shape, dtype=dtype, device=band.device)
-        values = first.apply(torch.where(band, ones, 0.0))
+        values = start(ones)
         change = torch.inf
         for sweep in range(1, MAX_RING_SWEEPS + 1):
             settled = chained.apply(values)
@@ -101,7 +108,12 @@ class RingFill:
     The ring is first filled from the band with the ring read as zero; the ring nodes whose
     taps read ring nodes (``chained``) are then swept ``sweeps`` times, each sweep reading the
     values of the last, until a constant's ring values change by no more than rounding: the
-    fixed point of re-extension on the ring, which reproduces constants.
+    fixed point of re-extension on the ring, which reproduces constants. Ring nodes whose taps
+    leave the band and ring, or whose band taps carry less than :data:`BAND_SHARE` of their
+    weight (``orphans``: only where phi is not a distance, e.g. a saturated ``tanh(sdf / h)``,
+    whose band reaches nodes with far closest points, some of which read only each other) take
+    the mean of their 3x3x3 band neighbours and are not swept; they read zero before (a
+    constant 0.7 diffused to [0.002, 0.707] on the 48^3 bunny's ``tanh(sdf / h)``).
 
     Args:
         surface: the implicit surface (batch 1 or B), or a brick surface.
@@ -112,26 +124,37 @@ class RingFill:
         first: the stencil of every ring node.
         chained: the stencil of the ring nodes that read the ring, or ``None`` if none does.
         sweeps: the number of sweeps of ``chained``.
+        orphans: the ring nodes ``first`` does not write, or ``None`` if there are none.
     """
 
     def __init__(self, surface: ImplicitSurface, width: float, band: Tensor,
                  region: Tensor) -> None:
-        self.band = band
+        self.band, self.layout = band, surface.layout
         ring = region & ~band
         self.first = kept_stencil(surface, width, "ring", ring, region, limited=False)
         dtype = surface.phi.dtype
 
-        def chained_and_sweeps() -> tuple[Stencil | None, int]:
+        def assemble() -> tuple[Tensor | None, Tensor | None, Stencil | None, int]:
+            """Host reads: computed once per surface and kept (``torch.compile`` then traces
+            :meth:`apply` without a break)."""
+            with torch.no_grad():
+                from_band = self.first.apply(band.to(dtype))
+            orphans = ring & (~self.first.written(ring) | (from_band < BAND_SHARE))
+            self.orphans = orphans if bool(orphans.any()) else None
+            self._neighbours = None if self.orphans is None else self._box_sum(
+                band.to(dtype)).clamp(min=1.0)
             chained = _chained_nodes(self.first, band, ring, dtype)
+            if self.orphans is not None:
+                chained = chained & ~self.orphans
             if not bool(chained.any()):
-                return None, 0
+                return self.orphans, self._neighbours, None, 0
             stencil = cubic_stencil(surface, chained, limited=False, readable=region)
-            return stencil, _sweeps_to_settle(self.first, stencil, band, dtype)
+            return (self.orphans, self._neighbours, stencil,
+                    _sweeps_to_settle(self._start, stencil, band, dtype))
 
-        if surface.phi.requires_grad:
-            self.chained, self.sweeps = chained_and_sweeps()
-        else:
-            self.chained, self.sweeps = surface.kept(("ring fill", width), chained_and_sweeps)
+        parts = (assemble() if surface.phi.requires_grad
+                 else surface.kept(("ring fill", width), assemble))
+        self.orphans, self._neighbours, self.chained, self.sweeps = parts
 
     def _in_place(self, x: Tensor) -> dict:
         """The sweeps write over their own (fresh) volume on dense storage outside autograd."""
@@ -139,9 +162,35 @@ class RingFill:
         return {"in_place": True} if dense and not (
             torch.is_grad_enabled() and x.requires_grad) else {}
 
+    def _box_sum(self, x: Tensor) -> Tensor:
+        """The sum of ``x`` over each node's 3x3x3 neighbours (zero beyond the box or the
+        stored bricks)."""
+        if self.layout is None:
+            return F.avg_pool3d(x, 3, stride=1, padding=1, count_include_pad=True) * 27.0
+        return F.avg_pool3d(self.layout.halo(x, 1), 3, stride=1) * 27.0
+
+    def _adopt_orphans(self, inside: Tensor, values: Tensor) -> Tensor:
+        """``values`` with each orphan set to the mean of ``inside``'s band neighbours."""
+        mean = self._box_sum(inside) / self._neighbours.to(inside.dtype)
+        return torch.where(self.orphans, mean, values)
+
+    def _adopted_transpose(self, g: Tensor) -> Tensor:
+        """The transpose of :meth:`_adopt_orphans` (linear in both), by autograd: ``(gradient
+        of inside, gradient of values)``."""
+        with torch.enable_grad():
+            inside = torch.zeros_like(g, requires_grad=True)
+            values = torch.zeros_like(g, requires_grad=True)
+            return torch.autograd.grad(self._adopt_orphans(inside, values), (inside, values), g)
+
+    def _start(self, x: Tensor, path: str = "auto") -> Tensor:
+        """The ring's values before the sweeps: ``first`` and the orphans' means."""
+        inside = torch.where(self.band, x, x.new_zeros(()))
+        values = self.first.apply(inside, path)
+        return values if self.orphans is None else self._adopt_orphans(inside, values)
+
     def apply(self, x: Tensor, path: str = "auto") -> Tensor:
         """``E M x`` for ``x`` like the masks (``(B, C, D, H, W)`` or packed)."""
-        values = self.first.apply(torch.where(self.band, x, x.new_zeros(())), path)
+        values = self._start(x, path)
         options = self._in_place(values)
         for _ in range(self.sweeps):
             values = self.chained.apply(values, path, **options)
@@ -152,7 +201,13 @@ class RingFill:
         options = self._in_place(g)
         for sweep in range(self.sweeps):
             g = self.chained.transpose(g, **(options if sweep else {}))
-        return torch.where(self.band, self.first.transpose(g), g.new_zeros(()))
+        to_inside = None
+        if self.orphans is not None:
+            to_inside, g = self._adopted_transpose(g)
+        g = self.first.transpose(g)
+        if to_inside is not None:
+            g = g + to_inside
+        return torch.where(self.band, g, g.new_zeros(()))
 
 
 class BandLaplacian:
