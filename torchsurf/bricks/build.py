@@ -158,7 +158,8 @@ def check_clear_of_faces(band_nodes: Tensor, grid: Grid, entry: int) -> None:
         raise ValueError(
             f"the band of batch entry {entry} comes within {REACH_CELLS} nodes of its grid's "
             f"faces (grid shape {grid.shape}); bricks have no box faces to stop the flux at: "
-            "use a grid with a wider margin around the shape"
+            "use a grid with a wider margin around the shape, or, if phi is not a distance "
+            "(its band then reaches far from S), torchsurf.sdf.redistance(phi, grid) first"
         )
 
 
