@@ -55,7 +55,7 @@ Stencil = CubicStencil | BrickCubicStencil
 MAX_RING_SWEEPS = 32
 """Most sweeps over the ring nodes that read the ring (:class:`RingFill`). Each sweep shrinks the
 change of a constant's ring values 15-300 times on the shared meshes at 32^3-64^3, so float32
-settles in 3-5 sweeps and float64 in about twice as many."""
+settles in 3-6 sweeps and float64 in about twice as many."""
 
 BAND_SHARE = 0.5
 """Least sum of the band taps' weights of a ring node that is re-extended from its closest
@@ -66,7 +66,7 @@ SETTLED = 1e-6
 without a warning (:func:`_sweeps_to_settle`)."""
 
 
-def _chained_nodes(first: Stencil, band: Tensor, ring: Tensor, dtype: torch.dtype) -> Tensor:
+def _chained_nodes(first: Stencil, ring: Tensor, dtype: torch.dtype) -> Tensor:
     """The ring nodes whose taps read a ring node, a mask like ``ring``: after one pass of
     ``first`` over data that is NaN on the ring and zero elsewhere, the ring nodes still NaN."""
     with torch.no_grad():
@@ -137,15 +137,13 @@ class RingFill:
         def assemble() -> tuple[Tensor | None, Tensor | None, Stencil | None, int]:
             """Host reads: computed once per surface and kept (``torch.compile`` then traces
             :meth:`apply` without a break)."""
-            with torch.no_grad():
+            with torch.no_grad():  # a ring node the stencil drops keeps its input, 0
                 from_band = self.first.apply(band.to(dtype))
-            orphans = ring & (~self.first.written(ring) | (from_band < BAND_SHARE))
+            orphans = ring & (from_band < BAND_SHARE)
             self.orphans = orphans if bool(orphans.any()) else None
             self._neighbours = None if self.orphans is None else self._box_sum(
                 band.to(dtype)).clamp(min=1.0)
-            chained = _chained_nodes(self.first, band, ring, dtype)
-            if self.orphans is not None:
-                chained = chained & ~self.orphans
+            chained = _chained_nodes(self.first, ring, dtype) & ~orphans
             if not bool(chained.any()):
                 return self.orphans, self._neighbours, None, 0
             stencil = cubic_stencil(surface, chained, limited=False, readable=region)

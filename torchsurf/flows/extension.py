@@ -334,14 +334,6 @@ class CubicStencil:
                 results.append(flat.index_copy(1, targets, value).reshape(volume.shape))
         return u if in_place else torch.stack(results)
 
-    def written(self, like: Tensor) -> Tensor:
-        """The nodes :meth:`apply` writes (the mask's, less those whose taps left
-        ``readable``), a bool mask shaped like ``like`` ``(B or 1, 1, D, H, W)``."""
-        written = torch.zeros(like.shape, dtype=torch.bool, device=like.device)
-        for b in range(like.shape[0]):
-            written[b, 0].view(-1)[self.parts[min(b, len(self.parts) - 1)][0]] = True
-        return written
-
     def transpose(self, v: Tensor, in_place: bool = False) -> Tensor:
         """The transpose of :meth:`apply` (``limited=False`` only, where it is linear).
 
@@ -601,13 +593,6 @@ class BrickCubicStencil:
         value = values[0] if len(values) == 1 else torch.cat(values, dim=1)
         result = flat.index_copy(1, self.targets, value)
         return result.view(channels, *u.shape[:1], *u.shape[2:]).transpose(0, 1)
-
-    def written(self, like: Tensor) -> Tensor:
-        """The nodes :meth:`apply` writes, a bool mask shaped like ``like`` (packed
-        ``(N, 1, 8, 8, 8)``), as :meth:`CubicStencil.written`."""
-        written = torch.zeros(like.shape, dtype=torch.bool, device=like.device)
-        written.view(-1)[self.targets] = True
-        return written
 
     def transpose(self, v: Tensor) -> Tensor:
         """The transpose of :meth:`apply` (``limited=False`` only, where it is linear), as
