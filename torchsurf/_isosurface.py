@@ -17,6 +17,11 @@ NEWTON_TOLERANCE = 1e-7
 """A point is settled once its last move is below this many cells."""
 NEWTON_CHUNK = 2**17
 """Points refined together (memory of the sampler's taps and their gradients)."""
+NEWTON_CYCLE = 0.05
+"""A point whose steps keep this length or less, in cells, without settling alternates across a
+face between two cells: the interpolant is only continuous there, its gradient jumps, and
+the iteration crosses the face back and forth by a fixed step (a closest point on a node plane
+through a sphere's centre: 0.0025 cells). The midpoint of its last two positions is kept."""
 NEWTON_REACH = 0.5
 """A refined distance further than this many cells from the marching-cubes one is not
 trusted (medial axis, creases of ``phi``): that node keeps the marching-cubes distance."""
@@ -105,9 +110,10 @@ def interpolant_distance(volume: np.ndarray, grid: Grid, nodes: np.ndarray, star
     on it, each node's closest point ``y`` on ``p = 0`` (``p`` the interpolant of
     :func:`torchsurf.sampling.sample`, ``"cubic"``, ``O(h^4)``) is found by Newton's iteration
     on ``p(y) = 0`` and ``x - y`` parallel to ``grad p(y)`` (Chopp 2001): ``y += -p g / |g|^2
-    + (r - (r . g) g / |g|^2)``, ``r = x - y``, ``g = grad p(y)``. Where it does not settle
-    or lands more than :data:`NEWTON_REACH` cells from the marching-cubes distance, that
-    ``fallback`` distance is kept.
+    + (r - (r . g) g / |g|^2)``, ``r = x - y``, ``g = grad p(y)``; a point alternating across
+    a cell face by a short step keeps its last two positions' midpoint (:data:`NEWTON_CYCLE`).
+    Where it does not settle otherwise or lands more than :data:`NEWTON_REACH` cells from the
+    marching-cubes distance, that ``fallback`` distance is kept.
 
     Args:
         volume: ``(D, H, W)`` float64.
@@ -129,6 +135,8 @@ def interpolant_distance(volume: np.ndarray, grid: Grid, nodes: np.ndarray, star
     closest = torch.from_numpy(start).clone()
     low, high = origin, origin + grid.spacing * (torch.tensor(grid.shape[::-1]) - 1)
     settled = torch.zeros(len(nodes), dtype=torch.bool)
+    previous = closest.clone()
+    last_move = torch.full((len(nodes),), float("inf"), dtype=torch.float64)
     active = torch.arange(len(nodes))
     for _ in range(NEWTON_ITERATIONS):
         at = closest[active].requires_grad_(True)
@@ -142,6 +150,8 @@ def interpolant_distance(volume: np.ndarray, grid: Grid, nodes: np.ndarray, star
         step = offset - along * gradient
         moved = step.norm(dim=-1)
         usable = torch.isfinite(moved) & (moved <= NEWTON_REACH * grid.spacing)
+        previous[active[usable]] = at[usable]
+        last_move[active[usable]] = moved[usable]
         closest[active[usable]] = torch.minimum(torch.maximum(at[usable] + step[usable], low),
                                                 high)
         done = usable & (moved <= NEWTON_TOLERANCE * grid.spacing)
@@ -149,6 +159,10 @@ def interpolant_distance(volume: np.ndarray, grid: Grid, nodes: np.ndarray, star
         active = active[usable & ~done]  # a point that jumps is left to the fallback
         if len(active) == 0:
             break
+    cycling = torch.zeros_like(settled)
+    cycling[active] = last_move[active] <= NEWTON_CYCLE * grid.spacing
+    closest[cycling] = 0.5 * (closest[cycling] + previous[cycling])
+    settled |= cycling
     distance = (points - closest).norm(dim=-1).numpy()
     trusted = settled.numpy() & (np.abs(distance - fallback) <= NEWTON_REACH * grid.spacing)
     return np.where(trusted, distance, fallback)
