@@ -5,6 +5,7 @@ import math
 import pytest
 import torch
 
+import torchsurf as ts
 from torchsurf import Grid, sdf
 
 # nodes at -1, -0.75, ..., 1 along every axis: every test point below is a node
@@ -251,3 +252,30 @@ def test_unsupported_dtype_refused(dtype):
         sdf.sphere(GRID, dtype=dtype)
     with pytest.raises(TypeError, match="dtype must be"):
         sdf.from_function(GRID, lambda p: p[..., 0], dtype=dtype)
+
+
+@pytest.mark.parametrize("make", [
+    lambda grid, c, dtype: ts.sdf.sphere(grid, 0.75, center=c, dtype=dtype),
+    lambda grid, c, dtype: ts.sdf.torus(grid, 0.6, 0.25, center=c, dtype=dtype),
+    lambda grid, c, dtype: ts.sdf.box(grid, (0.5, 0.4, 0.3), center=c, dtype=dtype),
+    lambda grid, c, dtype: ts.sdf.capsule(grid, (c[0], c[1], c[2] - 0.3),
+                                          (c[0], c[1], c[2] + 0.3), 0.4, dtype=dtype),
+])
+def test_float32_distances_keep_their_precision_far_from_the_origin(make) -> None:  # noqa: ANN001
+    # the differences to the centre are taken in float64 before the cast: in float32 after it,
+    # a sphere at x = 1000 was 4e-5 off and its curvature error grew with the resolution
+    centre = (1000.013, -0.021, 0.037)
+    grid = ts.Grid((33, 33, 33), spacing=1.0 / 16, origin=(999.0, -1.0, -1.0))
+    single = make(grid, centre, torch.float32)
+    double = make(grid, centre, torch.float64)
+    assert (single.double() - double).abs().max() < 1e-6
+
+
+def test_points_relative_to_a_point() -> None:
+    grid = ts.Grid((4, 5, 6), spacing=0.5, origin=(1e4, 2.0, -3.0))
+    relative = grid.points(torch.float32, relative_to=(1e4 + 0.1, 2.0, -3.0))
+    exact = grid.points(torch.float64) - torch.tensor([1e4 + 0.1, 2.0, -3.0], dtype=torch.float64)
+    assert relative.dtype == torch.float32
+    assert (relative.double() - exact).abs().max() < 1e-6
+    with pytest.raises(ValueError, match="relative_to"):
+        grid.points(relative_to=(1.0, 2.0))

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import TypeVar
 
@@ -86,20 +86,29 @@ class Grid:
         depth, height, width = self.shape
         return tuple(self.spacing * (n - 1) for n in (width, height, depth))
 
-    def points(self, dtype: torch.dtype | None = None, device: torch.device | str | None = None
-               ) -> Tensor:
+    def points(self, dtype: torch.dtype | None = None, device: torch.device | str | None = None,
+               relative_to: Sequence[float] | None = None) -> Tensor:
         """World coordinates of every node.
 
         Args:
             dtype: ``torch.float32`` or ``torch.float64`` (default: the default dtype).
             device: where to put them (default CPU).
+            relative_to: a point ``(x, y, z)``: the coordinates are ``x - relative_to``,
+                computed in float64 before the cast to ``dtype``, so that a grid far from the
+                origin keeps float32's relative precision in the differences (a sphere
+                centred at x = 1000: 4e-5 error in float32 subtracting afterwards, 1e-8 here).
 
         Returns:
             ``(D, H, W, 3)`` tensor of ``(x, y, z)``.
         """
         dtype = check_dtype(dtype)
+        if relative_to is None:
+            relative_to = (0.0, 0.0, 0.0)
+        if len(relative_to) != 3:
+            raise ValueError(f"relative_to must be a point (x, y, z), got {relative_to!r}")
         axes = [
-            self.origin[axis] + self.spacing * torch.arange(n, dtype=dtype, device=device)
+            ((self.origin[axis] - float(relative_to[axis]))
+             + self.spacing * torch.arange(n, dtype=torch.float64, device=device)).to(dtype)
             for axis, n in enumerate(reversed(self.shape))
         ]
         z, y, x = torch.meshgrid(axes[2], axes[1], axes[0], indexing="ij")

@@ -46,12 +46,21 @@ def from_function(
     Returns:
         ``phi`` ``(1, 1, D, H, W)``.
     """
+    return _sampled(grid, function, dtype, device, None)
+
+
+def _sampled(grid: Grid, function: Callable[[Tensor], Tensor], dtype: torch.dtype | None,
+             device: torch.device | str | None, center: Point | None) -> Tensor:
+    """:func:`from_function`, ``function`` given the points relative to ``center`` (computed
+    in float64 before the cast: :meth:`Grid.points`'s ``relative_to``)."""
     if not isinstance(grid, Grid):
         raise TypeError(f"grid must be a torchsurf.Grid, got {type(grid).__name__}")
     dtype = check_dtype(dtype)
+    if center is not None and len(center) != 3:
+        raise ValueError(f"center must be three coordinates (x, y, z), got {center!r}")
     _memory.check_fits(_memory.sampled_bytes(grid.shape, dtype),
                        f"sampling a function on a {grid.shape} grid", device)
-    points = grid.points(dtype=dtype, device=device)
+    points = grid.points(dtype=dtype, device=device, relative_to=center)
     values = function(points)
     if not isinstance(values, Tensor) or tuple(values.shape) != tuple(grid.shape):
         shape = tuple(values.shape) if isinstance(values, Tensor) else type(values).__name__
@@ -64,12 +73,6 @@ def from_function(
     return values.to(dtype)[None, None]
 
 
-def _centered(points: Tensor, center: Point) -> Tensor:
-    if len(center) != 3:
-        raise ValueError(f"center must be three coordinates (x, y, z), got {center!r}")
-    return points - points.new_tensor(center)
-
-
 def sphere(
     grid: Grid,
     radius: float = 1.0,
@@ -79,9 +82,7 @@ def sphere(
 ) -> Tensor:
     """Signed distance to the sphere ``|x - center| = radius``; ``(1, 1, D, H, W)``."""
     check_positive(radius, "radius")
-    return from_function(
-        grid, lambda p: _centered(p, center).norm(dim=-1) - radius, dtype=dtype, device=device
-    )
+    return _sampled(grid, lambda local: local.norm(dim=-1) - radius, dtype, device, center)
 
 
 def torus(
@@ -100,12 +101,11 @@ def torus(
     check_positive(major_radius, "major_radius")
     check_positive(minor_radius, "minor_radius")
 
-    def distance(points: Tensor) -> Tensor:
-        local = _centered(points, center)
+    def distance(local: Tensor) -> Tensor:
         ring = local[..., :2].norm(dim=-1) - major_radius
         return torch.sqrt(ring**2 + local[..., 2] ** 2) - minor_radius
 
-    return from_function(grid, distance, dtype=dtype, device=device)
+    return _sampled(grid, distance, dtype, device, center)
 
 
 def box(
@@ -121,13 +121,13 @@ def box(
     for length in half_size:
         check_positive(length, "half_size")
 
-    def distance(points: Tensor) -> Tensor:
-        excess = _centered(points, center).abs() - points.new_tensor(half_size)
+    def distance(local: Tensor) -> Tensor:
+        excess = local.abs() - local.new_tensor(half_size)
         outside = excess.clamp(min=0).norm(dim=-1)
         inside = excess.max(dim=-1).values.clamp(max=0)
         return outside + inside
 
-    return from_function(grid, distance, dtype=dtype, device=device)
+    return _sampled(grid, distance, dtype, device, center)
 
 
 def capsule(
@@ -143,16 +143,16 @@ def capsule(
     if len(start) != 3 or len(end) != 3:
         raise ValueError(f"start and end must be points (x, y, z), got {start!r}, {end!r}")
 
-    def distance(points: Tensor) -> Tensor:
-        a = points.new_tensor(start)
-        axis = points.new_tensor(end) - a
-        length2 = torch.dot(axis, axis)
-        if float(length2) == 0.0:
-            raise ValueError("start and end must differ")
-        t = (((points - a) @ axis) / length2).clamp(0.0, 1.0)
-        return (points - a - t[..., None] * axis).norm(dim=-1) - radius
+    axis64 = [float(b) - float(a) for a, b in zip(start, end, strict=True)]
+    if axis64 == [0.0, 0.0, 0.0]:
+        raise ValueError("start and end must differ")
 
-    return from_function(grid, distance, dtype=dtype, device=device)
+    def distance(local: Tensor) -> Tensor:
+        axis = local.new_tensor(axis64)
+        t = ((local @ axis) / torch.dot(axis, axis)).clamp(0.0, 1.0)
+        return (local - t[..., None] * axis).norm(dim=-1) - radius
+
+    return _sampled(grid, distance, dtype, device, start)
 
 
 def _trefoil_curve(t: Tensor, scale: float) -> tuple[Tensor, Tensor, Tensor]:
@@ -206,8 +206,8 @@ def trefoil(
     samples = check_count(samples, "samples", minimum=16)
     chunk = check_count(chunk, "chunk")
 
-    def distance(points: Tensor) -> Tensor:
-        flat = _centered(points, center).reshape(-1, 3)
+    def distance(local: Tensor) -> Tensor:
+        flat = local.reshape(-1, 3)
         compute = flat.double()
         t_samples = torch.linspace(0, 2 * torch.pi, samples + 1, dtype=torch.float64,
                                    device=flat.device)[:-1]
@@ -226,9 +226,9 @@ def trefoil(
                 _refined_distance(block, t_samples[other], scale),
             )
             result.append(distance - tube_radius)
-        return torch.cat(result).to(points.dtype).reshape(points.shape[:-1])
+        return torch.cat(result).to(local.dtype).reshape(local.shape[:-1])
 
-    return from_function(grid, distance, dtype=dtype, device=device)
+    return _sampled(grid, distance, dtype, device, center)
 
 
 BAND_NODES = 5
