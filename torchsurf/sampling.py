@@ -22,8 +22,9 @@ _OUTSIDE_TOLERANCE = 1e-4
 
 
 def cubic_lagrange_weights(t: Tensor) -> list[Tensor]:
-    """Lagrange weights of the nodes at offsets -1, 0, 1, 2 for a point at ``t`` in [0, 1]
-    (fractions of a cell from node 0): exact for cubic polynomials, each weight shaped like ``t``."""
+    """Lagrange weights of the nodes at offsets -1, 0, 1, 2 for a point at ``t`` (fractions of a
+    cell from node 0: in [0, 1] between the middle nodes, in [-1, 0] or [1, 2] for a one-sided
+    stencil): exact for cubic polynomials, each weight shaped like ``t``."""
     return [
         -t * (t - 1) * (t - 2) / 6,
         (t + 1) * (t - 1) * (t - 2) / 2,
@@ -39,8 +40,9 @@ def sample(field: Tensor, points: Tensor, grid: Grid, interpolation: str = "line
     (``torch.nn.functional.grid_sample`` with ``align_corners=True``, so the first and last
     nodes sit exactly at the grid's box). ``"cubic"``: tensor-product Lagrange interpolation on
     the ``4^3`` nodes around each point (the stencil of the flows' closest-point
-    re-extension), exact for polynomials of degree 3 in each coordinate, error ``O(h^4)``;
-    beside the box's faces the nodes beyond it repeat the face's (the linear sampler's border).
+    re-extension), exact for polynomials of degree 3 in each coordinate, error ``O(h^4)``,
+    up to the box's faces (in the first and last cell of an axis the four nodes are the
+    first or last four: one-sided; an axis of fewer than four nodes repeats its face's).
     Reading a second-order solution trilinearly adds an ``O(h^2)`` error of the read-out's
     own, often larger than the solution's (heat flow on a sphere at 65^3: 1.2e-3 read
     trilinearly, 2.4e-4 tricubically; docs/benchmarks.md). Both are differentiable with
@@ -109,10 +111,13 @@ def _tricubic(field: Tensor, index: Tensor) -> Tensor:
     """Tricubic Lagrange values of ``field`` ``(B, C, D, H, W)`` at fractional node indices
     ``index`` ``(B, V, 3)`` (``x, y, z``); ``(B, C, V)``."""
     sizes = field.shape[:1:-1]  # W, H, D: the sizes along x, y, z
-    # the cell's first node, kept inside the box so that a point on its last face uses the
-    # last cell at t = 1 (the box's edge of a one-node axis reads that node alone)
-    base = torch.stack([index[..., axis].detach().floor().clamp(0, max(size - 2, 0))
-                        for axis, size in enumerate(sizes)], dim=-1)
+    # the second of the stencil's four nodes (base - 1 .. base + 2): the cell's first node,
+    # moved in beside the faces along an axis of four nodes or more so that all four lie in
+    # the box (one-sided there, still exact for cubics); a shorter axis keeps the cell (a
+    # point on the last face at t = 1) and repeats its face nodes
+    base = torch.stack([index[..., axis].detach().floor().clamp(
+        *((1, size - 3) if size >= 4 else (0, max(size - 2, 0))))
+        for axis, size in enumerate(sizes)], dim=-1)
     fraction = index - base
     offsets = torch.arange(-1, 3, device=field.device)
     nodes, weights = [], []
