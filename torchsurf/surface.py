@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Callable
 from typing import TypeVar
 
@@ -61,6 +62,23 @@ def _squared_slope(padded: Tensor) -> Tensor:
     forward = stencils.apply(padded, stencils.FORWARD)[:, 0].abs()
     backward = stencils.apply(padded, stencils.BACKWARD)[:, 0].abs()
     return (torch.maximum(forward, backward) ** 2).sum(dim=1, keepdim=True)
+
+
+def _warn_floored_on_surface(crossing: Tensor, grad_norm: Tensor, scale: Tensor) -> None:
+    """Warn where ``|grad phi|`` next to S falls below :data:`MINIMUM_WEIGHT` of its median
+    ``scale``: the weight is floored there, so the operators are not intrinsic (a ``phi`` with
+    the same zero set but a gentler gradient would give other values)."""
+    ratio = grad_norm / scale
+    floored = crossing & (ratio < MINIMUM_WEIGHT)
+    if bool(floored.any()):
+        warnings.warn(
+            f"phi: |grad phi| next to S falls to {float(ratio[crossing].min()):.3g} of its "
+            f"median there at {int(floored.sum())} of {int(crossing.sum())} nodes (below "
+            f"MINIMUM_WEIGHT = {MINIMUM_WEIGHT}): the operators' weight W is floored at those "
+            "nodes and they are no longer intrinsic; make phi a distance near S first "
+            "(torchsurf.sdf.redistance)",
+            RuntimeWarning, stacklevel=4,
+        )
 
 
 def _cells_to_crossing(phi: Tensor) -> Tensor:
@@ -168,7 +186,8 @@ class ImplicitSurface(nn.Module):
         squared = (gradient**2).sum(dim=1, keepdim=True)
         self.register_buffer("phi", phi, persistent=False)
         # the median of the squares, then its root: no sqrt of zeros in phi's graph
-        scale = self._gradient_scale(phi.detach(), squared).sqrt()
+        crossing = self._crossing_nodes(phi.detach())
+        scale = self._gradient_scale(crossing, squared).sqrt()
         # eps is relative to the typical |grad phi| on S, so that c * phi is the same surface
         # for every c > 0 (an absolute eps swamps |grad phi| once phi is scaled down)
         floor = self.eps * scale.detach().clamp_min(torch.finfo(phi.dtype).tiny)
@@ -181,6 +200,9 @@ class ImplicitSurface(nn.Module):
         self.register_buffer(
             "weight", torch.maximum(weight, MINIMUM_WEIGHT * scale), persistent=False
         )
+        if not torch.compiler.is_compiling():
+            _warn_floored_on_surface(crossing, grad_norm.detach(), scale.detach())
+        self._phi_version = phi._version
         self.register_buffer("_mean_curvature", None, persistent=False)
         self.register_buffer("_haloed_normal", None, persistent=False)
         self.register_buffer("_haloed_weight", None, persistent=False)
@@ -217,10 +239,14 @@ class ImplicitSurface(nn.Module):
         """``volume`` with a halo of one node (``mode`` at the box's faces)."""
         return stencils.pad(volume, mode)
 
-    def _gradient_scale(self, phi: Tensor, values: Tensor) -> Tensor:
-        """Median of ``values`` over the nodes with a neighbour across S; ``(B, 1, 1, 1, 1)``."""
-        crossing = _crossing(phi < 0)
-        scales = [values[b][crossing[b]].median() for b in range(phi.shape[0])]
+    def _crossing_nodes(self, phi: Tensor) -> Tensor:
+        """The nodes with a neighbour across S, bool, shaped like ``phi``."""
+        return _crossing(phi < 0)
+
+    def _gradient_scale(self, crossing: Tensor, values: Tensor) -> Tensor:
+        """Median of ``values`` over the ``crossing`` nodes (:meth:`_crossing_nodes`);
+        ``(B, 1, 1, 1, 1)``."""
+        scales = [values[b][crossing[b]].median() for b in range(values.shape[0])]
         return torch.stack(scales).view(-1, 1, 1, 1, 1)
 
     def check_field(self, value: object, name: str, channels: int | None = None) -> Tensor:
@@ -245,7 +271,8 @@ class ImplicitSurface(nn.Module):
         graph: ``phi / max(grad_norm, DISTANCE_FLOOR * gradient_scale)``, the Newton step to S
         where ``|grad phi|`` is not far below its typical value on S (:data:`DISTANCE_FLOOR`).
         Closest points are ``x - signed_distance() * normal`` to first order."""
-        return self.phi / torch.maximum(self.grad_norm, DISTANCE_FLOOR * self.gradient_scale)
+        return self._current_phi() / torch.maximum(self.grad_norm,
+                                                   DISTANCE_FLOOR * self.gradient_scale)
 
     def distance(self) -> Tensor:
         """Unsigned distance to S to first order, ``|signed_distance()|`` without autograd,
@@ -293,12 +320,23 @@ class ImplicitSurface(nn.Module):
     def _haloed_geometry(self) -> tuple[Tensor, Tensor]:
         return stencils.pad_mirrored(self.normal), stencils.pad(self.weight, "replicate")
 
+    def _current_phi(self) -> Tensor:
+        """``phi``, unless it was modified in place after the normals and weight were derived
+        from it (they would then belong to another surface)."""
+        if not torch.compiler.is_compiling() and self.phi._version != self._phi_version:
+            raise RuntimeError(
+                "phi was modified in place after this surface was built: its normals and "
+                "weight belong to the former values; build a new surface from the new phi "
+                "(or pass phi.clone() to keep a phi you will change)"
+            )
+        return self.phi
+
     def hessian(self) -> Tensor:
         """Second derivatives of ``phi``, ``(B, 6, D, H, W)`` in the order xx, yy, zz, xy, xz, yz.
 
         Central differences, world units (``1 / length``).
         """
-        padded = self._pad(self.phi, "linear")
+        padded = self._pad(self._current_phi(), "linear")
         return stencils.apply(padded, stencils.HESSIAN)[:, 0] / self.spacing**2
 
     def _gradient(self) -> Tensor:
@@ -309,13 +347,17 @@ class ImplicitSurface(nn.Module):
 
         The sum of the principal curvatures (sphere of radius R: ``2 / R``), second order in the
         spacing. Computed once and kept (except when computed without autograd from a ``phi``
-        that requires grad, so that a later call still carries the graph).
+        that requires grad, so that a later call still carries the graph; and computed again
+        if the tensor returned was modified in place).
         """
-        if self._mean_curvature is not None:
-            return self._mean_curvature
+        kept = self._mean_curvature
+        if kept is not None and (torch.compiler.is_compiling()
+                                 or kept._version == self._mean_curvature_version):
+            return kept
         value = curvature.mean_curvature(self._gradient(), self.hessian(), self.grad_norm)
         if torch.is_grad_enabled() or not self.phi.requires_grad:
             self._mean_curvature = value
+            self._mean_curvature_version = value._version
         return value
 
     def gaussian_curvature(self) -> Tensor:

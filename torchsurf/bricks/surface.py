@@ -102,7 +102,7 @@ class BrickSurface(ImplicitSurface):
     def _haloed_geometry(self) -> tuple[Tensor, Tensor]:
         return self.layout.halo(self.normal, 1, ONCE), self.layout.halo(self.weight, 1, ONCE)
 
-    def _gradient_scale(self, phi: Tensor, values: Tensor) -> Tensor:
+    def _crossing_nodes(self, phi: Tensor) -> Tensor:
         inside = phi < 0
         haloed = self.layout.halo(inside, 1, ONCE)
         crossing = torch.zeros_like(inside)
@@ -112,8 +112,10 @@ class BrickSurface(ImplicitSurface):
                 window = [core, core, core]
                 window[axis] = slice(shift, shift + BRICK)
                 crossing |= haloed[:, :, window[0], window[1], window[2]] != inside
-        crossing &= self._stencilled(1)
-        batch = self.layout.batch.to(phi.device)
+        return crossing & self._stencilled(1)
+
+    def _gradient_scale(self, crossing: Tensor, values: Tensor) -> Tensor:
+        batch = self.layout.batch.to(values.device)
         scales = []
         for b in range(self.layout.batch_size):
             entry = values[crossing & (batch == b).view(-1, 1, 1, 1, 1)]
