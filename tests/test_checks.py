@@ -6,8 +6,10 @@ import numpy as np
 import pytest
 import torch
 
+import torchsurf as ts
 from torchsurf._checks import (
     check_dtype,
+    check_flag,
     check_nonnegative,
     check_positive,
     check_positive_tensor,
@@ -82,3 +84,25 @@ def test_half_precision_tensors_are_refused_naming_the_argument(dtype):
 def test_empty_volume_refused(shape):
     with pytest.raises(ValueError, match=r"u must hold at least one volume and one channel"):
         check_volume(torch.zeros(shape), "u")
+
+
+def test_flags_take_booleans_only() -> None:
+    assert check_flag(True, "coupled") is True
+    assert check_flag(np.bool_(False), "coupled") is False
+    assert check_flag(torch.tensor(True), "coupled") is True
+    for value in ("False", 0, 1.0, None, torch.tensor([True])):
+        with pytest.raises(TypeError, match="coupled must be True or False"):
+            check_flag(value, "coupled")
+
+
+def test_a_string_flag_is_not_read_by_its_truth() -> None:
+    # bool("False") is True: coupled="False" used to mean coupled=True
+    grid = ts.Grid.cube(9, 1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, 1.0), grid)
+    u = torch.rand(1, 2, *grid.shape)
+    with pytest.raises(TypeError, match="coupled"):
+        ts.anisotropic_diffusion(u, surface, "perona_malik", contrast=0.5, coupled="False")
+    with pytest.raises(TypeError, match="coupled"):
+        ts.AnisotropicDiffusion("perona_malik", contrast=0.5, coupled="False")
+    with pytest.raises(TypeError, match="adjoint"):
+        ts.HeatFlow(0.1, adjoint="no")

@@ -195,6 +195,19 @@ def check_positive_tensor(value: object, name: str) -> Tensor:
     return tensor
 
 
+def check_flag(value: object, name: str) -> bool:
+    """``value`` as a ``bool``: Python or numpy booleans, or a 0-d bool tensor.
+
+    Raises ``TypeError`` naming ``name`` for anything else: ``bool("False")`` is ``True``, so a
+    string or a number is refused rather than read by its truth.
+    """
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, Tensor) and value.dim() == 0 and value.dtype == torch.bool:
+        return bool(value)
+    raise TypeError(f"{name} must be True or False, got {value!r}")
+
+
 def check_count(value: object, name: str, minimum: int = 1) -> int:
     """A whole number ``>= minimum`` as an ``int``.
 

@@ -20,7 +20,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .._checks import as_real_tensor, check_positive
+from .._checks import as_real_tensor, check_flag, check_positive
 
 FLOOR = 1e-12
 """The smallest value a learnable parameter can take, relative to its smallest initial entry."""
@@ -66,7 +66,7 @@ class Positive(nn.Module):
             raise ValueError(
                 f"{name} must be a finite positive number or a vector (C,) of them, got {value!r}"
             )
-        self.learnable = bool(learnable)
+        self.learnable = check_flag(learnable, "learnable")
         self.bound = None if bound is None else check_positive(bound, bound_name)
         if self.bound is not None and not self.learnable:
             raise ValueError(f"{bound_name} bounds a learnable {name}; {name} is fixed here")

@@ -48,6 +48,7 @@ from .. import _memory
 from .._checks import (
     check_count,
     check_finite,
+    check_flag,
     check_has_data,
     check_nonnegative,
     check_positive,
@@ -309,13 +310,13 @@ class Flow(nn.Module):
             check_count(max_iterations, "max_iterations"),
         )
         self.options = dict(options or {})
-        self.adjoint = bool(adjoint)
+        self.adjoint = check_flag(adjoint, "adjoint")
         if method in INTEGRATORS and (self.options or self.adjoint):
             raise ValueError(
                 f"options and adjoint are torchdiffeq settings; method={method!r} is built in "
                 "and takes neither"
             )
-        self.progress = bool(progress)
+        self.progress = check_flag(progress, "progress")
         if reextend_every is not None and reextend_every not in REEXTEND_CHOICES:
             reextend_every = check_count(reextend_every, "reextend_every")
         self.reextend_every = reextend_every

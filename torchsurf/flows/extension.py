@@ -24,7 +24,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .. import backend, stencils
-from .._checks import check_choice, check_count, check_positive
+from .._checks import check_choice, check_count, check_flag, check_positive
 from ..bricks.layout import BRICK, BrickLayout
 from ..sampling import cubic_lagrange_weights
 from ..surface import ImplicitSurface, check_data
@@ -263,7 +263,7 @@ class CubicStencil:
 
     def __init__(self, surface: ImplicitSurface, mask: Tensor, limited: bool = False,
                  readable: Tensor | None = None) -> None:
-        self.limited = bool(limited)
+        self.limited = check_flag(limited, "limited")
         index = surface.grid.world_to_index(_closest_points(surface, surface.phi.dtype))
         batch = max(index.shape[0], mask.shape[0])
         self.parts = [
@@ -502,7 +502,7 @@ class BrickCubicStencil:
 
     def __init__(self, surface: ImplicitSurface, mask: Tensor, limited: bool = False,
                  readable: Tensor | None = None) -> None:
-        self.limited = bool(limited)
+        self.limited = check_flag(limited, "limited")
         self.targets = mask.reshape(-1).nonzero().squeeze(1)
         distance = surface.signed_distance() / surface.spacing
         parts = [self._assemble(surface, self.targets[start: start + STENCIL_CHUNK], distance)

@@ -8,7 +8,7 @@ import math
 import torch
 from torch import Tensor, nn
 
-from .._checks import check_count
+from .._checks import check_count, check_flag
 from ..surface import ImplicitSurface, check_data, check_surface
 from .diffusion import LearnedDiffusion
 from .features import feature_count, gradient_features
@@ -49,7 +49,7 @@ class DiffusionBlock(nn.Module):
                  pairs: bool = True, **diffusion: object) -> None:
         super().__init__()
         self.channels = check_count(channels, "channels")
-        self.pairs = bool(pairs)
+        self.pairs = check_flag(pairs, "pairs")
         inputs = channels + feature_count(channels, self.pairs)
         hidden = 2 * channels + inputs if hidden is None else check_count(hidden, "hidden")
         self.diffusion = LearnedDiffusion(channels, time=time, **diffusion)

@@ -17,7 +17,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .._checks import as_real_tensor, check_choice, check_count, check_positive
+from .._checks import as_real_tensor, check_choice, check_count, check_flag, check_positive
 from ..backend import PATHS
 from ..flows.exponential import BandLaplacian, heat_semigroup
 from ..operators import functional
@@ -88,7 +88,7 @@ class LearnedDiffusion(nn.Module):
                 f"time must be a positive number or {self.channels} of them (h^2 units), got "
                 f"{time!r}"
             )
-        self.learn_time = bool(learn_time)
+        self.learn_time = check_flag(learn_time, "learn_time")
         self.max_time = None if max_time is None else check_positive(max_time, "max_time")
         if self.max_time is not None and not self.learn_time:
             raise ValueError("max_time bounds learned times; learn_time=False here")

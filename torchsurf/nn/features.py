@@ -14,7 +14,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from .._checks import check_choice, check_positive
+from .._checks import check_choice, check_flag, check_positive
 from ..backend import PATHS
 from ..operators import functional
 from ..surface import ImplicitSurface, check_data, check_surface
@@ -66,7 +66,7 @@ class GradientFeatures(nn.Module):
 
     def __init__(self, pairs: bool = True, eps: float = 1e-6, path: str = "auto") -> None:
         super().__init__()
-        self.pairs = bool(pairs)
+        self.pairs = check_flag(pairs, "pairs")
         self.eps = check_positive(eps, "eps")
         self.path = check_choice(path, "path", PATHS)
 

@@ -16,7 +16,7 @@ from __future__ import annotations
 from torch import Tensor, nn
 
 from .. import backend
-from .._checks import check_choice, check_positive, check_positive_tensor
+from .._checks import check_choice, check_flag, check_positive, check_positive_tensor
 from ..surface import ImplicitSurface, check_data, check_direction_batch
 from . import functional
 from .diffusivity import DIFFUSIVITIES, Diffusivity
@@ -84,7 +84,8 @@ def anisotropic_diffusion(
     check_choice(path, "path", backend.PATHS)
     return functional.edge_stopping_form(
         u, surface.normal, surface.weight, surface.spacing, resolve_diffusivity(diffusivity),
-        channel_contrast(contrast, u), check_positive(eps, "eps"), bool(coupled), scheme, path,
+        channel_contrast(contrast, u), check_positive(eps, "eps"), check_flag(coupled, "coupled"),
+        scheme, path,
         haloed=surface.haloed(), pad=None if surface.layout is None else surface.layout.halo,
     )
 
@@ -145,7 +146,7 @@ class AnisotropicDiffusion(nn.Module):
         self.diffusivity = resolve_diffusivity(diffusivity)
         self.contrast = contrast
         self.eps = check_positive(eps, "eps")
-        self.coupled = bool(coupled)
+        self.coupled = check_flag(coupled, "coupled")
         self.scheme = check_choice(scheme, "scheme", FLUX_SCHEMES)
         self.path = check_choice(path, "path", backend.PATHS)
 
