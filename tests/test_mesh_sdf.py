@@ -240,3 +240,23 @@ def test_bad_arguments_raise() -> None:
         ts.sdf.from_mesh(mesh, grid, sign="parity")
     with pytest.raises(TypeError, match="grid"):
         ts.sdf.from_mesh(mesh, (9, 9, 9))
+
+
+def test_a_part_wound_inward_gives_no_surface_at_the_band_edge() -> None:
+    # two closed spheres, the second wound inward: its pseudonormals called its inside
+    # inside while the winding number beyond the band called it outside, and phi changed
+    # sign at the band's edge (a third, fake surface); now one sign throughout, and a warning
+    import trimesh
+
+    solid = trimesh.creation.icosphere(subdivisions=2, radius=0.6).apply_translation([-0.8, 0, 0])
+    inverted = trimesh.creation.icosphere(subdivisions=2, radius=0.5).apply_translation([0.8, 0, 0])
+    inverted.invert()
+    mesh = trimesh.util.concatenate([solid, inverted])
+    grid = ts.Grid.cube(33, bound=1.6)
+    for sign in ("auto", "pseudonormal", "winding"):
+        with pytest.warns(RuntimeWarning, match="wound"):
+            phi = ts.sdf.from_mesh(mesh, grid, dtype=torch.float64, sign=sign)[0, 0]
+        centre = torch.tensor([0.8, 0.0, 0.0], dtype=torch.float64)
+        around = (grid.points(torch.float64) - centre).norm(dim=-1) < 0.9
+        assert bool((phi[around] >= 0).all()), sign  # a cavity in nothing: outside throughout
+        assert float(phi[16, 16, 6]) < 0  # the solid's centre

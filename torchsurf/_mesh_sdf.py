@@ -17,6 +17,7 @@ the same sign there at a fraction of the cost.
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 
 import igl
@@ -308,10 +309,40 @@ def _pseudonormal_chunk(faces: np.ndarray, triangles: _Triangles, normals: tuple
     return inside, degenerate
 
 
-def _winding_inside(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray) -> np.ndarray:
+def _winding_numbers(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Generalised winding numbers ``(N,)`` of the mesh at ``points`` ``(N, 3)``."""
     if len(points) == 0:
-        return np.zeros(0, dtype=bool)
-    return igl.fast_winding_number(vertices, faces, np.ascontiguousarray(points)) > 0.5
+        return np.zeros(0)
+    return igl.fast_winding_number(vertices, faces, np.ascontiguousarray(points))
+
+
+def _winding_inside(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray) -> np.ndarray:
+    return _winding_numbers(vertices, faces, points) > 0.5
+
+
+SIGN_CHECKS = 20000
+"""Most nodes at the band's edge whose pseudonormal sign is checked against the winding number
+(which signs everything beyond the band)."""
+
+
+def _sign_checks(distance: np.ndarray, band: float, spacing: float) -> np.ndarray:
+    """Indices of up to :data:`SIGN_CHECKS` band nodes within two cells of the band's edge,
+    evenly spread over them."""
+    edge = np.flatnonzero(distance >= band - 2.0 * spacing)
+    return edge[:: max(1, -(-len(edge) // SIGN_CHECKS))]
+
+
+def _warn_inverted(numbers: np.ndarray) -> None:
+    """Warn where the winding number is near -1: a closed part wound inward, which counts as
+    a cavity (nothing inside it) rather than a solid."""
+    inverted = numbers < -0.5
+    if inverted.any():
+        warnings.warn(
+            f"mesh: the winding number is negative at {int(inverted.sum())} of {len(numbers)} "
+            "nodes asked: a closed part is wound inward (its faces' normals point in) and "
+            "counts as a cavity, not a solid; if it is a solid, fix its winding first "
+            "(trimesh.repair.fix_normals)",
+            RuntimeWarning, stacklevel=5)
 
 
 @dataclass
@@ -341,6 +372,7 @@ def signed_near(vertices: np.ndarray, faces: np.ndarray, grid: Grid, band: float
             needs one), ``"pseudonormal"`` (pseudonormals in the band, winding number beyond),
             or ``"auto"``: pseudonormal for closed, consistently wound meshes, else winding.
     """
+    requested = sign
     if sign == "auto":
         sign = "pseudonormal" if _is_closed(faces, len(vertices)) else "winding"
     if sign == "pseudonormal" and _signed_volume(vertices, faces) < 0:
@@ -348,17 +380,32 @@ def signed_near(vertices: np.ndarray, faces: np.ndarray, grid: Grid, band: float
     found, points = _refine(vertices, faces, grid, band)
     centres = [_world(grid, corners + 0.5 * (size - 1)) for size, corners in found.far_corners]
     counts = [len(c) for c in centres]
-    if sign == "winding":
-        queries = np.concatenate(centres + [points])
-        inside_all = _winding_inside(vertices, faces, queries)
-        near_inside = inside_all[sum(counts):]
-    else:
+    if sign == "pseudonormal":
         near_inside, undecided = _pseudonormal_inside(
             vertices, faces, points, found.face, found.closest
         )
-        queries = np.concatenate(centres + [points[undecided]])
+        checked = _sign_checks(found.distance, band, grid.spacing)
+        queries = np.concatenate(centres + [points[undecided], points[checked]])
         inside_all = _winding_inside(vertices, faces, queries)
+        agree = inside_all[len(queries) - len(checked):] == near_inside[checked]
+        inside_all = inside_all[:len(queries) - len(checked)]
         near_inside[undecided] = inside_all[sum(counts):]
+        if not agree.all():
+            # a closed part wound against the rest: its pseudonormals and the winding number
+            # beyond the band disagree, and phi would change sign at the band's edge
+            if requested == "pseudonormal":
+                warnings.warn(
+                    f"sign='pseudonormal': at {int((~agree).sum())} of {len(agree)} nodes at "
+                    "the band's edge the pseudonormals and the winding number disagree (a "
+                    "closed part wound against the others); signed by the winding number",
+                    RuntimeWarning, stacklevel=4)
+            sign = "winding"
+    if sign == "winding":
+        queries = np.concatenate(centres + [points])
+        numbers = _winding_numbers(vertices, faces, queries)
+        _warn_inverted(numbers)
+        inside_all = numbers > 0.5
+        near_inside = inside_all[sum(counts):]
     far_inside = np.split(inside_all[: sum(counts)], np.cumsum(counts)[:-1]) if counts else []
     near = np.where(near_inside, -1.0, 1.0) * np.minimum(found.distance, band)
     return SignedBand(found, near, list(far_inside))
