@@ -309,4 +309,16 @@ def test_order_two_decode_does_not_amplify_data_on_flat_parts(name: str) -> None
     assert float(decoded.min()) > -0.06 and float(decoded.max()) < 1.06, (
         float(decoded.min()), float(decoded.max()))
     constant = adapter.decode(torch.full_like(volume, 2.0))
-    assert float((constant - 2.0).abs().max()) < 2e-3  # the sum of weights, to the Tikhonov term
+    # the weights sum to 1 exactly (the Tikhonov term left them up to 5e-4 off)
+    assert float((constant - 2.0).abs().max()) < 1e-5
+
+
+@pytest.mark.parametrize(("name", "resolution"), [("teapot.obj", 33), ("bunny_closed.obj", 48)])
+def test_order_two_decodes_constants_exactly(name: str, resolution: int) -> None:
+    path = Path(os.environ.get("TORCHSURF_MESH_DIR", MESH_DIR)) / name
+    if not path.is_file():
+        pytest.skip(f"test mesh {name} not found (set TORCHSURF_MESH_DIR)")
+    adapter = tsm.MeshAdapter(trimesh.load(path, force="mesh"), resolution=resolution,
+                              dtype=torch.float64)
+    ones = torch.ones((1, 1, *adapter.grid.shape), dtype=torch.float64)
+    assert float((adapter.decode(ones) - 1).abs().max()) < 1e-12

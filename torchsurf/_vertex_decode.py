@@ -141,6 +141,9 @@ def weights(found: Cells, usable: Tensor, vertices: Tensor, references: list[Ten
             function of the mesh, what the adapters' ``encode`` writes, is then exact there.
             Where those weights' ``sum |w|`` exceeds :data:`HAT_AMPLIFICATION`, the vertex
             keeps the weights of the reference sets alone.
+
+    The weights sum to 1 to rounding at every vertex with a usable tap (constants decode
+    exactly).
     """
     offsets_world = [(points - vertices[:, None]).permute(0, 2, 1) / spacing
                      for points in references]
@@ -148,7 +151,7 @@ def weights(found: Cells, usable: Tensor, vertices: Tensor, references: list[Ten
     target[:, 0] = 1.0
     plain = _least_change(found.trilinear, usable, offsets_world, target)
     if hats is None:
-        return plain
+        return _summing_to_one(plain, found.trilinear, usable)
     hat_values, hat_target, covered = _hat_constraints(usable, hats)
     offsets_world[0] = offsets_world[0] * ~covered[:, None, None]
     offsets_world.append(HAT_EMPHASIS * hat_values)
@@ -156,7 +159,20 @@ def weights(found: Cells, usable: Tensor, vertices: Tensor, references: list[Ten
     exact = _least_change(found.trilinear, usable, offsets_world, target)
     size = exact.abs().sum(dim=1, keepdim=True)
     amplified = (size > HAT_AMPLIFICATION) & (plain.abs().sum(dim=1, keepdim=True) < size)
-    return torch.where(amplified, plain, exact)
+    return _summing_to_one(torch.where(amplified, plain, exact), found.trilinear, usable)
+
+
+def _summing_to_one(weights: Tensor, trilinear: Tensor, usable: Tensor) -> Tensor:
+    """``weights`` ``(V, 64)`` shifted to sum to 1 exactly, by their shortfall spread like the
+    usable trilinear weights (the regularised solve leaves up to ~5e-4 where its constraints
+    conflict, and a constant would not decode exactly); a vertex without usable inner taps
+    spreads it over its usable taps, one without any keeps zeros."""
+    spread = trilinear * usable
+    plain = usable.to(weights.dtype)
+    spread = torch.where(spread.sum(dim=1, keepdim=True) > 0, spread, plain)
+    total = spread.sum(dim=1, keepdim=True)
+    shortfall = 1.0 - weights.sum(dim=1, keepdim=True)
+    return weights + torch.where(total > 0, shortfall / total.clamp_min(1e-300), 0.0) * spread
 
 
 def _least_change(trilinear: Tensor, usable: Tensor, offsets_world: list[Tensor],
