@@ -322,3 +322,31 @@ def test_order_two_decodes_constants_exactly(name: str, resolution: int) -> None
                               dtype=torch.float64)
     ones = torch.ones((1, 1, *adapter.grid.shape), dtype=torch.float64)
     assert float((adapter.decode(ones) - 1).abs().max()) < 1e-12
+
+
+def test_a_band_too_narrow_for_the_decoding_is_refused() -> None:
+    # at 0.3 h an encoded constant decoded to [0, 0.885] and at 0.01 h the build crashed
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    grid = tsm.fit_grid(mesh, 24)
+    for order in (1, 2):
+        with pytest.raises(ValueError, match="band_width must be at least sqrt"):
+            tsm.MeshAdapter(mesh, grid, band_width=1.5 * grid.spacing, order=order)
+    adapter = tsm.MeshAdapter(mesh, grid, band_width=1.8 * grid.spacing, order=1)
+    ones = torch.ones(1, 1, len(mesh.vertices))
+    assert float((adapter.decode(adapter.encode(ones)) - 1).abs().max()) < 1e-5
+
+
+def test_a_vertex_no_face_uses_is_named_when_it_leaves_the_box() -> None:
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    stray = trimesh.Trimesh(np.vstack([mesh.vertices, [[5.0, 0.0, 0.0]]]), mesh.faces,
+                            process=False)
+    with pytest.raises(ValueError, match="no face uses.*remove_unreferenced_vertices"):
+        tsm.MeshAdapter(stray, resolution=17)
+
+
+def test_to_band_encodes_on_a_grid_holding_part_of_the_mesh() -> None:
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    grid = ts.Grid((17, 17, 9), spacing=2.4 / 16, origin=(-1.2, -1.2, -1.2))  # x up to 0
+    values = torch.as_tensor(mesh.vertices[:, 2], dtype=torch.float32)[None, None]
+    volume = tsm.to_band(values, mesh, grid)
+    assert volume.shape == (1, 1, 17, 17, 9) and bool(torch.isfinite(volume).all())

@@ -167,7 +167,8 @@ class MeshAdapter(nn.Module):
         mesh: as in :func:`load`; vertex ``v`` of the signals is ``mesh.vertices[v]``.
         grid: the grid (default :func:`fit_grid` of the mesh at ``resolution``).
         resolution: nodes per axis of the default grid.
-        band_width: half-width of the band, world units (default ``5 * grid.spacing``).
+        band_width: half-width of the band, world units (default ``5 * grid.spacing``; at least
+            ``sqrt(3) * grid.spacing``, :data:`MIN_BAND_CELLS`).
         dtype, device: of the tensors (default dtype, CPU).
         sign: how ``phi`` is signed, see :func:`torchsurf.sdf.from_mesh`.
         order: ``2`` (default) or ``1``, the decoding described above.
@@ -213,6 +214,12 @@ class MeshAdapter(nn.Module):
         mesh = as_trimesh(mesh, "mesh")
         grid = fit_grid(mesh, resolution) if grid is None else grid
         width = sdf._band(grid, band_width)
+        if width < MIN_BAND_CELLS * grid.spacing:
+            raise ValueError(
+                f"band_width must be at least sqrt(3) * spacing = "
+                f"{MIN_BAND_CELLS * grid.spacing:g}, so that the 8 nodes around every vertex "
+                f"hold data, got {width:g}"
+            )
         _memory.check_fits(
             _memory.mesh_adapter_bytes(grid.shape, grid.spacing, width, float(mesh.area), dtype),
             f"MeshAdapter on a {grid.shape} grid",
@@ -248,6 +255,16 @@ class MeshAdapter(nn.Module):
                 (torch.as_tensor(faces[found.face[inside]]), torch.as_tensor(weights)),
             )
             outside = ~grid.contains(torch.as_tensor(vertices), tolerance=1e-4)
+            unused = np.ones(len(vertices), dtype=bool)
+            unused[faces.reshape(-1)] = False
+            stray = outside.numpy() & unused
+            if stray.any():
+                raise ValueError(
+                    f"mesh: {int(stray.sum())} vertices that no face uses lie outside the "
+                    f"grid's box, e.g. vertex {int(np.flatnonzero(stray)[0])} (fit_grid fits "
+                    "the faces); order=2 decodes at every vertex: remove them first "
+                    "(mesh.remove_unreferenced_vertices())"
+                )
             if bool(outside.any()):
                 raise ValueError(
                     f"mesh: {int(outside.sum())} of {len(vertices)} vertices lie outside the "
@@ -289,6 +306,11 @@ class MeshAdapter(nn.Module):
             f"vertices={len(self.vertices)}, grid={self.grid.shape}, "
             f"spacing={self.grid.spacing:g}, band_width={self.band_width:g}, order={self.order}"
         )
+
+
+MIN_BAND_CELLS = 3**0.5
+"""Narrowest ``band_width`` of a :class:`MeshAdapter`, in cells: the nodes of the cell around a
+vertex lie within ``sqrt(3) h`` of it, so of the mesh, and the decoding reads them."""
 
 
 DECODE_ORDERS = (1, 2)
@@ -376,5 +398,5 @@ def to_band(values: Tensor, mesh: MeshLike, grid: Grid, band_width: float | None
     if band_width is not None:
         check_positive(band_width, "band_width")
     adapter = MeshAdapter(mesh, grid, band_width=band_width, dtype=values.dtype,
-                          device=values.device)
+                          device=values.device, order=1)  # encodes only: no decoding weights
     return adapter.encode(values)
