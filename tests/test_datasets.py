@@ -92,6 +92,8 @@ def test_bad_input_raises(shapes: MeshBatchAdapter) -> None:
         datasets.SignalDataset(shapes, length=2, noise=-1.0)
     with pytest.raises(ValueError, match="frequency"):
         datasets.smooth_signal(shapes.surface, frequency=0.0)
+    with pytest.raises(ValueError, match="seed"):  # numpy's error on the first item before
+        datasets.SignalDataset(shapes, length=2, seed=-1)
 
 
 def test_derived_seeds_do_not_collide() -> None:

@@ -7,6 +7,7 @@ Exit codes: 0 done, 2 usage or config error (nothing computed), 1 the run itself
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 import tempfile
 from collections.abc import Sequence
@@ -128,6 +129,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     return EXIT_OK
 
 
+def _exit_on_terminate(signum: int, frame: object) -> None:
+    raise SystemExit(128 + signum)
+
+
 def entry_point() -> None:
-    """The console script: ``sys.exit(main())``."""
+    """The console script: ``sys.exit(main())``. ``SIGTERM`` (``kill``, a job scheduler's
+    stop) exits like Ctrl-C does, through the cleanup that removes half-written files: by
+    default it ended the process on the spot and left an empty temporary picture behind."""
+    signal.signal(signal.SIGTERM, _exit_on_terminate)
     sys.exit(main())

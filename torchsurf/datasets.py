@@ -222,7 +222,7 @@ class SignalDataset(Dataset):
         self.length = check_count(length, "length")
         self.channels = check_count(channels, "channels")
         self.noise = check_nonnegative(noise, "noise")
-        self.seed = int(seed)
+        self.seed = check_count(seed, "seed", minimum=0)  # numpy SeedSequence: no negatives
         self.options = {"smooth": dict(smooth or {}),
                         "piecewise_constant": dict(piecewise_constant or {})}
         self.grid = surface.grid
