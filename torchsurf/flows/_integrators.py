@@ -203,13 +203,16 @@ the nodes within ``2 sqrt(3)`` cells of S that the band's re-extension reads (28
 band). It was ``w - 3`` (48), which let the stale error reach those nodes: the sphere's heat
 flow lost its order at 81^3 (docs/band.md: 3.8e-4 at 65^3 and 81^3, now 4.0e-4 and 2.3e-4)."""
 
-HELD_RING_STEPS = math.inf
-"""RKC takes up to this many times the steps it would otherwise when that lets it hold the ring
-(:func:`ring_held`): always. The stages grow as the square root of the step count, and each
+HELD_RING_STEPS = 3.0
+"""A nonlinear flow's RKC takes up to this many times the steps it would otherwise when that
+lets it hold the ring (:func:`ring_held`); a linear one (:attr:`System.linear`: heat, flow
+visualisation) always does. The stages grow as the square root of the step count, and each
 costs about half as much without the ring's re-extension; steps that re-extend the ring at
-every stage lose the time order, which shows over long times. It was 3: a sphere's l = 1 heat
-flow to ``t = R^2`` (``t / h^2`` 106-238) stayed 0.9-1.7 % off at 33^3-49^3 (8 steps), now
-2.7e-3, 1.3e-3, 5.4e-4 of the decayed amplitude, for 1.5-2.4 times the time."""
+every stage lose the time order, which shows over long times: a sphere's l = 1 heat flow to
+``t = R^2`` (``t / h^2`` 106-238) stayed 0.9-1.7 % off at 33^3-49^3 in 8 such steps, and is
+2.7e-3, 1.3e-3, 5.4e-4 of the decayed amplitude holding the ring, for 1.5-2.4 times the time.
+The nonlinear flows' bound grows as their regularisation shrinks (total variation: ``1 / eps``),
+and holding the ring over their usual times would multiply their steps tenfold."""
 
 
 def ring_held(method: str, step_times_rho: float, band_cells: float) -> bool:
@@ -250,8 +253,9 @@ def plan_steps(method: str, system: System, end: float, steps: int | None,
     :data:`RKC_STEPS` steps (or Euler's count, if smaller) or more, none longer than
     ``12 band_cells^2 / rho``: about the time the diffusion takes to cross a band
     ``band_cells`` cells wide, after which the data must be re-extended (docs/band.md), nor
-    than ``RKC_GROWTH / growth`` (:data:`RKC_GROWTH`); and as many more as let each step hold
-    the ring (:func:`ring_held`, :data:`HELD_RING_STEPS`).
+    than ``RKC_GROWTH / growth`` (:data:`RKC_GROWTH`); and more where that lets each step hold
+    the ring (:func:`ring_held`): as many as it takes for a linear flow, up to
+    :data:`HELD_RING_STEPS` times as many for a nonlinear one.
 
     Refused (``ValueError``): more than :data:`MAX_STEPS` steps or evaluations of the rate; for
     a linear flow, a time above :data:`EQUILIBRIUM_CROSSINGS` times the time its diffusion
@@ -278,7 +282,8 @@ def plan_steps(method: str, system: System, end: float, steps: int | None,
             margin = band_cells - HELD_RING_CELLS
             if margin > 0:
                 holding = math.ceil(end * rho / (12.0 * margin**2) * (1 - 1e-9))
-                if count < holding <= HELD_RING_STEPS * count:
+                allowed = math.inf if system.linear is not None else HELD_RING_STEPS
+                if count < holding <= allowed * count:
                     count = holding
         elif method in INTEGRATORS:
             count = explicit
