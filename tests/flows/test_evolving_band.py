@@ -124,7 +124,7 @@ def test_a_batch_whose_bands_differ_runs_each_entry_alone():
         torch.testing.assert_close(together[:, b:b + 1], alone, atol=0, rtol=0)
 
 
-@pytest.mark.parametrize("shape", ["sphere", "torus", "box"])
+@pytest.mark.parametrize("shape", ["sphere", "torus", pytest.param("box", marks=pytest.mark.slow)])
 def test_the_wide_band_keeps_the_maximum_principle(shape):
     """Noise on the sphere's 5-cell band with the ring held (RKC, 20 h^2: ``dt rho`` about 25)
     or refreshed at every stage (200 h^2 in 8 steps), and on the 3-cell bands of a torus and a
