@@ -387,8 +387,9 @@ def signed_near(vertices: np.ndarray, faces: np.ndarray, grid: Grid, band: float
         checked = _sign_checks(found.distance, band, grid.spacing)
         queries = np.concatenate(centres + [points[undecided], points[checked]])
         inside_all = _winding_inside(vertices, faces, queries)
-        agree = inside_all[len(queries) - len(checked):] == near_inside[checked]
-        inside_all = inside_all[:len(queries) - len(checked)]
+        decided = len(queries) - len(checked)
+        agree = inside_all[decided:] == near_inside[checked]
+        inside_all = inside_all[:decided]
         near_inside[undecided] = inside_all[sum(counts):]
         if not agree.all():
             # a closed part wound against the rest: its pseudonormals and the winding number

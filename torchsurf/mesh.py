@@ -225,6 +225,8 @@ class MeshAdapter(nn.Module):
             f"MeshAdapter on a {grid.shape} grid",
         )
         vertices, faces = triangle_arrays(mesh)
+        if order == 2:  # before the distances: the decoding reads around every vertex
+            _check_vertices_in_box(vertices, faces, grid)
         phi, found = _mesh_sdf.signed_band(vertices, faces, grid, width, sign)
         sdf._check_sides(phi, vertices[np.unique(faces)], grid)
         inside = found.distance <= width
@@ -254,23 +256,6 @@ class MeshAdapter(nn.Module):
                 [torch.as_tensor(mesh_points), _grid_closest_points(self.surface, flat)],
                 (torch.as_tensor(faces[found.face[inside]]), torch.as_tensor(weights)),
             )
-            outside = ~grid.contains(torch.as_tensor(vertices), tolerance=1e-4)
-            unused = np.ones(len(vertices), dtype=bool)
-            unused[faces.reshape(-1)] = False
-            stray = outside.numpy() & unused
-            if stray.any():
-                raise ValueError(
-                    f"mesh: {int(stray.sum())} vertices that no face uses lie outside the "
-                    f"grid's box, e.g. vertex {int(np.flatnonzero(stray)[0])} (fit_grid fits "
-                    "the faces); order=2 decodes at every vertex: remove them first "
-                    "(mesh.remove_unreferenced_vertices())"
-                )
-            if bool(outside.any()):
-                raise ValueError(
-                    f"mesh: {int(outside.sum())} of {len(vertices)} vertices lie outside the "
-                    f"grid's box, e.g. vertex {int(outside.nonzero()[0, 0])}; order=2 decodes at "
-                    "every vertex, so the grid must hold the whole mesh (fit_grid)"
-                )
             decode_index = decode_index.to(device)
             decode_weights = decode_weights.to(dtype=dtype, device=device)
         self.register_buffer("_decode_index", decode_index)
@@ -305,6 +290,27 @@ class MeshAdapter(nn.Module):
         return (
             f"vertices={len(self.vertices)}, grid={self.grid.shape}, "
             f"spacing={self.grid.spacing:g}, band_width={self.band_width:g}, order={self.order}"
+        )
+
+
+def _check_vertices_in_box(vertices: np.ndarray, faces: np.ndarray, grid: Grid) -> None:
+    """Raise naming a vertex of ``vertices`` ``(V, 3)`` outside ``grid``'s box (``order=2``
+    decodes at every vertex), and saying so when no face of ``faces`` uses it."""
+    outside = ~grid.contains(torch.as_tensor(vertices), tolerance=1e-4).numpy()
+    unused = np.ones(len(vertices), dtype=bool)
+    unused[faces.reshape(-1)] = False
+    stray = outside & unused
+    if stray.any():
+        raise ValueError(
+            f"mesh: {int(stray.sum())} vertices that no face uses lie outside the grid's box, "
+            f"e.g. vertex {int(np.flatnonzero(stray)[0])} (fit_grid fits the faces); order=2 "
+            "decodes at every vertex: remove them first (mesh.remove_unreferenced_vertices())"
+        )
+    if outside.any():
+        raise ValueError(
+            f"mesh: {int(outside.sum())} of {len(vertices)} vertices lie outside the grid's "
+            f"box, e.g. vertex {int(np.flatnonzero(outside)[0])}; order=2 decodes at every "
+            "vertex, so the grid must hold the whole mesh (fit_grid)"
         )
 
 
