@@ -225,10 +225,10 @@ class MeshAdapter(nn.Module):
             f"MeshAdapter on a {grid.shape} grid",
         )
         vertices, faces = triangle_arrays(mesh)
-        if order == 2:  # before the distances: the decoding reads around every vertex
-            _check_vertices_in_box(vertices, faces, grid)
         phi, found = _mesh_sdf.signed_band(vertices, faces, grid, width, sign)
         sdf._check_sides(phi, vertices[np.unique(faces)], grid)
+        if order == 2:  # before the decoding weights' solve, which reads around every vertex
+            _check_vertices_in_box(vertices, faces, grid)
         inside = found.distance <= width
         weights, _ = _mesh_sdf.barycentric(
             vertices, faces, found.face[inside], found.closest[inside]
