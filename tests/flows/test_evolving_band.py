@@ -80,9 +80,44 @@ def test_ring_held_bound():
     assert not ring_held("rkc", bound + 1e-6, 5.0)
     assert not ring_held("rkc", 45.4, 5.0)
     assert not ring_held("rkc", 1e-3, 3.0)
-    for method in ("euler", "heun", "implicit", "crank_nicolson"):
+    for method in ("implicit", "crank_nicolson"):
         assert ring_held(method, 1e6, 3.0)
+    # Euler and Heun hold it over their band's re-extension period
+    for method in ("euler", "heun"):
+        assert ring_held(method, 2.0, 5.0, period=14)
+        assert not ring_held(method, 2.0, 5.0, period=15)
+        assert not ring_held(method, 1e-3, 3.0, period=1)
     assert not ring_held("dopri5", 1.0, 5.0)
+
+
+@pytest.mark.parametrize("method", ["euler", "heun"])
+def test_euler_and_heun_stay_second_order_on_a_band_too_narrow_to_hold_the_ring(method):
+    """A 3-cell band (a mesh's, phi not a distance, bricks): the re-extension's taps reach the
+    ring, so a ring held over Euler's re-extension period leaks its staleness into S. Held,
+    33^3 / 49^3: Euler 9.1e-4 / 7.1e-4 (order 0.6; 8.1e-4 at 65^3), Heun 1.6e-3 / 1.0e-3;
+    refreshed at every evaluation: 4.8e-4 / 2.2e-4 and 1.17e-3 / 5.1e-4."""
+    errors = []
+    for n in (33, 49):
+        grid, phi, u0, on_s, exact = sphere_case(n)
+        flow = HeatFlow(0.05, method=method, band_width=3 * grid.spacing)
+        errors.append(error_on_s(flow(u0, ts.ImplicitSurface(phi, grid)), grid, on_s, exact))
+    order = math.log(errors[0] / errors[1]) / math.log(48 / 32)
+    assert order > 1.7, errors
+
+
+def test_rkc_takes_more_steps_where_its_stages_refresh_the_ring():
+    """RKC's steps that cannot hold the ring err several times more in time (65^3, l = 2, a
+    3-cell band: 8 steps 6.1e-4, 16 steps 4.6e-4, 128 steps 4.2e-4): at least 16 of them."""
+    grid, phi, *_ = sphere_case(33)
+    surface = ts.ImplicitSurface(phi, grid)
+    narrow = HeatFlow(0.05, band_width=3 * grid.spacing)
+    system = narrow.system(torch.zeros(1, 1, *grid.shape, dtype=phi.dtype), surface)
+    plan = integrators.plan_steps("rkc", system, 0.05, None, band_cells=3.0)
+    assert plan.count == integrators.RKC_REFRESHED_STEPS
+    assert not ring_held("rkc", plan.step * system.spectral_radius, 3.0)
+    wide = integrators.plan_steps("rkc", system, 0.05, None, band_cells=5.0)
+    assert ring_held("rkc", wide.step * system.spectral_radius, 5.0)
+    assert wide.count < integrators.RKC_REFRESHED_STEPS
 
 
 def test_holding_the_ring_within_the_bound_loses_nothing(monkeypatch):

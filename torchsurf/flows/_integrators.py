@@ -186,6 +186,13 @@ RKC_STEPS = 8
 error of RKC2 on a mode decaying by ``e^-1`` over the flow stays below the second-order space
 error at 33^3-65^3 (docs/band.md)."""
 
+RKC_REFRESHED_STEPS = 16
+"""Fewest RKC steps whose stages re-extend the ring (steps too long for the band to hold it,
+:func:`ring_held`; a 3-cell band always), unless forward Euler would need fewer. Their time
+error, still second order, is several times that of steps holding the ring: sphere, l = 2 and
+4, t = 0.05, 3-cell band at 65^3, float64: 8 steps 6.1e-4 and 6.3e-3, 16 steps 4.6e-4 and
+5.0e-3, 128 steps 4.2e-4 and 4.6e-3 (docs/band.md)."""
+
 RKC_GROWTH = 2.0
 """Largest ``step * growth`` of an RKC step (:attr:`System.growth`). RKC's stages damp the
 diffusion's decaying modes; a growing mode they amplify like ``cosh`` of the stage count
@@ -215,13 +222,18 @@ The nonlinear flows' bound grows as their regularisation shrinks (total variatio
 and holding the ring over their usual times would multiply their steps tenfold."""
 
 
-def ring_held(method: str, step_times_rho: float, band_cells: float) -> bool:
+def ring_held(method: str, step_times_rho: float, band_cells: float, period: int = 1) -> bool:
     """Whether ``method``'s steps of ``dt * rho = step_times_rho`` on a band of ``band_cells``
-    cells keep the ring fixed during each step (:data:`RING_HELD`, :data:`HELD_RING_CELLS`)."""
-    if method in RING_HELD:
+    cells keep the ring fixed between re-extensions (:data:`RING_HELD`,
+    :data:`HELD_RING_CELLS`): always for the implicit methods; for RKC, if one step fits the
+    bound; for Euler and Heun, which re-extend the band every ``period`` steps, if those steps
+    together do. Otherwise the ring is re-extended at every evaluation of the rate."""
+    if method in IMPLICIT:
         return True
+    held_steps = period if method in ("euler", "heun") else 1
     margin = band_cells - HELD_RING_CELLS
-    return method == "rkc" and margin > 0 and step_times_rho <= 12.0 * margin**2 * (1 + 1e-9)
+    return (method in RING_HELD and margin > 0
+            and held_steps * step_times_rho <= 12.0 * margin**2 * (1 + 1e-9))
 
 
 @dataclass(frozen=True)
@@ -255,7 +267,8 @@ def plan_steps(method: str, system: System, end: float, steps: int | None,
     ``band_cells`` cells wide, after which the data must be re-extended (docs/band.md), nor
     than ``RKC_GROWTH / growth`` (:data:`RKC_GROWTH`); and more where that lets each step hold
     the ring (:func:`ring_held`): as many as it takes for a linear flow, up to
-    :data:`HELD_RING_STEPS` times as many for a nonlinear one.
+    :data:`HELD_RING_STEPS` times as many for a nonlinear one; at least
+    :data:`RKC_REFRESHED_STEPS` (or Euler's count) where the steps cannot hold it.
 
     Refused (``ValueError``): more than :data:`MAX_STEPS` steps or evaluations of the rate; for
     a linear flow, a time above :data:`EQUILIBRIUM_CROSSINGS` times the time its diffusion
@@ -285,6 +298,8 @@ def plan_steps(method: str, system: System, end: float, steps: int | None,
                 allowed = math.inf if system.linear is not None else HELD_RING_STEPS
                 if count < holding <= allowed * count:
                     count = holding
+            if not ring_held("rkc", end / count * rho, band_cells):
+                count = max(count, min(RKC_REFRESHED_STEPS, explicit))
         elif method in INTEGRATORS:
             count = explicit
         else:
@@ -618,12 +633,12 @@ def check_method(method: object, extra: Sequence[str] = ()) -> str:
 
 IMPLICIT = ("implicit", "crank_nicolson")
 
-RING_HELD = (*IMPLICIT, "euler", "heun")
-"""Methods that do not re-extend the ring at every evaluation of the rate: the implicit ones
-(their operator must stay symmetric) and Euler and Heun, whose steps are short enough that the
-re-extension every few steps keeps them second order, with smaller errors than refreshing the
-ring at every evaluation (docs/band.md). RKC too, on a band wide enough for its steps
-(:func:`ring_held`)."""
+RING_HELD = (*IMPLICIT, "euler", "heun", "rkc")
+"""Methods that may hold the ring between re-extensions instead of re-extending it at every
+evaluation of the rate (:func:`ring_held`): the implicit ones always (their operator must stay
+symmetric); RKC, Euler and Heun where the band is wide enough for the time it is held (on the
+5-cell band of a distance, Euler's and Heun's periodic re-extension; never on a 3-cell band,
+where the stale ring reaches the nodes the re-extension reads: docs/band.md)."""
 
 
 def integrate(method: str, system: System, u0: Tensor, schedule: Schedule) -> list[Tensor]:

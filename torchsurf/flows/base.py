@@ -20,14 +20,15 @@ The computational domain is a band of fixed width around S (``surface.band_width
 default, widened to 5 cells on a dense surface whose phi is a distance that far, or
 ``band_width=``), measured as ``|phi| / W`` so that it does not depend on the scale of ``phi``,
 and independent of the time. The ring of nodes its stencils read around it is refreshed by
-closest-point re-extension (tricubic, limited) at every evaluation of RKC's and torchdiffeq's
-rate (RKC: only between steps where the band is wide enough for them), and the whole band
+closest-point re-extension (tricubic, limited) at every evaluation of the rate of RKC,
+Euler, Heun and the torchdiffeq methods (RKC, Euler and Heun: only between re-extensions of
+the band where the band is wide enough to hold the ring that long), and the whole band
 with it after each step, or, where steps are shorter than the time the fastest diffusion takes
 to cross a cell, after as many steps as that takes (RKC steps that hold the ring: as many as
 one step could hold it for; torchdiffeq methods: after each piece of
 :func:`torchdiffeq_segment`), and at each requested time
 (``reextend_every``): every re-extension errs a little, so more steps must not mean more of
-them. Euler and Heun do not refresh the ring in between; the implicit methods, whose operator
+them. The implicit methods, whose operator
 must stay symmetric, hold the ring fixed during a step (a Dirichlet condition). The explicit
 steps and RKC's stages come from a Gershgorin bound ``rho`` of the operator assembled on that
 band (:mod:`torchsurf.operators.spectrum`), never from the nominal ``h^2 / 6`` alone.
@@ -544,7 +545,7 @@ class Flow(nn.Module):
         schedule.segment = torchdiffeq_segment(width / surface.spacing, system.spectral_radius)
         schedule.checkpoint = self._checkpointing(u0, surface, system)
         held = ring_held(self.method, plan.step * system.spectral_radius,
-                         width / surface.spacing)
+                         width / surface.spacing, period=every or 1)
         if self.reextend_every is not None and not held:
             ring = kept_stencil(surface, width, "ring", system.region & ~system.band,
                                 system.region, limited=True)
