@@ -26,6 +26,16 @@ def test_extract_sphere_area_and_volume() -> None:
     assert np.abs(radius - 1).max() < 0.1 * grid.spacing
 
 
+def test_extract_keeps_a_vertex_on_its_node_when_a_neighbour_is_on_the_level_too() -> None:
+    # the crossing on the y edge is closer to node (1, 1, 1) than float32 resolves, and the
+    # neighbour along z is nearly on the level too: the vertex is that node, not one along z
+    phi = torch.ones(1, 1, 4, 4, 4, dtype=torch.float64)
+    phi[0, 0, 1, 1, 1], phi[0, 0, 2, 1, 1], phi[0, 0, 1, 2, 1] = 1e-17, 1e-18, -1.0
+    surface = tsm.extract(phi, ts.Grid((4, 4, 4), 1.0))
+    assert np.linalg.norm(surface.vertices - [1.0, 1.0, 1.0], axis=1).min() == 0.0
+    assert np.linalg.norm(surface.vertices - [1.0, 1.0, 2.0], axis=1).min() > 0.5
+
+
 def test_extract_level_and_world_coordinates() -> None:
     grid = ts.Grid(shape=(30, 31, 32), spacing=0.1, origin=(1.0, -2.0, 0.5))
     center = (2.5, -0.5, 2.0)

@@ -64,9 +64,12 @@ def _crossings_in_float64(volume: np.ndarray, index: np.ndarray, level: float) -
     """Recompute marching-cubes vertices ``(V, 3)`` (array-axis order) in float64.
 
     scikit-image returns float32 positions; each vertex lies on a grid edge, so the edge is
-    recovered from the position and the linear crossing is solved again from the volume.
+    recovered from the position and the linear crossing is solved again from the volume. A
+    position on a node (the crossing closer to it than float32 resolves, or ``volume == level``
+    there) is that node exactly: its edge is not known, and every vertex there coincides.
     """
     rounded = np.rint(index)
+    on_node = (index == rounded).all(axis=1)
     axis = np.abs(index - rounded).argmax(axis=1)
     rows = np.arange(len(index))
     low = rounded.astype(np.int64)
@@ -77,6 +80,7 @@ def _crossings_in_float64(volume: np.ndarray, index: np.ndarray, level: float) -
     above = volume[high[:, 0], high[:, 1], high[:, 2]]
     step = above - below
     fraction = np.where(step != 0, (level - below) / np.where(step != 0, step, 1.0), 0.0)
+    fraction[on_node] = 0.0
     crossing = low.astype(np.float64)
     crossing[rows, axis] += np.clip(fraction, 0.0, 1.0)
     return crossing
