@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 import trimesh
+from scipy.spatial import cKDTree
 
 import torchsurf as ts
 from torchsurf import mesh as tsm
@@ -24,6 +25,40 @@ def test_extract_sphere_area_and_volume() -> None:
     assert surface.volume == pytest.approx(4 / 3 * math.pi, rel=0.01)  # positive: outward
     radius = np.linalg.norm(surface.vertices, axis=1)
     assert np.abs(radius - 1).max() < 0.1 * grid.spacing
+
+
+def _half_box_on_node_planes() -> tuple[torch.Tensor, ts.Grid, float]:
+    """``z <= 0`` inside the box ``|x|, |y| <= 0.75, |z| <= 0.5``: every face on a node plane
+    (spacing 1/8, dyadic node positions, so phi is exactly 0 there)."""
+    grid = ts.Grid.cube(17, bound=1.0)
+    box = ts.sdf.box(grid, half_size=(0.75, 0.75, 0.5), dtype=torch.float64)
+    height = grid.points(dtype=torch.float64)[..., 2][None, None]
+    return torch.maximum(height, box), grid, 2 * 1.5**2 + 4 * 1.5 * 0.5
+
+
+def _sphere_through_nodes() -> tuple[torch.Tensor, ts.Grid, float]:
+    """A sphere of radius 10 cells about a node: some nodes lie on it."""
+    grid = ts.Grid.cube(33, bound=1.2)
+    radius = 10 * grid.spacing
+    return ts.sdf.sphere(grid, radius=radius, dtype=torch.float64), grid, 4 * math.pi * radius**2
+
+
+@pytest.mark.parametrize(("case", "area_tolerance"),
+                         [(_half_box_on_node_planes, 1e-12), (_sphere_through_nodes, 5e-3)],
+                         ids=["plane-in-box", "sphere"])
+def test_extract_where_phi_vanishes_at_nodes_has_no_degenerate_faces(case, area_tolerance) -> None:
+    phi, grid, area = case()
+    surface = tsm.extract(phi, grid)
+    corners = surface.vertices[surface.faces]
+    areas = 0.5 * np.linalg.norm(
+        np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+    assert areas.min() >= 1e-12 * grid.spacing**2
+    nearest, _ = cKDTree(surface.vertices).query(surface.vertices, k=2)
+    assert nearest[:, 1].min() >= 1e-9 * grid.spacing
+    assert surface.is_watertight and surface.is_winding_consistent
+    assert surface.euler_number == 2 and len(np.unique(surface.faces)) == len(surface.vertices)
+    assert surface.volume > 0  # still wound outward
+    assert surface.area == pytest.approx(area, rel=area_tolerance)
 
 
 def test_extract_keeps_a_vertex_on_its_node_when_a_neighbour_is_on_the_level_too() -> None:

@@ -40,7 +40,9 @@ def level_set(volume: np.ndarray, grid: Grid, level: float = 0.0,
 
     Returns:
         vertices ``(V, 3)`` float64 world ``(x, y, z)`` and faces ``(F, 3)`` int64, wound so
-        that the normals point towards values above ``level`` (outward for ``phi``).
+        that the normals point towards values above ``level`` (outward for ``phi``). No two
+        vertices coincide and no face repeats a vertex, also where ``volume`` equals
+        ``level`` at nodes (:func:`_merge_coincident`).
 
     Raises:
         ValueError: ``volume`` never crosses ``level``.
@@ -54,7 +56,7 @@ def level_set(volume: np.ndarray, grid: Grid, level: float = 0.0,
         )
     index, faces, _, _ = measure.marching_cubes(volume, level=level, gradient_direction="ascent",
                                                 mask=mask)
-    index = _crossings_in_float64(volume, index, level)
+    index, faces = _merge_coincident(_crossings_in_float64(volume, index, level), faces)
     # scikit-image orders vertex coordinates like the array axes, (z, y, x).
     vertices = grid.spacing * index[:, ::-1] + np.asarray(grid.origin)
     return np.ascontiguousarray(vertices), np.ascontiguousarray(faces, dtype=np.int64)
@@ -84,6 +86,27 @@ def _crossings_in_float64(volume: np.ndarray, index: np.ndarray, level: float) -
     crossing = low.astype(np.float64)
     crossing[rows, axis] += np.clip(fraction, 0.0, 1.0)
     return crossing
+
+
+def _merge_coincident(points: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices ``points`` ``(V, 3)`` at the same position made one, in order of first use, and
+    the faces ``(F, 3)`` left with a repeated vertex dropped.
+
+    Where the volume equals the level at a node, marching cubes puts a vertex on each crossing
+    edge at that node, and the triangles between two of them have no area. Merging them and
+    dropping those triangles keeps the winding of the others and closes the mesh as before:
+    a dropped triangle ``(a, a, b)`` held both orientations of its one edge ``a b``.
+    """
+    _, first, inverse = np.unique(points, axis=0, return_index=True, return_inverse=True)
+    if len(first) == len(points):
+        return points, faces
+    order = np.argsort(first)
+    renumber = np.empty_like(order)
+    renumber[order] = np.arange(len(order))
+    faces = renumber[inverse.reshape(-1)][faces]
+    distinct = (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) \
+        & (faces[:, 2] != faces[:, 0])
+    return points[first[order]], faces[distinct]
 
 
 def redistance(volume: np.ndarray, grid: Grid, band: float) -> np.ndarray:
