@@ -81,6 +81,23 @@ def test_every_flow_keeps_u0_outside_its_band_and_never_reads_it(name, sphere):
     assert not torch.equal(result[region], u0[region])  # and it did evolve the band
 
 
+@pytest.mark.parametrize("name", FLOWS)
+def test_every_flow_remembers_the_steps_it_took(name, sphere, monkeypatch):
+    """Catches a flow whose call does not keep its plan (``torchsurf run`` records it)."""
+    from torchsurf.flows import base
+
+    planned = []
+    plan_steps = base.plan_steps
+    monkeypatch.setattr(base, "plan_steps",
+                        lambda *args, **kwargs: planned.append(plan_steps(*args, **kwargs))
+                        or planned[-1])
+    make, data, inputs = FLOWS[name]
+    flow = make()
+    assert flow.last_plan is None
+    flow(data(), sphere, **inputs())
+    assert flow.last_plan is planned[-1] and flow.last_plan.count >= 1
+
+
 def test_color_denoise_keeps_u0_outside_its_band(sphere):
     image = torch.rand(1, 3, *GRID.shape) + 0.1
     flow = ColorDenoise(0.002)

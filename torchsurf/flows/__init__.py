@@ -2,7 +2,7 @@
 reaction–diffusion, flow visualisation and data extension, with explicit, implicit
 (conjugate gradients) and torchdiffeq integration."""
 
-from ._integrators import INTEGRATORS, check_method
+from ._integrators import INTEGRATORS, Plan, check_method
 from .anisotropic import AnisotropicFlow
 from .base import Flow
 from .color import ColorDenoise
@@ -21,6 +21,7 @@ __all__ = [
     "FlowVisualization",
     "HarmonicMapFlow",
     "HeatFlow",
+    "Plan",
     "ReactionDiffusion",
     "check_method",
     "closest_point_extension",

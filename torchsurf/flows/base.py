@@ -62,6 +62,7 @@ from ._integrators import (
     IMPLICIT,
     INTEGRATORS,
     Linear,
+    Plan,
     Schedule,
     System,
     check_method,
@@ -270,6 +271,12 @@ class Flow(nn.Module):
             ``O(sqrt(steps))`` volumes instead of every stage's, for about 1.3-2x the time.
             ``"auto"`` (default): when autograd records the call (a parameter, ``u0`` or
             ``phi`` requires grad); ``True`` or ``False`` to force.
+
+    Attributes:
+        last_plan: the :class:`~torchsurf.flows.Plan` of the last call, the number of steps
+            it took (``None`` for adaptive torchdiffeq methods) and their size; ``None``
+            before the first call and for methods that take no steps (``"chebyshev"``).
+            Where a batch's entries are integrated apart, the last entry's.
     """
 
     supports_bricks = False
@@ -325,6 +332,7 @@ class Flow(nn.Module):
             raise TypeError(f"checkpoint must be True, False or 'auto', got {checkpoint!r}")
         self.checkpoint = checkpoint
         self.band_width = None if band_width is None else check_positive(band_width, "band_width")
+        self.last_plan: Plan | None = None
 
     @property
     def time(self) -> float | Tensor:
@@ -536,6 +544,7 @@ class Flow(nn.Module):
         plan = plan_steps(self.method, system, end, self.steps,
                           band_cells=width / surface.spacing,
                           diagonal_cells=_diagonal_cells(surface))
+        self.last_plan = plan
         bar = self._progress_bar(plan.count)
         schedule = self._schedule(end, wanted, None)
         schedule.step = plan.step
