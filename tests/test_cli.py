@@ -75,6 +75,7 @@ def test_builtin_config_runs_at_a_tiny_size(name, tmp_path, capsys):
     assert record["config"]["grid"]["size"] == 24
     assert set(record["stages_seconds"]) == {"surface", "signal", "flow", "render"}
     assert record["physical"]["time"] > 0
+    assert None not in _leaves(record["flow"]), record["flow"]
     assert record["versions"]["torch"]
     printed = capsys.readouterr().out
     assert "physical time" in printed
@@ -91,6 +92,42 @@ def test_mesh_config_runs_at_a_tiny_size(name, tmp_path, monkeypatch):
     code = cli.main(["run", name, "--set", *_tiny_args(name), "--out", str(tmp_path), "--quiet"])
     assert code == cli.EXIT_OK
     _check_picture(tmp_path / f"{name}.png", len(_load(name).render.panels))
+
+
+def _leaves(data: object) -> list[object]:
+    if isinstance(data, dict):
+        return [leaf for value in data.values() for leaf in _leaves(value)]
+    return [data]
+
+
+@pytest.mark.parametrize(("overrides", "method"), [
+    ([], "rkc"), (["flow.method=euler"], "euler"), (["flow.steps=5"], "rkc"),
+])
+def test_record_holds_the_flow_settings_the_run_used(overrides, method, tmp_path, monkeypatch):
+    """``flow`` records what ran: the defaults a config leaves null, and the steps the flow
+    planned (heat plans each of the image's channels alike); ``config`` keeps the request."""
+    from torchsurf.flows import base
+
+    planned = []
+    plan_steps = base.plan_steps
+
+    def spy(*args, **kwargs):
+        planned.append(plan_steps(*args, **kwargs))
+        return planned[-1]
+
+    monkeypatch.setattr(base, "plan_steps", spy)
+    code = cli.main(["run", "heat_sphere", "--set", *TINY, *overrides, "--out", str(tmp_path),
+                     "--quiet"])
+    assert code == cli.EXIT_OK
+    record = json.loads((tmp_path / "heat_sphere.json").read_text())
+    steps = planned[-1].count
+    assert {plan.count for plan in planned} == {steps} and len(planned) == 3
+    assert record["flow"] == {"kind": "heat", "time": 0.0005, "time_unit": "diagonal",
+                              "method": method, "steps": steps}
+    requested = record["config"]["flow"]
+    assert requested["method"] == ("euler" if "flow.method=euler" in overrides else None)
+    assert requested["steps"] == (5 if "flow.steps=5" in overrides else None)
+    assert requested["time_unit"] is None
 
 
 def test_mesh_path_resolves_against_the_config_folder_then_the_mesh_dir(tmp_path, monkeypatch):

@@ -3,8 +3,8 @@
 :func:`prepare` does everything that can fail on the config alone (mesh path, shape
 parameters) before any computation; :func:`run` then builds the surface, puts the signal on
 it, runs the flow, and writes ``<name>.png`` (the panels side by side) and ``<name>.json``
-(the config as resolved, the physical values the scale-free settings became, stage times,
-versions) into the output folder.
+(the config as resolved, the flow's settings as run, the physical values the scale-free
+settings became, stage times, versions) into the output folder.
 """
 
 from __future__ import annotations
@@ -59,13 +59,15 @@ class Prepared:
 
 @dataclass
 class Result:
-    """What a run wrote and measured."""
+    """What a run wrote and measured; ``flow`` the flow's settings as run
+    (:func:`flow_as_run`)."""
 
     picture: Path
     record: Path
     stages: dict[str, float]
     physical: dict[str, float]
     metrics: dict[str, float] = field(default_factory=dict)
+    flow: dict[str, Any] = field(default_factory=dict)
 
 
 def _shape_params(shape: Shape, params: dict[str, Any]) -> dict[str, Any]:
@@ -285,6 +287,30 @@ def build_flow(experiment: Experiment, physical: dict[str, float], progress: boo
     return flows.FlowVisualization(t, isotropic=physical["isotropic"], **options)
 
 
+def flow_as_run(experiment: Experiment, module: torch.nn.Module) -> dict[str, Any]:
+    """The config's ``flow`` section with the values the run used where it left a default
+    (``null``): the time unit, the optional settings the flow reads, the integration method and
+    the steps ``module`` took in its last call. For colour denoising, ``steps`` maps its
+    ``brightness`` and ``chroma`` flows to theirs."""
+    flow = experiment.flow
+    if isinstance(module, flows.ColorDenoise):
+        method = module.chroma.method
+        steps = {name: _steps_taken(getattr(module, name)) for name in ("brightness", "chroma")}
+    else:
+        method, steps = module.method, _steps_taken(module)
+    return {
+        "kind": flow.kind.name, "time": flow.time, "time_unit": cfg.time_unit(flow).name,
+        **{name: cfg.flow_setting(flow, name) for name in cfg.FLOW_SETTINGS[flow.kind]},
+        "method": method, "steps": steps,
+    }
+
+
+def _steps_taken(flow: flows.Flow) -> int | None:
+    """The steps ``flow`` took in its last call (:attr:`torchsurf.flows.Flow.last_plan`),
+    ``None`` for a method without a step count (adaptive torchdiffeq, ``chebyshev``)."""
+    return None if flow.last_plan is None else flow.last_plan.count
+
+
 def _versions() -> dict[str, str]:
     from importlib import metadata
 
@@ -414,6 +440,7 @@ def run(prepared: Prepared, out: str | os.PathLike, progress: bool = False,
                 output = module(start, surface)
         if not bool(torch.isfinite(output[surface.band_mask().expand_as(output)]).all()):
             raise FloatingPointError(f"{experiment.name}: the flow produced NaN or infinity")
+        ran = flow_as_run(experiment, module)
         stage("flow")
         volumes = {"clean": clean, "input": start, "output": output}
         if experiment.signal.kind is SignalKind.field:
@@ -446,19 +473,21 @@ def run(prepared: Prepared, out: str | os.PathLike, progress: bool = False,
         )
         stage("render")
     try:
-        record = _write_record(prepared, surface, n, spacing, diagonal, physical, metrics, stages,
-                               picture, renderer, out / f"{experiment.name}.json")
+        record = _write_record(prepared, surface, n, spacing, diagonal, ran, physical, metrics,
+                               stages, picture, renderer, out / f"{experiment.name}.json")
         os.replace(drawn, picture)
     except BaseException:
         drawn.unlink(missing_ok=True)
         raise
-    return Result(picture, record, stages, physical, metrics)
+    return Result(picture, record, stages, physical, metrics, ran)
 
 
 def _write_record(prepared: Prepared, surface: ImplicitSurface, n: int, spacing: float,
-                  diagonal: float, physical: float, metrics: dict[str, float],
-                  stages: dict[str, float], picture: Path, renderer: str, path: Path) -> Path:
-    """The run's JSON record (config, grid, metrics, timings, versions) written to ``path``."""
+                  diagonal: float, ran: dict[str, Any], physical: dict[str, float],
+                  metrics: dict[str, float], stages: dict[str, float], picture: Path,
+                  renderer: str, path: Path) -> Path:
+    """The run's JSON record (config as requested, grid and flow as run, metrics, timings,
+    versions) written to ``path``."""
     experiment = prepared.experiment
     layout = cfg.layout(experiment.grid)
     return write_json({
@@ -468,6 +497,7 @@ def _write_record(prepared: Prepared, surface: ImplicitSurface, n: int, spacing:
                  "layout": layout.name,
                  "bricks": None if surface.layout is None else len(surface.layout)},
         "diagonal": diagonal,
+        "flow": ran,
         "physical": physical,
         "metrics": metrics,
         "stages_seconds": stages,
