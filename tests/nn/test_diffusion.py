@@ -81,9 +81,10 @@ def test_phi1_is_the_affine_solution():
 @pytest.mark.parametrize("cells", [1.0, 10.0])
 def test_sphere_harmonics_decay_like_heat_flow(sphere33, cells):
     """Within 1.5x the RKC heat flow's error on the same band (and 2.5e-2 of the amplitude) on
-    S, 33^3; at 10 h^2 within 2.2x: one expansion lets the level sets off S drift apart (l = 3:
-    1.17e-2 against the heat flow's 5.8e-3, four expansions with the band re-extended between
-    them 7.3e-3; docs/band.md), the price of a cost that grows as the time's square root."""
+    S, 33^3; at 10 h^2 within 1.8x: one expansion lets the level sets off S drift apart (l = 3,
+    the degree that needs more than 1.5x: 1.17e-2 against the heat flow's 5.8e-3, four
+    expansions with the band re-extended between them 7.3e-3; docs/band.md), the price of a
+    cost that grows as the time's square root."""
     u0, surface = sphere33
     time = cells * surface.spacing**2
     layer = LearnedDiffusion(4, time=cells, learn_time=False)
@@ -93,7 +94,7 @@ def test_sphere_harmonics_decay_like_heat_flow(sphere33, cells):
     absolute = [e * math.exp(-degree * (degree + 1) * time / ts.exact.SPHERE_RADIUS**2)
                 for degree, e in zip((1, 2, 3, 4), errors, strict=True)]
     assert max(absolute) < 2.5e-2, errors  # l = 4: 8 cells a wavelength at 33^3
-    allowed = 1.5 if cells <= 1.0 else 2.2
+    allowed = 1.5 if cells <= 1.0 else 1.8
     for mine, theirs in zip(errors, reference, strict=True):
         assert mine < allowed * theirs + 2e-3, (errors, reference)
 
