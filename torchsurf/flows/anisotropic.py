@@ -36,6 +36,11 @@ class AnisotropicFlow(Flow):
     (at 40^3 with noise 0.2, Perona–Malik's result moved by 0.11 when re-extended twice as
     often). Compare noisy runs at the same method and settings (docs/band.md §4).
 
+    The edge-stopping diffusivities damp little across edges: on surfaces thinner than the band
+    or folded within it, keep the default method; Perona–Malik's Euler steps grew without bound
+    on a trefoil mesh at 32^3 where RKC's did not (docs/band.md §5; a call that leaves the
+    range of ``u0`` warns, :attr:`~torchsurf.flows.Flow.keeps_range`).
+
     Args:
         time: physical end time, world units squared times ``g``.
         diffusivity: ``"total_variation"`` (default), ``"perona_malik"``, ``"charbonnier"`` or
@@ -53,6 +58,7 @@ class AnisotropicFlow(Flow):
     """
 
     supports_bricks = True
+    keeps_range = True
 
     def __init__(
         self,
@@ -68,6 +74,8 @@ class AnisotropicFlow(Flow):
     ) -> None:
         super().__init__(time, **kwargs)
         self.diffusivity = resolve_diffusivity(diffusivity)
+        # a user's own g may be negative somewhere: no maximum principle to check then
+        self.keeps_range = any(self.diffusivity is g for g in DIFFUSIVITIES.values())
         self.contrast = Positive(contrast, "contrast", learnable=learn_contrast)
         self.eps = check_positive(eps, "eps")
         if max_diffusivity is None:

@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import warnings
 from collections.abc import Iterator, Sequence
 
 import numpy as np
@@ -75,6 +76,42 @@ from ._integrators import (
 from ._positive import Positive
 from ._reextension import kept_stencil, reextend, stencil_key
 from ._solve import SolverOptions
+
+RANGE_SLACK = 0.1
+"""How far, as a fraction of ``u0``'s range over the band and its ring, the result of a flow
+that keeps ``u`` within that range (:attr:`Flow.keeps_range`) may leave it before the call
+warns. The projected stencils of the symmetric scheme are not monotone, so a stable flow may
+overshoot a little (flow visualisation without re-extension: 10% of the range of noise);
+an unstable one grows without bound (docs/band.md, section 5)."""
+
+
+def _warn_if_range_left(flow: Flow, u0: Tensor, results: list[Tensor], region: Tensor,
+                        band: Tensor, plan: Plan) -> None:
+    """Warn if any of ``results`` leaves the range of ``u0`` (over ``region``, per channel)
+    in the ``band`` by more than :data:`RANGE_SLACK` of that range."""
+    dims = [d for d in range(u0.dim()) if d != 1]
+    with torch.no_grad():
+        start = u0.detach()
+        low = torch.where(region, start, torch.inf).amin(dim=dims)
+        high = torch.where(region, start, -torch.inf).amax(dim=dims)
+        span = (high - low).clamp_min(torch.finfo(start.dtype).tiny)
+        excess = max(float((torch.maximum(
+            torch.where(band, value.detach(), -torch.inf).amax(dim=dims) - high,
+            low - torch.where(band, value.detach(), torch.inf).amin(dim=dims)) / span).max())
+            for value in results)
+    if excess > RANGE_SLACK:
+        steps = ("adaptive steps" if plan.count is None
+                 else f"{plan.count} steps of {plan.step:.3g}")
+        remedy = ("a finer grid" if flow.method == "rkc"
+                  else "method='rkc' (stable there in every case measured) or a finer grid")
+        warnings.warn(
+            f"{type(flow).__name__} (method={flow.method!r}, {steps}) left the range of u0 "
+            f"by {excess:.3g} of that range, though its equation keeps u within it: its steps "
+            "and the band's re-extensions were unstable on this surface (parts of S closer "
+            "together, or more curved, than the band and the interpolation stencil resolve; "
+            f"docs/band.md, section 5). Use {remedy}",
+            RuntimeWarning, stacklevel=5,
+        )
 
 
 def _check_times(times: object, end: float) -> list[float]:
@@ -281,6 +318,12 @@ class Flow(nn.Module):
 
     supports_bricks = False
     """Whether the flow runs on a :class:`~torchsurf.bricks.BrickSurface` (packed fields)."""
+
+    keeps_range = False
+    """Whether the flow's equation keeps ``u`` within the range of ``u0`` (a maximum
+    principle: heat, flow visualisation, total variation and edge-stopping diffusion). Where it
+    does, a call whose result leaves that range by more than :data:`RANGE_SLACK` of it warns
+    (``RuntimeWarning``): the steps and re-extensions were unstable on that surface."""
 
     extra_methods: tuple[str, ...] = ()
     """Methods the flow integrates itself, beyond the built-in integrators and torchdiffeq's."""
@@ -498,6 +541,11 @@ class Flow(nn.Module):
             FloatingPointError: the integration diverged (NaN or infinity in the band).
             MemoryError: before any work, when a lower bound of the memory the call needs
                 exceeds the memory available (:mod:`torchsurf._memory`).
+
+        Warns:
+            RuntimeWarning: a flow that keeps ``u`` within the range of ``u0``
+                (:attr:`keeps_range`) left it by more than :data:`RANGE_SLACK` of it: unstable
+                steps on that surface (docs/band.md, section 5).
         """
         check_surface(surface)
         if surface.layout is not None and not self.supports_bricks:
@@ -567,6 +615,8 @@ class Flow(nn.Module):
             if bar is not None:
                 bar.close()
         if not torch.compiler.is_compiling():  # a host read: it would break a traced graph
+            if self.keeps_range:
+                _warn_if_range_left(self, u0, result, system.region, system.band, plan)
             for value in result:
                 if not bool(torch.isfinite(torch.where(system.region, value.detach(), 0.0)).all()):
                     other = "" if self.method == "rkc" else "method='rkc', "

@@ -81,6 +81,7 @@ class HeatFlow(Flow):
     """
 
     supports_bricks = True
+    keeps_range = True
     extra_methods = ("chebyshev",)
 
     def __init__(

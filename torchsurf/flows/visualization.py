@@ -24,6 +24,11 @@ class FlowVisualization(Flow):
     Runs on a :class:`~torchsurf.bricks.BrickSurface` too (``u0`` and ``T`` packed
     ``(N, C, 8, 8, 8)``), equal to the dense flow on the band (docs/bricks.md).
 
+    The operator damps nothing across ``T``: on surfaces thinner than the band or folded within
+    it, keep the default method (RKC), where Euler's, Heun's and backward Euler's many more
+    re-extensions grew without bound (a trefoil mesh at 32^3 and 48^3, docs/band.md §5; a call
+    that leaves the range of ``u0`` warns, :attr:`~torchsurf.flows.Flow.keeps_range`).
+
     Args:
         time: physical end time, world units squared (streak length about ``sqrt(time)``).
         isotropic: weight ``iso`` of a small isotropic term (0 by default).
@@ -34,6 +39,7 @@ class FlowVisualization(Flow):
     """
 
     supports_bricks = True
+    keeps_range = True
 
     def __init__(self, time: float, isotropic: float = 0.0, **kwargs: object) -> None:
         super().__init__(time, **kwargs)
