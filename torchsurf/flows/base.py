@@ -615,8 +615,6 @@ class Flow(nn.Module):
             if bar is not None:
                 bar.close()
         if not torch.compiler.is_compiling():  # a host read: it would break a traced graph
-            if self.keeps_range:
-                _warn_if_range_left(self, u0, result, system.region, system.band, plan)
             for value in result:
                 if not bool(torch.isfinite(torch.where(system.region, value.detach(), 0.0)).all()):
                     other = "" if self.method == "rkc" else "method='rkc', "
@@ -625,6 +623,8 @@ class Flow(nn.Module):
                         f"{plan.step:.3g}) diverged: u holds NaN or infinity in the band though "
                         f"u0 did not; use {other}more steps, or smaller parameters"
                     )
+            if self.keeps_range:
+                _warn_if_range_left(self, u0, result, system.region, system.band, plan)
         return result[-1] if times is None else torch.stack(initial + result)
 
     def _entries_apart(self, u0: Tensor, surface: ImplicitSurface, times: object,
