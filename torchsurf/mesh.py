@@ -148,14 +148,14 @@ class MeshAdapter(nn.Module):
       nodes read: ``sum_n w_n hat_j(c_n) = [j = i]``, ``c_n`` the mesh closest points), which
       is what :meth:`encode` writes: the round trip returns the vertex values to about 1e-5
       whatever they are, where the nodes read at most 16 vertices (facets as large as the
-      cells or larger: uniform noise came back within 1e-4 at 20% / 64% / 78% of spot's 2.9k
-      vertices at 64^3 / 96^3 / 128^3, 7% / 35% of teapot_closed's 3.3k at 64^3 / 128^3,
-      none of bunny_closed's 35k; elsewhere its error reached 0.6-0.85 of the noise's range:
-      noise is not what the other constraints reproduce); where they read more (small
-      facets), every affine function of the mesh closest points instead, the mesh's own
-      interpolation error being below the grid's,
-      and likewise where reproducing the hats would take weights of 1-norm above 4 (many
-      small coplanar facets: the fandisk's flat parts reached 47 and amplified data 1.8x);
+      cells or larger: uniform noise on the vertices came back within 1e-4 at 20% / 64% / 78%
+      of spot's 2.9k vertices at 64^3 / 96^3 / 128^3, 7% / 35% of teapot_closed's 3.3k at
+      64^3 / 128^3, none of bunny_closed's 35k, and off by up to 0.6-0.85 of its range at the
+      others, where the constraints below, which noise does not obey, apply); where they read
+      more (small facets), every affine function of the mesh closest points instead, the
+      mesh's own interpolation error being below the grid's, and likewise where reproducing
+      the hats would take weights of 1-norm above 4 (many small coplanar facets: the
+      fandisk's flat parts reached 47 and amplified data 1.8x);
     - every affine function of the grid's closest points ``g_n = x_n - phi grad phi /
       |grad phi|^2`` (what the flows' re-extension writes, :mod:`torchsurf.flows.extension`),
       so that a smooth field left by a flow comes back with an error ``O(h^2 |u''|)``.
