@@ -50,5 +50,5 @@ def test_summary_takes_the_fastest_run_within_the_target(bench):
     text = "\n".join(bench.time_to_accuracy(rows, 1e-3))
     assert "| euler | 81 | 0.400 |" in text
     assert "(target >= 20): 300.00" in text
-    assert "(target <= 0.25): 4.00" in text
-    assert "default (rkc) ÷ mesh peer (target <= 0.25): 6.00" in text
+    assert "(target <= 0.1): 4.00" in text
+    assert "default (rkc) ÷ mesh peer: 6.00" in text
