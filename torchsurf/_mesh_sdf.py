@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import igl
 import numpy as np
 
+from ._stack import caller_stacklevel
 from .grid import Grid
 
 SIGN_METHODS = ("auto", "winding", "pseudonormal")
@@ -342,7 +343,7 @@ def _warn_inverted(numbers: np.ndarray) -> None:
             "nodes asked: a closed part is wound inward (its faces' normals point in) and "
             "counts as a cavity, not a solid; if it is a solid, fix its winding first "
             "(trimesh.repair.fix_normals)",
-            RuntimeWarning, stacklevel=5)
+            RuntimeWarning, stacklevel=caller_stacklevel())
 
 
 @dataclass
@@ -399,7 +400,7 @@ def signed_near(vertices: np.ndarray, faces: np.ndarray, grid: Grid, band: float
                     f"sign='pseudonormal': at {int((~agree).sum())} of {len(agree)} nodes at "
                     "the band's edge the pseudonormals and the winding number disagree (a "
                     "closed part wound against the others); signed by the winding number",
-                    RuntimeWarning, stacklevel=4)
+                    RuntimeWarning, stacklevel=caller_stacklevel())
             sign = "winding"
     if sign == "winding":
         queries = np.concatenate(centres + [points])

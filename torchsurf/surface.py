@@ -20,6 +20,7 @@ from ._checks import (
     check_spatial_shape,
     check_volume,
 )
+from ._stack import caller_stacklevel
 from .grid import Grid
 
 T = TypeVar("T")
@@ -77,7 +78,7 @@ def _warn_floored_on_surface(crossing: Tensor, grad_norm: Tensor, scale: Tensor)
             f"MINIMUM_WEIGHT = {MINIMUM_WEIGHT}): the operators' weight W is floored at those "
             "nodes and they are no longer intrinsic; make phi a distance near S first "
             "(torchsurf.sdf.redistance)",
-            RuntimeWarning, stacklevel=4,
+            RuntimeWarning, stacklevel=caller_stacklevel(),
         )
 
 

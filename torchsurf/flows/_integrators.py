@@ -20,6 +20,7 @@ from dataclasses import dataclass, field, replace
 import torch
 from torch import Tensor
 
+from .._stack import caller_stacklevel
 from ..bricks.layout import BrickLayout
 from ._recompute import independent, recomputed
 from ._rkc import MAX_STAGES, largest_step_times_rho, rkc_step, stages_for
@@ -311,7 +312,7 @@ def plan_steps(method: str, system: System, end: float, steps: int | None,
                 f"steps={steps}: a step of {end / steps:.3g} exceeds the stable explicit step "
                 f"{system.stable_step:.3g} of this surface's operator (2 / rho); the flow may "
                 f"blow up. Use steps >= {math.ceil(end / system.stable_step)} or method='rkc'",
-                RuntimeWarning, stacklevel=4,
+                RuntimeWarning, stacklevel=caller_stacklevel(),
             )
     if steps is not None and method in IMPLICIT and end / steps * rho > 12.0 * band_cells**2:
         warnings.warn(
@@ -319,7 +320,7 @@ def plan_steps(method: str, system: System, end: float, steps: int | None,
             f"the {band_cells:.1f}-cell band ({12.0 * band_cells**2 / rho:.3g}), whose ring is "
             f"re-extended only between steps; expect errors from the band's edge. Use steps >= "
             f"{math.ceil(end * rho / (12.0 * band_cells**2))} or a wider band_width",
-            RuntimeWarning, stacklevel=4,
+            RuntimeWarning, stacklevel=caller_stacklevel(),
         )
     evaluations = None
     if count is not None:
@@ -339,7 +340,7 @@ def plan_steps(method: str, system: System, end: float, steps: int | None,
             f"of the rate (more than {LONG_RUN}; time * rho = {end * rho:.3g}); a diffusion "
             "reaches its equilibrium once its length sqrt(time * diffusivity) exceeds the "
             "surface's size: is the time in world units squared?",
-            RuntimeWarning, stacklevel=4,
+            RuntimeWarning, stacklevel=caller_stacklevel(),
         )
     step = end / count if count else end
     if method == "rkc" and step * rho > largest_step_times_rho():

@@ -16,6 +16,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from .._stack import caller_stacklevel
+
 Operator = Callable[..., Tensor]
 
 _SPATIAL = (2, 3, 4)
@@ -72,7 +74,7 @@ def _warn_unconverged(energy: Tensor, norm: Tensor, tolerance: float, iterations
         f"relative residual |b - K x| / |b| = {reached:.3g}, tolerance {tolerance:.3g}; raise "
         "max_iterations or the tolerance, or take shorter steps",
         RuntimeWarning,
-        stacklevel=3,
+        stacklevel=caller_stacklevel(),
     )
 
 

@@ -55,6 +55,7 @@ from .._checks import (
     check_nonnegative,
     check_positive,
 )
+from .._stack import caller_stacklevel
 from ..bricks.layout import BRICK
 from ..operators.spectrum import laplace_beltrami_bound
 from ..surface import ImplicitSurface, check_data, check_surface
@@ -116,7 +117,7 @@ def _warn_if_range_left(flow: Flow, u0: Tensor, results: list[Tensor], region: T
             "equation keeps u within it: its steps and the band's re-extensions were unstable on "
             "this surface (parts of S closer together, or more curved, than the band and the "
             f"interpolation stencil resolve; docs/band.md, section 5). Use {remedy}",
-            RuntimeWarning, stacklevel=5,
+            RuntimeWarning, stacklevel=caller_stacklevel(),
         )
 
 

@@ -38,6 +38,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from .._stack import caller_stacklevel
 from ..operators import functional
 from ..operators.spectrum import laplace_beltrami_bound
 from ..surface import ImplicitSurface
@@ -96,7 +97,7 @@ def _sweeps_to_settle(start: Callable[[Tensor], Tensor], chained: Stencil, band:
         warnings.warn(
             f"the ring's re-extension did not settle in {sweep} sweeps (last change "
             f"{change:.2g} on a constant): exp(t L) may not keep constants constant on this "
-            "surface", RuntimeWarning, stacklevel=4,
+            "surface", RuntimeWarning, stacklevel=caller_stacklevel(),
         )
     return sweep
 

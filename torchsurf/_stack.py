@@ -1,0 +1,22 @@
+"""Where a warning should point: the first frame outside torchsurf and torch."""
+
+from __future__ import annotations
+
+import os
+import sys
+
+import torch
+
+_INTERNAL = tuple(os.path.dirname(module.__file__) + os.sep
+                  for module in (sys.modules[__package__], torch))
+
+
+def caller_stacklevel() -> int:
+    """The ``stacklevel`` for ``warnings.warn`` called by this function's caller that names the
+    user's line: the first frame outside torchsurf and torch (``nn.Module.__call__``), however
+    deep the library's own calls are (a batch integrated one entry at a time re-enters
+    ``forward``)."""
+    frame, level = sys._getframe(1), 1
+    while frame.f_back is not None and frame.f_code.co_filename.startswith(_INTERNAL):
+        frame, level = frame.f_back, level + 1
+    return level
