@@ -15,7 +15,9 @@ def caller_stacklevel() -> int:
     """The ``stacklevel`` for ``warnings.warn`` called by this function's caller that names the
     user's line: the first frame outside torchsurf and torch (``nn.Module.__call__``), however
     deep the library's own calls are (a batch integrated one entry at a time re-enters
-    ``forward``)."""
+    ``forward``). Under ``torch.compile`` (which cannot trace frames) the caller's caller."""
+    if torch.compiler.is_compiling():
+        return 2
     frame, level = sys._getframe(1), 1
     while frame.f_back is not None and frame.f_code.co_filename.startswith(_INTERNAL):
         frame, level = frame.f_back, level + 1
