@@ -83,6 +83,22 @@ def test_a_flow_on_the_batch_matches_each_shape_alone() -> None:
         torch.testing.assert_close(together[b:b + 1], alone)
 
 
+def test_load_state_dict_derives_the_surface_from_the_loaded_phi() -> None:
+    """The surface is built on the adapter's phi buffer, which loading copies into in place:
+    its normals and weight are those of the loaded phi (its own state, or a changed one)."""
+    sphere = MeshBatchAdapter([AnalyticShape("sphere", {"radius": 1.0})], resolution=21)
+    u = torch.rand(1, 1, 21, 21, 21, generator=torch.Generator().manual_seed(0))
+    before = ts.laplace_beltrami(u, sphere.surface)
+    grad_norm = sphere.surface.grad_norm.clone()
+    sphere.load_state_dict(sphere.state_dict())
+    torch.testing.assert_close(ts.laplace_beltrami(u, sphere.surface), before)
+    state = sphere.state_dict()
+    state["phi"] = 2.0 * state["phi"]
+    sphere.load_state_dict(state)
+    assert torch.equal(sphere.surface.phi, state["phi"])
+    torch.testing.assert_close(sphere.surface.grad_norm, 2.0 * grad_norm)
+
+
 def test_analytic_shape_bounds() -> None:
     low, high = AnalyticShape("torus", {"major_radius": 1.0, "minor_radius": 0.3}).bounds()
     np.testing.assert_allclose(high, [1.3, 1.3, 0.3])

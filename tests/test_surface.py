@@ -177,6 +177,27 @@ def test_to_float64_moves_buffers():
     assert moved_again.mean_curvature().dtype == torch.float64
 
 
+@pytest.mark.parametrize("copy_of", ["deepcopy", "pickle"])
+def test_a_copied_surface_is_usable_and_equal(copy_of):
+    """copy.deepcopy and pickle (a DataLoader's worker under 'spawn', torch.save) give fresh
+    tensors: the copy must not take them for a phi modified in place after it was built."""
+    import copy
+    import pickle
+
+    grid = Grid.cube(17, BOUND)
+    surface = ImplicitSurface(sdf.sphere(grid, 1.0), grid)
+    surface.mean_curvature()
+    copied = (copy.deepcopy(surface) if copy_of == "deepcopy"
+              else pickle.loads(pickle.dumps(surface)))
+    u = torch.rand(1, 1, *grid.shape, generator=torch.Generator().manual_seed(0))
+    torch.testing.assert_close(laplace_beltrami(u, copied), laplace_beltrami(u, surface))
+    torch.testing.assert_close(copied.mean_curvature(), surface.mean_curvature())
+    assert torch.equal(copied.band_mask(), surface.band_mask())
+    copied.phi.add_(0.1)  # and a copy still refuses its own phi changed in place
+    with pytest.raises(RuntimeError, match="modified in place"):
+        copied.hessian()
+
+
 def test_plane_exact_at_every_node():
     """An affine ``phi`` (a plane): ``phi`` is extrapolated linearly beyond the grid, so the
     normal is exact and the Hessian and curvatures vanish on every node, faces included."""

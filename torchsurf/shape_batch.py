@@ -204,6 +204,12 @@ class MeshBatchAdapter(nn.Module):
         self.register_buffer("centre", torch.as_tensor(np.stack(centres), dtype=torch.float64))
         self.surface = ImplicitSurface(self.phi, self.grid)
 
+    def _load_from_state_dict(self, state_dict: dict, prefix: str, *args: object) -> None:
+        super()._load_from_state_dict(state_dict, prefix, *args)
+        # the loaded phi was copied into the buffer the surface was built on: derive its
+        # normals and weight again (they belonged to the former values)
+        self.surface = ImplicitSurface(self.phi, self.grid)
+
     def __len__(self) -> int:
         return len(self.adapters)
 

@@ -209,6 +209,14 @@ class ImplicitSurface(nn.Module):
         self.register_buffer("_haloed_weight", None, persistent=False)
         self._kept: dict[tuple, object] = {}
 
+    def __setstate__(self, state: dict) -> None:
+        # a copy (copy.deepcopy, pickle) holds fresh tensors, copied with the geometry derived
+        # from them: it starts a new record of in-place changes
+        super().__setstate__(state)
+        self._phi_version = self.phi._version
+        if self._mean_curvature is not None:
+            self._mean_curvature_version = self._mean_curvature._version
+
     def _apply(self, fn, recurse=True):  # noqa: ANN001, ANN202
         # .to(), .double(), .cuda(): the normals, the weight and what flows kept are derived
         # again from phi in its new dtype and place, as a surface built from the moved phi
