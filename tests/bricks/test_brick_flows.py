@@ -270,3 +270,19 @@ def test_gradcheck_flow_visualization_step_on_bricks_in_data_and_direction(small
     assert torch.autograd.gradcheck(
         lambda x, t: flow(x, surface, direction=t)[band],
         (u.requires_grad_(), direction.requires_grad_()), fast_mode=True, atol=1e-6)
+
+
+def test_a_moved_batch_of_entries_integrates_in_its_new_dtype():
+    """The entries a flow split off a multi-entry surface are kept; ``.double()`` derives
+    them again (they were kept in float32, and the flow refused float64 data)."""
+    grid = Grid.cube(24, 1.5)
+    phi = torch.cat([ts.sdf.sphere(grid, 0.8), ts.sdf.sphere(grid, 0.6)])
+    surface = bricks.from_dense(phi, grid)
+    u = torch.rand(len(surface.layout), 1, 8, 8, 8, generator=torch.Generator().manual_seed(0))
+    flow = HeatFlow((2 * grid.spacing) ** 2)
+    single = flow(u, surface)
+    surface.double()
+    assert all(entry.phi.dtype == torch.float64 for _, entry in surface.entries())
+    double = flow(u.double(), surface)
+    assert double.dtype == torch.float64
+    torch.testing.assert_close(double.float(), single, atol=1e-5, rtol=0)

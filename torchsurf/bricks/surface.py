@@ -68,6 +68,9 @@ class BrickSurface(ImplicitSurface):
 
     def _reassemble(self) -> None:
         self.layout = self.layout.to(self.phi.device)  # its tables are not buffers
+        for key in [key for key in self.__dict__ if key == "_entries"
+                    or key.startswith("_stencilled_")]:
+            del self.__dict__[key]  # kept in the former dtype and place
         super()._reassemble()
 
     @property
