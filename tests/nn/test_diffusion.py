@@ -347,3 +347,55 @@ def test_max_time_clamps_the_times_and_plans_the_terms_for_it(sphere33):
         LearnedDiffusion(2, time=[0.5, 2.0], max_time=1.0)
     with pytest.raises(ValueError, match="learn_time=False"):
         LearnedDiffusion(2, learn_time=False, max_time=1.0)
+
+
+def _small_sphere(n: int = 20) -> tuple[ts.ImplicitSurface, torch.Tensor]:
+    grid = ts.Grid.cube(n, 1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, 0.9), grid)
+    return surface, torch.rand(1, 1, n, n, n, generator=torch.Generator().manual_seed(0))
+
+
+def test_fixed_times_changed_in_place_or_replaced_are_followed():
+    """The expansion's length is counted from a host copy of the largest fixed time: it is
+    read again when the buffer changes (a stale copy gave 0.28 of error at 16 h^2)."""
+    surface, u = _small_sphere()
+    reference = LearnedDiffusion(1, time=16.0, learn_time=False)(u, surface)
+    layer = LearnedDiffusion(1, time=0.1, learn_time=False)
+    layer(u, surface)
+    layer.fixed_time.fill_(16.0)
+    torch.testing.assert_close(layer(u, surface), reference)
+    layer.fixed_time = torch.tensor([0.1])
+    layer(u, surface)
+    layer.fixed_time = torch.tensor([16.0])
+    torch.testing.assert_close(layer(u, surface), reference)
+    layer.fixed_time.fill_(-1.0)
+    with pytest.raises(ValueError, match="fixed_time must hold finite positive values"):
+        layer(u, surface)
+
+
+def test_a_flow_follows_a_fixed_diffusivity_changed_in_place():
+    """The same for the flows' per-channel values: Euler's stable step follows the buffer."""
+    surface, u = _small_sphere()
+    u = u.expand(1, 2, -1, -1, -1)
+    time = 0.5 * surface.spacing**2
+    reference = ts.HeatFlow(time, diffusivity=[20.0, 20.0], method="euler")(u, surface)
+    flow = ts.HeatFlow(time, diffusivity=[1.0, 1.0], method="euler")
+    flow(u, surface)
+    flow.diffusivity.values.fill_(20.0)
+    torch.testing.assert_close(flow(u, surface), reference)
+
+
+def test_learned_times_at_the_softplus_floor_are_refused():
+    with pytest.raises(ValueError, match="learned times must be at least 2e-06"):
+        LearnedDiffusion(1, time=1e-6)
+    assert torch.isfinite(LearnedDiffusion(1, time=2e-6).raw_time).all()
+
+
+def test_non_finite_data_in_the_band_is_refused():
+    surface, u = _small_sphere()
+    band = surface.band_mask()
+    u = u.clone()
+    u[band.expand_as(u)] = float("nan")
+    for layer in (LearnedDiffusion(1), DiffusionBlock(1)):
+        with pytest.raises(ValueError, match=r"u \(in the band\) must hold finite values"):
+            layer(u, surface)

@@ -26,6 +26,38 @@ FLOOR = 1e-12
 """The smallest value a learnable parameter can take, relative to its smallest initial entry."""
 
 
+class HostMaximum:
+    """The largest entry of a fixed tensor as a host float, read again only when the tensor
+    was replaced or modified in place (``data_ptr`` and ``_version``): the flows' step bounds
+    use it without a host read in every call, and never under ``torch.compile`` (which would
+    break its graph there: the value read last is used).
+
+    Args:
+        name: the tensor's name in errors.
+        tensor: its first value, read now.
+    """
+
+    def __init__(self, name: str, tensor: Tensor) -> None:
+        self.name = name
+        self._key: tuple | None = None
+        self._value = math.nan
+        self.of(tensor)
+
+    def of(self, tensor: Tensor) -> float:
+        """The largest entry of ``tensor`` (the one watched); raises ``ValueError`` naming it if
+        it was changed to hold a value that is not finite and positive."""
+        if torch.compiler.is_compiling():
+            return self._value
+        key = (tensor.data_ptr(), tensor._version, tensor.dtype, tensor.device)
+        if key != self._key:
+            largest = float(tensor.max())
+            if not (math.isfinite(largest) and float(tensor.min()) > 0):
+                raise ValueError(f"{self.name} must hold finite positive values, got "
+                                 f"{tensor.tolist()!r}")
+            self._key, self._value = key, largest
+        return self._value
+
+
 def _inverse_softplus(value: Tensor) -> Tensor:
     """``x`` with ``softplus(x) == value`` for ``value > 0`` (stable for large values)."""
     return value + torch.log(-torch.expm1(-value))
@@ -77,13 +109,13 @@ class Positive(nn.Module):
             )
         self.fixed: float | Tensor | None = None
         self.floor = max(FLOOR * float(tensor.min()), torch.finfo(tensor.dtype).tiny)
-        self._largest = float(tensor.max())
         if self.learnable:
             self.raw = nn.Parameter(_inverse_softplus(tensor.clone() - self.floor))
         elif tensor.dim() == 0:
             self.fixed = check_positive(value, name)
         else:
             self.register_buffer("values", tensor.detach().clone())
+            self._largest = HostMaximum(name, self.values)
 
     @property
     def channels(self) -> int | None:
@@ -106,10 +138,10 @@ class Positive(nn.Module):
         graph break under ``torch.compile``); a fixed value's is kept on the host, a bound is
         returned as it is. A learnable value can only stop being finite through its raw
         parameter (an optimiser step that went NaN or infinite); the error names the user's
-        parameter.
+        parameter. Fixed values changed in place or replaced are read again.
         """
         if not self.learnable:  # a single fixed number exactly as given, not rounded
-            return self.fixed if self.fixed is not None else self._largest
+            return self.fixed if self.fixed is not None else self._largest.of(self.values)
         if self.bound is not None:
             return self.bound
         largest = float(self.value().detach().max())
@@ -120,11 +152,6 @@ class Positive(nn.Module):
                 "diverged"
             )
         return largest
-
-    def _load_from_state_dict(self, state_dict: dict, prefix: str, *args: object) -> None:
-        super()._load_from_state_dict(state_dict, prefix, *args)
-        if not self.learnable and self.fixed is None:  # the host copy follows the loaded values
-            self._largest = float(self.values.max())
 
     def volume(self, like: Tensor) -> float | Tensor:
         """The value shaped to broadcast over a volume ``(B, C, D, H, W)`` like ``like``."""

@@ -17,16 +17,19 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .._checks import as_real_tensor, check_choice, check_count, check_flag, check_positive
+from .._checks import (
+    as_real_tensor,
+    check_choice,
+    check_count,
+    check_finite,
+    check_flag,
+    check_positive,
+)
 from ..backend import PATHS
+from ..flows._positive import HostMaximum, _inverse_softplus
 from ..flows.exponential import BandLaplacian, heat_semigroup
 from ..operators import functional
 from ..surface import ImplicitSurface, check_data, check_surface
-
-
-def _inverse_softplus(value: Tensor) -> Tensor:
-    return value + torch.log(-torch.expm1(-value))
-
 
 FLOOR = 1e-6
 """Smallest learned time, ``h^2`` units: softplus alone can underflow to exactly 0."""
@@ -97,11 +100,16 @@ class LearnedDiffusion(nn.Module):
                 f"max_time={self.max_time:g} is below the initial time {time!r}; it must be at "
                 "least as large"
             )
-        self._largest = float(initial.max())
         if self.learn_time:
+            if float(initial.min()) < 2 * FLOOR * (1 - 1e-4):  # float32 rounds 2e-6 down
+                raise ValueError(
+                    f"learned times must be at least {2 * FLOOR:g} (h^2 units; softplus keeps "
+                    f"them above {FLOOR:g}), got {time!r}"
+                )
             self.raw_time = nn.Parameter(_inverse_softplus(initial - FLOOR))
         else:
             self.register_buffer("fixed_time", initial)
+            self._largest = HostMaximum("fixed_time", self.fixed_time)
         self.scheme = check_choice(scheme, "scheme", functional.SCHEMES)
         self.path = check_choice(path, "path", PATHS)
 
@@ -117,19 +125,15 @@ class LearnedDiffusion(nn.Module):
     def largest_time(self) -> float | None:
         """A host float no smaller than every time, ``h^2`` units, read from no tensor:
         ``max_time``, or the largest fixed time; ``None`` for learned times without
-        ``max_time``."""
-        return self.max_time if self.learn_time else self._largest
-
-    def _load_from_state_dict(self, state_dict: dict, prefix: str, *args: object) -> None:
-        super()._load_from_state_dict(state_dict, prefix, *args)
-        if not self.learn_time:  # the host copy follows the loaded times
-            self._largest = float(self.fixed_time.max())
+        ``max_time``. Fixed times changed in place or replaced are read again."""
+        return self.max_time if self.learn_time else self._largest.of(self.fixed_time)
 
     def forward(self, u: Tensor, surface: ImplicitSurface) -> Tensor:
         """Diffuse ``u`` ``(B, C, D, H, W)``; returns ``(B, C, D, H, W)`` (class docstring)."""
         check_surface(surface)
         check_data(u, "u", surface, channels=self.channels)
         operator = BandLaplacian(surface, self.scheme, path=self.path)
+        check_finite(torch.where(operator.band, u.detach(), 0.0), "u (in the band)")
         area = surface.spacing**2
         largest = self.largest_time()
         return heat_semigroup(u, operator, self.time.to(u.dtype) * area,
