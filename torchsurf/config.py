@@ -479,12 +479,31 @@ def check(experiment: Experiment) -> None:
                               f"{getattr(render, key)}")
     if not render.panels:
         raise ConfigError("render.panels", f"name at least one of {', '.join(PANELS)}")
+    if not -90.0 <= render.elevation <= 90.0:
+        raise ConfigError("render.elevation", f"must be in [-90, 90] degrees, got "
+                          f"{render.elevation}")
+    if not math.isfinite(render.azimuth):
+        raise ConfigError("render.azimuth", f"must be a finite number of degrees, got "
+                          f"{render.azimuth}")
+    _check_colormap(render.colormap)
     for index, panel in enumerate(render.panels):
         if panel not in PANELS:
             raise ConfigError(f"render.panels[{index}]",
                               f"must be one of {', '.join(PANELS)}, got {panel!r}")
     if experiment.threads is not None and experiment.threads < 1:
         raise ConfigError("threads", f"must be an integer >= 1, got {experiment.threads}")
+
+
+def _check_colormap(name: str) -> None:
+    """Raise unless matplotlib (the ``render`` extra) knows the colormap ``name``; without
+    matplotlib the run fails at its pictures anyway, with its own message."""
+    try:
+        from matplotlib import colormaps
+    except ImportError:
+        return
+    if name not in colormaps:
+        raise ConfigError("render.colormap", f"must name a matplotlib colormap (e.g. viridis, "
+                          f"magma, gray), got {name!r}")
 
 
 def resolve_mesh(mesh: str, folder: Path) -> Path:

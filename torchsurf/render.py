@@ -95,6 +95,9 @@ def colours(values: np.ndarray, mode: str = "scalar", colormap: str = "viridis",
     Figure, _, _ = _matplotlib()
     from matplotlib import colormaps
 
+    if colormap not in colormaps:
+        raise ValueError(f"colormap must name a matplotlib colormap (e.g. 'viridis'), got "
+                         f"{colormap!r}")
     if equalize and limits is not None:
         raise ValueError("give limits or equalize=True, not both")
     if equalize:
@@ -128,6 +131,10 @@ def fit_camera(vertices: np.ndarray, elevation: float = 25.0, azimuth: float = -
     name, the window of ``aspect`` (width / height) with ``margin`` free on each side."""
     if up not in AXES:
         raise ValueError(f"up must be one of {AXES}, got {up!r}")
+    if not -90.0 <= elevation <= 90.0:
+        raise ValueError(f"elevation must be in [-90, 90] degrees, got {elevation!r}")
+    if not math.isfinite(azimuth):
+        raise ValueError(f"azimuth must be a finite number of degrees, got {azimuth!r}")
     k = AXES.index(up)
     axis_up = np.eye(3)[k]
     front = np.eye(3)[(k + 1) % 3]
