@@ -376,6 +376,10 @@ def test_a_band_too_narrow_for_the_decoding_is_refused() -> None:
     for order in (1, 2):
         with pytest.raises(ValueError, match="band_width must be at least sqrt"):
             tsm.MeshAdapter(mesh, grid, band_width=1.5 * grid.spacing, order=order)
+    with pytest.raises(ValueError, match="order must be one of"):
+        tsm.MeshAdapter(mesh, grid, order=True)
+    with pytest.raises(ValueError, match="sign must be one of"):
+        tsm.MeshAdapter(mesh, grid, sign="windng")
     adapter = tsm.MeshAdapter(mesh, grid, band_width=1.8 * grid.spacing, order=1)
     ones = torch.ones(1, 1, len(mesh.vertices))
     assert float((adapter.decode(adapter.encode(ones)) - 1).abs().max()) < 1e-5

@@ -91,6 +91,17 @@ def test_load_image_reads_a_png(tmp_path):
         signals.load_image(tmp_path / "missing.png")
 
 
+@pytest.mark.parametrize("channels, kept", [(2, 1), (4, 3)])
+def test_load_image_drops_the_alpha_of_gray_and_colour_files(tmp_path, channels, kept):
+    from skimage import io
+
+    array = (np.arange(16 * channels, dtype=np.uint8).reshape(4, 4, channels) * 3)
+    io.imsave(tmp_path / "alpha.png", array, check_contrast=False)
+    image = signals.load_image(tmp_path / "alpha.png")
+    assert image.shape == (kept, 4, 4)
+    assert torch.allclose(image, torch.as_tensor(array[..., :kept]).permute(2, 0, 1) / 255.0)
+
+
 def test_noise_is_seeded(sphere):
     like = torch.zeros(1, 2, 4, 4, 4)
     assert torch.equal(signals.gaussian_noise(like, 0.3, 7), signals.gaussian_noise(like, 0.3, 7))

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import igl
 import numpy as np
 
+from ._checks import check_choice
 from ._stack import caller_stacklevel
 from .grid import Grid
 
@@ -373,7 +374,7 @@ def signed_near(vertices: np.ndarray, faces: np.ndarray, grid: Grid, band: float
             needs one), ``"pseudonormal"`` (pseudonormals in the band, winding number beyond),
             or ``"auto"``: pseudonormal for closed, consistently wound meshes, else winding.
     """
-    requested = sign
+    requested = check_choice(sign, "sign", SIGN_METHODS)
     if sign == "auto":
         sign = "pseudonormal" if _is_closed(faces, len(vertices)) else "winding"
     if sign == "pseudonormal" and _signed_volume(vertices, faces) < 0:

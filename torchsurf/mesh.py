@@ -214,18 +214,10 @@ class MeshAdapter(nn.Module):
     ) -> None:
         super().__init__()
         dtype = check_dtype(dtype)
-        if order not in DECODE_ORDERS:
-            raise ValueError(f"order must be one of {DECODE_ORDERS}, got {order!r}")
-        self.order = order
+        self.order = check_decode_order(order)
         mesh = as_trimesh(mesh, "mesh")
         grid = fit_grid(mesh, resolution) if grid is None else grid
-        width = sdf._band(grid, band_width)
-        if width < MIN_BAND_CELLS * grid.spacing:
-            raise ValueError(
-                f"band_width must be at least sqrt(3) * spacing = "
-                f"{MIN_BAND_CELLS * grid.spacing:g}, so that the 8 nodes around every vertex "
-                f"hold data, got {width:g}"
-            )
+        width = check_adapter_band(sdf._band(grid, band_width), grid.spacing)
         _memory.check_fits(
             _memory.mesh_adapter_bytes(grid.shape, grid.spacing, width, float(mesh.area), dtype),
             f"MeshAdapter on a {grid.shape} grid",
@@ -326,6 +318,24 @@ vertex lie within ``sqrt(3) h`` of it, so of the mesh, and the decoding reads th
 
 
 DECODE_ORDERS = (1, 2)
+
+
+def check_decode_order(order: object) -> int:
+    """``order`` if it is one of :data:`DECODE_ORDERS` (not a bool); raises naming it."""
+    if isinstance(order, bool) or order not in DECODE_ORDERS:
+        raise ValueError(f"order must be one of {DECODE_ORDERS}, got {order!r}")
+    return int(order)
+
+
+def check_adapter_band(width: float, spacing: float) -> float:
+    """``width`` if the band holds the 8 nodes around every vertex (at least
+    :data:`MIN_BAND_CELLS` cells); raises naming ``band_width`` otherwise."""
+    if width < MIN_BAND_CELLS * spacing:
+        raise ValueError(
+            f"band_width must be at least sqrt(3) * spacing = {MIN_BAND_CELLS * spacing:g}, so "
+            f"that the 8 nodes around every vertex hold data, got {width:g}"
+        )
+    return width
 
 
 def _grid_closest_points(surface: ImplicitSurface, flat: np.ndarray) -> Tensor:

@@ -113,7 +113,8 @@ def load_image(path: str | Path) -> Tensor:
     image = torch.as_tensor(array.astype(np.float32) / scale)
     if image.dim() == 2:
         image = image[..., None]
-    return image[..., :3].permute(2, 0, 1).contiguous()
+    colours = 1 if image.shape[-1] <= 2 else 3  # gray (+ alpha) or RGB (+ alpha)
+    return image[..., :colours].permute(2, 0, 1).contiguous()
 
 
 def _lookup(image: Tensor, u: Tensor, v: Tensor) -> Tensor:

@@ -87,6 +87,13 @@ def test_adapter_refuses_bad_input_by_name():
         adapter.decode(torch.zeros(1, 1, 8, 8, 8, dtype=torch.float64))
     with pytest.raises(ValueError, match="order"):
         bricks.BrickMeshAdapter(fitted.meshes, fitted.grids, order=3)
+    with pytest.raises(ValueError, match="order must be one of"):
+        bricks.BrickMeshAdapter(fitted.meshes, fitted.grids, order=True)
+    with pytest.raises(ValueError, match="band_width must be at least sqrt"):
+        bricks.BrickMeshAdapter(fitted.meshes, fitted.grids,
+                                band_width=0.1 * fitted.grids[0].spacing)
+    with pytest.raises(ValueError, match="sign must be one of"):
+        bricks.BrickMeshAdapter(fitted.meshes, fitted.grids, sign="windng")
     with pytest.raises(ValueError, match="grids must hold one Grid per mesh"):
         bricks.BrickMeshAdapter(fitted.meshes, fitted.grids[:1])
     with pytest.raises(ValueError, match="faces"):

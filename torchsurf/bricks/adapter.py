@@ -12,7 +12,7 @@ from .. import _mesh_sdf, _vertex_decode, sdf
 from .._checks import check_dtype, check_positive, check_tensor
 from .._mesh_input import MeshLike
 from ..grid import Grid
-from ..mesh import DECODE_ORDERS
+from ..mesh import check_adapter_band, check_decode_order
 from .build import EXACT_REACH, MeshBand, mesh_list, signed_bricks
 from .layout import BRICK, BrickLayout
 
@@ -87,13 +87,11 @@ class BrickMeshAdapter(nn.Module):
                  order: int = 2) -> None:
         super().__init__()
         dtype = check_dtype(dtype)
-        if order not in DECODE_ORDERS:
-            raise ValueError(f"order must be one of {DECODE_ORDERS}, got {order!r}")
-        self.order = order
+        self.order = check_decode_order(order)
         meshes, grids = mesh_list(meshes, grids)
         spacing = grids[0].spacing
-        width = (sdf.BAND_NODES * spacing if band_width is None
-                 else check_positive(band_width, "band_width"))
+        width = check_adapter_band(sdf.BAND_NODES * spacing if band_width is None
+                                   else check_positive(band_width, "band_width"), spacing)
         surface_width = 3.0 * spacing
         reach = max(width, surface_width + EXACT_REACH * spacing)
         self.band_width = width
