@@ -9,6 +9,7 @@ reached nodes where phi is not a distance and blew up (inf at t = 0.005 on an ic
 from __future__ import annotations
 
 import os
+import warnings
 from pathlib import Path
 
 import pytest
@@ -236,3 +237,43 @@ def test_the_range_check_runs_on_bricks_too():
     assert {warning.filename for warning in caught} == {__file__}
     band = surface.band_mask().expand_as(rkc)
     assert 0.4 < float(rkc[band].min()) and float(rkc[band].max()) < 0.6
+
+
+def _range_warnings(caught) -> list:
+    return [w for w in caught if "left the range of u0" in str(w.message)]
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_constant_and_barely_varying_data_do_not_warn(dtype):
+    """RKC's stages move a float32 constant by rounding; its range is zero: the check's range
+    is at least RANGE_ROUNDING units of the data's magnitude (it warned by 1e31 on 0.3)."""
+    grid = ts.Grid.cube(20, 1.2)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, 0.8).to(dtype), grid)
+    noise = torch.rand((1, 1, *grid.shape), generator=torch.Generator().manual_seed(0),
+                       dtype=dtype)
+    flow = ts.HeatFlow(10 * grid.spacing**2)
+    for u0 in (torch.full_like(noise, 0.3), torch.full_like(noise, -7.7),
+               torch.full_like(noise, 1e4), 1e4 + 0.01 * noise,
+               torch.cat([noise, torch.full_like(noise, 0.3)], dim=1)):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", RuntimeWarning)
+            flow(u0, surface)
+
+
+def test_each_entry_is_held_to_its_own_range_and_a_call_warns_once():
+    """Euler beyond its stable step grows on noise; a smooth entry of range 24 in the same batch
+    does not hide it, and a batch integrated one entry at a time (entries with different bands)
+    warns once."""
+    grid = ts.Grid.cube(24, 1.2)
+    phi = ts.sdf.sphere(grid, 0.8)
+    noise = torch.rand((2, 1, *grid.shape), generator=torch.Generator().manual_seed(0))
+    z = grid.points()[..., 2][None, None].float()
+    flow = ts.HeatFlow(0.05, method="euler", steps=14)
+    batches = [(ts.ImplicitSurface(phi, grid), torch.cat([noise[:1], 10 * z])),
+               (ts.ImplicitSurface(torch.cat([phi, 0.3 * torch.tanh(phi / 0.3)]), grid), noise)]
+    for surface, u0 in batches:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            flow(u0, surface)
+        assert len(_range_warnings(caught)) == 1, [str(w.message)[:80] for w in caught]
+        assert _range_warnings(caught)[0].filename == __file__

@@ -87,38 +87,51 @@ overshoot: a heat flow of 0/1 data by up to 17% on coarse ellipsoids
 unstable one grows without bound (docs/band.md, section 5)."""
 
 
+RANGE_ROUNDING = 1024
+"""The range a check compares with is at least this many rounding units of ``u0``'s magnitude:
+data that varies less than that (a constant, ``1e4 + 0.01 noise`` in float32) leaves its
+range by rounding alone (RKC's stages move a float32 constant by a few units each)."""
+
+
 def _masked_range(x: Tensor, mask: Tensor, dims: list[int]) -> tuple[Tensor, Tensor]:
     """The least and largest values of ``x`` where ``mask`` holds, reduced over ``dims``."""
     return (torch.where(mask, x, torch.inf).amin(dim=dims),
             torch.where(mask, x, -torch.inf).amax(dim=dims))
 
 
-def _warn_if_range_left(flow: Flow, u0: Tensor, results: list[Tensor], region: Tensor,
-                        band: Tensor, plan: Plan) -> None:
-    """Warn if any of ``results`` leaves the range of ``u0`` (over ``region``, per channel)
-    in the ``band`` by more than :data:`RANGE_SLACK` of that range."""
-    dims = [d for d in range(u0.dim()) if d != 1]
+def _range_excess(u0: Tensor, results: list[Tensor], region: Tensor, band: Tensor,
+                  packed: bool) -> float:
+    """How far the worst of ``results`` leaves the range of ``u0`` (over ``region``) in the
+    ``band``, as a fraction of that range, per batch entry and channel (a packed field is one
+    entry: a brick batch of several is integrated one entry at a time)."""
+    dims = [0, 2, 3, 4] if packed else [2, 3, 4]
     with torch.no_grad():
         low, high = _masked_range(u0.detach(), region, dims)
-        span = (high - low).clamp_min(torch.finfo(u0.dtype).tiny)
+        rounding = RANGE_ROUNDING * torch.finfo(u0.dtype).eps * torch.maximum(low.abs(), high.abs())
+        span = torch.maximum(high - low, rounding).clamp_min(torch.finfo(u0.dtype).tiny)
         excess = 0.0
         for value in results:
             least, largest = _masked_range(value.detach(), band, dims)
             beyond = torch.maximum(largest - high, low - least) / span
             excess = max(excess, float(beyond.max()))
-    if excess > RANGE_SLACK:
-        steps = ("adaptive steps" if plan.count is None
-                 else f"{plan.count} steps of {plan.step:.3g}")
-        remedy = ("a finer grid" if flow.method == "rkc"
-                  else "method='rkc' (stable there in every case measured) or a finer grid")
-        warnings.warn(
-            f"{type(flow).__name__} (method={flow.method!r}, {steps}) left the range of u0 "
-            f"by {excess:.3g} of that range, far more than stable runs overshoot, though its "
-            "equation keeps u within it: its steps and the band's re-extensions were unstable on "
-            "this surface (parts of S closer together, or more curved, than the band and the "
-            f"interpolation stencil resolve; docs/band.md, section 5). Use {remedy}",
-            RuntimeWarning, stacklevel=caller_stacklevel(),
-        )
+    return excess
+
+
+def _warn_range_left(flow: Flow, excess: float, plan: Plan) -> None:
+    """The warning of a flow that keeps ``u`` within the range of ``u0`` and left it by
+    ``excess`` of that range (more than :data:`RANGE_SLACK`)."""
+    steps = ("torchdiffeq's own steps" if plan.count is None
+             else f"{plan.count} steps of {plan.step:.3g}")
+    remedy = ("a finer grid" if flow.method == "rkc"
+              else "method='rkc' (stable there in every case measured) or a finer grid")
+    warnings.warn(
+        f"{type(flow).__name__} (method={flow.method!r}, {steps}) left the range of u0 "
+        f"by {excess:.3g} of that range, far more than stable runs overshoot, though its "
+        "equation keeps u within it: its steps and the band's re-extensions were unstable on "
+        "this surface (parts of S closer together, or more curved, than the band and the "
+        f"interpolation stencil resolve; docs/band.md, section 5). Use {remedy}",
+        RuntimeWarning, stacklevel=caller_stacklevel(),
+    )
 
 
 def _check_times(times: object, end: float) -> list[float]:
@@ -330,9 +343,13 @@ class Flow(nn.Module):
     """Whether the flow's equation keeps ``u`` within the range of ``u0`` (a maximum
     principle: heat, flow visualisation, total variation and edge-stopping diffusion). Where it
     does, a call whose result leaves that range by more than :data:`RANGE_SLACK` of it warns
-    (``RuntimeWarning``): the steps and re-extensions were unstable on that surface. Checked
-    for the methods :meth:`forward` integrates; ``HeatFlow(method="chebyshev")``, which applies
-    its semigroup itself, is not checked (its tests hold it to the range)."""
+    (``RuntimeWarning``, once per call): the steps and re-extensions were unstable on that
+    surface. The range is each batch entry's and channel's, and at least
+    :data:`RANGE_ROUNDING` rounding units of its magnitude. Checked for the methods
+    :meth:`forward` integrates; ``HeatFlow(method="chebyshev")``, which applies its semigroup
+    itself, is not checked (its tests hold it to the range)."""
+
+    _entry_excesses: list[tuple[float, Plan]] | None = None
 
     extra_methods: tuple[str, ...] = ()
     """Methods the flow integrates itself, beyond the built-in integrators and torchdiffeq's."""
@@ -633,7 +650,12 @@ class Flow(nn.Module):
                         f"u0 did not; use {other}more steps, or smaller parameters"
                     )
             if self.keeps_range:
-                _warn_if_range_left(self, u0, result, system.region, system.band, plan)
+                excess = _range_excess(u0, result, system.region, system.band,
+                                       surface.layout is not None)
+                if self._entry_excesses is not None:  # one entry of a batch: its caller warns
+                    self._entry_excesses.append((excess, plan))
+                elif excess > RANGE_SLACK:
+                    _warn_range_left(self, excess, plan)
         return result[-1] if times is None else torch.stack(initial + result)
 
     def _entries_apart(self, u0: Tensor, surface: ImplicitSurface, times: object,
@@ -655,15 +677,22 @@ class Flow(nn.Module):
         alone with its own band, steps and stages: each entry's result is what it would be
         without the others."""
         result = None
-        for rows, entry in entries:
-            own = {name: value[rows] if isinstance(value, Tensor) and value.shape[:1] == (count,)
-                   else value for name, value in inputs.items()}
-            part = self.forward(u0[rows.clamp(max=u0.shape[0] - 1)], entry, times, **own)
-            if result is None:
-                shape = list(part.shape)
-                shape[-5] = count
-                result = part.new_zeros(shape)
-            result = result.index_copy(part.dim() - 5, rows, part)
+        self._entry_excesses = excesses = []
+        try:
+            for rows, entry in entries:
+                own = {name: value[rows] if isinstance(value, Tensor)
+                       and value.shape[:1] == (count,) else value
+                       for name, value in inputs.items()}
+                part = self.forward(u0[rows.clamp(max=u0.shape[0] - 1)], entry, times, **own)
+                if result is None:
+                    shape = list(part.shape)
+                    shape[-5] = count
+                    result = part.new_zeros(shape)
+                result = result.index_copy(part.dim() - 5, rows, part)
+        finally:
+            self._entry_excesses = None
+        if excesses and max(excesses, key=lambda pair: pair[0])[0] > RANGE_SLACK:
+            _warn_range_left(self, *max(excesses, key=lambda pair: pair[0]))
         return result
 
     def extra_repr(self) -> str:
