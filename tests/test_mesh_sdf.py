@@ -260,3 +260,21 @@ def test_a_part_wound_inward_gives_no_surface_at_the_band_edge() -> None:
         around = (grid.points(torch.float64) - centre).norm(dim=-1) < 0.9
         assert bool((phi[around] >= 0).all()), sign  # a cavity in nothing: outside throughout
         assert float(phi[16, 16, 6]) < 0  # the solid's centre
+
+
+def test_auto_sign_of_closed_parts_that_intersect_is_the_winding_number():
+    """Two overlapping closed spheres: every edge is shared by two faces, so 'auto' takes the
+    pseudonormals, whose buried faces point out of the solid (888 nodes inside signed outside,
+    a phantom surface); the check over the band now finds them and signs by winding."""
+    import trimesh
+
+    first = trimesh.creation.icosphere(subdivisions=3)
+    second = first.copy()
+    second.apply_translation([0.5, 0.0, 0.0])
+    both = trimesh.util.concatenate([first, second])
+    grid = ts.mesh.fit_grid(both, 32, margin=0.2)
+    auto = ts.sdf.from_mesh(both, grid)
+    assert torch.equal(auto, ts.sdf.from_mesh(both, grid, sign="winding"))
+    exact = torch.minimum(ts.sdf.sphere(grid, 1.0), ts.sdf.sphere(grid, 1.0, center=(0.5, 0, 0)))
+    wrong = (auto < 0) != (exact < 0)
+    assert float(exact[wrong].abs().max()) < 0.05 * grid.spacing

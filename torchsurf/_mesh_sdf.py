@@ -323,15 +323,19 @@ def _winding_inside(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray)
 
 
 SIGN_CHECKS = 20000
-"""Most nodes at the band's edge whose pseudonormal sign is checked against the winding number
-(which signs everything beyond the band)."""
+"""Most band nodes whose pseudonormal sign is checked against the winding number, twice: at
+the band's edge (where the winding number signs everything beyond) and spread over the whole
+band (where a closed mesh that intersects itself has buried faces whose pseudonormals point
+out of the solid)."""
 
 
 def _sign_checks(distance: np.ndarray, band: float, spacing: float) -> np.ndarray:
-    """Indices of up to :data:`SIGN_CHECKS` band nodes within two cells of the band's edge,
-    evenly spread over them."""
+    """Indices of up to :data:`SIGN_CHECKS` band nodes within two cells of the band's edge
+    and up to as many over the whole band, evenly spread over each."""
     edge = np.flatnonzero(distance >= band - 2.0 * spacing)
-    return edge[:: max(1, -(-len(edge) // SIGN_CHECKS))]
+    everywhere = np.arange(len(distance))
+    return np.unique(np.concatenate((edge[:: max(1, -(-len(edge) // SIGN_CHECKS))],
+                                     everywhere[:: max(1, -(-len(everywhere) // SIGN_CHECKS))])))
 
 
 def _warn_inverted(numbers: np.ndarray) -> None:
@@ -394,13 +398,14 @@ def signed_near(vertices: np.ndarray, faces: np.ndarray, grid: Grid, band: float
         inside_all = inside_all[:decided]
         near_inside[undecided] = inside_all[sum(counts):]
         if not agree.all():
-            # a closed part wound against the rest: its pseudonormals and the winding number
-            # beyond the band disagree, and phi would change sign at the band's edge
+            # a closed part wound against the rest (its pseudonormals and the winding number
+            # beyond the band disagree: phi would change sign at the band's edge), or parts
+            # that intersect (their buried faces' pseudonormals point out of the solid)
             if requested == "pseudonormal":
                 warnings.warn(
-                    f"sign='pseudonormal': at {int((~agree).sum())} of {len(agree)} nodes at "
-                    "the band's edge the pseudonormals and the winding number disagree (a "
-                    "closed part wound against the others); signed by the winding number",
+                    f"sign='pseudonormal': at {int((~agree).sum())} of {len(agree)} nodes checked "
+                    "the pseudonormals and the winding number disagree (a closed part wound "
+                    "against the others, or parts that intersect); signed by the winding number",
                     RuntimeWarning, stacklevel=caller_stacklevel())
             sign = "winding"
     if sign == "winding":
