@@ -276,3 +276,47 @@ def test_directional_diffusion_refuses_a_direction_batch_that_u_does_not_have():
     direction = torch.zeros(2, 3, *grid.shape)
     with pytest.raises(ValueError, match="direction has batch size 2 but u has 1"):
         ts.directional_diffusion(u, surface, direction)
+
+
+def _bad_calls() -> list:
+    import trimesh
+
+    from torchsurf import bricks, config, datasets, exact, render, signals
+    from torchsurf.flows import ColorDenoise
+    from torchsurf.shape_batch import AnalyticShape
+
+    grid = ts.Grid.cube(24, 1.5)
+    sphere = bricks.from_dense(ts.sdf.sphere(grid, 0.8), grid)
+    other_eps = bricks.from_dense(ts.ImplicitSurface(ts.sdf.sphere(grid, 0.8), grid, eps=1e-3))
+    dense = ts.ImplicitSurface(ts.sdf.sphere(grid, 0.8), grid)
+    mesh = trimesh.creation.icosphere(1)
+    nan_point = torch.tensor([[float("nan"), 0.0, 0.0]])
+    return [
+        (lambda: AnalyticShape("sphere", {"radius": -1.0}), ValueError, r"parameters\['radius'\]"),
+        (lambda: AnalyticShape("torus", {"minor": 0.3}), ValueError, "not 'minor'"),
+        (lambda: bricks.from_mesh([], []), ValueError, "at least one mesh"),
+        (lambda: sphere.sample(sphere.phi, nan_point), ValueError, "points must hold finite"),
+        (lambda: sphere.sample(sphere.phi, nan_point.nan_to_num(), entry=0.0), ValueError,
+         "entry must be"),
+        (lambda: bricks.cat([sphere, other_eps]), ValueError, "one eps"),
+        (lambda: bricks.cat([sphere, sphere]).layout.from_dense(
+            [torch.zeros(1, *grid.shape), torch.zeros(2, *grid.shape)]),
+         ValueError, "same number of channels"),
+        (lambda: config.load("heat_sphere", "grid.size=16"), TypeError, "list of 'key=value'"),
+        (lambda: render.vertex_values(torch.zeros(2, 1, *grid.shape), mesh, grid), ValueError,
+         "one volume"),
+        (lambda: signals.checkerboard(grid.points().permute(3, 0, 1, 2)[None], 0.5, (0.0, 0.0)),
+         ValueError, "origin"),
+        (lambda: signals.uniform_noise(dense, -1, 0), ValueError, "channels"),
+        (lambda: datasets.SignalDataset(dense, length=2)[np.float64(1.0)], TypeError,
+         "index must be an integer"),
+        (lambda: exact.sphere_harmonic(5, 16), ValueError, "degree must be"),
+        (lambda: ColorDenoise(1.0, chroma=3), TypeError, "chroma must be a flow"),
+    ]
+
+
+def test_bad_arguments_are_named():
+    """Inputs that raised raw IndexError/KeyError/shape errors or were taken silently."""
+    for call, error, match in _bad_calls():
+        with pytest.raises(error, match=match):
+            call()

@@ -339,6 +339,8 @@ def _omegaconf_error(error: OmegaConfBaseException) -> ConfigError:
 
 def parse_overrides(overrides: list[str]) -> list[str]:
     """Check ``key=value`` overrides (``--set``); returns them as given."""
+    if isinstance(overrides, (str, bytes)) or not all(isinstance(item, str) for item in overrides):
+        raise TypeError(f"overrides must be a list of 'key=value' strings, got {overrides!r}")
     for item in overrides:
         key, equals, _ = item.partition("=")
         if not equals or not key.strip():

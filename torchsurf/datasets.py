@@ -8,6 +8,7 @@ frequency of 2 is two periods across any shape. Everything is deterministic unde
 
 from __future__ import annotations
 
+import operator
 from collections.abc import Sequence
 
 import numpy as np
@@ -235,6 +236,10 @@ class SignalDataset(Dataset):
         return self.length
 
     def __getitem__(self, index: int) -> dict[str, Tensor | int | str]:
+        try:
+            index = operator.index(index)
+        except TypeError:
+            raise TypeError(f"index must be an integer, got {index!r}") from None
         if not -self.length <= index < self.length:
             raise IndexError(f"index {index} out of range for {self.length} items")
         index %= self.length

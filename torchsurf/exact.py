@@ -43,6 +43,8 @@ def _sphere_frame(points: Tensor) -> tuple[Tensor, Tensor]:
 
 def sphere_harmonic(degree: int, n: int, dtype: torch.dtype = torch.float64) -> Case:
     """Spherical harmonic of ``degree`` 1..4: ``Lap_S u = -l(l+1) u / r^2``."""
+    if isinstance(degree, bool) or degree not in (1, 2, 3, 4):
+        raise ValueError(f"degree must be 1, 2, 3 or 4, got {degree!r}")
     grid = Grid.cube(n, bound=1.4)
     points = grid.points(dtype=dtype)
     direction, r = _sphere_frame(points)

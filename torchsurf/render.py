@@ -65,8 +65,12 @@ def vertex_values(volume: Tensor, mesh: trimesh.Trimesh, grid: Grid | ImplicitSu
         mesh: vertices in world units, near the surface (on bricks, within the stored nodes).
         grid: the volume's grid, or the surface that holds it.
     """
+    packed = isinstance(grid, ImplicitSurface) and grid.layout is not None
+    if not packed and volume.shape[0] != 1:
+        raise ValueError(f"volume must hold one volume (1, C, D, H, W) for one mesh, got shape "
+                         f"{tuple(volume.shape)}")
     points = torch.as_tensor(np.asarray(mesh.vertices), dtype=volume.dtype, device=volume.device)
-    if isinstance(grid, ImplicitSurface) and grid.layout is not None:
+    if packed:
         values = grid.sample(volume.detach(), points)
     else:
         values = sample(volume.detach(), points, grid if isinstance(grid, Grid) else grid.grid)[0]

@@ -11,6 +11,7 @@ own units (:meth:`MeshBatchAdapter.shape_time`).
 
 from __future__ import annotations
 
+import inspect
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -62,6 +63,15 @@ class AnalyticShape:
         for key in ("grid", "dtype", "device"):
             if key in self.parameters:
                 raise ValueError(f"parameters must not hold {key!r}: the batch chooses it")
+        accepted = set(inspect.signature(getattr(sdf, self.name)).parameters) - {
+            "grid", "dtype", "device"}
+        for key, value in self.parameters.items():
+            if key not in accepted:
+                raise ValueError(f"parameters: torchsurf.sdf.{self.name} takes "
+                                 f"{sorted(accepted)}, not {key!r}")
+            if key in ("radius", "major_radius", "minor_radius", "half_size"):
+                for number in np.atleast_1d(np.asarray(value, dtype=np.float64)):
+                    check_positive(float(number), f"parameters[{key!r}]")
 
     def phi(self, grid: Grid, dtype: torch.dtype | None = None,
             device: torch.device | str | None = None) -> Tensor:

@@ -20,7 +20,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ._checks import check_choice, check_nonnegative, check_positive, check_volume
+from ._checks import check_choice, check_count, check_nonnegative, check_positive, check_volume
 from .curvature import tangent_basis
 from .flows import HeatFlow
 from .grid import Grid
@@ -69,6 +69,8 @@ def checkerboard(points: Tensor, tile: float, origin: tuple[float, float, float]
         ``(B, 1, D, H, W)``, values 0 and 1.
     """
     check_volume(points, "points", channels=3)
+    if len(origin) != 3:
+        raise ValueError(f"origin must be world (x, y, z), got {origin!r}")
     tile = check_positive(tile, "tile")
     cells = torch.floor((points - points.new_tensor(origin).view(1, 3, 1, 1, 1)) / tile)
     return torch.remainder(cells.sum(dim=1, keepdim=True), 2.0)
@@ -209,6 +211,7 @@ def gaussian_noise(like: Tensor, std: float, seed: int, surface: ImplicitSurface
 
 def uniform_noise(surface: ImplicitSurface, channels: int, seed: int) -> Tensor:
     """Uniform noise in ``[0, 1)`` at every node, ``(1, channels, D, H, W)``, seeded."""
+    check_count(channels, "channels")
     values = torch.rand((1, channels, *surface.grid.shape), generator=generator(seed),
                         dtype=surface.phi.dtype)
     return values.to(surface.phi.device)

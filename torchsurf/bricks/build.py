@@ -112,6 +112,8 @@ def mesh_list(meshes: MeshLike | Sequence[MeshLike], grids: Grid | Sequence[Grid
     if isinstance(grids, Grid):
         grids = [grids]
     grids = list(grids)
+    if len(meshes) == 0:
+        raise ValueError("meshes must hold at least one mesh, got none")
     if len(grids) != len(meshes):
         raise ValueError(f"grids must hold one Grid per mesh ({len(meshes)}), got {len(grids)}")
     return list(meshes), grids
@@ -175,6 +177,9 @@ def cat(surfaces: Sequence[BrickSurface]) -> BrickSurface:
     widths = {s.band_width for s in surfaces}
     if len(widths) > 1:
         raise ValueError(f"surfaces must share one band_width, got {sorted(widths)}")
+    epsilons = {s.eps for s in surfaces}
+    if len(epsilons) > 1:
+        raise ValueError(f"surfaces must share one eps, got {sorted(epsilons)}")
     offsets = np.cumsum([0] + [s.batch_size for s in surfaces[:-1]])
     layout = BrickLayout(
         torch.cat([s.layout.coords.cpu() for s in surfaces]),

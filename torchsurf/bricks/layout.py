@@ -341,6 +341,9 @@ class BrickLayout:
             z, y, x = self.coords[selected].unbind(1)
             rows.append((selected, tiles[z, y, x]))
         channels = rows[0][1].shape[1]
+        if any(values.shape[1] != channels for _, values in rows):
+            raise ValueError(f"volume: every entry must have the same number of channels, got "
+                             f"{[int(values.shape[1]) for _, values in rows]}")
         pieces = volumes[0].new_empty((len(self), channels, BRICK, BRICK, BRICK))
         for selected, values in rows:
             pieces = pieces.index_copy(0, selected.to(pieces.device), values)

@@ -226,7 +226,8 @@ class BrickSurface(ImplicitSurface):
         check_tensor(points, "points")
         if points.dim() != 2 or points.shape[1] != 3:
             raise ValueError(f"points must have shape (V, 3), got {tuple(points.shape)}")
-        if not 0 <= entry < self.batch_size:
+        check_finite(points.detach(), "points")
+        if isinstance(entry, bool) or not isinstance(entry, int) or not 0 <= entry < self.batch_size:
             raise ValueError(f"entry must be in [0, {self.batch_size}), got {entry}")
 
     def _cell_corners(self, points: Tensor, entry: int

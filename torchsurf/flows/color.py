@@ -44,6 +44,10 @@ class ColorDenoise(nn.Module):
         **kwargs: object,
     ) -> None:
         super().__init__()
+        for name, flow in (("chroma", chroma), ("brightness", brightness)):
+            if flow is not None and not isinstance(flow, torch.nn.Module):
+                raise TypeError(f"{name} must be a flow (an nn.Module called as flow(u, "
+                                f"surface)) or None, got {type(flow).__name__}")
         self.chroma = chroma if chroma is not None else HarmonicMapFlow(time, p=p, **kwargs)
         self.brightness = (
             brightness if brightness is not None else AnisotropicFlow(time, eps=0.1, **kwargs)
