@@ -497,18 +497,19 @@ def test_rkc_holds_its_accuracy_over_long_times() -> None:
     assert float((values - decay * z).abs().max()) < 5e-3 * decay
 
 
-@pytest.mark.parametrize("method", ["implicit", "crank_nicolson"])
+@pytest.mark.parametrize("method", ["implicit", "crank_nicolson", "rkc"])
 @pytest.mark.parametrize("dtype, offset, tolerance", [(torch.float64, 1e7, 1e-7),
-                                                      (torch.float32, 1e3, 3e-3)])
-def test_implicit_steps_smooth_data_on_an_offset_as_without_it(method, dtype, offset, tolerance):
-    """The theta methods solve for each step's change, whose right-hand side holds no offset:
-    solved for u_new, the solver's relative tolerance stopped it with the change 3% wrong at
-    1e7 in float64 (float32: 1e3, 4%)."""
+                                                      (torch.float32, 1e3, 8e-4)])
+def test_steps_smooth_data_on_an_offset_as_without_it(method, dtype, offset, tolerance):
+    """The theta methods solve for each step's change, whose right-hand side holds no offset
+    (solved for u_new, the solver's relative tolerance stopped with the change 3% wrong at 1e7
+    in float64; float32: 1e3, 4%); RKC's stages combine changes, not values (1.3e-3 at 1e3 in
+    float32 before, now 3.8e-4: the data's own rounding there is 6e-5)."""
     grid = ts.Grid.cube(20, 1.2)
     surface = ts.ImplicitSurface(ts.sdf.sphere(grid, 0.8).to(dtype), grid)
     noise = torch.rand((1, 1, *grid.shape), generator=torch.Generator().manual_seed(0),
                        dtype=dtype)
-    flow = HeatFlow(10 * grid.spacing**2, method=method, steps=4)
+    flow = HeatFlow(10 * grid.spacing**2, method=method, steps=None if method == "rkc" else 4)
     band = flow.band_mask(surface).expand_as(noise)
     plain = flow(noise, surface)
     shifted = flow(noise + offset, surface) - offset
