@@ -89,8 +89,9 @@ unstable one grows without bound (docs/band.md, section 5)."""
 
 RANGE_ROUNDING = 1024
 """The range a check compares with is at least this many rounding units of ``u0``'s magnitude:
-data that varies less than that (a constant, ``1e4 + 0.01 noise`` in float32) leaves its
-range by rounding alone (RKC's stages move a float32 constant by a few units each)."""
+data that varies less than that (a constant, ``1e4 + 0.01 noise`` in float32) may leave its
+range by rounding alone (the operators' and re-extension's sums round at the data's
+magnitude)."""
 
 
 def _masked_range(x: Tensor, mask: Tensor, dims: list[int]) -> tuple[Tensor, Tensor]:
