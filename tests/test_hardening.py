@@ -312,7 +312,20 @@ def _bad_calls() -> list:
          "index must be an integer"),
         (lambda: exact.sphere_harmonic(5, 16), ValueError, "degree must be"),
         (lambda: ColorDenoise(1.0, chroma=3), TypeError, "chroma must be a flow"),
+        (lambda: datasets.smooth_signal(dense, seed=1.7), ValueError, "seed"),
+        (lambda: datasets.SignalDataset(dense, length=2, smooth={"cells": 3}), ValueError,
+         "not \\['cells'\\]"),
+        (lambda: render.colours(np.zeros((4, 1)), mode="rgb"), ValueError, "needs values"),
     ]
+
+
+def test_colours_of_missing_values_are_grey_and_conversions_stay_float64():
+    from torchsurf import render
+
+    rgb = render.colours(np.array([[0.0], [np.nan], [1.0]]))
+    assert np.allclose(rgb[1], 0.5) and np.isfinite(rgb).all() and not np.allclose(rgb[0], rgb[2])
+    batch = ts.MeshBatchAdapter([ts.AnalyticShape("sphere")], resolution=16).float()
+    assert batch.scale.dtype == batch.centre.dtype == torch.float64
 
 
 def test_bad_arguments_are_named():

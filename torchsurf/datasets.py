@@ -8,6 +8,7 @@ frequency of 2 is two periods across any shape. Everything is deterministic unde
 
 from __future__ import annotations
 
+import inspect
 import operator
 from collections.abc import Sequence
 
@@ -226,6 +227,13 @@ class SignalDataset(Dataset):
         self.seed = check_count(seed, "seed", minimum=0)  # numpy SeedSequence: no negatives
         self.options = {"smooth": dict(smooth or {}),
                         "piecewise_constant": dict(piecewise_constant or {})}
+        for kind, make in (("smooth", smooth_signal),
+                           ("piecewise_constant", piecewise_constant_signal)):
+            accepted = set(inspect.signature(make).parameters) - {"surface", "channels", "seed"}
+            unknown = set(self.options[kind]) - accepted
+            if unknown:
+                raise ValueError(f"{kind}: {make.__name__} takes {sorted(accepted)}, not "
+                                 f"{sorted(unknown)}")
         self.grid = surface.grid
         self.phi = surface.phi.detach()
         self._surfaces = [ImplicitSurface(self.phi[b:b + 1], self.grid, surface.band_width)

@@ -85,13 +85,16 @@ def colours(values: np.ndarray, mode: str = "scalar", colormap: str = "viridis",
     or, with ``equalize``, over each value's rank among the vertices (histogram equalisation:
     every colour of the map is used equally often, which shows the streaks of a flow
     visualisation whose values cluster near their mean); ``"rgb"`` (C = 3): clipped to
-    ``[0, 1]``; ``"field"`` (C = 3, unit vectors up to sign): ``|T_x|, |T_y|, |T_z|``.
+    ``[0, 1]``; ``"field"`` (C = 3, unit vectors up to sign): ``|T_x|, |T_y|, |T_z|``. In the
+    scalar modes, NaN or infinite values are grey and do not set the limits.
     """
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
     values = np.asarray(values, dtype=np.float64)
     if values.ndim != 2:
         raise ValueError(f"values must have shape (V, C), got {values.shape}")
+    if mode in ("rgb", "field") and values.shape[1] < 3:
+        raise ValueError(f"mode={mode!r} needs values (V, 3), got {values.shape}")
     if mode == "rgb":
         return np.clip(values[:, :3], 0.0, 1.0)
     if mode == "field":
@@ -104,13 +107,18 @@ def colours(values: np.ndarray, mode: str = "scalar", colormap: str = "viridis",
                          f"{colormap!r}")
     if equalize and limits is not None:
         raise ValueError("give limits or equalize=True, not both")
+    missing = ~np.isfinite(values[:, 0])  # grey, and left out of the limits
+    finite = values[~missing, 0]
     if equalize:
         ranks = np.argsort(np.argsort(values[:, 0], kind="stable"), kind="stable")
-        scaled = ranks / max(len(ranks) - 1, 1)
+        scaled = ranks / max(len(finite) - 1, 1)
     else:
-        low, high = limits if limits is not None else np.percentile(values[:, 0], [1.0, 99.0])
+        low, high = (limits if limits is not None else
+                     np.percentile(finite, [1.0, 99.0]) if len(finite) else (0.0, 1.0))
         scaled = (values[:, 0] - low) / max(high - low, 1e-12)
-    return colormaps[colormap](np.clip(scaled, 0.0, 1.0))[:, :3]
+    rgb = colormaps[colormap](np.clip(np.where(missing, 0.0, scaled), 0.0, 1.0))[:, :3]
+    rgb[missing] = 0.5
+    return rgb
 
 
 @dataclass(frozen=True)

@@ -214,6 +214,12 @@ class MeshBatchAdapter(nn.Module):
         self.register_buffer("centre", torch.as_tensor(np.stack(centres), dtype=torch.float64))
         self.surface = ImplicitSurface(self.phi, self.grid)
 
+    def _apply(self, fn, recurse=True):  # noqa: ANN001, ANN202
+        # .float() / .half() convert floating buffers: the conversions stay float64 (documented)
+        result = super()._apply(fn, recurse)
+        self.scale, self.centre = self.scale.double(), self.centre.double()
+        return result
+
     def _load_from_state_dict(self, state_dict: dict, prefix: str, *args: object) -> None:
         super()._load_from_state_dict(state_dict, prefix, *args)
         # the loaded phi was copied into the buffer the surface was built on: derive its

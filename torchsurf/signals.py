@@ -187,8 +187,9 @@ def project_image(
 
 
 def generator(seed: int) -> torch.Generator:
-    """A CPU ``torch.Generator`` seeded with ``seed``: the same seed gives the same noise."""
-    return torch.Generator().manual_seed(int(seed))
+    """A CPU ``torch.Generator`` seeded with ``seed`` (a whole number >= 0): the same seed gives
+    the same noise."""
+    return torch.Generator().manual_seed(check_count(seed, "seed", minimum=0))
 
 
 def gaussian_noise(like: Tensor, std: float, seed: int, surface: ImplicitSurface | None = None
