@@ -92,11 +92,14 @@ def test_load_state_dict_derives_the_surface_from_the_loaded_phi() -> None:
     grad_norm = sphere.surface.grad_norm.clone()
     sphere.load_state_dict(sphere.state_dict())
     torch.testing.assert_close(ts.laplace_beltrami(u, sphere.surface), before)
+    data = ts.datasets.SignalDataset(sphere, length=2)  # built on the adapter: its own phi
+    item = data[1]["noisy"]
     state = sphere.state_dict()
     state["phi"] = 2.0 * state["phi"]
     sphere.load_state_dict(state)
     assert torch.equal(sphere.surface.phi, state["phi"])
     torch.testing.assert_close(sphere.surface.grad_norm, 2.0 * grad_norm)
+    assert torch.equal(data[1]["noisy"], item)
 
 
 def test_analytic_shape_bounds() -> None:

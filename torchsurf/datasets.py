@@ -235,7 +235,8 @@ class SignalDataset(Dataset):
                 raise ValueError(f"{kind}: {make.__name__} takes {sorted(accepted)}, not "
                                  f"{sorted(unknown)}")
         self.grid = surface.grid
-        self.phi = surface.phi.detach()
+        self.phi = surface.phi.detach().clone()  # its own: loading the adapter's state copies
+        # into the adapter's phi in place, which the surfaces built here must not see
         self._surfaces = [ImplicitSurface(self.phi[b:b + 1], self.grid, surface.band_width)
                           for b in range(surface.batch_size)]
         self._band_width = surface.band_width

@@ -399,3 +399,41 @@ def test_non_finite_data_in_the_band_is_refused():
     for layer in (LearnedDiffusion(1), DiffusionBlock(1)):
         with pytest.raises(ValueError, match=r"u \(in the band\) must hold finite values"):
             layer(u, surface)
+
+
+@pytest.mark.parametrize("make", [lambda h2: LearnedDiffusion(1, time=2.0),
+                                  lambda h2: ts.HeatFlow(2 * h2, learn_time=True),
+                                  lambda h2: ts.HeatFlow(2 * h2, method="implicit", steps=2,
+                                                         learn_time=True)])
+def test_second_derivatives_are_refused_not_silently_wrong(make):
+    """The expansion, checkpointed segments and CG solves form their gradients without a
+    graph: a gradient penalty through them (create_graph=True) returned 0 for a second
+    derivative of -3.6e-6 (central differences); it now raises."""
+    surface, u = _small_sphere(12)
+    layer = make(surface.spacing**2)
+    x = u.clone().requires_grad_(True)
+    loss = ts.nn.band_mse(layer(x, surface), torch.rand_like(u), surface)
+    with pytest.raises(RuntimeError, match="no second derivative"):
+        torch.autograd.grad(loss, x, create_graph=True)
+    (first,) = torch.autograd.grad(layer(x, surface).sum(), x)  # first derivatives still work
+    assert torch.isfinite(first).all()
+
+
+def test_nan_beyond_the_band_and_ring_leaves_gradients_finite():
+    """Those nodes are not read; a rate or feature computed on the whole volume and masked after
+    still took their derivatives (0 * NaN): NaN parameter gradients with a finite loss."""
+    from torchsurf.flows._integrators import with_ring
+
+    surface, clean = _small_sphere(16)
+    beyond = ~with_ring(surface.band_mask(), None)
+    u = clean.expand(1, 2, -1, -1, -1).clone()
+    u[beyond.expand_as(u)] = float("nan")
+    h2 = surface.spacing**2
+    for layer in (DiffusionBlock(2, time=[0.5, 2.0]),
+                  ts.AnisotropicFlow(h2, "perona_malik", contrast=5.0, learn_contrast=True)):
+        x = u.clone().requires_grad_(True)
+        loss = ts.nn.band_mse(layer(x, surface), clean.expand_as(u), surface)
+        loss.backward()
+        assert torch.isfinite(loss)
+        assert all(torch.isfinite(p.grad).all() for p in layer.parameters()), type(layer)
+        assert torch.isfinite(x.grad[surface.band_mask().expand_as(x)]).all()

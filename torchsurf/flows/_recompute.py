@@ -41,6 +41,18 @@ def recomputed(function: Callable[[Tensor], Tensor], u: Tensor, reads: Sequence[
     return _Recompute.apply(function, result, u, *reads)
 
 
+def refuse_second_derivatives(what: str) -> None:
+    """Raise in a ``backward`` that autograd runs with ``create_graph=True`` (grad mode on):
+    ``what`` computes its gradient without a graph, so a second derivative through it (a
+    gradient penalty, a Hessian-vector product) would silently miss its part."""
+    if torch.is_grad_enabled():
+        raise RuntimeError(
+            f"{what} has no second derivative: autograd.grad(..., create_graph=True) through it "
+            "(gradient penalties, Hessian-vector products) would silently miss a part of the "
+            "result. Take first derivatives only through torchsurf's flows and learned layers"
+        )
+
+
 class _Recompute(torch.autograd.Function):
     @staticmethod
     def forward(ctx, function, result, u, *reads):
@@ -50,6 +62,7 @@ class _Recompute(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad):
+        refuse_second_derivatives("a checkpointed flow segment (recomputed in backward)")
         u, *reads = ctx.saved_tensors
         with torch.enable_grad():
             x = u.detach().requires_grad_(u.requires_grad)

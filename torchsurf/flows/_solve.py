@@ -17,6 +17,7 @@ import torch
 from torch import Tensor
 
 from .._stack import caller_stacklevel
+from ._recompute import refuse_second_derivatives
 
 Operator = Callable[..., Tensor]
 
@@ -140,6 +141,7 @@ class _SymmetricSolve(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad_solution):  # noqa: ANN001, ANN205
+        refuse_second_derivatives("the implicit steps' conjugate-gradient solve")
         solution, *params = ctx.saved_tensors
 
         def apply(x: Tensor) -> Tensor:

@@ -636,11 +636,17 @@ class Flow(nn.Module):
             rate = system.rate
             path = self.path
             system.rate = lambda u: rate(reextend(ring, u, path))
+        # nodes beyond the band and its ring are never read, but a rate computed on the whole
+        # volume and masked after still takes their derivatives: 0 * NaN in a backward
+        recorded = torch.is_grad_enabled()
+        start = torch.where(system.region, u0, 0.0) if recorded else u0
         try:
-            result = integrate(self.method, system, u0, schedule)
+            result = integrate(self.method, system, start, schedule)
         finally:
             if bar is not None:
                 bar.close()
+        if recorded:
+            result = [torch.where(system.region, value, u0) for value in result]
         if not torch.compiler.is_compiling():  # a host read: it would break a traced graph
             for value in result:
                 if not bool(torch.isfinite(torch.where(system.region, value.detach(), 0.0)).all()):

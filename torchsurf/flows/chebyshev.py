@@ -38,7 +38,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ._recompute import independent, recomputed
+from ._recompute import independent, recomputed, refuse_second_derivatives
 
 KINDS = ("exp", "phi1")
 """``"exp"``: ``exp(t L)``; ``"phi1"``: ``t phi1(t L) = (exp(t L) - 1) / L`` (which maps a
@@ -212,6 +212,8 @@ class _Expansion(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad_output):  # noqa: ANN001, ANN205
+        refuse_second_derivatives("the Chebyshev expansion (LearnedDiffusion, "
+                                  "HeatFlow(method='chebyshev'))")
         x, weight, times = ctx.saved_tensors
         want_x, want_times = ctx.needs_input_grad[5], ctx.needs_input_grad[7]
         grad_x = grad_times = None

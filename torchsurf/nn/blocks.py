@@ -9,6 +9,7 @@ import torch
 from torch import Tensor, nn
 
 from .._checks import check_count, check_flag
+from ..flows._integrators import with_ring
 from ..surface import ImplicitSurface, check_data, check_surface
 from .diffusion import LearnedDiffusion
 from .features import feature_count, gradient_features
@@ -67,8 +68,11 @@ class DiffusionBlock(nn.Module):
         if surface.layout is None and u.shape[0] == 1 and surface.batch_size > 1:
             u = u.expand(surface.batch_size, *u.shape[1:])  # one datum on every surface
         diffused = self.diffusion(u, surface)
+        # the band's features read the ring, nothing beyond: zeros there keep a NaN of u out of
+        # the features' derivatives (0 * NaN in a backward)
+        read = torch.where(with_ring(surface.band_mask(), surface.layout), diffused, 0.0)
         features = torch.cat([
-            diffused, gradient_features(diffused, surface, self.pairs, path=self.diffusion.path)
+            diffused, gradient_features(read, surface, self.pairs, path=self.diffusion.path)
         ], dim=1)
         batch, size = u.shape[0], math.prod(u.shape[2:])
         index = _band_nodes(surface).to(u.device)
