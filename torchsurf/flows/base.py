@@ -698,8 +698,9 @@ class Flow(nn.Module):
                 result = result.index_copy(part.dim() - 5, rows, part)
         finally:
             self._entry_excesses = None
-        if excesses and max(excesses, key=lambda pair: pair[0])[0] > RANGE_SLACK:
-            _warn_range_left(self, *max(excesses, key=lambda pair: pair[0]))
+        worst = max(excesses, key=lambda pair: pair[0], default=None)
+        if worst is not None and worst[0] > RANGE_SLACK:
+            _warn_range_left(self, *worst)
         return result
 
     def extra_repr(self) -> str:
