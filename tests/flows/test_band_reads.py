@@ -86,8 +86,9 @@ def test_refinement_leaves_good_closest_points_exactly_as_they_were():
     grid = ts.Grid.cube(24, 1.5)
     surface = ts.ImplicitSurface(ts.sdf.sphere(grid, 1.0), grid)
     region = with_ring(surface.band_mask())
-    index = grid.world_to_index(
-        grid.points() - ((surface.phi / surface.weight) * surface.normal)[0].permute(1, 2, 3, 0))
+    nodes = grid.world_to_index(grid.points(dtype=torch.float64)).float()
+    step = (surface.phi / surface.weight / grid.spacing) * surface.normal
+    index = nodes - step[0].permute(1, 2, 3, 0)
     targets, _, weights = CubicStencil(surface, region).parts[0]
     at = index.reshape(-1, 3)[targets]
     expected = torch.stack([torch.stack(ts.sampling.cubic_lagrange_weights(a - a.floor()), 1)

@@ -194,9 +194,16 @@ class BrickSurface(ImplicitSurface):
             ValueError: a point lies outside the entry's box or next to a brick that is not
                 stored.
         """
-        self.check_field(field, "field")
         self._check_points(points, entry)
-        inside, fraction, corners = self._cell_corners(points, entry)
+        return self.sample_at_index(field, self.grids[entry].world_to_index(points), entry)
+
+    def sample_at_index(self, field: Tensor, index: Tensor, entry: int = 0) -> Tensor:
+        """:meth:`sample` at continuous node indices ``index`` ``(V, 3)`` ``(i, j, k)`` of the
+        entry's grid instead of world points (no rounding of world coordinates: a grid far
+        from the origin keeps float32's precision). Returns ``(C, V)``."""
+        self.check_field(field, "field")
+        self._check_points(index, entry, "index")
+        inside, fraction, corners = self._cell_corners(index, entry)
         if not bool(inside.all()):
             raise ValueError(f"points: some lie outside the box of entry {entry} "
                              f"({self.grids[entry]})")
@@ -217,35 +224,36 @@ class BrickSurface(ImplicitSurface):
         """``(V,)`` bool: ``points`` ``(V, 3)`` (world ``(x, y, z)``) that :meth:`sample` can
         read, inside the entry's box with the 8 nodes of their cell stored."""
         self._check_points(points, entry)
-        inside, _, corners = self._cell_corners(points, entry)
+        inside, _, corners = self._cell_corners(self.grids[entry].world_to_index(points), entry)
         for _, brick, _ in corners:
             inside = inside & (brick >= 0)
         return inside
 
-    def _check_points(self, points: Tensor, entry: int) -> None:
-        check_tensor(points, "points")
+    def _check_points(self, points: Tensor, entry: int, name: str = "points") -> None:
+        check_tensor(points, name)
         if points.dim() != 2 or points.shape[1] != 3:
-            raise ValueError(f"points must have shape (V, 3), got {tuple(points.shape)}")
-        check_finite(points.detach(), "points")
+            raise ValueError(f"{name} must have shape (V, 3), got {tuple(points.shape)}")
+        check_finite(points.detach(), name)
         if isinstance(entry, bool) or not isinstance(entry, int) or not 0 <= entry < self.batch_size:
             raise ValueError(f"entry must be in [0, {self.batch_size}), got {entry}")
 
-    def _cell_corners(self, points: Tensor, entry: int
+    def _cell_corners(self, index: Tensor, entry: int
                       ) -> tuple[Tensor, Tensor, list[tuple[Tensor, Tensor, Tensor]]]:
-        """For ``points`` ``(V, 3)`` of ``entry``: inside its box ``(V,)``, the fraction
-        ``(V, 3)`` within the cell (points outside clamped to the box), and per corner of the
-        cell its offset ``(3,)``, brick row ``(V,)`` (-1: not stored) and packed node ``(V,)``."""
+        """For continuous node indices ``index`` ``(V, 3)`` of ``entry``: inside its box
+        ``(V,)``, the fraction ``(V, 3)`` within the cell (points outside clamped to the box),
+        and per corner of the cell its offset ``(3,)``, brick row ``(V,)`` (-1: not stored)
+        and packed node ``(V,)``."""
         grid = self.grids[entry]
-        inside = grid.contains(points.detach(), tolerance=1e-4)
-        index = grid.world_to_index(points)
-        high = torch.tensor(grid.shape[::-1], dtype=points.dtype, device=points.device) - 1
+        high = torch.tensor(grid.shape[::-1], dtype=index.dtype, device=index.device) - 1
+        slack = 1e-4 + 8 * torch.finfo(index.dtype).eps * high
+        inside = ((index.detach() >= -slack) & (index.detach() <= high + slack)).all(dim=-1)
         index = torch.minimum(index.clamp(min=0), high)
         low = index.detach().floor().clamp(max=high - 1).long()
-        lookup = self.layout.lookup.to(points.device)
+        lookup = self.layout.lookup.to(index.device)
         corners = []
         for corner in range(8):
             offset = torch.tensor([corner & 1, (corner >> 1) & 1, corner >> 2],
-                                  device=points.device)
+                                  device=index.device)
             x, y, z = (low + offset).unbind(1)
             brick = lookup[entry, z // BRICK, y // BRICK, x // BRICK]
             source = brick * BRICK**3 + (z % BRICK) * BRICK * BRICK + (y % BRICK) * BRICK \

@@ -64,12 +64,12 @@ def closest_point_extension(
         return cubic_stencil(surface, band).apply(u)
     if surface.layout is not None:
         return _brick_linear_extension(u, surface, band)
-    grid = surface.grid
-    closest = _closest_points(surface, u.dtype)
+    closest = _closest_indices(surface, u.dtype)
     batch = max(u.shape[0], closest.shape[0])
+    last = closest.new_tensor([n - 1 for n in reversed(surface.grid.shape)])
     sampled = F.grid_sample(
         u.expand(batch, -1, -1, -1, -1),
-        grid.world_to_normalized(closest).expand(batch, -1, -1, -1, -1),
+        (2.0 * closest / last - 1.0).expand(batch, -1, -1, -1, -1),
         mode="bilinear",
         padding_mode="border",
         align_corners=True,
@@ -264,7 +264,7 @@ class CubicStencil:
     def __init__(self, surface: ImplicitSurface, mask: Tensor, limited: bool = False,
                  readable: Tensor | None = None) -> None:
         self.limited = check_flag(limited, "limited")
-        index = surface.grid.world_to_index(_closest_points(surface, surface.phi.dtype))
+        index = _closest_indices(surface, surface.phi.dtype)
         batch = max(index.shape[0], mask.shape[0])
         self.parts = [
             _dense_part(surface, index[min(b, index.shape[0] - 1)],
@@ -542,12 +542,11 @@ class BrickCubicStencil:
         those nodes only; ``distance`` is the packed ``phi / (W h)``. Bases of bricks that are
         not stored are negative."""
         layout = surface.layout
-        device, dtype = surface.phi.device, surface.phi.dtype
-        world, batch = _brick_closest_points(surface, targets)
-        origins = torch.tensor([g.origin for g in layout.grids], dtype=dtype, device=device)
+        device = surface.phi.device
+        index, batch = _brick_closest_indices(surface, targets)
         shapes = torch.tensor([g.shape[::-1] for g in layout.grids], device=device)[batch]
         lookup = layout.lookup.to(device)
-        at = _closest.refine((world - origins[batch]) / surface.spacing, _closest.brick_reader(
+        at = _closest.refine(index, _closest.brick_reader(
             distance, surface.normal, lookup, batch, shapes))
         extent_z, extent_y, extent_x = layout.extent
         base = _cell(at)
@@ -616,13 +615,13 @@ class BrickCubicStencil:
         return result.view(channels, *v.shape[:1], *v.shape[2:]).transpose(0, 1)
 
 
-def _brick_closest_points(surface: ImplicitSurface, targets: Tensor) -> tuple[Tensor, Tensor]:
+def _brick_closest_indices(surface: ImplicitSurface, targets: Tensor) -> tuple[Tensor, Tensor]:
     """``x - d n`` (``d = surface.signed_distance()``) at the packed node indices ``targets``
-    ``(M,)`` of a brick surface:
-    world ``(M, 3)`` and each node's batch entry ``(M,)``.
+    ``(M,)`` of a brick surface, in continuous node indices ``(M, 3)`` ``(i, j, k)`` of each
+    node's entry's grid, and each node's batch entry ``(M,)``.
 
-    World points first, as the dense closest points are computed: the same rounding, so that
-    the limiter of a stencil picks the same cell."""
+    Formed as the dense :func:`_closest_indices`, with the same rounding, so that the limiter
+    of a stencil picks the same cell."""
     layout = surface.layout
     device, dtype = surface.phi.device, surface.phi.dtype
     row = targets // BRICK**3
@@ -630,16 +629,14 @@ def _brick_closest_points(surface: ImplicitSurface, targets: Tensor) -> tuple[Te
     inside = targets % BRICK**3
     local_index = torch.stack([inside // (BRICK * BRICK), (inside // BRICK) % BRICK,
                                inside % BRICK], dim=1)
-    index = (layout.coords.to(device)[row] * BRICK + local_index).flip(1).to(dtype)
-    origins = torch.tensor([g.origin for g in layout.grids], dtype=dtype, device=device)
-    points = origins[batch] + surface.spacing * index
+    nodes = (layout.coords.to(device)[row] * BRICK + local_index).flip(1).to(dtype)
 
     def at_targets(field: Tensor) -> Tensor:
         return field.reshape(field.shape[0], field.shape[1], -1)[row, :, inside]
 
     normal = at_targets(surface.normal)
-    distance = at_targets(surface.signed_distance())[:, 0]
-    return points - distance[:, None] * normal, batch
+    distance = at_targets(surface.signed_distance() / surface.spacing)[:, 0]
+    return nodes - distance[:, None] * normal, batch
 
 
 def _brick_linear_extension(u: Tensor, surface: ImplicitSurface, mask: Tensor) -> Tensor:
@@ -647,7 +644,7 @@ def _brick_linear_extension(u: Tensor, surface: ImplicitSurface, mask: Tensor) -
     nodes of ``mask`` (:meth:`~torchsurf.bricks.BrickSurface.sample` at their closest points,
     entry by entry)."""
     targets = mask.reshape(-1).nonzero().squeeze(1)
-    points, batch = _brick_closest_points(surface, targets)
+    index, batch = _brick_closest_indices(surface, targets)
     channels = u.shape[1]
     flat = u.transpose(0, 1).reshape(channels, -1)
     value = flat.new_zeros((channels, len(targets)))
@@ -655,7 +652,8 @@ def _brick_linear_extension(u: Tensor, surface: ImplicitSurface, mask: Tensor) -
         selected = (batch == entry).nonzero().squeeze(1)
         if len(selected):
             value = value.index_copy(1, selected,
-                                     surface.sample(u, points[selected].to(u.dtype), entry))
+                                     surface.sample_at_index(u, index[selected].to(u.dtype),
+                                                             entry))
     result = flat.index_copy(1, targets, value)
     return result.view(channels, *u.shape[:1], *u.shape[2:]).transpose(0, 1)
 
@@ -668,11 +666,20 @@ def cubic_stencil(surface: ImplicitSurface, mask: Tensor, limited: bool = False,
     return CubicStencil(surface, mask, limited, readable)
 
 
-def _closest_points(surface: ImplicitSurface, dtype: torch.dtype) -> Tensor:
-    """``x - d n``, ``d = surface.signed_distance()``, at every node, world ``(B, D, H, W, 3)``."""
-    points = surface.grid.points(dtype=dtype, device=surface.phi.device)
-    step = surface.signed_distance() * surface.normal
-    return points - step.permute(0, 2, 3, 4, 1)
+def _closest_indices(surface: ImplicitSurface, dtype: torch.dtype) -> Tensor:
+    """``x - d n``, ``d = surface.signed_distance()``, at every node, in continuous node
+    indices ``(B, D, H, W, 3)`` ``(i, j, k)``.
+
+    Formed in index units (node index minus ``d n / h``), never in world coordinates: in
+    float32 a grid far from the world's origin would otherwise round every closest point to
+    a fraction of a cell (``eps * |origin| / h``)."""
+    depth, height, width = surface.grid.shape
+    device = surface.phi.device
+    z, y, x = torch.meshgrid(*(torch.arange(n, dtype=dtype, device=device)
+                               for n in (depth, height, width)), indexing="ij")
+    nodes = torch.stack([x, y, z], dim=-1)
+    step = (surface.signed_distance() / surface.spacing) * surface.normal
+    return nodes - step.permute(0, 2, 3, 4, 1)
 
 
 def _upwind_step(u: Tensor, velocity: Tensor, spacing: float, cfl: float,
