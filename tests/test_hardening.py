@@ -316,6 +316,8 @@ def _bad_calls() -> list:
         (lambda: datasets.SignalDataset(dense, length=2, smooth={"cells": 3}), ValueError,
          "not \\['cells'\\]"),
         (lambda: render.colours(np.zeros((4, 1)), mode="rgb"), ValueError, "needs values"),
+        (lambda: ts.MeshAdapter(mesh, resolution=16).encode(torch.zeros(0, 1, len(mesh.vertices))),
+         ValueError, "B, C at least 1"),
     ]
 
 

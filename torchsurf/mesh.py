@@ -394,10 +394,10 @@ def _scatter_to_band(values: Tensor, band_index: Tensor, corners: Tensor, weight
     ``sum_k weights[n, k] * values[..., corners[n, k]]``; every other node gets 0.
     """
     check_tensor(values, "values")
-    if values.dim() != 3 or values.shape[-1] != vertex_count:
+    if values.dim() != 3 or values.shape[-1] != vertex_count or 0 in values.shape[:2]:
         raise ValueError(
-            f"values must have shape (B, C, V) with V = {vertex_count} vertices, "
-            f"got {tuple(values.shape)}"
+            f"values must have shape (B, C, V) with V = {vertex_count} vertices and B, C at "
+            f"least 1, got {tuple(values.shape)}"
         )
     weights = weights.to(values.dtype)
     interpolated = (values[..., corners] * weights).sum(dim=-1)

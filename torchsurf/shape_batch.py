@@ -254,9 +254,11 @@ class MeshBatchAdapter(nn.Module):
         volumes = []
         for b, (entry, adapter) in enumerate(zip(values, self.adapters, strict=True)):
             count = len(adapter.vertices)
-            if not isinstance(entry, Tensor) or entry.dim() != 2 or entry.shape[0] != count:
+            if (not isinstance(entry, Tensor) or entry.dim() != 2 or entry.shape[0] != count
+                    or entry.shape[1] == 0):
                 shape = tuple(entry.shape) if isinstance(entry, Tensor) else type(entry).__name__
-                raise ValueError(f"values[{b}] must have shape ({count}, C), got {shape}")
+                raise ValueError(f"values[{b}] must have shape ({count}, C), C at least 1, got "
+                                 f"{shape}")
             if channels is None:
                 channels = entry.shape[1]
             elif entry.shape[1] != channels:

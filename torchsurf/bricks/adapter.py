@@ -210,10 +210,11 @@ class BrickMeshAdapter(nn.Module):
             )
         for b, (entry, count) in enumerate(zip(values, self._counts, strict=True)):
             check_tensor(entry, f"values[{b}]")
-            if entry.dim() != 2 or entry.shape[0] != count or entry.shape[1] != values[0].shape[1]:
+            if (entry.dim() != 2 or entry.shape[0] != count or entry.shape[1] != values[0].shape[1]
+                    or entry.shape[1] == 0):
                 raise ValueError(
-                    f"values[{b}] must have shape ({count}, C) with the C of values[0], got "
-                    f"{tuple(entry.shape)}"
+                    f"values[{b}] must have shape ({count}, C) with the C of values[0], C at "
+                    f"least 1, got {tuple(entry.shape)}"
                 )
         joined = torch.cat(list(values))
         interpolated = (joined[self._corners] * self._weights.to(joined.dtype)[..., None]).sum(1)
