@@ -393,6 +393,19 @@ def test_a_vertex_no_face_uses_is_named_when_it_leaves_the_box() -> None:
         tsm.MeshAdapter(stray, resolution=17)
 
 
+def test_a_vertex_no_face_uses_inside_the_box_is_warned_about() -> None:
+    from torchsurf import bricks
+
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    stray = trimesh.Trimesh(np.vstack([mesh.vertices, [[0.5, 0.0, 0.0]]]), mesh.faces,
+                            process=False)
+    for order in (1, 2):
+        with pytest.warns(RuntimeWarning, match="1 of 163 vertices are used by no face"):
+            tsm.MeshAdapter(stray, resolution=17, order=order)
+    with pytest.warns(RuntimeWarning, match=r"meshes\[1\]: 1 of 163"):
+        bricks.BrickMeshAdapter([mesh, stray], [ts.Grid.cube(33, 1.5)] * 2)
+
+
 def test_to_band_encodes_on_a_grid_holding_part_of_the_mesh() -> None:
     mesh = trimesh.creation.icosphere(subdivisions=2)
     grid = ts.Grid((17, 17, 9), spacing=2.4 / 16, origin=(-1.2, -1.2, -1.2))  # x up to 0

@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import os
+import warnings
 
 import numpy as np
 import torch
 import trimesh
+
+from ._stack import caller_stacklevel
 
 MeshLike = trimesh.Trimesh | str | os.PathLike | tuple
 
@@ -133,3 +136,18 @@ def triangle_arrays(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray]:
     vertices = np.ascontiguousarray(mesh.vertices, dtype=np.float64).copy()
     faces = np.ascontiguousarray(mesh.faces, dtype=np.int64).copy()
     return vertices, faces
+
+
+def warn_unused_vertices(vertices: np.ndarray, faces: np.ndarray, name: str) -> None:
+    """Warn when vertices ``(V, 3)`` are used by no face of ``faces`` ``(F, 3)``: an adapter
+    decodes at every vertex, and such a vertex has no surface behind it (it reads the band
+    near it, 0 far from the mesh)."""
+    unused = np.ones(len(vertices), dtype=bool)
+    unused[faces.reshape(-1)] = False
+    if unused.any():
+        warnings.warn(
+            f"{name}: {int(unused.sum())} of {len(vertices)} vertices are used by no face, e.g. "
+            f"vertex {int(np.flatnonzero(unused)[0])}; decode gives them what the band holds "
+            "near them (0 far from the mesh), not their own values: remove them first "
+            "(mesh.remove_unreferenced_vertices())",
+            RuntimeWarning, stacklevel=caller_stacklevel())

@@ -26,7 +26,7 @@ from ._checks import (
     check_tensor,
     check_volume,
 )
-from ._mesh_input import MeshLike, as_trimesh, triangle_arrays
+from ._mesh_input import MeshLike, as_trimesh, triangle_arrays, warn_unused_vertices
 from .grid import Grid
 from .sampling import sample
 from .surface import ImplicitSurface
@@ -227,6 +227,7 @@ class MeshAdapter(nn.Module):
         sdf._check_sides(phi, vertices[np.unique(faces)], grid)
         if order == 2:  # before the decoding weights' solve, which reads around every vertex
             _check_vertices_in_box(vertices, faces, grid)
+        warn_unused_vertices(vertices, faces, "mesh")
         inside = found.distance <= width
         weights, _ = _mesh_sdf.barycentric(
             vertices, faces, found.face[inside], found.closest[inside]

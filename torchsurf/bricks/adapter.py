@@ -10,7 +10,7 @@ from torch import Tensor, nn
 
 from .. import _mesh_sdf, _vertex_decode, sdf
 from .._checks import check_dtype, check_positive, check_tensor
-from .._mesh_input import MeshLike
+from .._mesh_input import MeshLike, warn_unused_vertices
 from ..grid import Grid
 from ..mesh import check_adapter_band, check_decode_order
 from .build import EXACT_REACH, MeshBand, mesh_list, signed_bricks
@@ -98,6 +98,8 @@ class BrickMeshAdapter(nn.Module):
         self.surface, bands = signed_bricks(meshes, grids, surface_width, reach, dtype, sign,
                                             device)
         layout = self.surface.layout.to("cpu")
+        for b, (vertices, mesh_faces, _) in enumerate(bands):
+            warn_unused_vertices(vertices, mesh_faces, f"meshes[{b}]")
         nodes, faces, barycentric, offset = [], [], [], 0
         for vertices, mesh_faces, signed in bands:
             near = signed.band.distance <= width
