@@ -22,6 +22,7 @@ from conftest import (
     torus_principal_curvatures,
 )
 
+import torchsurf as ts
 from torchsurf import Grid, ImplicitSurface, laplace_beltrami, sample, sdf
 
 BOUND = 1.5
@@ -623,6 +624,43 @@ def test_curvatures_of_a_scaled_phi_are_the_same_in_float32_for_any_scale():
             expected = getattr(reference, name)()[near]
             torch.testing.assert_close(getattr(scaled, name)()[near], expected, rtol=1e-4,
                                        atol=1e-4, msg=f"{name} of {c:g} phi")
+
+
+@pytest.mark.parametrize("dtype, scales", [(torch.float32, (1e-30, 1e20)),
+                                           (torch.float64, (1e-200, 1e155))])
+def test_phi_scaled_near_the_float_limits_is_the_same_surface(dtype, scales):
+    """|grad phi|^2 overflowed (c = 2e19 in float32, 1e155 in float64) or underflowed
+    (c = 1e-23 in float32): normals 0 or NaN, every operator NaN, no error; the implicit
+    flows' solver overflowed its inner products of W u. Now in units of a power of two."""
+    from torchsurf import bricks
+
+    grid = Grid.cube(23, BOUND)
+    phi = sdf.sphere(grid, 0.8, dtype=dtype)
+    u = torch.rand((1, 1, *grid.shape), generator=torch.Generator().manual_seed(0)).to(dtype)
+    reference = ImplicitSurface(phi, grid)
+    band = reference.band_mask()
+    runs = {
+        "laplace_beltrami": lambda s, v: ts.laplace_beltrami(v, s),
+        "mean_curvature": lambda s, v: s.mean_curvature(),
+        "heat implicit": lambda s, v: ts.HeatFlow(0.01, method="implicit")(v, s),
+        "heat rkc": lambda s, v: ts.HeatFlow(0.01)(v, s),
+    }
+    expected = {name: run(reference, u) for name, run in runs.items()}
+    mixed = ImplicitSurface(torch.cat([scales[0] * phi, scales[1] * phi]), grid)
+    for name, run in runs.items():
+        size = float(expected[name][band.expand_as(expected[name])].abs().max())
+        for c in scales:
+            got = run(ImplicitSurface(c * phi, grid), u)
+            error = float((got - expected[name])[band.expand_as(got)].abs().max())
+            assert error <= 1e-5 * size, (name, c, error, size)
+        both = run(mixed, u.expand(2, -1, -1, -1, -1))
+        error = float((both - expected[name])[band.expand_as(both)].abs().max())
+        assert error <= 1e-5 * size, (name, "batch of both", error, size)
+    packed = bricks.from_dense(scales[1] * phi, grid)
+    got = ts.HeatFlow(0.01, method="implicit")(packed.from_dense(u), packed)
+    want = packed.from_dense(expected["heat implicit"])
+    inside = packed.band_mask()
+    assert float((got - want)[inside].abs().max()) <= 1e-5
 
 
 def test_a_gradient_twenty_times_below_its_median_on_s_is_warned_about():

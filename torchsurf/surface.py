@@ -65,6 +65,11 @@ def _squared_slope(padded: Tensor) -> Tensor:
     return (torch.maximum(forward, backward) ** 2).sum(dim=1, keepdim=True)
 
 
+def _power_of_two(value: Tensor) -> Tensor:
+    """The power of two at or below each (positive) value: ``2^floor(log2(value))``, exact."""
+    return torch.exp2(torch.floor(torch.log2(value.clamp_min(torch.finfo(value.dtype).tiny))))
+
+
 def _warn_floored_on_surface(crossing: Tensor, grad_norm: Tensor, scale: Tensor) -> None:
     """Warn where ``|grad phi|`` next to S falls below :data:`MINIMUM_WEIGHT` of its median
     ``scale``: the weight is floored there, so the operators are not intrinsic (a ``phi`` with
@@ -184,7 +189,12 @@ class ImplicitSurface(nn.Module):
         padded = self._pad(phi, "linear")
         gradient = stencils.apply(padded, stencils.CENTRAL)[:, 0]
         gradient = gradient / self.spacing
-        squared = (gradient**2).sum(dim=1, keepdim=True)
+        # squares of |grad phi| in units of a power of two per entry (exact to divide and
+        # multiply by): c * phi with c near the float's range (1e20 in float32) neither
+        # overflows nor underflows them, and other phi give the same bits as without
+        magnitude = _power_of_two(self._entry_max(gradient.detach().abs().amax(dim=1, keepdim=True)))
+        unit_gradient = gradient / magnitude
+        squared = (unit_gradient**2).sum(dim=1, keepdim=True)
         self.register_buffer("phi", phi, persistent=False)
         # the median of the squares, then its root: no sqrt of zeros in phi's graph
         crossing = self._crossing_nodes(phi.detach())
@@ -192,17 +202,17 @@ class ImplicitSurface(nn.Module):
         # eps is relative to the typical |grad phi| on S, so that c * phi is the same surface
         # for every c > 0 (an absolute eps swamps |grad phi| once phi is scaled down)
         floor = self.eps * scale.detach().clamp_min(torch.finfo(phi.dtype).tiny)
-        grad_norm = torch.sqrt(squared + floor**2)
+        unit_norm = torch.sqrt(squared + floor**2)
+        grad_norm = unit_norm * magnitude
         self.register_buffer("grad_norm", grad_norm, persistent=False)
-        self.register_buffer("normal", gradient / grad_norm, persistent=False)
-        self.register_buffer("gradient_scale", scale, persistent=False)
-        slope = torch.sqrt(_squared_slope(padded) / self.spacing**2 + floor**2)
-        weight = torch.maximum(grad_norm, WEIGHT_FLOOR * slope)
-        self.register_buffer(
-            "weight", torch.maximum(weight, MINIMUM_WEIGHT * scale), persistent=False
-        )
+        self.register_buffer("normal", unit_gradient / unit_norm, persistent=False)
+        self.register_buffer("gradient_scale", scale * magnitude, persistent=False)
+        slope = torch.sqrt(_squared_slope(padded / magnitude) / self.spacing**2 + floor**2)
+        weight = torch.maximum(unit_norm, WEIGHT_FLOOR * slope)
+        weight = torch.maximum(weight, MINIMUM_WEIGHT * scale) * magnitude
+        self.register_buffer("weight", weight, persistent=False)
         if not torch.compiler.is_compiling():
-            _warn_floored_on_surface(crossing, grad_norm.detach(), scale.detach())
+            _warn_floored_on_surface(crossing, unit_norm.detach(), scale.detach())
         self._phi_version = phi._version
         self.register_buffer("_mean_curvature", None, persistent=False)
         self.register_buffer("_haloed_normal", None, persistent=False)
@@ -251,6 +261,10 @@ class ImplicitSurface(nn.Module):
     def _crossing_nodes(self, phi: Tensor) -> Tensor:
         """The nodes with a neighbour across S, bool, shaped like ``phi``."""
         return _crossing(phi < 0)
+
+    def _entry_max(self, values: Tensor) -> Tensor:
+        """The largest of ``values`` ``(B, 1, D, H, W)`` in each batch entry, ``(B, 1, 1, 1, 1)``."""
+        return values.amax(dim=(1, 2, 3, 4), keepdim=True)
 
     def _gradient_scale(self, crossing: Tensor, values: Tensor) -> Tensor:
         """Median of ``values`` over the ``crossing`` nodes (:meth:`_crossing_nodes`);

@@ -117,6 +117,13 @@ class BrickSurface(ImplicitSurface):
                 crossing |= haloed[:, :, window[0], window[1], window[2]] != inside
         return crossing & self._stencilled(1)
 
+    def _entry_max(self, values: Tensor) -> Tensor:
+        batch = self.layout.batch.to(values.device)
+        per_brick = values.amax(dim=(1, 2, 3, 4))
+        per_entry = per_brick.new_zeros(self.layout.batch_size).scatter_reduce(
+            0, batch, per_brick, "amax")
+        return per_entry[batch].view(-1, 1, 1, 1, 1)
+
     def _gradient_scale(self, crossing: Tensor, values: Tensor) -> Tensor:
         batch = self.layout.batch.to(values.device)
         scales = []

@@ -491,17 +491,21 @@ def _theta_method(theta: float) -> Callable[[System, Tensor, Schedule], list[Ten
         band = system.band
         groups = None if system.layout is None else system.layout.batch.to(u0.device)
         mask = band.to(u0.dtype)
+        # the system in units of a power of two of W per entry (exact): the solver's inner
+        # products of W u stay in range for phi scaled near the float's limits (c = 1e20 in
+        # float32 overflowed them, 1e-30 underflowed)
+        scaled = mask / _entry_power_of_two(linear.params[0].detach(), band, groups)
         zero = torch.zeros((), dtype=u0.dtype, device=u0.device)
         u, out, done = u0, [], 0
         for _, dt, count in _intervals(schedule):
             step = dt if isinstance(dt, Tensor) else torch.tensor(float(dt), dtype=u0.dtype, device=u0.device)
 
             def matrix(x: Tensor, step: Tensor, *params: Tensor) -> Tensor:
-                return mask * (params[0] * x - theta * step * linear.operator(mask * x, *params))
+                return scaled * (params[0] * x - theta * step * linear.operator(mask * x, *params))
 
             params = (step, *linear.params)
             for _ in range(count):
-                rhs = torch.where(band, dt * linear.operator(u, *linear.params), zero)
+                rhs = torch.where(band, scaled * (dt * linear.operator(u, *linear.params)), zero)
                 change = solve_symmetric(matrix, rhs, torch.zeros_like(rhs), params,
                                          schedule.solver, groups)
                 u = torch.where(band, u + change, u)
@@ -513,6 +517,19 @@ def _theta_method(theta: float) -> Callable[[System, Tensor, Schedule], list[Ten
         return out
 
     return integrate
+
+
+def _entry_power_of_two(weight: Tensor, band: Tensor, groups: Tensor | None) -> Tensor:
+    """The power of two at or below the largest ``weight`` ``(B or 1, 1, D, H, W)`` on the
+    ``band`` of each batch entry, shaped to broadcast (per brick with ``groups``, the packed
+    fields' batch entries)."""
+    largest = torch.where(band, weight, 0.0).amax(dim=(1, 2, 3, 4))
+    if groups is not None:
+        per_entry = largest.new_zeros(int(groups.max()) + 1).scatter_reduce(
+            0, groups, largest, "amax")
+        largest = per_entry[groups]
+    tiny = torch.finfo(weight.dtype).tiny
+    return torch.exp2(torch.floor(torch.log2(largest.clamp_min(tiny)))).view(-1, 1, 1, 1, 1)
 
 
 def _torchdiffeq(method: str) -> Callable[[System, Tensor, Schedule], list[Tensor]]:
