@@ -91,6 +91,10 @@ def _refine(vertices: np.ndarray, faces: np.ndarray, grid: Grid, band: float
     distance between the two centres: when that bound is inside the cell's reach, the cell is
     split without asking the tree (most cells that straddle the surface).
     """
+    # libigl queried in a frame centred on the mesh: its distances, closest points and
+    # winding numbers lose precision with the mesh's offset from the origin
+    centre = _centre(vertices)
+    vertices = vertices - centre
     tree = igl.AABB()
     tree.init(vertices, faces)
     extent = np.array(grid.shape[::-1], dtype=np.int64)
@@ -105,7 +109,7 @@ def _refine(vertices: np.ndarray, faces: np.ndarray, grid: Grid, band: float
     while size > 1:
         reach = band + half_diagonal * (size - 1)
         asked = bound > reach - _BOUND_MARGIN * grid.spacing
-        centres = _world(grid, corners[asked] + 0.5 * (size - 1))
+        centres = _world(grid, corners[asked] + 0.5 * (size - 1)) - centre
         bound[asked] = np.sqrt(tree.squared_distance(vertices, faces, centres)[0])
         far = bound > reach
         far_corners.append((size, corners[far]))
@@ -117,7 +121,8 @@ def _refine(vertices: np.ndarray, faces: np.ndarray, grid: Grid, band: float
             inside = (corners < extent).all(axis=1)
             corners, bound = corners[inside], bound[inside]
     points = _world_nodes(grid, corners)
-    squared, face, closest = tree.squared_distance(vertices, faces, points)
+    squared, face, closest = tree.squared_distance(vertices, faces, points - centre)
+    closest += centre
     return Band(corners, np.sqrt(squared, out=squared), face, closest, far_corners), points
 
 
@@ -315,7 +320,15 @@ def _winding_numbers(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray
     """Generalised winding numbers ``(N,)`` of the mesh at ``points`` ``(N, 3)``."""
     if len(points) == 0:
         return np.zeros(0)
-    return igl.fast_winding_number(vertices, faces, np.ascontiguousarray(points))
+    centre = _centre(vertices)
+    return igl.fast_winding_number(vertices - centre, faces, np.ascontiguousarray(points - centre))
+
+
+def _centre(vertices: np.ndarray) -> np.ndarray:
+    """The middle of the vertices' bounding box ``(3,)``: libigl's queries are made relative
+    to it (at an offset of 1e4 from the origin, winding numbers in absolute coordinates
+    signed nodes of a unit-sized mesh wrongly)."""
+    return 0.5 * (vertices.min(axis=0) + vertices.max(axis=0))
 
 
 def _winding_inside(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -436,5 +449,5 @@ def signed_band(vertices: np.ndarray, faces: np.ndarray, grid: Grid, band: float
 
 
 def _signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
-    corner = vertices[faces]
+    corner = (vertices - _centre(vertices))[faces]  # far from the origin the terms cancel
     return float(np.einsum("ij,ij->", corner[:, 0], np.cross(corner[:, 1], corner[:, 2]))) / 6.0
