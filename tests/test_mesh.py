@@ -369,6 +369,25 @@ def test_order_two_decodes_constants_exactly(name: str, resolution: int) -> None
     assert float((adapter.decode(ones) - 1).abs().max()) < 1e-12
 
 
+def test_order_two_weights_do_not_depend_on_the_mesh_scale() -> None:
+    """A band node whose closest point lies on an edge reads the corner opposite it with
+    weight 0; libigl breaks the tie between the edge's two triangles by rounding, and
+    counting that corner moved two of spot's vertices across HAT_LIMIT at scales 0.37 and 3
+    (1e-3 before libigl's queries were centred on the mesh): weights 0.093 off, decoded heat
+    3e-3 off."""
+    path = Path(os.environ.get("TORCHSURF_MESH_DIR", MESH_DIR)) / "spot.obj"
+    if not path.is_file():
+        pytest.skip("test mesh spot.obj not found (set TORCHSURF_MESH_DIR)")
+    mesh = trimesh.load(path, process=False)
+    vertices, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    reference = tsm.MeshAdapter((vertices, faces), resolution=40, dtype=torch.float64)
+    for scale in (0.37, 3.0):
+        scaled = tsm.MeshAdapter((vertices * scale, faces), resolution=40, dtype=torch.float64)
+        assert torch.equal(scaled._decode_index, reference._decode_index)
+        difference = float((scaled._decode_weights - reference._decode_weights).abs().max())
+        assert difference < 1e-10, (scale, difference)
+
+
 def test_a_band_too_narrow_for_the_decoding_is_refused() -> None:
     # at 0.3 h an encoded constant decoded to [0, 0.885] and at 0.01 h the build crashed
     mesh = trimesh.creation.icosphere(subdivisions=2)

@@ -93,6 +93,10 @@ class Hats:
     own: Tensor
 
 
+UNREAD_WEIGHT = 1e-12
+"""Barycentric weights at or below this count as 0: the corner is not read."""
+
+
 def _hat_constraints(usable: Tensor, hats: Hats) -> tuple[Tensor, Tensor, Tensor]:
     """The hat functions read by each vertex's 64 taps, as constraint rows.
 
@@ -103,7 +107,11 @@ def _hat_constraints(usable: Tensor, hats: Hats) -> tuple[Tensor, Tensor, Tensor
     """
     count, taps = usable.shape
     own = hats.own[:, None, None]
-    ids = torch.where(usable[..., None], hats.corners, own).flatten(1)  # (V, 64 * 3)
+    # a corner of weight 0 (the closest point on the triangle's far edge) is not read: which
+    # of the two triangles at an edge libigl returns is a tie that rounding breaks, so that
+    # counting it changed the vertices read, and the weights, with the mesh's scale
+    read = usable[..., None] & (hats.barycentric > UNREAD_WEIGHT)
+    ids = torch.where(read, hats.corners, own).flatten(1)  # (V, 64 * 3)
     weights = (hats.barycentric * usable[..., None]).flatten(1)
     ordered, order = ids.sort(dim=1)
     first = torch.ones_like(ordered, dtype=torch.bool)
