@@ -326,3 +326,12 @@ def test_a_failed_run_leaves_no_folder_and_no_traceback(tmp_path, capsys):
     error = capsys.readouterr().err
     assert error.startswith("torchsurf: run failed: MemoryError:") and "Traceback" not in error
     assert not (tmp_path / "runs").exists()
+
+
+def test_a_run_that_cannot_put_its_picture_in_place_leaves_no_new_record(tmp_path):
+    """The record was renamed into place before the picture: a failing rename of the picture
+    (here a folder in its place) left a new record beside an old picture, or none."""
+    (tmp_path / "heat_sphere.png").mkdir()
+    code = cli.main(["run", "heat_sphere", "--set", *TINY, "--out", str(tmp_path), "--quiet"])
+    assert code != cli.EXIT_OK
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["heat_sphere.png"]

@@ -326,8 +326,9 @@ def _versions() -> dict[str, str]:
     return found
 
 
-def write_json(data: dict[str, Any], path: Path) -> Path:
-    """Write ``data`` as indented JSON through a temporary file renamed into place."""
+def _staged_json(data: dict[str, Any], path: Path) -> Path:
+    """``data`` as indented JSON in a hidden temporary file beside ``path``, to be renamed
+    into place; nothing is left behind if writing fails."""
     path.parent.mkdir(parents=True, exist_ok=True)
     handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".json")
     try:
@@ -335,11 +336,10 @@ def write_json(data: dict[str, Any], path: Path) -> Path:
             json.dump(data, stream, indent=2)
             stream.write("\n")
             os.fchmod(stream.fileno(), render.FILE_MODE)
-        os.replace(temporary, path)
     except BaseException:
         Path(temporary).unlink(missing_ok=True)
         raise
-    return path
+    return Path(temporary)
 
 
 @contextmanager
@@ -464,7 +464,8 @@ def run(prepared: Prepared, out: str | os.PathLike, progress: bool = False,
         log(f"render: {renderer} ({why})")
         out = Path(out)
         picture = out / f"{experiment.name}.png"
-        # the picture is moved into place after the record is: a failure leaves neither new
+        # picture and record are both written aside, then renamed into place, the picture
+        # first: a failure before leaves neither new
         drawn = render.render_panels(
             extracted, [(titles[p], colours[p]) for p in render_config.panels],
             out / f".{experiment.name}.{os.getpid()}.png", render_config.width,
@@ -472,12 +473,17 @@ def run(prepared: Prepared, out: str | os.PathLike, progress: bool = False,
             render_config.up.name, renderer,
         )
         stage("render")
+    record = out / f"{experiment.name}.json"
+    staged = None
     try:
-        record = _write_record(prepared, surface, n, spacing, diagonal, ran, physical, metrics,
-                               stages, picture, renderer, out / f"{experiment.name}.json")
+        staged = _write_record(prepared, surface, n, spacing, diagonal, ran, physical, metrics,
+                               stages, picture, renderer, record)
         os.replace(drawn, picture)
+        os.replace(staged, record)
     except BaseException:
         drawn.unlink(missing_ok=True)
+        if staged is not None:
+            staged.unlink(missing_ok=True)
         raise
     return Result(picture, record, stages, physical, metrics, ran)
 
@@ -487,10 +493,10 @@ def _write_record(prepared: Prepared, surface: ImplicitSurface, n: int, spacing:
                   metrics: dict[str, float], stages: dict[str, float], picture: Path,
                   renderer: str, path: Path) -> Path:
     """The run's JSON record (config as requested, grid and flow as run, metrics, timings,
-    versions) written to ``path``."""
+    versions) written beside ``path``, in a temporary file to be renamed to it."""
     experiment = prepared.experiment
     layout = cfg.layout(experiment.grid)
-    return write_json({
+    return _staged_json({
         "config": cfg.to_dict(experiment),
         "mesh": None if prepared.mesh_path is None else str(prepared.mesh_path),
         "grid": {"size": n, "spacing": spacing, "origin": list(surface.grid.origin),
