@@ -318,6 +318,8 @@ def _bad_calls() -> list:
         (lambda: render.colours(np.zeros((4, 1)), mode="rgb"), ValueError, "needs values"),
         (lambda: ts.MeshAdapter(mesh, resolution=16).encode(torch.zeros(0, 1, len(mesh.vertices))),
          ValueError, "B, C at least 1"),
+        (lambda: ts.MeshAdapter(mesh, resolution=16, order=1).decode(torch.zeros(1, 1, 8, 8, 8)),
+         ValueError, "volume"),
     ]
 
 

@@ -274,9 +274,9 @@ class MeshAdapter(nn.Module):
     def decode(self, volume: Tensor) -> Tensor:
         """Volume ``(B, C, D, H, W)`` -> values ``(B, C, V)`` at the vertices (see ``order``)."""
         check_volume(volume, "volume")
+        check_spatial_shape(volume, "volume", self.grid.shape, "grid")
         if self._decode_index is None:
             return sample(volume, self.vertices.to(volume.dtype), self.grid)
-        check_spatial_shape(volume, "volume", self.grid.shape, "grid")
         flat = volume.reshape(*volume.shape[:2], -1)[..., self._decode_index]
         return (flat * self._decode_weights.to(volume.dtype)).sum(dim=-1)
 
