@@ -185,6 +185,7 @@ def test_mesh_path_resolves_against_the_config_folder_then_the_mesh_dir(tmp_path
         (["name=../escaped"], "name"),
         (["name=a/b"], "name"),
         (["name=.hidden"], "name"),
+        (["grid.size=24", "grid=3"], "grid"),
     ],
 )
 def test_bad_settings_are_refused_with_their_key(overrides, key, tmp_path, capsys):

@@ -331,9 +331,20 @@ def find(config: str | os.PathLike) -> Path:
     )
 
 
-def _omegaconf_error(error: OmegaConfBaseException) -> ConfigError:
+def _omegaconf_error(error: OmegaConfBaseException, raw: DictConfig, overrides: list[str]
+                     ) -> ConfigError:
+    """``error`` as a :class:`ConfigError` starting with the key's path; where omegaconf names
+    none (a value given for a whole section), the first override that fails alone."""
     key = getattr(error, "full_key", "") or ""
     message = str(getattr(error, "msg", "") or error).splitlines()[0]
+    if not key:
+        for item in overrides:
+            try:
+                OmegaConf.merge(OmegaConf.structured(Experiment), raw,
+                                OmegaConf.from_dotlist([item]))
+            except OmegaConfBaseException:
+                return ConfigError(item.partition("=")[0].strip(),
+                                   f"cannot take {item!r}: {message}")
     return ConfigError(str(key), message)
 
 
@@ -369,7 +380,7 @@ def load(config: str | os.PathLike, overrides: list[str] | None = None) -> tuple
                                  OmegaConf.from_dotlist(parse_overrides(overrides or [])))
         experiment = OmegaConf.to_object(merged)
     except OmegaConfBaseException as error:
-        raise _omegaconf_error(error) from error
+        raise _omegaconf_error(error, raw, overrides or []) from error
     check(experiment)
     return experiment, path.resolve().parent
 
