@@ -336,3 +336,17 @@ def test_a_run_that_cannot_put_its_picture_in_place_leaves_no_new_record(tmp_pat
     code = cli.main(["run", "heat_sphere", "--set", *TINY, "--out", str(tmp_path), "--quiet"])
     assert code != cli.EXIT_OK
     assert sorted(p.name for p in tmp_path.iterdir()) == ["heat_sphere.png"]
+
+
+def test_an_interrupted_run_takes_back_the_folders_it_made(tmp_path, monkeypatch):
+    """Ctrl-C (and SIGTERM, which the console script turns into SystemExit) left the empty
+    --out folders the run had created."""
+    from torchsurf import experiment
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(experiment, "run", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        cli.main(["run", "heat_sphere", "--set", *TINY, "--out", str(tmp_path / "a" / "b")])
+    assert list(tmp_path.iterdir()) == []

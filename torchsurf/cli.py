@@ -123,6 +123,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         _remove_if_empty(created)
         print(f"torchsurf: run failed: {type(error).__name__}: {error}", file=sys.stderr)
         return EXIT_FAILED
+    except BaseException:  # Ctrl-C, SIGTERM: the folders this run made go too, if empty
+        _remove_if_empty(created)
+        raise
     times = ", ".join(f"{k} {v:.1f} s" for k, v in result.stages.items())
     log(f"stages: {times}")
     log(f"wrote {result.picture} and {result.record}")
