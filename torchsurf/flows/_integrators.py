@@ -543,9 +543,13 @@ def _torchdiffeq(method: str) -> Callable[[System, Tensor, Schedule], list[Tenso
                 f"methods are {sorted(INTEGRATORS)}"
             ) from error
         options = dict(schedule.options)
-        if method in _FIXED_STEP and "step_size" not in options:
+        if method in _FIXED_STEP:
+            # equal steps that end at the last time: a given step_size is the longest step
+            # (torchdiffeq's own grid ends with a partial step, whose length depends on the
+            # end time outside autograd's graph: a learned time's gradient came out 3% off)
             end = _value(schedule.times[-1])
-            count = schedule.steps or math.ceil(end / system.stable_step * (1 - 1e-9))
+            longest = options.get("step_size") or system.stable_step
+            count = schedule.steps or math.ceil(end / longest * (1 - 1e-9))
             options["step_size"] = end / max(count, 1)
         kwargs = {key: options.pop(key) for key in ("rtol", "atol") if key in options}
 

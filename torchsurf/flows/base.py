@@ -307,7 +307,9 @@ class Flow(nn.Module):
             graph break). ``times=`` needs ``max_time``: the requested times are fractions
             of ``max_time``, applied to the learned time.
         tolerance, max_iterations: conjugate-gradient stopping rule of the implicit methods.
-        options: extra keyword options for torchdiffeq (``rtol``, ``atol``, ``step_size``...).
+        options: extra keyword options for torchdiffeq (``rtol``, ``atol``, ``step_size``...);
+            a ``step_size`` of the fixed-step methods is the longest step: the run takes equal
+            steps that end at the last time.
         adjoint: integrate with ``torchdiffeq.odeint_adjoint``.
         progress: show a tqdm progress bar over the steps (tqdm is optional).
         reextend_every: re-extend the band and its ring along normals (closest point,
