@@ -478,6 +478,9 @@ def run(prepared: Prepared, out: str | os.PathLike, progress: bool = False,
     try:
         staged = _write_record(prepared, surface, n, spacing, diagonal, ran, physical, metrics,
                                stages, picture, renderer, record)
+        for target in (picture, record):  # what would stop a rename, before either is made
+            if target.is_dir():
+                raise IsADirectoryError(f"{target} is a folder: the run cannot write its file")
         os.replace(drawn, picture)
         os.replace(staged, record)
     except BaseException:
