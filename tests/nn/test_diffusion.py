@@ -368,6 +368,10 @@ def test_fixed_times_changed_in_place_or_replaced_are_followed():
     layer(u, surface)
     layer.fixed_time = torch.tensor([16.0])
     torch.testing.assert_close(layer(u, surface), reference)
+    layer.fixed_time = torch.tensor([0.1])
+    layer(u, surface)
+    layer.fixed_time.data.fill_(16.0)  # leaves _version as it was: the host copy was kept
+    torch.testing.assert_close(layer(u, surface), reference)
     layer.fixed_time.fill_(-1.0)
     with pytest.raises(ValueError, match="fixed_time must hold finite positive values"):
         layer(u, surface)
@@ -382,6 +386,10 @@ def test_a_flow_follows_a_fixed_diffusivity_changed_in_place():
     flow = ts.HeatFlow(time, diffusivity=[1.0, 1.0], method="euler")
     flow(u, surface)
     flow.diffusivity.values.fill_(20.0)
+    torch.testing.assert_close(flow(u, surface), reference)
+    flow.diffusivity.values.fill_(1.0)
+    flow(u, surface)
+    flow.diffusivity.values.data.fill_(20.0)
     torch.testing.assert_close(flow(u, surface), reference)
 
 

@@ -27,10 +27,10 @@ FLOOR = 1e-12
 
 
 class HostMaximum:
-    """The largest entry of a fixed tensor as a host float, read again only when the tensor
-    was replaced or modified in place (``data_ptr`` and ``_version``): the flows' step bounds
-    use it without a host read in every call, and never under ``torch.compile`` (which would
-    break its graph there: the value read last is used).
+    """The largest entry of a fixed tensor as a host float, read again at every call outside
+    ``torch.compile`` (a few values: microseconds), so that a tensor changed in any way, in
+    place, replaced, or through ``.data`` (which leaves no trace in ``_version``), is seen;
+    under ``torch.compile`` the value read last is used (a host read would break its graph).
 
     Args:
         name: the tensor's name in errors.
@@ -39,7 +39,6 @@ class HostMaximum:
 
     def __init__(self, name: str, tensor: Tensor) -> None:
         self.name = name
-        self._key: tuple | None = None
         self._value = math.nan
         self.of(tensor)
 
@@ -48,13 +47,11 @@ class HostMaximum:
         it was changed to hold a value that is not finite and positive."""
         if torch.compiler.is_compiling():
             return self._value
-        key = (tensor.data_ptr(), tensor._version, tensor.dtype, tensor.device)
-        if key != self._key:
-            largest = float(tensor.max())
-            if not (math.isfinite(largest) and float(tensor.min()) > 0):
-                raise ValueError(f"{self.name} must hold finite positive values, got "
-                                 f"{tensor.tolist()!r}")
-            self._key, self._value = key, largest
+        largest = float(tensor.max())
+        if not (math.isfinite(largest) and float(tensor.min()) > 0):
+            raise ValueError(f"{self.name} must hold finite positive values, got "
+                             f"{tensor.tolist()!r}")
+        self._value = largest
         return self._value
 
 
