@@ -126,7 +126,7 @@ class LearnedDiffusion(nn.Module):
     def largest_time(self) -> float | None:
         """A host float no smaller than every time, ``h^2`` units, read from no tensor:
         ``max_time``, or the largest fixed time; ``None`` for learned times without
-        ``max_time``. Fixed times changed in place or replaced are read again."""
+        ``max_time``. Fixed times are read again at every call (outside torch.compile)."""
         return self.max_time if self.learn_time else self._largest.of(self.fixed_time)
 
     def forward(self, u: Tensor, surface: ImplicitSurface) -> Tensor:
