@@ -319,7 +319,7 @@ def _bad_calls() -> list:
         (lambda: ts.MeshAdapter(mesh, resolution=16).encode(torch.zeros(0, 1, len(mesh.vertices))),
          ValueError, "B, C at least 1"),
         (lambda: ts.MeshAdapter(mesh, resolution=16, order=1).decode(torch.zeros(1, 1, 8, 8, 8)),
-         ValueError, "volume"),
+         ValueError, "volume has spatial shape"),
     ]
 
 
@@ -328,6 +328,10 @@ def test_colours_of_missing_values_are_grey_and_conversions_stay_float64():
 
     rgb = render.colours(np.array([[0.0], [np.nan], [1.0]]))
     assert np.allclose(rgb[1], 0.5) and np.isfinite(rgb).all() and not np.allclose(rgb[0], rgb[2])
+    # equalised: a missing value takes no rank (-inf ranked first shifted the others' colours)
+    ranked = render.colours(np.array([[-np.inf], [0.0], [1.0], [np.nan]]), equalize=True)
+    assert np.allclose(ranked[[0, 3]], 0.5)
+    assert np.allclose(ranked[1:3], render.colours(np.array([[0.0], [1.0]]), equalize=True))
     batch = ts.MeshBatchAdapter([ts.AnalyticShape("sphere")], resolution=16).float()
     assert batch.scale.dtype == batch.centre.dtype == torch.float64
 

@@ -148,7 +148,10 @@ class Grid:
         the index computation (so that every node of the grid is contained) plus
         ``tolerance`` grid cells.
         """
-        index = self.world_to_index(points)
+        return self.contains_index(self.world_to_index(points), tolerance)
+
+    def contains_index(self, index: Tensor, tolerance: float = 0.0) -> Tensor:
+        """:meth:`contains` for continuous node indices ``(..., 3)`` ``(i, j, k)``."""
         last = index.new_tensor([n - 1 for n in reversed(self.shape)])
         slack = tolerance + 8 * torch.finfo(index.dtype).eps * last
         return ((index >= -slack) & (index <= last + slack)).all(dim=-1)

@@ -110,8 +110,9 @@ def colours(values: np.ndarray, mode: str = "scalar", colormap: str = "viridis",
     missing = ~np.isfinite(values[:, 0])  # grey, and left out of the limits
     finite = values[~missing, 0]
     if equalize:
-        ranks = np.argsort(np.argsort(values[:, 0], kind="stable"), kind="stable")
-        scaled = ranks / max(len(finite) - 1, 1)
+        scaled = np.zeros(len(values))
+        ranks = np.argsort(np.argsort(finite, kind="stable"), kind="stable")
+        scaled[~missing] = ranks / max(len(finite) - 1, 1)
     else:
         low, high = (limits if limits is not None else
                      np.percentile(finite, [1.0, 99.0]) if len(finite) else (0.0, 1.0))

@@ -65,7 +65,7 @@ def _squared_slope(padded: Tensor) -> Tensor:
     return (torch.maximum(forward, backward) ** 2).sum(dim=1, keepdim=True)
 
 
-def _power_of_two(value: Tensor) -> Tensor:
+def power_of_two_below(value: Tensor) -> Tensor:
     """The power of two at or below each (positive) value: ``2^floor(log2(value))``, exact."""
     return torch.exp2(torch.floor(torch.log2(value.clamp_min(torch.finfo(value.dtype).tiny))))
 
@@ -192,7 +192,7 @@ class ImplicitSurface(nn.Module):
         # squares of |grad phi| in units of a power of two per entry (exact to divide and
         # multiply by): c * phi with c near the float's range (1e20 in float32) neither
         # overflows nor underflows them, and other phi give the same bits as without
-        magnitude = _power_of_two(self._entry_max(gradient.detach().abs().amax(dim=1, keepdim=True)))
+        magnitude = power_of_two_below(self._entry_max(gradient.detach().abs().amax(dim=1, keepdim=True)))
         unit_gradient = gradient / magnitude
         squared = (unit_gradient**2).sum(dim=1, keepdim=True)
         self.register_buffer("phi", phi, persistent=False)

@@ -237,6 +237,15 @@ class BrickLayout:
         self._halo_indices[key] = cached
         return cached
 
+    def entry_max(self, x: Tensor) -> Tensor:
+        """The largest value of each batch entry and channel of a packed ``x``
+        ``(N, C, 8, 8, 8)``, each brick given its entry's: ``(N, C, 1, 1, 1)``."""
+        per_brick = x.amax(dim=(2, 3, 4))
+        batch = self.batch.to(x.device)
+        per_entry = per_brick.new_full((self.batch_size, x.shape[1]), -torch.inf).scatter_reduce(
+            0, batch[:, None].expand_as(per_brick), per_brick, "amax")
+        return per_entry[batch][..., None, None, None]
+
     def dilate(self, mask: Tensor) -> Tensor:
         """``mask`` ``(N, 1, 8, 8, 8)`` bool and every node a 3x3x3 stencil on it reads."""
         grown = self.halo(mask, 1)

@@ -118,11 +118,7 @@ class BrickSurface(ImplicitSurface):
         return crossing & self._stencilled(1)
 
     def _entry_max(self, values: Tensor) -> Tensor:
-        batch = self.layout.batch.to(values.device)
-        per_brick = values.amax(dim=(1, 2, 3, 4))
-        per_entry = per_brick.new_zeros(self.layout.batch_size).scatter_reduce(
-            0, batch, per_brick, "amax")
-        return per_entry[batch].view(-1, 1, 1, 1, 1)
+        return self.layout.entry_max(values)
 
     def _gradient_scale(self, crossing: Tensor, values: Tensor) -> Tensor:
         batch = self.layout.batch.to(values.device)
@@ -251,9 +247,8 @@ class BrickSurface(ImplicitSurface):
         and per corner of the cell its offset ``(3,)``, brick row ``(V,)`` (-1: not stored)
         and packed node ``(V,)``."""
         grid = self.grids[entry]
+        inside = grid.contains_index(index.detach(), tolerance=1e-4)
         high = torch.tensor(grid.shape[::-1], dtype=index.dtype, device=index.device) - 1
-        slack = 1e-4 + 8 * torch.finfo(index.dtype).eps * high
-        inside = ((index.detach() >= -slack) & (index.detach() <= high + slack)).all(dim=-1)
         index = torch.minimum(index.clamp(min=0), high)
         low = index.detach().floor().clamp(max=high - 1).long()
         lookup = self.layout.lookup.to(index.device)

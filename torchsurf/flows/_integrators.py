@@ -22,6 +22,7 @@ from torch import Tensor
 
 from .._stack import caller_stacklevel
 from ..bricks.layout import BrickLayout
+from ..surface import power_of_two_below
 from ._recompute import independent, recomputed
 from ._rkc import MAX_STAGES, largest_step_times_rho, rkc_step, stages_for
 from ._solve import SolverOptions, solve_symmetric
@@ -494,7 +495,7 @@ def _theta_method(theta: float) -> Callable[[System, Tensor, Schedule], list[Ten
         # the system in units of a power of two of W per entry (exact): the solver's inner
         # products of W u stay in range for phi scaled near the float's limits (c = 1e20 in
         # float32 overflowed them, 1e-30 underflowed)
-        scaled = mask / _entry_power_of_two(linear.params[0].detach(), band, groups)
+        scaled = mask / _entry_power_of_two(linear.params[0].detach(), band, system.layout)
         zero = torch.zeros((), dtype=u0.dtype, device=u0.device)
         u, out, done = u0, [], 0
         for _, dt, count in _intervals(schedule):
@@ -519,17 +520,14 @@ def _theta_method(theta: float) -> Callable[[System, Tensor, Schedule], list[Ten
     return integrate
 
 
-def _entry_power_of_two(weight: Tensor, band: Tensor, groups: Tensor | None) -> Tensor:
+def _entry_power_of_two(weight: Tensor, band: Tensor, layout: BrickLayout | None) -> Tensor:
     """The power of two at or below the largest ``weight`` ``(B or 1, 1, D, H, W)`` on the
-    ``band`` of each batch entry, shaped to broadcast (per brick with ``groups``, the packed
-    fields' batch entries)."""
-    largest = torch.where(band, weight, 0.0).amax(dim=(1, 2, 3, 4))
-    if groups is not None:
-        per_entry = largest.new_zeros(int(groups.max()) + 1).scatter_reduce(
-            0, groups, largest, "amax")
-        largest = per_entry[groups]
-    tiny = torch.finfo(weight.dtype).tiny
-    return torch.exp2(torch.floor(torch.log2(largest.clamp_min(tiny)))).view(-1, 1, 1, 1, 1)
+    ``band`` of each batch entry, shaped to broadcast (packed fields on ``layout``: each
+    brick its entry's)."""
+    on_band = torch.where(band, weight, 0.0)
+    largest = (on_band.amax(dim=(1, 2, 3, 4), keepdim=True) if layout is None
+               else layout.entry_max(on_band))
+    return power_of_two_below(largest)
 
 
 def _torchdiffeq(method: str) -> Callable[[System, Tensor, Schedule], list[Tensor]]:

@@ -698,13 +698,7 @@ def _upwind_step(u: Tensor, velocity: Tensor, spacing: float, cfl: float,
 def _volume_max(x: Tensor, layout: BrickLayout | None) -> Tensor:
     """The largest value of each volume and channel of ``x``, shaped to broadcast over it:
     ``(B, C, 1, 1, 1)``; with ``layout``, each brick gets its batch entry's, ``(N, C, 1, 1, 1)``."""
-    if layout is None:
-        return x.amax(dim=(2, 3, 4), keepdim=True)
-    per_brick = x.amax(dim=(2, 3, 4))
-    batch = layout.batch.to(x.device)
-    per_entry = per_brick.new_full((layout.batch_size, x.shape[1]), -torch.inf).scatter_reduce(
-        0, batch[:, None].expand_as(per_brick), per_brick, "amax")
-    return per_entry[batch][..., None, None, None]
+    return x.amax(dim=(2, 3, 4), keepdim=True) if layout is None else layout.entry_max(x)
 
 
 def pde_extension(

@@ -23,6 +23,12 @@ def _band_nodes(surface: ImplicitSurface) -> Tensor:
     return surface.kept(("band nodes",), lambda: surface.band_mask().flatten().nonzero()[:, 0])
 
 
+def _band_and_ring(surface: ImplicitSurface) -> Tensor:
+    """``surface.band_mask()`` and the ring its stencils read, found once per surface."""
+    return surface.kept(("band and ring",),
+                        lambda: with_ring(surface.band_mask(), surface.layout))
+
+
 class DiffusionBlock(nn.Module):
     """``u + MLP([d, features(d)])`` on the band, ``d = LearnedDiffusion(u)``.
 
@@ -70,7 +76,7 @@ class DiffusionBlock(nn.Module):
         diffused = self.diffusion(u, surface)
         # the band's features read the ring, nothing beyond: zeros there keep a NaN of u out of
         # the features' derivatives (0 * NaN in a backward)
-        read = torch.where(with_ring(surface.band_mask(), surface.layout), diffused, 0.0)
+        read = torch.where(_band_and_ring(surface).to(u.device), diffused, 0.0)
         features = torch.cat([
             diffused, gradient_features(read, surface, self.pairs, path=self.diffusion.path)
         ], dim=1)
