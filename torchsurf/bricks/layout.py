@@ -28,6 +28,7 @@ from torch import Tensor
 from .. import backend
 from .._checks import check_choice
 from ..grid import Grid
+from . import _native
 
 BRICK = 8
 """Nodes along each side of a brick."""
@@ -114,6 +115,7 @@ class BrickLayout:
             raise ValueError("coords must not repeat a brick of the same batch entry")
         self.neighbours, self.present = self._neighbours()
         self._halo_indices: dict[tuple[int, torch.device], tuple[Tensor, Tensor]] = {}
+        self._row_bits = _native._RowBits()
         self.inside = self._inside()
 
     # --- construction -------------------------------------------------------------------
@@ -173,6 +175,8 @@ class BrickLayout:
             for key, value in self.__dict__.items()
         })
         moved._halo_indices = {}
+        moved._row_bits = _native._RowBits()
+        moved.__dict__.pop("_native_tables", None)
         return moved
 
     def counts(self) -> list[int]:
@@ -212,6 +216,17 @@ class BrickLayout:
         rows = field.reshape(n, channels, -1).transpose(0, 1).reshape(channels, -1)
         gathered = backend.run(_HALO_GATHER, path, field, rows, sources, missing)
         return gathered.view(channels, n, side, side, side).transpose(0, 1)
+
+    def native_octant(self, u: Tensor, haloed_normal: Tensor, haloed_weight: Tensor,
+                      spacing: float, weighted: bool, mask: Tensor | None) -> Tensor | None:
+        """The octant Laplace–Beltrami of ``u`` ``(N, C, 8, 8, 8)`` by the C kernel that reads
+        halos in place and evaluates only the rows of ``mask`` (:mod:`torchsurf.bricks._native`),
+        or ``None`` where that kernel does not apply. What ``path="auto"`` runs on bricks."""
+        if "_native_tables" not in self.__dict__:
+            self._native_tables = (self.neighbours.contiguous(),
+                                   self.present.to(torch.uint8).contiguous())
+        return _native.octant(u, haloed_normal, haloed_weight, *self._native_tables,
+                              self._row_bits, spacing, weighted, mask)
 
     def _halo_index(self, width: int, device: torch.device) -> tuple[Tensor, Tensor]:
         """``(N (8 + 2 width)^3,)`` source of each haloed node in the packed nodes (int32 up to

@@ -77,7 +77,9 @@ Haloed = tuple[Tensor, Tensor] | None
 Pad = Callable[[Tensor, int], Tensor]
 """``pad(u, width) -> u`` with a halo of ``width`` nodes from where ``u`` is stored: for packed
 band fields, :meth:`torchsurf.bricks.BrickLayout.halo`. Given, an operator runs its one-pass
-form on the haloed inputs (``haloed`` geometry required) and imposes no box faces."""
+form on the haloed inputs (``haloed`` geometry required) and imposes no box faces. A ``pad``
+bound to an object with a ``native_octant`` method (a brick layout) lets ``path="auto"`` run
+the octant scheme by that method where it applies (:mod:`torchsurf.bricks._native`)."""
 
 
 def _replicated(volume: Tensor, width: int) -> Tensor:
@@ -150,6 +152,11 @@ def _apply_linear(u, normal, weight, spacing, scheme, weighted, haloed, path, pa
     if pad is not None:
         haloed_normal, haloed_weight = _require_haloed(haloed)
         if scheme == "octant":
+            native = getattr(getattr(pad, "__self__", None), "native_octant", None)
+            if path == "auto" and native is not None:
+                result = native(u, haloed_normal, haloed_weight, spacing, weighted, mask)
+                if result is not None:
+                    return result
             return backend.run_haloed(_OCTANT, path, u, pad(u, 1), haloed_normal, haloed_weight,
                                       weight, spacing, weighted, mask)
         return masked(backend.run_haloed(_FLUX_LB_OPEN, path, u, pad(u, 2), haloed_normal,

@@ -1,0 +1,147 @@
+"""The octant Laplace–Beltrami's C kernel on bricks against the eager one-pass form."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+import torchsurf as ts
+from torchsurf import Grid, bricks
+from torchsurf.bricks import _native
+from torchsurf.operators import functional
+
+
+def _octant(surface, u, path, mask=None, weighted=False):
+    return functional.divergence_form(
+        u, surface.normal, surface.weight, surface.spacing, "octant", path, weighted=weighted,
+        haloed=surface.haloed(), pad=surface.layout.halo, mask=mask)
+
+
+@pytest.fixture(scope="module")
+def native_available():
+    if _native.library() is None:
+        pytest.skip(f"no native kernel here: {_native.unavailable_reason()}")
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("masked", [False, True])
+@pytest.mark.parametrize("weighted", [False, True])
+def test_native_octant_equals_the_eager_form(two_boxes, native_available, dtype, masked,
+                                             weighted):
+    """A batch of two boxes of odd shapes and origins, three channels, every stored node (bricks
+    at the edge of the stored ones read missing neighbours as zeros) or the band's."""
+    _, _, both = two_boxes
+    surface = both.to(dtype)
+    u = torch.randn(len(surface.layout), 3, 8, 8, 8, dtype=dtype,
+                    generator=torch.Generator().manual_seed(3))
+    mask = surface.band_mask() if masked else None
+    native = surface.layout.native_octant(u, *surface.haloed(), surface.spacing, weighted, mask)
+    assert native is not None
+    eager = _octant(surface, u, "slicing", mask, weighted)
+    tolerance = 1e-6 if dtype == torch.float32 else 1e-13
+    assert (native - eager).abs().max() <= tolerance * eager.abs().max()
+    if masked:
+        assert not native[~mask.expand_as(native)].any()
+    assert torch.equal(_octant(surface, u, "auto", mask, weighted), native)
+
+
+def test_native_octant_reads_views_of_any_brick_and_channel_strides(two_boxes,
+                                                                    native_available):
+    """Halos come packed channel-major (``(C, N)`` in memory); data may be a channel slice."""
+    _, _, surface = two_boxes
+    wide = torch.randn(4, len(surface.layout), 8, 8, 8, dtype=torch.float64)
+    u = wide.transpose(0, 1)[:, 1:3]
+    assert not u.is_contiguous()
+    native = surface.layout.native_octant(u, *surface.haloed(), surface.spacing, False, None)
+    assert native is not None
+    assert torch.allclose(native, _octant(surface, u.contiguous(), "slicing"), rtol=0,
+                          atol=1e-13 * float(native.abs().max()))
+
+
+def test_native_octant_follows_a_mask_written_in_place(torus, native_available):
+    _, surface = torus
+    u = torch.randn(len(surface.layout), 1, 8, 8, 8, dtype=torch.float64)
+    mask = surface.band_mask().clone()
+    first = _octant(surface, u, "auto", mask)
+    mask[:, :, :, :, ::2] = False
+    second = _octant(surface, u, "auto", mask)
+    assert not torch.equal(first, second)
+    assert torch.allclose(second, _octant(surface, u, "slicing", mask), atol=1e-12)
+
+
+def test_native_octant_has_the_adjoint_backward(torus, native_available):
+    """Autograd reaches ``u`` through the self-adjoint backward, which runs the kernel too."""
+    _, surface = torus
+    band = surface.band_mask()
+    u = torch.randn(len(surface.layout), 2, 8, 8, 8, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda v: _octant(surface, v, "auto", band), (u,),
+                                    eps=1e-6, atol=1e-7, fast_mode=True)
+    upstream = torch.randn_like(u)
+    (native,) = torch.autograd.grad(_octant(surface, u, "auto", band), u, upstream)
+    (eager,) = torch.autograd.grad(_octant(surface, u, "slicing", band), u, upstream)
+    assert torch.allclose(native, eager, rtol=0, atol=1e-12 * float(eager.abs().max()))
+
+
+def test_native_octant_steps_aside_for_a_gradient_to_the_geometry(torus, native_available):
+    _, surface = torus
+    u = torch.randn(len(surface.layout), 1, 8, 8, 8, dtype=torch.float64)
+    normal, weight = (t.detach().requires_grad_() for t in surface.haloed())
+    assert surface.layout.native_octant(u, normal, weight, surface.spacing, False, None) is None
+    with torch.no_grad():
+        assert surface.layout.native_octant(u, normal, weight, surface.spacing, False,
+                                            None) is not None
+
+
+def test_without_a_compiler_the_operators_take_their_other_paths(torus, monkeypatch, tmp_path):
+    _, surface = torus
+    u = torch.randn(len(surface.layout), 1, 8, 8, 8, dtype=torch.float64)
+    expected = _octant(surface, u, "slicing")
+    monkeypatch.setattr(_native, "_state", {})
+    monkeypatch.setenv("TORCHSURF_CACHE_DIR", str(tmp_path))
+    monkeypatch.setenv("CC", str(tmp_path / "no-such-compiler"))
+    assert surface.layout.native_octant(u, *surface.haloed(), surface.spacing, False, None) is None
+    assert "no-such-compiler" in _native.unavailable_reason()
+    assert torch.allclose(ts.laplace_beltrami(u, surface), expected, atol=1e-12)
+    assert list(tmp_path.iterdir()) == []
+
+    monkeypatch.setattr(_native, "_state", {})
+    monkeypatch.delenv("CC")
+    monkeypatch.setenv("TORCHSURF_NATIVE", "never")
+    assert _native.library() is None
+    assert "TORCHSURF_NATIVE=never" in _native.unavailable_reason()
+
+
+def test_the_kernel_is_compiled_into_the_cache_folder_once(monkeypatch, tmp_path,
+                                                          native_available):
+    monkeypatch.setattr(_native, "_state", {})
+    monkeypatch.setenv("TORCHSURF_CACHE_DIR", str(tmp_path / "cache"))
+    assert _native.library() is not None
+    built = list((tmp_path / "cache").iterdir())
+    assert len(built) == 1 and built[0].suffix == ".so"  # no leftover source or folder
+    stamp = built[0].stat().st_mtime_ns
+    monkeypatch.setattr(_native, "_state", {})
+    assert _native.library() is not None
+    assert built[0].stat().st_mtime_ns == stamp
+
+
+def test_a_bad_native_mode_is_named(monkeypatch):
+    monkeypatch.setattr(_native, "_state", {})
+    monkeypatch.setenv("TORCHSURF_NATIVE", "sometimes")
+    with pytest.raises(ValueError, match="TORCHSURF_NATIVE must be one of"):
+        _native.library()
+
+
+def test_native_octant_runs_in_parts_on_threads(native_available, monkeypatch):
+    """Bricks split between threads give the numbers of one thread, bit for bit."""
+    grid = Grid.cube(49, 1.5)
+    surface = bricks.from_dense(ts.sdf.sphere(grid, 1.1), grid)
+    u = torch.randn(len(surface.layout), 1, 8, 8, 8)
+    monkeypatch.setattr(_native, "THREAD_MIN_BRICKS", 8)
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        alone = _octant(surface, u, "auto")
+        torch.set_num_threads(3)
+        assert torch.equal(_octant(surface, u, "auto"), alone)
+    finally:
+        torch.set_num_threads(threads)

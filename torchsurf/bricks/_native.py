@@ -1,0 +1,312 @@
+"""The octant Laplace–Beltrami on bricks as a small C kernel that skips what is not in the band.
+
+The compiled one-pass kernel (:func:`torchsurf.operators._octant.fused_octant`) evaluates every
+node a brick stores, after its halo is gathered into a copy of the field: at 512^3 about a
+quarter of the stored nodes are in a flow's band, and the gather costs as much as the stencil.
+This kernel reads each brick's halo from its neighbours row by row into a small tile on the
+stack, and evaluates only the rows of 8 nodes (along x) that hold a band node, 8 nodes at a
+time in the CPU's vector registers. Its numbers are the octant expression's, in the same order
+of operations, so they agree with the other paths to rounding.
+
+It is compiled once per machine with the C compiler that ``torch.compile`` also needs
+(``$CC``, else ``cc``), about half a second, into a cache folder: ``$TORCHSURF_CACHE_DIR``, else
+``$XDG_CACHE_HOME/torchsurf``, else ``~/.cache/torchsurf``. Without a compiler, or with
+``TORCHSURF_NATIVE=never``, :func:`octant` returns ``None`` and the operators take their other
+paths; :func:`unavailable_reason` says why.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import os
+import subprocess
+import tempfile
+import threading
+import weakref
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+BRICK = 8
+TILE = BRICK + 2
+
+NATIVE_MODES = ("auto", "never")
+"""Values of the environment variable ``TORCHSURF_NATIVE``."""
+
+_BODY = r"""
+static inline void axis_terms_SUFFIX(const REAL *restrict t, const REAL *restrict w,
+        const REAL *restrict na, const REAL *restrict n1, const REAL *restrict n2,
+        int p0, int sa, int s1, int s2, REAL *restrict diag, REAL *restrict cross)
+{
+    for (int x = 0; x < B; ++x) {
+        int p = p0 + x;
+        REAL here = w[p] - w[p] * na[p] * na[p];
+        REAL ahead = w[p + sa] - w[p + sa] * na[p + sa] * na[p + sa];
+        REAL behind = w[p - sa] - w[p - sa] * na[p - sa] * na[p - sa];
+        REAL u0 = t[p];
+        diag[x] += (here + ahead) * (t[p + sa] - u0) - (behind + here) * (u0 - t[p - sa]);
+        int q = p - sa;
+        REAL low = w[q] * na[q] * (n1[q] * (t[q + s1] - t[q - s1])
+                                   + n2[q] * (t[q + s2] - t[q - s2]));
+        q = p + sa;
+        REAL high = w[q] * na[q] * (n1[q] * (t[q + s1] - t[q - s1])
+                                    + n2[q] * (t[q + s2] - t[q - s2]));
+        cross[x] += low - high;
+    }
+}
+
+void octant_bricks_SUFFIX(
+        const REAL *u, int64_t u_brick, int64_t u_channel,
+        const REAL *normal, int64_t normal_brick, int64_t normal_channel,
+        const REAL *weight, int64_t weight_brick,
+        const int64_t *neighbours, const uint8_t *present, const uint8_t *rows,
+        REAL *out, int64_t first, int64_t stop, int64_t channels, double scale_in,
+        int weighted)
+{
+    const REAL scale = (REAL)scale_in;
+    for (int64_t n = first; n < stop; ++n) {
+        REAL tile[T * T * T];
+        uint8_t need[T * T];
+        const uint8_t *row_bits = rows + n * B * B;
+        const int64_t *nb = neighbours + n * 27;
+        const uint8_t *pr = present + n * 27;
+        const REAL *nx = normal + n * normal_brick;
+        const REAL *ny = nx + normal_channel, *nz = ny + normal_channel;
+        const REAL *w = weight + n * weight_brick;
+        int any = 0;
+        memset(need, 0, sizeof need);
+        for (int z = 0; z < B; ++z)
+            for (int y = 0; y < B; ++y)
+                if (row_bits[z * B + y]) {
+                    any = 1;
+                    for (int dz = 0; dz < 3; ++dz)
+                        for (int dy = 0; dy < 3; ++dy) need[(z + dz) * T + y + dy] = 1;
+                }
+        for (int64_t c = 0; c < channels; ++c) {
+            REAL *o = out + (n * channels + c) * B * B * B;
+            if (!any) { memset(o, 0, sizeof(REAL) * B * B * B); continue; }
+            for (int zz = 0; zz < T; ++zz) {
+                int bz = zz == 0 ? 0 : zz == T - 1 ? 2 : 1, lz = (zz + B - 1) % B;
+                for (int yy = 0; yy < T; ++yy) {
+                    if (!need[zz * T + yy]) continue;
+                    int by = yy == 0 ? 0 : yy == T - 1 ? 2 : 1, ly = (yy + B - 1) % B;
+                    REAL *dst = tile + (zz * T + yy) * T;
+                    int k = bz * 9 + by * 3;
+                    int64_t row = c * u_channel + (lz * B + ly) * B;
+                    dst[0] = pr[k] ? u[nb[k] * u_brick + row + B - 1] : (REAL)0;
+                    if (pr[k + 1])
+                        memcpy(dst + 1, u + nb[k + 1] * u_brick + row, sizeof(REAL) * B);
+                    else
+                        memset(dst + 1, 0, sizeof(REAL) * B);
+                    dst[T - 1] = pr[k + 2] ? u[nb[k + 2] * u_brick + row] : (REAL)0;
+                }
+            }
+            for (int z = 0; z < B; ++z)
+                for (int y = 0; y < B; ++y) {
+                    REAL *target = o + (z * B + y) * B;
+                    uint8_t bits = row_bits[z * B + y];
+                    if (!bits) { memset(target, 0, sizeof(REAL) * B); continue; }
+                    int p0 = ((z + 1) * T + (y + 1)) * T + 1;
+                    REAL diag[B] = {0}, cross[B] = {0};
+                    axis_terms_SUFFIX(tile, w, nx, ny, nz, p0, 1, T, T * T, diag, cross);
+                    axis_terms_SUFFIX(tile, w, ny, nx, nz, p0, T, 1, T * T, diag, cross);
+                    axis_terms_SUFFIX(tile, w, nz, nx, ny, p0, T * T, 1, T, diag, cross);
+                    for (int x = 0; x < B; ++x) {
+                        REAL total = (REAL)2 * diag[x] + cross[x];
+                        REAL value = weighted ? total / scale : total / (scale * w[p0 + x]);
+                        target[x] = (bits >> x) & 1 ? value : (REAL)0;
+                    }
+                }
+        }
+    }
+}
+"""
+
+
+def _source() -> str:
+    source = "#include <stdint.h>\n#include <string.h>\n#define B 8\n#define T 10\n"
+    for real, suffix in (("float", "f32"), ("double", "f64")):
+        source += _BODY.replace("REAL", real).replace("SUFFIX", suffix)
+    return source
+
+
+_FLAGS = ("-O3", "-march=native", "-mprefer-vector-width=256", "-shared", "-fPIC")
+"""256-bit vectors: a row of 8 float32 nodes fills one (with 512-bit ones gcc leaves the row
+loop scalar)."""
+
+_lock = threading.Lock()
+_state: dict[str, object] = {}
+
+
+def _mode() -> str:
+    value = os.environ.get("TORCHSURF_NATIVE", "auto").strip().lower() or "auto"
+    if value not in NATIVE_MODES:
+        raise ValueError(f"TORCHSURF_NATIVE must be one of {NATIVE_MODES}, got {value!r}")
+    return value
+
+
+def cache_dir() -> Path:
+    """Where the compiled kernel is kept (module docstring)."""
+    if os.environ.get("TORCHSURF_CACHE_DIR"):
+        return Path(os.environ["TORCHSURF_CACHE_DIR"])
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "torchsurf"
+
+
+def _machine_key() -> str:
+    """What ``-march=native`` compiled for: the CPU's feature flags."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith(("flags", "Features")):
+                return line
+    except OSError:
+        pass
+    import platform
+    return platform.processor() or platform.machine()
+
+
+def _compile(compiler: str) -> ctypes.CDLL:
+    source = _source()
+    version = subprocess.run([compiler, "--version"], capture_output=True, text=True,
+                             check=True, timeout=60).stdout
+    key = hashlib.sha256("\0".join((source, *_FLAGS, version, _machine_key())).encode())
+    folder = cache_dir()
+    library = folder / f"octant_bricks_{key.hexdigest()[:20]}.so"
+    if not library.exists():
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryDirectory(dir=folder) as work:
+            c_file = Path(work) / "octant_bricks.c"
+            c_file.write_text(source)
+            built = Path(work) / library.name
+            subprocess.run([compiler, *_FLAGS, "-o", str(built), str(c_file)],
+                           capture_output=True, text=True, check=True, timeout=120)
+            os.replace(built, library)  # whole or not at all, also for a concurrent process
+    loaded = ctypes.CDLL(str(library))
+    for suffix in ("f32", "f64"):
+        function = getattr(loaded, f"octant_bricks_{suffix}")
+        function.restype = None
+        function.argtypes = ([ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64] * 2
+                             + [ctypes.c_void_p, ctypes.c_int64]
+                             + [ctypes.c_void_p] * 4
+                             + [ctypes.c_int64, ctypes.c_int64, ctypes.c_int64, ctypes.c_double,
+                                ctypes.c_int])
+    return loaded
+
+
+def library() -> ctypes.CDLL | None:
+    """The compiled kernel, compiled on first use; ``None`` where it cannot be."""
+    with _lock:
+        if "library" not in _state:
+            try:
+                if _mode() == "never":
+                    raise RuntimeError("TORCHSURF_NATIVE=never")
+                _state["library"] = _compile(os.environ.get("CC") or "cc")
+                _state["reason"] = None
+            except (OSError, RuntimeError, subprocess.SubprocessError) as error:
+                detail = getattr(error, "stderr", None) or error
+                _state["library"] = None
+                _state["reason"] = f"{type(error).__name__}: {str(detail).strip()[:500]}"
+        return _state["library"]  # type: ignore[return-value]
+
+
+def unavailable_reason() -> str | None:
+    """Why :func:`octant` falls back (no compiler, ``TORCHSURF_NATIVE=never``), or ``None``."""
+    library()
+    return _state["reason"]  # type: ignore[return-value]
+
+
+class _RowBits:
+    """Per brick and row ``(z, y)`` of a mask ``(N, 1, 8, 8, 8)``, its nodes along x as the
+    bits of a byte ``(N, 8, 8)``; kept while the mask lives and is not written to."""
+
+    def __init__(self) -> None:
+        self._mask: weakref.ref | None = None
+        self._version = -1
+        self._bits: Tensor | None = None
+
+    def __call__(self, mask: Tensor | None, bricks: int) -> Tensor:
+        if mask is None:
+            return torch.full((bricks, BRICK, BRICK), 255, dtype=torch.uint8)
+        if self._mask is not None and self._mask() is mask and mask._version == self._version:
+            return self._bits  # type: ignore[return-value]
+        powers = 1 << torch.arange(BRICK, dtype=torch.int32)
+        bits = (mask.reshape(bricks, BRICK, BRICK, BRICK).to(torch.int32) * powers).sum(-1)
+        self._mask, self._version = weakref.ref(mask), mask._version
+        self._bits = bits.to(torch.uint8).contiguous()
+        return self._bits
+
+
+def _strides(tensor: Tensor, side: int) -> tuple[int, int] | None:
+    """``(brick, channel)`` strides of a ``(N, C, side, side, side)`` tensor whose blocks of
+    ``side^3`` nodes are each contiguous, else ``None``."""
+    if tuple(tensor.stride()[2:]) != (side * side, side, 1):
+        return None
+    return tensor.stride(0), tensor.stride(1)
+
+
+def octant(u: Tensor, haloed_normal: Tensor, haloed_weight: Tensor, neighbours: Tensor,
+           present: Tensor, row_bits: _RowBits, spacing: float, weighted: bool,
+           mask: Tensor | None) -> Tensor | None:
+    """The octant scheme's ``L u`` (``W L u`` if ``weighted``) at the nodes of ``mask`` (every
+    stored node if ``None``), zero elsewhere; ``None`` where this kernel does not apply (no
+    compiler, not on the CPU, a dtype other than float32 and float64, an input that needs a
+    gradient through it, a layout of bricks it does not take).
+
+    Args:
+        u: ``(N, C, 8, 8, 8)``.
+        haloed_normal: ``(N, 3, 10, 10, 10)``, ``haloed_weight``: ``(N, 1, 10, 10, 10)``: the
+            geometry with its halo (:meth:`torchsurf.ImplicitSurface.haloed`).
+        neighbours, present: the layout's ``(N, 27)`` tables, contiguous, int64 and uint8.
+        mask: ``(N, 1, 8, 8, 8)`` bool or ``None``.
+    """
+    tensors = (u, haloed_normal, haloed_weight) + (() if mask is None else (mask,))
+    if (u.dtype not in (torch.float32, torch.float64) or any(t.device.type != "cpu"
+                                                             for t in tensors)
+            or haloed_normal.dtype != u.dtype or haloed_weight.dtype != u.dtype
+            or (torch.is_grad_enabled() and any(t.requires_grad for t in tensors))
+            or haloed_normal.shape[0] != u.shape[0] or haloed_weight.shape[0] != u.shape[0]
+            or (mask is not None and mask.shape != (u.shape[0], 1, BRICK, BRICK, BRICK))):
+        return None
+    bricks, channels = u.shape[:2]
+    u_strides = _strides(u, BRICK)
+    normal_strides = _strides(haloed_normal, TILE)
+    weight_strides = _strides(haloed_weight, TILE)
+    if u_strides is None or normal_strides is None or weight_strides is None:
+        return None
+    compiled = library()
+    if compiled is None:
+        return None
+    bits = row_bits(mask, bricks)
+    out = torch.empty((bricks, channels, BRICK, BRICK, BRICK), dtype=u.dtype)
+    kernel = compiled.octant_bricks_f32 if u.dtype == torch.float32 else compiled.octant_bricks_f64
+
+    def run(first: int, stop: int) -> None:
+        kernel(u.data_ptr(), *u_strides, haloed_normal.data_ptr(), *normal_strides,
+               haloed_weight.data_ptr(), weight_strides[0], neighbours.data_ptr(),
+               present.data_ptr(), bits.data_ptr(), out.data_ptr(), first, stop, channels,
+               4.0 * spacing * spacing, int(bool(weighted)))
+
+    _in_threads(run, bricks)
+    return out
+
+
+THREAD_MIN_BRICKS = 256
+"""Fewest bricks per thread: below, starting a thread costs more than it saves."""
+
+
+def _in_threads(run, bricks: int) -> None:  # noqa: ANN001
+    """``run(first, stop)`` over ``[0, bricks)`` in :func:`torch.get_num_threads` parts, on
+    threads started for the call (ctypes releases the GIL; no pool to outlive a ``fork``)."""
+    parts = max(1, min(torch.get_num_threads(), bricks // THREAD_MIN_BRICKS))
+    bounds = [bricks * i // parts for i in range(parts + 1)]
+    workers = [threading.Thread(target=run, args=(bounds[i], bounds[i + 1]))
+               for i in range(1, parts)]
+    for worker in workers:
+        worker.start()
+    try:
+        run(bounds[0], bounds[1])
+    finally:
+        for worker in workers:
+            worker.join()
