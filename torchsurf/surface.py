@@ -315,13 +315,16 @@ class ImplicitSurface(nn.Module):
         """
         width = self.band_width if width is None else check_positive(width, "width")
         band = self.distance() <= width
-        if self.layout is not None:
-            return band
         # A node within width of S is within width + sqrt(3) h of a crossing node (S crosses a
         # cell whose corners include one), and the chessboard distance is at most the
         # Euclidean one: no node of a distance's band is lost
-        cells = self.kept(("cells_to_crossing",), lambda: _cells_to_crossing(self.phi.detach()))
-        return band & (cells <= math.ceil(width / self.spacing + math.sqrt(3.0)))
+        return band & self._near_crossing(math.ceil(width / self.spacing + math.sqrt(3.0)))
+
+    def _near_crossing(self, cells: int) -> Tensor:
+        """Nodes within ``cells`` (chessboard distance) of a node with a neighbour across S,
+        ``(B, 1, D, H, W)`` bool."""
+        found = self.kept(("cells_to_crossing",), lambda: _cells_to_crossing(self.phi.detach()))
+        return found <= cells
 
     def haloed(self) -> tuple[Tensor, Tensor]:
         """``normal`` and ``weight`` with a halo of one node on every side.

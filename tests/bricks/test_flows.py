@@ -73,6 +73,43 @@ def test_heat_flow_equals_the_dense_flow_on_the_band(torus, method):
     assert torch.allclose(result * band, expected * band, atol=1e-12, rtol=0)
 
 
+def test_bricks_run_the_surfaces_band_where_a_dense_distance_runs_a_wider_one():
+    """On an analytic distance a dense flow evolves ``WIDE_BAND_CELLS`` cells; bricks store the
+    surface's 3-cell band and evolve that one: the dense flow given that band equals them to
+    rounding (docs/bricks.md), the default dense flow differs by the bands' discretisations."""
+    grid = Grid.cube(41, 2.0)
+    dense = ts.ImplicitSurface(ts.sdf.sphere(grid, 1.0).double(), grid)
+    surface = bricks.from_dense(dense)
+    u = torch.randn(1, 1, *grid.shape, dtype=torch.float64,
+                    generator=torch.Generator().manual_seed(4))
+    band = dense.band_mask()
+    (result,) = surface.to_dense(ts.flows.HeatFlow(time=0.02)(surface.from_dense(u), surface))
+    wide = ts.flows.HeatFlow(time=0.02)
+    assert wide.evolving_width(dense) > dense.band_width
+    assert ts.flows.HeatFlow(time=0.02).evolving_width(surface) == surface.band_width
+    same_band = ts.flows.HeatFlow(time=0.02, band_width=dense.band_width)(u, dense)
+    assert torch.allclose(result * band, same_band * band, atol=1e-12, rtol=0)
+    assert not torch.allclose(result * band, wide(u, dense) * band, atol=1e-6, rtol=0)
+
+
+@pytest.mark.parametrize("sharpness", [0.1, 0.05])
+def test_saturated_phi_gets_the_dense_band_and_flow(sharpness):
+    """``tanh(d / w)``: ``|phi| / W`` stays small far from S, where the dense band keeps only
+    nodes near a crossing; the bricks' band did not, and took in 30% more nodes."""
+    grid = Grid.cube(48, 2.35)
+    phi = torch.tanh(ts.sdf.sphere(grid, 0.8).double() / sharpness)
+    dense = ts.ImplicitSurface(phi, grid)
+    surface = bricks.from_dense(dense)
+    band = dense.band_mask()
+    (brick_band,) = surface.to_dense(surface.band_mask())
+    assert torch.equal(brick_band, band)
+    u = torch.randn(1, 1, *grid.shape, dtype=torch.float64,
+                    generator=torch.Generator().manual_seed(1))
+    flow = ts.flows.HeatFlow(time=0.01)
+    (result,) = surface.to_dense(flow(surface.from_dense(u), surface))
+    assert torch.allclose(result * band, flow(u, dense) * band, atol=1e-12, rtol=0)
+
+
 def test_heat_flow_batch_of_shapes_on_their_own_boxes_equals_each_alone(two_boxes):
     sphere, torus, both = two_boxes
     u = torch.randn(len(both.layout), 1, 8, 8, 8, dtype=torch.float64,

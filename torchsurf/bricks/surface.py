@@ -141,6 +141,18 @@ class BrickSurface(ImplicitSurface):
         """
         return super().band_mask(width) & self._stencilled(STENCIL_REACH)
 
+    def _near_crossing(self, cells: int) -> Tensor:
+        """The dense surface's limit (:meth:`ImplicitSurface.band_mask`): the crossing nodes
+        grown by ``cells`` 3x3x3 dilations across the stored bricks; kept per ``cells``."""
+
+        def grow() -> Tensor:
+            near = self._crossing_nodes(self.phi.detach())
+            for _ in range(cells):
+                near = self.layout.dilate(near)
+            return near
+
+        return self.kept(("near crossing", cells), grow)
+
     def _stencilled(self, cells: int) -> Tensor:
         """Nodes inside their box whose neighbours within ``cells`` are all stored."""
         key = f"_stencilled_{cells}"
