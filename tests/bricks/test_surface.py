@@ -154,6 +154,10 @@ def test_intrinsic_gradient_divergence_and_sampling_equal_the_dense_ones(torus):
         surface.sample(packed, torch.tensor([[0.0, 0.0, 2.05]], dtype=torch.float64))  # far
     with pytest.raises(ValueError, match="outside the box"):
         surface.sample(packed, torch.full((1, 3), 5.0, dtype=torch.float64))
+    with pytest.raises(TypeError, match="points .*torch.float32.* must have the dtype"):
+        surface.sample(packed, vertices.float())
+    with pytest.raises(TypeError, match="index .*torch.float32.* must have the dtype"):
+        surface.sample_at_index(packed, dense.grid.world_to_index(vertices).float())
 
 
 def test_to_moves_the_layout_and_forgets_what_was_derived_in_the_old_dtype():

@@ -210,6 +210,7 @@ class BrickSurface(ImplicitSurface):
                 stored.
         """
         self._check_points(points, entry)
+        _check_like_field(points, "points", field)
         return self.sample_at_index(field, self.grids[entry].world_to_index(points), entry)
 
     def sample_at_index(self, field: Tensor, index: Tensor, entry: int = 0) -> Tensor:
@@ -218,6 +219,7 @@ class BrickSurface(ImplicitSurface):
         from the origin keeps float32's precision). Returns ``(C, V)``."""
         self.check_field(field, "field")
         self._check_points(index, entry, "index")
+        _check_like_field(index, "index", field)
         inside, fraction, corners = self._cell_corners(index, entry)
         if not bool(inside.all()):
             raise ValueError(f"points: some lie outside the box of entry {entry} "
@@ -286,3 +288,11 @@ class BrickSurface(ImplicitSurface):
     def extra_repr(self) -> str:
         return (f"bricks={len(self.layout)}, batch_size={self.batch_size}, "
                 f"spacing={self.spacing:g}, band_width={self.band_width:g}, eps={self.eps:g}")
+
+
+def _check_like_field(points: Tensor, name: str, field: Tensor) -> None:
+    if points.dtype != field.dtype or points.device != field.device:
+        raise TypeError(
+            f"{name} ({points.dtype}, {points.device}) must have the dtype and device of "
+            f"field ({field.dtype}, {field.device})"
+        )
