@@ -111,6 +111,19 @@ def test_cubic_exact_for_polynomials_of_degree_three_per_axis() -> None:
     assert not torch.allclose(sample(field, points, GRID)[0, 0], value(points), atol=1e-6)
 
 
+def test_cubic_along_an_axis_of_three_nodes_is_exact_for_linear_fields() -> None:
+    """Cubic along the long axes, linear along the short one (it gave 1.544 for 1.6)."""
+    grid = ts.Grid(shape=(3, 9, 7), spacing=0.25, origin=(0.1, -0.4, 0.3))
+    points = grid.points(dtype=torch.float64)
+    x, y, z = points.unbind(-1)
+    field = (2 * z + 1 + (y**3 - x**2) * 0.5)[None, None]
+    inside = random_points(grid, 60)
+    px, py, pz = inside.unbind(-1)
+    expected = 2 * pz + 1 + (py**3 - px**2) * 0.5
+    result = sample(field, inside, grid, interpolation="cubic")[0, 0]
+    torch.testing.assert_close(result, expected, atol=1e-12, rtol=0)
+
+
 def test_cubic_nodes_and_faces_are_exact() -> None:
     field = torch.randn(2, 3, *GRID.shape, dtype=torch.float64)
     nodes = GRID.points(dtype=torch.float64).reshape(-1, 3)

@@ -132,8 +132,10 @@ class MeshAdapter(nn.Module):
       closest point (barycentric interpolation of the vertex values), so the data is constant
       along the normals; nodes beyond the band get 0;
     - :meth:`decode` ``(B, C, D, H, W) -> (B, C, V)``: with ``order=2`` (default), a weighted
-      sum over the ``4^3`` nodes around each vertex whose weights reproduce exactly every
-      affine function of the closest points the nodes stand for; with ``order=1``, trilinear
+      sum over the ``4^3`` nodes around each vertex whose weights reproduce every affine
+      function of the closest points the nodes stand for (constants to rounding, the
+      coordinates to a few 1e-5 of their range: the solve is regularised,
+      ``_vertex_decode.REGULARISATION``); with ``order=1``, trilinear
       sampling at the vertices (:func:`torchsurf.sample`).
 
     Why ``order=2``: a band node holds the value at its closest point, not at itself. On a

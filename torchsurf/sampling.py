@@ -42,7 +42,8 @@ def sample(field: Tensor, points: Tensor, grid: Grid, interpolation: str = "line
     the ``4^3`` nodes around each point (the stencil of the flows' closest-point
     re-extension), exact for polynomials of degree 3 in each coordinate, error ``O(h^4)``,
     up to the box's faces (in the first and last cell of an axis the four nodes are the
-    first or last four: one-sided; an axis of fewer than four nodes repeats its face's).
+    first or last four: one-sided; along an axis of three nodes, linear, exact for degree 1
+    there).
     Reading a second-order solution trilinearly adds an ``O(h^2)`` error of the read-out's
     own, often larger than the solution's (heat flow on a sphere at 65^3: 1.2e-3 read
     trilinearly, 2.4e-4 tricubically; docs/benchmarks.md). Both are differentiable with
@@ -114,7 +115,7 @@ def _tricubic(field: Tensor, index: Tensor) -> Tensor:
     # the second of the stencil's four nodes (base - 1 .. base + 2): the cell's first node,
     # moved in beside the faces along an axis of four nodes or more so that all four lie in
     # the box (one-sided there, still exact for cubics); a shorter axis keeps the cell (a
-    # point on the last face at t = 1) and repeats its face nodes
+    # point on the last face at t = 1) and interpolates linearly in it
     base = torch.stack([index[..., axis].detach().floor().clamp(
         *((1, size - 3) if size >= 4 else (0, max(size - 2, 0))))
         for axis, size in enumerate(sizes)], dim=-1)
@@ -123,7 +124,12 @@ def _tricubic(field: Tensor, index: Tensor) -> Tensor:
     nodes, weights = [], []
     for axis, size in enumerate(sizes):
         nodes.append((base[..., axis, None].long() + offsets).clamp(0, size - 1))  # (B, V, 4)
-        weights.append(torch.stack(cubic_lagrange_weights(fraction[..., axis]), dim=-1))
+        t = fraction[..., axis]
+        if size >= 4:
+            weights.append(torch.stack(cubic_lagrange_weights(t), dim=-1))
+        else:
+            zero = torch.zeros_like(t)
+            weights.append(torch.stack([zero, 1 - t, t, zero], dim=-1))
     (x, y, z), (wx, wy, wz) = nodes, weights
     height, width = field.shape[-2:]
     flat = field.flatten(2)
