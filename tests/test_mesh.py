@@ -61,6 +61,25 @@ def test_extract_where_phi_vanishes_at_nodes_has_no_degenerate_faces(case, area_
     assert surface.area == pytest.approx(area, rel=area_tolerance)
 
 
+def test_extract_where_phi_vanishes_at_nodes_to_rounding_has_no_degenerate_faces() -> None:
+    """A tilted plane through nodes of a grid far from the origin: phi is 0 there only to
+    rounding, and the crossings around those nodes fell 1e-16 apart (faces of no area)."""
+    grid = ts.Grid((23, 19, 21), 0.13, (3.0, -7.0, 0.5))
+    points = grid.points(dtype=torch.float64)
+    normal = torch.tensor([0.3, -0.8, 0.52], dtype=torch.float64)
+    offset = float((torch.tensor(grid.origin, dtype=torch.float64) + 1.3) @ normal)
+    phi = ((points * normal).sum(-1) - offset)[None, None]
+    surface = tsm.extract(phi, grid)
+    corners = surface.vertices[surface.faces]
+    areas = 0.5 * np.linalg.norm(
+        np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+    assert areas.min() >= 1e-12 * grid.spacing**2
+    nearest, _ = cKDTree(surface.vertices).query(surface.vertices, k=2)
+    assert nearest[:, 1].min() >= 1e-9 * grid.spacing
+    assert (surface.face_normals @ normal.numpy()).min() > 0.99
+    assert surface.is_winding_consistent
+
+
 def test_extract_keeps_a_vertex_on_its_node_when_a_neighbour_is_on_the_level_too() -> None:
     # the crossing on the y edge is closer to node (1, 1, 1) than float32 resolves, and the
     # neighbour along z is nearly on the level too: the vertex is that node, not one along z

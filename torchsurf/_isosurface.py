@@ -10,6 +10,11 @@ from . import _mesh_sdf
 from .grid import Grid
 from .sampling import sample
 
+NODE_SNAP = 1e-9
+"""A crossing closer than this fraction of its edge to a node is put on the node: where the
+volume equals the level at a node only to rounding (a plane through nodes of a moved grid),
+the crossings around it fell 1e-16 apart and left triangles of no area."""
+
 NEWTON_ITERATIONS = 40
 """Most iterations of the closest-point refinement. It converges linearly, at a rate of about
 the distance times the curvature: a few iterations near S, more at the band's edge."""
@@ -68,7 +73,8 @@ def _crossings_in_float64(volume: np.ndarray, index: np.ndarray, level: float) -
     scikit-image returns float32 positions; each vertex lies on a grid edge, so the edge is
     recovered from the position and the linear crossing is solved again from the volume. A
     position on a node (the crossing closer to it than float32 resolves, or ``volume == level``
-    there) is that node exactly: its edge is not known, and every vertex there coincides.
+    there) is that node exactly: its edge is not known, and every vertex there coincides; so
+    is a crossing within :data:`NODE_SNAP` of a node.
     """
     rounded = np.rint(index)
     on_node = (index == rounded).all(axis=1)
@@ -83,8 +89,11 @@ def _crossings_in_float64(volume: np.ndarray, index: np.ndarray, level: float) -
     step = above - below
     fraction = np.where(step != 0, (level - below) / np.where(step != 0, step, 1.0), 0.0)
     fraction[on_node] = 0.0
+    fraction = np.clip(fraction, 0.0, 1.0)
+    fraction[fraction < NODE_SNAP] = 0.0
+    fraction[fraction > 1.0 - NODE_SNAP] = 1.0
     crossing = low.astype(np.float64)
-    crossing[rows, axis] += np.clip(fraction, 0.0, 1.0)
+    crossing[rows, axis] += fraction
     return crossing
 
 
