@@ -6,10 +6,12 @@ Four parts, each against a baseline measured in the same run:
   built straight into bricks (:func:`torchsurf.bricks.from_mesh`): build time, bricks, stored
   and band voxels, peak memory; one Laplace–Beltrami application (compiled, warm, median) and
   its halo gather, against the traffic limit of the band's voxels (24 bytes each at the copy
-  bandwidth measured in the run); a heat flow on noise to ``t = (8 h)^2`` (a visible
-  smoothing), its time and the noise left.
+  bandwidth measured in the run), and the same by the C kernel ``path="auto"`` runs on bricks
+  (every stored node, and the band only as a flow applies it); a heat flow on noise to
+  ``t = (8 h)^2`` (a visible smoothing), its time and the noise left.
 - **ratio**: one application on bricks against the dense volume, a sphere of radius 1.2 on
-  ``[-1.5, 1.5]^3`` at ``--ratio-resolution``^3 (256): time ratio against voxel ratios.
+  ``[-1.5, 1.5]^3`` at ``--ratio-resolution``^3 (256): time ratio against voxel ratios, the
+  compiled path over every stored node and the C kernel on the band.
 - **solution**: heat flow to ``t = 0.05`` on the unit sphere (``3 z^2 - 1``) at ``--sizes``,
   on bricks with the default RKC, sampled error at 2000 points, against the mesh peer of
   ``bench_heat_flow.py`` (cotangent Laplacian, lumped mass, SuperLU backward Euler on the
@@ -23,6 +25,7 @@ Four parts, each against a baseline measured in the same run:
 
     PYTHONPATH=. python benchmarks/bench_bricks.py --output docs/benchmarks.md
     PYTHONPATH=. python benchmarks/bench_bricks.py --resolution 128 --ratio-resolution 96 --sizes 49
+    PYTHONPATH=. python benchmarks/bench_bricks.py --parts ratio scale  # C kernel, compiled
     PYTHONPATH=. python benchmarks/bench_bricks.py --parts batch --output docs/benchmarks.md
 
 Peak memory is the process's maximum resident set (``ru_maxrss``), so it is cumulative: the
@@ -50,6 +53,8 @@ from _report import write_section  # benchmarks/_report.py, beside this script
 
 import torchsurf as ts
 from torchsurf import bricks
+from torchsurf.bricks import _native
+from torchsurf.operators import functional
 
 SECTION = "bench_bricks"
 BYTES_PER_VOXEL = 24
@@ -120,6 +125,7 @@ def scale(mesh_path: Path, resolution: int, bandwidth: float) -> dict[str, float
     first_s = time.perf_counter() - start
     lb_ms = median_ms(lambda: ts.laplace_beltrami(u, surface, path="compiled"))
     halo_ms = median_ms(lambda: layout.halo(u, 1))
+    native_ms, native_band_ms, native_first_s = _native_times(u, surface, band)
     limit_ms = 1e3 * BYTES_PER_VOXEL * band_voxels / (bandwidth * 1e9)
     stored_limit_ms = 1e3 * BYTES_PER_VOXEL * stored / (bandwidth * 1e9)
     time_ = (8 * grid.spacing) ** 2
@@ -136,12 +142,31 @@ def scale(mesh_path: Path, resolution: int, bandwidth: float) -> dict[str, float
         "resolution": resolution, "spacing": grid.spacing, "build_s": build_s,
         "bricks": len(layout), "stored": stored, "band": band_voxels,
         "dense": math.prod(grid.shape), "built_gb": built_gb, "first_s": first_s,
-        "lb_ms": lb_ms, "halo_ms": halo_ms, "limit_ms": limit_ms,
+        "lb_ms": lb_ms, "halo_ms": halo_ms, "limit_ms": limit_ms, "native_ms": native_ms,
+        "native_band_ms": native_band_ms, "native_first_s": native_first_s,
         "stored_limit_ms": stored_limit_ms, "flow_time": time_, "flow_s": flow_s,
         "flow_first_s": flow_first_s,
         "noise_before": float(u[band].std()), "noise_after": float(smoothed[band].std()),
         "peak_gb": peak_gb(),
     }
+
+
+def _on_band(u, surface, band, path: str = "auto"):  # noqa: ANN001, ANN202
+    """The octant operator on the band only, as a flow applies it (zero elsewhere)."""
+    return functional.divergence_form(u, surface.normal, surface.weight, surface.spacing,
+                                      "octant", path, haloed=surface.haloed(),
+                                      pad=surface.layout.halo, mask=band)
+
+
+def _native_times(u, surface, band) -> tuple[float, float, float]:  # noqa: ANN001
+    """The C kernel (``path="auto"`` on bricks, :mod:`torchsurf.bricks._native`): every stored
+    node and the band only, ms, and its first call (compiling it when not cached), s."""
+    start = time.perf_counter()
+    if _native.library() is None:
+        return math.nan, math.nan, math.nan
+    first_s = time.perf_counter() - start
+    return (median_ms(lambda: ts.laplace_beltrami(u, surface)),
+            median_ms(lambda: _on_band(u, surface, band)), first_s)
 
 
 def ratio(resolution: int) -> dict[str, float]:
@@ -151,15 +176,19 @@ def ratio(resolution: int) -> dict[str, float]:
     u = torch.randn(1, 1, *grid.shape, generator=torch.Generator().manual_seed(1))
     packed = surface.from_dense(u)
     # alternated, so that the host's bursts fall on both: the ratio of each pair, and its median
-    dense_ms, brick_ms, ratios = [], [], []
+    band = surface.band_mask()
+    dense_ms, brick_ms, ratios, native_ms, native_ratios = [], [], [], [], []
     for _ in range(RATIO_PAIRS):
         dense_ms.append(median_ms(lambda: ts.laplace_beltrami(u, dense, path="compiled"), 3))
         brick_ms.append(median_ms(lambda: ts.laplace_beltrami(packed, surface, path="compiled"),
                                   3))
+        native_ms.append(median_ms(lambda: _on_band(packed, surface, band), 3))
         ratios.append(brick_ms[-1] / dense_ms[-1])
+        native_ratios.append(native_ms[-1] / dense_ms[-1])
     return {
         "resolution": resolution, "dense_ms": statistics.median(dense_ms),
         "brick_ms": statistics.median(brick_ms), "ratios": ratios,
+        "native_ms": statistics.median(native_ms), "native_ratios": native_ratios,
         "stored": len(surface.layout) * bricks.BRICK**3,
         "band": int(surface.band_mask().sum()), "dense": resolution**3,
     }
@@ -385,9 +414,14 @@ def markdown(args, bandwidth: float, scaled: dict | None, ratioed: dict | None,
             f"| one Laplace–Beltrami application, compiled | {s['lb_ms']:.1f} ms (first call "
             f"{s['first_s']:.1f} s) |",
             f"| of which the halo gather | {s['halo_ms']:.1f} ms |",
+            f"| one application by the C kernel (`path=\"auto\"`), every stored node / the band "
+            f"only (as a flow applies it) | {s['native_ms']:.1f} ms / "
+            f"{s['native_band_ms']:.1f} ms (first call {s['native_first_s']:.2f} s) |",
             f"| traffic limit of the band's voxels / of the stored voxels | {s['limit_ms']:.2f} ms"
-            f" / {s['stored_limit_ms']:.2f} ms (ratio {s['lb_ms'] / s['limit_ms']:.1f} / "
-            f"{s['lb_ms'] / s['stored_limit_ms']:.1f}) |",
+            f" / {s['stored_limit_ms']:.2f} ms (compiled: ratio "
+            f"{s['lb_ms'] / s['limit_ms']:.1f} / {s['lb_ms'] / s['stored_limit_ms']:.1f}; the C "
+            f"kernel on the band: {s['native_band_ms'] / s['limit_ms']:.1f} / "
+            f"{s['native_band_ms'] / s['stored_limit_ms']:.1f}) |",
             f"| heat flow on noise to t = (8 h)^2 | {s['flow_s']:.1f} s (first call, with "
             f"compiling and the surface's stencils: {s['flow_first_s']:.1f} s), noise std "
             f"{s['noise_before']:.2f} → {s['noise_after']:.3f} |",
@@ -402,7 +436,10 @@ def markdown(args, bandwidth: float, scaled: dict | None, ratioed: dict | None,
             f"bricks {r['brick_ms']:.1f} ms (medians of {len(r['ratios'])} alternated pairs); "
             f"time ratio {statistics.median(r['ratios']):.3f} (median; pairs "
             f"{', '.join(f'{x:.3f}' for x in r['ratios'])}), stored/dense voxels "
-            f"{r['stored'] / r['dense']:.3f}, band/dense voxels {r['band'] / r['dense']:.3f}.",
+            f"{r['stored'] / r['dense']:.3f}, band/dense voxels {r['band'] / r['dense']:.3f}. "
+            f"The C kernel on the band only (`path=\"auto\"`, as a flow applies it): "
+            f"{r['native_ms']:.1f} ms, time ratio {statistics.median(r['native_ratios']):.3f} "
+            f"(pairs {', '.join(f'{x:.3f}' for x in r['native_ratios'])}).",
             "",
         ]
     if solved is not None:
