@@ -407,8 +407,9 @@ class ImplicitSurface(nn.Module):
         Tangent eigenvectors of the shape operator ``P Hess(phi) P / |grad phi|``, defined up
         to sign, orthonormal. At umbilic points (every point of a sphere) no direction is
         preferred: ``e1`` is then a fixed tangent (the coordinate axis least aligned with ``n``,
-        made orthogonal to it) and the curvatures differ by ``eps`` =
-        ``1e-6 / spacing``; values and gradients stay finite.
+        made orthogonal to it) and the curvatures are kept at least ``eps`` =
+        ``1e-6 / spacing`` apart; values and gradients stay finite. (A sampled sphere's shape
+        operator is umbilic only to its discretisation error, which separates them more.)
         """
         _, _, e1, e2 = self._principal()
         return e1, e2
