@@ -124,6 +124,20 @@ def test_the_kernel_is_compiled_into_the_cache_folder_once(monkeypatch, tmp_path
     assert built[0].stat().st_mtime_ns == stamp
 
 
+def test_a_compiler_that_refuses_the_vector_flags_builds_it_plainly(monkeypatch, tmp_path,
+                                                                     native_available):
+    """A wrapper around the C compiler that fails on gcc's x86 flag, as another compiler would."""
+    wrapper = tmp_path / "cc"
+    wrapper.write_text('#!/bin/sh\nfor a in "$@"; do [ "$a" = -mprefer-vector-width=256 ] && '
+                       'exit 1; done\nexec cc "$@"\n')
+    wrapper.chmod(0o755)
+    monkeypatch.setattr(_native, "_state", {})
+    monkeypatch.setenv("TORCHSURF_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.setenv("CC", str(wrapper))
+    assert _native.library() is not None
+    assert len(list((tmp_path / "cache").iterdir())) == 1
+
+
 def test_a_bad_native_mode_is_named(monkeypatch):
     monkeypatch.setattr(_native, "_state", {})
     monkeypatch.setenv("TORCHSURF_NATIVE", "sometimes")

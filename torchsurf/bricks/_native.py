@@ -132,9 +132,11 @@ def _source() -> str:
     return source
 
 
-_FLAGS = ("-O3", "-march=native", "-mprefer-vector-width=256", "-shared", "-fPIC")
-"""256-bit vectors: a row of 8 float32 nodes fills one (with 512-bit ones gcc leaves the row
-loop scalar)."""
+_FLAGS = (("-O3", "-march=native", "-mprefer-vector-width=256", "-shared", "-fPIC"),
+          ("-O3", "-shared", "-fPIC"))
+"""Tried in turn. 256-bit vectors: a row of 8 float32 nodes fills one (with 512-bit ones gcc
+leaves the row loop scalar); the second set for compilers or CPUs that refuse the first
+(``-mprefer-vector-width`` is gcc's, for x86)."""
 
 _lock = threading.Lock()
 _state: dict[str, object] = {}
@@ -168,21 +170,15 @@ def _machine_key() -> str:
 
 
 def _compile(compiler: str) -> ctypes.CDLL:
-    source = _source()
     version = subprocess.run([compiler, "--version"], capture_output=True, text=True,
                              check=True, timeout=60).stdout
-    key = hashlib.sha256("\0".join((source, *_FLAGS, version, _machine_key())).encode())
-    folder = cache_dir()
-    library = folder / f"octant_bricks_{key.hexdigest()[:20]}.so"
-    if not library.exists():
-        folder.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryDirectory(dir=folder) as work:
-            c_file = Path(work) / "octant_bricks.c"
-            c_file.write_text(source)
-            built = Path(work) / library.name
-            subprocess.run([compiler, *_FLAGS, "-o", str(built), str(c_file)],
-                           capture_output=True, text=True, check=True, timeout=120)
-            os.replace(built, library)  # whole or not at all, also for a concurrent process
+    for attempt, flags in enumerate(_FLAGS):
+        try:
+            library = _built(compiler, version, flags)
+            break
+        except subprocess.CalledProcessError:
+            if attempt == len(_FLAGS) - 1:
+                raise
     loaded = ctypes.CDLL(str(library))
     for suffix in ("f32", "f64"):
         function = getattr(loaded, f"octant_bricks_{suffix}")
@@ -193,6 +189,24 @@ def _compile(compiler: str) -> ctypes.CDLL:
                              + [ctypes.c_int64, ctypes.c_int64, ctypes.c_int64, ctypes.c_double,
                                 ctypes.c_int])
     return loaded
+
+
+def _built(compiler: str, version: str, flags: tuple[str, ...]) -> Path:
+    """The shared library for these flags, compiled unless the cache holds it."""
+    source = _source()
+    key = hashlib.sha256("\0".join((source, *flags, version, _machine_key())).encode())
+    folder = cache_dir()
+    library = folder / f"octant_bricks_{key.hexdigest()[:20]}.so"
+    if not library.exists():
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryDirectory(dir=folder) as work:
+            c_file = Path(work) / "octant_bricks.c"
+            c_file.write_text(source)
+            built = Path(work) / library.name
+            subprocess.run([compiler, *flags, "-o", str(built), str(c_file)],
+                           capture_output=True, text=True, check=True, timeout=120)
+            os.replace(built, library)  # whole or not at all, also for a concurrent process
+    return library
 
 
 def library() -> ctypes.CDLL | None:
