@@ -43,18 +43,22 @@ def _sphere_through_nodes() -> tuple[torch.Tensor, ts.Grid, float]:
     return ts.sdf.sphere(grid, radius=radius, dtype=torch.float64), grid, 4 * math.pi * radius**2
 
 
-@pytest.mark.parametrize(("case", "area_tolerance"),
-                         [(_half_box_on_node_planes, 1e-12), (_sphere_through_nodes, 5e-3)],
-                         ids=["plane-in-box", "sphere"])
-def test_extract_where_phi_vanishes_at_nodes_has_no_degenerate_faces(case, area_tolerance) -> None:
-    phi, grid, area = case()
-    surface = tsm.extract(phi, grid)
+def _assert_no_degenerate_faces(surface, grid: ts.Grid) -> None:  # noqa: ANN001
     corners = surface.vertices[surface.faces]
     areas = 0.5 * np.linalg.norm(
         np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
     assert areas.min() >= 1e-12 * grid.spacing**2
     nearest, _ = cKDTree(surface.vertices).query(surface.vertices, k=2)
     assert nearest[:, 1].min() >= 1e-9 * grid.spacing
+
+
+@pytest.mark.parametrize(("case", "area_tolerance"),
+                         [(_half_box_on_node_planes, 1e-12), (_sphere_through_nodes, 5e-3)],
+                         ids=["plane-in-box", "sphere"])
+def test_extract_where_phi_vanishes_at_nodes_has_no_degenerate_faces(case, area_tolerance) -> None:
+    phi, grid, area = case()
+    surface = tsm.extract(phi, grid)
+    _assert_no_degenerate_faces(surface, grid)
     assert surface.is_watertight and surface.is_winding_consistent
     assert surface.euler_number == 2 and len(np.unique(surface.faces)) == len(surface.vertices)
     assert surface.volume > 0  # still wound outward
@@ -70,12 +74,7 @@ def test_extract_where_phi_vanishes_at_nodes_to_rounding_has_no_degenerate_faces
     offset = float((torch.tensor(grid.origin, dtype=torch.float64) + 1.3) @ normal)
     phi = ((points * normal).sum(-1) - offset)[None, None]
     surface = tsm.extract(phi, grid)
-    corners = surface.vertices[surface.faces]
-    areas = 0.5 * np.linalg.norm(
-        np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
-    assert areas.min() >= 1e-12 * grid.spacing**2
-    nearest, _ = cKDTree(surface.vertices).query(surface.vertices, k=2)
-    assert nearest[:, 1].min() >= 1e-9 * grid.spacing
+    _assert_no_degenerate_faces(surface, grid)
     assert (surface.face_normals @ normal.numpy()).min() > 0.99
     assert surface.is_winding_consistent
 
