@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 
 import torchsurf as ts
@@ -23,3 +24,27 @@ def test_colour_denoising_reduces_noise_on_the_surface():
     after = float((out - clean)[near].square().mean())
     assert after < 0.5 * before, (before, after)
     assert torch.isfinite(ColorDenoise(0.001)(noisy, surface)).all()
+
+
+def test_black_nodes_get_a_grey_chroma_and_a_single_channel_is_named():
+    """A black node (every channel 0, as clamping a noisy image leaves) had a zero chroma,
+    which the harmonic map flow refused; one channel was refused as ``u0``."""
+    grid = ts.Grid.cube(21, bound=1.3)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, radius=1.0, dtype=torch.float64), grid)
+    image = torch.full((1, 3, *grid.shape), 0.5, dtype=torch.float64)
+    band = surface.band_mask()[0, 0]
+    black = band.nonzero()[:5]
+    image[0, :, black[:, 0], black[:, 1], black[:, 2]] = 0.0
+    image.requires_grad_()
+    out = ColorDenoise(0.002, brightness=HeatFlow(0.002))(image, surface)
+    assert torch.isfinite(out).all()
+    near = band.expand_as(out[0])
+    values = out[0][near].detach()
+    assert float(values.min()) >= 0.0 and float(values.max()) <= 0.5 * (1 + 1e-3)
+    # the black nodes took their grey neighbours' chroma: grey, brightened by the heat flow
+    at_black = out[0, :, black[:, 0], black[:, 1], black[:, 2]]
+    assert torch.allclose(at_black, at_black[:1].expand_as(at_black), atol=1e-12)
+    (gradient,) = torch.autograd.grad(out[0][near].sum(), image)
+    assert torch.isfinite(gradient).all()
+    with pytest.raises(ValueError, match="image must have at least 2 colour channels"):
+        ColorDenoise(0.001)(image[:, :1].detach(), surface)

@@ -31,7 +31,10 @@ class ColorDenoise(nn.Module):
         eps: regularisation of ``|I|``, units of ``I``.
         **kwargs: integration settings of :class:`Flow` for the default flows.
 
-    Shapes: ``(B, 3, D, H, W) -> (B, 3, D, H, W)`` (any number of colour channels works).
+    A black node (every channel 0) has no hue: its chroma starts grey, ``(1, ..., 1) / sqrt(C)``,
+    and takes its neighbours' as the flow runs; its brightness starts at 0.
+
+    Shapes: ``(B, C, D, H, W) -> (B, C, D, H, W)``, ``C >= 2`` colour channels (3 for RGB).
     """
 
     def __init__(
@@ -70,9 +73,14 @@ class ColorDenoise(nn.Module):
                 "use flows that do or the dense ImplicitSurface (docs/bricks.md)"
             )
         check_data(image, "image", surface)
+        if image.shape[1] < 2:
+            raise ValueError(f"image must have at least 2 colour channels (a chroma of one "
+                             f"channel is constant), got shape {tuple(image.shape)}")
         if not torch.compiler.is_compiling() and isinstance(self.chroma, Flow):
             region = with_ring(self.chroma.band_mask(surface), surface.layout)
             check_finite(torch.where(region, image, 0.0), "image (in the band and its ring)")
-        brightness = torch.sqrt((image**2).sum(dim=1, keepdim=True) + self.eps**2)
-        chroma = image / brightness
+        squared = (image**2).sum(dim=1, keepdim=True)
+        brightness = torch.sqrt(squared + self.eps**2)
+        grey = image.new_full((), image.shape[1] ** -0.5)
+        chroma = torch.where(squared > 0, image / brightness, grey)
         return self.brightness(brightness, surface) * self.chroma(chroma, surface)
