@@ -204,3 +204,34 @@ def test_a_diverged_run_advises_another_method_only_when_there_is_one(monkeypatc
     with pytest.raises(FloatingPointError, match="diverged") as raised:
         ReactionDiffusion(10.0, method=method)(ReactionDiffusion.initial(surface), surface)
     assert ("use method='rkc'" in str(raised.value)) == (method != "rkc")
+
+
+def test_a_seed_gives_one_pattern_in_float32_and_float64(surface):
+    """The noise was drawn in u0's dtype: other numbers altogether in float32."""
+    grid = surface.grid
+    double = ts.ImplicitSurface(surface.phi.double(), grid)
+    flow = ReactionDiffusion(time=50.0)
+    results = [flow(ReactionDiffusion.initial(s), s, generator=torch.Generator().manual_seed(3))
+               for s in (surface, double)]
+    band = double.band_mask().expand_as(results[1])
+    change = float((results[1] - ReactionDiffusion.initial(double))[band].abs().max())
+    difference = float((results[0].double() - results[1])[band].abs().max())
+    assert difference < 1e-3 * change
+
+
+def test_a_direction_that_requires_grad_gets_its_gradient_through_checkpoints(surface):
+    """The direction was not declared to the recomputed segments: backward raised."""
+    points = surface.grid.points()
+    direction = torch.stack([-points[..., 1], points[..., 0], 0.3 + 0 * points[..., 2]])[None]
+    direction = direction.double().requires_grad_()
+    double = ts.ImplicitSurface(surface.phi.double(), surface.grid)
+    u0 = ReactionDiffusion.initial(double) + 0.1 * torch.rand(
+        1, 2, *surface.grid.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    gradients = []
+    for checkpoint in ("auto", False):
+        flow = ReactionDiffusion(time=2.0, noise=0.0, checkpoint=checkpoint)
+        out = flow(u0, double, direction=direction)
+        (gradient,) = torch.autograd.grad(out[:, :1].square().sum(), direction)
+        gradients.append(gradient)
+    assert float(gradients[1].abs().max()) > 0
+    torch.testing.assert_close(gradients[0], gradients[1], rtol=1e-9, atol=1e-12)

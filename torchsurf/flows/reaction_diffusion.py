@@ -94,11 +94,12 @@ class ReactionDiffusion(Flow):
             raise ValueError(f"u0 must have 2 channels (a, b), got shape {tuple(u0.shape)}")
         band = self.band_mask(surface)
         d_a, d_b = self._diffusivities(surface)
+        # drawn in float64 whatever u0's dtype: a seed gives one pattern in float32 and float64
         if surface.layout is None:
             noise = torch.rand((u0.shape[0], 1, *u0.shape[2:]), generator=generator,
-                               dtype=u0.dtype, device="cpu").to(u0.device)
+                               dtype=torch.float64, device="cpu").to(u0.device, u0.dtype)
         else:
-            noise = surface.layout.rand(1, generator, u0.dtype)
+            noise = surface.layout.rand(1, generator, torch.float64).to(u0.dtype)
         beta = self.beta + self.noise * (2.0 * noise - 1.0)
         if direction is not None:
             region = with_ring(band, surface.layout)
@@ -127,7 +128,8 @@ class ReactionDiffusion(Flow):
             surface, direction, width=self.evolving_width(surface))
         rho = max(d_a * bound_a, d_b * bound_b) + s * max(reaction, 1.0)
         return System(rate, band, rho, project=_nonnegative_b,
-                      params=tensors(surface.normal, surface.weight),
+                      params=tensors(surface.normal, surface.weight, direction,
+                                     haloed_direction),
                       growth=s * max(reaction, TURK_SUPPLY))
 
     def extra_repr(self) -> str:

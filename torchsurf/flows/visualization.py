@@ -50,7 +50,8 @@ class FlowVisualization(Flow):
     @staticmethod
     def noise(surface: ImplicitSurface, batch: int = 1,
               generator: torch.Generator | None = None) -> Tensor:
-        """Uniform noise in ``[0, 1)``, ``(batch, 1, D, H, W)`` in the surface's dtype.
+        """Uniform noise in ``[0, 1)``, ``(batch, 1, D, H, W)`` in the surface's dtype, drawn in
+        float64 (a seed gives the same picture in float32 and float64).
 
         On a :class:`~torchsurf.bricks.BrickSurface`, packed ``(N, 1, 8, 8, 8)``: the same
         numbers, node for node, as on the dense grid of each entry
@@ -58,9 +59,9 @@ class FlowVisualization(Flow):
         """
         shape = data_shape(surface, batch, 1)
         if surface.layout is not None:
-            return surface.layout.rand(1, generator, surface.phi.dtype)
-        values = torch.rand(shape, generator=generator, dtype=surface.phi.dtype)
-        return values.to(surface.phi.device)
+            return surface.layout.rand(1, generator, torch.float64).to(surface.phi.dtype)
+        values = torch.rand(shape, generator=generator, dtype=torch.float64)
+        return values.to(surface.phi.device, surface.phi.dtype)
 
     def system(self, u0: Tensor, surface: ImplicitSurface, direction: Tensor | None = None
                ) -> System:
