@@ -102,3 +102,13 @@ def test_default_rkc_is_accurate_in_time_on_resolved_data(diffusivity, cells, op
     euler = float((run("euler", None, None) - reference)[near].abs().max())
     assert rkc < 0.5 * euler, (rkc, euler)
     assert rkc < 2e-4, rkc
+
+
+@pytest.mark.parametrize("name", ["total_variation", "perona_malik", "charbonnier"])
+def test_the_librarys_own_diffusivity_functions_are_taken_like_their_names(name):
+    """Given as functions they asked for ``max_diffusivity`` and lost the maximum principle's
+    check."""
+    function = getattr(ts.operators.diffusivity, name)
+    by_function, by_name = AnisotropicFlow(0.01, function), AnisotropicFlow(0.01, name)
+    assert by_function.max_diffusivity == by_name.max_diffusivity
+    assert by_function.keeps_range and by_name.keeps_range

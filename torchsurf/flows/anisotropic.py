@@ -74,14 +74,16 @@ class AnisotropicFlow(Flow):
     ) -> None:
         super().__init__(time, **kwargs)
         self.diffusivity = resolve_diffusivity(diffusivity)
+        # the library's own g by name or as the function itself
+        name = next((key for key, g in DIFFUSIVITIES.items() if self.diffusivity is g), None)
         # a user's own g may be negative somewhere: no maximum principle to check then
-        self.keeps_range = any(self.diffusivity is g for g in DIFFUSIVITIES.values())
+        self.keeps_range = name is not None
         self.contrast = Positive(contrast, "contrast", learnable=learn_contrast)
         self.eps = check_positive(eps, "eps")
         if max_diffusivity is None:
-            if diffusivity == "total_variation":
+            if name == "total_variation":
                 max_diffusivity = 1.0 / self.eps
-            elif diffusivity in _BOUNDED:
+            elif name in _BOUNDED:
                 max_diffusivity = 1.0
             else:
                 raise ValueError(
