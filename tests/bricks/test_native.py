@@ -159,3 +159,13 @@ def test_native_octant_runs_in_parts_on_threads(native_available, monkeypatch):
         assert torch.equal(_octant(surface, u, "auto"), alone)
     finally:
         torch.set_num_threads(threads)
+
+
+def test_a_compiled_function_on_bricks_gives_the_same_numbers(torus, native_available):
+    """While torch.compile traces, the operator leaves the C kernel (a ctypes call) aside."""
+    _, surface = torus
+    u = torch.randn(len(surface.layout), 1, 8, 8, 8, dtype=torch.float64)
+    band = surface.band_mask()
+    compiled = torch.compile(lambda v: _octant(surface, v, "auto", band), backend="eager")
+    torch.testing.assert_close(compiled(u), _octant(surface, u, "slicing", band), rtol=0,
+                               atol=1e-12 * float(_octant(surface, u, "slicing", band).abs().max()))

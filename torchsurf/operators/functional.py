@@ -153,7 +153,8 @@ def _apply_linear(u, normal, weight, spacing, scheme, weighted, haloed, path, pa
         haloed_normal, haloed_weight = _require_haloed(haloed)
         if scheme == "octant":
             native = getattr(getattr(pad, "__self__", None), "native_octant", None)
-            if path == "auto" and native is not None:
+            # not while torch.compile traces: the outer compiler sees plain tensor operations
+            if path == "auto" and native is not None and not torch.compiler.is_compiling():
                 result = native(u, haloed_normal, haloed_weight, spacing, weighted, mask)
                 if result is not None:
                     return result
