@@ -40,7 +40,9 @@ def test_black_nodes_get_a_grey_chroma_and_a_single_channel_is_named():
     assert torch.isfinite(out).all()
     near = band.expand_as(out[0])
     values = out[0][near].detach()
-    assert float(values.min()) >= 0.0 and float(values.max()) <= 0.5 * (1 + 1e-3)
+    # the default RKC on the octant scheme (not monotone: docs) lifts the brightness's maximum
+    # by 1e-4 of it next to the black nodes' dips; Euler steps do not
+    assert float(values.min()) >= 0.0 and float(values.max()) <= 0.5 * (1 + 3e-4)
     # the black nodes took their grey neighbours' chroma: grey, brightened by the heat flow
     at_black = out[0, :, black[:, 0], black[:, 1], black[:, 2]]
     assert torch.allclose(at_black, at_black[:1].expand_as(at_black), atol=1e-12)

@@ -261,9 +261,10 @@ class BrickLayout:
             0, batch[:, None].expand_as(per_brick), per_brick, "amax")
         return per_entry[batch][..., None, None, None]
 
-    def dilate(self, mask: Tensor) -> Tensor:
-        """``mask`` ``(N, 1, 8, 8, 8)`` bool and every node a 3x3x3 stencil on it reads."""
-        grown = self.halo(mask, 1)
+    def dilate(self, mask: Tensor, path: str = "auto") -> Tensor:
+        """``mask`` ``(N, 1, 8, 8, 8)`` bool and every node a 3x3x3 stencil on it reads
+        (``path``: the halo's, :meth:`halo`)."""
+        grown = self.halo(mask, 1, path)
         for dim in (2, 3, 4):
             length = grown.shape[dim]
             grown = (grown.narrow(dim, 0, length - 2) | grown.narrow(dim, 1, length - 2)

@@ -143,12 +143,13 @@ class BrickSurface(ImplicitSurface):
 
     def _near_crossing(self, cells: int) -> Tensor:
         """The dense surface's limit (:meth:`ImplicitSurface.band_mask`): the crossing nodes
-        grown by ``cells`` 3x3x3 dilations across the stored bricks; kept per ``cells``."""
+        grown by ``cells`` 3x3x3 dilations across the stored bricks (eager halos: formed once);
+        kept per ``cells``."""
 
         def grow() -> Tensor:
             near = self._crossing_nodes(self.phi.detach())
             for _ in range(cells):
-                near = self.layout.dilate(near)
+                near = self.layout.dilate(near, ONCE)
             return near
 
         return self.kept(("near crossing", cells), grow)
