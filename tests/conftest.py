@@ -18,11 +18,19 @@ import os
 # TORCHSURF_COMPILE=auto runs the whole suite as a user's process would.
 os.environ.setdefault("TORCHSURF_COMPILE", "never")
 
+# pytest-xdist runs the suite in one process per core (pyproject.toml): each takes one thread,
+# as OpenMP threads spinning beside another process's would slow both
+if int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")) > 1:
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+
 import pytest  # noqa: E402
 import torch  # noqa: E402
 from torch import Tensor  # noqa: E402
 
 from torchsurf import backend  # noqa: E402
+
+if int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")) > 1:
+    torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))  # were torch imported already
 
 backend.COMPILE = backend._compile_mode_from_environment()  # were torchsurf imported already
 
