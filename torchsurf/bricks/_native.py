@@ -4,9 +4,10 @@ The compiled one-pass kernel (:func:`torchsurf.operators._octant.fused_octant`) 
 node a brick stores, after its halo is gathered into a copy of the field: at 512^3 about a
 quarter of the stored nodes are in a flow's band, and the gather costs as much as the stencil.
 This kernel reads each brick's halo from its neighbours row by row into a small tile on the
-stack, and evaluates only the rows of 8 nodes (along x) that hold a band node, 8 nodes at a
-time in the CPU's vector registers. Its numbers are the octant expression's, in the same order
-of operations, so they agree with the other paths to rounding.
+stack, forms the coefficients ``w - w n_a^2`` and ``w n_a n_b`` once per brick for the tile rows
+the band reads, and evaluates only the rows of 8 nodes (along x) that hold a band node, 8 nodes
+at a time in the CPU's vector registers. Its numbers are the octant expression's with the
+coefficients formed first, so they agree with the other paths to rounding.
 
 It is compiled once per machine with the C compiler that ``torch.compile`` also needs
 (``$CC``, else ``cc``), about half a second, into a cache folder: ``$TORCHSURF_CACHE_DIR``, else
@@ -36,24 +37,58 @@ NATIVE_MODES = ("auto", "never")
 """Values of the environment variable ``TORCHSURF_NATIVE``."""
 
 _BODY = r"""
-static inline void axis_terms_SUFFIX(const REAL *restrict t, const REAL *restrict w,
-        const REAL *restrict na, const REAL *restrict n1, const REAL *restrict n2,
-        int p0, int sa, int s1, int s2, REAL *restrict diag, REAL *restrict cross)
+static const REAL zero_brick_SUFFIX[B * B * B];
+
+/* The coefficients of nodes [0, count) of nx, ny, nz, w into the planes of k (stride T^3). */
+static inline void coefficients_SUFFIX(const REAL *restrict nx, const REAL *restrict ny,
+        const REAL *restrict nz, const REAL *restrict w, REAL *restrict k, int count)
 {
+    for (int i = 0; i < count; ++i) {
+        REAL wx = w[i] * nx[i], wy = w[i] * ny[i], wz = w[i] * nz[i];
+        k[0 * T * T * T + i] = w[i] - wx * nx[i];
+        k[1 * T * T * T + i] = w[i] - wy * ny[i];
+        k[2 * T * T * T + i] = w[i] - wz * nz[i];
+        k[3 * T * T * T + i] = wx * ny[i];
+        k[4 * T * T * T + i] = wx * nz[i];
+        k[5 * T * T * T + i] = wy * nz[i];
+    }
+}
+
+/* One row of 8 nodes: the tile row r = (z + 1) T + y + 1 of u and of the coefficients. */
+static inline void row_SUFFIX(const REAL *restrict t, const REAL *restrict k, int r,
+        const REAL *restrict divisor, REAL scale, unsigned bits,
+        REAL *restrict target)
+{
+    const REAL *c0 = t + r * T + 1;
+    const REAL *yp = c0 + T, *ym = c0 - T, *zp = c0 + T * T, *zm = c0 - T * T;
+    const REAL *yp_zp = zp + T, *ym_zp = zp - T, *yp_zm = zm + T, *ym_zm = zm - T;
+    const REAL *k0 = k + r * T + 1;
+    const REAL *kyp = k0 + T, *kym = k0 - T;
+    const REAL *kzp = k0 + T * T, *kzm = k0 - T * T;
+    enum { AX = 0, AY = T * T * T, AZ = 2 * T * T * T, CXY = 3 * T * T * T, CXZ = 4 * T * T * T,
+           CYZ = 5 * T * T * T };
+    REAL value[B];
     for (int x = 0; x < B; ++x) {
-        int p = p0 + x;
-        REAL here = w[p] - w[p] * na[p] * na[p];
-        REAL ahead = w[p + sa] - w[p + sa] * na[p + sa] * na[p + sa];
-        REAL behind = w[p - sa] - w[p - sa] * na[p - sa] * na[p - sa];
-        REAL u0 = t[p];
-        diag[x] += (here + ahead) * (t[p + sa] - u0) - (behind + here) * (u0 - t[p - sa]);
-        int q = p - sa;
-        REAL low = w[q] * na[q] * (n1[q] * (t[q + s1] - t[q - s1])
-                                   + n2[q] * (t[q + s2] - t[q - s2]));
-        q = p + sa;
-        REAL high = w[q] * na[q] * (n1[q] * (t[q + s1] - t[q - s1])
-                                    + n2[q] * (t[q + s2] - t[q - s2]));
-        cross[x] += low - high;
+        REAL u0 = c0[x];
+        REAL ax = k0[AX + x], ay = k0[AY + x], az = k0[AZ + x];
+        REAL dx = (ax + k0[AX + x + 1]) * (c0[x + 1] - u0) - (k0[AX + x - 1] + ax) * (u0 - c0[x - 1]);
+        REAL dy = (ay + kyp[AY + x]) * (yp[x] - u0) - (kym[AY + x] + ay) * (u0 - ym[x]);
+        REAL dz = (az + kzp[AZ + x]) * (zp[x] - u0) - (kzm[AZ + x] + az) * (u0 - zm[x]);
+        REAL sx = (k0[CXY + x - 1] * (yp[x - 1] - ym[x - 1]) + k0[CXZ + x - 1] * (zp[x - 1] - zm[x - 1]))
+                - (k0[CXY + x + 1] * (yp[x + 1] - ym[x + 1]) + k0[CXZ + x + 1] * (zp[x + 1] - zm[x + 1]));
+        REAL sy = (kym[CXY + x] * (ym[x + 1] - ym[x - 1]) + kym[CYZ + x] * (ym_zp[x] - ym_zm[x]))
+                - (kyp[CXY + x] * (yp[x + 1] - yp[x - 1]) + kyp[CYZ + x] * (yp_zp[x] - yp_zm[x]));
+        REAL sz = (kzm[CXZ + x] * (zm[x + 1] - zm[x - 1]) + kzm[CYZ + x] * (yp_zm[x] - ym_zm[x]))
+                - (kzp[CXZ + x] * (zp[x + 1] - zp[x - 1]) + kzp[CYZ + x] * (yp_zp[x] - ym_zp[x]));
+        REAL diag = dx + dy + dz, cross = sx + sy + sz;
+        REAL total = (REAL)2 * diag + cross;
+        value[x] = total / (scale * divisor[x]);
+    }
+    for (int x = 0; x < B; ++x) {   /* zero off the band, without branches */
+        UINT v, keep = (UINT)0 - (UINT)((bits >> x) & 1);
+        memcpy(&v, value + x, sizeof v);
+        v &= keep;
+        memcpy(target + x, &v, sizeof v);
     }
 }
 
@@ -66,58 +101,66 @@ void octant_bricks_SUFFIX(
         int weighted)
 {
     const REAL scale = (REAL)scale_in;
+    static const REAL ones[B] = {1, 1, 1, 1, 1, 1, 1, 1};
+    REAL tile[T * T * T];
+    REAL k[T * T * NK * T];
     for (int64_t n = first; n < stop; ++n) {
-        REAL tile[T * T * T];
-        uint8_t need[T * T];
         const uint8_t *row_bits = rows + n * B * B;
+        REAL *o = out + n * channels * B * B * B;
+        unsigned ys[B + 4] = {0};   /* ys[z + 2]: the rows y of plane z with band nodes, as bits */
+        unsigned any = 0;
+        for (int z = 0; z < B; ++z) {
+            unsigned m = 0;
+            for (int y = 0; y < B; ++y) m |= (unsigned)(row_bits[z * B + y] != 0) << y;
+            ys[z + 2] = m;
+            any |= m;
+        }
+        if (!any) { memset(o, 0, sizeof(REAL) * B * B * B * channels); continue; }
         const int64_t *nb = neighbours + n * 27;
         const uint8_t *pr = present + n * 27;
         const REAL *nx = normal + n * normal_brick;
         const REAL *ny = nx + normal_channel, *nz = ny + normal_channel;
         const REAL *w = weight + n * weight_brick;
-        int any = 0;
-        memset(need, 0, sizeof need);
-        for (int z = 0; z < B; ++z)
-            for (int y = 0; y < B; ++y)
-                if (row_bits[z * B + y]) {
-                    any = 1;
-                    for (int dz = 0; dz < 3; ++dz)
-                        for (int dy = 0; dy < 3; ++dy) need[(z + dz) * T + y + dy] = 1;
-                }
+        unsigned need[T];            /* tile rows of u: the 3x3 rows around each band row */
+        for (int zz = 0; zz < T; ++zz) {
+            unsigned near = ys[zz] | ys[zz + 1] | ys[zz + 2];
+            need[zz] = near | near << 1 | near << 2;
+            unsigned plus = ys[zz + 1] | ys[zz + 1] << 1 | ys[zz + 1] << 2 | (ys[zz] | ys[zz + 2]) << 1;
+            for (int yy = 0; yy < T;) {   /* runs of consecutive rows */
+                if (!((plus >> yy) & 1)) { ++yy; continue; }
+                int end = yy + 1;
+                while (end < T && ((plus >> end) & 1)) ++end;
+                int r = (zz * T + yy) * T;
+                coefficients_SUFFIX(nx + r, ny + r, nz + r, w + r, k + r, (end - yy) * T);
+                yy = end;
+            }
+        }
         for (int64_t c = 0; c < channels; ++c) {
-            REAL *o = out + (n * channels + c) * B * B * B;
-            if (!any) { memset(o, 0, sizeof(REAL) * B * B * B); continue; }
+            const REAL *base[27];
+            for (int j = 0; j < 27; ++j)
+                base[j] = pr[j] ? u + nb[j] * u_brick + c * u_channel : zero_brick_SUFFIX;
             for (int zz = 0; zz < T; ++zz) {
                 int bz = zz == 0 ? 0 : zz == T - 1 ? 2 : 1, lz = (zz + B - 1) % B;
+                unsigned m = need[zz];
                 for (int yy = 0; yy < T; ++yy) {
-                    if (!need[zz * T + yy]) continue;
+                    if (!((m >> yy) & 1)) continue;
                     int by = yy == 0 ? 0 : yy == T - 1 ? 2 : 1, ly = (yy + B - 1) % B;
+                    const REAL **b = base + bz * 9 + by * 3;
+                    int row = (lz * B + ly) * B;
                     REAL *dst = tile + (zz * T + yy) * T;
-                    int k = bz * 9 + by * 3;
-                    int64_t row = c * u_channel + (lz * B + ly) * B;
-                    dst[0] = pr[k] ? u[nb[k] * u_brick + row + B - 1] : (REAL)0;
-                    if (pr[k + 1])
-                        memcpy(dst + 1, u + nb[k + 1] * u_brick + row, sizeof(REAL) * B);
-                    else
-                        memset(dst + 1, 0, sizeof(REAL) * B);
-                    dst[T - 1] = pr[k + 2] ? u[nb[k + 2] * u_brick + row] : (REAL)0;
+                    dst[0] = b[0][row + B - 1];
+                    memcpy(dst + 1, b[1] + row, sizeof(REAL) * B);
+                    dst[T - 1] = b[2][row];
                 }
             }
+            REAL *oc = o + c * B * B * B;
             for (int z = 0; z < B; ++z)
                 for (int y = 0; y < B; ++y) {
-                    REAL *target = o + (z * B + y) * B;
-                    uint8_t bits = row_bits[z * B + y];
+                    REAL *target = oc + (z * B + y) * B;
+                    unsigned bits = row_bits[z * B + y];
                     if (!bits) { memset(target, 0, sizeof(REAL) * B); continue; }
-                    int p0 = ((z + 1) * T + (y + 1)) * T + 1;
-                    REAL diag[B] = {0}, cross[B] = {0};
-                    axis_terms_SUFFIX(tile, w, nx, ny, nz, p0, 1, T, T * T, diag, cross);
-                    axis_terms_SUFFIX(tile, w, ny, nx, nz, p0, T, 1, T * T, diag, cross);
-                    axis_terms_SUFFIX(tile, w, nz, nx, ny, p0, T * T, 1, T, diag, cross);
-                    for (int x = 0; x < B; ++x) {
-                        REAL total = (REAL)2 * diag[x] + cross[x];
-                        REAL value = weighted ? total / scale : total / (scale * w[p0 + x]);
-                        target[x] = (bits >> x) & 1 ? value : (REAL)0;
-                    }
+                    int r = (z + 1) * T + y + 1;
+                    row_SUFFIX(tile, k, r, weighted ? ones : w + r * T + 1, scale, bits, target);
                 }
         }
     }
@@ -126,9 +169,10 @@ void octant_bricks_SUFFIX(
 
 
 def _source() -> str:
-    source = "#include <stdint.h>\n#include <string.h>\n#define B 8\n#define T 10\n"
-    for real, suffix in (("float", "f32"), ("double", "f64")):
-        source += _BODY.replace("REAL", real).replace("SUFFIX", suffix)
+    source = ("#include <stdint.h>\n#include <string.h>\n#define B 8\n#define T 10\n"
+              "#define NK 6\n")
+    for real, suffix, bits in (("float", "f32", "uint32_t"), ("double", "f64", "uint64_t")):
+        source += _BODY.replace("REAL", real).replace("SUFFIX", suffix).replace("UINT", bits)
     return source
 
 
