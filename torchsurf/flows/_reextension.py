@@ -8,7 +8,9 @@ grad), :func:`reextend` applies it without autograd and keeps only its input; ba
 the taps again, a chunk of nodes at a time, and scatters the incoming gradient back along
 them. For a limited stencil (each value clamped to the range of the 8 nodes of its cell), a
 clamped node sends its gradient to the cell node that set the bound, the others along their 64
-taps: the derivative of ``min(max(value, low), high)`` away from ties.
+taps: the derivative of ``min(max(value, low), high)`` away from ties. Such a stencil also keeps
+the values it wrote: one strictly inside its cell's range was not clamped, so backward gathers
+the 64 taps again only for values at a bound.
 """
 
 from __future__ import annotations
@@ -66,33 +68,49 @@ class _Reextend(torch.autograd.Function):
     @staticmethod
     def forward(ctx, stencil, u, path="auto"):  # noqa: ANN001, ANN205
         ctx.stencil = stencil
-        ctx.save_for_backward(u)
         with torch.no_grad():
-            return stencil.apply(u, path)
+            result = stencil.apply(u, path)
+        # a limited stencil's backward tells the values it clamped by the values it wrote
+        ctx.save_for_backward(u, *(_written(stencil, result) if stencil.limited else ()))
+        return result
 
     @staticmethod
     def backward(ctx, grad_output):  # noqa: ANN001, ANN205
-        (u,) = ctx.saved_tensors
-        return None, _vector_jacobian(ctx.stencil, u.detach(), grad_output), None
+        u, *written = ctx.saved_tensors
+        return None, _vector_jacobian(ctx.stencil, u.detach(), grad_output, written or None), None
 
 
-def _vector_jacobian(stencil: Stencil, u: Tensor, g: Tensor) -> Tensor:
-    """``g^T d(stencil.apply(u)) / du`` for ``u`` and ``g`` of the same shape."""
+def _written(stencil: Stencil, result: Tensor) -> list[Tensor]:
+    """The values ``stencil.apply`` wrote into ``result``: ``(C, n)`` per part of the stencil
+    (one for bricks), in the order of its targets."""
+    if isinstance(stencil, BrickCubicStencil):
+        return [result.transpose(0, 1).reshape(result.shape[1], -1)[:, stencil.targets]]
+    return [result[b].reshape(result.shape[1], -1)[:, stencil.parts[min(b, len(stencil.parts) - 1)][0]]
+            for b in range(result.shape[0])]
+
+
+def _vector_jacobian(stencil: Stencil, u: Tensor, g: Tensor,
+                     written: list[Tensor] | None = None) -> Tensor:
+    """``g^T d(stencil.apply(u)) / du`` for ``u`` and ``g`` of the same shape; ``written``
+    (:func:`_written`), where known, spares a limited stencil most of its gather again."""
     if isinstance(stencil, BrickCubicStencil):
         channels = u.shape[1]
         flat = u.transpose(0, 1).reshape(channels, -1)
         incoming = g.transpose(0, 1).reshape(channels, -1)
         result = _scatter_back(flat, incoming, stencil.targets, _brick_taps(stencil),
-                               stencil.limited)
+                               stencil.limited, None if written is None else written[0])
         return result.view(channels, u.shape[0], *u.shape[2:]).transpose(0, 1)
     results = []
     for b in range(max(u.shape[0], len(stencil.parts))):
-        targets, corners, weights = stencil.parts[min(b, len(stencil.parts) - 1)]
+        part = min(b, len(stencil.parts) - 1)
+        targets, corners, weights = stencil.parts[part]
         volume = u[min(b, u.shape[0] - 1)]
         flat = volume.reshape(volume.shape[0], -1)
         incoming = g[b].reshape(g.shape[1], -1)
-        taps = _dense_taps(targets, corners, weights.to(u.dtype), *volume.shape[-2:])
-        results.append(_scatter_back(flat, incoming, targets, taps, stencil.limited)
+        taps = _dense_taps(targets, corners, weights.to(u.dtype), *volume.shape[-2:],
+                           stencil.sources[part])
+        results.append(_scatter_back(flat, incoming, targets, taps, stencil.limited,
+                                     None if written is None else written[b])
                        .reshape(volume.shape))
     result = torch.stack(results)
     return result if result.shape[0] == u.shape[0] else result.sum(dim=0, keepdim=True)
@@ -104,14 +122,18 @@ def _separable(weights: Tensor) -> Tensor:
     return (wz[:, :, None, None] * wy[:, None, :, None] * wx[:, None, None, :]).flatten(1)
 
 
-def _dense_taps(targets: Tensor, corners: Tensor, weights: Tensor, height: int, width: int
-                ) -> Iterator[tuple[slice, Tensor, Tensor]]:
-    """Chunks ``(nodes, sources (n, 64), taps (n, 64))`` of a dense stencil part."""
+def _dense_taps(targets: Tensor, corners: Tensor, weights: Tensor, height: int, width: int,
+                kept: Tensor | None = None) -> Iterator[tuple[slice, Tensor, Tensor]]:
+    """Chunks ``(nodes, sources (n, 64), taps (n, 64))`` of a dense stencil part; the sources
+    from ``kept`` (the stencil's ``(M, 64)`` tap positions) where it keeps them."""
     for start in range(0, len(targets), CHUNK):
         nodes = slice(start, start + CHUNK)
-        x, y, z = corners[:, nodes].long().unbind(0)
-        sources = ((z[:, :, None, None] * height + y[:, None, :, None]) * width
-                   + x[:, None, None, :]).flatten(1)
+        if kept is not None:
+            sources = kept[nodes].long()
+        else:
+            x, y, z = corners[:, nodes].long().unbind(0)
+            sources = ((z[:, :, None, None] * height + y[:, None, :, None]) * width
+                       + x[:, None, None, :]).flatten(1)
         yield nodes, sources, _separable(weights[:, nodes])
 
 
@@ -130,11 +152,14 @@ def _brick_taps(stencil: BrickCubicStencil) -> Iterator[tuple[slice, Tensor, Ten
 
 
 def _scatter_back(flat: Tensor, incoming: Tensor, targets: Tensor,
-                  chunks: Iterator[tuple[slice, Tensor, Tensor]], limited: bool) -> Tensor:
+                  chunks: Iterator[tuple[slice, Tensor, Tensor]], limited: bool,
+                  written: Tensor | None = None) -> Tensor:
     """``incoming`` ``(C, M)`` with the targets' entries moved back to their sources.
 
     ``flat`` ``(C, M)`` is the stencil's input (read only when ``limited``, to find which
-    nodes were clamped and by which cell node).
+    nodes were clamped and by which cell node). ``written`` ``(C, n)``: the values the stencil
+    wrote at its targets, if known; a value strictly inside its cell's range was not clamped, so
+    only the others have their 64 taps gathered again.
     """
     result = incoming.index_fill(1, targets, 0.0)
     for nodes, sources, taps in chunks:
@@ -143,12 +168,18 @@ def _scatter_back(flat: Tensor, incoming: Tensor, targets: Tensor,
         if not limited:
             result.index_add_(1, sources.flatten(), (moved[..., None] * taps).flatten(1))
             continue
-        gathered = flat[:, sources]  # (C, n, 64)
-        value = (gathered * taps).sum(dim=-1)
-        cell = gathered[..., _CELL]
+        if written is None:
+            gathered = flat[:, sources]  # (C, n, 64)
+            value = (gathered * taps).sum(dim=-1)
+            cell = gathered[..., _CELL]
+        else:
+            cell = flat[:, sources[:, _CELL]]  # (C, n, 8)
         low, lowest = cell.min(dim=-1)
         high, highest = cell.max(dim=-1)
-        below, above = value < low, value > high
+        if written is None:
+            below, above = value < low, value > high
+        else:
+            below, above = _clamped(flat, sources, taps, written[:, nodes], low, high)
         free = ~(below | above)
         result.index_add_(1, sources.flatten(), ((moved * free)[..., None] * taps).flatten(1))
         cell_sources = sources[:, _CELL].expand(flat.shape[0], -1, -1)
@@ -156,3 +187,17 @@ def _scatter_back(flat: Tensor, incoming: Tensor, targets: Tensor,
             node = cell_sources.gather(2, position[..., None])[..., 0]  # (C, n)
             result.scatter_add_(1, node, moved * clamped)
     return result
+
+
+def _clamped(flat: Tensor, sources: Tensor, taps: Tensor, written: Tensor, low: Tensor,
+             high: Tensor) -> tuple[Tensor, Tensor]:
+    """Which values were clamped to their cell's ``low`` and ``high`` (``(C, n)`` bool each),
+    from the values written: those at a bound have their 64 taps gathered again."""
+    below = torch.zeros_like(written, dtype=torch.bool)
+    above = torch.zeros_like(below)
+    channel, node = ((written <= low) | (written >= high)).nonzero(as_tuple=True)
+    if len(node):
+        value = (flat[channel[:, None], sources[node]] * taps[node]).sum(dim=-1)
+        below[channel, node] = value < low[channel, node]
+        above[channel, node] = value > high[channel, node]
+    return below, above
