@@ -186,6 +186,16 @@ def test_mesh_path_resolves_against_the_config_folder_then_the_mesh_dir(tmp_path
         (["name=a/b"], "name"),
         (["name=.hidden"], "name"),
         (["grid.size=24", "grid=3"], "grid"),
+        (["signal.seed=-5"], "signal.seed"),
+        (["signal.seed=99999999999999999999"], "signal.seed"),
+        (["signal.noise=inf"], "signal.noise"),
+        (["signal.grain=1e300", "signal.kind=noise"], "signal.grain"),
+        (["signal.tiles=1e300"], "signal.tiles"),
+        (["threads=100000"], "threads"),
+        (["signal.kind=noise", "signal.noise=0.2"], "signal.noise"),
+        (["field.kind=principal_max"], "field"),
+        (["flow.method=chebyshev", "flow.steps=5"], "flow.steps"),
+        (["name=" + "a" * 201], "name"),
     ],
 )
 def test_bad_settings_are_refused_with_their_key(overrides, key, tmp_path, capsys):
@@ -207,6 +217,60 @@ def test_bad_config_files_are_refused(tmp_path, capsys):
     assert "name" in capsys.readouterr().err
     assert cli.main(["run", "no_such_config"]) == cli.EXIT_USAGE
     assert "heat_sphere" in capsys.readouterr().err
+
+
+def test_a_bad_section_in_the_file_is_named_not_a_valid_override(tmp_path, capsys):
+    """omegaconf names no key for a value given for a whole section: it was blamed on the
+    first --set, valid or not, or on nothing."""
+    broken = tmp_path / "broken.yaml"
+    broken.write_text("name: a\ngrid: 3\n")
+    for overrides in ([], ["--set", "flow.time=0.001"]):
+        assert cli.main(["run", str(broken), *overrides]) == cli.EXIT_USAGE
+        assert "config error: grid:" in capsys.readouterr().err
+
+
+def test_quiet_also_hides_the_progress_bar(tmp_path, monkeypatch):
+    from torchsurf import experiment
+
+    asked = {}
+
+    def recording(prepared, out, progress=False, log=print):
+        asked["progress"] = progress
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "_progress_wanted", lambda disabled: not disabled)
+    monkeypatch.setattr(experiment, "run", recording)
+    with pytest.raises(KeyboardInterrupt):
+        cli.main(["run", "heat_sphere", "--set", *TINY, "--quiet", "--out", str(tmp_path)])
+    assert asked == {"progress": False}
+
+
+def test_a_stop_after_the_picture_is_drawn_leaves_no_file(tmp_path, monkeypatch):
+    """The aside picture was made before the cleanup's try began: a stop in between left a
+    hidden file in --out."""
+    from torchsurf import render
+
+    drawn = render.render_panels
+
+    def stopped(*args, **kwargs):
+        drawn(*args, **kwargs)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(render, "render_panels", stopped)
+    with pytest.raises(KeyboardInterrupt):
+        cli.main(["run", "heat_sphere", "--set", *TINY, "--quiet", "--out", str(tmp_path)])
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_list_into_a_reader_that_stops_early_is_quiet(tmp_path):
+    import subprocess
+    import sys
+
+    reader = subprocess.Popen([sys.executable, "-m", "torchsurf", "list"],
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    reader.stdout.close()  # before the interpreter has started: its listing meets a closed pipe
+    assert reader.wait(timeout=120) == cli.EXIT_OK
+    assert reader.stderr.read() == b""
 
 
 def test_usage_errors_exit_2(capsys):

@@ -7,6 +7,7 @@ Exit codes: 0 done, 2 usage or config error (nothing computed), 1 the run itself
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import sys
 import tempfile
@@ -97,7 +98,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except SystemExit as stop:
         return int(stop.code or 0)
     if args.command == "list":
-        print(list_configs())
+        try:
+            print(list_configs(), flush=True)
+        except BrokenPipeError:  # `torchsurf list | head`: the reader had what it wanted
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())  # so that the interpreter's exit flush is quiet
         return EXIT_OK
     from . import experiment
 
@@ -114,7 +119,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_USAGE
     log = (lambda message: None) if args.quiet else print
     try:
-        result = experiment.run(prepared, out, progress=_progress_wanted(args.no_progress), log=log)
+        result = experiment.run(prepared, out,
+                                progress=_progress_wanted(args.no_progress or args.quiet), log=log)
     except ImportError as error:
         _remove_if_empty(created)
         print(f"torchsurf: {error}", file=sys.stderr)

@@ -281,6 +281,19 @@ FLOW_SIGNALS: dict[FlowKind, tuple[SignalKind, ...]] = {
 
 PANELS = ("clean", "input", "output")
 
+THREADS_MAX = 1024
+"""The most threads a config may ask for (torch itself crashes on some 10^5)."""
+
+SEED_MAX = 2**63 - 1
+"""The largest seed (torch's generators take 64-bit signed seeds)."""
+
+STEPLESS_METHODS = ("chebyshev",)
+"""Methods that choose their own number of terms: ``flow.steps`` must stay ``null``."""
+
+NAME_MAX = 200
+"""The longest run name: its files' temporary names add about 30 characters, and file
+systems take 255."""
+
 
 def flow_setting(flow: FlowConfig, name: str) -> float:
     """``flow.<name>`` or its default from :data:`FLOW_DEFAULTS`."""
@@ -334,10 +347,16 @@ def find(config: str | os.PathLike) -> Path:
 def _omegaconf_error(error: OmegaConfBaseException, raw: DictConfig, overrides: list[str]
                      ) -> ConfigError:
     """``error`` as a :class:`ConfigError` starting with the key's path; where omegaconf names
-    none (a value given for a whole section), the first override that fails alone."""
+    none (a value given for a whole section), the file's key if the file fails alone, else the
+    first override that fails with it."""
     key = getattr(error, "full_key", "") or ""
     message = str(getattr(error, "msg", "") or error).splitlines()[0]
     if not key:
+        try:
+            OmegaConf.merge(OmegaConf.structured(Experiment), raw)
+        except OmegaConfBaseException as alone:
+            return ConfigError(_failing_section(raw), str(getattr(alone, "msg", "") or alone)
+                               .splitlines()[0])
         for item in overrides:
             try:
                 OmegaConf.merge(OmegaConf.structured(Experiment), raw,
@@ -346,6 +365,16 @@ def _omegaconf_error(error: OmegaConfBaseException, raw: DictConfig, overrides: 
                 return ConfigError(item.partition("=")[0].strip(),
                                    f"cannot take {item!r}: {message}")
     return ConfigError(str(key), message)
+
+
+def _failing_section(raw: DictConfig) -> str:
+    """The first top-level key of the file that does not merge with the schema alone."""
+    for name in raw:
+        try:
+            OmegaConf.merge(OmegaConf.structured(Experiment), {name: raw[name]})
+        except OmegaConfBaseException:
+            return str(name)
+    return ""
 
 
 def parse_overrides(overrides: list[str]) -> list[str]:
@@ -395,6 +424,11 @@ def _positive(value: float, key: str) -> None:
         raise ConfigError(key, f"must be a finite number > 0, got {value!r}")
 
 
+def _at_least_zero(value: float, key: str) -> None:
+    if not (math.isfinite(value) and value >= 0):
+        raise ConfigError(key, f"must be a finite number >= 0, got {value!r}")
+
+
 def _is_file_stem(name: str) -> bool:
     """``name`` can name a file in the output folder: no separator, no leading dot."""
     allowed = set("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_-.")
@@ -407,10 +441,10 @@ def check(experiment: Experiment) -> None:
     Raises:
         ConfigError: naming the key.
     """
-    if not _is_file_stem(experiment.name):
-        raise ConfigError("name", f"must be a file name of letters, digits, '_', '-' and '.' "
-                          f"(it names the output files), not starting with '.', got "
-                          f"{experiment.name!r}")
+    if not _is_file_stem(experiment.name) or len(experiment.name) > NAME_MAX:
+        raise ConfigError("name", f"must be a file name of at most {NAME_MAX} letters, digits, "
+                          f"'_', '-' and '.' (it names the output files), not starting with "
+                          f"'.', got {experiment.name!r}")
     if experiment.surface.shape is Shape.mesh and not experiment.surface.mesh:
         raise ConfigError("surface.mesh", "shape: mesh needs a mesh file path")
     if experiment.surface.shape is not Shape.mesh and experiment.surface.mesh:
@@ -432,14 +466,30 @@ def check(experiment: Experiment) -> None:
                               f"{BRICK_MARGIN_CELLS:g} (the band and the nodes its stencils "
                               f"read): {advice}, or grid.layout=dense")
     signal = experiment.signal
+    size = experiment.grid.size
     _positive(signal.tiles, "signal.tiles")
+    if signal.tiles > 4 * size:
+        raise ConfigError("signal.tiles", f"must be at most 4 x grid.size = {4 * size} (tiles "
+                          f"smaller than a quarter cell are not resolved), got {signal.tiles!r}")
     _positive(signal.grain, "signal.grain")
-    if not signal.noise >= 0:
-        raise ConfigError("signal.noise", f"must be >= 0, got {signal.noise}")
+    if signal.grain > (size - 1) / 2:
+        raise ConfigError("signal.grain", f"must be at most (grid.size - 1) / 2 = "
+                          f"{(size - 1) / 2:g} cells (two specks across the grid), got "
+                          f"{signal.grain!r}")
+    _at_least_zero(signal.noise, "signal.noise")
+    if signal.noise > 0 and signal.kind in (SignalKind.noise, SignalKind.turk):
+        raise ConfigError("signal.noise", f"must be 0 with signal.kind={signal.kind.name} "
+                          f"(the signal is noise itself), got {signal.noise!r}")
+    if not 0 <= signal.seed <= SEED_MAX:
+        raise ConfigError("signal.seed", f"must be an integer in [0, {SEED_MAX}], got "
+                          f"{signal.seed}")
     flow = experiment.flow
     _positive(flow.time, "flow.time")
     if flow.steps is not None and flow.steps < 1:
         raise ConfigError("flow.steps", f"must be an integer >= 1, got {flow.steps}")
+    if flow.steps is not None and flow.method in STEPLESS_METHODS:
+        raise ConfigError("flow.steps", f"flow.method={flow.method} chooses its own terms and "
+                          f"takes no steps; leave flow.steps null, got {flow.steps}")
     if flow.method is not None:
         from .flows import HeatFlow, check_method
 
@@ -461,8 +511,7 @@ def check(experiment: Experiment) -> None:
             if not 1 <= value <= 2:
                 raise ConfigError("flow.p", f"must be in [1, 2], got {value}")
         elif name == "isotropic":
-            if not value >= 0:
-                raise ConfigError("flow.isotropic", f"must be >= 0, got {value}")
+            _at_least_zero(value, "flow.isotropic")
         else:
             _positive(value, f"flow.{name}")
     unit = time_unit(flow)
@@ -479,8 +528,13 @@ def check(experiment: Experiment) -> None:
     if needs_field and experiment.field is None:
         raise ConfigError("field", f"flow.kind={flow.kind.name} with signal.kind="
                           f"{signal.kind.name} needs a tangent field (field: {{kind: ...}})")
-    if experiment.field is not None and not experiment.field.smoothing >= 0:
-        raise ConfigError("field.smoothing", f"must be >= 0, got {experiment.field.smoothing}")
+    reads_field = needs_field or flow.kind is FlowKind.reaction_diffusion
+    if experiment.field is not None and not reads_field:
+        raise ConfigError("field", f"not read by flow.kind={flow.kind.name} with signal.kind="
+                          f"{signal.kind.name} (a tangent field is read by visualization, "
+                          f"reaction_diffusion and signal.kind=field); remove the section")
+    if experiment.field is not None:
+        _at_least_zero(experiment.field.smoothing, "field.smoothing")
     if experiment.field is not None and not (experiment.field.smoothing_grid == 0
                                              or experiment.field.smoothing_grid >= 8):
         raise ConfigError("field.smoothing_grid",
@@ -503,8 +557,9 @@ def check(experiment: Experiment) -> None:
         if panel not in PANELS:
             raise ConfigError(f"render.panels[{index}]",
                               f"must be one of {', '.join(PANELS)}, got {panel!r}")
-    if experiment.threads is not None and experiment.threads < 1:
-        raise ConfigError("threads", f"must be an integer >= 1, got {experiment.threads}")
+    if experiment.threads is not None and not 1 <= experiment.threads <= THREADS_MAX:
+        raise ConfigError("threads", f"must be an integer in [1, {THREADS_MAX}], got "
+                          f"{experiment.threads}")
 
 
 def _check_colormap(name: str) -> None:

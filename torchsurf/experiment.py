@@ -464,30 +464,31 @@ def run(prepared: Prepared, out: str | os.PathLike, progress: bool = False,
         log(f"render: {renderer} ({why})")
         out = Path(out)
         picture = out / f"{experiment.name}.png"
+        record = out / f"{experiment.name}.json"
         # picture and record are both written aside, then renamed into place, the picture
-        # first: a failure before leaves neither new
-        drawn = render.render_panels(
-            extracted, [(titles[p], colours[p]) for p in render_config.panels],
-            out / f".{experiment.name}.{os.getpid()}.png", render_config.width,
-            render_config.height, render_config.elevation, render_config.azimuth,
-            render_config.up.name, renderer,
-        )
-        stage("render")
-    record = out / f"{experiment.name}.json"
-    staged = None
-    try:
-        staged = _write_record(prepared, surface, n, spacing, diagonal, ran, physical, metrics,
-                               stages, picture, renderer, record)
-        for target in (picture, record):  # what would stop a rename, before either is made
-            if target.is_dir():
-                raise IsADirectoryError(f"{target} is a folder: the run cannot write its file")
-        os.replace(drawn, picture)
-        os.replace(staged, record)
-    except BaseException:
-        drawn.unlink(missing_ok=True)
-        if staged is not None:
-            staged.unlink(missing_ok=True)
-        raise
+        # first: a failure (or a stop) at any point before leaves neither new, nor the aside
+        drawn = out / f".{experiment.name}.{os.getpid()}.png"
+        staged = None
+        try:
+            render.render_panels(
+                extracted, [(titles[p], colours[p]) for p in render_config.panels], drawn,
+                render_config.width, render_config.height, render_config.elevation,
+                render_config.azimuth, render_config.up.name, renderer,
+            )
+            stage("render")
+            staged = _write_record(prepared, surface, n, spacing, diagonal, ran, physical,
+                                   metrics, stages, picture, renderer, record)
+            for target in (picture, record):  # what would stop a rename, before either is made
+                if target.is_dir():
+                    raise IsADirectoryError(f"{target} is a folder: the run cannot write its "
+                                            "file")
+            os.replace(drawn, picture)
+            os.replace(staged, record)
+        except BaseException:
+            drawn.unlink(missing_ok=True)
+            if staged is not None:
+                staged.unlink(missing_ok=True)
+            raise
     return Result(picture, record, stages, physical, metrics, ran)
 
 

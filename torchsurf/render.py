@@ -69,11 +69,17 @@ def vertex_values(volume: Tensor, mesh: trimesh.Trimesh, grid: Grid | ImplicitSu
     if not packed and volume.shape[0] != 1:
         raise ValueError(f"volume must hold one volume (1, C, D, H, W) for one mesh, got shape "
                          f"{tuple(volume.shape)}")
-    points = torch.as_tensor(np.asarray(mesh.vertices), dtype=volume.dtype, device=volume.device)
+    # world to node indices in float64, then the volume's dtype: a grid far from the origin
+    # keeps the precision of its cells (1e5 away, float32 world points are off 0.06 cell)
+    vertices = torch.as_tensor(np.asarray(mesh.vertices), dtype=torch.float64)
     if packed:
-        values = grid.sample(volume.detach(), points)
+        index = grid.grids[0].world_to_index(vertices).to(volume.dtype)
+        values = grid.sample_at_index(volume.detach(), index.to(volume.device))
     else:
-        values = sample(volume.detach(), points, grid if isinstance(grid, Grid) else grid.grid)[0]
+        box = grid if isinstance(grid, Grid) else grid.grid
+        at_zero = Grid(box.shape, box.spacing, (0.0, 0.0, 0.0))
+        relative = (vertices - vertices.new_tensor(box.origin)).to(volume.dtype)
+        values = sample(volume.detach(), relative.to(volume.device), at_zero)[0]
     return values.T.to("cpu", torch.float64).numpy()
 
 
