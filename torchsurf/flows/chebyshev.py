@@ -11,7 +11,9 @@ With ``Y = I + (2 / rho) L`` (spectrum in ``[-1, 1]``) and ``T_k`` the Chebyshev
 ``c_k`` the Chebyshev coefficients of ``s -> f((rho / 2)(s - 1))`` on ``[-1, 1]``. For
 ``f(s) = exp(t s)`` they are ``(2 - [k = 0]) e^-a I_k(a)``, ``a = t rho / 2`` (modified Bessel
 functions), which fall below a tolerance ``tol`` once ``k > sqrt(2 a log(1 / tol))``: the
-number of applications grows as ``sqrt(t rho)``, not as the ``t rho / 2`` of explicit steps.
+number of applications grows as ``sqrt(t rho)``, not as the ``t rho / 2`` of explicit steps,
+up to ``a =`` :data:`PIECE_HALF_WIDTH`; longer times of ``exp`` run as powers of the expansion
+for a fraction of the time, for operators whose spectrum is only close to real.
 The coefficients are computed here by a cosine sum over ``2K + 16`` nodes (exact to rounding,
 and differentiable in ``t``), one set per channel; the expansion stops when every channel's
 remaining coefficients sum below ``tol`` (``1e-7`` in float32, ``1e-13`` in float64).
@@ -46,6 +48,16 @@ constant source ``f`` to the solution of ``u' = L u + f``, ``u(0) = 0``, at time
 
 MAX_TERMS = 100_000
 """More terms than this are refused before any work: ``t rho`` near ``10^9``, a unit error."""
+
+PIECE_HALF_WIDTH = 250.0
+"""The largest ``a = t rho / 2`` one expansion of ``exp`` covers; longer times are applied as
+the ``m``-th power of the expansion for ``t / m`` (:func:`pieces_for`). A band operator whose
+ring is filled by closest-point interpolation is not exactly self-adjoint: some of its
+eigenvalues lie off the real axis (``|Im lambda| h^2`` up to 0.23 against ``rho h^2`` near 11
+on small spheres), where ``|T_k|`` grows with ``k``, and one expansion of many terms amplified
+rounding and truncation without bound (13^3 sphere, float64, t = 1000 h^2, ``a`` near 5500: a
+range of [-2.5, 3.3] for data in [0, 1]; the 32^3 bunny in float32 was off from ``a`` near
+1600)."""
 
 
 def tolerance(dtype: torch.dtype) -> float:
@@ -134,17 +146,23 @@ def _count_terms(kind: str, time: float, bound: float, dtype: torch.dtype) -> in
     return int(small[0]) if len(small) else cap
 
 
+def pieces_for(time: float, bound: float) -> int:
+    """How many equal pieces ``exp(t L)`` is applied in: ``ceil(t rho / 2 /``
+    :data:`PIECE_HALF_WIDTH` ``)``, at least 1."""
+    return max(1, math.ceil(0.5 * time * bound / PIECE_HALF_WIDTH))
+
+
 @torch.compiler.disable
-def _terms_for(kind: str, times: Tensor, bound: float, dtype: torch.dtype) -> int:
-    """:func:`count_terms` of the largest of ``times``: the loop's length is a host integer,
-    read from the times (under ``torch.compile``, the one graph break of an expansion)."""
+def _host_largest(times: Tensor) -> float:
+    """The largest of ``times`` on the host, checked finite and positive: it sets the loop's
+    length (under ``torch.compile``, the one graph break of an expansion)."""
     largest = float(times.detach().max())
     if not math.isfinite(largest) or not largest > 0:
         raise ValueError(
             f"times must be finite and positive, got {times.detach().tolist()!r} (a learned "
             "time that is not: an optimiser step diverged)"
         )
-    return count_terms(kind, largest, bound, dtype)
+    return largest
 
 
 def _step(operator: Callable[..., Tensor], scale: float, current: Tensor, previous: Tensor,
@@ -197,16 +215,19 @@ def _recurrence(operator: Callable[..., Tensor], x: Tensor, c: Tensor, bound: fl
 
 
 class _Expansion(torch.autograd.Function):
-    """``sum_k c_k(t) T_k(Y) x`` for an operator that reads no tensor requiring grad; backward
-    by the transposed expansion ``W p(Y)(g / W)``, nothing stored but ``x``, ``t`` and ``W``."""
+    """``p(Y)^m x``, ``p = sum_k c_k(t / m) T_k``, for an operator that reads no tensor
+    requiring grad; backward by the transposed expansion ``W p(Y)(g / W)`` applied ``m`` times,
+    nothing stored but ``x``, ``t`` and ``W``."""
 
     @staticmethod
-    def forward(ctx, operator, adjoint, kind, bound, terms, x, weight, times):  # noqa: ANN001, ANN205
-        c = coefficients(kind, times.detach(), bound, terms)
+    def forward(ctx, operator, adjoint, kind, bound, terms, pieces, x, weight, times):  # noqa: ANN001, ANN205
+        c = coefficients(kind, times.detach() / pieces, bound, terms)
         with torch.no_grad():
-            total, _ = _recurrence(operator, x, c, bound, ())
+            total = x
+            for _ in range(pieces):
+                total, _ = _recurrence(operator, total, c, bound, ())
         ctx.operator, ctx.adjoint = operator, adjoint
-        ctx.kind, ctx.bound, ctx.terms = kind, bound, terms
+        ctx.kind, ctx.bound, ctx.terms, ctx.pieces = kind, bound, terms, pieces
         ctx.save_for_backward(x, weight, times)
         return total
 
@@ -215,28 +236,37 @@ class _Expansion(torch.autograd.Function):
         refuse_second_derivatives("the Chebyshev expansion (LearnedDiffusion, "
                                   "HeatFlow(method='chebyshev'))")
         x, weight, times = ctx.saved_tensors
-        want_x, want_times = ctx.needs_input_grad[5], ctx.needs_input_grad[7]
+        want_x, want_times = ctx.needs_input_grad[6], ctx.needs_input_grad[8]
         grad_x = grad_times = None
         if want_x or want_times:
-            c = coefficients(ctx.kind, times.detach(), ctx.bound, ctx.terms)
+            c = coefficients(ctx.kind, times.detach() / ctx.pieces, ctx.bound, ctx.terms)
+            # one piece: the times' gradient through the coefficients, <x, p'(Y)^T g>; several:
+            # that of exp(t L) itself, <g, L exp(t L) x> = <L x, exp(t L)^T g> per channel
+            inner = want_times and ctx.pieces == 1
             with torch.no_grad():
-                if ctx.adjoint is None:  # p(Y)^T g = W p(Y)(g / W)
-                    transposed, products = _recurrence(
-                        ctx.operator, grad_output / weight, c, ctx.bound, (),
-                        inner=x * weight if want_times else None,
-                    )
-                    transposed = weight * transposed
-                else:
-                    transposed, products = _recurrence(
-                        ctx.adjoint, grad_output, c, ctx.bound, (),
-                        inner=x if want_times else None,
-                    )
+                transposed = grad_output
+                for _ in range(ctx.pieces):
+                    if ctx.adjoint is None:  # p(Y)^T g = W p(Y)(g / W)
+                        transposed, products = _recurrence(
+                            ctx.operator, transposed / weight, c, ctx.bound, (),
+                            inner=x * weight if inner else None,
+                        )
+                        transposed = weight * transposed
+                    else:
+                        transposed, products = _recurrence(
+                            ctx.adjoint, transposed, c, ctx.bound, (),
+                            inner=x if inner else None,
+                        )
             if want_x:
                 grad_x = transposed.sum_to_size(x.shape) if transposed.shape != x.shape else transposed
-            if want_times:
+            if want_times and inner:
                 slopes = coefficients(ctx.kind, times.detach(), ctx.bound, ctx.terms, True)
                 grad_times = (slopes * products.to(slopes.dtype)).sum(dim=1)
-        return None, None, None, None, None, grad_x, None, grad_times
+            elif want_times:
+                with torch.no_grad():
+                    rate = ctx.operator(x)
+                grad_times = (rate * transposed).sum(dim=(0, 2, 3, 4)).to(times.dtype)
+        return None, None, None, None, None, None, grad_x, None, grad_times
 
 
 def _group(operator: Callable[..., Tensor], scale: float, c: Tensor, first: int, previous: Tensor,
@@ -281,7 +311,7 @@ def expansion(
     operator: Callable[[Tensor], Tensor], x: Tensor, times: Tensor, bound: float,
     weight: Tensor | None = None, adjoint: Callable[[Tensor], Tensor] | None = None,
     kind: str = "exp", differentiable_operator: bool = False, terms: int | None = None,
-    reads: Sequence[Tensor] = (),
+    reads: Sequence[Tensor] = (), largest: float | None = None,
 ) -> Tensor:
     """``f_t(L) x`` by Chebyshev expansion, one time per channel (module docstring).
 
@@ -298,23 +328,33 @@ def expansion(
         differentiable_operator: ``operator`` reads tensors that require grad (``phi``'s
             geometry): the recurrence then runs in groups of ``sqrt(K)`` terms recomputed
             under autograd in backward, instead of the transposed expansion.
-        terms: number of terms ``K`` (default :func:`count_terms` of the largest time).
+        terms: number of terms ``K``, applied once (default: :func:`count_terms` of the
+            largest time, or of its pieces').
         reads: with ``differentiable_operator``, the tensors ``operator`` reads that need
             gradients (``phi``): backward raises if it reads another.
+        largest: a host float no smaller than any of ``times``, so that nothing is read from
+            them (``torch.compile`` traces the call whole); ``None``: their largest, read.
 
     Returns:
-        ``(B, C, D, H, W)``. Operator applications: ``K - 1`` forward, as many in backward.
+        ``(B, C, D, H, W)``. Operator applications: ``m (K - 1)`` forward, as many in backward,
+        where ``exp`` over ``a = t rho / 2`` above :data:`PIECE_HALF_WIDTH` runs as the ``m``-th
+        power of the expansion for ``t / m`` (:func:`pieces_for`).
     """
     if kind not in KINDS:
         raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
     if weight is None and adjoint is None:
         raise ValueError("expansion needs weight (a W-self-adjoint operator) or adjoint")
     times = times.reshape(-1).expand(x.shape[1]) if times.numel() == 1 else times
+    pieces = 1
     if terms is None:
-        terms = _terms_for(kind, times, bound, x.dtype)
+        top = _host_largest(times) if largest is None else largest
+        pieces = pieces_for(top, bound) if kind == "exp" else 1
+        terms = count_terms(kind, top / pieces, bound, x.dtype)
     if differentiable_operator and torch.is_grad_enabled():
-        c = coefficients(kind, times, bound, terms)
-        return _checkpointed(operator, x, c, bound, (), reads)
+        c = coefficients(kind, times / pieces, bound, terms)
+        for _ in range(pieces):
+            x = _checkpointed(operator, x, c, bound, (), reads)
+        return x
     if weight is None:
         weight = x.new_ones(())
-    return _Expansion.apply(operator, adjoint, kind, bound, terms, x, weight, times)
+    return _Expansion.apply(operator, adjoint, kind, bound, terms, pieces, x, weight, times)

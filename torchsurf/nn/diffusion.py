@@ -44,9 +44,12 @@ class LearnedDiffusion(nn.Module):
     band and its ring are returned unchanged; the band's values are the only ones read.
 
     Cost: about ``sqrt(t_c h^2 rho)`` applications of the operator forward (``rho ~ 12 / h^2``,
-    so about ``4 sqrt(t)`` to ``5 sqrt(t)`` in float32 for the largest ``t_c``), as many in
-    backward; memory for backward: the input and the times, whatever the times (gradients to a
-    ``phi`` that requires grad recompute the expansion, ``O(sqrt(terms))`` volumes kept).
+    so about ``4 sqrt(t)`` to ``5 sqrt(t)`` in float32 for the largest ``t_c``) up to about
+    ``45 h^2``, beyond which the expansion runs in pieces and the cost grows as ``t``
+    (:data:`torchsurf.flows.chebyshev.PIECE_HALF_WIDTH`), as many in backward; memory for
+    backward: the input and the times, whatever the times (gradients to a
+    ``phi`` that requires grad recompute the expansion, ``O(sqrt(terms))`` volumes kept per
+    piece).
 
     Args:
         channels: ``C``, the number of channels (one time each).
@@ -58,8 +61,9 @@ class LearnedDiffusion(nn.Module):
             to it (no gradient beyond) and the expansion's length is planned for it on the host,
             so that the forward reads nothing from the parameter and ``torch.compile`` traces
             it whole (docs/learning.md). ``None`` (default): the length follows the largest
-            current time, read on the host at each call (one graph break). Costs
-            ``sqrt(max_time)`` operator applications whatever the times.
+            current time, read on the host at each call (one graph break). Costs what the time
+            ``max_time`` costs, whatever the times: ``sqrt(max_time)`` operator applications up
+            to about ``45 h^2``, then ``max_time`` (pieces).
         scheme: ``"octant"`` (default), ``"symmetric"`` or ``"conservative"``
             (:func:`torchsurf.laplace_beltrami`).
         path: how the stencils run (:mod:`torchsurf.backend`).
