@@ -88,6 +88,12 @@ def test_bad_input_raises(shapes: MeshBatchAdapter) -> None:
         datasets.SignalDataset(shapes, length=2, kinds="smooth")
     with pytest.raises(TypeError, match="shapes must be"):
         datasets.SignalDataset(torch.zeros(1, 1, 5, 5, 5), length=2)
+    from torchsurf import bricks
+
+    grid = ts.Grid.cube(25, 1.6)
+    packed = bricks.from_dense(ts.ImplicitSurface(ts.sdf.sphere(grid), grid))
+    with pytest.raises(TypeError, match="shapes must hold dense volumes"):
+        datasets.SignalDataset(packed, length=2)
     with pytest.raises(ValueError, match="noise"):
         datasets.SignalDataset(shapes, length=2, noise=-1.0)
     with pytest.raises(ValueError, match="frequency"):

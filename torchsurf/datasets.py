@@ -222,6 +222,11 @@ class SignalDataset(Dataset):
                 "shapes must be a MeshBatchAdapter or an ImplicitSurface, got "
                 f"{type(shapes).__name__}"
             )
+        if surface.layout is not None:
+            raise TypeError(
+                "shapes must hold dense volumes; a BrickSurface (band stored as bricks) is not "
+                "supported here: give the dense surface (e.g. the one bricks.from_dense took)"
+            )
         if isinstance(kinds, str) or len(kinds) == 0:
             raise ValueError(f"kinds must be a non-empty sequence of {KINDS}, got {kinds!r}")
         self.kinds = tuple(check_choice(kind, "kinds", KINDS) for kind in kinds)

@@ -134,7 +134,7 @@ class MeshAdapter(nn.Module):
     - :meth:`decode` ``(B, C, D, H, W) -> (B, C, V)``: with ``order=2`` (default), a weighted
       sum over the ``4^3`` nodes around each vertex whose weights reproduce every affine
       function of the closest points the nodes stand for (constants to rounding, the
-      coordinates to a few 1e-5 of their range: the solve is regularised,
+      coordinates to about 1e-4 of their range or better: the solve is regularised,
       ``_vertex_decode.REGULARISATION``); with ``order=1``, trilinear
       sampling at the vertices (:func:`torchsurf.sample`).
 
