@@ -219,6 +219,23 @@ def test_bad_config_files_are_refused(tmp_path, capsys):
     assert "heat_sphere" in capsys.readouterr().err
 
 
+def test_an_image_file_that_cannot_serve_is_refused_before_any_work(tmp_path, capsys):
+    """A gray image for the colour flow and a file that is no image failed mid-run (exit 1),
+    after the surface was built, naming no setting."""
+    from PIL import Image
+
+    gray = tmp_path / "gray.png"
+    Image.fromarray(np.arange(64, dtype=np.uint8).reshape(8, 8) * 4, mode="L").save(gray)
+    broken = tmp_path / "broken.png"
+    broken.write_text("not an image")
+    for name, path in (("color_sphere", gray), ("heat_sphere", broken)):
+        code = cli.main(["run", name, "--set", "signal.kind=image", f"signal.image={path}",
+                         "--out", str(tmp_path / "out")])
+        assert code == cli.EXIT_USAGE
+        assert "config error: signal.image:" in capsys.readouterr().err
+        assert not (tmp_path / "out").exists()
+
+
 def test_a_bad_section_in_the_file_is_named_not_a_valid_override(tmp_path, capsys):
     """omegaconf names no key for a value given for a whole section: it was blamed on the
     first --set, valid or not, or on nothing."""
@@ -263,9 +280,6 @@ def test_a_stop_after_the_picture_is_drawn_leaves_no_file(tmp_path, monkeypatch)
 
 
 def test_list_into_a_reader_that_stops_early_is_quiet(tmp_path):
-    import subprocess
-    import sys
-
     reader = subprocess.Popen([sys.executable, "-m", "torchsurf", "list"],
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     reader.stdout.close()  # before the interpreter has started: its listing meets a closed pipe

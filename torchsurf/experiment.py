@@ -115,6 +115,14 @@ def prepare(config: str | os.PathLike, overrides: list[str] | None = None) -> Pr
         if not image.is_file():
             raise ConfigError("signal.image", f"neither a built-in image "
                               f"({', '.join(signals.IMAGES)}) nor a file: {str(image)!r}")
+        try:  # read now, so that a file that is no image fails before any work
+            channels = signals.load_image(image).shape[0]
+        except Exception as error:  # noqa: BLE001 (scikit-image raises its readers' errors)
+            raise ConfigError("signal.image", f"{str(image)!r} cannot be read as an image: "
+                              f"{type(error).__name__}: {error}") from None
+        if experiment.flow.kind is cfg.FlowKind.color and channels < 3:
+            raise ConfigError("signal.image", f"flow.kind=color needs a colour image; "
+                              f"{str(image)!r} has one channel")
     if experiment.render.renderer is cfg.Renderer.pyvista:
         try:
             render.resolve_renderer("pyvista")
