@@ -287,9 +287,6 @@ THREADS_MAX = 1024
 SEED_MAX = 2**63 - 1
 """The largest seed (torch's generators take 64-bit signed seeds)."""
 
-STEPLESS_METHODS = ("chebyshev",)
-"""Methods that choose their own number of terms: ``flow.steps`` must stay ``null``."""
-
 NAME_MAX = 200
 """The longest run name: its files' temporary names add about 30 characters, and file
 systems take 255."""
@@ -469,8 +466,8 @@ def check(experiment: Experiment) -> None:
     size = experiment.grid.size
     _positive(signal.tiles, "signal.tiles")
     if signal.tiles > 4 * size:
-        raise ConfigError("signal.tiles", f"must be at most 4 x grid.size = {4 * size} (tiles "
-                          f"smaller than a quarter cell are not resolved), got {signal.tiles!r}")
+        raise ConfigError("signal.tiles", f"must be at most 4 x grid.size = {4 * size} (finer "
+                          f"tiles than the grid resolves), got {signal.tiles!r}")
     _positive(signal.grain, "signal.grain")
     if signal.grain > (size - 1) / 2:
         raise ConfigError("signal.grain", f"must be at most (grid.size - 1) / 2 = "
@@ -487,9 +484,6 @@ def check(experiment: Experiment) -> None:
     _positive(flow.time, "flow.time")
     if flow.steps is not None and flow.steps < 1:
         raise ConfigError("flow.steps", f"must be an integer >= 1, got {flow.steps}")
-    if flow.steps is not None and flow.method in STEPLESS_METHODS:
-        raise ConfigError("flow.steps", f"flow.method={flow.method} chooses its own terms and "
-                          f"takes no steps; leave flow.steps null, got {flow.steps}")
     if flow.method is not None:
         from .flows import HeatFlow, check_method
 
@@ -498,6 +492,11 @@ def check(experiment: Experiment) -> None:
             check_method(flow.method, extra)
         except (TypeError, ValueError) as error:
             raise ConfigError("flow.method", str(error)) from None
+        if flow.kind is FlowKind.heat and flow.steps is not None:
+            try:  # the flow's own refusal of steps for a method that takes none (chebyshev)
+                HeatFlow(1.0, method=flow.method, steps=flow.steps)
+            except ValueError as error:
+                raise ConfigError("flow.steps", str(error)) from None
     allowed = FLOW_SETTINGS[flow.kind]
     for name in FLOW_DEFAULTS:
         value = getattr(flow, name)

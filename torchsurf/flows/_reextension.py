@@ -168,18 +168,11 @@ def _scatter_back(flat: Tensor, incoming: Tensor, targets: Tensor,
         if not limited:
             result.index_add_(1, sources.flatten(), (moved[..., None] * taps).flatten(1))
             continue
-        if written is None:
-            gathered = flat[:, sources]  # (C, n, 64)
-            value = (gathered * taps).sum(dim=-1)
-            cell = gathered[..., _CELL]
-        else:
-            cell = flat[:, sources[:, _CELL]]  # (C, n, 8)
+        cell = flat[:, sources[:, _CELL]]  # (C, n, 8)
         low, lowest = cell.min(dim=-1)
         high, highest = cell.max(dim=-1)
-        if written is None:
-            below, above = value < low, value > high
-        else:
-            below, above = _clamped(flat, sources, taps, written[:, nodes], low, high)
+        below, above = _clamped(flat, sources, taps, None if written is None else
+                                written[:, nodes], low, high)
         free = ~(below | above)
         result.index_add_(1, sources.flatten(), ((moved * free)[..., None] * taps).flatten(1))
         cell_sources = sources[:, _CELL].expand(flat.shape[0], -1, -1)
@@ -189,13 +182,15 @@ def _scatter_back(flat: Tensor, incoming: Tensor, targets: Tensor,
     return result
 
 
-def _clamped(flat: Tensor, sources: Tensor, taps: Tensor, written: Tensor, low: Tensor,
+def _clamped(flat: Tensor, sources: Tensor, taps: Tensor, written: Tensor | None, low: Tensor,
              high: Tensor) -> tuple[Tensor, Tensor]:
-    """Which values were clamped to their cell's ``low`` and ``high`` (``(C, n)`` bool each),
-    from the values written: those at a bound have their 64 taps gathered again."""
-    below = torch.zeros_like(written, dtype=torch.bool)
+    """Which values were clamped to their cell's ``low`` and ``high`` (``(C, n)`` bool each):
+    the values whose 64 taps, gathered again, fall outside them. Only the ``written`` values at
+    a bound are candidates, where known; otherwise every value."""
+    below = torch.zeros_like(low, dtype=torch.bool)
     above = torch.zeros_like(below)
-    channel, node = ((written <= low) | (written >= high)).nonzero(as_tuple=True)
+    candidates = torch.ones_like(below) if written is None else (written <= low) | (written >= high)
+    channel, node = candidates.nonzero(as_tuple=True)
     if len(node):
         value = (flat[channel[:, None], sources[node]] * taps[node]).sum(dim=-1)
         below[channel, node] = value < low[channel, node]
