@@ -172,9 +172,15 @@ def _step(operator: Callable[..., Tensor], scale: float, current: Tensor, previo
     return torch.add(2.0 * current - previous, image, alpha=2.0 * scale)
 
 
-def _channelwise(c: Tensor) -> Tensor:
-    """Coefficients ``(C,)`` shaped to broadcast over ``(B, C, D, H, W)``."""
-    return c.view(1, -1, 1, 1, 1)
+def _channelwise(c: Tensor, like: Tensor) -> Tensor:
+    """Coefficients ``(C,)`` shaped to broadcast over ``like``, channels in dimension 1
+    (``(B, C, D, H, W)`` volumes or packed ``(nodes, C, K)`` values)."""
+    return c.view(1, -1, *([1] * (like.dim() - 2)))
+
+
+def _channel_sums(x: Tensor) -> Tensor:
+    """``x`` summed over every dimension but the channels' (dimension 1): ``(C,)``."""
+    return x.sum(dim=[d for d in range(x.dim()) if d != 1])
 
 
 def _recurrence(operator: Callable[..., Tensor], x: Tensor, c: Tensor, bound: float,
@@ -193,15 +199,15 @@ def _recurrence(operator: Callable[..., Tensor], x: Tensor, c: Tensor, bound: fl
     def record(term: Tensor) -> None:
         nonlocal index
         if products is not None:
-            products[:, index] = (inner * term).sum(dim=(0, 2, 3, 4))
+            products[:, index] = _channel_sums(inner * term)
         index += 1
 
     previous = x
-    total = _channelwise(c[:, 0]) * x
+    total = _channelwise(c[:, 0], x) * x
     record(x)
     if terms > 1:
         current = torch.add(x, operator(x, *params), alpha=scale)
-        total.addcmul_(_channelwise(c[:, 1]), current)
+        total.addcmul_(_channelwise(c[:, 1], x), current)
         record(current)
         for k in range(2, terms):
             # in place on the operator's output (no grad here): fewer allocations, less
@@ -209,7 +215,7 @@ def _recurrence(operator: Callable[..., Tensor], x: Tensor, c: Tensor, bound: fl
             following = operator(current, *params).mul_(2.0 * scale)
             following.add_(current, alpha=2.0).sub_(previous)
             previous, current = current, following
-            total.addcmul_(_channelwise(c[:, k]), current)
+            total.addcmul_(_channelwise(c[:, k], x), current)
             record(current)
     return total, products
 
@@ -265,7 +271,7 @@ class _Expansion(torch.autograd.Function):
             elif want_times:
                 with torch.no_grad():
                     rate = ctx.operator(x)
-                grad_times = (rate * transposed).sum(dim=(0, 2, 3, 4)).to(times.dtype)
+                grad_times = _channel_sums(rate * transposed).to(times.dtype)
         return None, None, None, None, None, None, grad_x, None, grad_times
 
 
@@ -274,7 +280,7 @@ def _group(operator: Callable[..., Tensor], scale: float, c: Tensor, first: int,
     """Terms ``first .. first + c.shape[1] - 1`` of the recurrence (a checkpointed group)."""
     for j in range(c.shape[1]):
         previous, current = current, _step(operator, scale, current, previous, params)
-        total = torch.addcmul(total, _channelwise(c[:, j]), current)
+        total = torch.addcmul(total, _channelwise(c[:, j], current), current)
     return previous, current, total
 
 
@@ -290,11 +296,11 @@ def _checkpointed(operator: Callable[..., Tensor], x: Tensor, c: Tensor, bound: 
     """The recurrence under autograd, in groups of ``sqrt(K)`` terms run without a graph and
     recomputed in backward; ``reads``: what ``operator`` reads that needs gradients."""
     terms, scale = c.shape[1], 2.0 / bound
-    total = _channelwise(c[:, 0]) * x
+    total = _channelwise(c[:, 0], x) * x
     if terms == 1:
         return total
     current = torch.add(x, operator(x, *params), alpha=scale)
-    total = total + _channelwise(c[:, 1]) * current
+    total = total + _channelwise(c[:, 1], x) * current
     state = torch.stack((x, current, total))
     declared = independent((*reads, *params, c))
     group = max(1, math.isqrt(terms))

@@ -46,7 +46,9 @@ class LearnedDiffusion(nn.Module):
     Cost: about ``sqrt(t_c h^2 rho)`` applications of the operator forward (``rho ~ 12 / h^2``,
     so about ``4 sqrt(t)`` to ``5 sqrt(t)`` in float32 for the largest ``t_c``) up to about
     ``45 h^2``, beyond which the expansion runs in pieces and the cost grows as ``t``
-    (:data:`torchsurf.flows.chebyshev.PIECE_HALF_WIDTH`), as many in backward; memory for
+    (:data:`torchsurf.flows.chebyshev.PIECE_HALF_WIDTH`), as many in backward, each on the
+    band's nodes alone when ``phi`` does not require grad (its operators assembled on the first
+    call and kept on the surface: :mod:`torchsurf.flows.exponential`); memory for
     backward: the input and the times, whatever the times (gradients to a
     ``phi`` that requires grad recompute the expansion, ``O(sqrt(terms))`` volumes kept per
     piece).
