@@ -63,7 +63,7 @@ def test_gather_matrix_is_the_matrix_it_holds():
     torch.testing.assert_close(matrix.transposed().apply(g), dense.T @ g, rtol=1e-13, atol=1e-13)
     empty = GatherMatrix(rows[:0], columns[:0], values[:0], (4, 17))
     assert torch.equal(empty.apply(x), x.new_zeros(4, 3))
-    with pytest.raises(ValueError, match="17 rows"):
+    with pytest.raises(ValueError, match="must be \\(17, F\\)"):
         matrix.apply(g)
 
 

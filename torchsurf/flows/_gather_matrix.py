@@ -31,67 +31,72 @@ class GatherMatrix:
     def __init__(self, rows: Tensor, columns: Tensor, values: Tensor,
                  shape: tuple[int, int]) -> None:
         self.shape = (int(shape[0]), int(shape[1]))
-        self._entries = _summed(rows.long(), columns.long(), values, self.shape)
-        rows, columns, values = self._entries
+        rows, columns, values = _summed(rows.long(), columns.long(), values, self.shape)
+        self.nonzeros = len(rows)
         counts = torch.bincount(rows, minlength=self.shape[0])
         self.taps = int(counts.max()) if len(rows) else 0
-        # rows by decreasing count: tap k is gathered for the first active[k] rows only, so
-        # that a few long rows (a transpose's) do not pad every row to their length
-        self.order = None
+        self.order: Tensor | None = None
+        """The rows by decreasing count, when they are reordered: tap ``k`` is then gathered
+        for the first ``active[k]`` rows only, so that a few long rows (a transpose's) do not
+        pad every row to their length."""
         if self.taps * self.shape[0] > PADDING * len(rows):
             counts, self.order = torch.sort(counts, descending=True, stable=True)
             position = torch.empty_like(self.order)
             position[self.order] = torch.arange(len(self.order), device=rows.device)
-            rows = position[rows]
-            rows, by_row = torch.sort(rows, stable=True)
+            rows, by_row = torch.sort(position[rows], stable=True)
             columns, values = columns[by_row], values[by_row]
-            self.active = [int(n) for n in
-                           (counts[None, :] > torch.arange(self.taps, device=rows.device)[:, None]).sum(1)]
+            levels = torch.arange(self.taps, device=rows.device)[:, None]
+            self.active = [int(n) for n in (counts[None, :] > levels).sum(1)]
         else:
             self.active = [self.shape[0]] * self.taps
         rank = torch.arange(len(rows), device=rows.device) - (torch.cumsum(counts, 0)
                                                               - counts)[rows]
-        small = self.shape[1] < 2**31
-        self.columns = torch.zeros((self.taps, self.shape[0]),
-                                   dtype=torch.int32 if small else torch.long, device=rows.device)
-        self.columns[rank, rows] = columns.to(self.columns.dtype)
+        index = torch.int32 if self.shape[1] < 2**31 else torch.long
+        padded = torch.zeros((self.taps, self.shape[0]), dtype=index, device=rows.device)
+        padded[rank, rows] = columns.to(index)
         weights = values.new_zeros((self.taps, self.shape[0]))
         weights[rank, rows] = values
-        self._weights = {weights.dtype: weights[..., None]}
-        self.columns = [self.columns[k, :n] for k, n in enumerate(self.active)]
+        # one contiguous tensor a tap: the padded blocks are freed
+        self.columns = [padded[k, :n].clone() for k, n in enumerate(self.active)]
+        self._weights = {values.dtype: [weights[k, :n, None].clone()
+                                        for k, n in enumerate(self.active)]}
 
-    @property
-    def nonzeros(self) -> int:
-        """The number of stored entries."""
-        return len(self._entries[0])
-
-    def weights(self, dtype: torch.dtype) -> Tensor:
-        """``(T, R, 1)`` in ``dtype`` (converted once and kept)."""
+    def weights(self, dtype: torch.dtype) -> list[Tensor]:
+        """Each tap's weights ``(active rows, 1)`` in ``dtype`` (converted once and kept)."""
         if dtype not in self._weights:
-            self._weights[dtype] = next(iter(self._weights.values())).to(dtype)
+            self._weights[dtype] = [w.to(dtype) for w in next(iter(self._weights.values()))]
         return self._weights[dtype]
 
     def apply(self, x: Tensor) -> Tensor:
         """``A x`` for ``x`` ``(columns, F)``: a new ``(rows, F)`` tensor."""
-        if x.shape[0] != self.shape[1]:
-            raise ValueError(f"x must have {self.shape[1]} rows, got shape {tuple(x.shape)}")
+        if x.dim() != 2 or x.shape[0] != self.shape[1]:
+            raise ValueError(f"x must be ({self.shape[1]}, F), got shape {tuple(x.shape)}")
         if self.taps == 0:
-            return x.new_zeros((self.shape[0], *x.shape[1:]))
+            return x.new_zeros((self.shape[0], x.shape[1]))
         weights = self.weights(x.dtype)
-        rows = self.active[0]
-        result = x.index_select(0, self.columns[0]) * weights[0, :rows]
+        result = x.index_select(0, self.columns[0]) * weights[0]
         for k in range(1, self.taps):
-            active = self.active[k]
-            result[:active].addcmul_(x.index_select(0, self.columns[k]), weights[k, :active])
+            result[:self.active[k]].addcmul_(x.index_select(0, self.columns[k]), weights[k])
         if self.order is None:
             return result
-        return x.new_zeros((self.shape[0], *x.shape[1:])).index_copy_(
-            0, self.order[:rows], result)
+        return x.new_zeros((self.shape[0], x.shape[1])).index_copy_(
+            0, self.order[:self.active[0]], result)
 
     def transposed(self) -> GatherMatrix:
         """``A^T``, exactly (the same entries)."""
-        rows, columns, values = self._entries
-        return GatherMatrix(columns, rows, values, (self.shape[1], self.shape[0]))
+        weights = next(iter(self._weights.values()))
+        rows = [torch.arange(n, device=weights[0].device) for n in self.active]
+        if self.order is not None:
+            rows = [self.order[row] for row in rows]
+        return GatherMatrix(torch.cat([c.long() for c in self.columns]), torch.cat(rows),
+                            torch.cat([w[:, 0] for w in weights]), (self.shape[1], self.shape[0]))
+
+    def nbytes(self) -> int:
+        """Bytes of the kept index and weight tensors."""
+        tensors = [*self.columns, *(w for ws in self._weights.values() for w in ws)]
+        if self.order is not None:
+            tensors.append(self.order)
+        return sum(t.numel() * t.element_size() for t in tensors)
 
 
 def _summed(rows: Tensor, columns: Tensor, values: Tensor, shape: tuple[int, int]
