@@ -18,7 +18,8 @@ from .test_stability import MESH_DIR
 def _surface(kind: str) -> ts.ImplicitSurface:
     """Float64 surfaces with what the packed operator must get right: a batch of two shapes,
     a band reaching the box's faces (the probes' crop), ``phi`` not a distance (orphan ring
-    nodes), a mesh's ``from_mesh`` phi (ring nodes chained through the ring)."""
+    nodes), a mesh's ``from_mesh`` phi (ring nodes chained through the ring), two shapes
+    stored as bricks."""
     if kind == "two shapes":
         grid = ts.Grid.cube(23, 1.5)
         phi = torch.cat([ts.sdf.torus(grid, dtype=torch.float64),
@@ -26,6 +27,11 @@ def _surface(kind: str) -> ts.ImplicitSurface:
     elif kind == "at the faces":
         grid = ts.Grid.cube(21, 1.5)
         phi = ts.sdf.sphere(grid, 1.42, dtype=torch.float64)
+    elif kind == "bricks":
+        grid = ts.Grid.cube(32, 2.2)
+        phi = torch.cat([ts.sdf.torus(grid, dtype=torch.float64),
+                         ts.sdf.sphere(grid, 0.9, dtype=torch.float64)])
+        return ts.bricks.from_dense(phi, grid)
     elif kind == "tanh":
         grid = ts.Grid.cube(25, 2.4)
         phi = torch.tanh(ts.sdf.sphere(grid, 0.8, dtype=torch.float64) / grid.spacing)
@@ -36,6 +42,18 @@ def _surface(kind: str) -> ts.ImplicitSurface:
         grid = ts.mesh.fit_grid(str(path), 28)
         return ts.ImplicitSurface(ts.sdf.from_mesh(str(path), grid, dtype=torch.float64), grid)
     return ts.ImplicitSurface(phi, grid)
+
+
+def _fields(surface: ts.ImplicitSurface, count: int, seed: int) -> list[torch.Tensor]:
+    """``count`` random float64 fields of two channels in the surface's storage (a batch of 3
+    on a dense surface of batch 1)."""
+    generator = torch.Generator().manual_seed(seed)
+    if surface.layout is not None:
+        return [surface.layout.rand(2, generator=generator, dtype=torch.float64) - 0.5
+                for _ in range(count)]
+    batch = 3 if surface.batch_size == 1 else surface.batch_size
+    return [torch.randn((batch, 2, *surface.grid.shape), generator=generator,
+                       dtype=torch.float64) for _ in range(count)]
 
 
 def _volume(packed, values: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
@@ -85,7 +103,7 @@ def test_reach_holds_each_schemes_coefficients(scheme):
 
 
 @pytest.mark.parametrize("scheme", ["octant", "symmetric", "conservative"])
-@pytest.mark.parametrize("kind", ["two shapes", "at the faces", "tanh", "bunny"])
+@pytest.mark.parametrize("kind", ["two shapes", "at the faces", "tanh", "bunny", "bricks"])
 def test_packed_operator_is_the_volume_operator(kind, scheme):
     """``L`` and ``L^T`` on packed values equal the volume operator's on the band to rounding,
     and the transpose is the adjoint."""
@@ -96,10 +114,7 @@ def test_packed_operator_is_the_volume_operator(kind, scheme):
         assert operator.ring.orphans is not None
     if kind == "bunny":
         assert operator.ring.chained is not None and packed.sweeps > 0
-    generator = torch.Generator().manual_seed(1)
-    batch = 3 if surface.batch_size == 1 else surface.batch_size
-    u, v = (torch.randn((batch, 2, *surface.grid.shape), generator=generator,
-                        dtype=torch.float64) for _ in range(2))
+    u, v = _fields(surface, 2, seed=1)
     inside = torch.where(operator.band, u, 0.0)
     for dense, mine in ((operator.apply(inside), packed.apply(packed.pack(u))),
                         (torch.where(operator.band, operator.transpose(inside), 0.0),
@@ -114,15 +129,12 @@ def test_packed_operator_is_the_volume_operator(kind, scheme):
                                atol=1e-13 * float(region.abs().max()))
 
 
-@pytest.mark.parametrize("kind", ["two shapes", "bunny"])
+@pytest.mark.parametrize("kind", ["two shapes", "bunny", "bricks"])
 def test_heat_semigroup_equals_the_volume_path(kind, monkeypatch):
     """Results and gradients (data and times) of the packed path against the volume path's."""
     surface = _surface(kind)
     operator = BandLaplacian(surface, path="slicing")
-    generator = torch.Generator().manual_seed(2)
-    u = torch.rand((surface.batch_size, 2, *surface.grid.shape), generator=generator,
-                   dtype=torch.float64)
-    grad = torch.randn(u.shape, generator=generator, dtype=torch.float64)
+    u, grad = _fields(surface, 2, seed=2)
     times = torch.tensor([1.5, 12.0], dtype=torch.float64) * surface.spacing**2
 
     def run() -> tuple[torch.Tensor, ...]:

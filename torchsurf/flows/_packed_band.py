@@ -1,7 +1,8 @@
 """The band Laplacian ``L = M W^-1 A E M`` on the band's nodes alone, for a fixed surface.
 
 :class:`~torchsurf.flows.exponential.BandLaplacian` applies ``L`` to whole volumes: its stencils
-run over every node of the box, of which the band holds 4-12% at 64^3-128^3. With ``phi``
+run over every node of the box, of which the band holds 4-12% at 64^3-128^3 (or over every
+stored brick's, 2-5 times the band's). With ``phi``
 fixed, ``L`` is a fixed sparse matrix, so :class:`PackedBand` assembles its parts once per
 surface as :class:`~torchsurf.flows._gather_matrix.GatherMatrix` es on the band and ring's nodes
 and applies them to packed values ``(nodes, C, K)``:
@@ -26,9 +27,16 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
+from ..bricks.layout import BRICK
 from ..operators import functional
+from ..surface import ImplicitSurface
 from ._gather_matrix import GatherMatrix
-from .extension import CubicStencil
+from .extension import STENCIL_CHUNK, BrickCubicStencil, CubicStencil
+
+Stencil = CubicStencil | BrickCubicStencil
+
+BRICK_NODES = BRICK**3
+"""Nodes of a brick."""
 
 if TYPE_CHECKING:
     from .exponential import BandLaplacian, RingFill
@@ -41,27 +49,36 @@ two nodes, but ``A``'s coefficients reach one; tests/flows/test_packed_band.py m
 PROBES_AT_ONCE = 27
 """Most colour indicators run through the volume operator in one call."""
 
-PROBE_VALUES = 2**25
-"""Most values of the indicators run at once (128 MB in float32; fewer colours per call on
-large grids)."""
+PROBE_PATH = {True: "auto", False: "slicing"}
+"""How the probes run (by whether the scheme is the octant one): once per surface, so never
+compiled (``"auto"`` would compile a large probe on a dense grid); the octant's probes on bricks
+take ``"auto"``, which runs the C kernel (:mod:`torchsurf.bricks._native`). Dense probes always
+run eagerly."""
+
+PROBE_VALUES = 2**22
+"""Most values of the indicators run at once (16 MB in float32, and as much for each of the
+operator's temporaries: with glibc's default allocator, larger blocks are returned to the system
+when freed and faulted in again, 4.2 against 3.1 s for four 64^3 entries)."""
 
 
 class PackedBand:
     """``L`` and ``L^T`` on packed band values, and the ring's re-extension ``E``.
 
-    Packed values are ``(nodes, C, K)``: for a surface of batch 1, ``K`` is the data's batch
-    and the nodes are one volume's; for a surface of batch ``B``, ``K = 1`` and the nodes are
-    every entry's, entry after entry. The band's nodes come first (``band_count`` of them),
-    then the ring's.
+    Packed values are ``(nodes, C, K)``: for a dense surface of batch 1, ``K`` is the data's
+    batch and the nodes are one volume's; for a dense surface of batch ``B``, ``K = 1`` and the
+    nodes are every entry's, entry after entry; for a brick surface, ``K = 1`` and the nodes
+    are the stored bricks', in storage order. The band's nodes come first (``band_count`` of
+    them), then the ring's.
 
     Args:
-        operator: a :class:`~torchsurf.flows.exponential.BandLaplacian` on a dense surface whose
-            ``phi`` does not require grad.
+        operator: a :class:`~torchsurf.flows.exponential.BandLaplacian` on a surface (dense or
+            bricks) whose ``phi`` does not require grad.
     """
 
     def __init__(self, operator: BandLaplacian) -> None:
         band, region = operator.band, operator.region
-        self.volume_shape = tuple(band.shape[-3:])
+        storage = _Storage(operator.surface, band)
+        self.volume_shape = storage.volume_shape
         self.entries = band.shape[0]
         band_nodes = band.reshape(-1).nonzero().squeeze(1)
         ring_nodes = (region & ~band).reshape(-1).nonzero().squeeze(1)
@@ -70,23 +87,21 @@ class PackedBand:
         count = len(self.nodes)
         lookup = torch.full((band.numel(),), -1, dtype=torch.long, device=band.device)
         lookup[self.nodes] = torch.arange(count, device=band.device)
-        self.weighted = _probed(operator, self.nodes[:self.band_count], lookup, count)
+        self.weighted = _probed(operator, storage, band_nodes, lookup, count)
         self.weighted_transposed = self.weighted.transposed()
         ring = operator.ring
-        self.first = _first_pass(ring, lookup, self.band_count, count - self.band_count,
-                                 self.volume_shape)
+        self.first = _first_pass(ring, storage, lookup, self.band_count, count - self.band_count)
         self.first_transposed = self.first.transposed()
         self.sweeps = ring.sweeps if ring.chained is not None else 0
         if self.sweeps:
-            self.chained_rows, self.chained = _stencil_rows(ring.chained, lookup, count,
-                                                            self.volume_shape)
+            self.chained_rows, self.chained = _stencil_rows(ring.chained, storage, lookup, count)
             self.chained_transposed = self.chained.transposed()
 
     # --- packing -------------------------------------------------------------------------
 
     def pack(self, u: Tensor) -> Tensor:
-        """The band's values of ``u`` ``(B, C, D, H, W)``: ``(band nodes, C, K)`` (autograd
-        reaches ``u``)."""
+        """The band's values of ``u`` ``(B, C, D, H, W)`` (or packed bricks ``(N, C, 8, 8,
+        8)``): ``(band nodes, C, K)`` (autograd reaches ``u``)."""
         flat = u.reshape(u.shape[0], u.shape[1], -1)
         band = self.nodes[:self.band_count]
         if self.entries == 1:
@@ -96,8 +111,9 @@ class PackedBand:
         return flat[band // size, :, band % size][..., None]
 
     def unpack(self, values: Tensor, like: Tensor) -> Tensor:
-        """Region values ``(nodes, C, K)`` as a volume shaped like ``like`` ``(B, C, D, H,
-        W)`` (batch ``entries`` if ``like``'s is 1), zero off the band and ring."""
+        """Region values ``(nodes, C, K)`` as a field shaped like ``like`` ``(B, C, D, H, W)``
+        (batch ``entries`` if ``like``'s is 1) or ``(N, C, 8, 8, 8)``, zero off the band and
+        ring."""
         batch = max(like.shape[0], self.entries)
         channels = values.shape[1]
         size = math.prod(self.volume_shape)
@@ -152,100 +168,168 @@ class Fill(torch.autograd.Function):
         return None, ctx.packed.fill_transpose(grad_output)
 
 
-def _coordinates(flat: Tensor, shape: tuple[int, int, int]) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Entry and ``(z, y, x)`` of flat positions in ``(entries, D, H, W)``."""
-    depth, height, width = shape
-    x = flat % width
-    y = (flat // width) % height
-    z = (flat // (width * height)) % depth
-    return flat // (width * height * depth), z, y, x
+class _Storage:
+    """Where a surface stores its nodes: flat positions in ``(entries, D, H, W)`` for a dense
+    surface, in the packed ``(N, 8, 8, 8)`` for bricks; their grid coordinates and
+    neighbours."""
+
+    def __init__(self, surface: ImplicitSurface, band: Tensor) -> None:
+        self.layout = surface.layout
+        self.volume_shape = tuple(band.shape[-3:])
+        if self.layout is not None:
+            self.index = self.layout.node_index().transpose(0, 1).reshape(3, -1)
+            self.shapes = torch.tensor([g.shape for g in self.layout.grids],
+                                       device=band.device)
+            self.extent = torch.tensor(self.layout.extent, device=band.device)
+
+    def coordinates(self, positions: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Entry and grid ``(z, y, x)`` of ``positions``."""
+        if self.layout is None:
+            depth, height, width = self.volume_shape
+            x, y = positions % width, (positions // width) % height
+            z = (positions // (width * height)) % depth
+            return positions // (width * height * depth), z, y, x
+        z, y, x = self.index[:, positions]
+        return self.layout.batch[positions // BRICK_NODES], z, y, x
+
+    def neighbour(self, positions: Tensor, offset: tuple[int, int, int]) -> Tensor:
+        """The positions of the nodes ``offset`` ``(dz, dy, dx)`` away, -1 beyond an entry's
+        box or in a brick that is not stored."""
+        entry, *at = self.coordinates(positions)
+        moved = [a + o for a, o in zip(at, offset, strict=True)]
+        if self.layout is None:
+            shape = self.volume_shape
+            inside = torch.ones_like(positions, dtype=torch.bool)
+            for m, n in zip(moved, shape, strict=True):
+                inside &= (m >= 0) & (m < n)
+            z, y, x = (m.clamp(0, n - 1) for m, n in zip(moved, shape, strict=True))
+            found = ((entry * shape[0] + z) * shape[1] + y) * shape[2] + x
+            return torch.where(inside, found, -1)
+        shape = self.shapes[entry]
+        inside = torch.ones_like(positions, dtype=torch.bool)
+        for axis, m in enumerate(moved):
+            inside &= (m >= 0) & (m < shape[:, axis])
+        z, y, x = (m.clamp(min=0) for m in moved)
+        bricks = [(m // BRICK).clamp(max=int(n) - 1) for m, n in zip((z, y, x), self.extent,
+                                                                     strict=True)]
+        brick = self.layout.lookup[entry, bricks[0], bricks[1], bricks[2]]
+        local = ((z % BRICK) * BRICK + y % BRICK) * BRICK + x % BRICK
+        return torch.where(inside & (brick >= 0), brick * BRICK_NODES + local, -1)
 
 
-def _probed(operator: BandLaplacian, band_nodes: Tensor, lookup: Tensor, count: int
-            ) -> GatherMatrix:
-    """``W^-1 A`` on the band's rows and the region's columns, read off the volume operator
-    applied to colour indicators of the region's nodes (module docstring), on the box around
-    the region (with a margin of more than the stencil's reach: the rows see the geometry and
-    the box faces the whole volume does)."""
-    surface = operator.surface
-    reach = REACH[operator.scheme]
+def _probe_reader(operator: BandLaplacian, storage: _Storage, rows: Tensor):  # noqa: ANN202
+    """``(colours) -> read``: the weighted operator applied to the indicators of the region's
+    nodes of each of ``colours``, and ``read(take, which)`` its values at ``rows[take]`` for
+    colour ``which``. A dense surface is probed on the box around its region, with a margin of
+    more than the stencil's reach (its rows see the geometry and box faces the whole volume
+    does); bricks are probed whole."""
+    surface, reach = operator.surface, REACH[operator.scheme]
     side = 2 * reach + 1
-    shape = tuple(operator.band.shape[-3:])
-    entries = operator.band.shape[0]
-    region = operator.region[:, 0]
-    occupied = [region.any(dim=tuple(d for d in range(4) if d != axis)).nonzero().squeeze(1)
-                for axis in (1, 2, 3)]
+    region = operator.region
+    if storage.layout is not None:
+        colour = storage.layout.colours().long() if side == 3 else None
+        if colour is None:
+            raise NotImplementedError(f"bricks are probed with 3 colours a axis, not {side}")
+        brick, node = rows // BRICK_NODES, rows % BRICK_NODES
+
+        def bricks(colours: Tensor):  # noqa: ANN202
+            probes = (region & (colour == colours.view(1, -1, 1, 1, 1))).to(surface.phi.dtype)
+            response = operator._weighted(probes, PROBE_PATH[operator.scheme == "octant"])
+            response = response.reshape(len(probes), len(colours), -1)
+            return lambda take, which: response[brick[take], which, node[take]]
+
+        return bricks, len(region) * BRICK_NODES
+    shape = storage.volume_shape
+    occupied = [region[:, 0].any(dim=tuple(d for d in range(4) if d != axis)).nonzero()
+                .squeeze(1) for axis in (1, 2, 3)]
     crop = [slice(max(0, int(o[0]) - reach - 2), min(n, int(o[-1]) + reach + 3))
             for o, n in zip(occupied, shape, strict=True)]
-    low = [c.start for c in crop]
     cropped = tuple(c.stop - c.start for c in crop)
-    cells = cropped[0] * cropped[1] * cropped[2]
     normal, weight = (field[(..., *crop)] for field in (surface.normal, surface.weight))
-    device = band_nodes.device
-    grids = torch.meshgrid(*(torch.arange(c.start, c.stop, device=device) % side for c in crop),
-                           indexing="ij")
-    colour = (grids[0] * side + grids[1]) * side + grids[2]  # (d, h, w) of the crop
-    region = region[(slice(None), *crop)]
-    entry, z, y, x = _coordinates(band_nodes, shape)
-    z, y, x = z - low[0], y - low[1], x - low[2]
-    node = (z * cropped[1] + y) * cropped[2] + x
-    flat_weight = weight.reshape(weight.shape[0], -1)
-    inverse_weight = 1.0 / flat_weight[entry % flat_weight.shape[0], node]
-    at_once = max(1, min(PROBES_AT_ONCE, PROBE_VALUES // (entries * cells)))
+    grids = torch.meshgrid(*(torch.arange(c.start, c.stop, device=rows.device) % side
+                             for c in crop), indexing="ij")
+    colour = (grids[0] * side + grids[1]) * side + grids[2]
+    inside = region[(slice(None), slice(None), *crop)]
+    entry, z, y, x = storage.coordinates(rows)
+    node = (((z - crop[0].start) * cropped[1] + y - crop[1].start) * cropped[2]
+            + x - crop[2].start)
+
+    def dense(colours: Tensor):  # noqa: ANN202
+        probes = (inside & (colour == colours.view(1, -1, 1, 1, 1))).to(surface.phi.dtype)
+        response = functional.divergence_form(
+            probes, normal, weight, surface.spacing, operator.scheme, "slicing",
+            weighted=True).reshape(len(probes), len(colours), -1)
+        return lambda take, which: response[entry[take], which, node[take]]
+
+    return dense, len(region) * math.prod(cropped)
+
+
+def _probed(operator: BandLaplacian, storage: _Storage, rows: Tensor, lookup: Tensor,
+            count: int) -> GatherMatrix:
+    """``W^-1 A`` on the band's rows (positions ``rows``) and the region's columns, read off
+    the volume operator applied to colour indicators of the region's nodes (module
+    docstring)."""
+    reach = REACH[operator.scheme]
+    side = 2 * reach + 1
+    probe, cells = _probe_reader(operator, storage, rows)
+    weight = operator.surface.weight
+    inverse_weight = 1.0 / weight.expand(len(operator.band), *weight.shape[1:]).reshape(-1)[rows]
+    _, z, y, x = storage.coordinates(rows)
+    at_once = max(1, min(PROBES_AT_ONCE, PROBE_VALUES // cells))
     offsets = [(dz, dy, dx) for dz in range(-reach, reach + 1) for dy in range(-reach, reach + 1)
                for dx in range(-reach, reach + 1)]
-    rows, columns, values = [], [], []
+    neighbours = [storage.neighbour(rows, offset) for offset in offsets]
+    columns = [torch.where(q >= 0, lookup[q.clamp(min=0)], -1) for q in neighbours]
+    colours = [(((z + dz) % side) * side + (y + dy) % side) * side + (x + dx) % side
+               for dz, dy, dx in offsets]
+    entries: list[tuple[Tensor, Tensor, Tensor]] = []
     with torch.no_grad():
         for first in range(0, side**3, at_once):
-            colours = torch.arange(first, min(first + at_once, side**3), device=device)
-            probes = (region[:, None] & (colour == colours[:, None, None, None])).to(
-                surface.phi.dtype)
-            response = functional.divergence_form(
-                probes, normal, weight, surface.spacing, operator.scheme, operator.path,
-                weighted=True).reshape(entries, len(colours), -1)
-            for dz, dy, dx in offsets:
-                qz, qy, qx = z + dz, y + dy, x + dx
-                inside = ((qz >= 0) & (qz < cropped[0]) & (qy >= 0) & (qy < cropped[1])
-                          & (qx >= 0) & (qx < cropped[2]))
-                qz, qy, qx = (qz.clamp(0, cropped[0] - 1), qy.clamp(0, cropped[1] - 1),
-                              qx.clamp(0, cropped[2] - 1))
-                column = lookup[((entry * shape[0] + qz + low[0]) * shape[1] + qy + low[1])
-                                * shape[2] + qx + low[2]]
-                which = colour[qz, qy, qx] - first
-                take = inside & (column >= 0) & (which >= 0) & (which < len(colours))
-                rows.append(take.nonzero().squeeze(1))
-                columns.append(column[take])
-                values.append(response[entry[take], which[take], node[take]]
-                              * inverse_weight[take])
-    return GatherMatrix(torch.cat(rows), torch.cat(columns), torch.cat(values),
-                        (len(band_nodes), count))
+            chunk = torch.arange(first, min(first + at_once, side**3), device=rows.device)
+            read = probe(chunk)
+            for column, colour in zip(columns, colours, strict=True):
+                which = colour - first
+                take = ((column >= 0) & (which >= 0) & (which < len(chunk))).nonzero().squeeze(1)
+                entries.append((take, column[take],
+                                read(take, which[take]) * inverse_weight[take]))
+    return GatherMatrix(*(torch.cat(part) for part in zip(*entries, strict=True)),
+                        (len(rows), count))
 
 
-def _stencil_entries(stencil: CubicStencil, lookup: Tensor, shape: tuple[int, int, int]
+def _stencil_entries(stencil: Stencil, storage: _Storage, lookup: Tensor
                      ) -> tuple[Tensor, Tensor, Tensor]:
-    """Every part's ``(target, tap, weight)`` as region positions ``(n * 64,)`` each (taps
-    outside the region at -1)."""
-    size = shape[0] * shape[1] * shape[2]
+    """A closest-point stencil's ``(target, tap, weight)`` as region positions ``(n * 64,)``
+    each (taps off the region at -1)."""
+    parts = []
+    if isinstance(stencil, CubicStencil):
+        size = math.prod(storage.volume_shape)
+        height, width = storage.volume_shape[1:]
+        for entry, (target, corners, weight) in enumerate(stencil.parts):
+            x, y, z = corners.long().unbind(0)
+            sources = ((z[:, :, None, None] * height + y[:, None, :, None]) * width
+                       + x[:, None, None, :]).flatten(1)
+            parts.append((target + entry * size, sources + entry * size, weight))
+    else:
+        for start in range(0, len(stencil.targets), STENCIL_CHUNK):
+            part = slice(start, start + STENCIL_CHUNK)
+            parts.append((stencil.targets[part], stencil._tap_indices(part),
+                          stencil.weights[:, part]))
     targets, taps, weights = [], [], []
-    for entry, (target, corners, weight) in enumerate(stencil.parts):
-        x, y, z = corners.long().unbind(0)
-        sources = ((z[:, :, None, None] * shape[1] + y[:, None, :, None]) * shape[2]
-                   + x[:, None, None, :]).flatten(1)
+    for target, sources, weight in parts:
         wx, wy, wz = weight.unbind(0)
         products = (wz[:, :, None, None] * wy[:, None, :, None] * wx[:, None, None, :]).flatten(1)
-        offset = entry * size
-        targets.append(lookup[target + offset][:, None].expand(-1, 64).reshape(-1))
-        taps.append(lookup[sources + offset].reshape(-1))
+        targets.append(lookup[target][:, None].expand(-1, 64).reshape(-1))
+        taps.append(torch.where(sources >= 0, lookup[sources.clamp(min=0)], -1).reshape(-1))
         weights.append(products.reshape(-1))
     return torch.cat(targets), torch.cat(taps), torch.cat(weights)
 
 
-def _first_pass(ring: RingFill, lookup: Tensor, band_count: int, ring_count: int,
-                shape: tuple[int, int, int]) -> GatherMatrix:
+def _first_pass(ring: RingFill, storage: _Storage, lookup: Tensor, band_count: int,
+                ring_count: int) -> GatherMatrix:
     """The ring's first values from the band's: ``(ring nodes, band nodes)``. The closest-point
     taps on the band (those on the ring read zero in this pass); orphans take the mean of their
     3x3x3 band neighbours instead."""
-    target, tap, weight = _stencil_entries(ring.first, lookup, shape)
+    target, tap, weight = _stencil_entries(ring.first, storage, lookup)
     keep = (tap >= 0) & (tap < band_count)
     target, tap, weight = target[keep] - band_count, tap[keep], weight[keep]
     if ring.orphans is not None:
@@ -254,33 +338,25 @@ def _first_pass(ring: RingFill, lookup: Tensor, band_count: int, ring_count: int
         adopted = torch.zeros(ring_count, dtype=torch.bool, device=lookup.device)
         adopted[rows] = True
         keep = ~adopted[target]
-        target, tap, weight = target[keep], tap[keep], weight[keep]
-        neighbours = ring._neighbours.reshape(-1)[orphans]
-        entry, z, y, x = _coordinates(orphans, shape)
-        extra_rows, extra_taps, extra_weights = [], [], []
+        target, tap, weight = [target[keep]], [tap[keep]], [weight[keep]]
+        share = 1.0 / ring._neighbours.reshape(-1)[orphans].to(weight[0].dtype)
         for dz in (-1, 0, 1):
             for dy in (-1, 0, 1):
                 for dx in (-1, 0, 1):
-                    qz, qy, qx = z + dz, y + dy, x + dx
-                    inside = ((qz >= 0) & (qz < shape[0]) & (qy >= 0) & (qy < shape[1])
-                              & (qx >= 0) & (qx < shape[2]))
-                    flat = ((entry * shape[0] + qz.clamp(0, shape[0] - 1)) * shape[1]
-                            + qy.clamp(0, shape[1] - 1)) * shape[2] + qx.clamp(0, shape[2] - 1)
-                    column = lookup[flat]
-                    take = inside & (column >= 0) & (column < band_count)
-                    extra_rows.append(rows[take])
-                    extra_taps.append(column[take])
-                    extra_weights.append(1.0 / neighbours[take])
-        target = torch.cat([target, *extra_rows])
-        tap = torch.cat([tap, *extra_taps])
-        weight = torch.cat([weight, *(w.to(weight.dtype) for w in extra_weights)])
+                    q = storage.neighbour(orphans, (dz, dy, dx))
+                    column = torch.where(q >= 0, lookup[q.clamp(min=0)], -1)
+                    take = (column >= 0) & (column < band_count)
+                    target.append(rows[take])
+                    tap.append(column[take])
+                    weight.append(share[take])
+        target, tap, weight = torch.cat(target), torch.cat(tap), torch.cat(weight)
     return GatherMatrix(target, tap, weight, (ring_count, band_count))
 
 
-def _stencil_rows(stencil: CubicStencil, lookup: Tensor, count: int,
-                  shape: tuple[int, int, int]) -> tuple[Tensor, GatherMatrix]:
+def _stencil_rows(stencil: Stencil, storage: _Storage, lookup: Tensor, count: int
+                  ) -> tuple[Tensor, GatherMatrix]:
     """A stencil's target rows (region positions) and its weights ``(targets, region nodes)``."""
-    target, tap, weight = _stencil_entries(stencil, lookup, shape)
+    target, tap, weight = _stencil_entries(stencil, storage, lookup)
     if bool((tap < 0).any()):
         raise RuntimeError("a ring sweep reads a node off the band and ring")
     rows, local = torch.unique(target, return_inverse=True)

@@ -30,14 +30,13 @@ eigenvalues lie off the real axis (on a 13^3 sphere 366 of 1364 have ``|Im lambd
 up to 0.23, against ``rho h^2`` near 11): long times therefore run as powers of shorter
 expansions (:data:`torchsurf.flows.chebyshev.PIECE_HALF_WIDTH`).
 
-On a dense surface whose ``phi`` does not require grad, ``L`` is a fixed sparse matrix: the
-expansion then runs on the band's values alone, packed ``(band nodes, C, K)``, with ``A``, ``E``
-and their transposes assembled once per surface and kept on it
-(:class:`~torchsurf.flows._packed_band.PackedBand`; equal to the volume operators to rounding).
-Its cost is that of the band's nodes, 4-12% of the box at 64^3-128^3, where the volume operators
-run over the whole box (``LearnedDiffusion`` at 64^3, batch 4, four channels: 1.1 s forward
-against 8.8 s). A ``phi`` that requires grad, or a surface stored as bricks, runs the volume
-operators.
+When ``phi`` does not require grad, ``L`` is a fixed sparse matrix: the expansion then runs on
+the band's values alone, packed ``(band nodes, C, K)``, with ``A``, ``E`` and their transposes
+assembled once per surface and kept on it (:class:`~torchsurf.flows._packed_band.PackedBand`;
+equal to the volume operators to rounding). Its cost is that of the band and ring's nodes,
+10-20% of the box at 64^3-128^3, where the volume operators run over the whole box or every
+stored brick (``LearnedDiffusion`` at 64^3, batch 4, four channels: 1.0 s forward against 8.8 s).
+A ``phi`` that requires grad runs the volume operators.
 """
 
 from __future__ import annotations
@@ -264,8 +263,8 @@ class BandLaplacian:
     def packed(self) -> PackedBand | None:
         """The operator on packed band values (:class:`~torchsurf.flows._packed_band.PackedBand`),
         assembled once and kept on the surface; ``None`` when ``phi`` requires grad (the
-        operator's weights are then in its graph) or the surface is stored as bricks."""
-        if self.differentiable or self.surface.layout is not None:
+        operator's weights are then in its graph)."""
+        if self.differentiable:
             return None
         return self.surface.kept(("packed band laplacian", self.scheme, self.width),
                                  lambda: PackedBand(self))
@@ -275,11 +274,12 @@ class BandLaplacian:
         """The geometry is in ``phi``'s graph (``phi`` requires grad)."""
         return self.surface.phi.requires_grad
 
-    def _weighted(self, x: Tensor) -> Tensor:
-        """``A x = W Lap_S x`` (symmetric negative semi-definite)."""
+    def _weighted(self, x: Tensor, path: str | None = None) -> Tensor:
+        """``A x = W Lap_S x`` (symmetric negative semi-definite); ``path`` overrides the
+        operator's own."""
         surface = self.surface
         return functional.divergence_form(
-            x, surface.normal, surface.weight, surface.spacing, self.scheme, self.path,
+            x, surface.normal, surface.weight, surface.spacing, self.scheme, path or self.path,
             weighted=True, haloed=surface.haloed(),
             pad=None if surface.layout is None else surface.layout.halo,
         )
