@@ -193,3 +193,20 @@ def test_gradcheck_on_a_batch_of_two_shapes():
     along = torch.zeros(4, dtype=torch.float64, requires_grad=True)
     times = (torch.tensor([0.5, 3.0], dtype=torch.float64) * grid.spacing**2).requires_grad_()
     assert torch.autograd.gradcheck(run, (along, times), fast_mode=True)
+
+
+def test_the_volume_path_when_the_matrices_would_not_fit(monkeypatch):
+    """Matrices beyond a quarter of the memory available: the volume operators, chosen once
+    and kept; the results are the same."""
+    grid = ts.Grid.cube(15, 1.5)
+    generator = torch.Generator().manual_seed(5)
+    u = torch.rand((2, 2, *grid.shape), generator=generator, dtype=torch.float64)
+    times = torch.tensor([1.0, 4.0], dtype=torch.float64) * grid.spacing**2
+    results = []
+    for node_bytes in (exponential.PACKED_NODE_BYTES, 2**60):
+        monkeypatch.setattr(exponential, "PACKED_NODE_BYTES", node_bytes)
+        surface = ts.ImplicitSurface(ts.sdf.sphere(grid, dtype=torch.float64), grid)
+        operator = BandLaplacian(surface, path="slicing")
+        assert (operator.packed() is None) == (node_bytes == 2**60)
+        results.append(heat_semigroup(u, operator, times))
+    torch.testing.assert_close(results[0], results[1], rtol=1e-10, atol=1e-10)

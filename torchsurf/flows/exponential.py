@@ -48,6 +48,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from .. import _memory
 from .._stack import caller_stacklevel
 from ..operators import functional
 from ..operators.spectrum import laplace_beltrami_bound
@@ -63,6 +64,10 @@ BOUND_MARGIN = 1.1
 slightly non-normal, and the cost of the margin is ``sqrt(1.1)``, 5% more terms."""
 
 Stencil = CubicStencil | BrickCubicStencil
+
+PACKED_NODE_BYTES = 600
+"""Bytes the packed operator keeps per node of the band and ring, about (float32: 556 and 574
+measured on the 128^3 sphere and bunny, docs/benchmarks.md)."""
 
 MAX_RING_SWEEPS = 32
 """Most sweeps over the ring nodes that read the ring (:class:`RingFill`). Each sweep shrinks the
@@ -263,11 +268,21 @@ class BandLaplacian:
     def packed(self) -> PackedBand | None:
         """The operator on packed band values (:class:`~torchsurf.flows._packed_band.PackedBand`),
         assembled once and kept on the surface; ``None`` when ``phi`` requires grad (the
-        operator's weights are then in its graph)."""
+        operator's weights are then in its graph), or when its matrices would not fit in a
+        quarter of the memory available (:data:`PACKED_NODE_BYTES`)."""
         if self.differentiable:
             return None
         return self.surface.kept(("packed band laplacian", self.scheme, self.width),
-                                 lambda: PackedBand(self))
+                                 self._assemble_packed)
+
+    def _assemble_packed(self) -> PackedBand | None:
+        """The packed operator, or ``None`` (the volume path, kept as the choice) when its
+        matrices would take more than a quarter of the memory available."""
+        nodes = int(self.region.sum())
+        available = _memory.available_bytes(self.band.device)
+        if available is not None and nodes * PACKED_NODE_BYTES > available / 4:
+            return None
+        return PackedBand(self)
 
     @property
     def differentiable(self) -> bool:
