@@ -1,4 +1,4 @@
-"""The band Laplacian on packed band values against the volume operators, in one process.
+"""The band Laplacian and HeatFlow on packed band values against the volume path, in one process.
 
 For each shape and grid: the band's share of the box, the time to assemble the packed
 operator (``PackedBand``: 27 colour probes of the volume operator and the ring's stencils as
@@ -31,6 +31,7 @@ from bench_bricks import cpu_model
 from bench_mesh_heat import MESH_DIR
 
 import torchsurf as ts
+from torchsurf.flows import HeatFlow
 from torchsurf.flows._packed_band import PackedBand
 from torchsurf.flows.exponential import BandLaplacian
 
@@ -71,7 +72,8 @@ def measure(shape: str, n: int, batch: int, channels: int, repeats: int) -> dict
     surface = surface_of(shape, n)
     operator = BandLaplacian(surface, path="slicing")
     start = time.perf_counter()
-    packed = PackedBand(operator)
+    packed = PackedBand(operator.surface, operator.scheme, operator.band, operator.region,
+                        operator.ring)
     build = time.perf_counter() - start
     u = torch.rand(batch, channels, *surface.grid.shape, generator=torch.Generator().manual_seed(0))
     inside = torch.where(operator.band, u, 0.0)
@@ -93,6 +95,45 @@ def measure(shape: str, n: int, batch: int, channels: int, repeats: int) -> dict
     }
 
 
+def flow_times(shape: str, n: int, batch: int, channels: int, repeats: int
+               ) -> dict[str, float]:
+    """``HeatFlow(16 h^2)`` (RKC, the default) on packed values against volumes: first call
+    (with what the surface computes once: stencils, bound, packing) on a fresh surface, then
+    the median of ``repeats`` calls, alternated; and the largest difference of the results."""
+    figures: dict[str, float] = {}
+    results, surfaces = {}, {}
+    packed_system = HeatFlow.packed_system
+    u = None
+    for name in ("volume", "packed"):
+        HeatFlow.packed_system = (packed_system if name == "packed"
+                                  else lambda self, *args: None)
+        surface = surface_of(shape, n)
+        if u is None:
+            u = torch.rand(batch, channels, *surface.grid.shape,
+                           generator=torch.Generator().manual_seed(0))
+        flow = HeatFlow(16 * surface.spacing**2)
+        with torch.no_grad():
+            start = time.perf_counter()
+            results[name] = flow(u, surface)
+            figures[f"{name}_first"] = time.perf_counter() - start
+        surfaces[name] = surface
+    HeatFlow.packed_system = packed_system
+    steady: dict[str, list[float]] = {"volume": [], "packed": []}
+    with torch.no_grad():
+        for _ in range(repeats):
+            for name in ("volume", "packed"):
+                HeatFlow.packed_system = (packed_system if name == "packed"
+                                          else lambda self, *args: None)
+                surface = surfaces[name]
+                flow = HeatFlow(16 * surface.spacing**2)
+                steady[name] += timed(lambda flow=flow, surface=surface: flow(u, surface), 1)
+    HeatFlow.packed_system = packed_system
+    figures["volume"] = statistics.median(steady["volume"])
+    figures["packed"] = statistics.median(steady["packed"])
+    figures["difference"] = float((results["packed"] - results["volume"]).abs().max())
+    return figures
+
+
 def main(argv: list[str] | None = None) -> None:
     argv = sys.argv[1:] if argv is None else argv
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -102,6 +143,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--channels", type=int, default=4)
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--output", type=Path, default=None)
+    parser.add_argument("--flow-repeats", type=int, default=3,
+                        help="calls of HeatFlow per path (0: no flow rows)")
     args = parser.parse_args(argv)
     rows = [
         "| shape | n | band nodes | band + ring share of box | assembly s | kept MB "
@@ -117,6 +160,19 @@ def main(argv: list[str] | None = None) -> None:
                 f"| {m['packed'] / m['volume']:.3f} | {m['volume_t']:.1f} | {m['packed_t']:.1f} "
                 f"| {m['packed_t'] / m['volume_t']:.3f} |")
             print(rows[-1], flush=True)
+    flows = [
+        "| shape | n | first call, volume s | first call, packed s | steady, volume ms "
+        "| steady, packed ms | ratio | largest difference |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for shape in args.shapes if args.flow_repeats else []:
+        for n in args.sizes:
+            f = flow_times(shape, n, args.batch, 1, args.flow_repeats)
+            flows.append(
+                f"| {shape} | {n} | {f['volume_first']:.2f} | {f['packed_first']:.2f} "
+                f"| {f['volume']:.0f} | {f['packed']:.0f} | {f['packed'] / f['volume']:.3f} "
+                f"| {f['difference']:.1e} |")
+            print(flows[-1], flush=True)
     allocator = os.environ.get("GLIBC_TUNABLES", "glibc default")
     lines = [
         f"{datetime.date.today()}, {cpu_model()}, {os.cpu_count()} cores, torch "
@@ -129,6 +185,14 @@ def main(argv: list[str] | None = None) -> None:
         f"benchmarks/bench_packed_band.py {' '.join(argv)}",
         "",
         *rows,
+        "",
+        f"`HeatFlow(16 h^2)` (RKC, the default), `u` `({args.batch}, 1, n, n, n)`, without "
+        "grad: its explicit steps on packed values against the same on volumes (the flow's "
+        "`packed_system` declined), each on a fresh surface for its first call, then the "
+        f"median of {args.flow_repeats} alternated calls; the difference is the largest "
+        "between the two results (float32).",
+        "",
+        *(flows if args.flow_repeats else []),
     ]
     body = "\n".join(lines) + "\n"
     print(body)

@@ -9,6 +9,7 @@ import torch
 
 import torchsurf as ts
 from torchsurf.flows import HeatFlow, base
+from torchsurf.flows._packed_band import PackedStencil
 from torchsurf.sampling import sample
 
 TIME = 0.05
@@ -171,6 +172,13 @@ def test_rkc_steps_that_hold_the_ring_share_its_reextension(sphere33, monkeypatc
         return reextend(stencil, u, path)
 
     monkeypatch.setattr(base, "reextend", counted)
+    packed_apply = PackedStencil.apply  # the same re-extensions on packed values
+
+    def counted_packed(stencil, z):
+        calls.append(stencil)
+        return packed_apply(stencil, z)
+
+    monkeypatch.setattr(PackedStencil, "apply", counted_packed)
     shared = decay_errors(HeatFlow(TIME)(u0, surface), surface, TIME, interpolation="cubic")
     count = len(calls)
     calls.clear()

@@ -33,14 +33,14 @@ class GatherMatrix:
 
     Args:
         rows, columns: ``(nnz,)`` integer positions of the entries.
-        values: ``(nnz,)`` the entries (zeros dropped; repeated positions are summed).
+        values: ``(nnz,)`` the entries (zeros dropped; repeated positions add up).
         shape: ``(rows, columns)`` of the matrix.
     """
 
     def __init__(self, rows: Tensor, columns: Tensor, values: Tensor,
                  shape: tuple[int, int]) -> None:
         self.shape = (int(shape[0]), int(shape[1]))
-        rows, columns, values = _summed(rows.long(), columns.long(), values, self.shape)
+        rows, columns, values = _by_row(rows.long(), columns.long(), values)
         self.nonzeros = len(rows)
         counts = torch.bincount(rows, minlength=self.shape[0])
         self.taps = int(counts.max()) if len(rows) else 0
@@ -49,6 +49,22 @@ class GatherMatrix:
         self.columns = columns.to(index)
         self._values = {values.dtype: values}
         self._padded: _Padded | None = None
+
+    @classmethod
+    def of_rows(cls, columns: Tensor, values: Tensor, count: int) -> GatherMatrix:
+        """The matrix whose row ``r`` holds ``values[r]`` at columns ``columns[r]``, both
+        ``(R, T)`` (every row ``T`` entries, zeros and repeats kept), of ``count`` columns:
+        stored as given, without sorting."""
+        matrix = cls.__new__(cls)
+        rows, taps = columns.shape
+        matrix.shape, matrix.taps, matrix.nonzeros = (rows, int(count)), taps, rows * taps
+        index = torch.int32 if max(count, rows * taps) < 2**31 else torch.long
+        matrix.offsets = torch.arange(0, rows * taps + 1, taps, dtype=index,
+                                      device=columns.device)
+        matrix.columns = columns.reshape(-1).to(index)
+        matrix._values = {values.dtype: values.reshape(-1)}
+        matrix._padded = None
+        return matrix
 
     def values(self, dtype: torch.dtype) -> Tensor:
         """The entries ``(nnz,)`` in row order, in ``dtype`` (converted once and kept)."""
@@ -143,12 +159,12 @@ class _Padded:
         return kept if self.order is None else [*kept, self.order]
 
 
-def _summed(rows: Tensor, columns: Tensor, values: Tensor, shape: tuple[int, int]
-            ) -> tuple[Tensor, Tensor, Tensor]:
-    """The entries with repeated positions summed and zeros dropped, sorted by row."""
-    key = rows * shape[1] + columns
-    unique, inverse = torch.unique(key, return_inverse=True)
-    summed = values.new_zeros(len(unique)).index_add_(0, inverse, values)
-    keep = summed != 0
-    unique, summed = unique[keep], summed[keep]
-    return unique // shape[1], unique % shape[1], summed
+def _by_row(rows: Tensor, columns: Tensor, values: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The entries without exact zeros, sorted by row (stably; repeated positions are kept:
+    the products add them up)."""
+    keep = values != 0
+    rows, columns, values = rows[keep], columns[keep], values[keep]
+    if len(rows) > 1 and not bool((rows[1:] >= rows[:-1]).all()):
+        order = torch.argsort(rows, stable=True)
+        rows, columns, values = rows[order], columns[order], values[order]
+    return rows, columns, values

@@ -22,7 +22,7 @@ The result equals the volume path's to rounding (tests/flows/test_packed_band.py
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import torch
 from torch import Tensor
@@ -31,15 +31,23 @@ from ..bricks.layout import BRICK
 from ..operators import functional
 from ..surface import ImplicitSurface
 from ._gather_matrix import GatherMatrix
-from .extension import STENCIL_CHUNK, BrickCubicStencil, CubicStencil
+from .extension import _CELL, STENCIL_CHUNK, BrickCubicStencil, CubicStencil
 
 Stencil = CubicStencil | BrickCubicStencil
 
 BRICK_NODES = BRICK**3
 """Nodes of a brick."""
 
-if TYPE_CHECKING:
-    from .exponential import BandLaplacian, RingFill
+
+class RingFill(Protocol):
+    """What :class:`PackedBand` reads of the ring's re-extension
+    (:class:`~torchsurf.flows.exponential.RingFill`)."""
+
+    first: Stencil
+    chained: Stencil | None
+    sweeps: int
+    orphans: Tensor | None
+    neighbours: Tensor | None
 
 REACH = {"octant": 1, "symmetric": 1, "conservative": 1}
 """How many nodes along each axis a scheme's weighted operator ``A`` couples on each side: 19
@@ -61,8 +69,8 @@ operator's temporaries: with glibc's default allocator, larger blocks are return
 when freed and faulted in again, 4.2 against 3.1 s for four 64^3 entries)."""
 
 
-class PackedBand:
-    """``L`` and ``L^T`` on packed band values, and the ring's re-extension ``E``.
+class PackedRegion:
+    """A surface's band and ring as packed node values, and ``W^-1 A`` on the band's rows.
 
     Packed values are ``(nodes, C, K)``: for a dense surface of batch 1, ``K`` is the data's
     batch and the nodes are one volume's; for a dense surface of batch ``B``, ``K = 1`` and the
@@ -71,31 +79,28 @@ class PackedBand:
     them), then the ring's.
 
     Args:
-        operator: a :class:`~torchsurf.flows.exponential.BandLaplacian` on a surface (dense or
-            bricks) whose ``phi`` does not require grad.
+        surface: the surface (dense or bricks); its ``phi`` does not require grad.
+        scheme: the divergence-form scheme of ``A``.
+        band, region: the band and the band with its ring, bool masks of the surface's storage.
     """
 
-    def __init__(self, operator: BandLaplacian) -> None:
-        band, region = operator.band, operator.region
-        storage = _Storage(operator.surface, band)
-        self.volume_shape = storage.volume_shape
+    def __init__(self, surface: ImplicitSurface, scheme: str, band: Tensor,
+                 region: Tensor) -> None:
+        self.storage = _Storage(surface, band)
+        self.volume_shape = self.storage.volume_shape
         self.entries = band.shape[0]
+        self.band, self.region = band, region
         band_nodes = band.reshape(-1).nonzero().squeeze(1)
         ring_nodes = (region & ~band).reshape(-1).nonzero().squeeze(1)
         self.nodes = torch.cat([band_nodes, ring_nodes])
         self.band_count = len(band_nodes)
         count = len(self.nodes)
-        lookup = torch.full((band.numel(),), -1, dtype=torch.long, device=band.device)
-        lookup[self.nodes] = torch.arange(count, device=band.device)
-        self.weighted = _probed(operator, storage, band_nodes, lookup, count)
-        self.weighted_transposed = self.weighted.transposed()
-        ring = operator.ring
-        self.first = _first_pass(ring, storage, lookup, self.band_count, count - self.band_count)
-        self.first_transposed = self.first.transposed()
-        self.sweeps = ring.sweeps if ring.chained is not None else 0
-        if self.sweeps:
-            self.chained_rows, self.chained = _stencil_rows(ring.chained, storage, lookup, count)
-            self.chained_transposed = self.chained.transposed()
+        self.lookup = torch.full((band.numel(),), -1, dtype=torch.long, device=band.device)
+        self.lookup[self.nodes] = torch.arange(count, device=band.device)
+        self.weighted = _probed(surface, scheme, region, self.storage, band_nodes, self.lookup,
+                                count)
+        self._band_mask: Tensor | None = None
+        self._stencils: dict[int, tuple[Stencil, PackedStencil]] = {}
 
     # --- packing -------------------------------------------------------------------------
 
@@ -110,6 +115,15 @@ class PackedBand:
         size = flat.shape[-1]
         return flat[band // size, :, band % size][..., None]
 
+    def pack_region(self, u: Tensor) -> Tensor:
+        """The band and ring's values of ``u``: ``(nodes, C, K)`` (autograd reaches ``u``)."""
+        flat = u.reshape(u.shape[0], u.shape[1], -1)
+        if self.entries == 1:
+            return flat.index_select(2, self.nodes).permute(2, 1, 0).contiguous()
+        flat = flat.expand(self.entries, *flat.shape[1:])
+        size = flat.shape[-1]
+        return flat[self.nodes // size, :, self.nodes % size][..., None]
+
     def unpack(self, values: Tensor, like: Tensor) -> Tensor:
         """Region values ``(nodes, C, K)`` as a field shaped like ``like`` ``(B, C, D, H, W)``
         (batch ``entries`` if ``like``'s is 1) or ``(N, C, 8, 8, 8)``, zero off the band and
@@ -123,6 +137,62 @@ class PackedBand:
             return flat.reshape(batch, channels, *self.volume_shape)
         flat = values.new_zeros((batch * size, channels)).index_copy(0, self.nodes, values[..., 0])
         return flat.reshape(batch, *self.volume_shape, channels).permute(0, 4, 1, 2, 3)
+
+    def band_mask(self) -> Tensor:
+        """``(nodes, 1, 1)`` bool, true on the band's nodes (a packed flow's band)."""
+        if self._band_mask is None:
+            self._band_mask = torch.zeros((len(self.nodes), 1, 1), dtype=torch.bool,
+                                          device=self.nodes.device)
+            self._band_mask[:self.band_count] = True
+        return self._band_mask
+
+    def weighted_apply(self, z: Tensor) -> Tensor:
+        """``W^-1 A z`` on the band's rows for region values ``z`` ``(nodes, F)``.
+
+        ``A`` annihilates constants, so it is applied to ``z`` minus its first node's values:
+        the products then carry the rounding of the data's variation, not of its offset (the
+        volume stencils difference neighbours first; without the shift, float32 noise on an
+        offset of 1e3 kept errors of 1e-3 that the volume path smooths away)."""
+        return self.weighted.apply(z - z[:1])
+
+    def laplacian(self, z: Tensor) -> Tensor:
+        """``W^-1 A z`` on the band's rows, zero on the ring's, for region values ``z``
+        ``(nodes, C, K)`` (the ring's values read as they are): autograd reaches ``z``."""
+        image = self.weighted_apply(z.reshape(z.shape[0], -1))
+        ring = image.new_zeros((len(self.nodes) - self.band_count, image.shape[1]))
+        return torch.cat([image, ring]).reshape(z.shape)
+
+    def stencil(self, stencil: Stencil) -> PackedStencil:
+        """A limited closest-point stencil of the surface's storage on packed region values
+        (assembled once per stencil and kept)."""
+        key = id(stencil)
+        if key not in self._stencils:  # the stencil is kept too: its id is not reused
+            self._stencils[key] = (stencil, PackedStencil(stencil, self.storage, self.lookup,
+                                                          len(self.nodes)))
+        return self._stencils[key][1]
+
+
+class PackedBand(PackedRegion):
+    """``L`` and ``L^T`` on packed band values, and the ring's re-extension ``E``
+    (:class:`PackedRegion`'s packing).
+
+    Args:
+        surface, scheme, band, region: as for :class:`PackedRegion` (a
+            :class:`~torchsurf.flows.exponential.BandLaplacian`'s).
+        ring: its ring's re-extension (:class:`~torchsurf.flows.exponential.RingFill`).
+    """
+
+    def __init__(self, surface: ImplicitSurface, scheme: str, band: Tensor, region: Tensor,
+                 ring: RingFill) -> None:
+        super().__init__(surface, scheme, band, region)
+        storage, lookup, count = self.storage, self.lookup, len(self.nodes)
+        self.weighted_transposed = self.weighted.transposed()
+        self.first = _first_pass(ring, storage, lookup, self.band_count, count - self.band_count)
+        self.first_transposed = self.first.transposed()
+        self.sweeps = ring.sweeps if ring.chained is not None else 0
+        if self.sweeps:
+            self.chained_rows, self.chained = _stencil_rows(ring.chained, storage, lookup, count)
+            self.chained_transposed = self.chained.transposed()
 
     # --- the operators on packed values --------------------------------------------------
 
@@ -146,7 +216,7 @@ class PackedBand:
 
     def apply(self, x: Tensor) -> Tensor:
         """``L x`` for band values ``x`` ``(band nodes, C, K)``."""
-        image = self.weighted.apply(self.fill(x).reshape(-1, x.shape[1] * x.shape[2]))
+        image = self.weighted_apply(self.fill(x).reshape(-1, x.shape[1] * x.shape[2]))
         return image.reshape(x.shape)
 
     def transpose(self, g: Tensor) -> Tensor:
@@ -166,6 +236,38 @@ class Fill(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad_output):  # noqa: ANN001, ANN205
         return None, ctx.packed.fill_transpose(grad_output)
+
+
+class PackedStencil:
+    """A limited closest-point stencil on packed region values ``(nodes, C, K)``: each target
+    node takes the tricubic interpolant at its closest point, clamped to the range of the 8
+    nodes of the cell around that point; other nodes keep their values. The numbers of
+    :class:`~torchsurf.flows.extension.CubicStencil` (``limited=True``) to rounding.
+
+    Args:
+        stencil: the stencil on the surface's storage, reading only the band and ring.
+        storage, lookup, count: the packing's (:class:`PackedRegion`).
+    """
+
+    def __init__(self, stencil: Stencil, storage: _Storage, lookup: Tensor, count: int) -> None:
+        target, tap, weight = _stencil_entries(stencil, storage, lookup)
+        if bool((tap < 0).any()):
+            raise RuntimeError("a closest-point stencil reads a node off the band and ring")
+        nodes = len(target) // 64
+        self.rows = target.view(nodes, 64)[:, 0].clone()
+        self.cells = tap.view(nodes, 64)[:, _CELL].reshape(-1)
+        self.matrix = GatherMatrix.of_rows(tap.view(nodes, 64), weight.view(nodes, 64), count)
+
+    def apply(self, z: Tensor) -> Tensor:
+        """``z`` ``(nodes, C, K)`` with the targets re-extended; a new tensor (autograd reaches
+        ``z``)."""
+        if len(self.rows) == 0:
+            return z.clone()
+        flat = z.reshape(z.shape[0], -1)
+        value = self.matrix.apply(flat)
+        cell = flat.index_select(0, self.cells).view(len(self.rows), 8, -1)
+        value = torch.minimum(torch.maximum(value, cell.amin(1)), cell.amax(1))
+        return flat.index_copy(0, self.rows, value).reshape(z.shape)
 
 
 class _Storage:
@@ -217,24 +319,27 @@ class _Storage:
         return torch.where(inside & (brick >= 0), brick * BRICK_NODES + local, -1)
 
 
-def _probe_reader(operator: BandLaplacian, storage: _Storage, rows: Tensor):  # noqa: ANN202
+def _probe_reader(surface: ImplicitSurface, scheme: str, region: Tensor, storage: _Storage,
+                  rows: Tensor):  # noqa: ANN202
     """``(colours) -> read``: the weighted operator applied to the indicators of the region's
     nodes of each of ``colours``, and ``read(take, which)`` its values at ``rows[take]`` for
     colour ``which``. A dense surface is probed on the box around its region, with a margin of
     more than the stencil's reach (its rows see the geometry and box faces the whole volume
     does); bricks are probed whole."""
-    surface, reach = operator.surface, REACH[operator.scheme]
+    reach = REACH[scheme]
     side = 2 * reach + 1
-    region = operator.region
     if storage.layout is not None:
-        colour = storage.layout.colours().long() if side == 3 else None
-        if colour is None:
+        if side != 3:
             raise NotImplementedError(f"bricks are probed with 3 colours a axis, not {side}")
+        colour = storage.layout.colours().long()
         brick, node = rows // BRICK_NODES, rows % BRICK_NODES
+        haloed, pad = surface.haloed(), storage.layout.halo
 
         def bricks(colours: Tensor):  # noqa: ANN202
             probes = (region & (colour == colours.view(1, -1, 1, 1, 1))).to(surface.phi.dtype)
-            response = operator._weighted(probes, PROBE_PATH[operator.scheme == "octant"])
+            response = functional.divergence_form(
+                probes, surface.normal, surface.weight, surface.spacing, scheme,
+                PROBE_PATH[scheme == "octant"], weighted=True, haloed=haloed, pad=pad)
             response = response.reshape(len(probes), len(colours), -1)
             return lambda take, which: response[brick[take], which, node[take]]
 
@@ -257,23 +362,23 @@ def _probe_reader(operator: BandLaplacian, storage: _Storage, rows: Tensor):  # 
     def dense(colours: Tensor):  # noqa: ANN202
         probes = (inside & (colour == colours.view(1, -1, 1, 1, 1))).to(surface.phi.dtype)
         response = functional.divergence_form(
-            probes, normal, weight, surface.spacing, operator.scheme, "slicing",
-            weighted=True).reshape(len(probes), len(colours), -1)
+            probes, normal, weight, surface.spacing, scheme, "slicing", weighted=True,
+        ).reshape(len(probes), len(colours), -1)
         return lambda take, which: response[entry[take], which, node[take]]
 
     return dense, len(region) * math.prod(cropped)
 
 
-def _probed(operator: BandLaplacian, storage: _Storage, rows: Tensor, lookup: Tensor,
-            count: int) -> GatherMatrix:
+def _probed(surface: ImplicitSurface, scheme: str, region: Tensor, storage: _Storage,
+            rows: Tensor, lookup: Tensor, count: int) -> GatherMatrix:
     """``W^-1 A`` on the band's rows (positions ``rows``) and the region's columns, read off
     the volume operator applied to colour indicators of the region's nodes (module
     docstring)."""
-    reach = REACH[operator.scheme]
+    reach = REACH[scheme]
     side = 2 * reach + 1
-    probe, cells = _probe_reader(operator, storage, rows)
-    weight = operator.surface.weight
-    inverse_weight = 1.0 / weight.expand(len(operator.band), *weight.shape[1:]).reshape(-1)[rows]
+    probe, cells = _probe_reader(surface, scheme, region, storage, rows)
+    weight = surface.weight
+    inverse_weight = 1.0 / weight.expand(len(region), *weight.shape[1:]).reshape(-1)[rows]
     _, z, y, x = storage.coordinates(rows)
     at_once = max(1, min(PROBES_AT_ONCE, PROBE_VALUES // cells))
     offsets = [(dz, dy, dx) for dz in range(-reach, reach + 1) for dy in range(-reach, reach + 1)
@@ -314,7 +419,7 @@ def _stencil_entries(stencil: Stencil, storage: _Storage, lookup: Tensor
             part = slice(start, start + STENCIL_CHUNK)
             parts.append((stencil.targets[part], stencil._tap_indices(part),
                           stencil.weights[:, part]))
-    targets, taps, weights = [], [], []
+    targets, taps, weights = [lookup[:0]], [lookup[:0]], [stencil_weights(stencil)[:0]]
     for target, sources, weight in parts:
         wx, wy, wz = weight.unbind(0)
         products = (wz[:, :, None, None] * wy[:, None, :, None] * wx[:, None, None, :]).flatten(1)
@@ -322,6 +427,12 @@ def _stencil_entries(stencil: Stencil, storage: _Storage, lookup: Tensor
         taps.append(torch.where(sources >= 0, lookup[sources.clamp(min=0)], -1).reshape(-1))
         weights.append(products.reshape(-1))
     return torch.cat(targets), torch.cat(taps), torch.cat(weights)
+
+
+def stencil_weights(stencil: Stencil) -> Tensor:
+    """The dtype and device of a stencil's weights, as an empty tensor."""
+    weights = stencil.parts[0][2] if isinstance(stencil, CubicStencil) else stencil.weights
+    return weights.new_zeros(0)
 
 
 def _first_pass(ring: RingFill, storage: _Storage, lookup: Tensor, band_count: int,
@@ -339,7 +450,7 @@ def _first_pass(ring: RingFill, storage: _Storage, lookup: Tensor, band_count: i
         adopted[rows] = True
         keep = ~adopted[target]
         target, tap, weight = [target[keep]], [tap[keep]], [weight[keep]]
-        share = 1.0 / ring._neighbours.reshape(-1)[orphans].to(weight[0].dtype)
+        share = 1.0 / ring.neighbours.reshape(-1)[orphans].to(weight[0].dtype)
         for dz in (-1, 0, 1):
             for dy in (-1, 0, 1):
                 for dx in (-1, 0, 1):

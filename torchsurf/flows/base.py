@@ -74,6 +74,7 @@ from ._integrators import (
     shortest_step,
     with_ring,
 )
+from ._packed_band import PackedRegion
 from ._positive import Positive
 from ._reextension import kept_stencil, reextend, stencil_key
 from ._solve import SolverOptions
@@ -448,6 +449,13 @@ class Flow(nn.Module):
         """The flow's equation for ``u0`` on ``surface``; subclasses implement it."""
         raise NotImplementedError
 
+    def packed_system(self, system: System, u0: Tensor, surface: ImplicitSurface
+                      ) -> tuple[System, PackedRegion] | None:
+        """The flow's system on packed band and ring values (:class:`PackedRegion`), or
+        ``None`` to integrate volumes (the default; :class:`~torchsurf.flows.HeatFlow` packs
+        its linear rate when ``phi`` is fixed)."""
+        return None
+
     def _schedule(self, end: float, times: list[float] | None, after_step: object) -> Schedule:
         """``times`` checked by :func:`_check_times`, all ``> 0``, or ``None`` for ``end``:
         floats of the nominal time (:func:`_learned_time`)."""
@@ -497,25 +505,31 @@ class Flow(nn.Module):
         learned = any(p.requires_grad for p in self.parameters())
         return learned or u0.requires_grad or surface.phi.requires_grad or bool(system.params)
 
-    def _after_step(self, surface: ImplicitSurface, system: System, bar: object | None,
-                    every: int | None):  # noqa: ANN202
+    def _after_step(self, surface: ImplicitSurface, region: Tensor, bar: object | None,
+                    every: int | None, packing: PackedRegion | None = None):  # noqa: ANN202
         """The schedule's ``after_step`` and ``output`` hooks: the progress bar, and the band's
         re-extension every ``every`` steps and at each requested time (there into the result
-        only, so that the results do not depend on which times were requested)."""
+        only, so that the results do not depend on which times were requested); on packed
+        values with ``packing``."""
         hooks = []
         if bar is not None:
             hooks.append(lambda u, k: (bar.update(1), u)[1])
         output = None
         if every is not None:
             stencil = kept_stencil(surface, self.evolving_width(surface), "region",
-                                   system.region, system.region, limited=True)
+                                   region, region, limited=True)
             path = self.path
+            if packing is None:
+                def extended(u: Tensor) -> Tensor:
+                    return reextend(stencil, u, path)
+            else:
+                extended = packing.stencil(stencil).apply
 
             def periodic(u: Tensor, k: int) -> Tensor:
-                return reextend(stencil, u, path) if k % every == 0 else u
+                return extended(u) if k % every == 0 else u
 
             def output(u: Tensor, k: int) -> Tensor:
-                return u if k % every == 0 else reextend(stencil, u, path)
+                return u if k % every == 0 else extended(u)
 
             hooks.append(periodic)
         if not hooks:
@@ -606,6 +620,12 @@ class Flow(nn.Module):
         system = self.system(u0, surface, **inputs)
         system.layout = surface.layout
         system.path = getattr(self, "path", "auto")
+        band, region = system.band, system.region
+        packing = None
+        if self.method in ("rkc", "euler", "heun") and self.reextend_every is not None:
+            packed = self.packed_system(system, u0, surface)
+            if packed is not None:
+                system, packing = packed
         _learned_time(system, self.time, end)
         # re-extension's stencils read phi itself, not only the geometry computed from it
         system.params = (*system.params, surface.phi)
@@ -627,31 +647,40 @@ class Flow(nn.Module):
         schedule.step = plan.step
         every = self._reextension_period(system, shortest_step(schedule), plan.step,
                                          width / surface.spacing)
-        schedule.after_step, schedule.output = self._after_step(surface, system, bar, every)
+        schedule.after_step, schedule.output = self._after_step(surface, region, bar, every,
+                                                                packing)
         schedule.segment = torchdiffeq_segment(width / surface.spacing, system.spectral_radius)
         schedule.checkpoint = self._checkpointing(u0, surface, system)
         held = ring_held(self.method, plan.step * system.spectral_radius,
                          width / surface.spacing, period=every or 1)
         if self.reextend_every is not None and not held:
-            ring = kept_stencil(surface, width, "ring", system.region & ~system.band,
-                                system.region, limited=True)
+            ring = kept_stencil(surface, width, "ring", region & ~band, region, limited=True)
             rate = system.rate
             path = self.path
-            system.rate = lambda u: rate(reextend(ring, u, path))
+            if packing is None:
+                system.rate = lambda u: rate(reextend(ring, u, path))
+            else:
+                fill = packing.stencil(ring).apply
+                system.rate = lambda u: rate(fill(u))
         # nodes beyond the band and its ring are never read, but a rate computed on the whole
         # volume and masked after still takes their derivatives: 0 * NaN in a backward
         recorded = torch.is_grad_enabled()
-        start = torch.where(system.region, u0, 0.0) if recorded else u0
+        if packing is not None:
+            start = packing.pack_region(u0)
+        else:
+            start = torch.where(region, u0, 0.0) if recorded else u0
         try:
             result = integrate(self.method, system, start, schedule)
         finally:
             if bar is not None:
                 bar.close()
-        if recorded:
-            result = [torch.where(system.region, value, u0) for value in result]
+        if packing is not None:
+            result = [torch.where(region, packing.unpack(value, u0), u0) for value in result]
+        elif recorded:
+            result = [torch.where(region, value, u0) for value in result]
         if not torch.compiler.is_compiling():  # a host read: it would break a traced graph
             for value in result:
-                if not bool(torch.isfinite(torch.where(system.region, value.detach(), 0.0)).all()):
+                if not bool(torch.isfinite(torch.where(region, value.detach(), 0.0)).all()):
                     other = "" if self.method == "rkc" else "method='rkc', "
                     raise FloatingPointError(
                         f"{type(self).__name__} (method={self.method!r}, {plan.count} steps of "
@@ -659,8 +688,7 @@ class Flow(nn.Module):
                         f"u0 did not; use {other}more steps, or smaller parameters"
                     )
             if self.keeps_range:
-                excess = _range_excess(u0, result, system.region, system.band,
-                                       surface.layout is not None)
+                excess = _range_excess(u0, result, region, band, surface.layout is not None)
                 if self._entry_excesses is not None:  # one entry of a batch: its caller warns
                     self._entry_excesses.append((excess, plan))
                 elif excess > RANGE_SLACK:

@@ -55,7 +55,7 @@ from ..operators.spectrum import laplace_beltrami_bound
 from ..surface import ImplicitSurface
 from . import chebyshev
 from ._integrators import with_ring
-from ._packed_band import Fill, PackedBand
+from ._packed_band import Fill, PackedBand, PackedRegion
 from ._reextension import kept_stencil, reextend
 from .extension import BrickCubicStencil, CubicStencil, cubic_stencil
 
@@ -142,6 +142,8 @@ class RingFill:
         chained: the stencil of the ring nodes that read the ring, or ``None`` if none does.
         sweeps: the number of sweeps of ``chained``.
         orphans: the ring nodes ``first`` does not write, or ``None`` if there are none.
+        neighbours: the number of band nodes among each node's 3x3x3 neighbours (at least 1),
+            like the masks, or ``None`` without orphans.
     """
 
     def __init__(self, surface: ImplicitSurface, width: float, band: Tensor,
@@ -158,18 +160,18 @@ class RingFill:
                 from_band = self.first.apply(band.to(dtype))
             orphans = ring & (from_band < BAND_SHARE)
             self.orphans = orphans if bool(orphans.any()) else None
-            self._neighbours = None if self.orphans is None else self._box_sum(
+            self.neighbours = None if self.orphans is None else self._box_sum(
                 band.to(dtype)).clamp(min=1.0)
             chained = _chained_nodes(self.first, ring, dtype) & ~orphans
             if not bool(chained.any()):
-                return self.orphans, self._neighbours, None, 0
+                return self.orphans, self.neighbours, None, 0
             stencil = cubic_stencil(surface, chained, limited=False, readable=region)
-            return (self.orphans, self._neighbours, stencil,
+            return (self.orphans, self.neighbours, stencil,
                     _sweeps_to_settle(self._start, stencil, band, dtype))
 
         parts = (assemble() if surface.phi.requires_grad
                  else surface.kept(("ring fill", width), assemble))
-        self.orphans, self._neighbours, self.chained, self.sweeps = parts
+        self.orphans, self.neighbours, self.chained, self.sweeps = parts
 
     def _in_place(self, x: Tensor) -> dict:
         """The sweeps write over their own (fresh) volume on dense storage outside autograd."""
@@ -186,7 +188,7 @@ class RingFill:
 
     def _adopt_orphans(self, inside: Tensor, values: Tensor) -> Tensor:
         """``values`` with each orphan set to the mean of ``inside``'s band neighbours."""
-        mean = self._box_sum(inside) / self._neighbours.to(inside.dtype)
+        mean = self._box_sum(inside) / self.neighbours.to(inside.dtype)
         return torch.where(self.orphans, mean, values)
 
     def _adopted_transpose(self, g: Tensor) -> Tensor:
@@ -277,12 +279,10 @@ class BandLaplacian:
 
     def _assemble_packed(self) -> PackedBand | None:
         """The packed operator, or ``None`` (the volume path, kept as the choice) when its
-        matrices would take more than a quarter of the memory available."""
-        nodes = int(self.region.sum())
-        available = _memory.available_bytes(self.band.device)
-        if available is not None and nodes * PACKED_NODE_BYTES > available / 4:
+        matrices would not fit (:func:`fits_packed`)."""
+        if not fits_packed(self.region):
             return None
-        return PackedBand(self)
+        return PackedBand(self.surface, self.scheme, self.band, self.region, self.ring)
 
     @property
     def differentiable(self) -> bool:
@@ -308,6 +308,21 @@ class BandLaplacian:
         """``L^T g = M E^T A W^-1 (M g)`` (``A`` symmetric)."""
         inside = torch.where(self.band, g / self.surface.weight, g.new_zeros(()))
         return self.ring.transpose(self._weighted(inside))
+
+
+def fits_packed(region: Tensor) -> bool:
+    """Whether packed matrices of the band and ring ``region`` (a bool mask) take at most a
+    quarter of the memory available (:data:`PACKED_NODE_BYTES` a node)."""
+    available = _memory.available_bytes(region.device)
+    return available is None or int(region.sum()) * PACKED_NODE_BYTES <= available / 4
+
+
+def packed_region(surface: ImplicitSurface, scheme: str, band: Tensor, region: Tensor
+                  ) -> PackedRegion | None:
+    """The band and ring of ``surface`` packed, with ``W^-1 A`` of ``scheme``
+    (:class:`~torchsurf.flows._packed_band.PackedRegion`), or ``None`` when it would not fit
+    (:func:`fits_packed`)."""
+    return PackedRegion(surface, scheme, band, region) if fits_packed(region) else None
 
 
 class _Extend(torch.autograd.Function):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import replace
 
 import numpy as np
 import torch
@@ -15,9 +16,10 @@ from ..operators import functional, laplace_beltrami
 from ..operators.laplace_beltrami import SCHEMES
 from ..surface import ImplicitSurface, check_data, check_surface
 from ._integrators import Linear, System, tensors, zero_outside
+from ._packed_band import PackedRegion
 from ._positive import Positive
 from .base import Flow, _check_times, check_times_of_learned_time
-from .exponential import BandLaplacian, heat_semigroup
+from .exponential import BandLaplacian, heat_semigroup, packed_region
 
 SYMMETRIC_SCHEMES = functional.SCHEMES
 
@@ -45,6 +47,15 @@ class HeatFlow(Flow):
     ``(W - theta dt D A) u_new = ...`` with ``A = W Lap_S`` symmetric negative semi-definite
     (schemes ``"octant"``, ``"symmetric"`` and ``"conservative"``) by conjugate gradients; any
     step size is stable.
+
+    With those schemes and ``phi`` fixed (not requiring grad), the explicit integrators
+    (``"rkc"``, ``"euler"``, ``"heun"``) run on the band and ring's values alone: the rate is
+    ``D W^-1 A`` as a sparse matrix read off the volume operator, the ring's and the band's
+    re-extensions the same closest-point stencils as gathers, all assembled on the first call
+    and kept on the surface (:class:`~torchsurf.flows._packed_band.PackedRegion`); the results
+    equal the volume integration's to rounding, at the cost of the band's nodes instead of the
+    box's (64^3, batch 4: 0.47 against 1.6 s). A ``phi`` that requires grad, a subclass with
+    its own :meth:`system`, or ``reextend_every=None`` integrate volumes.
 
     ``method="chebyshev"`` applies the heat semigroup ``exp(t D Lap_S)`` by Chebyshev
     expansions (:func:`torchsurf.flows.exponential.heat_semigroup`, divergence-form schemes
@@ -144,6 +155,35 @@ class HeatFlow(Flow):
         rho = self.diffusivity.maximum() * self.operator_bound(surface, self.scheme)
         params = tensors(d, surface.normal, surface.weight)
         return System(rate, band, rho, linear=linear, params=params)
+
+    def packed_system(self, system: System, u0: Tensor, surface: ImplicitSurface
+                      ) -> tuple[System, PackedRegion] | None:
+        """With a divergence-form scheme and ``phi`` fixed, the rate on packed band and ring
+        values: ``D W^-1 A z`` on the band's rows by the matrix read off the volume operator
+        (:class:`~torchsurf.flows._packed_band.PackedRegion`, assembled once and kept on the
+        surface), the explicit steps and re-extensions on the band and ring's nodes alone.
+        ``None`` (volumes) for a subclass that defines its own :meth:`system`."""
+        if (self.scheme not in functional.SCHEMES or surface.phi.requires_grad
+                or type(self).system is not HeatFlow.system):  # a subclass's own equation
+            return None
+        width = self.evolving_width(surface)
+        packing = surface.kept(("packed region", self.scheme, width),
+                               lambda: packed_region(surface, self.scheme, system.band,
+                                                     system.region))
+        if packing is None:
+            return None
+        d = self.diffusivity.volume(u0)
+        unit = isinstance(d, float) and d == 1.0
+
+        def rate(z: Tensor) -> Tensor:
+            value = packing.laplacian(z)
+            if unit:
+                return value
+            return value * (d.reshape(1, -1, 1) if isinstance(d, Tensor) else d)
+
+        packed = replace(system, rate=rate, band=packing.band_mask(), layout=None,
+                         params=tensors(d))
+        return packed, packing
 
     def forward(
         self, u0: Tensor, surface: ImplicitSurface,

@@ -1,0 +1,132 @@
+"""HeatFlow's explicit integrators on packed band and ring values: the volume path's results and
+gradients to rounding, on every storage and option that reaches them, and no volume stencil in
+the steps."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+import torchsurf as ts
+from torchsurf.flows import HeatFlow
+from torchsurf.operators import functional
+
+from .test_packed_band import _fields, _surface
+
+
+def _both(make_flow, u: torch.Tensor, surface: ts.ImplicitSurface, monkeypatch,
+          **call: object) -> tuple[torch.Tensor, torch.Tensor]:
+    """The flow's result packed, then on volumes (``packed_system`` declined)."""
+    packed = make_flow()(u, surface, **call)
+    with monkeypatch.context() as patch:
+        patch.setattr(HeatFlow, "packed_system", lambda self, *args: None)
+        volume = make_flow()(u, surface, **call)
+    return packed, volume
+
+
+@pytest.mark.parametrize("kind", ["two shapes", "bunny", "bricks", "tanh"])
+@pytest.mark.parametrize("options", [
+    {}, {"reextend_every": 1}, {"method": "euler", "cells": 0.5}, {"diffusivity": [1.0, 2.5]},
+    {"cells": 60.0}, {"scheme": "symmetric"},
+])
+def test_packed_flow_is_the_volume_flow(kind, options, monkeypatch):
+    """RKC (the ring held or re-extended at every stage, as the plan decides), Euler,
+    per-channel diffusivity, long times (many re-extensions), a flux-form scheme."""
+    surface = _surface(kind)
+    options = dict(options)
+    time = options.pop("cells", 8.0) * surface.spacing**2
+    u = _fields(surface, 1, seed=6)[0]
+    u = u - u.min() if surface.layout is None else u
+    packed, volume = _both(lambda: HeatFlow(time, **options), u, surface, monkeypatch)
+    scale = float(volume.abs().max())
+    assert float((packed - volume).abs().max()) < 1e-12 * scale
+
+
+def test_packed_flow_returns_requested_times(monkeypatch):
+    surface = _surface("two shapes")
+    u = _fields(surface, 1, seed=7)[0]
+    end = 12.0 * surface.spacing**2
+    packed, volume = _both(lambda: HeatFlow(end), u, surface, monkeypatch,
+                           times=[0.0, end / 3, end])
+    assert packed.shape == (3, *u.shape)
+    torch.testing.assert_close(packed, volume, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("learned", ["time", "diffusivity"])
+def test_packed_flow_gradients_are_the_volume_flows(learned, monkeypatch):
+    """Gradients of the data and of a learned time or diffusivity (checkpointed steps)."""
+    surface = _surface("bunny")
+    u = _fields(surface, 1, seed=8)[0].abs()
+    grad = _fields(surface, 1, seed=9)[0]
+    time = 6.0 * surface.spacing**2
+
+    def make() -> HeatFlow:
+        if learned == "time":
+            return HeatFlow(time, learn_time=True).double()
+        return HeatFlow(time, diffusivity=[1.0, 2.0], learn_diffusivity=True).double()
+
+    results = []
+    for patched in (False, True):
+        with monkeypatch.context() as patch:
+            if patched:
+                patch.setattr(HeatFlow, "packed_system", lambda self, *args: None)
+            flow = make()
+            data = u.clone().requires_grad_()
+            out = flow(data, surface)
+            parameters = [p for p in flow.parameters() if p.requires_grad]
+            results.append((out.detach(), *torch.autograd.grad((out * grad).sum(),
+                                                               [data, *parameters])))
+    for packed, volume in zip(*results, strict=True):
+        torch.testing.assert_close(packed, volume, rtol=1e-10, atol=1e-10)
+
+
+def test_packed_flow_runs_no_volume_stencil_in_its_steps(monkeypatch):
+    """Once the packing is kept on the surface, the steps gather the band's matrices: no
+    Laplace–Beltrami stencil over the volume."""
+    grid = ts.Grid.cube(21, 1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid), grid)
+    u = torch.rand(2, 1, *grid.shape, generator=torch.Generator().manual_seed(0))
+    flow = HeatFlow(10 * surface.spacing**2)
+    flow(u, surface)
+    calls = []
+    original = functional.divergence_form
+    monkeypatch.setattr(functional, "divergence_form",
+                        lambda *args, **kwargs: calls.append(1) or original(*args, **kwargs))
+    result = flow(u, surface)
+    assert calls == []
+    band = flow.band_mask(surface)
+    inside = result[band.expand_as(result)]
+    assert float(inside.min()) >= float(u.min()) and float(inside.max()) <= float(u.max())
+
+
+def test_a_learned_phi_integrates_volumes():
+    """``phi`` requiring grad: the geometry is in its graph, the flow runs on volumes, and
+    gradients reach ``phi``."""
+    grid = ts.Grid.cube(13, 1.5)
+    phi = ts.sdf.sphere(grid, dtype=torch.float64).requires_grad_()
+    surface = ts.ImplicitSurface(phi, grid)
+    u = torch.rand(1, 1, *grid.shape, dtype=torch.float64,
+                   generator=torch.Generator().manual_seed(1))
+    flow = HeatFlow(4 * surface.spacing**2)
+    assert flow.packed_system(flow.system(u, surface), u, surface) is None
+    flow(u, surface).sum().backward()
+    assert phi.grad is not None and float(phi.grad.abs().sum()) > 0
+
+
+def test_a_subclass_with_its_own_equation_integrates_it():
+    """A subclass that overrides ``system`` keeps its own rate (the packed rate is HeatFlow's)."""
+    from torchsurf.flows._integrators import System
+
+    class Decay(HeatFlow):
+        def system(self, u0, surface, **inputs):
+            band = self.band_mask(surface)
+            return System(lambda u: torch.where(band, -u, 0.0), band, 1.0)
+
+    grid = ts.Grid.cube(13, 1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, dtype=torch.float64), grid)
+    u = torch.rand(1, 1, *grid.shape, dtype=torch.float64,
+                   generator=torch.Generator().manual_seed(2))
+    result = Decay(1.0, method="euler", steps=100)(u, surface)
+    band = Decay(1.0).band_mask(surface).expand_as(result)
+    # decayed by 0.99^100 = 0.366 from data in [0, 1]; heat would keep values near the mean
+    assert 0.0 <= float(result[band].min()) and float(result[band].max()) <= 0.99**100 + 1e-12
