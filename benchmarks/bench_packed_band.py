@@ -188,7 +188,8 @@ def main(argv: list[str] | None = None) -> None:
         "",
         f"`HeatFlow(16 h^2)` (RKC, the default), `u` `({args.batch}, 1, n, n, n)`, without "
         "grad: its explicit steps on packed values against the same on volumes (the flow's "
-        "`packed_system` declined), each on a fresh surface for its first call, then the "
+        "`packed_system` declined; default path, its stencils eager within the backend's "
+        "payback), each on a fresh surface for its first call, then the "
         f"median of {args.flow_repeats} alternated calls; the difference is the largest "
         "between the two results (float32).",
         "",

@@ -130,3 +130,13 @@ def test_a_subclass_with_its_own_equation_integrates_it():
     band = Decay(1.0).band_mask(surface).expand_as(result)
     # decayed by 0.99^100 = 0.366 from data in [0, 1]; heat would keep values near the mean
     assert 0.0 <= float(result[band].min()) and float(result[band].max()) <= 0.99**100 + 1e-12
+
+
+def test_compiled_volume_stencils_when_asked_for():
+    """``path="compiled"`` keeps the volume stencils (faster for one channel on small grids)."""
+    grid = ts.Grid.cube(13, 1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid), grid)
+    u = torch.rand(1, 1, *grid.shape, generator=torch.Generator().manual_seed(3))
+    for path, packs in (("auto", True), ("slicing", True), ("compiled", False)):
+        flow = HeatFlow(4 * surface.spacing**2, path=path)
+        assert (flow.packed_system(flow.system(u, surface), u, surface) is not None) == packs
