@@ -96,8 +96,10 @@ class PackedRegion:
         self.nodes = torch.cat([band_nodes, ring_nodes])
         self.band_count = len(band_nodes)
         count = len(self.nodes)
-        self.lookup = torch.full((band.numel(),), -1, dtype=torch.long, device=band.device)
-        self.lookup[self.nodes] = torch.arange(count, device=band.device)
+        # node -> packed position, 4 bytes a stored node (the whole box on a dense surface)
+        index = torch.int32 if count < 2**31 else torch.long
+        self.lookup = torch.full((band.numel(),), -1, dtype=index, device=band.device)
+        self.lookup[self.nodes] = torch.arange(count, dtype=index, device=band.device)
         self.weighted = _probed(surface, scheme, region, self.storage, band_nodes, self.lookup,
                                 count)
         self._band_mask: Tensor | None = None
@@ -255,7 +257,7 @@ class PackedStencil:
         if bool((tap < 0).any()):
             raise RuntimeError("a closest-point stencil reads a node off the band and ring")
         nodes = len(target) // 64
-        self.rows = target.view(nodes, 64)[:, 0].clone()
+        self.rows = target.view(nodes, 64)[:, 0].long()
         self.cells = tap.view(nodes, 64)[:, _CELL].reshape(-1).to(self.matrix_index(count))
         self._offsets: Tensor | None = None
         self.matrix = GatherMatrix.of_rows(tap.view(nodes, 64), weight.view(nodes, 64), count)
@@ -487,5 +489,5 @@ def _stencil_rows(stencil: Stencil, storage: _Storage, lookup: Tensor, count: in
     target, tap, weight = _stencil_entries(stencil, storage, lookup)
     if bool((tap < 0).any()):
         raise RuntimeError("a ring sweep reads a node off the band and ring")
-    rows, local = torch.unique(target, return_inverse=True)
+    rows, local = torch.unique(target.long(), return_inverse=True)
     return rows, GatherMatrix(local, tap, weight, (len(rows), count))
