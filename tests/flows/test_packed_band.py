@@ -7,7 +7,7 @@ import pytest
 import torch
 
 import torchsurf as ts
-from torchsurf.flows import _packed_band, exponential
+from torchsurf.flows import _gather_matrix, _packed_band, exponential
 from torchsurf.flows._gather_matrix import GatherMatrix
 from torchsurf.flows.exponential import BandLaplacian, heat_semigroup
 from torchsurf.operators import functional
@@ -62,11 +62,14 @@ def _volume(packed, values: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
     return packed.unpack(torch.cat([values, ring]), like)
 
 
+@pytest.mark.parametrize("form", ["bagged", "padded"])
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
-def test_gather_matrix_is_the_matrix_it_holds(dtype):
+def test_gather_matrix_is_the_matrix_it_holds(dtype, form, monkeypatch):
     """Rows of very different lengths (reordered when padded), repeated positions (summed), an
-    empty row, exact zeros (dropped); the transpose too. float32 runs ``embedding_bag``, float64
-    the padded gathers."""
+    empty row, exact zeros (dropped); the transpose too; by ``embedding_bag`` and by the padded
+    gathers (the other dtypes')."""
+    if form == "padded":
+        monkeypatch.setattr(_gather_matrix, "BAGGED", ())
     generator = torch.Generator().manual_seed(0)
     rows = torch.cat([torch.zeros(40, dtype=torch.long), torch.randint(1, 30, (60,),
                                                                         generator=generator)])
@@ -84,7 +87,7 @@ def test_gather_matrix_is_the_matrix_it_holds(dtype):
                                    rtol=tolerance, atol=tolerance)
     torch.testing.assert_close(matrix.transposed().apply(g.to(dtype)).double(), dense.T @ g,
                                rtol=tolerance, atol=tolerance)
-    if dtype == torch.float64:
+    if form == "padded":
         assert matrix._padded.order is not None  # row 0 holds most entries: reordered
     empty = GatherMatrix(rows[:0], columns[:0], values[:0], (4, 17))
     assert torch.equal(empty.apply(x), x.new_zeros(4, 3))
