@@ -1,22 +1,26 @@
-"""The band Laplacian ``L = M W^-1 A E M`` on the band's nodes alone, for a fixed surface.
+"""The band Laplacian ``L = M W^-1 A E M`` and the heat flow's stencils on the band's nodes
+alone, for a fixed surface.
 
-:class:`~torchsurf.flows.exponential.BandLaplacian` applies ``L`` to whole volumes: its stencils
-run over every node of the box, of which the band holds 4-12% at 64^3-128^3 (or over every
-stored brick's, 2-5 times the band's). With ``phi``
-fixed, ``L`` is a fixed sparse matrix, so :class:`PackedBand` assembles its parts once per
-surface as :class:`~torchsurf.flows._gather_matrix.GatherMatrix` es on the band and ring's nodes
-and applies them to packed values ``(nodes, C, K)``:
+:class:`~torchsurf.flows.exponential.BandLaplacian` and the flows apply their stencils to whole
+volumes: they run over every node of the box, of which the band holds 4-12% at 64^3-128^3 (or
+over every stored brick's, 2-5 times the band's). With ``phi`` fixed, the linear operators are
+fixed sparse matrices, assembled here once per surface as
+:class:`~torchsurf.flows._gather_matrix.GatherMatrix` es on the band and ring's nodes and applied
+to packed values ``(nodes, C, K)``:
 
-- ``A / W`` on the band's rows, read off the volume operator itself: the operator applied to
-  indicator volumes of the region's nodes of each of ``(2 r + 1)^3`` colours (``r`` the
-  scheme's reach), no two nodes of a colour within ``2 r`` of each other, gives each band
-  node's coefficient for each of its neighbours;
-- ``E``: the ring's first pass (the tricubic closest-point weights of
+- :class:`PackedRegion`: the packing, and ``W^-1 A`` on the band's rows, read off the volume
+  operator itself: the operator applied to indicator volumes of the region's nodes of each of
+  ``(2 r + 1)^3`` colours (``r`` the scheme's reach), no two nodes of a colour within ``2 r``
+  of each other, gives each band node's coefficient for each of its neighbours (the heat flow's
+  rate, :meth:`torchsurf.flows.HeatFlow.packed_system`);
+- :class:`PackedStencil`: a limited closest-point stencil (the flows' re-extensions), from the
+  stencil's own tap positions and weights;
+- :class:`PackedBand`: adds ``E``, the ring's first pass (the tricubic closest-point weights of
   :class:`~torchsurf.flows.exponential.RingFill`, or a box mean for its orphans) and its sweeps
-  over the chained ring nodes, taken from the stencils' own tap positions and weights;
-- their transposes, exactly, for ``L^T``.
+  over the chained ring nodes, and the transposes, exactly, for ``L^T`` (the heat semigroup).
 
-The result equals the volume path's to rounding (tests/flows/test_packed_band.py).
+Results equal the volume path's to rounding (tests/flows/test_packed_band.py,
+tests/flows/test_packed_flow.py).
 """
 
 from __future__ import annotations
