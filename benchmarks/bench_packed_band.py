@@ -32,7 +32,7 @@ from bench_mesh_heat import MESH_DIR
 
 import torchsurf as ts
 from torchsurf.flows import HeatFlow
-from torchsurf.flows._packed_band import PackedBand
+from torchsurf.flows._packed_band import PackedBand, PackedRegion
 from torchsurf.flows.exponential import BandLaplacian
 
 SECTION = "bench_packed_band"
@@ -49,8 +49,8 @@ def surface_of(shape: str, n: int) -> ts.ImplicitSurface:
 
 
 def kept_bytes(packed: PackedBand) -> int:
-    """Bytes of the packed operator's index and weight tensors."""
-    total = packed.nodes.numel() * packed.nodes.element_size()
+    """Bytes of the packed operator's index and weight tensors and its node lookup."""
+    total = sum(t.numel() * t.element_size() for t in (packed.nodes, packed.packing.lookup))
     for name in ("weighted", "weighted_transposed", "first", "first_transposed", "chained",
                  "chained_transposed"):
         matrix = getattr(packed, name, None)
@@ -72,8 +72,8 @@ def measure(shape: str, n: int, batch: int, channels: int, repeats: int) -> dict
     surface = surface_of(shape, n)
     operator = BandLaplacian(surface, path="slicing")
     start = time.perf_counter()
-    packed = PackedBand(operator.surface, operator.scheme, operator.band, operator.region,
-                        operator.ring)
+    packed = PackedBand(PackedRegion(operator.surface, operator.scheme, operator.band,
+                                     operator.region), operator.ring)
     build = time.perf_counter() - start
     u = torch.rand(batch, channels, *surface.grid.shape, generator=torch.Generator().manual_seed(0))
     inside = torch.where(operator.band, u, 0.0)

@@ -9,6 +9,7 @@ import torch
 
 import torchsurf as ts
 from torchsurf.flows import HeatFlow
+from torchsurf.flows.exponential import BandLaplacian
 from torchsurf.operators import functional
 
 from .test_packed_band import _fields, _surface
@@ -36,7 +37,7 @@ def test_packed_flow_is_the_volume_flow(kind, options, monkeypatch):
     options = dict(options)
     time = options.pop("cells", 8.0) * surface.spacing**2
     u = _fields(surface, 1, seed=6)[0]
-    u = u - u.min() if surface.layout is None else u
+    u = u - u.min()
     packed, volume = _both(lambda: HeatFlow(time, **options), u, surface, monkeypatch)
     scale = float(volume.abs().max())
     assert float((packed - volume).abs().max()) < 1e-12 * scale
@@ -145,3 +146,17 @@ def test_volume_stencils_where_asked_for_and_on_bricks():
     v = _fields(bricks, 1, seed=4)[0]
     flow = HeatFlow(4 * bricks.spacing**2)
     assert flow.packed_system(flow.system(v, bricks), v, bricks) is None
+
+
+def test_the_flow_and_the_semigroup_share_one_packing():
+    """The band's packing and ``W^-1 A`` are assembled once per surface and band width, for the
+    heat flow and the heat semigroup alike."""
+    grid = ts.Grid.cube(17, 1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid), grid)
+    u = torch.rand(1, 1, *grid.shape, generator=torch.Generator().manual_seed(5))
+    flow = HeatFlow(4 * surface.spacing**2)
+    flow(u, surface)
+    width = flow.evolving_width(surface)
+    packing = surface.kept(("packed region", "octant", width), lambda: None)
+    assert packing is not None
+    assert BandLaplacian(surface, band_width=width).packed().packing is packing

@@ -35,7 +35,14 @@ from ..bricks.layout import BRICK
 from ..operators import functional
 from ..surface import ImplicitSurface
 from ._gather_matrix import GatherMatrix
-from .extension import _CELL, STENCIL_CHUNK, BrickCubicStencil, CubicStencil
+from .extension import (
+    _CELL,
+    STENCIL_CHUNK,
+    BrickCubicStencil,
+    CubicStencil,
+    _dense_tap_indices,
+    tap_weights,
+)
 
 Stencil = CubicStencil | BrickCubicStencil
 
@@ -60,12 +67,6 @@ two nodes, but ``A``'s coefficients reach one; tests/flows/test_packed_band.py m
 
 PROBES_AT_ONCE = 27
 """Most colour indicators run through the volume operator in one call."""
-
-PROBE_PATH = {True: "auto", False: "slicing"}
-"""How the probes run (by whether the scheme is the octant one): once per surface, so never
-compiled (``"auto"`` would compile a large probe on a dense grid); the octant's probes on bricks
-take ``"auto"``, which runs the C kernel (:mod:`torchsurf.bricks._native`). Dense probes always
-run eagerly."""
 
 PROBE_VALUES = 2**22
 """Most values of the indicators run at once (16 MB in float32, and as much for each of the
@@ -93,7 +94,6 @@ class PackedRegion:
         self.storage = _Storage(surface, band)
         self.volume_shape = self.storage.volume_shape
         self.entries = band.shape[0]
-        self.band, self.region = band, region
         band_nodes = band.reshape(-1).nonzero().squeeze(1)
         ring_nodes = (region & ~band).reshape(-1).nonzero().squeeze(1)
         self.nodes = torch.cat([band_nodes, ring_nodes])
@@ -113,22 +113,19 @@ class PackedRegion:
     def pack(self, u: Tensor) -> Tensor:
         """The band's values of ``u`` ``(B, C, D, H, W)`` (or packed bricks ``(N, C, 8, 8,
         8)``): ``(band nodes, C, K)`` (autograd reaches ``u``)."""
-        flat = u.reshape(u.shape[0], u.shape[1], -1)
-        band = self.nodes[:self.band_count]
-        if self.entries == 1:
-            return flat.index_select(2, band).permute(2, 1, 0).contiguous()
-        flat = flat.expand(self.entries, *flat.shape[1:])
-        size = flat.shape[-1]
-        return flat[band // size, :, band % size][..., None]
+        return self._gathered(u, self.nodes[:self.band_count])
 
     def pack_region(self, u: Tensor) -> Tensor:
         """The band and ring's values of ``u``: ``(nodes, C, K)`` (autograd reaches ``u``)."""
+        return self._gathered(u, self.nodes)
+
+    def _gathered(self, u: Tensor, nodes: Tensor) -> Tensor:
         flat = u.reshape(u.shape[0], u.shape[1], -1)
         if self.entries == 1:
-            return flat.index_select(2, self.nodes).permute(2, 1, 0).contiguous()
+            return flat.index_select(2, nodes).permute(2, 1, 0).contiguous()
         flat = flat.expand(self.entries, *flat.shape[1:])
         size = flat.shape[-1]
-        return flat[self.nodes // size, :, self.nodes % size][..., None]
+        return flat[nodes // size, :, nodes % size][..., None]
 
     def unpack(self, values: Tensor, like: Tensor) -> Tensor:
         """Region values ``(nodes, C, K)`` as a field shaped like ``like`` ``(B, C, D, H, W)``
@@ -178,20 +175,22 @@ class PackedRegion:
         return self._stencils[key][1]
 
 
-class PackedBand(PackedRegion):
-    """``L`` and ``L^T`` on packed band values, and the ring's re-extension ``E``
-    (:class:`PackedRegion`'s packing).
+class PackedBand:
+    """``L`` and ``L^T`` on packed band values, and the ring's re-extension ``E``, on a
+    :class:`PackedRegion` (its packing, nodes and ``W^-1 A``, shared with the heat flow's).
 
     Args:
-        surface, scheme, band, region: as for :class:`PackedRegion` (a
+        packing: the band and ring packed (a
             :class:`~torchsurf.flows.exponential.BandLaplacian`'s).
         ring: its ring's re-extension (:class:`~torchsurf.flows.exponential.RingFill`).
     """
 
-    def __init__(self, surface: ImplicitSurface, scheme: str, band: Tensor, region: Tensor,
-                 ring: RingFill) -> None:
-        super().__init__(surface, scheme, band, region)
-        storage, lookup, count = self.storage, self.lookup, len(self.nodes)
+    def __init__(self, packing: PackedRegion, ring: RingFill) -> None:
+        self.packing = packing
+        self.nodes, self.band_count, self.weighted = (packing.nodes, packing.band_count,
+                                                      packing.weighted)
+        self.pack, self.unpack = packing.pack, packing.unpack
+        storage, lookup, count = packing.storage, packing.lookup, len(self.nodes)
         self.weighted_transposed = self.weighted.transposed()
         self.first = _first_pass(ring, storage, lookup, self.band_count, count - self.band_count)
         self.first_transposed = self.first.transposed()
@@ -222,7 +221,7 @@ class PackedBand(PackedRegion):
 
     def apply(self, x: Tensor) -> Tensor:
         """``L x`` for band values ``x`` ``(band nodes, C, K)``."""
-        image = self.weighted_apply(self.fill(x).reshape(-1, x.shape[1] * x.shape[2]))
+        image = self.packing.weighted_apply(self.fill(x).reshape(-1, x.shape[1] * x.shape[2]))
         return image.reshape(x.shape)
 
     def transpose(self, g: Tensor) -> Tensor:
@@ -261,13 +260,8 @@ class PackedStencil:
             raise RuntimeError("a closest-point stencil reads a node off the band and ring")
         nodes = len(target) // 64
         self.rows = target.view(nodes, 64)[:, 0].long()
-        self.cells = tap.view(nodes, 64)[:, _CELL].reshape(-1).to(self.matrix_index(count))
         self.matrix = GatherMatrix.of_rows(tap.view(nodes, 64), weight.view(nodes, 64), count)
-
-    @staticmethod
-    def matrix_index(count: int) -> torch.dtype:
-        """The index dtype of ``count`` nodes' positions."""
-        return torch.int32 if count < 2**31 else torch.long
+        self.cells = tap.view(nodes, 64)[:, _CELL].reshape(-1).to(self.matrix.columns.dtype)
 
     def apply(self, z: Tensor) -> Tensor:
         """``z`` ``(nodes, C, K)`` with the targets re-extended; a new tensor (autograd reaches
@@ -350,9 +344,11 @@ def _probe_reader(surface: ImplicitSurface, scheme: str, region: Tensor, storage
 
         def bricks(colours: Tensor):  # noqa: ANN202
             probes = (region & (colour == colours.view(1, -1, 1, 1, 1))).to(surface.phi.dtype)
+            # once per surface, never compiled: the octant's "auto" on bricks is the C kernel
             response = functional.divergence_form(
                 probes, surface.normal, surface.weight, surface.spacing, scheme,
-                PROBE_PATH[scheme == "octant"], weighted=True, haloed=haloed, pad=pad)
+                "auto" if scheme == "octant" else "slicing", weighted=True, haloed=haloed,
+                pad=pad)
             response = response.reshape(len(probes), len(colours), -1)
             return lambda take, which: response[brick[take], which, node[take]]
 
@@ -421,31 +417,21 @@ def _stencil_entries(stencil: Stencil, storage: _Storage, lookup: Tensor
     parts = []
     if isinstance(stencil, CubicStencil):
         size = math.prod(storage.volume_shape)
-        height, width = storage.volume_shape[1:]
         for entry, (target, corners, weight) in enumerate(stencil.parts):
-            x, y, z = corners.long().unbind(0)
-            sources = ((z[:, :, None, None] * height + y[:, None, :, None]) * width
-                       + x[:, None, None, :]).flatten(1)
+            sources = _dense_tap_indices(corners, *storage.volume_shape[1:])(slice(None))
             parts.append((target + entry * size, sources + entry * size, weight))
     else:
         for start in range(0, len(stencil.targets), STENCIL_CHUNK):
             part = slice(start, start + STENCIL_CHUNK)
             parts.append((stencil.targets[part], stencil._tap_indices(part),
                           stencil.weights[:, part]))
-    targets, taps, weights = [lookup[:0]], [lookup[:0]], [stencil_weights(stencil)[:0]]
+    empty = stencil.parts[0][2] if isinstance(stencil, CubicStencil) else stencil.weights
+    targets, taps, weights = [lookup[:0]], [lookup[:0]], [empty.new_zeros(0)]
     for target, sources, weight in parts:
-        wx, wy, wz = weight.unbind(0)
-        products = (wz[:, :, None, None] * wy[:, None, :, None] * wx[:, None, None, :]).flatten(1)
         targets.append(lookup[target][:, None].expand(-1, 64).reshape(-1))
         taps.append(torch.where(sources >= 0, lookup[sources.clamp(min=0)], -1).reshape(-1))
-        weights.append(products.reshape(-1))
+        weights.append(tap_weights(weight).reshape(-1))
     return torch.cat(targets), torch.cat(taps), torch.cat(weights)
-
-
-def stencil_weights(stencil: Stencil) -> Tensor:
-    """The dtype and device of a stencil's weights, as an empty tensor."""
-    weights = stencil.parts[0][2] if isinstance(stencil, CubicStencil) else stencil.weights
-    return weights.new_zeros(0)
 
 
 def _first_pass(ring: RingFill, storage: _Storage, lookup: Tensor, band_count: int,

@@ -35,7 +35,7 @@ the band's values alone, packed ``(band nodes, C, K)``, with ``A``, ``E`` and th
 assembled once per surface and kept on it (:class:`~torchsurf.flows._packed_band.PackedBand`;
 equal to the volume operators to rounding). Its cost is that of the band and ring's nodes,
 10-20% of the box at 64^3-128^3, where the volume operators run over the whole box or every
-stored brick (``LearnedDiffusion`` at 64^3, batch 4, four channels: 1.0 s forward against 8.8 s).
+stored brick (``LearnedDiffusion`` at 64^3, batch 4, four channels: 0.5 s forward against 8.8 s).
 A ``phi`` that requires grad runs the volume operators.
 """
 
@@ -280,21 +280,19 @@ class BandLaplacian:
     def _assemble_packed(self) -> PackedBand | None:
         """The packed operator, or ``None`` (the volume path, kept as the choice) when its
         matrices would not fit (:func:`fits_packed`)."""
-        if not fits_packed(self.region):
-            return None
-        return PackedBand(self.surface, self.scheme, self.band, self.region, self.ring)
+        packing = kept_packing(self.surface, self.scheme, self.width, self.band, self.region)
+        return None if packing is None else PackedBand(packing, self.ring)
 
     @property
     def differentiable(self) -> bool:
         """The geometry is in ``phi``'s graph (``phi`` requires grad)."""
         return self.surface.phi.requires_grad
 
-    def _weighted(self, x: Tensor, path: str | None = None) -> Tensor:
-        """``A x = W Lap_S x`` (symmetric negative semi-definite); ``path`` overrides the
-        operator's own."""
+    def _weighted(self, x: Tensor) -> Tensor:
+        """``A x = W Lap_S x`` (symmetric negative semi-definite)."""
         surface = self.surface
         return functional.divergence_form(
-            x, surface.normal, surface.weight, surface.spacing, self.scheme, path or self.path,
+            x, surface.normal, surface.weight, surface.spacing, self.scheme, self.path,
             weighted=True, haloed=surface.haloed(),
             pad=None if surface.layout is None else surface.layout.halo,
         )
@@ -317,12 +315,15 @@ def fits_packed(region: Tensor) -> bool:
     return available is None or int(region.sum()) * PACKED_NODE_BYTES <= available / 4
 
 
-def packed_region(surface: ImplicitSurface, scheme: str, band: Tensor, region: Tensor
-                  ) -> PackedRegion | None:
-    """The band and ring of ``surface`` packed, with ``W^-1 A`` of ``scheme``
-    (:class:`~torchsurf.flows._packed_band.PackedRegion`), or ``None`` when it would not fit
+def kept_packing(surface: ImplicitSurface, scheme: str, width: float, band: Tensor,
+                 region: Tensor) -> PackedRegion | None:
+    """The band of half-width ``width`` and its ring packed, with ``W^-1 A`` of ``scheme``
+    (:class:`~torchsurf.flows._packed_band.PackedRegion`), assembled once and kept on the
+    surface (shared by the heat semigroup and the heat flow), or ``None`` when it would not fit
     (:func:`fits_packed`)."""
-    return PackedRegion(surface, scheme, band, region) if fits_packed(region) else None
+    return surface.kept(
+        ("packed region", scheme, width),
+        lambda: PackedRegion(surface, scheme, band, region) if fits_packed(region) else None)
 
 
 class _Extend(torch.autograd.Function):

@@ -20,7 +20,7 @@ from ._integrators import Linear, System, tensors, zero_outside
 from ._packed_band import PackedRegion
 from ._positive import Positive
 from .base import Flow, _check_times, check_times_of_learned_time
-from .exponential import BandLaplacian, heat_semigroup, packed_region
+from .exponential import BandLaplacian, heat_semigroup, kept_packing
 
 SYMMETRIC_SCHEMES = functional.SCHEMES
 
@@ -57,9 +57,8 @@ class HeatFlow(Flow):
     equal the volume integration's to rounding, at the cost of the band's nodes instead of the
     box's (64^3, batch 4: 0.47 against 1.6 s eager, 0.51 s compiled). A ``phi`` that requires
     grad, a brick surface, a subclass with its own :meth:`system`, ``reextend_every=None`` or
-    ``path="compiled"``
-    (whose compiled volume stencils are faster for one channel on small grids: 65^3, batch 1,
-    0.15 against 0.25 s) integrate volumes.
+    ``path="compiled"`` (whose compiled volume stencils are faster for one channel on small
+    grids: 65^3, batch 1, 0.15 against 0.25 s) integrate volumes.
 
     ``method="chebyshev"`` applies the heat semigroup ``exp(t D Lap_S)`` by Chebyshev
     expansions (:func:`torchsurf.flows.exponential.heat_semigroup`, divergence-form schemes
@@ -166,23 +165,20 @@ class HeatFlow(Flow):
         values: ``D W^-1 A z`` on the band's rows by the matrix read off the volume operator
         (:class:`~torchsurf.flows._packed_band.PackedRegion`, assembled once and kept on the
         surface), the explicit steps and re-extensions on the band and ring's nodes alone.
-        ``None`` (volumes) for a subclass that defines its own :meth:`system`, on bricks
-        (whose octant rate runs a C kernel on the band's bricks and whose flows keep to a
-        memory bound at 512^3 that the flow's stencils as matrices, about 1 kB a node, would
-        strain), and where
-        compiled volume stencils are asked for (``path="compiled"``,
-        ``TORCHSURF_COMPILE=always``): with one channel on a grid of 65^3 or less, compiled,
-        they are faster (65^3, batch 1: 0.15 against 0.25 s; batch 4: 0.51 against 0.36 s;
-        129^3, batch 1: 3.5 against 3.3 s)."""
+        ``None`` (volumes) for a subclass that defines its own :meth:`system`; on bricks, whose
+        octant rate runs a C kernel on the band's bricks and whose flows keep to a memory bound
+        at 512^3 that the flow's stencils as matrices (about 1 kB a node) would strain; and
+        where compiled volume stencils are asked for (``path="compiled"``,
+        ``TORCHSURF_COMPILE=always``), which are faster for one channel on small grids
+        (compiled volumes against packed, one thread: 65^3, batch 1, 0.15 against 0.25 s;
+        batch 4, 0.51 against 0.36 s; 129^3, batch 1, 3.5 against 3.3 s)."""
         if (self.scheme not in functional.SCHEMES or surface.phi.requires_grad
                 or type(self).system is not HeatFlow.system  # a subclass's own equation
                 or self.path == "compiled" or backend.COMPILE == "always"
                 or surface.layout is not None):  # bricks: the C kernel, and their memory bound
             return None
-        width = self.evolving_width(surface)
-        packing = surface.kept(("packed region", self.scheme, width),
-                               lambda: packed_region(surface, self.scheme, system.band,
-                                                     system.region))
+        packing = kept_packing(surface, self.scheme, self.evolving_width(surface), system.band,
+                               system.region)
         if packing is None:
             return None
         d = self.diffusivity.volume(u0)
