@@ -96,7 +96,7 @@ def test_without_a_compiler_the_operators_take_their_other_paths(torus, monkeypa
     _, surface = torus
     u = torch.randn(len(surface.layout), 1, 8, 8, 8, dtype=torch.float64)
     expected = _octant(surface, u, "slicing")
-    monkeypatch.setattr(_native, "_state", {})
+    monkeypatch.setattr(_native.LIBRARY, "_state", {})
     monkeypatch.setenv("TORCHSURF_CACHE_DIR", str(tmp_path))
     monkeypatch.setenv("CC", str(tmp_path / "no-such-compiler"))
     assert surface.layout.native_octant(u, *surface.haloed(), surface.spacing, False, None) is None
@@ -104,7 +104,7 @@ def test_without_a_compiler_the_operators_take_their_other_paths(torus, monkeypa
     assert torch.allclose(ts.laplace_beltrami(u, surface), expected, atol=1e-12)
     assert list(tmp_path.iterdir()) == []
 
-    monkeypatch.setattr(_native, "_state", {})
+    monkeypatch.setattr(_native.LIBRARY, "_state", {})
     monkeypatch.delenv("CC")
     monkeypatch.setenv("TORCHSURF_NATIVE", "never")
     assert _native.library() is None
@@ -113,13 +113,13 @@ def test_without_a_compiler_the_operators_take_their_other_paths(torus, monkeypa
 
 def test_the_kernel_is_compiled_into_the_cache_folder_once(monkeypatch, tmp_path,
                                                           native_available):
-    monkeypatch.setattr(_native, "_state", {})
+    monkeypatch.setattr(_native.LIBRARY, "_state", {})
     monkeypatch.setenv("TORCHSURF_CACHE_DIR", str(tmp_path / "cache"))
     assert _native.library() is not None
     built = list((tmp_path / "cache").iterdir())
     assert len(built) == 1 and built[0].suffix == ".so"  # no leftover source or folder
     stamp = built[0].stat().st_mtime_ns
-    monkeypatch.setattr(_native, "_state", {})
+    monkeypatch.setattr(_native.LIBRARY, "_state", {})
     assert _native.library() is not None
     assert built[0].stat().st_mtime_ns == stamp
 
@@ -131,7 +131,7 @@ def test_a_compiler_that_refuses_the_vector_flags_builds_it_plainly(monkeypatch,
     wrapper.write_text('#!/bin/sh\nfor a in "$@"; do [ "$a" = -mprefer-vector-width=256 ] && '
                        'exit 1; done\nexec cc "$@"\n')
     wrapper.chmod(0o755)
-    monkeypatch.setattr(_native, "_state", {})
+    monkeypatch.setattr(_native.LIBRARY, "_state", {})
     monkeypatch.setenv("TORCHSURF_CACHE_DIR", str(tmp_path / "cache"))
     monkeypatch.setenv("CC", str(wrapper))
     assert _native.library() is not None
@@ -139,7 +139,7 @@ def test_a_compiler_that_refuses_the_vector_flags_builds_it_plainly(monkeypatch,
 
 
 def test_a_bad_native_mode_is_named(monkeypatch):
-    monkeypatch.setattr(_native, "_state", {})
+    monkeypatch.setattr(_native.LIBRARY, "_state", {})
     monkeypatch.setenv("TORCHSURF_NATIVE", "sometimes")
     with pytest.raises(ValueError, match="TORCHSURF_NATIVE must be one of"):
         _native.library()

@@ -9,9 +9,8 @@ the band reads, and evaluates only the rows of 8 nodes (along x) that hold a ban
 at a time in the CPU's vector registers. Its numbers are the octant expression's with the
 coefficients formed first, so they agree with the other paths to rounding.
 
-It is compiled once per machine with the C compiler that ``torch.compile`` also needs
-(``$CC``, else ``cc``), about half a second, into a cache folder: ``$TORCHSURF_CACHE_DIR``, else
-``$XDG_CACHE_HOME/torchsurf``, else ``~/.cache/torchsurf``. Without a compiler, or with
+It is compiled once per machine (:mod:`torchsurf._native`: ``$CC``, about half a second, into
+``~/.cache/torchsurf`` or ``$TORCHSURF_CACHE_DIR``). Without a compiler, or with
 ``TORCHSURF_NATIVE=never``, :func:`octant` returns ``None`` and the operators take their other
 paths; :func:`unavailable_reason` says why.
 """
@@ -19,22 +18,15 @@ paths; :func:`unavailable_reason` says why.
 from __future__ import annotations
 
 import ctypes
-import hashlib
-import os
-import subprocess
-import tempfile
-import threading
 import weakref
-from pathlib import Path
 
 import torch
 from torch import Tensor
 
+from .._native import NativeLibrary, in_threads
+
 BRICK = 8
 TILE = BRICK + 2
-
-NATIVE_MODES = ("auto", "never")
-"""Values of the environment variable ``TORCHSURF_NATIVE``."""
 
 _BODY = r"""
 static const REAL zero_brick_SUFFIX[B * B * B];
@@ -176,103 +168,24 @@ def _source() -> str:
     return source
 
 
-_FLAGS = (("-O3", "-march=native", "-mprefer-vector-width=256", "-shared", "-fPIC"),
-          ("-O3", "-shared", "-fPIC"))
-"""Tried in turn. 256-bit vectors: a row of 8 float32 nodes fills one (with 512-bit ones gcc
-leaves the row loop scalar); the second set for compilers or CPUs that refuse the first
-(``-mprefer-vector-width`` is gcc's, for x86)."""
+_ARGUMENTS = ([ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64] * 2
+              + [ctypes.c_void_p, ctypes.c_int64]
+              + [ctypes.c_void_p] * 4
+              + [ctypes.c_int64, ctypes.c_int64, ctypes.c_int64, ctypes.c_double, ctypes.c_int])
 
-_lock = threading.Lock()
-_state: dict[str, object] = {}
-
-
-def _mode() -> str:
-    value = os.environ.get("TORCHSURF_NATIVE", "auto").strip().lower() or "auto"
-    if value not in NATIVE_MODES:
-        raise ValueError(f"TORCHSURF_NATIVE must be one of {NATIVE_MODES}, got {value!r}")
-    return value
-
-
-def cache_dir() -> Path:
-    """Where the compiled kernel is kept (module docstring)."""
-    if os.environ.get("TORCHSURF_CACHE_DIR"):
-        return Path(os.environ["TORCHSURF_CACHE_DIR"])
-    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
-    return Path(base) / "torchsurf"
-
-
-def _machine_key() -> str:
-    """What ``-march=native`` compiled for: the CPU's feature flags."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith(("flags", "Features")):
-                return line
-    except OSError:
-        pass
-    import platform
-    return platform.processor() or platform.machine()
-
-
-def _compile(compiler: str) -> ctypes.CDLL:
-    version = subprocess.run([compiler, "--version"], capture_output=True, text=True,
-                             check=True, timeout=60).stdout
-    for attempt, flags in enumerate(_FLAGS):
-        try:
-            library = _built(compiler, version, flags)
-            break
-        except subprocess.CalledProcessError:
-            if attempt == len(_FLAGS) - 1:
-                raise
-    loaded = ctypes.CDLL(str(library))
-    for suffix in ("f32", "f64"):
-        function = getattr(loaded, f"octant_bricks_{suffix}")
-        function.restype = None
-        function.argtypes = ([ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64] * 2
-                             + [ctypes.c_void_p, ctypes.c_int64]
-                             + [ctypes.c_void_p] * 4
-                             + [ctypes.c_int64, ctypes.c_int64, ctypes.c_int64, ctypes.c_double,
-                                ctypes.c_int])
-    return loaded
-
-
-def _built(compiler: str, version: str, flags: tuple[str, ...]) -> Path:
-    """The shared library for these flags, compiled unless the cache holds it."""
-    source = _source()
-    key = hashlib.sha256("\0".join((source, *flags, version, _machine_key())).encode())
-    folder = cache_dir()
-    library = folder / f"octant_bricks_{key.hexdigest()[:20]}.so"
-    if not library.exists():
-        folder.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryDirectory(dir=folder) as work:
-            c_file = Path(work) / "octant_bricks.c"
-            c_file.write_text(source)
-            built = Path(work) / library.name
-            subprocess.run([compiler, *flags, "-o", str(built), str(c_file)],
-                           capture_output=True, text=True, check=True, timeout=120)
-            os.replace(built, library)  # whole or not at all, also for a concurrent process
-    return library
+LIBRARY = NativeLibrary("octant_bricks", _source,
+                        {f"octant_bricks_{suffix}": _ARGUMENTS for suffix in ("f32", "f64")})
+"""The kernel's shared library (:class:`torchsurf._native.NativeLibrary`)."""
 
 
 def library() -> ctypes.CDLL | None:
     """The compiled kernel, compiled on first use; ``None`` where it cannot be."""
-    with _lock:
-        if "library" not in _state:
-            try:
-                if _mode() == "never":
-                    raise RuntimeError("TORCHSURF_NATIVE=never")
-                _state["library"] = _compile(os.environ.get("CC") or "cc")
-                _state["reason"] = None
-            except (OSError, RuntimeError, subprocess.SubprocessError) as error:
-                detail = getattr(error, "stderr", None) or error
-                _state["library"] = None
-                _state["reason"] = f"{type(error).__name__}: {str(detail).strip()[:500]}"
-        return _state["library"]  # type: ignore[return-value]
+    return LIBRARY.load()
 
 
 def unavailable_reason() -> str | None:
     """Why :func:`octant` falls back (no compiler, ``TORCHSURF_NATIVE=never``), or ``None``."""
-    library()
-    return _state["reason"]  # type: ignore[return-value]
+    return LIBRARY.unavailable_reason()
 
 
 class _RowBits:
@@ -346,25 +259,9 @@ def octant(u: Tensor, haloed_normal: Tensor, haloed_weight: Tensor, neighbours: 
                present.data_ptr(), bits.data_ptr(), out.data_ptr(), first, stop, channels,
                4.0 * spacing * spacing, int(bool(weighted)))
 
-    _in_threads(run, bricks)
+    in_threads(run, bricks, THREAD_MIN_BRICKS)
     return out
 
 
 THREAD_MIN_BRICKS = 256
 """Fewest bricks per thread: below, starting a thread costs more than it saves."""
-
-
-def _in_threads(run, bricks: int) -> None:  # noqa: ANN001
-    """``run(first, stop)`` over ``[0, bricks)`` in :func:`torch.get_num_threads` parts, on
-    threads started for the call (ctypes releases the GIL; no pool to outlive a ``fork``)."""
-    parts = max(1, min(torch.get_num_threads(), bricks // THREAD_MIN_BRICKS))
-    bounds = [bricks * i // parts for i in range(parts + 1)]
-    workers = [threading.Thread(target=run, args=(bounds[i], bounds[i + 1]))
-               for i in range(1, parts)]
-    for worker in workers:
-        worker.start()
-    try:
-        run(bounds[0], bounds[1])
-    finally:
-        for worker in workers:
-            worker.join()
