@@ -7,7 +7,7 @@ import pytest
 import torch
 
 import torchsurf as ts
-from torchsurf.flows import _gather_matrix, _packed_band, exponential
+from torchsurf.flows import _gather_matrix, _native_gather, _packed_band, exponential
 from torchsurf.flows._gather_matrix import GatherMatrix
 from torchsurf.flows.exponential import BandLaplacian, heat_semigroup
 from torchsurf.operators import functional
@@ -62,12 +62,16 @@ def _volume(packed, values: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
     return packed.unpack(torch.cat([values, ring]), like)
 
 
-@pytest.mark.parametrize("form", ["bagged", "padded"])
+@pytest.mark.parametrize("form", ["native", "bagged", "padded"])
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_gather_matrix_is_the_matrix_it_holds(dtype, form, monkeypatch):
     """Rows of very different lengths (reordered when padded), repeated positions (summed), an
-    empty row, exact zeros (dropped); the transpose too; by ``embedding_bag`` and by the padded
-    gathers (the other dtypes')."""
+    empty row, exact zeros (dropped); the transpose too; by the C kernel, by ``embedding_bag``
+    (where the kernel does not run) and by the padded gathers (the other dtypes')."""
+    if form == "native" and _native_gather.LIBRARY.load() is None:
+        pytest.skip(f"no C kernel here: {_native_gather.LIBRARY.unavailable_reason()}")
+    if form != "native":
+        monkeypatch.setattr(_native_gather, "applies", lambda *args: False)
     if form == "padded":
         monkeypatch.setattr(_gather_matrix, "BAGGED", ())
     generator = torch.Generator().manual_seed(0)

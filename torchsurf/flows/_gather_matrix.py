@@ -2,9 +2,11 @@
 
 A :class:`GatherMatrix` of ``R`` rows holds its entries row by row (compressed rows: each row's
 columns and weights, and where each row starts). ``A x`` for ``x`` ``(N, F)`` is, for each row,
-the weighted sum of the rows of ``x`` its columns name: exactly what
-:func:`torch.nn.functional.embedding_bag` computes with ``mode="sum"`` and per-sample weights,
-which runs it in one call (FBGEMM's kernel in float32, a standard operator that
+the weighted sum of the rows of ``x`` its columns name. On the CPU a small C kernel computes it
+(:mod:`torchsurf.flows._native_gather`: 1.8-2.4x faster than ``embedding_bag`` for 1-8
+columns); where that kernel does not run (no compiler, ``torch.compile`` tracing, other
+devices) :func:`torch.nn.functional.embedding_bag` with ``mode="sum"`` and per-sample weights
+computes the same sums in one call (FBGEMM's kernel in float32, a standard operator that
 ``torch.compile`` traces). Other dtypes take the padded form: each row's entries padded to the
 longest row's count ``T``, applied as ``T`` row gathers (``index_select``) and fused
 multiply-adds.
@@ -20,6 +22,8 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 from torch import Tensor
+
+from . import _native_gather
 
 PADDING = 1.2
 """In the padded form, rows are reordered by their counts when padding every row to the longest
@@ -84,6 +88,9 @@ class GatherMatrix:
             raise ValueError(f"x must be ({self.shape[1]}, F), got shape {tuple(x.shape)}")
         if self.nonzeros == 0:
             return x.new_zeros((self.shape[0], x.shape[1]))
+        if _native_gather.applies(self.offsets, x):
+            return _native_gather.product(self.offsets, self.columns, self.values(x.dtype), x,
+                                          self.shape[0])
         if x.dtype in BAGGED:
             return F.embedding_bag(self.columns, x, self.offsets, mode="sum",
                                    per_sample_weights=self.values(x.dtype),

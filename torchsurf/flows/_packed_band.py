@@ -34,6 +34,7 @@ from torch import Tensor
 from ..bricks.layout import BRICK
 from ..operators import functional
 from ..surface import ImplicitSurface
+from . import _native_gather
 from ._gather_matrix import GatherMatrix
 from .extension import (
     _CELL,
@@ -270,6 +271,9 @@ class PackedStencil:
             return z.clone()
         flat = z.reshape(z.shape[0], -1)
         value = self.matrix.apply(flat)
+        native = _native_gather.clamped_into(flat, value, self.cells, self.rows)
+        if native is not None:
+            return native.reshape(z.shape)
         # the cells' extremes in one pass (2.3x faster than embedding_bag's "max", twice)
         low, high = torch.aminmax(flat.index_select(0, self.cells).view(len(self.rows), 8, -1),
                                   dim=1)

@@ -1,0 +1,94 @@
+"""The compressed-row products' C kernel (:mod:`torchsurf.flows._native_gather`) against dense
+matrices: every column width it has a kernel for, both dtypes, gradients of any order, threads,
+and the ``embedding_bag`` fallback where it cannot run."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from torchsurf.flows import _native_gather
+from torchsurf.flows._gather_matrix import GatherMatrix
+
+
+@pytest.fixture(scope="module")
+def native_available():
+    if _native_gather.LIBRARY.load() is None:
+        pytest.skip(f"no C kernel here: {_native_gather.LIBRARY.unavailable_reason()}")
+
+
+def _matrix(rows: int, columns: int, seed: int) -> tuple[GatherMatrix, torch.Tensor]:
+    """Rows of 0 to 30 entries, repeated positions among them; the matrix and its dense form."""
+    generator = torch.Generator().manual_seed(seed)
+    counts = torch.randint(0, 31, (rows,), generator=generator)
+    counts[3] = 0
+    row = torch.repeat_interleave(torch.arange(rows), counts)
+    column = torch.randint(0, columns, (len(row),), generator=generator)
+    value = torch.randn(len(row), generator=generator, dtype=torch.float64)
+    dense = torch.zeros(rows, columns, dtype=torch.float64).index_put_((row, column), value,
+                                                                       accumulate=True)
+    return GatherMatrix(row, column, value, (rows, columns)), dense
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_every_width_is_the_dense_product(native_available, dtype, monkeypatch):
+    """Widths 1-33 (each one-pass kernel and a second pass) and 67 (three passes)."""
+    matrix, dense = _matrix(50, 23, seed=1)
+    called = []
+    product = _native_gather.product
+    monkeypatch.setattr(_native_gather, "product", lambda *a: called.append(1) or product(*a))
+    monkeypatch.setitem(_native_gather.MAX_COLUMNS, dtype, 1 << 62)
+    tolerance = 1e-13 if dtype == torch.float64 else 2e-5
+    for width in [*range(1, 34), 67]:
+        x = torch.randn(23, width, dtype=torch.float64)
+        torch.testing.assert_close(matrix.apply(x.to(dtype)).double(), dense @ x,
+                                   rtol=tolerance, atol=tolerance)
+    assert len(called) == 34
+
+
+def test_a_strided_x_is_read_as_its_values(native_available):
+    matrix, dense = _matrix(20, 11, seed=2)
+    wide = torch.randn(11, 6, dtype=torch.float64)
+    x = wide[:, ::2]
+    assert not x.is_contiguous()
+    torch.testing.assert_close(matrix.apply(x), dense @ x, rtol=1e-13, atol=1e-13)
+
+
+def test_gradients_of_first_and_second_order(native_available):
+    matrix, _ = _matrix(17, 13, seed=3)
+    x = torch.randn(13, 3, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(matrix.apply, (x,))
+    assert torch.autograd.gradgradcheck(matrix.apply, (x,))
+
+
+def test_rows_split_between_threads_give_one_threads_numbers(native_available, monkeypatch):
+    matrix, _ = _matrix(400, 90, seed=4)
+    x = torch.randn(90, 5)
+    monkeypatch.setattr(_native_gather, "THREAD_MIN_ROWS", 16)
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        alone = matrix.apply(x)
+        torch.set_num_threads(3)
+        assert torch.equal(matrix.apply(x), alone)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def test_without_the_kernel_embedding_bag_gives_the_numbers(monkeypatch, tmp_path):
+    matrix, dense = _matrix(30, 12, seed=5)
+    x = torch.randn(12, 4, dtype=torch.float64, requires_grad=True)
+    monkeypatch.setattr(_native_gather.LIBRARY, "_state", {})
+    monkeypatch.setenv("TORCHSURF_NATIVE", "never")
+    assert not _native_gather.applies(matrix.offsets, x)
+    assert "TORCHSURF_NATIVE=never" in _native_gather.LIBRARY.unavailable_reason()
+    torch.testing.assert_close(matrix.apply(x), dense @ x, rtol=1e-13, atol=1e-13)
+    assert torch.autograd.gradcheck(matrix.apply, (x,))
+
+
+def test_wide_float32_data_is_left_to_embedding_bag(native_available):
+    matrix, _ = _matrix(10, 7, seed=6)
+    narrow, wide = torch.randn(7, 16), torch.randn(7, 17)
+    assert _native_gather.applies(matrix.offsets, narrow)
+    assert not _native_gather.applies(matrix.offsets, wide)
+    assert _native_gather.applies(matrix.offsets, wide.double())
