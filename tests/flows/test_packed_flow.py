@@ -8,7 +8,7 @@ import pytest
 import torch
 
 import torchsurf as ts
-from torchsurf.flows import HeatFlow
+from torchsurf.flows import HeatFlow, heat
 from torchsurf.flows.exponential import BandLaplacian
 from torchsurf.operators import functional
 
@@ -25,7 +25,7 @@ def _both(make_flow, u: torch.Tensor, surface: ts.ImplicitSurface, monkeypatch,
     return packed, volume
 
 
-@pytest.mark.parametrize("kind", ["two shapes", "bunny", "tanh"])
+@pytest.mark.parametrize("kind", ["two shapes", "bunny", "tanh", "bricks"])
 @pytest.mark.parametrize("options", [
     {}, {"reextend_every": 1}, {"method": "euler", "cells": 0.5}, {"diffusivity": [1.0, 2.5]},
     {"cells": 60.0}, {"scheme": "symmetric"},
@@ -53,10 +53,11 @@ def test_packed_flow_returns_requested_times(monkeypatch):
     torch.testing.assert_close(packed, volume, rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.parametrize("kind", ["bunny", "bricks"])
 @pytest.mark.parametrize("learned", ["time", "diffusivity"])
-def test_packed_flow_gradients_are_the_volume_flows(learned, monkeypatch):
+def test_packed_flow_gradients_are_the_volume_flows(kind, learned, monkeypatch):
     """Gradients of the data and of a learned time or diffusivity (checkpointed steps)."""
-    surface = _surface("bunny")
+    surface = _surface(kind)
     u = _fields(surface, 1, seed=8)[0].abs()
     grad = _fields(surface, 1, seed=9)[0]
     time = 6.0 * surface.spacing**2
@@ -133,18 +134,22 @@ def test_a_subclass_with_its_own_equation_integrates_it():
     assert 0.0 <= float(result[band].min()) and float(result[band].max()) <= 0.99**100 + 1e-12
 
 
-def test_volume_stencils_where_asked_for_and_on_bricks():
+def test_volume_stencils_where_asked_for_and_on_large_bricks(monkeypatch):
     """``path="compiled"`` keeps the volume stencils (faster for one channel on small grids),
-    and so do brick surfaces."""
+    and so do brick surfaces whose band and ring exceed ``PACKED_BRICK_NODES`` (the C kernel,
+    and the bricks' memory bound)."""
     grid = ts.Grid.cube(13, 1.5)
     surface = ts.ImplicitSurface(ts.sdf.sphere(grid), grid)
     u = torch.rand(1, 1, *grid.shape, generator=torch.Generator().manual_seed(3))
     for path, packs in (("auto", True), ("slicing", True), ("compiled", False)):
         flow = HeatFlow(4 * surface.spacing**2, path=path)
         assert (flow.packed_system(flow.system(u, surface), u, surface) is not None) == packs
-    bricks = _surface("bricks")  # the C kernel, and the bricks' memory bound
+    bricks = _surface("bricks")
     v = _fields(bricks, 1, seed=4)[0]
     flow = HeatFlow(4 * bricks.spacing**2)
+    system = flow.system(v, bricks)
+    assert flow.packed_system(system, v, bricks) is not None
+    monkeypatch.setattr(heat, "PACKED_BRICK_NODES", int(system.region.sum()) - 1)
     assert flow.packed_system(flow.system(v, bricks), v, bricks) is None
 
 

@@ -34,6 +34,11 @@ with 1 / 2 / 4 / 8 / 16 pieces: 65^3 (t = 24 h^2) 1.21e-3, 8.4e-4, 7.7e-4, 7.6e-
 This rule takes 4 and 8."""
 
 
+PACKED_BRICK_NODES = 2**20
+"""Most band and ring nodes of a flow on bricks integrated on packed values
+(:meth:`HeatFlow.packed_system`): the 256^3 bunny's, not the 512^3 bunny's (4.6 M)."""
+
+
 class HeatFlow(Flow):
     """Heat flow on the surface: ``u_t = D Lap_S u``, ``Lap_S`` by :func:`torchsurf.laplace_beltrami`.
 
@@ -165,17 +170,16 @@ class HeatFlow(Flow):
         values: ``D W^-1 A z`` on the band's rows by the matrix read off the volume operator
         (:class:`~torchsurf.flows._packed_band.PackedRegion`, assembled once and kept on the
         surface), the explicit steps and re-extensions on the band and ring's nodes alone.
-        ``None`` (volumes) for a subclass that defines its own :meth:`system`; on bricks, whose
-        octant rate runs a C kernel on the band's bricks and whose flows keep to a memory bound
-        at 512^3 that the flow's stencils as matrices (about 1 kB a node) would strain; and
-        where compiled volume stencils are asked for (``path="compiled"``,
-        ``TORCHSURF_COMPILE=always``), which are faster for one channel on small grids
-        (compiled volumes against packed, one thread: 65^3, batch 1, 0.15 against 0.25 s;
-        batch 4, 0.51 against 0.36 s; 129^3, batch 1, 3.5 against 3.3 s)."""
+        ``None`` (volumes) for a subclass that defines its own :meth:`system`; on bricks whose
+        band and ring hold more than :data:`PACKED_BRICK_NODES` nodes (the flow's stencils as
+        matrices, about 1 kB a node, would strain the 4 GB the 512^3 bunny's flow keeps to;
+        there the C kernel applies the octant rate on the band's bricks); and where compiled
+        volume stencils are asked for (``path="compiled"``, ``TORCHSURF_COMPILE=always``)."""
         if (self.scheme not in functional.SCHEMES or surface.phi.requires_grad
                 or type(self).system is not HeatFlow.system  # a subclass's own equation
-                or self.path == "compiled" or backend.COMPILE == "always"
-                or surface.layout is not None):  # bricks: the C kernel, and their memory bound
+                or self.path == "compiled" or backend.COMPILE == "always"):
+            return None
+        if surface.layout is not None and int(system.region.sum()) > PACKED_BRICK_NODES:
             return None
         packing = kept_packing(surface, self.scheme, self.evolving_width(surface), system.band,
                                system.region)
