@@ -12,8 +12,10 @@ Four parts, each against a baseline measured in the same run:
 - **ratio**: one application on bricks against the dense volume, a sphere of radius 1.2 on
   ``[-1.5, 1.5]^3`` at ``--ratio-resolution``^3 (256): time ratio against voxel ratios, the
   compiled path over every stored node and the C kernel on the band.
-- **solution**: heat flow to ``t = 0.05`` on the unit sphere (``3 z^2 - 1``) at ``--sizes``,
-  on bricks with the default RKC, sampled error at 2000 points, against the mesh peer of
+- **solution**: heat flow to ``t = 0.05`` on the unit sphere (``3 z^2 - 1``) at the spacing of
+  ``bench_heat_flow.py``'s ``n^3`` box for each ``n`` of ``--sizes`` (the bricks' box a few cells
+  wider: they keep their band off its faces, and store only the band's bricks), on bricks with
+  ``--solution-method`` (the default RKC), sampled error at 2000 points, against the mesh peer of
   ``bench_heat_flow.py`` (cotangent Laplacian, lumped mass, SuperLU backward Euler on the
   icosphere of matching resolution, fewest steps reaching 1e-3).
 - **batch** (``--parts batch``, its own section): the five shared shapes (``--batch-meshes``),
@@ -26,6 +28,7 @@ Four parts, each against a baseline measured in the same run:
     PYTHONPATH=. python benchmarks/bench_bricks.py --output docs/benchmarks.md
     PYTHONPATH=. python benchmarks/bench_bricks.py --resolution 128 --ratio-resolution 96 --sizes 49
     PYTHONPATH=. python benchmarks/bench_bricks.py --parts ratio scale  # C kernel, compiled
+    PYTHONPATH=. python benchmarks/bench_bricks.py --parts solution --sizes 25 29 --solution-method euler
     PYTHONPATH=. python benchmarks/bench_bricks.py --parts batch --output docs/benchmarks.md
 
 Peak memory is the process's maximum resident set (``ru_maxrss``), so it is cumulative: the
@@ -194,30 +197,48 @@ def ratio(resolution: int) -> dict[str, float]:
     }
 
 
-def solution(sizes: list[int], target: float) -> tuple[list[dict], object]:
+SOLUTION_MARGIN = 3
+"""Cells added around the dense benchmark's box (same spacing) for bricks, which keep their
+band two nodes from the box's faces: they store only the band's bricks, so a wider box costs
+nothing."""
+
+
+def solution_grid(n: int) -> ts.Grid:
+    """The dense benchmark's ``n^3`` grid's spacing on a box :data:`SOLUTION_MARGIN` cells
+    wider on every side."""
+    spacing = 2 * _heat_bench.BOUND / (n - 1)
+    return ts.Grid.cube(n + 2 * SOLUTION_MARGIN,
+                        bound=_heat_bench.BOUND + SOLUTION_MARGIN * spacing)
+
+
+def solution(sizes: list[int], target: float, method: str = "rkc"
+             ) -> tuple[list[dict], object]:
     """Steady-state time to ``t = 0.05``: the flow runs once untimed, with every kernel compiled
     from the first call (``COMPILE_PAYBACK_SECONDS = 0``), so that ``"auto"`` does not switch
     from eager to compiled in the middle of the timed run."""
     payback = ts.backend.COMPILE_PAYBACK_SECONDS
     ts.backend.COMPILE_PAYBACK_SECONDS = 0.0
     try:
-        return _solution(sizes, target)
+        return _solution(sizes, target, method)
     finally:
         ts.backend.COMPILE_PAYBACK_SECONDS = payback
 
 
-def _solution(sizes: list[int], target: float) -> tuple[list[dict], object]:
+def _solution(sizes: list[int], target: float, method: str) -> tuple[list[dict], object]:
     rows = []
     for n in sizes:
-        grid, phi, u0 = _heat_bench.case(n, torch.float32)
+        grid = solution_grid(n)
+        phi = ts.sdf.sphere(grid, radius=1.0)
+        points = grid.points()
+        z = points[..., 2] / points.norm(dim=-1).clamp(min=1e-9)
         surface = bricks.from_dense(phi, grid)
-        packed = surface.from_dense(u0)
-        flow = ts.flows.HeatFlow(time=_heat_bench.TIME)
+        packed = surface.from_dense((3 * z**2 - 1)[None, None])
+        flow = ts.flows.HeatFlow(time=_heat_bench.TIME, method=method)
         flow(packed, surface)  # compile and the surface's one-off work out of the time
         result, seconds = _heat_bench.median_timed(
             lambda flow=flow, packed=packed, surface=surface: flow(packed, surface))
         (volume,) = surface.to_dense(result)
-        rows.append({"n": n, "seconds": seconds,
+        rows.append({"n": n, "seconds": seconds, "steps": flow.last_plan.count,
                      "error": _heat_bench.sampled_error(volume, grid),
                      "samples": _heat_bench.surface_samples(phi, grid)})
     reaching = [r for r in rows if r["error"] <= target]
@@ -444,9 +465,12 @@ def markdown(args, bandwidth: float, scaled: dict | None, ratioed: dict | None,
         ]
     if solved is not None:
         rows, (best, peer) = solved
-        lines += ["**Time to solution**: heat to t = 0.05 on the unit sphere, RKC on bricks.", "",
-                  "| n | seconds | sampled error |", "|---|---|---|"]
-        lines += [f"| {r['n']} | {r['seconds']:.3f} | {r['error']:.2e} |" for r in rows]
+        lines += [f"**Time to solution**: heat to t = 0.05 on the unit sphere, "
+                  f"`method=\"{args.solution_method}\"` on bricks, at the spacing of the dense "
+                  f"benchmark's n^3 box (bricks on a box {SOLUTION_MARGIN} cells wider a side).",
+                  "", "| n | steps | seconds | sampled error |", "|---|---|---|---|"]
+        lines += [f"| {r['n']} | {r['steps']} | {r['seconds']:.4f} | {r['error']:.2e} |"
+                  for r in rows]
         if best is not None and peer is not None:
             lines += ["", f"Mesh peer: icosphere({peer.subdivisions}), {peer.vertices} vertices, "
                       f"{peer.steps} backward Euler steps, {peer.seconds:.3f} s, error "
@@ -462,6 +486,8 @@ def main(argv: list[str] | None = None) -> str:
     parser.add_argument("--ratio-resolution", type=int, default=256)
     parser.add_argument("--sizes", type=int, nargs="+", default=[65, 81, 97])
     parser.add_argument("--target", type=float, default=1e-3)
+    parser.add_argument("--solution-method", default="rkc",
+                        choices=["rkc", "euler", "heun"])
     parser.add_argument("--parts", nargs="+", default=["scale", "ratio", "solution"],
                         choices=["scale", "ratio", "solution", "batch"])
     parser.add_argument("--batch-meshes", nargs="+", type=Path,
@@ -494,7 +520,8 @@ def main(argv: list[str] | None = None) -> str:
     bandwidth = max(_lb_bench.memory_bandwidth().values())
     scaled = scale(Path(args.mesh), args.resolution, bandwidth) if "scale" in args.parts else None
     ratioed = ratio(args.ratio_resolution) if "ratio" in args.parts else None
-    solved = solution(args.sizes, args.target) if "solution" in args.parts else None
+    solved = (solution(args.sizes, args.target, args.solution_method)
+              if "solution" in args.parts else None)
     body = markdown(args, bandwidth, scaled, ratioed, solved)
     print(body)
     if args.output is not None:
