@@ -68,9 +68,12 @@ def test_bricks_benchmark_time_to_solution_and_report():
     rows, (best, peer) = module.solution([41], target=0.05)
     assert rows[0]["error"] < 0.05 and best is rows[0]
     assert peer.error <= 0.05 or not peer.reached
-    args = module.argparse.Namespace(mesh="bunny_closed.obj")
+    args = module.argparse.Namespace(mesh="bunny_closed.obj", solution_method="rkc")
     text = module.markdown(args, 20.0, None, None, (rows, (best, peer)))
     assert "| 41 |" in text and "Mesh peer" in text
+    # at the dense case's spacing, on a box wide enough for bricks: Euler on the 25^3 spacing
+    rows, _ = module.solution([25], target=0.05, method="euler")
+    assert rows[0]["error"] < 1e-3 and rows[0]["steps"] > 1
 
 
 
