@@ -63,10 +63,10 @@ class HeatFlow(Flow):
     re-extensions the same closest-point stencils as gathers, all assembled on the first call
     and kept on the surface (:class:`~torchsurf.flows._packed_band.PackedRegion`); the results
     equal the volume integration's to rounding, at the cost of the band's nodes instead of the
-    box's (64^3, batch 4: 0.47 against 1.6 s eager, 0.51 s compiled). A ``phi`` that requires
-    grad, a brick surface, a subclass with its own :meth:`system`, ``reextend_every=None`` or
-    ``path="compiled"`` (whose compiled volume stencils are faster for one channel on small
-    grids: 65^3, batch 1, 0.15 against 0.25 s) integrate volumes.
+    box's (unit sphere, 64^3, batch 4, to 16 h^2: 0.23 s against 1.2-2.4 s with eager volume
+    stencils; 65^3, batch 1: 0.14 against 0.22 s compiled). A ``phi`` that requires grad, a
+    brick surface of more than :data:`PACKED_BRICK_NODES` band and ring nodes, a subclass with
+    its own :meth:`system`, ``reextend_every=None`` or ``path="compiled"`` integrate volumes.
 
     ``method="chebyshev"`` applies the heat semigroup ``exp(t D Lap_S)`` by Chebyshev
     expansions (:func:`torchsurf.flows.exponential.heat_semigroup`, divergence-form schemes
