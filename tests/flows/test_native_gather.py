@@ -7,7 +7,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from torchsurf.flows import _native_gather
+import torchsurf as ts
+from torchsurf.flows import HeatFlow, _native_gather
 from torchsurf.flows._gather_matrix import GatherMatrix
 
 
@@ -92,3 +93,23 @@ def test_wide_float32_data_is_left_to_embedding_bag(native_available):
     assert _native_gather.applies(matrix.offsets, narrow)
     assert not _native_gather.applies(matrix.offsets, wide)
     assert _native_gather.applies(matrix.offsets, wide.double())
+
+
+def test_the_packed_stencils_clamp_keeps_nans_as_torch_does(native_available, monkeypatch):
+    """A NaN at a cell's node or among the taps stays NaN in the re-extended value, with the C
+    clamp as with ``aminmax``."""
+    grid = ts.Grid.cube(15, 1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, 1.0, dtype=torch.float64), grid)
+    flow = HeatFlow(2 * surface.spacing**2, reextend_every=1)
+    flow(torch.rand(1, 1, *grid.shape, dtype=torch.float64), surface)
+    packing = next(v for k, v in surface._kept.items() if k[0] == "packed region")
+    stencil = next(iter(packing._stencils.values()))[1]
+    z = torch.rand(len(packing.nodes), 1, 2, dtype=torch.float64)
+    z[int(stencil.cells[5]), 0, 1] = float("nan")
+    native = stencil.apply(z)
+    monkeypatch.setattr(_native_gather, "clamped_into", lambda *args: None)
+    expected = stencil.apply(z)
+    assert torch.equal(torch.isnan(native), torch.isnan(expected))
+    assert bool(torch.isnan(native).any())
+    torch.testing.assert_close(native.nan_to_num(), expected.nan_to_num(), rtol=1e-15,
+                               atol=1e-15)

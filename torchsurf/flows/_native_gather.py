@@ -127,13 +127,16 @@ void clamp_into_SUFFIX(const int32_t *cells, const int64_t *rows, const REAL *x,
         REAL *target = out + rows[r] * F;
         for (int64_t f = 0; f < F; ++f) {
             REAL low = x[(int64_t)cell[0] * F + f], high = low;
+            int nan = low != low;
             for (int k = 1; k < 8; ++k) {
                 REAL v = x[(int64_t)cell[k] * F + f];
+                nan |= v != v;
                 low = v < low ? v : low;
                 high = v > high ? v : high;
             }
             REAL v = value[r * F + f];
-            target[f] = v < low ? low : v > high ? high : v;
+            /* a NaN among the cell's nodes or in the value stays NaN, as torch's clamp keeps it */
+            target[f] = nan ? (REAL)NAN : v < low ? low : v > high ? high : v;
         }
     }
 }
@@ -164,7 +167,7 @@ void scatter_SUFFIX(const int32_t *offsets, const int32_t *columns, const REAL *
 
 
 def _source() -> str:
-    source = "#include <stdint.h>\n#include <string.h>\n"
+    source = "#include <math.h>\n#include <stdint.h>\n#include <string.h>\n"
     for real, suffix in (("float", "f32"), ("double", "f64")):
         source += _BODY.replace("REAL", real).replace("SUFFIX", suffix)
     return source
@@ -203,7 +206,7 @@ def applies(offsets: Tensor, x: Tensor) -> bool:
 
 def _product(offsets: Tensor, columns: Tensor, weights: Tensor, x: Tensor,
              rows: int) -> Tensor:
-    x = x.contiguous()
+    x, offsets, columns, weights = (t.contiguous() for t in (x, offsets, columns, weights))
     out = torch.empty((rows, x.shape[1]), dtype=x.dtype)
     kernel = getattr(LIBRARY.load(), f"product_{_SUFFIX[x.dtype]}")
     features = x.shape[1]
@@ -218,7 +221,7 @@ def _product(offsets: Tensor, columns: Tensor, weights: Tensor, x: Tensor,
 
 def _scatter(offsets: Tensor, columns: Tensor, weights: Tensor, g: Tensor,
              count: int) -> Tensor:
-    g = g.contiguous()
+    g, offsets, columns, weights = (t.contiguous() for t in (g, offsets, columns, weights))
     out = torch.zeros((count, g.shape[1]), dtype=g.dtype)
     kernel = getattr(LIBRARY.load(), f"scatter_{_SUFFIX[g.dtype]}")
     kernel(offsets.data_ptr(), columns.data_ptr(), weights.data_ptr(), g.data_ptr(),
@@ -273,7 +276,7 @@ def clamped_into(z: Tensor, value: Tensor, cells: Tensor, rows: Tensor) -> Tenso
     if (not applies(cells, z) or value.dtype != z.dtype or rows.dtype != torch.int64
             or (torch.is_grad_enabled() and (z.requires_grad or value.requires_grad))):
         return None
-    z, value = z.contiguous(), value.contiguous()
+    z, value, cells, rows = (t.contiguous() for t in (z, value, cells, rows))
     out = z.clone()
     kernel = getattr(LIBRARY.load(), f"clamp_into_{_SUFFIX[z.dtype]}")
     features = z.shape[1]
