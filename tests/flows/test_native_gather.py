@@ -113,3 +113,24 @@ def test_the_packed_stencils_clamp_keeps_nans_as_torch_does(native_available, mo
     assert bool(torch.isnan(native).any())
     torch.testing.assert_close(native.nan_to_num(), expected.nan_to_num(), rtol=1e-15,
                                atol=1e-15)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_one_column_by_row_blocks_reads_no_padding(native_available, dtype):
+    """Rows of 0-30 entries in blocks of 8 (the last block partial): a row shorter than its
+    block's longest never reads the padded slots, so an infinite value of ``x`` reaches only
+    the rows that read it, as in a row-by-row product."""
+    matrix, dense = _matrix(61, 19, seed=7)
+    x = torch.randn(19, 1, dtype=torch.float64)
+    x[0] = float("inf")  # the padded slots' column
+    out = matrix.apply(x.to(dtype)).double()
+    assert matrix._blocks is not None
+    reads = dense[:, 0] != 0
+    assert bool(reads.any()) and bool((~reads).any())
+    assert not bool(torch.isfinite(out[reads]).any())
+    finite = x.clone()
+    finite[0] = 0.0
+    tolerance = 1e-13 if dtype == torch.float64 else 2e-5
+    torch.testing.assert_close(out[~reads], (dense @ finite)[~reads], rtol=tolerance,
+                               atol=tolerance)
+    assert matrix.nbytes() > 4 * len(matrix._blocks.columns)

@@ -54,6 +54,7 @@ class GatherMatrix:
         self.columns = columns.to(index)
         self._values = {values.dtype: values}
         self._padded: _Padded | None = None
+        self._blocks: _native_gather.RowBlocks | None = None
 
     @classmethod
     def of_rows(cls, columns: Tensor, values: Tensor, count: int) -> GatherMatrix:
@@ -69,6 +70,7 @@ class GatherMatrix:
         matrix.columns = columns.reshape(-1).to(index)
         matrix._values = {values.dtype: values.reshape(-1)}
         matrix._padded = None
+        matrix._blocks = None
         return matrix
 
     def values(self, dtype: torch.dtype) -> Tensor:
@@ -89,8 +91,13 @@ class GatherMatrix:
         if self.nonzeros == 0:
             return x.new_zeros((self.shape[0], x.shape[1]))
         if _native_gather.applies(self.offsets, x):
+            blocks = None
+            if x.shape[1] == 1:
+                if self._blocks is None:
+                    self._blocks = _native_gather.RowBlocks(self.offsets, self.columns)
+                blocks = self._blocks
             return _native_gather.product(self.offsets, self.columns, self.values(x.dtype), x,
-                                          self.shape[0])
+                                          self.shape[0], blocks)
         if x.dtype in BAGGED:
             return F.embedding_bag(self.columns, x, self.offsets, mode="sum",
                                    per_sample_weights=self.values(x.dtype),
@@ -110,6 +117,8 @@ class GatherMatrix:
         tensors = [self.offsets, self.columns, *self._values.values()]
         if self._padded is not None:
             tensors += self._padded.tensors()
+        if self._blocks is not None:
+            tensors += self._blocks.tensors()
         return sum(t.numel() * t.element_size() for t in tensors)
 
 
