@@ -134,3 +134,6 @@ def test_one_column_by_row_blocks_reads_no_padding(native_available, dtype):
     torch.testing.assert_close(out[~reads], (dense @ finite)[~reads], rtol=tolerance,
                                atol=tolerance)
     assert matrix.nbytes() > 4 * len(matrix._blocks.columns)
+    other = torch.float32 if dtype == torch.float64 else torch.float64  # the layout's 2nd dtype
+    torch.testing.assert_close(matrix.apply(finite.to(other)).double(), dense @ finite,
+                               rtol=2e-5, atol=2e-5)

@@ -94,7 +94,8 @@ class GatherMatrix:
             blocks = None
             if x.shape[1] == 1:
                 if self._blocks is None:
-                    self._blocks = _native_gather.RowBlocks(self.offsets, self.columns)
+                    self._blocks = _native_gather.RowBlocks(self.offsets, self.columns,
+                                                            self.values(x.dtype))
                 blocks = self._blocks
             return _native_gather.product(self.offsets, self.columns, self.values(x.dtype), x,
                                           self.shape[0], blocks)

@@ -257,10 +257,11 @@ class RowBlocks:
     entries again, plus the padding.
 
     Args:
-        offsets, columns: the compressed rows' ``(rows + 1,)`` and ``(nnz,)``.
+        offsets, columns, values: the compressed rows' ``(rows + 1,)``, ``(nnz,)`` and
+            ``(nnz,)``.
     """
 
-    def __init__(self, offsets: Tensor, columns: Tensor) -> None:
+    def __init__(self, offsets: Tensor, columns: Tensor, values: Tensor) -> None:
         rows = len(offsets) - 1
         counts = (offsets[1:] - offsets[:-1]).long()
         blocks = (rows + 7) // 8
@@ -271,30 +272,29 @@ class RowBlocks:
         starts[1:] = torch.cumsum(by_block.amax(1) * 8, 0)
         row = torch.repeat_interleave(torch.arange(rows), counts)
         rank = torch.arange(len(row)) - offsets[:-1].long()[row]
-        self.position = starts[row // 8] + rank * 8 + row % 8
+        position = starts[row // 8] + rank * 8 + row % 8
         self.columns = torch.zeros(int(starts[-1]), dtype=torch.int32)
-        self.columns[self.position] = columns.to(torch.int32)
+        self.columns[position] = columns.to(torch.int32)
+        laid = values.new_zeros(len(self.columns))
+        laid[position] = values
+        self._weights = {values.dtype: laid}
         self.starts, self.blocks, self.rows = starts, blocks, rows
         self.shared = by_block.amin(1).to(torch.int32)
         self.counts = padded.to(torch.int32)
-        self._weights: dict[torch.dtype, Tensor] = {}
 
-    def weights(self, values: Tensor) -> Tensor:
-        """The compressed rows' ``values`` ``(nnz,)`` in this layout (kept per dtype)."""
-        if values.dtype not in self._weights:
-            laid = values.new_zeros(len(self.columns))
-            laid[self.position] = values
-            self._weights[values.dtype] = laid
-        return self._weights[values.dtype]
+    def weights(self, dtype: torch.dtype) -> Tensor:
+        """The entries in this layout, in ``dtype`` (converted once and kept)."""
+        if dtype not in self._weights:
+            self._weights[dtype] = next(iter(self._weights.values())).to(dtype)
+        return self._weights[dtype]
 
     def tensors(self) -> list[Tensor]:
         """What this layout keeps."""
-        return [self.starts, self.shared, self.counts, self.columns, self.position,
-                *self._weights.values()]
+        return [self.starts, self.shared, self.counts, self.columns, *self._weights.values()]
 
-    def apply(self, values: Tensor, x: Tensor) -> Tensor:
+    def apply(self, x: Tensor) -> Tensor:
         """``A x`` for ``x`` ``(columns, 1)``, contiguous: ``(rows, 1)``."""
-        weights = self.weights(values)
+        weights = self.weights(x.dtype)
         out = torch.empty((self.blocks * 8, 1), dtype=x.dtype)
         kernel = getattr(LIBRARY.load(), f"product_blocks_{_SUFFIX[x.dtype]}")
 
@@ -311,7 +311,7 @@ def _product(offsets: Tensor, columns: Tensor, weights: Tensor, x: Tensor,
              rows: int, blocks: RowBlocks | None = None) -> Tensor:
     x, offsets, columns, weights = (t.contiguous() for t in (x, offsets, columns, weights))
     if blocks is not None and x.shape[1] == 1:
-        return blocks.apply(weights, x)
+        return blocks.apply(x)
     out = torch.empty((rows, x.shape[1]), dtype=x.dtype)
     kernel = getattr(LIBRARY.load(), f"product_{_SUFFIX[x.dtype]}")
     features = x.shape[1]
