@@ -22,7 +22,9 @@ def _saved_bytes(run) -> tuple[torch.Tensor, int]:
     return value, total
 
 
-@pytest.mark.parametrize("method,steps", [("euler", 64), ("rkc", None), ("heun", 36)])
+# steps enough that what each step saves dominates: the packed steps save little (RKC's plan of
+# 3 steps saved 0.79 MB without checkpointing, 0.45 MB with it, mostly the call's own)
+@pytest.mark.parametrize("method,steps", [("euler", 64), ("rkc", 16), ("heun", 36)])
 def test_checkpointing_keeps_gradients_and_cuts_saved_memory(method, steps):
     grid = ts.Grid.cube(17, 1.5)
     surface = ts.ImplicitSurface(ts.sdf.sphere(grid, dtype=torch.float64), grid)

@@ -95,19 +95,24 @@ def test_wide_float32_data_is_left_to_embedding_bag(native_available):
     assert _native_gather.applies(matrix.offsets, wide.double())
 
 
-def test_the_packed_stencils_clamp_keeps_nans_as_torch_does(native_available, monkeypatch):
-    """A NaN at a cell's node or among the taps stays NaN in the re-extended value, with the C
-    clamp as with ``aminmax``."""
+def _packed_stencil():
+    """A sphere's packed region and its band's limited closest-point stencil (a flow's)."""
     grid = ts.Grid.cube(15, 1.5)
     surface = ts.ImplicitSurface(ts.sdf.sphere(grid, 1.0, dtype=torch.float64), grid)
     flow = HeatFlow(2 * surface.spacing**2, reextend_every=1)
     flow(torch.rand(1, 1, *grid.shape, dtype=torch.float64), surface)
     packing = next(v for k, v in surface._kept.items() if k[0] == "packed region")
-    stencil = next(iter(packing._stencils.values()))[1]
+    return packing, next(iter(packing._stencils.values()))[1]
+
+
+def test_the_packed_stencils_clamp_keeps_nans_as_torch_does(native_available, monkeypatch):
+    """A NaN at a cell's node or among the taps stays NaN in the re-extended value, with the C
+    clamp as with ``aminmax``."""
+    packing, stencil = _packed_stencil()
     z = torch.rand(len(packing.nodes), 1, 2, dtype=torch.float64)
     z[int(stencil.cells[5]), 0, 1] = float("nan")
     native = stencil.apply(z)
-    monkeypatch.setattr(_native_gather, "clamped_into", lambda *args: None)
+    monkeypatch.setattr(_native_gather, "limited", lambda *args: None)
     expected = stencil.apply(z)
     assert torch.equal(torch.isnan(native), torch.isnan(expected))
     assert bool(torch.isnan(native).any())
@@ -137,3 +142,27 @@ def test_one_column_by_row_blocks_reads_no_padding(native_available, dtype):
     other = torch.float32 if dtype == torch.float64 else torch.float64  # the layout's 2nd dtype
     torch.testing.assert_close(matrix.apply(finite.to(other)).double(), dense @ finite,
                                rtol=2e-5, atol=2e-5)
+
+
+def test_the_packed_stencils_gradient_is_torchs_and_passes_gradcheck(native_available,
+                                                                     monkeypatch):
+    """Rough data (many values clamped): the C clamp's recorded codes give the gradient of
+    autograd through torch's clamp (no ties in random data), and gradcheck holds."""
+    packing, stencil = _packed_stencil()
+    generator = torch.Generator().manual_seed(8)
+    z = torch.rand(len(packing.nodes), 1, 3, dtype=torch.float64, generator=generator)
+    g = torch.randn(z.shape, dtype=torch.float64, generator=generator)
+    grads = []
+    for native in (True, False):
+        with monkeypatch.context() as patch:
+            if not native:
+                patch.setattr(_native_gather, "limited", lambda *args: None)
+            x = z.clone().requires_grad_()
+            out = stencil.apply(x)
+            grads.append(torch.autograd.grad((out * g).sum(), x)[0])
+    flat = z.reshape(z.shape[0], -1)
+    written = stencil.apply(z).reshape(flat.shape)[stencil.rows]
+    assert int((written != stencil.matrix.apply(flat)).sum()) > 10  # the clamp's gradients
+    torch.testing.assert_close(grads[0], grads[1], rtol=1e-13, atol=1e-13)
+    small = z[:, :, :1].clone().requires_grad_()
+    assert torch.autograd.gradcheck(stencil.apply, (small,), eps=1e-7, atol=1e-6)

@@ -18,11 +18,15 @@ tracing (a ctypes call); elsewhere :func:`applies` is false and the caller gathe
 from __future__ import annotations
 
 import ctypes
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
 
 from .._native import NativeLibrary, in_threads
+
+if TYPE_CHECKING:
+    from ._gather_matrix import GatherMatrix
 
 _BODY = r"""
 typedef REAL v8_SUFFIX __attribute__((vector_size(8 * sizeof(REAL))));
@@ -160,27 +164,49 @@ void product_blocks_SUFFIX(const int64_t *starts, const int32_t *shared, const i
 }
 
 /* out[rows[r], :] = value[r, :] clamped to the range of x[cells[r, 0:8], :], r in [first, stop):
-   the limited closest-point stencils' clamp to their cell's nodes. */
+   the limited closest-point stencils' clamp to their cell's nodes. Where codes is not NULL it
+   records, per target and column, what the value's gradient reaches: 0 the taps (not clamped),
+   1 + k the cell's node k holding its minimum (clamped below), 9 + k its maximum (above); the
+   first such node, strict comparisons (a value equal to a bound is not clamped). */
 void clamp_into_SUFFIX(const int32_t *cells, const int64_t *rows, const REAL *x,
-        const REAL *value, REAL *out, int64_t first, int64_t stop, int64_t F)
+        const REAL *value, REAL *out, uint8_t *codes, int64_t first, int64_t stop, int64_t F)
 {
     for (int64_t r = first; r < stop; ++r) {
         const int32_t *cell = cells + r * 8;
         REAL *target = out + rows[r] * F;
         for (int64_t f = 0; f < F; ++f) {
             REAL low = x[(int64_t)cell[0] * F + f], high = low;
-            int nan = low != low;
+            int lowest = 0, highest = 0, nan = low != low;
             for (int k = 1; k < 8; ++k) {
                 REAL v = x[(int64_t)cell[k] * F + f];
                 nan |= v != v;
-                low = v < low ? v : low;
-                high = v > high ? v : high;
+                if (v < low) { low = v; lowest = k; }
+                if (v > high) { high = v; highest = k; }
             }
             REAL v = value[r * F + f];
-            /* a NaN among the cell's nodes or in the value stays NaN, as torch's clamp keeps it */
-            target[f] = nan ? (REAL)NAN : v < low ? low : v > high ? high : v;
+            uint8_t code = 0;
+            if (nan) v = (REAL)NAN;   /* as torch's clamp keeps a NaN */
+            else if (v < low) { v = low; code = (uint8_t)(1 + lowest); }
+            else if (v > high) { v = high; code = (uint8_t)(9 + highest); }
+            target[f] = v;
+            if (codes) codes[r * F + f] = code;
         }
     }
+}
+
+/* The clamp's backward: for each target r and column, the gradient g[rows[r]] goes to the
+   values' taps (into taps[r], for the transposed product) or to the cell node codes names
+   (added into grad, whose target rows the caller zeroed); one thread. */
+void clamp_back_SUFFIX(const int32_t *cells, const int64_t *rows, const uint8_t *codes,
+        const REAL *g, REAL *grad, REAL *taps, int64_t count, int64_t F)
+{
+    for (int64_t r = 0; r < count; ++r)
+        for (int64_t f = 0; f < F; ++f) {
+            REAL incoming = g[rows[r] * F + f];
+            uint8_t code = codes[r * F + f];
+            taps[r * F + f] = code ? (REAL)0 : incoming;
+            if (code) grad[(int64_t)cells[r * 8 + ((code - 1) & 7)] * F + f] += incoming;
+        }
 }
 
 /* out[columns[e], :] += weights[e] g[r, :] over every entry: the transposed product, into a
@@ -220,7 +246,10 @@ LIBRARY = NativeLibrary(
     "gather_rows", _source,
     {**{f"product_{s}": _POINTERS + [ctypes.c_int64] * 3 for s in ("f32", "f64")},
      **{f"scatter_{s}": _POINTERS + [ctypes.c_int64] * 2 for s in ("f32", "f64")},
-     **{f"clamp_into_{s}": _POINTERS + [ctypes.c_int64] * 3 for s in ("f32", "f64")},
+     **{f"clamp_into_{s}": [ctypes.c_void_p] * 6 + [ctypes.c_int64] * 3
+        for s in ("f32", "f64")},
+     **{f"clamp_back_{s}": [ctypes.c_void_p] * 6 + [ctypes.c_int64] * 2
+        for s in ("f32", "f64")},
      **{f"product_blocks_{s}": [ctypes.c_void_p] * 7 + [ctypes.c_int64] * 2
         for s in ("f32", "f64")}},
     # the vectors are written out; loops vectorized by the compiler become gathers
@@ -373,23 +402,62 @@ def product(offsets: Tensor, columns: Tensor, weights: Tensor, x: Tensor,
     return _product(offsets, columns, weights, x, rows, blocks)
 
 
-def clamped_into(z: Tensor, value: Tensor, cells: Tensor, rows: Tensor) -> Tensor | None:
-    """A copy of ``z`` ``(nodes, F)`` whose rows ``rows`` ``(R,)`` (int64, distinct) hold
-    ``value`` ``(R, F)`` clamped to the range of the 8 rows ``cells`` ``(R * 8,)`` (int32) of
-    ``z``; ``None`` where the kernel does not run (:func:`applies`) or autograd records ``z`` or
-    ``value`` (the clamp's gradient picks among the cell's nodes: the caller's tensor
-    operations give it)."""
-    if (not applies(cells, z) or value.dtype != z.dtype or rows.dtype != torch.int64
-            or (torch.is_grad_enabled() and (z.requires_grad or value.requires_grad))):
-        return None
-    z, value, cells, rows = (t.contiguous() for t in (z, value, cells, rows))
+def _clamped_into(z: Tensor, value: Tensor, cells: Tensor, rows: Tensor,
+                  codes: Tensor | None) -> Tensor:
     out = z.clone()
     kernel = getattr(LIBRARY.load(), f"clamp_into_{_SUFFIX[z.dtype]}")
     features = z.shape[1]
+    code_pointer = None if codes is None else codes.data_ptr()
 
     def run(first: int, stop: int) -> None:
         kernel(cells.data_ptr(), rows.data_ptr(), z.data_ptr(), value.data_ptr(),
-               out.data_ptr(), first, stop, features)
+               out.data_ptr(), code_pointer, first, stop, features)
 
     in_threads(run, len(rows), THREAD_MIN_ROWS)
     return out
+
+
+class _Limited(torch.autograd.Function):
+    """A limited stencil's ``z -> z`` with its targets' values replaced (:func:`limited`);
+    backward by the recorded clamp codes and the transposed product, nothing else saved."""
+
+    @staticmethod
+    def forward(ctx, z, matrix, cells, rows):  # noqa: ANN001, ANN205
+        with torch.no_grad():
+            value = matrix.apply(z)
+        codes = torch.empty((len(rows), z.shape[1]), dtype=torch.uint8)
+        out = _clamped_into(z, value, cells, rows, codes)
+        # the stencil keeps its matrix, cells and rows; the codes are this call's (saved so
+        # that checkpointing frees and recomputes them)
+        ctx.matrix, ctx.cells, ctx.rows = matrix, cells, rows
+        ctx.save_for_backward(codes)
+        return out
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, g):  # noqa: ANN001, ANN205
+        (codes,) = ctx.saved_tensors
+        g = g.contiguous()
+        grad = g.index_fill(0, ctx.rows, 0.0)
+        taps = torch.empty((len(ctx.rows), g.shape[1]), dtype=g.dtype)
+        getattr(LIBRARY.load(), f"clamp_back_{_SUFFIX[g.dtype]}")(
+            ctx.cells.data_ptr(), ctx.rows.data_ptr(), codes.data_ptr(), g.data_ptr(),
+            grad.data_ptr(), taps.data_ptr(), len(ctx.rows), g.shape[1])
+        matrix = ctx.matrix
+        grad += _scatter(matrix.offsets, matrix.columns, matrix.values(g.dtype), taps,
+                         g.shape[0])
+        return grad, None, None, None
+
+
+def limited(z: Tensor, matrix: GatherMatrix, cells: Tensor, rows: Tensor) -> Tensor | None:
+    """A copy of ``z`` ``(nodes, F)`` whose rows ``rows`` ``(R,)`` (int64, distinct) hold
+    ``matrix @ z`` ``(R, F)`` clamped to the range of the 8 rows ``cells`` ``(R * 8,)`` (int32)
+    of ``z`` (a limited closest-point stencil); in autograd's graph when ``z`` is (the gradient
+    of a clamped value reaches the cell's node at that bound, the volume re-extension's rule).
+    ``None`` where the kernel does not run (:func:`applies`)."""
+    if not applies(cells, z) or not applies(matrix.offsets, z) or rows.dtype != torch.int64:
+        return None
+    z, cells, rows = (t.contiguous() for t in (z, cells, rows))
+    if torch.is_grad_enabled() and z.requires_grad:
+        return _Limited.apply(z, matrix, cells, rows)
+    return _clamped_into(z, matrix.apply(z), cells, rows, None)

@@ -270,10 +270,10 @@ class PackedStencil:
         if len(self.rows) == 0:
             return z.clone()
         flat = z.reshape(z.shape[0], -1)
-        value = self.matrix.apply(flat)
-        native = _native_gather.clamped_into(flat, value, self.cells, self.rows)
+        native = _native_gather.limited(flat, self.matrix, self.cells, self.rows)
         if native is not None:
             return native.reshape(z.shape)
+        value = self.matrix.apply(flat)
         # the cells' extremes in one pass (2.3x faster than embedding_bag's "max", twice)
         low, high = torch.aminmax(flat.index_select(0, self.cells).view(len(self.rows), 8, -1),
                                   dim=1)
