@@ -372,17 +372,20 @@ def heat_semigroup(u0: Tensor, operator: BandLaplacian, times: Tensor,
             packed.apply, packed.pack(u0), times, operator.bound, adjoint=packed.transpose,
             largest=largest,
         )
-        filled = packed.unpack(Fill.apply(packed, result), u0)
+        # the final re-extension on packed values too: the region's limited stencil as a
+        # PackedStencil (half the layer's training iteration when it gathered volumes)
+        filled = Fill.apply(packed, result)
+        extended = packed.unpack(packed.packing.stencil(operator.extension).apply(filled), u0)
+        return torch.where(operator.region, extended, u0)
+    inside = torch.where(operator.band, u0, u0.new_zeros(()))
+    result = chebyshev.expansion(
+        operator.apply, inside, times, operator.bound, adjoint=operator.transpose,
+        differentiable_operator=operator.differentiable, reads=(operator.surface.phi,),
+        largest=largest,
+    )
+    if operator.differentiable:
+        filled = operator.ring.apply(result, operator.path)
     else:
-        inside = torch.where(operator.band, u0, u0.new_zeros(()))
-        result = chebyshev.expansion(
-            operator.apply, inside, times, operator.bound, adjoint=operator.transpose,
-            differentiable_operator=operator.differentiable, reads=(operator.surface.phi,),
-            largest=largest,
-        )
-        if operator.differentiable:
-            filled = operator.ring.apply(result, operator.path)
-        else:
-            filled = _Extend.apply(operator.ring, result, operator.path)
+        filled = _Extend.apply(operator.ring, result, operator.path)
     extended = reextend(operator.extension, filled, operator.path)
     return torch.where(operator.region, extended, u0)
