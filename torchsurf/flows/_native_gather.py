@@ -12,7 +12,7 @@ entries, on one thread. An autograd function pairs the two, so gradients (of any
 
 It runs on the CPU in float32 and float64 with 32-bit indices, outside ``torch.compile``'s
 tracing (a ctypes call); elsewhere :func:`applies` is false and the caller gathers by
-``embedding_bag``. Compiled once per machine (:mod:`torchsurf._native`).
+``embedding_bag``. Compiled once per machine (:mod:`torchsurf._native`; about a second).
 """
 
 from __future__ import annotations
