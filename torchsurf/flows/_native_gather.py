@@ -18,15 +18,24 @@ tracing (a ctypes call); elsewhere :func:`applies` is false and the caller gathe
 from __future__ import annotations
 
 import ctypes
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import torch
 from torch import Tensor
 
 from .._native import NativeLibrary, in_threads
 
-if TYPE_CHECKING:
-    from ._gather_matrix import GatherMatrix
+
+class RowMatrix(Protocol):
+    """What :func:`limited` reads of a compressed-row matrix
+    (:class:`~torchsurf.flows._gather_matrix.GatherMatrix` is one)."""
+
+    offsets: Tensor
+    columns: Tensor
+
+    def values(self, dtype: torch.dtype) -> Tensor: ...
+
+    def apply(self, x: Tensor) -> Tensor: ...
 
 _BODY = r"""
 typedef REAL v8_SUFFIX __attribute__((vector_size(8 * sizeof(REAL))));
@@ -449,7 +458,7 @@ class _Limited(torch.autograd.Function):
         return grad, None, None, None
 
 
-def limited(z: Tensor, matrix: GatherMatrix, cells: Tensor, rows: Tensor) -> Tensor | None:
+def limited(z: Tensor, matrix: RowMatrix, cells: Tensor, rows: Tensor) -> Tensor | None:
     """A copy of ``z`` ``(nodes, F)`` whose rows ``rows`` ``(R,)`` (int64, distinct) hold
     ``matrix @ z`` ``(R, F)`` clamped to the range of the 8 rows ``cells`` ``(R * 8,)`` (int32)
     of ``z`` (a limited closest-point stencil); in autograd's graph when ``z`` is (the gradient
