@@ -3,10 +3,11 @@
 A :class:`GatherMatrix` of ``R`` rows holds its entries row by row (compressed rows: each row's
 columns and weights, and where each row starts). ``A x`` for ``x`` ``(N, F)`` is, for each row,
 the weighted sum of the rows of ``x`` its columns name. On the CPU a small C kernel computes it
-(:mod:`torchsurf.flows._native_gather`: 1.8-2.4x faster than ``embedding_bag`` for 1-8
-columns); where that kernel does not run (no compiler, ``torch.compile`` tracing, other
-devices) :func:`torch.nn.functional.embedding_bag` with ``mode="sum"`` and per-sample weights
-computes the same sums in one call (FBGEMM's kernel in float32, a standard operator that
+(:mod:`torchsurf.flows._native_gather`: 1.5-5x faster than ``embedding_bag`` for 1-8
+columns, on a par at 16, its backward 10-30x faster); where that kernel does not run (no
+compiler, ``torch.compile`` tracing, other devices, more than 16 float32 columns)
+:func:`torch.nn.functional.embedding_bag` with ``mode="sum"`` and per-sample weights computes
+the same sums in one call (FBGEMM's kernel in float32, a standard operator that
 ``torch.compile`` traces). Other dtypes take the padded form: each row's entries padded to the
 longest row's count ``T``, applied as ``T`` row gathers (``index_select``) and fused
 multiply-adds.

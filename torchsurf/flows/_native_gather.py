@@ -37,6 +37,7 @@ class RowMatrix(Protocol):
 
     def apply(self, x: Tensor) -> Tensor: ...
 
+
 _BODY = r"""
 typedef REAL v8_SUFFIX __attribute__((vector_size(8 * sizeof(REAL))));
 typedef REAL v4_SUFFIX __attribute__((vector_size(4 * sizeof(REAL))));
@@ -464,7 +465,8 @@ def limited(z: Tensor, matrix: RowMatrix, cells: Tensor, rows: Tensor) -> Tensor
     of ``z`` (a limited closest-point stencil); in autograd's graph when ``z`` is (the gradient
     of a clamped value reaches the cell's node at that bound, the volume re-extension's rule).
     ``None`` where the kernel does not run (:func:`applies`)."""
-    if not applies(cells, z) or not applies(matrix.offsets, z) or rows.dtype != torch.int64:
+    if (not applies(matrix.offsets, z) or cells.dtype != torch.int32
+            or rows.dtype != torch.int64):
         return None
     z, cells, rows = (t.contiguous() for t in (z, cells, rows))
     if torch.is_grad_enabled() and z.requires_grad:

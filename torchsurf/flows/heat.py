@@ -177,8 +177,8 @@ class HeatFlow(Flow):
         band and ring hold more than :data:`PACKED_BRICK_NODES` nodes (the flow's stencils as
         matrices, about 2 kB a node at their assembly, would strain the 4 GB the 512^3 bunny's
         flow keeps to; there the C kernel applies the octant rate on the band's bricks); and
-        where compiled
-        volume stencils are asked for (``path="compiled"``, ``TORCHSURF_COMPILE=always``)."""
+        where compiled volume stencils are asked for (``path="compiled"``,
+        ``TORCHSURF_COMPILE=always``)."""
         if (self.scheme not in functional.SCHEMES or surface.phi.requires_grad
                 or type(self).system is not HeatFlow.system  # a subclass's own equation
                 or self.path == "compiled" or backend.COMPILE == "always"):
