@@ -128,7 +128,7 @@ def scale(mesh_path: Path, resolution: int, bandwidth: float) -> dict[str, float
     first_s = time.perf_counter() - start
     lb_ms = median_ms(lambda: ts.laplace_beltrami(u, surface, path="compiled"))
     halo_ms = median_ms(lambda: layout.halo(u, 1))
-    native_ms, native_band_ms, native_first_s = _native_times(u, surface, band)
+    native_ms, native_band_ms, planes_ms, native_first_s = _native_times(u, surface, band)
     limit_ms = 1e3 * BYTES_PER_VOXEL * band_voxels / (bandwidth * 1e9)
     stored_limit_ms = 1e3 * BYTES_PER_VOXEL * stored / (bandwidth * 1e9)
     time_ = (8 * grid.spacing) ** 2
@@ -147,6 +147,7 @@ def scale(mesh_path: Path, resolution: int, bandwidth: float) -> dict[str, float
         "dense": math.prod(grid.shape), "built_gb": built_gb, "first_s": first_s,
         "lb_ms": lb_ms, "halo_ms": halo_ms, "limit_ms": limit_ms, "native_ms": native_ms,
         "native_band_ms": native_band_ms, "native_first_s": native_first_s,
+        "planes_ms": planes_ms,
         "stored_limit_ms": stored_limit_ms, "flow_time": time_, "flow_s": flow_s,
         "flow_first_s": flow_first_s,
         "noise_before": float(u[band].std()), "noise_after": float(smoothed[band].std()),
@@ -161,15 +162,32 @@ def _on_band(u, surface, band, path: str = "auto"):  # noqa: ANN001, ANN202
                                       pad=surface.layout.halo, mask=band)
 
 
-def _native_times(u, surface, band) -> tuple[float, float, float]:  # noqa: ANN001
+def _on_band_planes(surface, band):  # noqa: ANN001, ANN202
+    """The C kernel on the band reading the haloed geometry's planes, as it did before the
+    packed rows (2026-12-03): the same run's baseline for them."""
+    layout = surface.layout
+    normal, weight = surface.haloed()
+    tables = (layout.neighbours.contiguous(), layout.present.to(torch.uint8).contiguous())
+    bits = _native._RowBits()
+    return lambda u: _native.octant(u, normal, weight, *tables, bits, surface.spacing, False,
+                                    band)
+
+
+def _native_times(u, surface, band) -> tuple[float, float, float, float]:  # noqa: ANN001
     """The C kernel (``path="auto"`` on bricks, :mod:`torchsurf.bricks._native`): every stored
-    node and the band only, ms, and its first call (compiling it when not cached), s."""
+    node, the band only, and the band reading the haloed planes (alternated with the former),
+    ms, and its first call (compiling it when not cached), s."""
     start = time.perf_counter()
     if _native.library() is None:
-        return math.nan, math.nan, math.nan
+        return math.nan, math.nan, math.nan, math.nan
     first_s = time.perf_counter() - start
-    return (median_ms(lambda: ts.laplace_beltrami(u, surface)),
-            median_ms(lambda: _on_band(u, surface, band)), first_s)
+    planes = _on_band_planes(surface, band)
+    band_ms, planes_ms = [], []
+    for _ in range(RATIO_PAIRS):
+        band_ms.append(median_ms(lambda: _on_band(u, surface, band), 3))
+        planes_ms.append(median_ms(lambda: planes(u), 3))
+    return (median_ms(lambda: ts.laplace_beltrami(u, surface)), statistics.median(band_ms),
+            statistics.median(planes_ms), first_s)
 
 
 def ratio(resolution: int) -> dict[str, float]:
@@ -181,6 +199,8 @@ def ratio(resolution: int) -> dict[str, float]:
     # alternated, so that the host's bursts fall on both: the ratio of each pair, and its median
     band = surface.band_mask()
     dense_ms, brick_ms, ratios, native_ms, native_ratios = [], [], [], [], []
+    planes = _on_band_planes(surface, band) if _native.library() is not None else None
+    planes_ms = []
     for _ in range(RATIO_PAIRS):
         dense_ms.append(median_ms(lambda: ts.laplace_beltrami(u, dense, path="compiled"), 3))
         brick_ms.append(median_ms(lambda: ts.laplace_beltrami(packed, surface, path="compiled"),
@@ -188,10 +208,13 @@ def ratio(resolution: int) -> dict[str, float]:
         native_ms.append(median_ms(lambda: _on_band(packed, surface, band), 3))
         ratios.append(brick_ms[-1] / dense_ms[-1])
         native_ratios.append(native_ms[-1] / dense_ms[-1])
+        if planes is not None:
+            planes_ms.append(median_ms(lambda: planes(packed), 3))
     return {
         "resolution": resolution, "dense_ms": statistics.median(dense_ms),
         "brick_ms": statistics.median(brick_ms), "ratios": ratios,
         "native_ms": statistics.median(native_ms), "native_ratios": native_ratios,
+        "planes_ms": statistics.median(planes_ms) if planes_ms else math.nan,
         "stored": len(surface.layout) * bricks.BRICK**3,
         "band": int(surface.band_mask().sum()), "dense": resolution**3,
     }
@@ -437,7 +460,9 @@ def markdown(args, bandwidth: float, scaled: dict | None, ratioed: dict | None,
             f"| of which the halo gather | {s['halo_ms']:.1f} ms |",
             f"| one application by the C kernel (`path=\"auto\"`), every stored node / the band "
             f"only (as a flow applies it) | {s['native_ms']:.1f} ms / "
-            f"{s['native_band_ms']:.1f} ms (first call {s['native_first_s']:.2f} s) |",
+            f"{s['native_band_ms']:.1f} ms (first call {s['native_first_s']:.2f} s); the band "
+            f"reading the haloed planes instead of the packed rows (alternated, medians of "
+            f"{RATIO_PAIRS}): {s['planes_ms']:.1f} ms |",
             f"| traffic limit of the band's voxels / of the stored voxels | {s['limit_ms']:.2f} ms"
             f" / {s['stored_limit_ms']:.2f} ms (compiled: ratio "
             f"{s['lb_ms'] / s['limit_ms']:.1f} / {s['lb_ms'] / s['stored_limit_ms']:.1f}; the C "
@@ -460,7 +485,9 @@ def markdown(args, bandwidth: float, scaled: dict | None, ratioed: dict | None,
             f"{r['stored'] / r['dense']:.3f}, band/dense voxels {r['band'] / r['dense']:.3f}. "
             f"The C kernel on the band only (`path=\"auto\"`, as a flow applies it): "
             f"{r['native_ms']:.1f} ms, time ratio {statistics.median(r['native_ratios']):.3f} "
-            f"(pairs {', '.join(f'{x:.3f}' for x in r['native_ratios'])}).",
+            f"(pairs {', '.join(f'{x:.3f}' for x in r['native_ratios'])}); reading the "
+            f"haloed planes instead of the packed rows (the same pairs): {r['planes_ms']:.1f} ms, "
+            f"{r['planes_ms'] / r['native_ms']:.2f}x.",
             "",
         ]
     if solved is not None:

@@ -84,14 +84,18 @@ def test_bricks_benchmark_times_the_c_kernel_and_reports_it():
     surface = module.bricks.from_dense(ts.sdf.sphere(grid, 1.0), grid)
     band = surface.band_mask()
     u = torch.randn(len(surface.layout), 1, 8, 8, 8)
-    every, on_band, _ = module._native_times(u, surface, band)
+    every, on_band, planes, _ = module._native_times(u, surface, band)
     if module._native.library() is not None:
-        assert every > 0 and on_band > 0
+        assert every > 0 and on_band > 0 and planes > 0
+        assert torch.equal(module._on_band_planes(surface, band)(u),
+                           module._on_band(u, surface, band))
     ratioed = {"resolution": 33, "dense_ms": 2.0, "brick_ms": 1.0, "ratios": [0.5],
-               "native_ms": 0.3, "native_ratios": [0.15], "stored": 10, "band": 5, "dense": 100}
+               "native_ms": 0.3, "native_ratios": [0.15], "planes_ms": 0.45, "stored": 10,
+               "band": 5, "dense": 100}
     args = module.argparse.Namespace(mesh="bunny_closed.obj")
     text = module.markdown(args, 20.0, None, ratioed, None)
     assert "The C kernel on the band only" in text and "time ratio 0.150" in text
+    assert "0.5 ms, 1.50x" in text
 
 
 @pytest.fixture(scope="module")

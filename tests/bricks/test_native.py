@@ -175,3 +175,63 @@ def test_a_compiled_function_on_bricks_gives_the_same_numbers(torus, native_avai
     compiled = torch.compile(lambda v: _octant(surface, v, "auto", band), backend="eager")
     torch.testing.assert_close(compiled(u), _octant(surface, u, "slicing", band), rtol=0,
                                atol=1e-12 * float(_octant(surface, u, "slicing", band).abs().max()))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_the_band_reads_its_geometry_packed_with_the_numbers_of_the_haloed_planes(
+        two_boxes, native_available, dtype):
+    """With a mask the kernel reads the rows it needs from a plan packed once; bit for bit
+    what it computes from the haloed planes, on a batch with missing neighbours and odd boxes,
+    on threads too."""
+    _, _, both = two_boxes
+    surface = both.to(dtype)
+    layout = surface.layout
+    u = torch.randn(len(layout), 2, 8, 8, 8, dtype=dtype,
+                    generator=torch.Generator().manual_seed(5))
+    band = surface.band_mask()
+    normal, weight = surface.haloed()
+    tables = (layout.neighbours.contiguous(), layout.present.to(torch.uint8).contiguous())
+    planes = _native.octant(u, normal, weight, *tables, _native._RowBits(), surface.spacing,
+                            False, band)
+    plan = _native._GeometryPlan()
+    packed = _native.octant(u, normal, weight, *tables, _native._RowBits(), surface.spacing,
+                            False, band, plan)
+    assert torch.equal(packed, planes)
+    offsets, rows = plan._plan
+    assert offsets.shape == (len(layout) + 1,) and rows.numel() == 40 * int(offsets[-1])
+    assert rows.numel() < 0.8 * (normal.numel() + weight.numel())
+
+
+def test_the_packed_geometry_is_kept_for_the_same_band_and_follows_changes(torus,
+                                                                          native_available):
+    _, surface = torus
+    layout = surface.layout
+    u = torch.randn(len(layout), 1, 8, 8, 8, dtype=torch.float64)
+    band = surface.band_mask()
+    first = _octant(surface, u, "auto", band)
+    kept = layout._geometry_plan._plan[1]
+    again = _octant(surface, u, "auto", surface.band_mask())   # a new mask, the same band
+    assert layout._geometry_plan._plan[1] is kept
+    assert torch.equal(again, first)
+
+    narrower = band.clone()
+    narrower[:, :, :, ::2] = False
+    assert torch.allclose(_octant(surface, u, "auto", narrower),
+                          _octant(surface, u, "slicing", narrower), atol=1e-12)
+    assert layout._geometry_plan._plan[1] is not kept
+
+    normal, weight = (t.clone() for t in surface.haloed())
+    tables = (layout.neighbours.contiguous(), layout.present.to(torch.uint8).contiguous())
+    plan, bits = _native._GeometryPlan(), _native._RowBits()
+
+    def octant() -> torch.Tensor:
+        return _native.octant(u, normal, weight, *tables, bits, surface.spacing, False, band,
+                              plan)
+
+    before = octant()
+    normal[:, :, 5:] = 0.0   # written in place: the plan must be packed again
+    after = octant()
+    assert not torch.allclose(after, before)
+    fresh = _native.octant(u, normal, weight, *tables, _native._RowBits(), surface.spacing,
+                           False, band, _native._GeometryPlan())
+    assert torch.equal(after, fresh)

@@ -9,6 +9,11 @@ the band reads, and evaluates only the rows of 8 nodes (along x) that hold a ban
 at a time in the CPU's vector registers. Its numbers are the octant expression's with the
 coefficients formed first, so they agree with the other paths to rounding.
 
+On a band (a mask), the geometry rows those coefficients need are packed once into one stream
+(:class:`_GeometryPlan`, kept while the band and the geometry stay the same) that the kernel
+reads ahead of use: at 256^3 the haloed planes' scattered rows stalled it for a quarter of its
+time (docs/bricks.md, "The C kernel").
+
 It is compiled once per machine (:mod:`torchsurf._native`: ``$CC``, about half a second, into
 ``~/.cache/torchsurf`` or ``$TORCHSURF_CACHE_DIR``). Without a compiler, or with
 ``TORCHSURF_NATIVE=never``, :func:`octant` returns ``None`` and the operators take their other
@@ -28,10 +33,49 @@ from .._native import NativeLibrary, in_threads
 BRICK = 8
 TILE = BRICK + 2
 
+_SHARED = r"""
+/* Of a brick whose rows (z, y) of 8 nodes along x hold band nodes as the bits of row_bits
+   (B * B bytes), the rows of its haloed tile (T = B + 2 along each side) that the stencil reads:
+   need[zz] bit yy, tile row (zz, yy) of u (3x3 rows around each band row); plus[zz], the rows
+   whose coefficients it reads (the band rows and their four neighbours across y and z).
+   Returns whether the brick holds a band node. */
+static unsigned tile_rows(const uint8_t *row_bits, unsigned *need, unsigned *plus)
+{
+    unsigned ys[B + 4] = {0};
+    unsigned any = 0;
+    for (int z = 0; z < B; ++z) {
+        unsigned m = 0;
+        for (int y = 0; y < B; ++y) m |= (unsigned)(row_bits[z * B + y] != 0) << y;
+        ys[z + 2] = m;
+        any |= m;
+    }
+    for (int zz = 0; zz < T; ++zz) {
+        unsigned near = ys[zz] | ys[zz + 1] | ys[zz + 2];
+        need[zz] = near | near << 1 | near << 2;
+        plus[zz] = ys[zz + 1] | ys[zz + 1] << 1 | ys[zz + 1] << 2 | (ys[zz] | ys[zz + 2]) << 1;
+    }
+    return any;
+}
+
+/* offsets[n]: the plus rows of bricks [0, n), for n in [0, bricks]. */
+void geometry_offsets(const uint8_t *rows, int64_t bricks, int64_t *offsets)
+{
+    int64_t total = 0;
+    for (int64_t n = 0; n < bricks; ++n) {
+        unsigned need[T], plus[T];
+        offsets[n] = total;
+        if (!tile_rows(rows + n * B * B, need, plus)) continue;
+        for (int zz = 0; zz < T; ++zz) total += __builtin_popcount(plus[zz]);
+    }
+    offsets[bricks] = total;
+}
+"""
+
 _BODY = r"""
 static const REAL zero_brick_SUFFIX[B * B * B];
 
-/* The coefficients of nodes [0, count) of nx, ny, nz, w into the planes of k (stride T^3). */
+/* The coefficients of nodes [0, count) of nx, ny, nz, w into the planes of k (stride T^3),
+   w itself in the last. */
 static inline void coefficients_SUFFIX(const REAL *restrict nx, const REAL *restrict ny,
         const REAL *restrict nz, const REAL *restrict w, REAL *restrict k, int count)
 {
@@ -43,6 +87,7 @@ static inline void coefficients_SUFFIX(const REAL *restrict nx, const REAL *rest
         k[3 * T * T * T + i] = wx * ny[i];
         k[4 * T * T * T + i] = wx * nz[i];
         k[5 * T * T * T + i] = wy * nz[i];
+        k[6 * T * T * T + i] = w[i];
     }
 }
 
@@ -84,14 +129,46 @@ static inline void row_SUFFIX(const REAL *restrict t, const REAL *restrict k, in
     }
 }
 
+/* Each brick's plus rows (tile_rows), from offsets[n] * 4 T on: per run of R consecutive rows,
+   nx, ny, nz and w of its R T nodes one after the other. */
+void geometry_pack_SUFFIX(
+        const REAL *normal, int64_t normal_brick, int64_t normal_channel,
+        const REAL *weight, int64_t weight_brick, const uint8_t *rows, const int64_t *offsets,
+        REAL *packed, int64_t first, int64_t stop)
+{
+    for (int64_t n = first; n < stop; ++n) {
+        unsigned need[T], plus[T];
+        if (!tile_rows(rows + n * B * B, need, plus)) continue;
+        const REAL *nx = normal + n * normal_brick, *ny = nx + normal_channel, *nz = ny + normal_channel;
+        const REAL *w = weight + n * weight_brick;
+        REAL *g = packed + offsets[n] * 4 * T;
+        for (int zz = 0; zz < T; ++zz)
+            for (int yy = 0; yy < T;) {
+                if (!((plus[zz] >> yy) & 1)) { ++yy; continue; }
+                int end = yy + 1;
+                while (end < T && ((plus[zz] >> end) & 1)) ++end;
+                int r = (zz * T + yy) * T, count = (end - yy) * T;
+                memcpy(g, nx + r, sizeof(REAL) * count); g += count;
+                memcpy(g, ny + r, sizeof(REAL) * count); g += count;
+                memcpy(g, nz + r, sizeof(REAL) * count); g += count;
+                memcpy(g, w + r, sizeof(REAL) * count); g += count;
+                yy = end;
+            }
+    }
+}
+
+/* The coefficients come from packed + offsets[n] * 4 T (geometry_pack) where packed is not
+   NULL, read ahead of use; else from the haloed normal and weight. */
 void octant_bricks_SUFFIX(
         const REAL *u, int64_t u_brick, int64_t u_channel,
         const REAL *normal, int64_t normal_brick, int64_t normal_channel,
         const REAL *weight, int64_t weight_brick,
+        const REAL *packed, const int64_t *offsets,
         const int64_t *neighbours, const uint8_t *present, const uint8_t *rows,
         REAL *out, int64_t first, int64_t stop, int64_t channels, double scale_in,
         int weighted)
 {
+    enum { AHEAD = 32768 / sizeof(REAL), LINE = 64 / sizeof(REAL) };
     const REAL scale = (REAL)scale_in;
     static const REAL ones[B] = {1, 1, 1, 1, 1, 1, 1, 1};
     REAL tile[T * T * T];
@@ -99,34 +176,32 @@ void octant_bricks_SUFFIX(
     for (int64_t n = first; n < stop; ++n) {
         const uint8_t *row_bits = rows + n * B * B;
         REAL *o = out + n * channels * B * B * B;
-        unsigned ys[B + 4] = {0};   /* ys[z + 2]: the rows y of plane z with band nodes, as bits */
-        unsigned any = 0;
-        for (int z = 0; z < B; ++z) {
-            unsigned m = 0;
-            for (int y = 0; y < B; ++y) m |= (unsigned)(row_bits[z * B + y] != 0) << y;
-            ys[z + 2] = m;
-            any |= m;
+        unsigned need[T], plus[T];
+        if (!tile_rows(row_bits, need, plus)) {
+            memset(o, 0, sizeof(REAL) * B * B * B * channels);
+            continue;
         }
-        if (!any) { memset(o, 0, sizeof(REAL) * B * B * B * channels); continue; }
         const int64_t *nb = neighbours + n * 27;
         const uint8_t *pr = present + n * 27;
         const REAL *nx = normal + n * normal_brick;
         const REAL *ny = nx + normal_channel, *nz = ny + normal_channel;
         const REAL *w = weight + n * weight_brick;
-        unsigned need[T];            /* tile rows of u: the 3x3 rows around each band row */
-        for (int zz = 0; zz < T; ++zz) {
-            unsigned near = ys[zz] | ys[zz + 1] | ys[zz + 2];
-            need[zz] = near | near << 1 | near << 2;
-            unsigned plus = ys[zz + 1] | ys[zz + 1] << 1 | ys[zz + 1] << 2 | (ys[zz] | ys[zz + 2]) << 1;
+        const REAL *g = packed ? packed + offsets[n] * 4 * T : 0;
+        for (int zz = 0; zz < T; ++zz)
             for (int yy = 0; yy < T;) {   /* runs of consecutive rows */
-                if (!((plus >> yy) & 1)) { ++yy; continue; }
+                if (!((plus[zz] >> yy) & 1)) { ++yy; continue; }
                 int end = yy + 1;
-                while (end < T && ((plus >> end) & 1)) ++end;
-                int r = (zz * T + yy) * T;
-                coefficients_SUFFIX(nx + r, ny + r, nz + r, w + r, k + r, (end - yy) * T);
+                while (end < T && ((plus[zz] >> end) & 1)) ++end;
+                int r = (zz * T + yy) * T, count = (end - yy) * T;
+                if (g) {
+                    for (int q = 0; q < 4 * count; q += LINE) __builtin_prefetch(g + AHEAD + q, 0, 2);
+                    coefficients_SUFFIX(g, g + count, g + 2 * count, g + 3 * count, k + r, count);
+                    g += 4 * count;
+                } else {
+                    coefficients_SUFFIX(nx + r, ny + r, nz + r, w + r, k + r, count);
+                }
                 yy = end;
             }
-        }
         for (int64_t c = 0; c < channels; ++c) {
             const REAL *base[27];
             for (int j = 0; j < 27; ++j)
@@ -152,7 +227,8 @@ void octant_bricks_SUFFIX(
                     unsigned bits = row_bits[z * B + y];
                     if (!bits) { memset(target, 0, sizeof(REAL) * B); continue; }
                     int r = (z + 1) * T + y + 1;
-                    row_SUFFIX(tile, k, r, weighted ? ones : w + r * T + 1, scale, bits, target);
+                    row_SUFFIX(tile, k, r, weighted ? ones : k + 6 * T * T * T + r * T + 1, scale,
+                               bits, target);
                 }
         }
     }
@@ -162,7 +238,7 @@ void octant_bricks_SUFFIX(
 
 def _source() -> str:
     source = ("#include <stdint.h>\n#include <string.h>\n#define B 8\n#define T 10\n"
-              "#define NK 6\n")
+              "#define NK 7\n") + _SHARED
     for real, suffix, bits in (("float", "f32", "uint32_t"), ("double", "f64", "uint64_t")):
         source += _BODY.replace("REAL", real).replace("SUFFIX", suffix).replace("UINT", bits)
     return source
@@ -170,11 +246,16 @@ def _source() -> str:
 
 _ARGUMENTS = ([ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64] * 2
               + [ctypes.c_void_p, ctypes.c_int64]
-              + [ctypes.c_void_p] * 4
+              + [ctypes.c_void_p] * 6
               + [ctypes.c_int64, ctypes.c_int64, ctypes.c_int64, ctypes.c_double, ctypes.c_int])
+_PACK_ARGUMENTS = ([ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64, ctypes.c_void_p,
+                    ctypes.c_int64] + [ctypes.c_void_p] * 3 + [ctypes.c_int64] * 2)
 
-LIBRARY = NativeLibrary("octant_bricks", _source,
-                        {f"octant_bricks_{suffix}": _ARGUMENTS for suffix in ("f32", "f64")})
+LIBRARY = NativeLibrary(
+    "octant_bricks", _source,
+    {"geometry_offsets": [ctypes.c_void_p, ctypes.c_int64, ctypes.c_void_p],
+     **{f"octant_bricks_{suffix}": _ARGUMENTS for suffix in ("f32", "f64")},
+     **{f"geometry_pack_{suffix}": _PACK_ARGUMENTS for suffix in ("f32", "f64")}})
 """The kernel's shared library (:class:`torchsurf._native.NativeLibrary`)."""
 
 
@@ -209,6 +290,52 @@ class _RowBits:
         return self._bits
 
 
+class _GeometryPlan:
+    """The haloed geometry's rows that a band's stencils read (the band rows and their
+    neighbours across y and z, 10 nodes long), each brick's in the order the kernel reads them:
+    one stream it reads ahead of use, against rows scattered over four ``10^3`` planes a brick.
+    About 45% of the haloed geometry's bytes on a 3-cell band; kept while the geometry is
+    not written to and the band's row bits stay equal (a new mask of the same band reuses it).
+    """
+
+    def __init__(self) -> None:
+        self._key: tuple | None = None
+        self._bits: Tensor | None = None
+        self._plan: tuple[Tensor, Tensor] | None = None
+
+    def __call__(self, compiled: ctypes.CDLL, normal: Tensor, normal_strides: tuple[int, int],
+                 weight: Tensor, weight_strides: tuple[int, int], bits: Tensor
+                 ) -> tuple[Tensor, Tensor]:
+        """``(offsets (N + 1,) int64, packed)``: brick ``n``'s rows from ``packed`` element
+        ``40 offsets[n]`` on."""
+        if self._plan is not None and self._holds(normal, weight, bits):
+            self._bits = bits
+            return self._plan
+        self._plan = None   # let the former plan go before the new one is allocated
+        bricks = bits.shape[0]
+        offsets = torch.empty(bricks + 1, dtype=torch.int64)
+        compiled.geometry_offsets(bits.data_ptr(), bricks, offsets.data_ptr())
+        packed = torch.empty(int(offsets[-1]) * 4 * TILE, dtype=normal.dtype)
+        pack = (compiled.geometry_pack_f32 if normal.dtype == torch.float32
+                else compiled.geometry_pack_f64)
+
+        def run(first: int, stop: int) -> None:
+            pack(normal.data_ptr(), *normal_strides, weight.data_ptr(), weight_strides[0],
+                 bits.data_ptr(), offsets.data_ptr(), packed.data_ptr(), first, stop)
+
+        in_threads(run, bricks, THREAD_MIN_BRICKS)
+        self._key = (weakref.ref(normal), normal._version, weakref.ref(weight), weight._version)
+        self._bits, self._plan = bits, (offsets, packed)
+        return self._plan
+
+    def _holds(self, normal: Tensor, weight: Tensor, bits: Tensor) -> bool:
+        """The plan kept was built from this geometry, unchanged since, and these row bits."""
+        normal_ref, normal_version, weight_ref, weight_version = self._key  # type: ignore[misc]
+        return (normal_ref() is normal and normal._version == normal_version
+                and weight_ref() is weight and weight._version == weight_version
+                and (self._bits is bits or torch.equal(self._bits, bits)))
+
+
 def _strides(tensor: Tensor, side: int) -> tuple[int, int] | None:
     """``(brick, channel)`` strides of a ``(N, C, side, side, side)`` tensor whose blocks of
     ``side^3`` nodes are each contiguous, else ``None``."""
@@ -219,7 +346,7 @@ def _strides(tensor: Tensor, side: int) -> tuple[int, int] | None:
 
 def octant(u: Tensor, haloed_normal: Tensor, haloed_weight: Tensor, neighbours: Tensor,
            present: Tensor, row_bits: _RowBits, spacing: float, weighted: bool,
-           mask: Tensor | None) -> Tensor | None:
+           mask: Tensor | None, plan: _GeometryPlan | None = None) -> Tensor | None:
     """The octant scheme's ``L u`` (``W L u`` if ``weighted``) at the nodes of ``mask`` (every
     stored node if ``None``), zero elsewhere; ``None`` where this kernel does not apply (no
     compiler, not on the CPU, a dtype other than float32 and float64, an input that needs a
@@ -231,6 +358,8 @@ def octant(u: Tensor, haloed_normal: Tensor, haloed_weight: Tensor, neighbours: 
             geometry with its halo (:meth:`torchsurf.ImplicitSurface.haloed`).
         neighbours, present: the layout's ``(N, 27)`` tables, contiguous, int64 and uint8.
         mask: ``(N, 1, 8, 8, 8)`` bool or ``None``.
+        plan: where given and ``mask`` is, the band's geometry is read from the rows it keeps
+            (:class:`_GeometryPlan`, built on first use), not from the haloed planes.
     """
     tensors = (u, haloed_normal, haloed_weight) + (() if mask is None else (mask,))
     if (u.dtype not in (torch.float32, torch.float64) or any(t.device.type != "cpu"
@@ -250,12 +379,18 @@ def octant(u: Tensor, haloed_normal: Tensor, haloed_weight: Tensor, neighbours: 
     if compiled is None:
         return None
     bits = row_bits(mask, bricks)
+    offsets = packed = None
+    if plan is not None and mask is not None:
+        offsets, packed = plan(compiled, haloed_normal, normal_strides, haloed_weight,
+                               weight_strides, bits)
     out = torch.empty((bricks, channels, BRICK, BRICK, BRICK), dtype=u.dtype)
     kernel = compiled.octant_bricks_f32 if u.dtype == torch.float32 else compiled.octant_bricks_f64
 
     def run(first: int, stop: int) -> None:
         kernel(u.data_ptr(), *u_strides, haloed_normal.data_ptr(), *normal_strides,
-               haloed_weight.data_ptr(), weight_strides[0], neighbours.data_ptr(),
+               haloed_weight.data_ptr(), weight_strides[0],
+               None if packed is None else packed.data_ptr(),
+               None if offsets is None else offsets.data_ptr(), neighbours.data_ptr(),
                present.data_ptr(), bits.data_ptr(), out.data_ptr(), first, stop, channels,
                4.0 * spacing * spacing, int(bool(weighted)))
 

@@ -116,6 +116,7 @@ class BrickLayout:
         self.neighbours, self.present = self._neighbours()
         self._halo_indices: dict[tuple[int, torch.device], tuple[Tensor, Tensor]] = {}
         self._row_bits = _native._RowBits()
+        self._geometry_plan = _native._GeometryPlan()
         self.inside = self._inside()
 
     # --- construction -------------------------------------------------------------------
@@ -176,6 +177,7 @@ class BrickLayout:
         })
         moved._halo_indices = {}
         moved._row_bits = _native._RowBits()
+        moved._geometry_plan = _native._GeometryPlan()
         moved.__dict__.pop("_native_tables", None)
         return moved
 
@@ -226,7 +228,7 @@ class BrickLayout:
             self._native_tables = (self.neighbours.contiguous(),
                                    self.present.to(torch.uint8).contiguous())
         return _native.octant(u, haloed_normal, haloed_weight, *self._native_tables,
-                              self._row_bits, spacing, weighted, mask)
+                              self._row_bits, spacing, weighted, mask, self._geometry_plan)
 
     def _halo_index(self, width: int, device: torch.device) -> tuple[Tensor, Tensor]:
         """``(N (8 + 2 width)^3,)`` source of each haloed node in the packed nodes (int32 up to
