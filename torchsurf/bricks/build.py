@@ -155,13 +155,18 @@ def check_clear_of_faces(band_nodes: Tensor, grid: Grid, entry: int) -> None:
     flux at: the dense and band results would differ there)."""
     if len(band_nodes) == 0:
         return
-    high = torch.tensor(grid.shape) - 1 - REACH_CELLS
-    if bool((band_nodes < REACH_CELLS).any()) or bool((band_nodes > high).any()):
+    clearance = int(torch.minimum(band_nodes.min(dim=0).values,
+                                  torch.tensor(grid.shape) - 1 - band_nodes.max(dim=0).values
+                                  ).min())
+    if clearance < REACH_CELLS:
         raise ValueError(
-            f"the band of batch entry {entry} comes within {REACH_CELLS} nodes of its grid's "
-            f"faces (grid shape {grid.shape}); bricks have no box faces to stop the flux at: "
-            "use a grid with a wider margin around the shape, or, if phi is not a distance "
-            "(its band then reaches far from S), torchsurf.sdf.redistance(phi, grid) first"
+            f"the band of batch entry {entry} comes within {clearance} nodes of its grid's "
+            f"faces (grid shape {grid.shape}), it needs {REACH_CELLS}; bricks have no box faces "
+            f"to stop the flux at: use a grid at least {REACH_CELLS - clearance} nodes wider on "
+            "each side (torchsurf.bricks.fit_grids leaves room by default; "
+            "torchsurf.mesh.fit_grid's margin is a fraction of the mesh's size), or, if phi is "
+            "not a distance (its band then reaches far from S), "
+            "torchsurf.sdf.redistance(phi, grid) first"
         )
 
 
