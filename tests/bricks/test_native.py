@@ -194,9 +194,14 @@ def test_the_band_reads_its_geometry_packed_with_the_numbers_of_the_haloed_plane
     planes = _native.octant(u, normal, weight, *tables, _native._RowBits(), surface.spacing,
                             False, band)
     plan = _native._GeometryPlan()
-    packed = _native.octant(u, normal, weight, *tables, _native._RowBits(), surface.spacing,
-                            False, band, plan)
-    assert torch.equal(packed, planes)
+
+    def packed() -> torch.Tensor:
+        return _native.octant(u, normal, weight, *tables, _native._RowBits(), surface.spacing,
+                              False, band, plan)
+
+    assert torch.equal(packed(), planes) and plan._plan is None   # one application: no packing
+    assert torch.equal(packed(), planes) and plan._plan is not None
+    assert torch.equal(packed(), planes)
     offsets, rows = plan._plan
     assert offsets.shape == (len(layout) + 1,) and rows.numel() == 40 * int(offsets[-1])
     assert rows.numel() < 0.8 * (normal.numel() + weight.numel())
@@ -208,6 +213,7 @@ def test_the_packed_geometry_is_kept_for_the_same_band_and_follows_changes(torus
     layout = surface.layout
     u = torch.randn(len(layout), 1, 8, 8, 8, dtype=torch.float64)
     band = surface.band_mask()
+    _octant(surface, u, "auto", band)
     first = _octant(surface, u, "auto", band)
     kept = layout._geometry_plan._plan[1]
     again = _octant(surface, u, "auto", surface.band_mask())   # a new mask, the same band
@@ -216,8 +222,10 @@ def test_the_packed_geometry_is_kept_for_the_same_band_and_follows_changes(torus
 
     narrower = band.clone()
     narrower[:, :, :, ::2] = False
-    assert torch.allclose(_octant(surface, u, "auto", narrower),
-                          _octant(surface, u, "slicing", narrower), atol=1e-12)
+    for _ in range(2):
+        assert torch.allclose(_octant(surface, u, "auto", narrower),
+                              _octant(surface, u, "slicing", narrower), atol=1e-12)
+    assert layout._geometry_plan._plan is not None
     assert layout._geometry_plan._plan[1] is not kept
 
     normal, weight = (t.clone() for t in surface.haloed())
@@ -228,10 +236,14 @@ def test_the_packed_geometry_is_kept_for_the_same_band_and_follows_changes(torus
         return _native.octant(u, normal, weight, *tables, bits, surface.spacing, False, band,
                               plan)
 
+    octant()
     before = octant()
-    normal[:, :, 5:] = 0.0   # written in place: the plan must be packed again
+    assert plan._plan is not None
+    normal[:, :, 5:] = 0.0   # written in place: the plan kept must not be read
     after = octant()
     assert not torch.allclose(after, before)
+    assert torch.equal(octant(), after)   # packed again, from the new geometry
+    assert plan._plan is not None
     fresh = _native.octant(u, normal, weight, *tables, _native._RowBits(), surface.spacing,
-                           False, band, _native._GeometryPlan())
+                           False, band, None)
     assert torch.equal(after, fresh)

@@ -296,6 +296,9 @@ class _GeometryPlan:
     one stream it reads ahead of use, against rows scattered over four ``10^3`` planes a brick.
     About 45% of the haloed geometry's bytes on a 3-cell band; kept while the geometry is
     not written to and the band's row bits stay equal (a new mask of the same band reuses it).
+    Packed at the second application to the same geometry and band, not the first: a single
+    application (or geometry made anew for each, as for a ``phi`` that requires grad under
+    ``no_grad``) would pay the packing pass and its memory for nothing.
     """
 
     def __init__(self) -> None:
@@ -305,13 +308,18 @@ class _GeometryPlan:
 
     def __call__(self, compiled: ctypes.CDLL, normal: Tensor, normal_strides: tuple[int, int],
                  weight: Tensor, weight_strides: tuple[int, int], bits: Tensor
-                 ) -> tuple[Tensor, Tensor]:
+                 ) -> tuple[Tensor, Tensor] | None:
         """``(offsets (N + 1,) int64, packed)``: brick ``n``'s rows from ``packed`` element
-        ``40 offsets[n]`` on."""
-        if self._plan is not None and self._holds(normal, weight, bits):
-            self._bits = bits
+        ``40 offsets[n]`` on; ``None`` the first time this geometry and band are seen."""
+        seen = self._key is not None and self._holds(normal, weight, bits)
+        self._bits = bits
+        if seen and self._plan is not None:
             return self._plan
         self._plan = None   # let the former plan go before the new one is allocated
+        if not seen:
+            self._key = (weakref.ref(normal), normal._version, weakref.ref(weight),
+                         weight._version)
+            return None
         bricks = bits.shape[0]
         offsets = torch.empty(bricks + 1, dtype=torch.int64)
         compiled.geometry_offsets(bits.data_ptr(), bricks, offsets.data_ptr())
@@ -324,12 +332,11 @@ class _GeometryPlan:
                  bits.data_ptr(), offsets.data_ptr(), packed.data_ptr(), first, stop)
 
         in_threads(run, bricks, THREAD_MIN_BRICKS)
-        self._key = (weakref.ref(normal), normal._version, weakref.ref(weight), weight._version)
-        self._bits, self._plan = bits, (offsets, packed)
+        self._plan = (offsets, packed)
         return self._plan
 
     def _holds(self, normal: Tensor, weight: Tensor, bits: Tensor) -> bool:
-        """The plan kept was built from this geometry, unchanged since, and these row bits."""
+        """The geometry and row bits seen last are these, the geometry unchanged since."""
         normal_ref, normal_version, weight_ref, weight_version = self._key  # type: ignore[misc]
         return (normal_ref() is normal and normal._version == normal_version
                 and weight_ref() is weight and weight._version == weight_version
@@ -359,7 +366,8 @@ def octant(u: Tensor, haloed_normal: Tensor, haloed_weight: Tensor, neighbours: 
         neighbours, present: the layout's ``(N, 27)`` tables, contiguous, int64 and uint8.
         mask: ``(N, 1, 8, 8, 8)`` bool or ``None``.
         plan: where given and ``mask`` is, the band's geometry is read from the rows it keeps
-            (:class:`_GeometryPlan`, built on first use), not from the haloed planes.
+            (:class:`_GeometryPlan`, packed at the second application to the same geometry
+            and band), not from the haloed planes.
     """
     tensors = (u, haloed_normal, haloed_weight) + (() if mask is None else (mask,))
     if (u.dtype not in (torch.float32, torch.float64) or any(t.device.type != "cpu"
@@ -380,9 +388,10 @@ def octant(u: Tensor, haloed_normal: Tensor, haloed_weight: Tensor, neighbours: 
         return None
     bits = row_bits(mask, bricks)
     offsets = packed = None
-    if plan is not None and mask is not None:
-        offsets, packed = plan(compiled, haloed_normal, normal_strides, haloed_weight,
-                               weight_strides, bits)
+    planned = None if plan is None or mask is None else plan(
+        compiled, haloed_normal, normal_strides, haloed_weight, weight_strides, bits)
+    if planned is not None:
+        offsets, packed = planned
     out = torch.empty((bricks, channels, BRICK, BRICK, BRICK), dtype=u.dtype)
     kernel = compiled.octant_bricks_f32 if u.dtype == torch.float32 else compiled.octant_bricks_f64
 
