@@ -539,3 +539,15 @@ def test_steps_smooth_data_on_an_offset_as_without_it(method, dtype, offset, tol
     plain = flow(noise, surface)
     shifted = flow(noise + offset, surface) - offset
     assert float((shifted - plain)[band].abs().max()) < tolerance
+
+
+def test_a_diverged_torchdiffeq_run_names_its_steps_as_torchdiffeq_took_them():
+    """Its plan has no count: the message said 'None steps of <the whole time>'."""
+    pytest.importorskip("torchdiffeq")
+    grid = ts.Grid.cube(24, 1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, 0.9, center=(0.05, 0.02, -0.03)), grid)
+    u = torch.rand(1, 1, 24, 24, 24, generator=torch.Generator().manual_seed(0))
+    end = 20 * grid.spacing**2
+    with pytest.raises(FloatingPointError, match="torchdiffeq's own steps") as raised:
+        HeatFlow(time=end, method="rk4", options={"step_size": end / 2})(u, surface)
+    assert "None" not in str(raised.value)

@@ -119,11 +119,16 @@ def _range_excess(u0: Tensor, results: list[Tensor], region: Tensor, band: Tenso
     return excess
 
 
+def _steps_taken(plan: Plan) -> str:
+    """The steps of a run, for messages."""
+    return ("torchdiffeq's own steps" if plan.count is None
+            else f"{plan.count} steps of {plan.step:.3g}")
+
+
 def _warn_range_left(flow: Flow, excess: float, plan: Plan) -> None:
     """The warning of a flow that keeps ``u`` within the range of ``u0`` and left it by
     ``excess`` of that range (more than :data:`RANGE_SLACK`)."""
-    steps = ("torchdiffeq's own steps" if plan.count is None
-             else f"{plan.count} steps of {plan.step:.3g}")
+    steps = _steps_taken(plan)
     remedy = ("a finer grid" if flow.method == "rkc"
               else "method='rkc' (stable there in every case measured) or a finer grid")
     warnings.warn(
@@ -683,9 +688,9 @@ class Flow(nn.Module):
                 if not bool(torch.isfinite(torch.where(region, value.detach(), 0.0)).all()):
                     other = "" if self.method == "rkc" else "method='rkc', "
                     raise FloatingPointError(
-                        f"{type(self).__name__} (method={self.method!r}, {plan.count} steps of "
-                        f"{plan.step:.3g}) diverged: u holds NaN or infinity in the band though "
-                        f"u0 did not; use {other}more steps, or smaller parameters"
+                        f"{type(self).__name__} (method={self.method!r}, {_steps_taken(plan)}) "
+                        f"diverged: u holds NaN or infinity in the band though u0 did not; use "
+                        f"{other}more steps, or smaller parameters"
                     )
             if self.keeps_range:
                 excess = _range_excess(u0, result, region, band, surface.layout is not None)
