@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 
 import pytest
 import torch
@@ -548,6 +549,10 @@ def test_a_diverged_torchdiffeq_run_names_its_steps_as_torchdiffeq_took_them():
     surface = ts.ImplicitSurface(ts.sdf.sphere(grid, 0.9, center=(0.05, 0.02, -0.03)), grid)
     u = torch.rand(1, 1, 24, 24, 24, generator=torch.Generator().manual_seed(0))
     end = 20 * grid.spacing**2
-    with pytest.raises(FloatingPointError, match="torchdiffeq's own steps") as raised:
+    with pytest.warns(RuntimeWarning, match="rk4 step of .* exceeds its stable step"), \
+            pytest.raises(FloatingPointError, match="torchdiffeq's own steps") as raised:
         HeatFlow(time=end, method="rk4", options={"step_size": end / 2})(u, surface)
     assert "None" not in str(raised.value)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)   # its default step is stable: no warning
+        assert torch.isfinite(HeatFlow(time=end, method="rk4")(u, surface)).all()

@@ -549,6 +549,7 @@ def _torchdiffeq(method: str) -> Callable[[System, Tensor, Schedule], list[Tenso
             longest = options.get("step_size") or system.stable_step
             count = schedule.steps or math.ceil(end / longest * (1 - 1e-9))
             options["step_size"] = end / max(count, 1)
+            _warn_unstable_step(method, options["step_size"], system.spectral_radius)
         kwargs = {key: options.pop(key) for key in ("rtol", "atol") if key in options}
 
         def func(t: Tensor, u: Tensor) -> Tensor:
@@ -614,6 +615,25 @@ class _RateModule(torch.nn.Module):
 
 
 _FIXED_STEP = ("euler", "midpoint", "rk4", "explicit_adams", "implicit_adams", "heun3")
+
+_STABLE_INTERVAL = {"euler": 2.0, "midpoint": 2.0, "heun3": 2.51, "rk4": 2.78}
+"""Length of the stability interval on the negative real axis of torchdiffeq's explicit
+Runge–Kutta fixed-step methods: a step longer than this over ``rho`` lets the fastest mode of
+a diffusion grow."""
+
+
+def _warn_unstable_step(method: str, step: float, rho: float) -> None:
+    """Warn before the run when a fixed-step torchdiffeq method's step is past its stable step
+    on this operator (``method="euler"`` with ``steps=`` warns the same way)."""
+    interval = _STABLE_INTERVAL.get(method)
+    if interval is None or step * rho <= interval * (1 + 1e-6):
+        return
+    warnings.warn(
+        f"a {method} step of {step:.3g} exceeds its stable step {interval / rho:.3g} on this "
+        f"surface's operator ({interval:g} / rho, rho = {rho:.3g}); the flow may blow up. Use "
+        f"options={{'step_size': {interval / rho:.3g}}} or less, or method='rkc'",
+        RuntimeWarning, stacklevel=caller_stacklevel(),
+    )
 
 INTEGRATORS: dict[str, Callable[[System, Tensor, Schedule], list[Tensor]]] = {
     "rkc": _explicit(_rkc_step),

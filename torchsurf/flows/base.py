@@ -315,7 +315,8 @@ class Flow(nn.Module):
         tolerance, max_iterations: conjugate-gradient stopping rule of the implicit methods.
         options: extra keyword options for torchdiffeq (``rtol``, ``atol``, ``step_size``...);
             a ``step_size`` of the fixed-step methods is the longest step: the run takes equal
-            steps that end at the last time.
+            steps that end at the last time; one past an explicit method's stable step
+            (``"midpoint"``, ``"heun3"``, ``"rk4"``) warns before the run.
         adjoint: integrate with ``torchdiffeq.odeint_adjoint``.
         progress: show a tqdm progress bar over the steps (tqdm is optional).
         reextend_every: re-extend the band and its ring along normals (closest point,
