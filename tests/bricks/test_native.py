@@ -247,3 +247,21 @@ def test_the_packed_geometry_is_kept_for_the_same_band_and_follows_changes(torus
     fresh = _native.octant(u, normal, weight, *tables, _native._RowBits(), surface.spacing,
                            False, band, None)
     assert torch.equal(after, fresh)
+
+
+def test_a_surface_pickles_after_the_kernel_ran_on_a_band(torus, native_available):
+    """The row bits and the packed geometry are caches holding weak references: they pickle
+    empty and are made again (a surface sent to a DataLoader worker, saved with a model)."""
+    import pickle
+
+    _, surface = torus
+    u = torch.randn(len(surface.layout), 1, 8, 8, 8, dtype=torch.float64)
+    band = surface.band_mask()
+    _octant(surface, u, "auto", band)
+    expected = _octant(surface, u, "auto", band)
+    assert surface.layout._geometry_plan._plan is not None
+    copied = pickle.loads(pickle.dumps(surface))
+    assert copied.layout._geometry_plan._plan is None
+    for _ in range(2):
+        assert torch.equal(_octant(copied, u, "auto", copied.band_mask()), expected)
+    assert copied.layout._geometry_plan._plan is not None

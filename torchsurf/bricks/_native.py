@@ -278,6 +278,12 @@ class _RowBits:
         self._version = -1
         self._bits: Tensor | None = None
 
+    def __getstate__(self) -> dict:
+        return {}   # a cache: pickled empty (a weak reference cannot be pickled)
+
+    def __setstate__(self, state: dict) -> None:
+        self.__init__()
+
     def __call__(self, mask: Tensor | None, bricks: int) -> Tensor:
         if mask is None:
             return torch.full((bricks, BRICK, BRICK), 255, dtype=torch.uint8)
@@ -305,6 +311,12 @@ class _GeometryPlan:
         self._key: tuple | None = None
         self._bits: Tensor | None = None
         self._plan: tuple[Tensor, Tensor] | None = None
+
+    def __getstate__(self) -> dict:
+        return {}   # a cache: pickled empty (a weak reference cannot be pickled)
+
+    def __setstate__(self, state: dict) -> None:
+        self.__init__()
 
     def __call__(self, compiled: ctypes.CDLL, normal: Tensor, normal_strides: tuple[int, int],
                  weight: Tensor, weight_strides: tuple[int, int], bits: Tensor
