@@ -159,12 +159,14 @@ def check_clear_of_faces(band_nodes: Tensor, grid: Grid, entry: int) -> None:
                                   torch.tensor(grid.shape) - 1 - band_nodes.max(dim=0).values
                                   ).min())
     if clearance < REACH_CELLS:
+        wider = REACH_CELLS - clearance
         raise ValueError(
-            f"the band of batch entry {entry} comes within {clearance} nodes of its grid's "
-            f"faces (grid shape {grid.shape}), it needs {REACH_CELLS}; bricks have no box faces "
-            f"to stop the flux at: use a grid at least {REACH_CELLS - clearance} nodes wider on "
-            "each side (torchsurf.bricks.fit_grids leaves room by default; "
-            "torchsurf.mesh.fit_grid's margin is a fraction of the mesh's size), or, if phi is "
+            f"the band of batch entry {entry} comes within {clearance} "
+            f"node{'' if clearance == 1 else 's'} of its grid's faces (grid shape {grid.shape}), "
+            f"it needs {REACH_CELLS}; bricks have no box faces to stop the flux at: use a grid "
+            f"at least {wider} node{'' if wider == 1 else 's'} wider on each side "
+            "(torchsurf.bricks.fit_grids leaves room by default; torchsurf.mesh.fit_grid's "
+            "margin is a fraction of the mesh's size), or, if phi is "
             "not a distance (its band then reaches far from S), "
             "torchsurf.sdf.redistance(phi, grid) first"
         )
