@@ -179,10 +179,12 @@ def test_a_compiled_function_on_bricks_gives_the_same_numbers(torus, native_avai
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_the_band_reads_its_geometry_packed_with_the_numbers_of_the_haloed_planes(
-        two_boxes, native_available, dtype):
+        two_boxes, native_available, dtype, monkeypatch):
     """With a mask the kernel reads the rows it needs from a plan packed once; bit for bit
     what it computes from the haloed planes, on a batch with missing neighbours and odd boxes,
-    on threads too."""
+    the packing and the kernel each split between threads."""
+    monkeypatch.setattr(_native, "THREAD_MIN_BRICKS", 8)
+    monkeypatch.setattr(torch, "get_num_threads", lambda: 3)   # what in_threads splits by
     _, _, both = two_boxes
     surface = both.to(dtype)
     layout = surface.layout
@@ -203,6 +205,7 @@ def test_the_band_reads_its_geometry_packed_with_the_numbers_of_the_haloed_plane
     assert torch.equal(packed(), planes) and plan._plan is not None
     assert torch.equal(packed(), planes)
     offsets, rows = plan._plan
+    assert len(layout) >= 3 * 8   # three parts, for the packing and for the kernel
     assert offsets.shape == (len(layout) + 1,) and rows.numel() == 40 * int(offsets[-1])
     assert rows.numel() < 0.8 * (normal.numel() + weight.numel())
 

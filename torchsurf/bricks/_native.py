@@ -57,6 +57,14 @@ static unsigned tile_rows(const uint8_t *row_bits, unsigned *need, unsigned *plu
     return any;
 }
 
+/* The end of the run of set bits of rows that starts at bit start (set), at most T. */
+static inline int run_end(unsigned rows, int start)
+{
+    int end = start + 1;
+    while (end < T && ((rows >> end) & 1)) ++end;
+    return end;
+}
+
 /* offsets[n]: the plus rows of bricks [0, n), for n in [0, bricks]. */
 void geometry_offsets(const uint8_t *rows, int64_t bricks, int64_t *offsets)
 {
@@ -145,8 +153,7 @@ void geometry_pack_SUFFIX(
         for (int zz = 0; zz < T; ++zz)
             for (int yy = 0; yy < T;) {
                 if (!((plus[zz] >> yy) & 1)) { ++yy; continue; }
-                int end = yy + 1;
-                while (end < T && ((plus[zz] >> end) & 1)) ++end;
+                int end = run_end(plus[zz], yy);
                 int r = (zz * T + yy) * T, count = (end - yy) * T;
                 memcpy(g, nx + r, sizeof(REAL) * count); g += count;
                 memcpy(g, ny + r, sizeof(REAL) * count); g += count;
@@ -190,8 +197,7 @@ void octant_bricks_SUFFIX(
         for (int zz = 0; zz < T; ++zz)
             for (int yy = 0; yy < T;) {   /* runs of consecutive rows */
                 if (!((plus[zz] >> yy) & 1)) { ++yy; continue; }
-                int end = yy + 1;
-                while (end < T && ((plus[zz] >> end) & 1)) ++end;
+                int end = run_end(plus[zz], yy);
                 int r = (zz * T + yy) * T, count = (end - yy) * T;
                 if (g) {
                     for (int q = 0; q < 4 * count; q += LINE) __builtin_prefetch(g + AHEAD + q, 0, 2);

@@ -616,10 +616,11 @@ class _RateModule(torch.nn.Module):
 
 _FIXED_STEP = ("euler", "midpoint", "rk4", "explicit_adams", "implicit_adams", "heun3")
 
-_STABLE_INTERVAL = {"euler": 2.0, "midpoint": 2.0, "heun3": 2.51, "rk4": 2.78}
+_STABLE_INTERVAL = {"midpoint": 2.0, "heun3": 2.51, "rk4": 2.78}
 """Length of the stability interval on the negative real axis of torchdiffeq's explicit
-Runge–Kutta fixed-step methods: a step longer than this over ``rho`` lets the fastest mode of
-a diffusion grow."""
+Runge–Kutta fixed-step methods (``"euler"`` is the built-in one, which warns in
+:func:`plan_steps`): a step longer than this over ``rho`` lets the fastest mode of a diffusion
+grow."""
 
 
 def _warn_unstable_step(method: str, step: float, rho: float) -> None:
