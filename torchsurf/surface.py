@@ -25,11 +25,22 @@ from .grid import Grid
 
 T = TypeVar("T")
 
-WEIGHT_FLOOR = 0.5
+WEIGHT_FLOOR = 0.49
 """The operators' weight ``W`` is never below this fraction of the node's slope scale
 (:func:`_squared_slope`), which is ``|grad phi|`` to ``O(h)`` where ``phi`` is smooth: the floor
 acts only where central differences collapse (a kink or an extremum of phi), whatever the size
-of ``|grad phi|`` along S."""
+of ``|grad phi|`` along S. Not one half: next to a shape's mirror plane between two node planes
+(the 8 nodes around the centre of a sphere centred in a cell) each central difference is
+exactly half a one-sided one, and ``W`` would sit on the floor's kink, where a change of
+``phi`` takes one side or the other (autograd's derivative in ``phi`` off by 100%)."""
+DIRECTION_FLOOR = 1e-3
+"""The normal is ``grad phi / max(|grad phi|, DIRECTION_FLOOR * slope)``: a unit vector, except
+where the central differences cancel to this fraction of the one-sided slopes (the centre of
+a sphere, the axis of a torus, when a node falls on them). There every direction is as good,
+the gradient is the rounding of ``phi``, and a unit normal would turn by any amount under any
+change of ``phi`` (its derivative ``1 / (eps |grad phi|)``, 1e12 and more); the normal is
+short instead, the operators there nearly isotropic, and re-extension leaves such nodes out
+(:func:`torchsurf.flows._closest.has_direction`)."""
 MINIMUM_WEIGHT = 0.05
 """Nor below this fraction of ``gradient_scale`` (a plateau of ``phi`` at the band's edge):
 small enough for a ``|grad phi|`` that varies twentyfold along S to keep its own value."""
@@ -38,6 +49,12 @@ DISTANCE_FLOOR = 0.5
 where ``phi`` flattens away from S (``tanh(phi / h)``, an occupancy-like field)
 ``|phi| / |grad phi|`` grows without bound, while ``phi``'s typical slope on S keeps the
 estimate within reach."""
+
+BAND_EDGE_SLACK = 1e-4
+"""Bands hold the nodes within ``width (1 + BAND_EDGE_SLACK)`` of S: grids and shapes of round
+numbers put nodes at exactly ``width`` (a sphere of radius 4 h centred on a node has nodes 3 h
+from S), where any change of ``phi`` would add or drop them and the flows' output would jump;
+the slack moves the edge off such placements."""
 
 
 def _crossing(inside: Tensor) -> Tensor:
@@ -204,10 +221,11 @@ class ImplicitSurface(nn.Module):
         floor = self.eps * scale.detach().clamp_min(torch.finfo(phi.dtype).tiny)
         unit_norm = torch.sqrt(squared + floor**2)
         grad_norm = unit_norm * magnitude
-        self.register_buffer("grad_norm", grad_norm, persistent=False)
-        self.register_buffer("normal", unit_gradient / unit_norm, persistent=False)
-        self.register_buffer("gradient_scale", scale * magnitude, persistent=False)
         slope = torch.sqrt(_squared_slope(padded / magnitude) / self.spacing**2 + floor**2)
+        self.register_buffer("grad_norm", grad_norm, persistent=False)
+        normal = unit_gradient / torch.maximum(unit_norm, DIRECTION_FLOOR * slope)
+        self.register_buffer("normal", normal, persistent=False)
+        self.register_buffer("gradient_scale", scale * magnitude, persistent=False)
         weight = torch.maximum(unit_norm, WEIGHT_FLOOR * slope)
         weight = torch.maximum(weight, MINIMUM_WEIGHT * scale) * magnitude
         self.register_buffer("weight", weight, persistent=False)
@@ -314,7 +332,7 @@ class ImplicitSurface(nn.Module):
         distance; now 38824).
         """
         width = self.band_width if width is None else check_positive(width, "width")
-        band = self.distance() <= width
+        band = self.distance() <= width * (1 + BAND_EDGE_SLACK)
         # A node within width of S is within width + sqrt(3) h of a crossing node (S crosses a
         # cell whose corners include one), and the chessboard distance is at most the
         # Euclidean one: no node of a distance's band is lost

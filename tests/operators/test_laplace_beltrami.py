@@ -94,7 +94,6 @@ def _appendix_b_reference(u: np.ndarray, phi: np.ndarray, h: float) -> np.ndarra
     axes = (2, 1, 0)
     grad_phi = [(shift(phi, a, 1) - shift(phi, a, -1)) / (2 * h) for a in axes]
     gradient_norm = np.sqrt(sum(g**2 for g in grad_phi) + 1e-12)
-    normal = [g / gradient_norm for g in grad_phi]
     inside = phi < 0
     crossing = np.zeros_like(inside)
     for a in range(3):
@@ -102,7 +101,8 @@ def _appendix_b_reference(u: np.ndarray, phi: np.ndarray, h: float) -> np.ndarra
     slope = np.sqrt(sum(np.maximum(np.abs(shift(phi, a, 1) - phi), np.abs(phi - shift(phi, a, -1)))**2
                         for a in axes) / h**2 + 1e-12)
     median = np.sort(gradient_norm[crossing])[(crossing.sum() - 1) // 2]
-    norm = np.maximum(np.maximum(gradient_norm, 0.5 * slope), 0.05 * median)
+    norm = np.maximum(np.maximum(gradient_norm, 0.49 * slope), 0.05 * median)
+    normal = [g / np.maximum(gradient_norm, 1e-3 * slope) for g in grad_phi]
     forward = [(shift(u, a, 1) - u) / h for a in axes]
     along = sum(f * n for f, n in zip(forward, normal, strict=True))
     flux = [norm * (f - along * n) for f, n in zip(forward, normal, strict=True)]

@@ -25,6 +25,8 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
+from ..surface import ImplicitSurface
+
 REFINE_TOLERANCE = 0.5
 """A closest point farther than this from S (cells, ``|d|`` read trilinearly) is refined."""
 
@@ -79,6 +81,15 @@ def trilinear(fields: list[Tensor], at: Tensor, high: Tensor, lookup: NodeLookup
         term = torch.cat([field[:, flat] for field in fields]) * weight
         values = term if values is None else values + term
     return torch.where(readable, values, 0.0), readable
+
+
+def has_direction(surface: ImplicitSurface) -> Tensor:
+    """Where the surface's normal points to S: bool, like ``surface.grad_norm`` (dense
+    ``(B, 1, D, H, W)`` or packed ``(N, 1, 8, 8, 8)``). Elsewhere the normal is short
+    (:data:`torchsurf.surface.DIRECTION_FLOOR`: the central differences of ``phi`` cancel) and
+    every point of S as near: the node has no closest point (following the normal, :func:`refine`
+    would pick one that jumps with any change of ``phi``), and stencils leave it out."""
+    return (surface.normal.detach() ** 2).sum(dim=1, keepdim=True) >= 0.25
 
 
 def refine(at: Tensor, read: Reader) -> Tensor:

@@ -173,31 +173,93 @@ void product_blocks_SUFFIX(const int64_t *starts, const int32_t *shared, const i
     }
 }
 
-/* out[rows[r], :] = value[r, :] clamped to the range of x[cells[r, 0:8], :], r in [first, stop):
-   the limited closest-point stencils' clamp to their cell's nodes. Where codes is not NULL it
-   records, per target and column, what the value's gradient reaches: 0 the taps (not clamped),
-   1 + k the cell's node k holding its minimum (clamped below), 9 + k its maximum (above); the
-   first such node, strict comparisons (a value equal to a bound is not clamped). */
-void clamp_into_SUFFIX(const int32_t *cells, const int64_t *rows, const REAL *x,
-        const REAL *value, REAL *out, uint8_t *codes, int64_t first, int64_t stop, int64_t F)
+/* out[rows[r], :] = value[r, :] clamped to the limiter's bounds (torchsurf.flows._limiter):
+   low = sum_c corners[r, c] min(x[taps[r, t], :] over the 27 taps t around corner c), high
+   likewise, the taps taps[r, 0:64] in the order 16 z + 4 y + x. Where codes is not NULL it
+   records per target and column 0 (not clamped: the gradient reaches the 64 taps), 1 (clamped
+   below) or 2 (above), and for the clamped, in extremes[r, f, 0:8], the tap holding each
+   corner's extreme (the first such, strict comparisons; a value equal to a bound is not
+   clamped). */
+static REAL min3_SUFFIX(REAL a, REAL b, REAL c) { REAL m = a < b ? a : b; return m < c ? m : c; }
+static REAL max3_SUFFIX(REAL a, REAL b, REAL c) { REAL m = a > b ? a : b; return m > c ? m : c; }
+
+/* The tap holding corner c's least (sign 1) or largest (sign -1) value among its 27: the first
+   such in the order 16 z + 4 y + x, as torch's min and max over the block pick. */
+static uint8_t extreme_tap_SUFFIX(const REAL *u, int c, int sign)
+{
+    const int cx = 1 + (c & 1), cy = 1 + ((c >> 1) & 1), cz = 1 + (c >> 2);
+    int best = 16 * (cz - 1) + 4 * (cy - 1) + (cx - 1);
+    for (int z = cz - 1; z <= cz + 1; ++z)
+        for (int y = cy - 1; y <= cy + 1; ++y)
+            for (int x = cx - 1; x <= cx + 1; ++x) {
+                const int t = 16 * z + 4 * y + x;
+                if (sign * u[t] < sign * u[best]) best = t;
+            }
+    return (uint8_t)best;
+}
+
+static const int CELL_TAPS_SUFFIX[8] = {21, 22, 25, 26, 37, 38, 41, 42};
+
+/* The limiter's bounds of one value from its 64 taps u (16 z + 4 y + x): sliding extremes of 3
+   along x, then y, then z give each corner's 27, weighted by the corners' weights. */
+static void bounds_SUFFIX(const REAL *u, const REAL *weight, REAL *low, REAL *high)
+{
+    REAL lx[32], hx[32], ly[16], hy[16];
+    for (int row = 0; row < 16; ++row)
+        for (int c = 0; c < 2; ++c) {
+            const REAL *v = u + 4 * row + c;
+            lx[2 * row + c] = min3_SUFFIX(v[0], v[1], v[2]);
+            hx[2 * row + c] = max3_SUFFIX(v[0], v[1], v[2]);
+        }
+    for (int z = 0; z < 4; ++z)
+        for (int c = 0; c < 4; ++c) {   /* c = 2 cy + cx */
+            const int base = 8 * z + (c & 1) + 2 * (c >> 1);
+            ly[4 * z + c] = min3_SUFFIX(lx[base], lx[base + 2], lx[base + 4]);
+            hy[4 * z + c] = max3_SUFFIX(hx[base], hx[base + 2], hx[base + 4]);
+        }
+    *low = 0;
+    *high = 0;
+    for (int c = 0; c < 8; ++c) {   /* c = 4 cz + 2 cy + cx */
+        const int z = c >> 2, plane = c & 3;
+        *low += weight[c] * min3_SUFFIX(ly[4 * z + plane], ly[4 * (z + 1) + plane],
+                                        ly[4 * (z + 2) + plane]);
+        *high += weight[c] * max3_SUFFIX(hy[4 * z + plane], hy[4 * (z + 1) + plane],
+                                         hy[4 * (z + 2) + plane]);
+    }
+}
+
+void clamp_into_SUFFIX(const int32_t *taps, const REAL *corners, const int64_t *rows,
+        const REAL *x, const REAL *value, REAL *out, uint8_t *codes, uint8_t *extremes,
+        int64_t first, int64_t stop, int64_t F)
 {
     for (int64_t r = first; r < stop; ++r) {
-        const int32_t *cell = cells + r * 8;
+        const int32_t *tap = taps + r * 64;
         REAL *target = out + rows[r] * F;
         for (int64_t f = 0; f < F; ++f) {
-            REAL low = x[(int64_t)cell[0] * F + f], high = low;
-            int lowest = 0, highest = 0, nan = low != low;
-            for (int k = 1; k < 8; ++k) {
-                REAL v = x[(int64_t)cell[k] * F + f];
-                nan |= v != v;
-                if (v < low) { low = v; lowest = k; }
-                if (v > high) { high = v; highest = k; }
-            }
             REAL v = value[r * F + f];
             uint8_t code = 0;
-            if (nan) v = (REAL)NAN;   /* as torch's clamp keeps a NaN */
-            else if (v < low) { v = low; code = (uint8_t)(1 + lowest); }
-            else if (v > high) { v = high; code = (uint8_t)(9 + highest); }
+            /* the bounds hold the range of the cell's 8 nodes: a value inside it stays */
+            REAL least = x[(int64_t)tap[CELL_TAPS_SUFFIX[0]] * F + f], most = least;
+            for (int k = 1; k < 8; ++k) {
+                const REAL w = x[(int64_t)tap[CELL_TAPS_SUFFIX[k]] * F + f];
+                least = w < least ? w : least;
+                most = w > most ? w : most;
+            }
+            if (!(v >= least && v <= most) && v == v) {
+                REAL u[64], low, high;
+                int nan = 0;
+                for (int t = 0; t < 64; ++t) {
+                    u[t] = x[(int64_t)tap[t] * F + f];
+                    nan |= u[t] != u[t];
+                }
+                bounds_SUFFIX(u, corners + r * 8, &low, &high);
+                if (nan) v = (REAL)NAN;   /* as torch's clamp keeps a NaN */
+                else if (v < low) { v = low; code = 1; }
+                else if (v > high) { v = high; code = 2; }
+                if (code && codes)
+                    for (int c = 0; c < 8; ++c)
+                        extremes[(r * F + f) * 8 + c] = extreme_tap_SUFFIX(u, c, code == 1 ? 1 : -1);
+            }
             target[f] = v;
             if (codes) codes[r * F + f] = code;
         }
@@ -205,17 +267,24 @@ void clamp_into_SUFFIX(const int32_t *cells, const int64_t *rows, const REAL *x,
 }
 
 /* The clamp's backward: for each target r and column, the gradient g[rows[r]] goes to the
-   values' taps (into taps[r], for the transposed product) or to the cell node codes names
-   (added into grad, whose target rows the caller zeroed); one thread. */
-void clamp_back_SUFFIX(const int32_t *cells, const int64_t *rows, const uint8_t *codes,
-        const REAL *g, REAL *grad, REAL *taps, int64_t count, int64_t F)
+   values' taps (into free[r], for the transposed product) if not clamped, else to the taps
+   holding its corners' extremes, with the corners' weights (added into grad, whose target rows
+   the caller zeroed); extremes holds only the clamped entries', in the order of (r, f); one
+   thread. */
+void clamp_back_SUFFIX(const int32_t *taps, const REAL *corners, const int64_t *rows,
+        const uint8_t *codes, const uint8_t *extremes, const REAL *g, REAL *grad, REAL *free,
+        int64_t count, int64_t F)
 {
+    const uint8_t *at = extremes;
     for (int64_t r = 0; r < count; ++r)
         for (int64_t f = 0; f < F; ++f) {
             REAL incoming = g[rows[r] * F + f];
             uint8_t code = codes[r * F + f];
-            taps[r * F + f] = code ? (REAL)0 : incoming;
-            if (code) grad[(int64_t)cells[r * 8 + ((code - 1) & 7)] * F + f] += incoming;
+            free[r * F + f] = code ? (REAL)0 : incoming;
+            if (!code) continue;
+            for (int c = 0; c < 8; ++c)
+                grad[(int64_t)taps[r * 64 + at[c]] * F + f] += corners[r * 8 + c] * incoming;
+            at += 8;
         }
 }
 
@@ -256,9 +325,9 @@ LIBRARY = NativeLibrary(
     "gather_rows", _source,
     {**{f"product_{s}": _POINTERS + [ctypes.c_int64] * 3 for s in ("f32", "f64")},
      **{f"scatter_{s}": _POINTERS + [ctypes.c_int64] * 2 for s in ("f32", "f64")},
-     **{f"clamp_into_{s}": [ctypes.c_void_p] * 6 + [ctypes.c_int64] * 3
+     **{f"clamp_into_{s}": [ctypes.c_void_p] * 8 + [ctypes.c_int64] * 3
         for s in ("f32", "f64")},
-     **{f"clamp_back_{s}": [ctypes.c_void_p] * 6 + [ctypes.c_int64] * 2
+     **{f"clamp_back_{s}": [ctypes.c_void_p] * 8 + [ctypes.c_int64] * 2
         for s in ("f32", "f64")},
      **{f"product_blocks_{s}": [ctypes.c_void_p] * 7 + [ctypes.c_int64] * 2
         for s in ("f32", "f64")}},
@@ -412,16 +481,18 @@ def product(offsets: Tensor, columns: Tensor, weights: Tensor, x: Tensor,
     return _product(offsets, columns, weights, x, rows, blocks)
 
 
-def _clamped_into(z: Tensor, value: Tensor, cells: Tensor, rows: Tensor,
-                  codes: Tensor | None) -> Tensor:
+def _clamped_into(z: Tensor, value: Tensor, taps: Tensor, corners: Tensor, rows: Tensor,
+                  codes: Tensor | None, extremes: Tensor | None) -> Tensor:
     out = z.clone()
     kernel = getattr(LIBRARY.load(), f"clamp_into_{_SUFFIX[z.dtype]}")
     features = z.shape[1]
     code_pointer = None if codes is None else codes.data_ptr()
+    extreme_pointer = None if extremes is None else extremes.data_ptr()
 
     def run(first: int, stop: int) -> None:
-        kernel(cells.data_ptr(), rows.data_ptr(), z.data_ptr(), value.data_ptr(),
-               out.data_ptr(), code_pointer, first, stop, features)
+        kernel(taps.data_ptr(), corners.data_ptr(), rows.data_ptr(), z.data_ptr(),
+               value.data_ptr(), out.data_ptr(), code_pointer, extreme_pointer, first, stop,
+               features)
 
     in_threads(run, len(rows), THREAD_MIN_ROWS)
     return out
@@ -429,46 +500,52 @@ def _clamped_into(z: Tensor, value: Tensor, cells: Tensor, rows: Tensor,
 
 class _Limited(torch.autograd.Function):
     """A limited stencil's ``z -> z`` with its targets' values replaced (:func:`limited`);
-    backward by the recorded clamp codes and the transposed product, nothing else saved."""
+    backward by the recorded clamp codes and extremes and the transposed product."""
 
     @staticmethod
-    def forward(ctx, z, matrix, cells, rows):  # noqa: ANN001, ANN205
+    def forward(ctx, z, matrix, taps, corners, rows):  # noqa: ANN001, ANN205
         with torch.no_grad():
             value = matrix.apply(z)
         codes = torch.empty((len(rows), z.shape[1]), dtype=torch.uint8)
-        out = _clamped_into(z, value, cells, rows, codes)
-        # the stencil keeps its matrix, cells and rows; the codes are this call's (saved so
-        # that checkpointing frees and recomputes them)
-        ctx.matrix, ctx.cells, ctx.rows = matrix, cells, rows
-        ctx.save_for_backward(codes)
+        extremes = torch.empty((len(rows), z.shape[1], 8), dtype=torch.uint8)
+        out = _clamped_into(z, value, taps, corners, rows, codes, extremes)
+        # the stencil keeps its matrix, taps, corners and rows; the codes and the clamped
+        # values' extremes are this call's (saved so that checkpointing frees and recomputes
+        # them)
+        ctx.matrix, ctx.taps, ctx.corners, ctx.rows = matrix, taps, corners, rows
+        ctx.save_for_backward(codes, extremes[codes.bool()].contiguous())
         return out
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, g):  # noqa: ANN001, ANN205
-        (codes,) = ctx.saved_tensors
+        codes, extremes = ctx.saved_tensors
         g = g.contiguous()
         grad = g.index_fill(0, ctx.rows, 0.0)
-        taps = torch.empty((len(ctx.rows), g.shape[1]), dtype=g.dtype)
+        free = torch.empty((len(ctx.rows), g.shape[1]), dtype=g.dtype)
         getattr(LIBRARY.load(), f"clamp_back_{_SUFFIX[g.dtype]}")(
-            ctx.cells.data_ptr(), ctx.rows.data_ptr(), codes.data_ptr(), g.data_ptr(),
-            grad.data_ptr(), taps.data_ptr(), len(ctx.rows), g.shape[1])
+            ctx.taps.data_ptr(), ctx.corners.to(g.dtype).contiguous().data_ptr(),
+            ctx.rows.data_ptr(), codes.data_ptr(), extremes.data_ptr(), g.data_ptr(),
+            grad.data_ptr(), free.data_ptr(), len(ctx.rows), g.shape[1])
         matrix = ctx.matrix
-        grad += _scatter(matrix.offsets, matrix.columns, matrix.values(g.dtype), taps,
+        grad += _scatter(matrix.offsets, matrix.columns, matrix.values(g.dtype), free,
                          g.shape[0])
-        return grad, None, None, None
+        return grad, None, None, None, None
 
 
-def limited(z: Tensor, matrix: RowMatrix, cells: Tensor, rows: Tensor) -> Tensor | None:
+def limited(z: Tensor, matrix: RowMatrix, taps: Tensor, corners: Tensor, rows: Tensor
+            ) -> Tensor | None:
     """A copy of ``z`` ``(nodes, F)`` whose rows ``rows`` ``(R,)`` (int64, distinct) hold
-    ``matrix @ z`` ``(R, F)`` clamped to the range of the 8 rows ``cells`` ``(R * 8,)`` (int32)
-    of ``z`` (a limited closest-point stencil); in autograd's graph when ``z`` is (the gradient
-    of a clamped value reaches the cell's node at that bound, the volume re-extension's rule).
-    ``None`` where the kernel does not run (:func:`applies`)."""
-    if (not applies(matrix.offsets, z) or cells.dtype != torch.int32
-            or rows.dtype != torch.int64):
+    ``matrix @ z`` ``(R, F)`` clamped to the limiter's bounds (:mod:`._limiter`) over each
+    row's 64 taps ``taps`` ``(R, 64)`` (int32 rows of ``z``, in the order ``16 z + 4 y + x``)
+    with its corners' trilinear weights ``corners`` ``(R, 8)`` (``z``'s dtype); in autograd's
+    graph when ``z`` is (the gradient of a clamped value reaches the taps holding its corners'
+    extremes, with the corners' weights). ``None`` where the kernel does not run
+    (:func:`applies`)."""
+    if (not applies(matrix.offsets, z) or taps.dtype != torch.int32
+            or rows.dtype != torch.int64 or corners.dtype != z.dtype):
         return None
-    z, cells, rows = (t.contiguous() for t in (z, cells, rows))
+    z, taps, corners, rows = (t.contiguous() for t in (z, taps, corners, rows))
     if torch.is_grad_enabled() and z.requires_grad:
-        return _Limited.apply(z, matrix, cells, rows)
-    return _clamped_into(z, matrix.apply(z), cells, rows, None)
+        return _Limited.apply(z, matrix, taps, corners, rows)
+    return _clamped_into(z, matrix.apply(z), taps, corners, rows, None, None)

@@ -6,11 +6,10 @@ and the ``(N, 64)`` source indices of every application: in a flow, one set per 
 times the band's own size each. When the stencil's weights are fixed (``phi`` does not require
 grad), :func:`reextend` applies it without autograd and keeps only its input; backward forms
 the taps again, a chunk of nodes at a time, and scatters the incoming gradient back along
-them. For a limited stencil (each value clamped to the range of the 8 nodes of its cell), a
-clamped node sends its gradient to the cell node that set the bound, the others along their 64
-taps: the derivative of ``min(max(value, low), high)`` away from ties. Such a stencil also keeps
-the values it wrote: one strictly inside its cell's range was not clamped, so backward gathers
-the 64 taps again only for values at a bound.
+them. For a limited stencil (each value clamped to bounds continuous in its point,
+:mod:`._limiter`), a clamped node sends its gradient to the nodes that set the bound, each
+corner's extreme with that corner's trilinear weight, the others along their 64 taps: the
+derivative of ``min(max(value, low), high)`` away from ties.
 """
 
 from __future__ import annotations
@@ -21,7 +20,8 @@ import torch
 from torch import Tensor
 
 from ..surface import ImplicitSurface
-from .extension import _CELL, BrickCubicStencil, CubicStencil, _corner_base, cubic_stencil
+from . import _limiter
+from .extension import BrickCubicStencil, CubicStencil, _corner_base, cubic_stencil
 
 Stencil = CubicStencil | BrickCubicStencil
 
@@ -70,35 +70,23 @@ class _Reextend(torch.autograd.Function):
         ctx.stencil = stencil
         with torch.no_grad():
             result = stencil.apply(u, path)
-        # a limited stencil's backward tells the values it clamped by the values it wrote
-        ctx.save_for_backward(u, *(_written(stencil, result) if stencil.limited else ()))
+        ctx.save_for_backward(u)
         return result
 
     @staticmethod
     def backward(ctx, grad_output):  # noqa: ANN001, ANN205
-        u, *written = ctx.saved_tensors
-        return None, _vector_jacobian(ctx.stencil, u.detach(), grad_output, written or None), None
+        (u,) = ctx.saved_tensors
+        return None, _vector_jacobian(ctx.stencil, u.detach(), grad_output), None
 
 
-def _written(stencil: Stencil, result: Tensor) -> list[Tensor]:
-    """The values ``stencil.apply`` wrote into ``result``: ``(C, n)`` per part of the stencil
-    (one for bricks), in the order of its targets."""
-    if isinstance(stencil, BrickCubicStencil):
-        return [result.transpose(0, 1).reshape(result.shape[1], -1)[:, stencil.targets]]
-    return [result[b].reshape(result.shape[1], -1)[:, stencil.parts[min(b, len(stencil.parts) - 1)][0]]
-            for b in range(result.shape[0])]
-
-
-def _vector_jacobian(stencil: Stencil, u: Tensor, g: Tensor,
-                     written: list[Tensor] | None = None) -> Tensor:
-    """``g^T d(stencil.apply(u)) / du`` for ``u`` and ``g`` of the same shape; ``written``
-    (:func:`_written`), where known, spares a limited stencil most of its gather again."""
+def _vector_jacobian(stencil: Stencil, u: Tensor, g: Tensor) -> Tensor:
+    """``g^T d(stencil.apply(u)) / du`` for ``u`` and ``g`` of the same shape."""
     if isinstance(stencil, BrickCubicStencil):
         channels = u.shape[1]
         flat = u.transpose(0, 1).reshape(channels, -1)
         incoming = g.transpose(0, 1).reshape(channels, -1)
         result = _scatter_back(flat, incoming, stencil.targets, _brick_taps(stencil),
-                               stencil.limited, None if written is None else written[0])
+                               stencil.limited)
         return result.view(channels, u.shape[0], *u.shape[2:]).transpose(0, 1)
     results = []
     for b in range(max(u.shape[0], len(stencil.parts))):
@@ -109,8 +97,7 @@ def _vector_jacobian(stencil: Stencil, u: Tensor, g: Tensor,
         incoming = g[b].reshape(g.shape[1], -1)
         taps = _dense_taps(targets, corners, weights.to(u.dtype), *volume.shape[-2:],
                            stencil.sources[part])
-        results.append(_scatter_back(flat, incoming, targets, taps, stencil.limited,
-                                     None if written is None else written[b])
+        results.append(_scatter_back(flat, incoming, targets, taps, stencil.limited)
                        .reshape(volume.shape))
     result = torch.stack(results)
     return result if result.shape[0] == u.shape[0] else result.sum(dim=0, keepdim=True)
@@ -152,14 +139,11 @@ def _brick_taps(stencil: BrickCubicStencil) -> Iterator[tuple[slice, Tensor, Ten
 
 
 def _scatter_back(flat: Tensor, incoming: Tensor, targets: Tensor,
-                  chunks: Iterator[tuple[slice, Tensor, Tensor]], limited: bool,
-                  written: Tensor | None = None) -> Tensor:
+                  chunks: Iterator[tuple[slice, Tensor, Tensor]], limited: bool) -> Tensor:
     """``incoming`` ``(C, M)`` with the targets' entries moved back to their sources.
 
     ``flat`` ``(C, M)`` is the stencil's input (read only when ``limited``, to find which
-    nodes were clamped and by which cell node). ``written`` ``(C, n)``: the values the stencil
-    wrote at its targets, if known; a value strictly inside its cell's range was not clamped, so
-    only the others have their 64 taps gathered again.
+    values were clamped and by which nodes' values).
     """
     result = incoming.index_fill(1, targets, 0.0)
     for nodes, sources, taps in chunks:
@@ -168,31 +152,19 @@ def _scatter_back(flat: Tensor, incoming: Tensor, targets: Tensor,
         if not limited:
             result.index_add_(1, sources.flatten(), (moved[..., None] * taps).flatten(1))
             continue
-        cell = flat[:, sources[:, _CELL]]  # (C, n, 8)
-        low, lowest = cell.min(dim=-1)
-        high, highest = cell.max(dim=-1)
-        below, above = _clamped(flat, sources, taps, None if written is None else
-                                written[:, nodes], low, high)
+        gathered = flat[:, sources]  # (C, n, 64)
+        value = (gathered * taps).sum(dim=-1)
+        corners = _limiter.corner_weights_of_taps(taps)  # (n, 8)
+        low, high, lowest, highest = _limiter.bounds_and_sources(gathered, corners)
+        below, above = value < low, value > high
         free = ~(below | above)
         result.index_add_(1, sources.flatten(), ((moved * free)[..., None] * taps).flatten(1))
-        cell_sources = sources[:, _CELL].expand(flat.shape[0], -1, -1)
-        for clamped, position in ((below, lowest), (above, highest)):
-            node = cell_sources.gather(2, position[..., None])[..., 0]  # (C, n)
-            result.scatter_add_(1, node, moved * clamped)
+        for clamped, extremes in ((below, lowest), (above, highest)):
+            channel, node = clamped.nonzero(as_tuple=True)
+            if len(node) == 0:
+                continue
+            reached = sources[node[:, None], extremes[channel, node]].long()  # (k, 8)
+            result.index_put_((channel[:, None].expand_as(reached), reached),
+                              moved[channel, node][:, None] * corners[node],
+                              accumulate=True)
     return result
-
-
-def _clamped(flat: Tensor, sources: Tensor, taps: Tensor, written: Tensor | None, low: Tensor,
-             high: Tensor) -> tuple[Tensor, Tensor]:
-    """Which values were clamped to their cell's ``low`` and ``high`` (``(C, n)`` bool each):
-    the values whose 64 taps, gathered again, fall outside them. Only the ``written`` values at
-    a bound are candidates, where known; otherwise every value."""
-    below = torch.zeros_like(low, dtype=torch.bool)
-    above = torch.zeros_like(below)
-    candidates = torch.ones_like(below) if written is None else (written <= low) | (written >= high)
-    channel, node = candidates.nonzero(as_tuple=True)
-    if len(node):
-        value = (flat[channel[:, None], sources[node]] * taps[node]).sum(dim=-1)
-        below[channel, node] = value < low[channel, node]
-        above[channel, node] = value > high[channel, node]
-    return below, above

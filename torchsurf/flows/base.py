@@ -320,7 +320,7 @@ class Flow(nn.Module):
         adjoint: integrate with ``torchdiffeq.odeint_adjoint``.
         progress: show a tqdm progress bar over the steps (tqdm is optional).
         reextend_every: re-extend the band and its ring along normals (closest point,
-            tricubic, limited to the range of the cell around each closest point) every this
+            tricubic, limited to the range of the nodes around each closest point) every this
             many steps; ``"auto"`` (default) after as many steps as the fastest diffusion takes
             to cross one cell, ``floor(12 / (rho dt))``, or after every step where steps are
             longer (RKC steps that hold the ring: as many as one step could hold it for,
