@@ -107,6 +107,24 @@ def clamp_gathered(value: Tensor, gathered: Tensor, weights: Callable[[], Tensor
     return value.index_copy(1, nodes, limited)
 
 
+def clamp_outside_cells(value: Tensor, flat: Tensor, cells: Tensor,
+                        taps: Callable[[Tensor], Tensor], weights: Tensor) -> Tensor:
+    """The interpolated ``value`` ``(C, N)`` limited: the cells' 8 nodes (flat positions
+    ``cells`` ``(N, 8)`` in ``flat`` ``(C, M)``) read for every node, the 64 taps
+    (``taps(nodes)``: ``(n, 64)``) only where the value leaves its cell's range (the bounds hold
+    it: the others are not clamped); ``weights`` ``(3, N, 4)`` the per-axis weights."""
+    cell = flat.index_select(1, cells.flatten()).view(flat.shape[0], *cells.shape)
+    outside = ((value < cell.amin(-1)) | (value > cell.amax(-1))).any(dim=0)
+    nodes = outside.nonzero().squeeze(1)
+    if len(nodes) == 0:
+        return value
+    positions = taps(nodes)
+    gathered = flat.index_select(1, positions.flatten()).view(flat.shape[0], *positions.shape)
+    limited = clamp(value[:, nodes], *corner_extremes(gathered),
+                    corner_weights(*weights[:, nodes].unbind(0)))
+    return value.index_copy(1, nodes, limited)
+
+
 def bounds_and_sources(gathered: Tensor, weights: Tensor
                        ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """The bounds ``(C, N)`` each and, for each, the taps ``(C, N, 8)`` (positions among the
