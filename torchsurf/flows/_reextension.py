@@ -154,17 +154,25 @@ def _scatter_back(flat: Tensor, incoming: Tensor, targets: Tensor,
             continue
         gathered = flat[:, sources]  # (C, n, 64)
         value = (gathered * taps).sum(dim=-1)
-        corners = _limiter.corner_weights_of_taps(taps)  # (n, 8)
-        low, high, lowest, highest = _limiter.bounds_and_sources(gathered, corners)
-        below, above = value < low, value > high
-        free = ~(below | above)
+        # the bounds hold the cell's range: only values outside it may have been clamped
+        cell = gathered[..., _limiter.CELL]
+        outside = ((value < cell.amin(-1)) | (value > cell.amax(-1))).any(dim=0).nonzero()[:, 0]
+        free = torch.ones_like(moved, dtype=torch.bool)
+        clamps = []
+        if len(outside):
+            corners = _limiter.corner_weights_of_taps(taps[outside])  # (k, 8)
+            low, high, lowest, highest = _limiter.bounds_and_sources(gathered[:, outside],
+                                                                     corners)
+            below, above = value[:, outside] < low, value[:, outside] > high
+            free[:, outside] = ~(below | above)
+            clamps = [(below, lowest), (above, highest)]
         result.index_add_(1, sources.flatten(), ((moved * free)[..., None] * taps).flatten(1))
-        for clamped, extremes in ((below, lowest), (above, highest)):
+        for clamped, extremes in clamps:
             channel, node = clamped.nonzero(as_tuple=True)
             if len(node) == 0:
                 continue
-            reached = sources[node[:, None], extremes[channel, node]].long()  # (k, 8)
+            at = outside[node]
+            reached = sources[at[:, None], extremes[channel, node]].long()  # (k, 8)
             result.index_put_((channel[:, None].expand_as(reached), reached),
-                              moved[channel, node][:, None] * corners[node],
-                              accumulate=True)
+                              moved[channel, at][:, None] * corners[node], accumulate=True)
     return result
