@@ -100,15 +100,34 @@ def test_the_band_keeps_its_nodes_at_exactly_its_width(generator):
     assert bool(torch.equal(ts.ImplicitSurface(phi - change, grid).band_mask(), band))
 
 
-@pytest.mark.parametrize("scheme", ["octant", "symmetric", "conservative"])
+@pytest.mark.parametrize("scheme", ["octant", "symmetric", "conservative", "central"])
 @pytest.mark.parametrize("n", [8, 9])
 def test_gradcheck_phi_of_a_centred_sphere(scheme, n):
     """``n = 8``: the 8 nodes around the centre have central differences exactly half their
     one-sided ones, where the weight's floor had its kink at one half; ``n = 9``: the centre is
-    a node whose normal turned by any amount under any change of ``phi``."""
+    a node whose normal turned by any amount under any change of ``phi`` (and whose mean
+    curvature, which the central scheme reads, was 1e7)."""
     grid = ts.Grid.cube(n, bound=1.0)
     phi = ts.sdf.sphere(grid, radius=0.6, dtype=torch.float64).requires_grad_(True)
     u = torch.randn(phi.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(4))
     assert torch.autograd.gradcheck(
         lambda phi: ts.laplace_beltrami(u, ts.ImplicitSurface(phi, grid), scheme=scheme), (phi,),
         fast_mode=True)
+
+
+@pytest.mark.parametrize("name", ["mean_curvature", "gaussian_curvature", "principal_curvatures"])
+@pytest.mark.parametrize("shape", ["sphere", "torus"])
+def test_gradcheck_phi_of_curvatures_with_a_centre_on_a_node(name, shape):
+    """The level set through the centre is a point (a line on a torus's axis): its curvature is
+    faded out there, smoothly, instead of ``tr(Hess) / eps``."""
+    grid = ts.Grid.cube(11, bound=1.0)
+    phi = (ts.sdf.sphere(grid, radius=0.6, dtype=torch.float64) if shape == "sphere"
+           else ts.sdf.torus(grid, 0.55, 0.25).double()).requires_grad_(True)
+    surface = ts.ImplicitSurface(phi.detach(), grid)
+    assert float(surface.mean_curvature().abs().max()) < 100.0
+
+    def curvature(phi: torch.Tensor) -> torch.Tensor:
+        value = getattr(ts.ImplicitSurface(phi, grid), name)()
+        return value if torch.is_tensor(value) else torch.cat(value, dim=1)
+
+    assert torch.autograd.gradcheck(curvature, (phi,), fast_mode=True)

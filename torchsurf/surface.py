@@ -223,8 +223,12 @@ class ImplicitSurface(nn.Module):
         grad_norm = unit_norm * magnitude
         slope = torch.sqrt(_squared_slope(padded / magnitude) / self.spacing**2 + floor**2)
         self.register_buffer("grad_norm", grad_norm, persistent=False)
-        normal = unit_gradient / torch.maximum(unit_norm, DIRECTION_FLOOR * slope)
-        self.register_buffer("normal", normal, persistent=False)
+        directed_norm = torch.maximum(unit_norm, DIRECTION_FLOOR * slope)
+        self.register_buffer("normal", unit_gradient / directed_norm, persistent=False)
+        # the curvatures divide by it, and fade out where phi has no direction (_faded)
+        self.register_buffer("_directed_norm", directed_norm * magnitude, persistent=False)
+        fade = torch.where(directed_norm > unit_norm, (squared / directed_norm**2) ** 2, 1.0)
+        self.register_buffer("_curvature_fade", fade, persistent=False)
         self.register_buffer("gradient_scale", scale * magnitude, persistent=False)
         weight = torch.maximum(unit_norm, WEIGHT_FLOOR * slope)
         weight = torch.maximum(weight, MINIMUM_WEIGHT * scale) * magnitude
@@ -384,7 +388,9 @@ class ImplicitSurface(nn.Module):
         return stencils.apply(padded, stencils.HESSIAN)[:, 0] / self.spacing**2
 
     def _gradient(self) -> Tensor:
-        return self.normal * self.grad_norm
+        """``grad phi`` where it has a direction; shortened with the normal elsewhere
+        (:data:`DIRECTION_FLOOR`), so that ``_gradient() / _directed_norm`` is the normal."""
+        return self.normal * self._directed_norm
 
     def mean_curvature(self) -> Tensor:
         """Mean curvature ``H = div n`` of the level set through each node; ``(B, 1, D, H, W)``.
@@ -398,7 +404,8 @@ class ImplicitSurface(nn.Module):
         if kept is not None and (torch.compiler.is_compiling()
                                  or kept._version == self._mean_curvature_version):
             return kept
-        value = curvature.mean_curvature(self._gradient(), self.hessian(), self.grad_norm)
+        value = self._faded(curvature.mean_curvature(self._gradient(), self.hessian(),
+                                                     self._directed_norm))
         if torch.is_grad_enabled() or not self.phi.requires_grad:
             self._mean_curvature = value
             self._mean_curvature_version = value._version
@@ -409,7 +416,8 @@ class ImplicitSurface(nn.Module):
 
         ``K = grad phi^T adj(Hess phi) grad phi / |grad phi|^4`` (sphere: ``1 / R^2``).
         """
-        return curvature.gaussian_curvature(self._gradient(), self.hessian(), self.grad_norm)
+        return self._faded(curvature.gaussian_curvature(self._gradient(), self.hessian(),
+                                                        self._directed_norm))
 
     def principal_curvatures(self) -> tuple[Tensor, Tensor]:
         """Principal curvatures ``(k1, k2)``, ``k1 >= k2``, each ``(B, 1, D, H, W)``.
@@ -433,9 +441,19 @@ class ImplicitSurface(nn.Module):
         return e1, e2
 
     def _principal(self) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        return curvature.principal(
-            self.hessian(), self.normal, self.grad_norm, eps=1e-6 / self.spacing
+        k1, k2, e1, e2 = curvature.principal(
+            self.hessian(), self.normal, self._directed_norm, eps=1e-6 / self.spacing
         )
+        return self._faded(k1), self._faded(k2), e1, e2
+
+    def _faded(self, value: Tensor) -> Tensor:
+        """A curvature faded out where ``phi`` has no direction (:data:`DIRECTION_FLOOR`): by
+        ``(|grad phi| / floor)^4`` (the central differences, without ``eps``), exactly 1
+        elsewhere. There the level set through the node is a point or a line (the centre of a
+        sphere, the axis of a torus), its curvature ``tr(Hess) / |grad phi|`` unbounded and its
+        derivative in ``phi`` ill-conditioned (``gradcheck`` failed on spheres centred on a
+        node); faded, it goes to 0, flat at the exact centre."""
+        return value * self._curvature_fade
 
     def extra_repr(self) -> str:
         return (
