@@ -86,3 +86,24 @@ def test_corner_weights_stay_convex_for_points_past_the_cell(fraction):
                           dim=1)
     corners = _limiter.corner_weights(weights, weights, weights)
     assert bool((corners >= 0).all()) and float(corners.sum()) == pytest.approx(1.0)
+
+
+def _mostly_ones(shape: tuple[int, ...], generator: torch.Generator) -> torch.Tensor:
+    """0/1 data in float32, 1 at 90% of the nodes: most cells all ones, their cubic above 1
+    where a 0 lies among the outer taps, the bounds ``sum_c lambda_c 1`` formed there."""
+    return (torch.rand(shape, dtype=torch.float64, generator=generator) < 0.9).float()
+
+
+def test_limited_values_stay_within_the_datas_range_to_the_last_bit(generator):
+    """The bounds' weighted sums round (the weights sum to ``1 +- ulp``): unguarded, values
+    clamped to ``sum_c lambda_c 1`` exceeded 1 by an ulp in float32, a new extremum."""
+    flat = _mostly_ones((2, NODES), generator)
+    points = 1.0 + torch.rand(4000, 3, dtype=torch.float64, generator=generator) * 5.0
+    corners, weights = _stencil_at(points)
+    for path in ("eager", "terms"):
+        value = _interpolate_gathered(flat, corners, weights.float(), 9, 10, True) \
+            if path == "eager" else _interpolate_terms(flat, corners, weights.float(), 9, 10, True)
+        assert float(value.max()) <= 1.0 and float(value.min()) >= 0.0, path
+    free = _interpolate_gathered(flat, corners, weights.float(), 9, 10, False)
+    assert float(free.max()) > 1.01  # the cubic overshot: the bounds were formed
+

@@ -166,3 +166,19 @@ def test_the_packed_stencils_gradient_is_torchs_and_passes_gradcheck(native_avai
     torch.testing.assert_close(grads[0], grads[1], rtol=1e-13, atol=1e-13)
     small = z[:, :, :1].clone().requires_grad_()
     assert torch.autograd.gradcheck(stencil.apply, (small,), eps=1e-7, atol=1e-6)
+
+
+def test_the_packed_stencils_values_stay_within_the_datas_range(native_available, monkeypatch):
+    """0/1 data in float32, 1 at 90% of the nodes: where the cubic overshoots 1 the bounds
+    ``sum_c lambda_c 1`` are formed, and their rounding (weights summing to ``1 +- ulp``) left
+    values an ulp above 1, a new extremum; by the C kernel and by torch."""
+    packing, stencil = _packed_stencil()
+    generator = torch.Generator().manual_seed(9)
+    z = (torch.rand(len(packing.nodes), 1, 8, generator=generator) < 0.9).float()
+    assert float(stencil.matrix.apply(z.reshape(len(z), -1)).max()) > 1.01
+    for native in (True, False):
+        with monkeypatch.context() as patch:
+            if not native:
+                patch.setattr(_native_gather, "limited", lambda *args: None)
+            value = stencil.apply(z)
+        assert float(value.max()) <= 1.0 and float(value.min()) >= 0.0, native

@@ -80,10 +80,37 @@ def corner_extremes_of_taps(taps: list[Tensor]) -> tuple[list[Tensor], list[Tens
     return extremes(torch.minimum), extremes(torch.maximum)
 
 
+def bounds(low: Tensor, high: Tensor, weights: Tensor) -> tuple[Tensor, Tensor]:
+    """The bounds ``sum_c weights_c low_c`` and ``... high_c`` ``(C, N)`` each, from the
+    corners' extremes ``low, high`` ``(C, N, 8)`` and their weights ``(N, 8)``; each kept
+    within its corners' range (``min_c low_c <= low <= max_c low_c``), which rounding of the
+    sums (weights summing to ``1 +- ulp``) would leave by an ulp: clamped to a ``low`` above
+    all-ones data, a value exceeded the data's range."""
+    return (_within((low * weights).sum(-1), low.amin(-1), low.amax(-1)),
+            _within((high * weights).sum(-1), high.amin(-1), high.amax(-1)))
+
+
+def _within(value: Tensor, least: Tensor, most: Tensor) -> Tensor:
+    return torch.minimum(torch.maximum(value, least), most)
+
+
+def bounds_of_lists(low: list[Tensor], high: list[Tensor], weights: list[Tensor]
+                    ) -> tuple[Tensor, Tensor]:
+    """:func:`bounds` from the 8 corners' extremes and weights as lists of tensors:
+    elementwise operations only, for a compiled loop over the nodes."""
+    def weighted_within(extremes: list[Tensor]) -> Tensor:
+        least = most = extremes[0]
+        for extreme in extremes[1:]:
+            least, most = torch.minimum(least, extreme), torch.maximum(most, extreme)
+        return _within(sum(w * m for w, m in zip(weights, extremes, strict=True)), least, most)
+    return weighted_within(low), weighted_within(high)
+
+
 def clamp(value: Tensor, low: Tensor, high: Tensor, weights: Tensor) -> Tensor:
-    """``value`` ``(C, N)`` clamped to the bounds ``sum_c weights_c low_c`` and ``... high_c``;
-    ``low, high`` ``(C, N, 8)`` the corners' extremes, ``weights`` ``(N, 8)``."""
-    return torch.minimum(torch.maximum(value, (low * weights).sum(-1)), (high * weights).sum(-1))
+    """``value`` ``(C, N)`` clamped to the :func:`bounds` of the corners' extremes ``low,
+    high`` ``(C, N, 8)`` with the corners' ``weights`` ``(N, 8)``."""
+    lower, upper = bounds(low, high, weights)
+    return torch.minimum(torch.maximum(value, lower), upper)
 
 
 CELL = [16 * z + 4 * y + x for z in (1, 2) for y in (1, 2) for x in (1, 2)]
@@ -135,5 +162,4 @@ def bounds_and_sources(gathered: Tensor, weights: Tensor
     high, highest = blocks.max(dim=-1)
     table = BLOCKS.to(gathered.device)
     corners = torch.arange(8, device=gathered.device)
-    return ((low * weights).sum(-1), (high * weights).sum(-1),
-            table[corners, lowest], table[corners, highest])
+    return (*bounds(low, high, weights), table[corners, lowest], table[corners, highest])

@@ -200,6 +200,16 @@ static uint8_t extreme_tap_SUFFIX(const REAL *u, int c, int sign)
 
 static const int CELL_TAPS_SUFFIX[8] = {21, 22, 25, 26, 37, 38, 41, 42};
 
+static REAL within_SUFFIX(REAL value, const REAL *extremes)
+{
+    REAL least = extremes[0], most = extremes[0];
+    for (int c = 1; c < 8; ++c) {
+        least = extremes[c] < least ? extremes[c] : least;
+        most = extremes[c] > most ? extremes[c] : most;
+    }
+    return value < least ? least : (value > most ? most : value);
+}
+
 /* The limiter's bounds of one value from its 64 taps u (16 z + 4 y + x): sliding extremes of 3
    along x, then y, then z give each corner's 27, weighted by the corners' weights. */
 static void bounds_SUFFIX(const REAL *u, const REAL *weight, REAL *low, REAL *high)
@@ -217,15 +227,17 @@ static void bounds_SUFFIX(const REAL *u, const REAL *weight, REAL *low, REAL *hi
             ly[4 * z + c] = min3_SUFFIX(lx[base], lx[base + 2], lx[base + 4]);
             hy[4 * z + c] = max3_SUFFIX(hx[base], hx[base + 2], hx[base + 4]);
         }
-    *low = 0;
-    *high = 0;
+    REAL lows = 0, highs = 0, l[8], h[8];
     for (int c = 0; c < 8; ++c) {   /* c = 4 cz + 2 cy + cx */
         const int z = c >> 2, plane = c & 3;
-        *low += weight[c] * min3_SUFFIX(ly[4 * z + plane], ly[4 * (z + 1) + plane],
-                                        ly[4 * (z + 2) + plane]);
-        *high += weight[c] * max3_SUFFIX(hy[4 * z + plane], hy[4 * (z + 1) + plane],
-                                         hy[4 * (z + 2) + plane]);
+        l[c] = min3_SUFFIX(ly[4 * z + plane], ly[4 * (z + 1) + plane], ly[4 * (z + 2) + plane]);
+        h[c] = max3_SUFFIX(hy[4 * z + plane], hy[4 * (z + 1) + plane], hy[4 * (z + 2) + plane]);
+        lows += weight[c] * l[c];
+        highs += weight[c] * h[c];
     }
+    /* each within its corners' range, which the sums' rounding would leave by an ulp */
+    *low = within_SUFFIX(lows, l);
+    *high = within_SUFFIX(highs, h);
 }
 
 void clamp_into_SUFFIX(const int32_t *taps, const REAL *corners, const int64_t *rows,

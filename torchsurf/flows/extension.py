@@ -225,8 +225,8 @@ def _summed_terms(tap: Callable[[int, int, int], Tensor], weights: Tensor, limit
     if limited:
         low, high = _limiter.corner_extremes_of_taps(taps)
         corners = _limiter.corner_weights(wx, wy, wz).t()
-        value = torch.minimum(torch.maximum(value, sum(w * m for w, m in zip(corners, low, strict=True))),
-                              sum(w * m for w, m in zip(corners, high, strict=True)))
+        lower, upper = _limiter.bounds_of_lists(low, high, list(corners))
+        value = torch.minimum(torch.maximum(value, lower), upper)
     return value
 
 
