@@ -68,8 +68,8 @@ def numpy_normals(phi: np.ndarray, spacing: float, eps: float = 1e-6
     One-sided first differences on the faces of the box (the same numbers as central
     differences with ``phi`` extrapolated linearly, which is what :class:`ImplicitSurface`
     does); ``|grad phi| = sqrt(|g|^2 + eps^2)``, ``n = g / max(|grad phi|, 1e-3 * slope)`` and
-    the operators' weight ``W = max(|grad phi|, 0.49 * slope, 0.05 * median |grad phi| over the
-    nodes next to a sign change)``, ``slope`` the larger one-sided differences along each axis.
+    the operators' weight ``W = max(|grad phi|, 0.65 * slope, 0.05 * median |grad phi| over the
+    nodes next to a sign change)``, ``slope`` the one-sided differences' root mean square along each axis.
     """
     gz, gy, gx = np.gradient(phi, spacing, edge_order=1)
     gradient = np.stack([gx, gy, gz])
@@ -92,10 +92,10 @@ def numpy_normals(phi: np.ndarray, spacing: float, eps: float = 1e-6
         last = np.take(steps, [-1], axis=axis)
         forward = np.concatenate([steps, last], axis=axis)  # linear extrapolation at the faces
         backward = np.concatenate([first, steps], axis=axis)
-        squared_slope += np.maximum(forward, backward) ** 2
+        squared_slope += (forward**2 + backward**2) / 2
     slope = np.sqrt(squared_slope + eps**2)
     return (gradient / np.maximum(norm, 1e-3 * slope),
-            np.maximum(np.maximum(norm, 0.49 * slope), 0.05 * median))
+            np.maximum(np.maximum(norm, 0.65 * slope), 0.05 * median))
 
 
 class AppendixB:

@@ -131,3 +131,17 @@ def test_gradcheck_phi_of_curvatures_with_a_centre_on_a_node(name, shape):
         return value if torch.is_tensor(value) else torch.cat(value, dim=1)
 
     assert torch.autograd.gradcheck(curvature, (phi,), fast_mode=True)
+
+
+@pytest.mark.parametrize("scheme", ["octant", "symmetric", "conservative"])
+def test_gradcheck_phi_of_a_node_centred_torus(scheme):
+    """The tube's core circle passes through nodes (radius 0.6 on a 0.2 grid) where phi has a
+    kink: its one-sided differences are equal and opposite, the weight sits on its floor, and
+    a floor built on ``max(|D+|, |D-|)`` had a kink there (each change of ``phi`` took one side
+    or the other)."""
+    grid = ts.Grid.cube(11, bound=1.0)
+    phi = ts.sdf.torus(grid, 0.6, 0.3, dtype=torch.float64).requires_grad_(True)
+    u = torch.randn(phi.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(5))
+    assert torch.autograd.gradcheck(
+        lambda phi: ts.laplace_beltrami(u, ts.ImplicitSurface(phi, grid), scheme=scheme), (phi,),
+        fast_mode=True)

@@ -98,10 +98,10 @@ def _appendix_b_reference(u: np.ndarray, phi: np.ndarray, h: float) -> np.ndarra
     crossing = np.zeros_like(inside)
     for a in range(3):
         crossing |= (shift(inside, a, 1) != inside) | (shift(inside, a, -1) != inside)
-    slope = np.sqrt(sum(np.maximum(np.abs(shift(phi, a, 1) - phi), np.abs(phi - shift(phi, a, -1)))**2
-                        for a in axes) / h**2 + 1e-12)
+    slope = np.sqrt(sum((shift(phi, a, 1) - phi)**2 + (phi - shift(phi, a, -1))**2
+                        for a in axes) / (2 * h**2) + 1e-12)
     median = np.sort(gradient_norm[crossing])[(crossing.sum() - 1) // 2]
-    norm = np.maximum(np.maximum(gradient_norm, 0.49 * slope), 0.05 * median)
+    norm = np.maximum(np.maximum(gradient_norm, 0.65 * slope), 0.05 * median)
     normal = [g / np.maximum(gradient_norm, 1e-3 * slope) for g in grad_phi]
     forward = [(shift(u, a, 1) - u) / h for a in axes]
     along = sum(f * n for f, n in zip(forward, normal, strict=True))

@@ -58,7 +58,7 @@ def test_bound_is_kept_per_surface_and_follows_the_scale_of_phi_not():
 def test_floored_weight_bounds_the_operator_at_thin_features():
     """A trefoil tube of 0.2 at 64^3 has nodes with |grad phi| = 0.13 in its band (the knot's
     strands come close): the floored weight keeps the bound within 1.55x of a distance's
-    (15.1 / h^2 measured; 31.5 / h^2 with W = |grad phi| unfloored)."""
+    (15.2 / h^2 measured; 31.5 / h^2 with W = |grad phi| unfloored)."""
     grid = ts.Grid.cube(64, 1.5)
     surface = ts.ImplicitSurface(ts.sdf.trefoil(grid, tube_radius=0.2), grid)
     assert float(surface.grad_norm[surface.band_mask()].min()) < 0.3
