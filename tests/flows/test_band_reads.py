@@ -96,6 +96,27 @@ def test_refinement_leaves_good_closest_points_exactly_as_they_were():
     assert torch.equal(weights, expected)
 
 
+
+def test_refined_points_are_continuous_where_they_cross_the_tolerance():
+    """A plane ``z = 5`` (distance in cells) read by a tilted normal: first-order points at
+    distances a hair either side of the tolerance were moved by half a cell or not at all;
+    the growing share of the step makes the refined points continuous in ``phi``."""
+    size = 12
+    z = torch.arange(size, dtype=torch.float64)[:, None, None].expand(size, size, size)
+    distance = (z - 5.0).contiguous()
+    normal = torch.stack([torch.full_like(distance, 0.6), torch.zeros_like(distance),
+                          torch.full_like(distance, 0.8)])
+    read = _closest.dense_reader(distance, normal)
+    tolerance = _closest.REFINE_TOLERANCE
+    at = torch.tensor([[5.0, 5.0, 5.0 + tolerance + offset]
+                       for offset in (-1e-9, 1e-9, -0.6 * tolerance)], dtype=torch.float64)
+    refined = _closest.refine(at, read)
+    assert float((refined[0] - refined[1]).abs().max()) < 1e-8
+    assert float((refined[1] - at[1]).abs().max()) > 0.1  # the step was taken
+    # within half the tolerance a point is left exactly as it was
+    assert torch.equal(refined[2], at[2])
+
+
 CASES = [("torus", flow) for flow in FLOWS] + [("sign flip", flow) for flow in FLOWS] + [
     ("trefoil", "heat rkc"), ("trefoil", "heat chebyshev"), ("fandisk", "heat rkc"),
     ("fandisk", "perona-malik")]

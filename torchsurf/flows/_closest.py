@@ -8,11 +8,12 @@ difference normal is not the distance's gradient, and the point lands off S: up 
 reach nodes outside the band and its ring, where nothing is evolved (0.05-0.6% of the region's
 nodes). :func:`refine` repeats the step from such a point,
 ``y <- y - d(y) n(y) / max(|n(y)|, NORMAL_FLOOR)`` with ``d`` that distance and ``n`` read
-trilinearly, while ``|d(y)|`` exceeds :data:`REFINE_TOLERANCE` cells, at most
-:data:`REFINE_STEPS` times: on those meshes and tori every point then reads the region only,
-except where ``phi`` is not a distance at all (an open mesh's sign flips), which the stencils
-leave out (:func:`taps_inside`). Points within the tolerance are not touched, so a surface
-whose first-order points are good keeps its numbers exactly.
+trilinearly, while ``|d(y)|`` exceeds :data:`REFINE_TOLERANCE` cells (a growing fraction of
+the step from half of it), at most :data:`REFINE_STEPS` times: on those meshes and tori every
+point then reads the region only, except where ``phi`` is not a distance at all (an open
+mesh's sign flips), which the stencils leave out (:func:`taps_inside`). Points within half the
+tolerance are not touched, so a surface whose first-order points are good keeps its numbers
+exactly.
 
 Dense volumes and bricks read through the same arithmetic (:func:`trilinear` with a node
 lookup), so that both give the same points to the last bit.
@@ -28,7 +29,10 @@ from torch import Tensor
 from ..surface import ImplicitSurface
 
 REFINE_TOLERANCE = 0.5
-"""A closest point farther than this from S (cells, ``|d|`` read trilinearly) is refined."""
+"""A closest point farther than this from S (cells, ``|d|`` read trilinearly) is refined by
+full steps; between half of it and it, by a fraction of a step that grows from 0 to 1
+(:func:`step_share`), so that the points are continuous in ``phi``: with all or nothing, a
+point crossing the tolerance under a tiny change of ``phi`` moved by half a cell."""
 
 REFINE_STEPS = 4
 """Most refinement steps (measured: 2-3 reach the tolerance on the shared meshes at 64^3-128^3)."""
@@ -92,6 +96,13 @@ def has_direction(surface: ImplicitSurface) -> Tensor:
     return (surface.normal.detach() ** 2).sum(dim=1, keepdim=True) >= 0.25
 
 
+def step_share(distance: Tensor) -> Tensor:
+    """The fraction of a refinement step taken at distance ``distance`` (cells): 0 within
+    half of :data:`REFINE_TOLERANCE`, 1 beyond it, linear between."""
+    start = REFINE_TOLERANCE / 2
+    return ((distance.abs() - start) / (REFINE_TOLERANCE - start)).clamp(0, 1)
+
+
 def refine(at: Tensor, read: Reader) -> Tensor:
     """First-order closest points ``at`` ``(M, 3)`` (fractional node indices), refined.
 
@@ -100,11 +111,11 @@ def refine(at: Tensor, read: Reader) -> Tensor:
         read: the fields at given points (:data:`Reader`).
 
     Returns:
-        ``(M, 3)``: ``at`` where it was within :data:`REFINE_TOLERANCE` of S (or unreadable),
-        the refined points elsewhere; in ``at``'s graph and ``read``'s.
+        ``(M, 3)``: ``at`` where it was within half of :data:`REFINE_TOLERANCE` of S (or
+        unreadable), the refined points elsewhere; in ``at``'s graph and ``read``'s.
     """
     values, readable = read(at, None)
-    far = (readable & (values[0].abs() > REFINE_TOLERANCE)).nonzero().squeeze(1)
+    far = (readable & (step_share(values[0]) > 0)).nonzero().squeeze(1)
     if len(far) == 0:
         return at
     moving = at[far]
@@ -112,8 +123,8 @@ def refine(at: Tensor, read: Reader) -> Tensor:
         values, readable = read(moving, far)
         distance, normal = values[0], values[1:].T
         length = normal.norm(dim=1, keepdim=True).clamp(min=NORMAL_FLOOR)
-        moves = (readable & (distance.abs() > REFINE_TOLERANCE))[:, None]
-        moving = moving - torch.where(moves, distance[:, None] * normal / length, 0.0)
+        share = torch.where(readable, step_share(distance), 0.0)[:, None]
+        moving = moving - share * distance[:, None] * normal / length
     return at.index_copy(0, far, moving)
 
 
