@@ -445,13 +445,20 @@ def run(kernel: Kernel, path: str, volume: Tensor, *args: object) -> Tensor:
     Returns:
         What the kernel returns; every path gives the same numbers to rounding.
     """
+    return run_on_path(kernel, path, volume, *args)[0]
+
+
+def run_on_path(kernel: Kernel, path: str, volume: Tensor, *args: object
+                ) -> tuple[Tensor, str]:
+    """:func:`run`, and the concrete path it took (``"slicing"``, ``"conv3d"`` or
+    ``"compiled"``): for kernels whose forms differ in what they leave to the caller."""
     if torch.compiler.is_compiling() and path in ("auto", *EAGER_PATHS):
         # traced by an outer torch.compile: plain tensor operations, no ledger or record
         # (a context variable and a clock would each break the outer graph)
         concrete = eager_path(volume) if path == "auto" else path
         if concrete == "slicing" and kernel.fused_when_eager:
-            return kernel.fused(*kernel.halo(*args))
-        return kernel.eager(*args, path=concrete)
+            return kernel.fused(*kernel.halo(*args)), concrete
+        return kernel.eager(*args, path=concrete), concrete
     recording = _recording(args)
     concrete, variant = _resolve(path, volume, kernel, recording, args)
     if concrete == "compiled" and kernel.fused is None:
@@ -464,7 +471,7 @@ def run(kernel: Kernel, path: str, volume: Tensor, *args: object) -> Tensor:
             return kernel.fused_eagerly(*kernel.halo(*args))
         return kernel.eager(*args, path=concrete)
 
-    return _timed(variant, concrete, volume, recording, args, evaluate)
+    return _timed(variant, concrete, volume, recording, args, evaluate), concrete
 
 
 def _timed(variant: tuple | None, concrete: str, volume: Tensor, recording: bool, args: tuple,

@@ -6,6 +6,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+import torchsurf as ts
 from torchsurf.flows import _limiter
 from torchsurf.flows.extension import _interpolate_gathered, _interpolate_terms
 from torchsurf.sampling import cubic_lagrange_weights
@@ -107,3 +108,27 @@ def test_limited_values_stay_within_the_datas_range_to_the_last_bit(generator):
     free = _interpolate_gathered(flat, corners, weights.float(), 9, 10, False)
     assert float(free.max()) > 1.01  # the cubic overshot: the bounds were formed
 
+
+
+@pytest.mark.parametrize("storage", ["dense", "bricks"])
+def test_every_path_limits_the_same_values(storage, monkeypatch):
+    """The eager forms limit as they gather; after a compiled form the values outside their
+    cells' ranges are limited apart (:func:`_limiter.clamp_outside_cells`). Compilation is
+    replaced by the plain function, so that the compiled form's branch runs in seconds."""
+    from torchsurf import backend, bricks
+    from torchsurf.flows.extension import cubic_stencil
+
+    monkeypatch.setattr(backend, "compiled", lambda function, *options, **named: function)
+    grid = ts.Grid.cube(21, 1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, 0.8, dtype=torch.float64), grid)
+    u = torch.rand(1, 2, *grid.shape, dtype=torch.float64,
+                   generator=torch.Generator().manual_seed(3))
+    if storage == "bricks":
+        surface = bricks.from_dense(surface)
+        u = surface.from_dense(u)
+    mask = surface.band_mask()
+    results = {path: cubic_stencil(surface, mask, limited=True).apply(u, path=path)
+               for path in ("slicing", "compiled")}
+    free = cubic_stencil(surface, mask).apply(u, path="slicing")
+    assert float((free - results["slicing"]).abs().max()) > 1e-2  # values were limited
+    torch.testing.assert_close(results["compiled"], results["slicing"], rtol=0, atol=1e-12)

@@ -117,20 +117,29 @@ CELL = [16 * z + 4 * y + x for z in (1, 2) for y in (1, 2) for x in (1, 2)]
 """Positions, among the 4^3 taps, of the 8 nodes of the cell that holds the point: the bounds
 hold their range, so a value inside it is not clamped."""
 
+_CELL_TAPS = torch.tensor(CELL)
 
-def clamp_gathered(value: Tensor, gathered: Tensor, weights: Callable[[], Tensor]) -> Tensor:
-    """``value`` ``(C, N)`` limited, from its 64 taps' values ``gathered`` ``(C, N, 64)``;
-    ``weights()`` gives the corners' weights ``(N, 8)``. Eagerly, the bounds are formed only
-    for the nodes whose value leaves its cell's range (few; the others are not clamped); traced
-    by ``torch.compile``, for every node (no data-dependent shapes)."""
+
+def cell_values(gathered: Tensor) -> Tensor:
+    """The values ``(..., 8)`` of the cell's nodes among the 64 taps' ``gathered`` ``(..., 64)``
+    (``index_select``: 1.7x faster than indexing by a list)."""
+    return gathered.index_select(-1, _CELL_TAPS.to(gathered.device))
+
+
+def clamp_gathered(value: Tensor, gathered: Tensor, weights: Tensor) -> Tensor:
+    """``value`` ``(C, N)`` limited, from its 64 taps' values ``gathered`` ``(C, N, 64)`` and
+    the per-axis tricubic ``weights`` ``(3, N, 4)``. Eagerly, the bounds are formed only for
+    the nodes whose value leaves its cell's range (the others are not clamped); traced by
+    ``torch.compile``, for every node (no data-dependent shapes)."""
     if torch.compiler.is_compiling():
-        return clamp(value, *corner_extremes(gathered), weights())
-    cell = gathered[..., CELL]
+        return clamp(value, *corner_extremes(gathered), corner_weights(*weights.unbind(0)))
+    cell = cell_values(gathered)
     outside = ((value < cell.amin(-1)) | (value > cell.amax(-1))).any(dim=0)
     nodes = outside.nonzero().squeeze(1)
     if len(nodes) == 0:
         return value
-    limited = clamp(value[:, nodes], *corner_extremes(gathered[:, nodes]), weights()[nodes])
+    limited = clamp(value[:, nodes], *corner_extremes(gathered[:, nodes]),
+                    corner_weights(*weights[:, nodes].unbind(0)))
     return value.index_copy(1, nodes, limited)
 
 

@@ -70,23 +70,35 @@ class _Reextend(torch.autograd.Function):
         ctx.stencil = stencil
         with torch.no_grad():
             result = stencil.apply(u, path)
-        ctx.save_for_backward(u)
+        # a limited stencil's backward tells the values it may have clamped by those it wrote
+        ctx.save_for_backward(u, *(_written(stencil, result) if stencil.limited else ()))
         return result
 
     @staticmethod
     def backward(ctx, grad_output):  # noqa: ANN001, ANN205
-        (u,) = ctx.saved_tensors
-        return None, _vector_jacobian(ctx.stencil, u.detach(), grad_output), None
+        u, *written = ctx.saved_tensors
+        return None, _vector_jacobian(ctx.stencil, u.detach(), grad_output, written or None), None
 
 
-def _vector_jacobian(stencil: Stencil, u: Tensor, g: Tensor) -> Tensor:
-    """``g^T d(stencil.apply(u)) / du`` for ``u`` and ``g`` of the same shape."""
+def _written(stencil: Stencil, result: Tensor) -> list[Tensor]:
+    """The values ``stencil.apply`` wrote into ``result``: ``(C, n)`` per part of the stencil
+    (one for bricks), in the order of its targets."""
+    if isinstance(stencil, BrickCubicStencil):
+        return [result.transpose(0, 1).reshape(result.shape[1], -1)[:, stencil.targets]]
+    return [result[b].reshape(result.shape[1], -1)[:, stencil.parts[min(b, len(stencil.parts) - 1)][0]]
+            for b in range(result.shape[0])]
+
+
+def _vector_jacobian(stencil: Stencil, u: Tensor, g: Tensor,
+                     written: list[Tensor] | None = None) -> Tensor:
+    """``g^T d(stencil.apply(u)) / du`` for ``u`` and ``g`` of the same shape; ``written``
+    (:func:`_written`), where known, spares a limited stencil most of its gather again."""
     if isinstance(stencil, BrickCubicStencil):
         channels = u.shape[1]
         flat = u.transpose(0, 1).reshape(channels, -1)
         incoming = g.transpose(0, 1).reshape(channels, -1)
         result = _scatter_back(flat, incoming, stencil.targets, _brick_taps(stencil),
-                               stencil.limited)
+                               stencil.limited, None if written is None else written[0])
         return result.view(channels, u.shape[0], *u.shape[2:]).transpose(0, 1)
     results = []
     for b in range(max(u.shape[0], len(stencil.parts))):
@@ -97,7 +109,8 @@ def _vector_jacobian(stencil: Stencil, u: Tensor, g: Tensor) -> Tensor:
         incoming = g[b].reshape(g.shape[1], -1)
         taps = _dense_taps(targets, corners, weights.to(u.dtype), *volume.shape[-2:],
                            stencil.sources[part])
-        results.append(_scatter_back(flat, incoming, targets, taps, stencil.limited)
+        results.append(_scatter_back(flat, incoming, targets, taps, stencil.limited,
+                                     None if written is None else written[b])
                        .reshape(volume.shape))
     result = torch.stack(results)
     return result if result.shape[0] == u.shape[0] else result.sum(dim=0, keepdim=True)
@@ -139,11 +152,17 @@ def _brick_taps(stencil: BrickCubicStencil) -> Iterator[tuple[slice, Tensor, Ten
 
 
 def _scatter_back(flat: Tensor, incoming: Tensor, targets: Tensor,
-                  chunks: Iterator[tuple[slice, Tensor, Tensor]], limited: bool) -> Tensor:
+                  chunks: Iterator[tuple[slice, Tensor, Tensor]], limited: bool,
+                  written: Tensor | None = None) -> Tensor:
     """``incoming`` ``(C, M)`` with the targets' entries moved back to their sources.
 
     ``flat`` ``(C, M)`` is the stencil's input (read only when ``limited``, to find which
-    values were clamped and by which nodes' values).
+    values were clamped and by which nodes' values). ``written`` ``(C, n)``: the values the
+    stencil wrote at its targets, if known. The bounds hold the cell's range, so a value was
+    clamped only if it left that range, and then it was written at a bound outside it: only
+    the values written outside or at the edge of their cell's range have their 64 taps
+    gathered again (without ``written``, only those whose interpolated value leaves it form
+    their bounds).
     """
     result = incoming.index_fill(1, targets, 0.0)
     for nodes, sources, taps in chunks:
@@ -152,18 +171,27 @@ def _scatter_back(flat: Tensor, incoming: Tensor, targets: Tensor,
         if not limited:
             result.index_add_(1, sources.flatten(), (moved[..., None] * taps).flatten(1))
             continue
-        gathered = flat[:, sources]  # (C, n, 64)
-        value = (gathered * taps).sum(dim=-1)
-        # the bounds hold the cell's range: only values outside it may have been clamped
-        cell = gathered[..., _limiter.CELL]
-        outside = ((value < cell.amin(-1)) | (value > cell.amax(-1))).any(dim=0).nonzero()[:, 0]
+        if written is None:
+            gathered = flat[:, sources]  # (C, n, 64)
+            value = (gathered * taps).sum(dim=-1)
+            cell = _limiter.cell_values(gathered)
+            leaving = (value < cell.amin(-1)) | (value > cell.amax(-1))
+        else:
+            cell = flat[:, sources[:, _limiter.CELL]]  # (C, n, 8)
+            kept = written[:, nodes]
+            leaving = (kept <= cell.amin(-1)) | (kept >= cell.amax(-1))
+        outside = leaving.any(dim=0).nonzero()[:, 0]
         free = torch.ones_like(moved, dtype=torch.bool)
         clamps = []
         if len(outside):
+            if written is None:
+                gathered, value = gathered[:, outside], value[:, outside]
+            else:
+                gathered = flat[:, sources[outside]]
+                value = (gathered * taps[outside]).sum(dim=-1)
             corners = _limiter.corner_weights_of_taps(taps[outside])  # (k, 8)
-            low, high, lowest, highest = _limiter.bounds_and_sources(gathered[:, outside],
-                                                                     corners)
-            below, above = value[:, outside] < low, value[:, outside] > high
+            low, high, lowest, highest = _limiter.bounds_and_sources(gathered, corners)
+            below, above = value < low, value > high
             free[:, outside] = ~(below | above)
             clamps = [(below, lowest), (above, highest)]
         result.index_add_(1, sources.flatten(), ((moved * free)[..., None] * taps).flatten(1))

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from typing import Literal
 
 import torch
 import torch.nn.functional as F
@@ -29,6 +30,12 @@ from ..bricks.layout import BRICK, BrickLayout
 from ..sampling import cubic_lagrange_weights
 from ..surface import ImplicitSurface, check_data
 from . import _closest, _limiter
+
+Limit = bool | Literal["eager"]
+"""Where a tricubic kernel limits its values (:mod:`._limiter`): ``False`` nowhere, ``True``
+in every form, ``"eager"`` in the eager forms only, which hold the 64 taps' values anyway (the
+compiled forms then leave it to :func:`._limiter.clamp_outside_cells`: see
+:func:`_limit_flag`)."""
 
 METHODS = ("closest_point", "pde")
 
@@ -180,7 +187,7 @@ def _dense_part(surface: ImplicitSurface, index: Tensor, mask: Tensor, readable:
 
 
 def _interpolate_gathered(flat: Tensor, corners: Tensor, weights: Tensor, height: int,
-                          width: int, limited: bool, *, path: str = "slicing") -> Tensor:
+                          width: int, limited: Limit, *, path: str = "slicing") -> Tensor:
     """``sum_k w_k flat[:, source_k]`` over the 64 taps of each node, ``(C, N)``, optionally
     limited (:mod:`._limiter`); ``corners`` and ``weights`` ``(3, N, 4)``.
 
@@ -192,25 +199,25 @@ def _interpolate_gathered(flat: Tensor, corners: Tensor, weights: Tensor, height
     return _gathered_sum(flat, sources, weights, limited)
 
 
-def _gathered_sum(flat: Tensor, sources: Tensor, weights: Tensor, limited: bool) -> Tensor:
+def _gathered_sum(flat: Tensor, sources: Tensor, weights: Tensor, limited: Limit) -> Tensor:
     """The tricubic sum of ``flat[:, sources]`` (``sources`` ``(N, 64)``, int32 or int64, in
-    the order ``16 z + 4 y + x``) with separable ``weights`` ``(3, N, 4)``, optionally limited."""
+    the order ``16 z + 4 y + x``) with separable ``weights`` ``(3, N, 4)``; limited unless
+    ``limited`` is ``False`` (:data:`Limit`: the eager forms)."""
     taps = tap_weights(weights)
     # index_select takes int32 sources as they are kept, and gathers twice as fast as
     # flat[:, sources] (30k nodes, 4 channels: 37 against 80 ms, one thread)
     gathered = flat.index_select(1, sources.flatten()).view(flat.shape[0], *sources.shape)
     value = (gathered * taps).sum(dim=-1)
     if limited:
-        value = _limiter.clamp_gathered(value, gathered,
-                                        lambda: _limiter.corner_weights(*weights.unbind(0)))
+        value = _limiter.clamp_gathered(value, gathered, weights)
     return value
 
 
-def _summed_terms(tap: Callable[[int, int, int], Tensor], weights: Tensor, limited: bool,
+def _summed_terms(tap: Callable[[int, int, int], Tensor], weights: Tensor, limited: Limit,
                   by_offset: bool = False) -> Tensor:
     """The tricubic sum as 64 terms ``tap(k, j, i)`` (the values at offsets ``k, j, i`` along
     z, y, x), with separable ``weights`` ``(3, N, 4)`` (``(3, 4, N)`` if ``by_offset``):
-    compiled, one loop over the nodes."""
+    compiled, one loop over the nodes; limited only if ``limited is True`` (:data:`Limit`)."""
     wx, wy, wz = (w.t() if by_offset else w for w in weights.unbind(0))
     value = None
     taps: list[Tensor] = []
@@ -222,7 +229,7 @@ def _summed_terms(tap: Callable[[int, int, int], Tensor], weights: Tensor, limit
                 taps.append(values)
                 term = (weight * wx[:, i]) * values
                 value = term if value is None else value + term
-    if limited:
+    if limited is True:
         low, high = _limiter.corner_extremes_of_taps(taps)
         corners = _limiter.corner_weights(wx, wy, wz).t()
         lower, upper = _limiter.bounds_of_lists(low, high, list(corners))
@@ -231,7 +238,7 @@ def _summed_terms(tap: Callable[[int, int, int], Tensor], weights: Tensor, limit
 
 
 def _interpolate_terms(flat: Tensor, corners: Tensor, weights: Tensor, height: int, width: int,
-                       limited: bool) -> Tensor:
+                       limited: Limit) -> Tensor:
     """The same as 64 gathered terms: compiled, one loop over the nodes with no ``(N, 64)``
     temporary of indices or weights (1.9 ms against 2.9 ms at 81^3, one thread)."""
     x, y, z = corners.long().unbind(0)
@@ -330,19 +337,21 @@ class CubicStencil:
             volume = u[min(b, u.shape[0] - 1)]
             flat = volume.reshape(volume.shape[0], -1)
             height, width = volume.shape[-2:]
-            inside = _limits_inside(self.limited)
+            limit = _limit_flag(self.limited)
             if self.anchors[part] is not None:
-                value = backend.run(_ANCHORED_INTERPOLATION, path, volume[None], flat,
-                                    self.sources[part], self.anchors[part],
-                                    self.weights_by_offset[part].to(u.dtype), height * width,
-                                    width, inside)
+                value, taken = backend.run_on_path(
+                    _ANCHORED_INTERPOLATION, path, volume[None], flat, self.sources[part],
+                    self.anchors[part], self.weights_by_offset[part].to(u.dtype),
+                    height * width, width, limit)
             elif self.sources[part] is not None:
-                value = backend.run(_KEPT_INTERPOLATION, path, volume[None], flat,
-                                    self.sources[part], weights.to(u.dtype), inside)
+                value, taken = backend.run_on_path(_KEPT_INTERPOLATION, path, volume[None],
+                                                   flat, self.sources[part],
+                                                   weights.to(u.dtype), limit)
             else:
-                value = backend.run(_INTERPOLATION, path, volume[None], flat, corners,
-                                    weights.to(u.dtype), height, width, inside)
-            if self.limited and not inside:
+                value, taken = backend.run_on_path(_INTERPOLATION, path, volume[None], flat,
+                                                   corners, weights.to(u.dtype), height,
+                                                   width, limit)
+            if limit == "eager" and taken == "compiled":
                 kept = self.sources[part]
                 taps = (_dense_tap_indices(corners, height, width) if kept is None
                         else kept.__getitem__)
@@ -407,13 +416,13 @@ def _brick_sources(bases: Tensor, second: Tensor, local: Tensor) -> Tensor:
 
 
 def _brick_gathered(flat: Tensor, bases: Tensor, second: Tensor, local: Tensor, weights: Tensor,
-                    limited: bool, *, path: str = "slicing") -> Tensor:
+                    limited: Limit, *, path: str = "slicing") -> Tensor:
     """Bricks' :func:`_interpolate_gathered`: one gather of ``(C, M, 64)``."""
     return _gathered_sum(flat, _brick_sources(bases, second, local), weights, limited)
 
 
 def _brick_terms(flat: Tensor, bases: Tensor, second: Tensor, local: Tensor, weights: Tensor,
-                 limited: bool) -> Tensor:
+                 limited: Limit) -> Tensor:
     """Bricks' :func:`_interpolate_terms`: compiled; each tap's brick is picked among its
     node's 8 by comparisons, not looked up (3x faster at 96^3)."""
     corners = [b.long() for b in bases.unbind(0)]
@@ -432,13 +441,13 @@ _BRICK_INTERPOLATION = backend.Kernel(
 )
 
 
-def _kept_gathered(flat: Tensor, sources: Tensor, weights: Tensor, limited: bool, *,
+def _kept_gathered(flat: Tensor, sources: Tensor, weights: Tensor, limited: Limit, *,
                    path: str = "slicing") -> Tensor:
     """:func:`_brick_gathered` from the kept ``(M, 64)`` packed sources of each node."""
     return _gathered_sum(flat, sources, weights, limited)
 
 
-def _kept_terms(flat: Tensor, sources: Tensor, weights: Tensor, limited: bool) -> Tensor:
+def _kept_terms(flat: Tensor, sources: Tensor, weights: Tensor, limited: Limit) -> Tensor:
     """:func:`_brick_terms` from the kept ``(M, 64)`` packed sources: one load a tap instead
     of picking its brick among 8 (4x faster at 128^3, identical numbers)."""
 
@@ -455,14 +464,14 @@ _KEPT_INTERPOLATION = backend.Kernel(
 
 
 def _anchored_gathered(flat: Tensor, sources: Tensor, anchors: Tensor, weights: Tensor,
-                       plane: int, row: int, limited: bool, *, path: str = "slicing") -> Tensor:
+                       plane: int, row: int, limited: Limit, *, path: str = "slicing") -> Tensor:
     """A dense stencil without clamped taps, eagerly: the kept sources' gather (``weights``
     ``(3, 4, N)``)."""
     return _gathered_sum(flat, sources, weights.transpose(1, 2), limited)
 
 
 def _anchored_terms(flat: Tensor, sources: Tensor, anchors: Tensor, weights: Tensor,
-                    plane: int, row: int, limited: bool) -> Tensor:
+                    plane: int, row: int, limited: Limit) -> Tensor:
     """The same compiled: tap ``(k, j, i)`` at ``anchor + k plane + j row + i`` (one index
     load a node instead of 64; 1.1 against 1.5 ms a band re-extension at 37^3, one thread),
     ``weights`` ``(3, 4, N)``."""
@@ -618,17 +627,17 @@ class BrickCubicStencil:
         flat = u.transpose(0, 1).reshape(channels, -1)
         weights = self.weights.to(u.dtype)
         values = []
-        inside = _limits_inside(self.limited)
+        limit = _limit_flag(self.limited)
         for start in range(0, max(len(self.targets), 1), APPLY_CHUNK):
             part = slice(start, start + APPLY_CHUNK)
             if self.sources is not None:
-                value = backend.run(_KEPT_INTERPOLATION, path, u, flat, self.sources[part],
-                                    weights[:, part], inside)
+                value, taken = backend.run_on_path(_KEPT_INTERPOLATION, path, u, flat,
+                                                   self.sources[part], weights[:, part], limit)
             else:
-                value = backend.run(_BRICK_INTERPOLATION, path, u, flat, self.bases[:, part],
-                                    self.second[:, part], self.local[:, part], weights[:, part],
-                                    inside)
-            if self.limited and not inside:
+                value, taken = backend.run_on_path(
+                    _BRICK_INTERPOLATION, path, u, flat, self.bases[:, part],
+                    self.second[:, part], self.local[:, part], weights[:, part], limit)
+            if limit == "eager" and taken == "compiled":
                 value = self._clamp_outside_cells(value, flat, part, weights[:, part])
             values.append(value)
         value = values[0] if len(values) == 1 else torch.cat(values, dim=1)
@@ -699,13 +708,17 @@ def _brick_linear_extension(u: Tensor, surface: ImplicitSurface, mask: Tensor) -
     return result.view(channels, *u.shape[:1], *u.shape[2:]).transpose(0, 1)
 
 
-def _limits_inside(limited: bool) -> bool:
-    """Whether a limited stencil's kernel clamps its values itself: only where an outer
-    ``torch.compile`` traces it (no data-dependent shapes). Otherwise the kernel interpolates
-    and :func:`._limiter.clamp_outside_cells` limits the few values outside their cell's range
-    (1% of random data, 0.01% of smooth data): the bounds cost 2.4x the compiled interpolation
-    where every node forms them."""
-    return limited and torch.compiler.is_compiling()
+def _limit_flag(limited: bool) -> Limit:
+    """Where a limited stencil's kernels clamp their values themselves (:data:`Limit`): in
+    every form where an outer ``torch.compile`` traces them (no data-dependent shapes);
+    otherwise in the eager forms only, which hold the 64 taps and test the values against
+    their cells' ranges at little cost. After a compiled form
+    :func:`._limiter.clamp_outside_cells` limits the few values outside their cell's range
+    (1% of random data, 0.01% of smooth data): the bounds cost 2.4x the compiled
+    interpolation where every node forms them."""
+    if not limited:
+        return False
+    return True if torch.compiler.is_compiling() else "eager"
 
 
 def cubic_stencil(surface: ImplicitSurface, mask: Tensor, limited: bool = False,
