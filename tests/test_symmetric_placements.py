@@ -11,7 +11,7 @@ import torch
 import torchsurf as ts
 from torchsurf import bricks
 from torchsurf.flows import HeatFlow
-from torchsurf.flows._closest import has_direction
+from torchsurf.flows._closest import faded_normal, has_direction
 from torchsurf.flows.extension import cubic_stencil
 
 
@@ -145,3 +145,37 @@ def test_gradcheck_phi_of_a_node_centred_torus(scheme):
     assert torch.autograd.gradcheck(
         lambda phi: ts.laplace_beltrami(u, ts.ImplicitSurface(phi, grid), scheme=scheme), (phi,),
         fast_mode=True)
+
+
+def test_refinement_reads_no_normal_where_there_is_no_direction():
+    """A node without a direction carries a short normal ``grad phi / floor``: read as it is,
+    its derivative in ``phi`` (``1 / floor``) reached the refined closest points around it."""
+    normal = torch.tensor([[0.0, 0.0, 0.0], [0.3, 0.0, 0.0], [0.6, 0.0, 0.0], [0.0, 0.8, 0.6],
+                           [1.0, 1e-4, 0.0]], dtype=torch.float64)
+    normal[4] = normal[4] / normal[4].norm()
+    faded = faded_normal(normal.T, 0).T
+    assert torch.equal(faded[:2], torch.zeros(2, 3, dtype=torch.float64))  # no direction
+    assert 0 < float(faded[2].norm()) < 0.6                                 # fading in
+    assert torch.equal(faded[3:], normal[3:])                               # unit: bit for bit
+    short = normal[:2].clone().requires_grad_(True)
+    (jacobian,) = torch.autograd.grad(faded_normal(short.T, 0).sum(), short)
+    assert torch.equal(jacobian, torch.zeros_like(jacobian))
+
+
+@pytest.mark.parametrize(("method", "bound", "before"), [("euler", 2e4, 2.6e5),
+                                                          ("chebyshev", 1e3, 5.5e3)])
+def test_the_derivative_in_phi_is_moderate_around_a_centre_without_direction(method, bound,
+                                                                              before):
+    """A torus centred on a node: the centre (1.5 cells from S, no direction) sat in the
+    interpolated normals of its neighbours' refined closest points. The largest derivative in
+    ``phi`` of a random projection of the flow was ``before``; what is left comes from the
+    axis's nodes, whose closest point is any point of a circle (docs/learning.md)."""
+    grid = ts.Grid.cube(11, bound=1.0)
+    phi = ts.sdf.torus(grid, 0.6, 0.3, dtype=torch.float64).requires_grad_(True)
+    generator = torch.Generator().manual_seed(0)
+    u0 = torch.rand(phi.shape, dtype=torch.float64, generator=generator)
+    weights = torch.rand(phi.shape, dtype=torch.float64, generator=generator)
+    flow = HeatFlow(2 * grid.spacing**2, method=method)
+    (gradient,) = torch.autograd.grad((weights * flow(u0, ts.ImplicitSurface(phi, grid))).sum(),
+                                      phi)
+    assert 0 < float(gradient.abs().max()) < bound < before

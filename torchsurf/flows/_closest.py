@@ -87,13 +87,38 @@ def trilinear(fields: list[Tensor], at: Tensor, high: Tensor, lookup: NodeLookup
     return torch.where(readable, values, 0.0), readable
 
 
+DIRECTED = 0.25
+"""A node's normal points to S where ``|n|^2`` reaches this (:func:`has_direction`)."""
+
+FULLY_DIRECTED = 0.999
+"""... and counts fully in :func:`refine`'s reads from this ``|n|^2`` on (:func:`faded_normal`);
+a unit normal's rounding stays above it."""
+
+
 def has_direction(surface: ImplicitSurface) -> Tensor:
     """Where the surface's normal points to S: bool, like ``surface.grad_norm`` (dense
     ``(B, 1, D, H, W)`` or packed ``(N, 1, 8, 8, 8)``). Elsewhere the normal is short
     (:data:`torchsurf.surface.DIRECTION_FLOOR`: the central differences of ``phi`` cancel) and
     every point of S as near: the node has no closest point (following the normal, :func:`refine`
     would pick one that jumps with any change of ``phi``), and stencils leave it out."""
-    return (surface.normal.detach() ** 2).sum(dim=1, keepdim=True) >= 0.25
+    return (surface.normal.detach() ** 2).sum(dim=1, keepdim=True) >= DIRECTED
+
+
+def faded_normal(normal: Tensor, dim: int) -> Tensor:
+    """The normal as :func:`refine` reads it: 0 where the node has no direction
+    (:func:`has_direction`), the normal itself where ``|n|^2 >= FULLY_DIRECTED`` (every node
+    whose ``|grad phi|`` is above the direction floor, bit for bit), linear in ``|n|^2`` between.
+
+    The short normal of a node without direction is ``grad phi / floor``: read into the
+    interpolated normals of nearby points, its derivative in ``phi`` (``1 / floor``) moved
+    their refined closest points by thousands of cells per unit of ``phi`` (a heat flow's
+    largest derivative in ``phi`` was 2.6e5 on a torus whose centre is a node, 3.9e3 faded).
+
+    Args:
+        normal: normals with their 3 components along ``dim``.
+    """
+    squared = (normal ** 2).sum(dim=dim, keepdim=True)
+    return normal * ((squared - DIRECTED) / (FULLY_DIRECTED - DIRECTED)).clamp(0, 1)
 
 
 def step_share(distance: Tensor) -> Tensor:
@@ -133,12 +158,13 @@ def dense_reader(distance: Tensor, normal: Tensor) -> Reader:
 
     Args:
         distance: ``(D, H, W)`` signed distance in cells, ``signed_distance() / h``.
-        normal: ``(3, D, H, W)`` unit normals, channels ``x, y, z``.
+        normal: ``(3, D, H, W)`` the surface's normals, channels ``x, y, z`` (read faded,
+            :func:`faded_normal`).
     """
     depth, height, width = distance.shape
     high = torch.tensor([width - 1, height - 1, depth - 1], dtype=distance.dtype,
                         device=distance.device)
-    fields = [distance.reshape(1, -1), normal.reshape(3, -1)]
+    fields = [distance.reshape(1, -1), faded_normal(normal, 0).reshape(3, -1)]
 
     def lookup(node: Tensor) -> tuple[Tensor, Tensor]:
         x, y, z = node.unbind(1)
@@ -153,13 +179,14 @@ def brick_reader(distance: Tensor, normal: Tensor, lookup_table: Tensor, batch: 
 
     Args:
         distance: ``(N, 1, 8, 8, 8)`` signed distance in cells, ``signed_distance() / h``.
-        normal: ``(N, 3, 8, 8, 8)`` unit normals.
+        normal: ``(N, 3, 8, 8, 8)`` the surface's normals (read faded, :func:`faded_normal`).
         lookup_table: ``(B, Z, Y, X)`` the packed row of each brick, ``-1`` if not stored.
         batch: ``(M,)`` each point's batch entry.
         shapes: ``(M, 3)`` each point's entry's grid shape ``(W, H, D)``.
     """
     brick = distance.shape[-1]
-    fields = [distance.transpose(0, 1).reshape(1, -1), normal.transpose(0, 1).reshape(3, -1)]
+    fields = [distance.transpose(0, 1).reshape(1, -1),
+              faded_normal(normal, 1).transpose(0, 1).reshape(3, -1)]
     last = (shapes - 1).to(distance.dtype)
 
     def read(at: Tensor, rows: Tensor | None) -> tuple[Tensor, Tensor]:
