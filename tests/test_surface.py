@@ -688,6 +688,14 @@ def test_phi_modified_in_place_after_building_is_refused():
     for read in (surface.gaussian_curvature, surface.hessian, surface.signed_distance):
         with pytest.raises(RuntimeError, match="modified in place"):
             read()
+    u = torch.rand(phi.shape, dtype=torch.float64)
+    for operator in (ts.laplace_beltrami, ts.intrinsic_gradient, ts.nn.gradient_features,
+                     lambda u, surface: ts.intrinsic_divergence(u.expand(-1, 3, -1, -1, -1),
+                                                                surface),
+                     lambda u, surface: ts.anisotropic_diffusion(u, surface, "perona_malik"),
+                     lambda u, surface: ts.nn.band_mse(u, u, surface)):
+        with pytest.raises(RuntimeError, match="modified in place"):  # read normals directly
+            operator(u, surface)
 
 
 def test_the_mean_curvature_returned_is_computed_again_if_modified():

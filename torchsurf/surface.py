@@ -469,11 +469,14 @@ class ImplicitSurface(nn.Module):
 
 
 def check_surface(surface: object) -> ImplicitSurface:
-    """Raise ``TypeError`` unless ``surface`` is an :class:`ImplicitSurface`."""
+    """Raise ``TypeError`` unless ``surface`` is an :class:`ImplicitSurface`, and
+    ``RuntimeError`` if its ``phi`` was modified in place after it was built (its normals and
+    weight would belong to the former ``phi``)."""
     if not isinstance(surface, ImplicitSurface):
         raise TypeError(
             f"surface must be a torchsurf.ImplicitSurface, got {type(surface).__name__}"
         )
+    surface._current_phi()
     return surface
 
 
