@@ -121,3 +121,22 @@ def test_piecewise_constant_regions_do_not_move_with_the_problem() -> None:
     # what is left: nodes within float32's rounding of world coordinates at 1e3 (6e-5) of a
     # region's edge
     assert float((a != b)[band].double().mean()) < 2e-3
+
+
+def test_the_surface_of_a_batch_is_kept_for_its_shapes():
+    """The layers derive their stencils once per surface object: the same shapes give the same
+    surface, while among the most recent ones; a pickled dataset (a DataLoader's worker) does
+    not carry them."""
+    import pickle
+
+    grid = ts.Grid.cube(12, bound=1.5)
+    phi = torch.cat([ts.sdf.sphere(grid, 1.0), ts.sdf.torus(grid, 0.8, 0.3)])
+    dataset = datasets.SignalDataset(ts.ImplicitSurface(phi, grid), length=4)
+    first = dataset.surface([0, 1])
+    assert dataset.surface(torch.tensor([0, 1])) is first
+    assert dataset.surface([1, 0]) is not first
+    torch.testing.assert_close(dataset.surface([1, 0]).phi, phi.flip(0), rtol=0, atol=0)
+    for shapes in [[0], [1], [0, 0], [1, 1], [1, 1, 0]][:datasets.KEPT_SURFACES]:
+        dataset.surface(shapes)
+    assert dataset.surface([0, 1]) is not first  # the least recently used was dropped
+    assert pickle.loads(pickle.dumps(dataset))._batch_surfaces == {}

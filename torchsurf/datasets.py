@@ -174,6 +174,10 @@ def signal(kind: str, surface: ImplicitSurface, channels: int = 1, seed: int = 0
     return make(surface, channels=channels, seed=seed, **options)
 
 
+KEPT_SURFACES = 4
+"""How many batch surfaces :meth:`SignalDataset.surface` keeps, the most recently used."""
+
+
 class SignalDataset(Dataset):
     """Noisy and clean random signals on a batch of shapes, item by item, deterministic.
 
@@ -249,6 +253,11 @@ class SignalDataset(Dataset):
         self._surfaces = [ImplicitSurface(self.phi[b:b + 1], self.grid, surface.band_width)
                           for b in range(surface.batch_size)]
         self._band_width = surface.band_width
+        self._batch_surfaces: dict[tuple[int, ...], ImplicitSurface] = {}
+
+    def __getstate__(self) -> dict:
+        # a DataLoader's worker draws items; the batch surfaces stay with the training loop
+        return {**self.__dict__, "_batch_surfaces": {}}
 
     def __len__(self) -> int:
         return self.length
@@ -269,9 +278,24 @@ class SignalDataset(Dataset):
         return {"noisy": noisy, "clean": clean, "shape": shape, "kind": kind}
 
     def surface(self, shapes: Tensor | Sequence[int]) -> ImplicitSurface:
-        """The surfaces of a batch of items, ``shapes`` their ``"shape"`` indices ``(N,)``."""
+        """The surfaces of a batch of items, ``shapes`` their ``"shape"`` indices ``(N,)``.
+
+        The same surface object is returned for the same indices while they are among the
+        :data:`KEPT_SURFACES` most recently asked for: what the layers derive from a surface
+        once (its stencils, band Laplacian and band nodes) is kept on it, and a new surface
+        derives them again (10x the cost of a ``LearnedDiffusion`` forward and backward at
+        32^3). Batches that repeat their shapes (items of one shape, or a fixed order of
+        shapes, as ``examples/train_denoise.py`` draws them) reuse their surface.
+        """
         index = torch.as_tensor(shapes, dtype=torch.long, device=self.phi.device)
-        return ImplicitSurface(self.phi[index], self.grid, self._band_width)
+        key = tuple(index.flatten().tolist())
+        surface = self._batch_surfaces.pop(key, None)
+        if surface is None:
+            surface = ImplicitSurface(self.phi[index], self.grid, self._band_width)
+        self._batch_surfaces[key] = surface  # the most recent last
+        while len(self._batch_surfaces) > KEPT_SURFACES:
+            self._batch_surfaces.pop(next(iter(self._batch_surfaces)))
+        return surface
 
     def band_mask(self, shapes: Tensor | Sequence[int]) -> Tensor:
         """``(N, 1, D, H, W)`` bool, the band of each item's surface (where to score)."""

@@ -114,6 +114,27 @@ def test_band_mse_and_psnr(sphere):
         band_mse(target, target[:, :1], surface)
     with pytest.raises(ValueError, match="peak"):
         psnr(target, target, surface, peak=0.0)
+    with pytest.raises(ValueError, match="band holds no node"):  # its mean was NaN
+        band_mse(target, target, surface, width=1e-9)
+    with pytest.raises(ValueError, match=r"band holds no node .* batch entries \[0, 1\]"):
+        psnr(target, target, surface, width=1e-9)
+
+
+def test_arguments_are_checked_and_named():
+    """Read by their truth, ``pairs=1`` passed and ``pairs="no"`` counted as true; a keyword
+    that LearnedDiffusion does not take was reported as LearnedDiffusion's."""
+    grid = ts.Grid.cube(10, 1.4)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, radius=0.9), grid)
+    u = torch.rand((1, 2, *grid.shape))
+    with pytest.raises(TypeError, match="pairs"):
+        gradient_features(u, surface, pairs=1)
+    with pytest.raises(TypeError, match=r"DiffusionBlock got unexpected keyword arguments \['bogus'\]"):
+        DiffusionBlock(2, bogus=1)
+    DiffusionBlock(2, scheme="symmetric", learn_time=False)  # LearnedDiffusion's own pass
+    with pytest.raises(TypeError, match="learned times are torch.float32"):
+        ts.nn.LearnedDiffusion(2)(u.double(), ts.ImplicitSurface(surface.phi.double(), grid))
+    fixed = ts.nn.LearnedDiffusion(2, learn_time=False)  # no parameter: follows the data
+    assert fixed(u.double(), ts.ImplicitSurface(surface.phi.double(), grid)).dtype == torch.float64
 
 
 def test_data_of_batch_one_on_a_surface_of_batch_two_gives_two_entries():

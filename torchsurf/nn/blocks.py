@@ -3,6 +3,7 @@ block on an implicit surface's band)."""
 
 from __future__ import annotations
 
+import inspect
 import math
 
 import torch
@@ -27,6 +28,10 @@ def _band_and_ring(surface: ImplicitSurface) -> Tensor:
     """``surface.band_mask()`` and the ring its stencils read, found once per surface."""
     return surface.kept(("band and ring",),
                         lambda: with_ring(surface.band_mask(), surface.layout))
+
+
+_DIFFUSION_ARGUMENTS = set(inspect.signature(LearnedDiffusion).parameters) - {"channels", "time"}
+"""The keyword arguments :class:`DiffusionBlock` passes on to :class:`LearnedDiffusion`."""
 
 
 class DiffusionBlock(nn.Module):
@@ -59,6 +64,11 @@ class DiffusionBlock(nn.Module):
         self.pairs = check_flag(pairs, "pairs")
         inputs = channels + feature_count(channels, self.pairs)
         hidden = 2 * channels + inputs if hidden is None else check_count(hidden, "hidden")
+        unknown = sorted(set(diffusion) - _DIFFUSION_ARGUMENTS)
+        if unknown:
+            raise TypeError(
+                f"DiffusionBlock got unexpected keyword arguments {unknown}; besides its own it "
+                f"takes LearnedDiffusion's {sorted(_DIFFUSION_ARGUMENTS)}")
         self.diffusion = LearnedDiffusion(channels, time=time, **diffusion)
         self.mlp = nn.Sequential(nn.Linear(inputs, hidden), nn.ReLU(), nn.Linear(hidden, channels))
         nn.init.zeros_(self.mlp[-1].weight)

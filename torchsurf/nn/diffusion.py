@@ -139,6 +139,10 @@ class LearnedDiffusion(nn.Module):
         """Diffuse ``u`` ``(B, C, D, H, W)``; returns ``(B, C, D, H, W)`` (class docstring)."""
         check_surface(surface)
         check_data(u, "u", surface, channels=self.channels)
+        if self.learn_time and u.dtype != self.raw_time.dtype:
+            raise TypeError(
+                f"u is {u.dtype} but the learned times are {self.raw_time.dtype}: convert one of "
+                f"them (layer.to({u.dtype}) or u.to({self.raw_time.dtype}))")
         operator = BandLaplacian(surface, self.scheme, path=self.path)
         check_finite(torch.where(operator.band, u.detach(), 0.0), "u (in the band)")
         area = surface.spacing**2

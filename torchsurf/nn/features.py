@@ -45,6 +45,7 @@ def gradient_features(u: Tensor, surface: ImplicitSurface, pairs: bool = True,
     """
     check_surface(surface)
     check_data(u, "u", surface)
+    check_flag(pairs, "pairs")
     check_positive(eps, "eps")
     check_choice(path, "path", PATHS)
     channels = u.shape[1]

@@ -28,12 +28,28 @@ def _squared_errors(prediction: Tensor, target: Tensor, surface: ImplicitSurface
     errors = torch.where(band, prediction - target, prediction.new_zeros(()))
     counts = (band.sum(dim=(1, 2, 3, 4)) * prediction.shape[1]).to(prediction.dtype)
     totals = (errors * errors).sum(dim=(1, 2, 3, 4))
-    if surface.layout is None:
-        return totals, counts
-    # packed rows are bricks: sum them into their batch entries
-    entry = surface.layout.batch.to(prediction.device)
-    per_entry = prediction.new_zeros((2, surface.batch_size))
-    return per_entry.index_add(1, entry, torch.stack([totals, counts])).unbind(0)
+    if surface.layout is not None:
+        # packed rows are bricks: sum them into their batch entries
+        entry = surface.layout.batch.to(prediction.device)
+        per_entry = prediction.new_zeros((2, surface.batch_size))
+        totals, counts = per_entry.index_add(1, entry, torch.stack([totals, counts])).unbind(0)
+    _check_nonempty(counts, surface, width)
+    return totals, counts
+
+
+def _check_nonempty(counts: Tensor, surface: ImplicitSurface, width: float | None) -> None:
+    """Raise ``ValueError`` if a batch entry's band holds no node (its mean would be NaN); not
+    while ``torch.compile`` traces (the check reads the counts on the host)."""
+    if torch.compiler.is_compiling() or counts.numel() == 0:
+        return
+    empty = (counts == 0).nonzero().flatten().tolist()
+    if empty:
+        used = surface.band_width if width is None else width
+        raise ValueError(
+            f"the band holds no node at width {used:g} (world units) for batch entries "
+            f"{empty}: nothing to measure; pass a wider width (surface.band_width is "
+            f"{surface.band_width:g}) or check that phi crosses zero on the grid"
+        )
 
 
 def band_mse(prediction: Tensor, target: Tensor, surface: ImplicitSurface,
