@@ -216,6 +216,8 @@ def test_bunny_band_matches_libigl_full_grid() -> None:
         ((np.eye(4, 3), np.array([[0, 1, 2, 3]])), ValueError, "mesh: faces must be triangles"),
         ((np.eye(3), np.array([[0, 1, 5]])), ValueError, "mesh: face indices"),
         ("/nonexistent/bunny.obj", FileNotFoundError, "mesh: no mesh file"),
+        ("/", IsADirectoryError, "mesh: '/' is a directory"),
+        (trimesh.Scene([trimesh.creation.box()]), TypeError, r"trimesh.Scene .*scene.to_mesh\(\)"),
         (42, TypeError, "mesh must be"),
     ],
 )

@@ -21,6 +21,8 @@ def _as_array(value: object) -> np.ndarray:
 
 
 def _read(path: str | os.PathLike, name: str) -> trimesh.Trimesh:
+    if os.path.isdir(path):
+        raise IsADirectoryError(f"{name}: {os.fspath(path)!r} is a directory, not a mesh file")
     if not os.path.isfile(path):
         raise FileNotFoundError(f"{name}: no mesh file at {os.fspath(path)!r}")
     try:
@@ -54,7 +56,7 @@ def as_trimesh(mesh: MeshLike, name: str = "mesh") -> trimesh.Trimesh:
         name: the argument's name, for the error messages.
 
     Raises:
-        FileNotFoundError: the path names no file.
+        FileNotFoundError: the path names no file (``IsADirectoryError``: a directory).
         TypeError: ``mesh`` is none of the above.
         ValueError: the file cannot be read, the mesh is empty, has non-finite vertices,
             non-triangular faces, face indices out of range, or only degenerate (zero-area)
@@ -72,6 +74,12 @@ def as_trimesh(mesh: MeshLike, name: str = "mesh") -> trimesh.Trimesh:
         _check_arrays(vertices, faces, name)
         mesh = trimesh.Trimesh(
             vertices.astype(np.float64), faces.astype(np.int64), process=False, validate=False
+        )
+    elif isinstance(mesh, trimesh.Scene):
+        raise TypeError(
+            f"{name} must be a trimesh.Trimesh, got a trimesh.Scene of {len(mesh.geometry)} "
+            "geometries: merge them with scene.to_mesh(), or load the file with "
+            "trimesh.load(path, force='mesh') (or pass its path)"
         )
     elif not isinstance(mesh, trimesh.Trimesh):
         raise TypeError(
