@@ -80,6 +80,32 @@ def test_custom_diffusivity_callable():
     surface = ts.ImplicitSurface(case.phi, case.grid)
     value = ts.anisotropic_diffusion(case.u, surface, lambda s, k: 2.0 * torch.ones_like(s))
     torch.testing.assert_close(value, 2.0 * ts.laplace_beltrami(case.u, surface, scheme="symmetric"))
+    # a scalar g broadcasts; a result of another shape, or none, is named as g's
+    torch.testing.assert_close(
+        ts.anisotropic_diffusion(case.u, surface, lambda s, k: torch.tensor(2.0)), value)
+    with pytest.raises(ValueError, match=r"diffusivity <lambda> returned shape \(3,\)"):
+        ts.anisotropic_diffusion(case.u, surface, lambda s, k: torch.ones(3))
+    with pytest.raises(TypeError, match="diffusivity <lambda> must return a tensor"):
+        ts.anisotropic_diffusion(case.u, surface, lambda s, k: None)
+
+
+def test_a_module_diffusivity_keeps_its_parameters_registered():
+    class Scaled(torch.nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            self.scale = torch.nn.Parameter(torch.tensor(2.0, dtype=torch.float64))
+
+        def forward(self, s: torch.Tensor, k: float) -> torch.Tensor:
+            return self.scale * torch.ones_like(s)
+
+    case = torus_function(13)
+    surface = ts.ImplicitSurface(case.phi, case.grid)
+    for module in (ts.operators.AnisotropicDiffusion(Scaled()),
+                   ts.flows.AnisotropicFlow(1e-3, Scaled(), max_diffusivity=2.0)):
+        (scale,) = module.parameters() if isinstance(module, ts.operators.AnisotropicDiffusion) \
+            else [p for name, p in module.named_parameters() if name.endswith("scale")]
+        module(case.u, surface).sum().backward()
+        assert scale.grad is not None and float(scale.grad.abs()) > 0
 
 
 def test_directional_diffusion_along_and_across_meridians():

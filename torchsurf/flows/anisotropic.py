@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
-from torch import Tensor
+from torch import Tensor, nn
 
 from .._checks import check_choice, check_positive
 from ..backend import PATHS
 from ..operators import functional
-from ..operators.diffusion import FLUX_SCHEMES, channel_contrast, resolve_diffusivity
+from ..operators.diffusion import (
+    FLUX_SCHEMES,
+    channel_contrast,
+    resolve_diffusivity,
+    stored_diffusivity,
+)
 from ..operators.diffusivity import DIFFUSIVITIES, Diffusivity
 from ..surface import ImplicitSurface
 from ._integrators import System, tensors
@@ -73,7 +78,7 @@ class AnisotropicFlow(Flow):
         **kwargs: object,
     ) -> None:
         super().__init__(time, **kwargs)
-        self.diffusivity = resolve_diffusivity(diffusivity)
+        self.diffusivity = stored_diffusivity(diffusivity)
         # the library's own g by name or as the function itself
         name = next((key for key, g in DIFFUSIVITIES.items() if self.diffusivity is g), None)
         # a user's own g may be negative somewhere: no maximum principle to check then
@@ -113,7 +118,11 @@ class AnisotropicFlow(Flow):
                 mask=band)
 
         rho = self.max_diffusivity * self.operator_bound(surface, self.scheme)
-        return System(rate, band, rho, params=tensors(contrast, surface.normal, surface.weight))
+        # a g that is a module learns its parameters through the recomputed steps too
+        learned = tuple(self.diffusivity.parameters()) if isinstance(self.diffusivity,
+                                                                     nn.Module) else ()
+        return System(rate, band, rho,
+                      params=tensors(contrast, surface.normal, surface.weight, *learned))
 
     def extra_repr(self) -> str:
         name = next((key for key, value in DIFFUSIVITIES.items() if value is self.diffusivity),

@@ -13,6 +13,7 @@ cheap pass, and cost four times the two symmetric ones.
 
 from __future__ import annotations
 
+import torch
 from torch import Tensor, nn
 
 from .. import backend
@@ -23,10 +24,50 @@ from .diffusivity import DIFFUSIVITIES, Diffusivity
 from .functional import FLUX_SCHEMES
 
 
+class CheckedDiffusivity:
+    """A user's diffusivity ``g(magnitude, contrast)`` whose result is checked: a tensor of the
+    magnitude's shape (or broadcasting to it without widening it). Otherwise the error came
+    from deep in the stencils, naming padded sizes."""
+
+    def __init__(self, g: Diffusivity) -> None:
+        self.g = g
+        self.__name__ = getattr(g, "__name__", type(g).__name__)
+
+    def __call__(self, magnitude: Tensor, contrast: float | Tensor) -> Tensor:
+        value = self.g(magnitude, contrast)
+        if not isinstance(value, Tensor):
+            raise TypeError(
+                f"diffusivity {self.__name__} must return a tensor shaped like its magnitude "
+                f"argument {tuple(magnitude.shape)}, got {type(value).__name__}"
+            )
+        try:
+            fits = torch.broadcast_shapes(value.shape, magnitude.shape) == magnitude.shape
+        except RuntimeError:
+            fits = False
+        if not fits:
+            raise ValueError(
+                f"diffusivity {self.__name__} returned shape {tuple(value.shape)} for a "
+                f"magnitude of shape {tuple(magnitude.shape)}: g(s, K) acts on each value of s"
+            )
+        return value
+
+
+def stored_diffusivity(diffusivity: str | Diffusivity) -> Diffusivity:
+    """What a module keeps: the library's function for a name, else the callable as given (an
+    ``nn.Module`` ``g`` then registers as a submodule, its parameters the module's); its
+    forward passes it through :func:`resolve_diffusivity`."""
+    return diffusivity if callable(diffusivity) else resolve_diffusivity(diffusivity)
+
+
 def resolve_diffusivity(diffusivity: str | Diffusivity) -> Diffusivity:
-    """A diffusivity callable from its name in :data:`DIFFUSIVITIES`, or the callable itself."""
-    if callable(diffusivity):
+    """A diffusivity callable from its name in :data:`DIFFUSIVITIES`, the library's own
+    function itself, or a user's callable wrapped to check its results
+    (:class:`CheckedDiffusivity`)."""
+    if isinstance(diffusivity, CheckedDiffusivity) or any(
+            diffusivity is g for g in DIFFUSIVITIES.values()):
         return diffusivity
+    if callable(diffusivity):
+        return CheckedDiffusivity(diffusivity)
     return DIFFUSIVITIES[check_choice(diffusivity, "diffusivity", tuple(DIFFUSIVITIES))]
 
 
@@ -143,7 +184,7 @@ class AnisotropicDiffusion(nn.Module):
         path: str = "auto",
     ) -> None:
         super().__init__()
-        self.diffusivity = resolve_diffusivity(diffusivity)
+        self.diffusivity = stored_diffusivity(diffusivity)
         self.contrast = contrast
         self.eps = check_positive(eps, "eps")
         self.coupled = check_flag(coupled, "coupled")
