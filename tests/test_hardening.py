@@ -278,6 +278,28 @@ def test_directional_diffusion_refuses_a_direction_batch_that_u_does_not_have():
         ts.directional_diffusion(u, surface, direction)
 
 
+def test_a_direction_of_the_surfaces_batch_widens_u_as_the_surface_does():
+    """u of batch 1 on a surface of batch 2 gives two results; a direction of the surface's
+    batch (its principal directions, say) is each entry's own, as for one entry alone."""
+    grid = ts.Grid.cube(15, 1.5)
+    phi = torch.cat([ts.sdf.sphere(grid, 1.0), ts.sdf.torus(grid, 0.8, 0.35)])
+    surface = ts.ImplicitSurface(phi, grid)
+    torch.manual_seed(0)
+    u = torch.rand(1, 1, *grid.shape)
+    direction = torch.randn(2, 3, *grid.shape)
+    both = ts.directional_diffusion(u, surface, direction)
+    flowed = ts.FlowVisualization(1e-3)(u, surface, direction=direction)
+    assert both.shape == flowed.shape == (2, 1, *grid.shape)
+    for b in range(2):
+        alone = ts.ImplicitSurface(phi[b:b + 1], grid)
+        entry = direction[b:b + 1]
+        torch.testing.assert_close(both[b:b + 1], ts.directional_diffusion(u, alone, entry))
+        torch.testing.assert_close(flowed[b:b + 1],
+                                   ts.FlowVisualization(1e-3)(u, alone, direction=entry))
+    with pytest.raises(ValueError, match="direction has batch size 3 but surface has 2"):
+        ts.directional_diffusion(u, surface, torch.randn(3, 3, *grid.shape))
+
+
 def _bad_calls() -> list:
     import trimesh
 

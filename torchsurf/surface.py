@@ -534,18 +534,21 @@ def check_data(value: object, name: str, surface: object, channels: int | None =
 
 def check_direction_batch(direction: Tensor, u: Tensor, name: str,
                           surface: ImplicitSurface) -> None:
-    """Raise ``ValueError`` unless a dense ``direction``'s batch is 1 or ``u``'s (named
-    ``name``): a tangent field never widens the data's batch."""
-    if surface.layout is None and direction.shape[0] not in (1, u.shape[0]):
+    """Raise ``ValueError`` unless a dense ``direction``'s batch is 1, ``u``'s (named ``name``)
+    or the surface's: a tangent field widens the data's batch only as the surface does (``u``
+    of batch 1 on a surface of batch B gives B results, with or without a field)."""
+    allowed = {1, u.shape[0], surface.batch_size}
+    if surface.layout is None and direction.shape[0] not in allowed:
         raise ValueError(f"direction has batch size {direction.shape[0]} but {name} has "
-                         f"{u.shape[0]}: it must be 1 or {name}'s")
+                         f"{u.shape[0]} and surface {surface.batch_size}: it must be 1, "
+                         f"{name}'s or the surface's")
 
 
 def check_direction(direction: object, u0: Tensor, surface: ImplicitSurface,
                     region: Tensor) -> Tensor:
     """``direction`` checked as a flow's tangent field for ``u0``: data on ``surface`` with 3
-    channels, batch 1 or ``u0``'s (dense), finite where the flow reads it (``region``, bool,
-    the flow's band and its ring).
+    channels, batch 1, ``u0``'s or the surface's (dense), finite where the flow reads it
+    (``region``, bool, the flow's band and its ring).
 
     Raises:
         ValueError: naming ``direction``, its shape and what was expected.
