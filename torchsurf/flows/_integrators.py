@@ -102,6 +102,8 @@ class System:
             ``step * growth`` at most :data:`RKC_GROWTH`.
         path: how the integrator's own kernels run (RKC's stage combinations;
             :data:`torchsurf.backend.PATHS`), the flow's ``path``.
+        refresh_ring: applied by the implicit methods before each step (the ring re-extended
+            from the band), or ``None`` where they hold the ring between re-extensions.
     """
 
     rate: Rate
@@ -113,6 +115,7 @@ class System:
     layout: BrickLayout | None = None
     growth: float = 0.0
     path: str = "auto"
+    refresh_ring: Callable[[Tensor], Tensor] | None = None
     _region: Tensor | None = field(default=None, init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -227,12 +230,11 @@ and holding the ring over their usual times would multiply their steps tenfold."
 def ring_held(method: str, step_times_rho: float, band_cells: float, period: int = 1) -> bool:
     """Whether ``method``'s steps of ``dt * rho = step_times_rho`` on a band of ``band_cells``
     cells keep the ring fixed between re-extensions (:data:`RING_HELD`,
-    :data:`HELD_RING_CELLS`): always for the implicit methods; for RKC, if one step fits the
-    bound; for Euler and Heun, which re-extend the band every ``period`` steps, if those steps
-    together do. Otherwise the ring is re-extended at every evaluation of the rate."""
-    if method in IMPLICIT:
-        return True
-    held_steps = period if method in ("euler", "heun") else 1
+    :data:`HELD_RING_CELLS`): for RKC, if one step fits the bound; for Euler, Heun and the
+    implicit methods, which re-extend the band every ``period`` steps, if those steps together
+    do. Otherwise the ring is re-extended at every evaluation of the rate, or, by the implicit
+    methods (whose operator must stay symmetric during a step's solve), before every step."""
+    held_steps = period if method in ("euler", "heun", *IMPLICIT) else 1
     margin = band_cells - HELD_RING_CELLS
     return (method in RING_HELD and margin > 0
             and held_steps * step_times_rho <= 12.0 * margin**2 * (1 + 1e-9))
@@ -506,6 +508,8 @@ def _theta_method(theta: float) -> Callable[[System, Tensor, Schedule], list[Ten
 
             params = (step, *linear.params)
             for _ in range(count):
+                if system.refresh_ring is not None:
+                    u = system.refresh_ring(u)
                 rhs = torch.where(band, scaled * (dt * linear.operator(u, *linear.params)), zero)
                 change = solve_symmetric(matrix, rhs, torch.zeros_like(rhs), params,
                                          schedule.solver, groups)
@@ -678,10 +682,11 @@ IMPLICIT = ("implicit", "crank_nicolson")
 
 RING_HELD = (*IMPLICIT, "euler", "heun", "rkc")
 """Methods that may hold the ring between re-extensions instead of re-extending it at every
-evaluation of the rate (:func:`ring_held`): the implicit ones always (their operator must stay
-symmetric); RKC, Euler and Heun where the band is wide enough for the time it is held (on the
-5-cell band of a distance, Euler's and Heun's periodic re-extension; never on a 3-cell band,
-where the stale ring reaches the nodes the re-extension reads: docs/band.md)."""
+evaluation of the rate (:func:`ring_held`), where the band is wide enough for the time it is
+held (on the 5-cell band of a distance, the periodic re-extension of Euler, Heun and the
+implicit methods; never on a 3-cell band, where the stale ring reaches the nodes the
+re-extension reads: docs/band.md). The implicit methods hold it during each step's solve
+(their operator must stay symmetric) and refresh it before each step where it is not held."""
 
 
 def integrate(method: str, system: System, u0: Tensor, schedule: Schedule) -> list[Tensor]:

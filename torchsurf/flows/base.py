@@ -29,7 +29,8 @@ one step could hold it for; torchdiffeq methods: after each piece of
 :func:`torchdiffeq_segment`), and at each requested time
 (``reextend_every``): every re-extension errs a little, so more steps must not mean more of
 them. The implicit methods, whose operator
-must stay symmetric, hold the ring fixed during a step (a Dirichlet condition). The explicit
+must stay symmetric, hold the ring fixed during a step (a Dirichlet condition) and, where
+Euler's steps would not hold it, re-extend it before each step. The explicit
 steps and RKC's stages come from a Gershgorin bound ``rho`` of the operator assembled on that
 band (:mod:`torchsurf.operators.spectrum`), never from the nominal ``h^2 / 6`` alone.
 docs/band.md has the measurements behind these choices.
@@ -661,12 +662,13 @@ class Flow(nn.Module):
                          width / surface.spacing, period=every or 1)
         if self.reextend_every is not None and not held:
             ring = kept_stencil(surface, width, "ring", region & ~band, region, limited=True)
-            rate = system.rate
             path = self.path
-            if packing is None:
-                system.rate = lambda u: rate(reextend(ring, u, path))
+            fill = ((lambda u: reextend(ring, u, path)) if packing is None
+                    else packing.stencil(ring).apply)
+            if self.method in IMPLICIT:
+                system.refresh_ring = fill
             else:
-                fill = packing.stencil(ring).apply
+                rate = system.rate
                 system.rate = lambda u: rate(fill(u))
         # nodes beyond the band and its ring are never read, but a rate computed on the whole
         # volume and masked after still takes their derivatives: 0 * NaN in a backward
