@@ -43,6 +43,8 @@ def with_ring(band: Tensor, layout: BrickLayout | None = None) -> Tensor:
     """
     if layout is not None:
         return layout.dilate(band)
+    if torch.compiler.is_compiling():
+        return _with_ring_traced(band)
     grown = band
     for dim in (2, 3, 4):
         length = grown.shape[dim]
@@ -53,6 +55,20 @@ def with_ring(band: Tensor, layout: BrickLayout | None = None) -> Tensor:
         result.narrow(dim, 0, length - 1).logical_or_(grown.narrow(dim, 1, length - 1))
         grown = result
     return grown
+
+
+def _with_ring_traced(band: Tensor) -> Tensor:
+    """:func:`with_ring` for a traced graph: in uint8, whose masked loads inductor's CPU code
+    generation vectorises (the in-place ORs of bool views did not compile in torch 2.13)."""
+    grown = band.to(torch.uint8)
+    for dim in (2, 3, 4):
+        length = grown.shape[dim]
+        if length < 2:
+            continue
+        before = torch.cat([grown.narrow(dim, 0, 1), grown.narrow(dim, 0, length - 1)], dim)
+        after = torch.cat([grown.narrow(dim, 1, length - 1), grown.narrow(dim, length - 1, 1)], dim)
+        grown = torch.maximum(torch.maximum(before, after), grown)
+    return grown > 0
 
 
 def zero_outside(value: Tensor, outside: Tensor) -> Tensor:
