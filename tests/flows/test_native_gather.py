@@ -182,3 +182,56 @@ def test_the_packed_stencils_values_stay_within_the_datas_range(native_available
                 patch.setattr(_native_gather, "limited", lambda *args: None)
             value = stencil.apply(z)
         assert float(value.max()) <= 1.0 and float(value.min()) >= 0.0, native
+
+
+needs_custom_ops = pytest.mark.skipif(not _native_gather.TRACEABLE,
+                                      reason="torch.library.custom_op needs torch >= 2.4")
+
+
+@needs_custom_ops
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_the_custom_operators_pass_opcheck(native_available, dtype):
+    """``torch.library.opcheck``: schemas, fake (meta) results of the kernels' shapes and
+    strides, autograd registration, and the ops traced by ``make_fx`` as called eagerly."""
+    matrix, _ = _matrix(29, 13, seed=11)
+    offsets, columns, values = matrix.offsets, matrix.columns, matrix.values(dtype)
+    x = torch.randn(13, 3, dtype=dtype, requires_grad=True)
+    one = torch.randn(13, 1, dtype=dtype, requires_grad=True)
+    blocks = _native_gather.RowBlocks(offsets, columns, values).laid(dtype)
+    g = torch.randn(29, 2, dtype=dtype, requires_grad=True)
+    ops = torch.ops.torchsurf
+    torch.library.opcheck(ops.csr_product, (offsets, columns, values, x, 29, []))
+    torch.library.opcheck(ops.csr_product, (offsets, columns, values, one, 29, blocks))
+    torch.library.opcheck(ops.csr_scatter, (offsets, columns, values, g, 13))
+    packing, stencil = _packed_stencil()
+    z = torch.rand(len(packing.nodes), 3, dtype=dtype, requires_grad=True,
+                   generator=torch.Generator().manual_seed(12))
+    args = (z, stencil.matrix.offsets, stencil.matrix.columns, stencil.matrix.values(dtype),
+            stencil.taps, stencil.corners.to(dtype), stencil.rows)
+    torch.library.opcheck(ops.limited, args)
+
+
+@needs_custom_ops
+def test_a_compiled_packed_stencil_calls_the_kernels_and_gives_their_numbers(native_available):
+    """Traced by ``torch.compile`` the clamped re-extension and the products are the custom
+    operators (not inductor's gathers): the eager values and gradients, float64."""
+    packing, stencil = _packed_stencil()
+    z = torch.rand(len(packing.nodes), 1, 2, dtype=torch.float64,
+                   generator=torch.Generator().manual_seed(13))
+    g = torch.randn(z.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(14))
+
+    def value_and_grad(function):
+        x = z.clone().requires_grad_()
+        out = function(x)
+        return out.detach(), torch.autograd.grad((out * g).sum(), x)[0]
+
+    expected = value_and_grad(stencil.apply)
+    torch._dynamo.reset()
+    try:
+        explanation = torch._dynamo.explain(stencil.apply)(z)
+        compiled = value_and_grad(torch.compile(stencil.apply, fullgraph=True))
+    finally:
+        torch._dynamo.reset()
+    called = {str(node.target) for graph in explanation.graphs for node in graph.graph.nodes}
+    assert any("torchsurf.limited" in target for target in called), sorted(called)
+    torch.testing.assert_close(compiled, expected, rtol=1e-12, atol=1e-12)

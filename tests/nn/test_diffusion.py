@@ -504,3 +504,27 @@ def test_gradients_through_pieces(monkeypatch, small):
             dt[c] = step * times[c]
             slope = (loss(u, times + dt) - loss(u, times - dt)) / (2 * dt[c])
             assert abs(float(slope - grad_t[c])) < 1e-5 * max(1.0, abs(float(slope)))
+
+
+@pytest.mark.slow
+def test_inductor_compiles_the_block_whole_forward_and_backward():
+    """``torch.compile(block)`` with inductor: the eager output and parameter gradients (the
+    band's dilation made inductor's C++ fail in torch 2.13 until it traced in uint8)."""
+    grid = ts.Grid.cube(12, 1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, 0.9), grid)
+    u = torch.rand(1, 2, *grid.shape, generator=torch.Generator().manual_seed(0))
+    block = DiffusionBlock(2, time=[0.05, 0.1], max_time=0.2)
+
+    def loss_and_grads(module):
+        block.zero_grad()
+        loss = module(u, surface).square().sum()
+        loss.backward()
+        return loss.detach(), [p.grad.clone() for p in block.parameters()]
+
+    expected = loss_and_grads(block)
+    torch._dynamo.reset()
+    try:
+        result = loss_and_grads(torch.compile(block))
+    finally:
+        torch._dynamo.reset()
+    torch.testing.assert_close(result, expected, rtol=1e-4, atol=1e-6)

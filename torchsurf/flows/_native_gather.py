@@ -10,8 +10,9 @@ multiply-add over the 8 rows. Rows are split between threads. Its transpose scat
 entries, on one thread. An autograd function pairs the two, so gradients (of any order) reach
 ``x``.
 
-It runs on the CPU in float32 and float64 with 32-bit indices, outside ``torch.compile``'s
-tracing (a ctypes call); elsewhere :func:`applies` is false and the caller gathers by
+It runs on the CPU in float32 and float64 with 32-bit indices: as ctypes calls, and inside a
+graph ``torch.compile`` traces as custom operators (``torch.ops.torchsurf``, torch 2.4 and
+later) that call the same kernels; elsewhere :func:`applies` is false and the caller gathers by
 ``embedding_bag``. Compiled once per machine (:mod:`torchsurf._native`; about a second).
 """
 
@@ -361,11 +362,15 @@ the kernel is 1.6-6x faster at every width measured (1-40)."""
 
 def applies(offsets: Tensor, x: Tensor) -> bool:
     """Whether the kernel takes this product: CPU, float32 or float64 ``x`` ``(N, F)`` with at
-    most :data:`MAX_COLUMNS` columns, 32-bit indices, not traced by ``torch.compile``, and the
-    library compiled."""
-    return (x.device.type == "cpu" and x.dtype in _SUFFIX and offsets.dtype == torch.int32
-            and x.shape[1] <= MAX_COLUMNS[x.dtype] and not torch.compiler.is_compiling()
-            and LIBRARY.load() is not None)
+    most :data:`MAX_COLUMNS` columns, 32-bit indices, and the library compiled; while
+    ``torch.compile`` traces, if torch has custom operators (2.4 and later), through which the
+    traced graph calls the kernels."""
+    if not (x.device.type == "cpu" and x.dtype in _SUFFIX and offsets.dtype == torch.int32
+            and x.shape[1] <= MAX_COLUMNS[x.dtype]):
+        return False
+    if torch.compiler.is_compiling():
+        return TRACEABLE and _library_loaded()
+    return LIBRARY.load() is not None
 
 
 class RowBlocks:
@@ -412,26 +417,37 @@ class RowBlocks:
         """What this layout keeps."""
         return [self.starts, self.shared, self.counts, self.columns, *self._weights.values()]
 
+    def laid(self, dtype: torch.dtype) -> list[Tensor]:
+        """``starts, shared, counts, columns, weights`` (in ``dtype``): what
+        :func:`_block_product` reads."""
+        return [self.starts, self.shared, self.counts, self.columns, self.weights(dtype)]
+
     def apply(self, x: Tensor) -> Tensor:
         """``A x`` for ``x`` ``(columns, 1)``, contiguous: ``(rows, 1)``."""
-        weights = self.weights(x.dtype)
-        out = torch.empty((self.blocks * 8, 1), dtype=x.dtype)
-        kernel = getattr(LIBRARY.load(), f"product_blocks_{_SUFFIX[x.dtype]}")
+        return _block_product(self.laid(x.dtype), x, self.rows)
 
-        def run(first: int, stop: int) -> None:
-            kernel(self.starts.data_ptr(), self.shared.data_ptr(), self.counts.data_ptr(),
-                   self.columns.data_ptr(), weights.data_ptr(), x.data_ptr(), out.data_ptr(),
-                   first, stop)
 
-        in_threads(run, self.blocks, THREAD_MIN_ROWS // 8)
-        return out[:self.rows]
+def _block_product(laid: list[Tensor], x: Tensor, rows: int) -> Tensor:
+    """:meth:`RowBlocks.apply` from its :meth:`RowBlocks.laid` tensors."""
+    starts, shared, counts, columns, weights = laid
+    blocks = len(starts) - 1
+    out = torch.empty((blocks * 8, 1), dtype=x.dtype)
+    kernel = getattr(LIBRARY.load(), f"product_blocks_{_SUFFIX[x.dtype]}")
+
+    def run(first: int, stop: int) -> None:
+        kernel(starts.data_ptr(), shared.data_ptr(), counts.data_ptr(), columns.data_ptr(),
+               weights.data_ptr(), x.data_ptr(), out.data_ptr(), first, stop)
+
+    in_threads(run, blocks, THREAD_MIN_ROWS // 8)
+    return out[:rows]
 
 
 def _product(offsets: Tensor, columns: Tensor, weights: Tensor, x: Tensor,
-             rows: int, blocks: RowBlocks | None = None) -> Tensor:
+             rows: int, blocks: RowBlocks | list[Tensor] | None = None) -> Tensor:
     x, offsets, columns, weights = (t.contiguous() for t in (x, offsets, columns, weights))
-    if blocks is not None and x.shape[1] == 1:
-        return blocks.apply(x)
+    if blocks and x.shape[1] == 1:
+        laid = blocks.laid(x.dtype) if isinstance(blocks, RowBlocks) else blocks
+        return _block_product(laid, x, rows)
     out = torch.empty((rows, x.shape[1]), dtype=x.dtype)
     kernel = getattr(LIBRARY.load(), f"product_{_SUFFIX[x.dtype]}")
     features = x.shape[1]
@@ -488,6 +504,9 @@ def product(offsets: Tensor, columns: Tensor, weights: Tensor, x: Tensor,
     (nnz,))`` (32-bit indices, weights in ``x``'s dtype) and ``x`` ``(columns, F)``: a new
     ``(rows, F)`` tensor, in autograd's graph when ``x`` is; for one column by ``blocks`` (the
     same matrix as :class:`RowBlocks`) when given. Check :func:`applies` first."""
+    if torch.compiler.is_compiling():
+        laid = blocks.laid(x.dtype) if blocks is not None and x.shape[1] == 1 else []
+        return torch.ops.torchsurf.csr_product(offsets, columns, weights, x, rows, laid)
     if torch.is_grad_enabled() and x.requires_grad:
         return _Product.apply(offsets, columns, weights, x, rows, blocks)
     return _product(offsets, columns, weights, x, rows, blocks)
@@ -532,17 +551,25 @@ class _Limited(torch.autograd.Function):
     @torch.autograd.function.once_differentiable
     def backward(ctx, g):  # noqa: ANN001, ANN205
         codes, extremes = ctx.saved_tensors
-        g = g.contiguous()
-        grad = g.index_fill(0, ctx.rows, 0.0)
-        free = torch.empty((len(ctx.rows), g.shape[1]), dtype=g.dtype)
-        getattr(LIBRARY.load(), f"clamp_back_{_SUFFIX[g.dtype]}")(
-            ctx.taps.data_ptr(), ctx.corners.to(g.dtype).contiguous().data_ptr(),
-            ctx.rows.data_ptr(), codes.data_ptr(), extremes.data_ptr(), g.data_ptr(),
-            grad.data_ptr(), free.data_ptr(), len(ctx.rows), g.shape[1])
         matrix = ctx.matrix
-        grad += _scatter(matrix.offsets, matrix.columns, matrix.values(g.dtype), free,
-                         g.shape[0])
+        grad = _clamped_back(g, ctx.taps, ctx.corners, ctx.rows, codes, extremes,
+                             matrix.offsets, matrix.columns, matrix.values(g.dtype))
         return grad, None, None, None, None
+
+
+def _clamped_back(g: Tensor, taps: Tensor, corners: Tensor, rows: Tensor, codes: Tensor,
+                  extremes: Tensor, offsets: Tensor, columns: Tensor, values: Tensor) -> Tensor:
+    """The gradient of :func:`limited` for ``g`` ``(nodes, F)``: ``extremes`` of the clamped
+    values alone, in order (``extremes[codes.bool()]``)."""
+    g = g.contiguous()
+    grad = g.index_fill(0, rows, 0.0)
+    free = torch.empty((len(rows), g.shape[1]), dtype=g.dtype)
+    getattr(LIBRARY.load(), f"clamp_back_{_SUFFIX[g.dtype]}")(
+        taps.data_ptr(), corners.to(g.dtype).contiguous().data_ptr(), rows.data_ptr(),
+        codes.data_ptr(), extremes.data_ptr(), g.data_ptr(), grad.data_ptr(), free.data_ptr(),
+        len(rows), g.shape[1])
+    grad += _scatter(offsets, columns, values, free, g.shape[0])
+    return grad
 
 
 def limited(z: Tensor, matrix: RowMatrix, taps: Tensor, corners: Tensor, rows: Tensor
@@ -558,6 +585,97 @@ def limited(z: Tensor, matrix: RowMatrix, taps: Tensor, corners: Tensor, rows: T
             or rows.dtype != torch.int64 or corners.dtype != z.dtype):
         return None
     z, taps, corners, rows = (t.contiguous() for t in (z, taps, corners, rows))
+    if torch.compiler.is_compiling():
+        out, _, _ = torch.ops.torchsurf.limited(z, matrix.offsets, matrix.columns,
+                                                matrix.values(z.dtype), taps, corners, rows)
+        return out
     if torch.is_grad_enabled() and z.requires_grad:
         return _Limited.apply(z, matrix, taps, corners, rows)
     return _clamped_into(z, matrix.apply(z), taps, corners, rows, None, None)
+
+
+# The kernels as custom operators: a graph ``torch.compile`` traces calls them, opaque to
+# inductor, instead of the gathers inductor would generate for the same products (a flow's
+# clamped re-extension took 4-10x the eager time compiled that way: docs/learning.md).
+
+TRACEABLE = hasattr(torch.library, "custom_op")
+"""Whether the kernels run inside a traced graph (``torch.library.custom_op``: torch >= 2.4)."""
+
+
+@torch.compiler.assume_constant_result
+def _library_loaded() -> bool:
+    return LIBRARY.load() is not None
+
+
+if TRACEABLE:
+    @torch.library.custom_op("torchsurf::csr_product", mutates_args=())
+    def _csr_product_op(offsets: Tensor, columns: Tensor, weights: Tensor, x: Tensor,
+                        rows: int, blocks: list[Tensor]) -> Tensor:
+        return _product(offsets, columns, weights, x, rows, blocks)
+
+    @_csr_product_op.register_fake
+    def _(offsets, columns, weights, x, rows, blocks):  # noqa: ANN001, ANN202
+        return x.new_empty((rows, x.shape[1]))
+
+    @torch.library.custom_op("torchsurf::csr_scatter", mutates_args=())
+    def _csr_scatter_op(offsets: Tensor, columns: Tensor, weights: Tensor, g: Tensor,
+                        count: int) -> Tensor:
+        return _scatter(offsets, columns, weights, g, count)
+
+    @_csr_scatter_op.register_fake
+    def _(offsets, columns, weights, g, count):  # noqa: ANN001, ANN202
+        return g.new_empty((count, g.shape[1]))
+
+    def _save_matrix(ctx, inputs, output) -> None:  # noqa: ANN001
+        offsets, columns, weights, x = inputs[:4]
+        ctx.save_for_backward(offsets, columns, weights)
+        ctx.count = x.shape[0]
+        ctx.blocks = len(inputs[5]) if len(inputs) > 5 else 0
+
+    def _product_backward(ctx, g):  # noqa: ANN001, ANN202
+        offsets, columns, weights = ctx.saved_tensors
+        grad = torch.ops.torchsurf.csr_scatter(offsets, columns, weights, g, ctx.count)
+        return None, None, None, grad, None, [None] * ctx.blocks
+
+    def _scatter_backward(ctx, x):  # noqa: ANN001, ANN202
+        offsets, columns, weights = ctx.saved_tensors
+        grad = torch.ops.torchsurf.csr_product(offsets, columns, weights, x, ctx.count, [])
+        return None, None, None, grad, None
+
+    _csr_product_op.register_autograd(_product_backward, setup_context=_save_matrix)
+    _csr_scatter_op.register_autograd(_scatter_backward, setup_context=_save_matrix)
+
+    @torch.library.custom_op("torchsurf::limited", mutates_args=())
+    def _limited_op(z: Tensor, offsets: Tensor, columns: Tensor, values: Tensor, taps: Tensor,
+                    corners: Tensor, rows: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        value = _product(offsets, columns, values, z, len(rows))
+        codes = torch.empty((len(rows), z.shape[1]), dtype=torch.uint8)
+        extremes = torch.zeros((len(rows), z.shape[1], 8), dtype=torch.uint8)  # written if clamped
+        return _clamped_into(z, value, taps, corners, rows, codes, extremes), codes, extremes
+
+    @_limited_op.register_fake
+    def _(z, offsets, columns, values, taps, corners, rows):  # noqa: ANN001, ANN202
+        return (z.new_empty(z.shape), z.new_empty((rows.shape[0], z.shape[1]), dtype=torch.uint8),
+                z.new_empty((rows.shape[0], z.shape[1], 8), dtype=torch.uint8))
+
+    @torch.library.custom_op("torchsurf::limited_backward", mutates_args=())
+    def _limited_backward_op(g: Tensor, taps: Tensor, corners: Tensor, rows: Tensor,
+                             codes: Tensor, extremes: Tensor, offsets: Tensor, columns: Tensor,
+                             values: Tensor) -> Tensor:
+        return _clamped_back(g, taps, corners, rows, codes,
+                             extremes[codes.bool()].contiguous(), offsets, columns, values)
+
+    @_limited_backward_op.register_fake
+    def _(g, taps, corners, rows, codes, extremes, offsets, columns, values):  # noqa: ANN001, ANN202
+        return g.new_empty(g.shape)  # contiguous, as the kernel writes it
+
+    def _save_limited(ctx, inputs, output) -> None:  # noqa: ANN001
+        _, offsets, columns, values, taps, corners, rows = inputs
+        _, codes, extremes = output
+        ctx.save_for_backward(taps, corners, rows, codes, extremes, offsets, columns, values)
+
+    def _limited_backward(ctx, g, *_):  # noqa: ANN001, ANN202
+        grad = torch.ops.torchsurf.limited_backward(g, *ctx.saved_tensors)
+        return grad, None, None, None, None, None, None
+
+    _limited_op.register_autograd(_limited_backward, setup_context=_save_limited)
