@@ -19,11 +19,12 @@ def sphere():
     return u, surface
 
 
-def _break_reasons(module: torch.nn.Module, u: torch.Tensor, surface: ts.ImplicitSurface
-                   ) -> list[str]:
-    """``torch._dynamo.explain``'s graph-break reasons for ``module(u, surface)`` without grad,
-    after one eager call (the surface's band, bound and stencils, computed once and kept)."""
-    with torch.no_grad():
+def _break_reasons(module: torch.nn.Module, u: torch.Tensor, surface: ts.ImplicitSurface,
+                   grad: bool = False) -> list[str]:
+    """``torch._dynamo.explain``'s graph-break reasons for ``module(u, surface)`` (without grad
+    unless ``grad``), after one eager call (the surface's band, bound and stencils, computed
+    once and kept)."""
+    with torch.set_grad_enabled(grad):
         module(u, surface)
         torch._dynamo.reset()
         try:
@@ -144,3 +145,35 @@ def test_traced_ring_dilation_equals_the_eager_one(shape):
     band = torch.rand(shape, generator=torch.Generator().manual_seed(1)) < 0.15
     band.view(-1)[0] = True
     torch.testing.assert_close(_with_ring_traced(band), with_ring(band), rtol=0, atol=0)
+
+
+def test_a_flow_recording_its_steps_traces_without_graph_break(sphere):
+    """Under autograd the steps run as recomputed segments; while traced, as
+    ``torch.utils.checkpoint`` regions, which the trace enters (the segments' own autograd
+    function and the walk of the reads' graph nodes broke the graph at every segment)."""
+    u, surface = sphere
+    flow = _flows(surface.spacing**2)["learned time and diffusivity, bounded"]
+    assert _break_reasons(flow, u.clone().requires_grad_(), surface, grad=True) == []
+
+
+@pytest.mark.slow
+def test_inductor_compiles_a_flow_recording_its_steps(sphere):
+    """Compiled whole with inductor, a learned flow's result and gradients (in ``u``, the time
+    and the diffusivity) are the eager ones."""
+    u, surface = sphere
+    flow = _flows(surface.spacing**2)["learned time and diffusivity, bounded"]
+
+    def value_and_grads(module):
+        x = u.clone().requires_grad_()
+        flow.zero_grad()
+        out = module(x, surface)
+        out.square().sum().backward()
+        return out.detach(), x.grad, *(p.grad.clone() for p in flow.parameters())
+
+    expected = value_and_grads(flow)
+    torch._dynamo.reset()
+    try:
+        result = value_and_grads(torch.compile(flow))
+    finally:
+        torch._dynamo.reset()
+    torch.testing.assert_close(result, expected, rtol=1e-5, atol=1e-5)  # float32, data O(1)

@@ -23,7 +23,7 @@ from torch import Tensor
 from .._stack import caller_stacklevel
 from ..bricks.layout import BrickLayout
 from ..surface import power_of_two_below
-from ._recompute import independent, recomputed
+from ._recompute import declared, independent, recomputed
 from ._rkc import MAX_STAGES, largest_step_times_rho, rkc_step, stages_for
 from ._solve import SolverOptions, solve_symmetric
 
@@ -425,7 +425,7 @@ def _explicit(
     def integrate(system: System, u0: Tensor, schedule: Schedule) -> list[Tensor]:
         u, out, done = u0, [], 0
         if schedule.checkpoint:
-            reads = independent((*_tensor_times(schedule), *system.params))
+            reads = declared((*_tensor_times(schedule), *system.params))
             system = replace(system, rate=_checkpointed_rate(system.rate, reads))
         for _, dt, count in _intervals(schedule):
             group = max(1, math.isqrt(count)) if schedule.checkpoint else count

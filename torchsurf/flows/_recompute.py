@@ -8,7 +8,9 @@ a learned Perona–Malik flow at 64^3, batch 4, held 6.3 GB resident for 52 MB o
 its forward (docs/learning.md, "The unrolled flows under autograd"). :func:`recomputed` runs the
 segment under ``no_grad`` instead (nothing kept but its input), links the result to the
 segment's input and to the tensors it reads that need gradients with one node, and recomputes
-the segment under autograd in backward.
+the segment under autograd in backward. While ``torch.compile`` traces, a segment is a
+``torch.utils.checkpoint`` region instead: the trace enters it (it cannot enter the autograd
+function, whose backward walks the graph) and the compiled backward recomputes it.
 """
 
 from __future__ import annotations
@@ -34,6 +36,8 @@ def recomputed(function: Callable[[Tensor], Tensor], u: Tensor, reads: Sequence[
     reads = [t for t in reads if isinstance(t, Tensor) and t.requires_grad]
     if not torch.is_grad_enabled() or not (u.requires_grad or reads):
         return function(u)
+    if torch.compiler.is_compiling():  # a traced graph recomputes what it checkpoints
+        return torch.utils.checkpoint.checkpoint(function, u, use_reentrant=False)
     with torch.no_grad():
         result = function(u)
     if result is u:  # nothing to recompute (an autograd Function must not return its input)
@@ -105,6 +109,16 @@ def _check_reads(out: Tensor, wanted: Sequence[Tensor]) -> None:
                 f"in the flow's System (leaf of shape {tuple(node.variable.shape)})"
             )
         stack.extend(next_node for next_node, _ in node.next_functions)
+
+
+def declared(values: Sequence[object]) -> tuple[Tensor, ...]:
+    """The reads to declare to :func:`recomputed`: :func:`independent` ones; while
+    ``torch.compile`` traces, every tensor among ``values`` that needs gradients (there
+    :func:`recomputed` checkpoints by ``torch.utils.checkpoint``, which finds its reads itself,
+    and a traced tensor's graph nodes cannot be walked)."""
+    if torch.compiler.is_compiling():
+        return tuple(v for v in values if isinstance(v, Tensor) and v.requires_grad)
+    return independent(values)
 
 
 def independent(values: Sequence[object]) -> tuple[Tensor, ...]:

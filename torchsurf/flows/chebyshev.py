@@ -40,7 +40,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ._recompute import independent, recomputed, refuse_second_derivatives
+from ._recompute import declared, recomputed, refuse_second_derivatives
 
 KINDS = ("exp", "phi1")
 """``"exp"``: ``exp(t L)``; ``"phi1"``: ``t phi1(t L) = (exp(t L) - 1) / L`` (which maps a
@@ -302,13 +302,13 @@ def _checkpointed(operator: Callable[..., Tensor], x: Tensor, c: Tensor, bound: 
     current = torch.add(x, operator(x, *params), alpha=scale)
     total = total + _channelwise(c[:, 1], x) * current
     state = torch.stack((x, current, total))
-    declared = independent((*reads, *params, c))
+    inputs = declared((*reads, *params, c))
     group = max(1, math.isqrt(terms))
     for first in range(2, terms, group):
         chunk = c[:, first: min(first + group, terms)]
         state = recomputed(
             functools.partial(_stacked_group, operator, scale, chunk, first, params), state,
-            declared,
+            inputs,
         )
     return state[2]
 
