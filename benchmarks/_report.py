@@ -1,7 +1,9 @@
-"""Writing a benchmark's figures into a markdown file (docs/benchmarks.md), shared by the scripts."""
+"""Writing a benchmark's figures into a markdown file (docs/benchmarks.md), and naming the machine
+they ran on; shared by the scripts."""
 
 from __future__ import annotations
 
+import platform
 from pathlib import Path
 
 NEW_FILE = ("# torchsurf benchmarks\n\nFigures measured by the scripts in `benchmarks/`; each "
@@ -38,3 +40,14 @@ def _after(rest: str) -> str:
     """What follows a section: one blank line, then the rest of the file."""
     rest = rest.lstrip("\n")
     return "\n" + rest if rest else ""
+
+
+def cpu_model() -> str:
+    """The CPU's model name (``/proc/cpuinfo``), or the platform's processor string."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()

@@ -42,7 +42,6 @@ import importlib.util
 import json
 import math
 import os
-import platform
 import resource
 import statistics
 import subprocess
@@ -52,7 +51,7 @@ import time
 from pathlib import Path
 
 import torch
-from _report import write_section  # benchmarks/_report.py, beside this script
+from _report import cpu_model, write_section  # benchmarks/_report.py, beside this script
 
 import torchsurf as ts
 from torchsurf import bricks
@@ -78,17 +77,6 @@ def _load_sibling(name: str):
 _lb_bench = _load_sibling("bench_laplace_beltrami")
 _heat_bench = _load_sibling("bench_heat_flow")
 _learned_bench = _load_sibling("bench_learned_diffusion")
-
-
-def cpu_model() -> str:
-    """The CPU's model name (``/proc/cpuinfo``), or the platform's processor string."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
 
 
 def peak_gb() -> float:

@@ -26,8 +26,7 @@ from pathlib import Path
 
 import torch
 import trimesh
-from _report import write_section
-from bench_bricks import cpu_model
+from _report import cpu_model, write_section
 from bench_mesh_heat import MESH_DIR
 
 import torchsurf as ts
