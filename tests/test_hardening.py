@@ -267,6 +267,15 @@ def test_functional_layer_checks_channel_counts_dtypes_spacing_and_scheme():
         functional.divergence_form(u, normal, weight, 0.0)
     with pytest.raises(ValueError, match="scheme must be one of"):
         functional.divergence_form(u, normal, weight, h, scheme="central")
+    curvature = surface.mean_curvature()
+    with pytest.raises(ValueError, match="spacing"):
+        functional.central_laplace_beltrami(u, normal, curvature, -h)
+    with pytest.raises(ValueError, match="mean_curvature must be"):
+        functional.central_laplace_beltrami(u, normal, normal, h)
+    with pytest.raises(TypeError, match="normal is torch.float64 but u is torch.float32"):
+        functional.central_laplace_beltrami(u, normal.double(), curvature, h)
+    with pytest.raises(ValueError, match="v must hold 3 components a channel"):
+        functional.tangential_divergence(u.expand(1, 4, *grid.shape), normal, weight, h)
 
 
 def test_directional_diffusion_refuses_a_direction_batch_that_u_does_not_have():

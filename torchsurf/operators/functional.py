@@ -50,22 +50,30 @@ SCHEMES = ("octant", "symmetric", "conservative")
 
 def _check_inputs(u: Tensor, normal: Tensor, spacing: float, weight: Tensor | None = None,
                   scheme: str | None = None, schemes: Sequence[str] = SCHEMES,
-                  direction: Tensor | None = None) -> None:
+                  direction: Tensor | None = None, mean_curvature: Tensor | None = None,
+                  vector: bool = False) -> None:
     """The cheap checks of this layer's arguments (shapes' channel counts, dtypes, the spacing
     and the scheme): what would otherwise give a wrong shape or a bare ``KeyError`` deep in a
-    kernel. Channel counts and dtypes only; the surface-level functions check the rest."""
+    kernel. Channel counts and dtypes only; the surface-level functions check the rest.
+    ``vector``: ``u`` is a field of 3-vectors, ``(B, 3C, D, H, W)`` (named ``v``)."""
+    name = "v" if vector else "u"
     if u.dim() != 5 or not u.is_floating_point():
-        raise ValueError(f"u must be a floating-point (B, C, D, H, W) tensor, got shape "
+        raise ValueError(f"{name} must be a floating-point (B, C, D, H, W) tensor, got shape "
                          f"{tuple(u.shape)} and dtype {u.dtype}")
+    if vector and u.shape[1] % 3:
+        raise ValueError(f"v must hold 3 components a channel, (B, 3C, D, H, W), got "
+                         f"{u.shape[1]} channels (shape {tuple(u.shape)})")
     for name, value, channels in (("normal", normal, 3), ("weight", weight, 1),
-                                  ("direction", direction, 3)):
+                                  ("direction", direction, 3),
+                                  ("mean_curvature", mean_curvature, 1)):
         if value is None:
             continue
         if value.dim() != 5 or value.shape[1] != channels:
             raise ValueError(f"{name} must be (B or 1, {channels}, D, H, W), got shape "
                              f"{tuple(value.shape)}")
         if value.dtype != u.dtype:
-            raise TypeError(f"{name} is {value.dtype} but u is {u.dtype}: they must match")
+            raise TypeError(f"{name} is {value.dtype} but {'v' if vector else 'u'} is "
+                            f"{u.dtype}: they must match")
     if not (isinstance(spacing, (int, float)) and math.isfinite(spacing) and spacing > 0):
         raise ValueError(f"spacing must be a finite number > 0, got {spacing!r}")
     if scheme is not None and scheme not in schemes:
@@ -621,7 +629,7 @@ def tangential_divergence(v: Tensor, normal: Tensor, weight: Tensor, spacing: fl
     Returns:
         ``(B, C, D, H, W)`` (or ``(N, C, 8, 8, 8)``), units of ``v`` per world length.
     """
-    _check_inputs(v, normal, spacing, weight)
+    _check_inputs(v, normal, spacing, weight, vector=True)
     if pad is not None:
         return backend.run_haloed(_FLUX_DIVERGENCE, path, v,
                                   pad(_tangential_flux(v, normal, weight), 1), weight, spacing)
@@ -669,6 +677,7 @@ def central_laplace_beltrami(
     Returns:
         ``(B, C, D, H, W)`` (or ``(N, C, 8, 8, 8)``), units of ``u`` per world length squared.
     """
+    _check_inputs(u, normal, spacing, mean_curvature=mean_curvature)
     if pad is not None:
         return backend.run_haloed(_CENTRAL, path, u, pad(u, 1), normal, mean_curvature, spacing)
     return backend.run(_CENTRAL, path, u, u, normal, mean_curvature, spacing)
