@@ -169,6 +169,9 @@ class Schedule:
         after_step: ``(u, step_index) -> u`` hook (progress bar, re-extension), or ``None``.
         output: ``(u, step_index) -> u`` applied to ``u`` at each requested time before it is
             returned, not to the state integrated on (a final re-extension), or ``None``.
+        fewest: ``(length, end) -> steps``: the fewest steps the interval of ``length`` that
+            ends at the requested time ``end`` (physical time) takes when ``steps`` is
+            ``None``, or ``None``.
         segment: torchdiffeq methods integrate pieces no longer than this (physical time) and
             call ``after_step`` between them; ``None``: one piece.
         checkpoint: the explicit methods (RKC, Euler, Heun) keep for backward only ``u`` at
@@ -188,6 +191,7 @@ class Schedule:
     output: Callable[[Tensor, int], Tensor] | None = None
     segment: float | None = None
     checkpoint: bool = False
+    fewest: Callable[[float, float], int] | None = None
 
 
 def _value(time: float | Tensor) -> float:
@@ -382,8 +386,15 @@ def _intervals(schedule: Schedule) -> Iterator[tuple[int, Tensor | float, int]]:
             count = max(1, round(schedule.steps * _value(length) / end))
         else:
             count = max(1, math.ceil(_value(length) / step * (1 - 1e-9)))
+            if schedule.fewest is not None:
+                count = max(count, schedule.fewest(_value(length), _value(time)))
         yield index, length / count, count
         previous = time
+
+
+def steps_taken(schedule: Schedule) -> int:
+    """The number of steps ``schedule`` takes over all its intervals."""
+    return sum(count for _, _, count in _intervals(schedule))
 
 
 def shortest_step(schedule: Schedule) -> float:
