@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
 import warnings
 from collections.abc import Callable
@@ -58,6 +59,19 @@ BAND_EDGE_SLACK = 1e-4
 numbers put nodes at exactly ``width`` (a sphere of radius 4 h centred on a node has nodes 3 h
 from S), where any change of ``phi`` would add or drop them and the flows' output would jump;
 the slack moves the edge off such placements."""
+
+
+def _kept_outside_inference() -> contextlib.AbstractContextManager:
+    """Where a value the surface keeps is computed under ``torch.inference_mode`` (an
+    evaluation loop's): compute it as under ``torch.no_grad`` instead. An inference tensor
+    kept on the surface could not be saved for backward by a later training call on the same
+    surface ("Inference tensors cannot be saved for backward")."""
+    if torch.compiler.is_compiling() or not torch.is_inference_mode_enabled():
+        return contextlib.nullcontext()
+    stack = contextlib.ExitStack()
+    stack.enter_context(torch.inference_mode(False))
+    stack.enter_context(torch.no_grad())
+    return stack
 
 
 def _crossing(inside: Tensor) -> Tensor:
@@ -235,7 +249,7 @@ class ImplicitSurface(nn.Module):
             3.0 * grid.spacing if band_width is None else band_width, "band_width"
         )
         self.eps = check_positive(eps, "eps")
-        self._assemble(phi)
+        self._assemble_kept(phi)
 
     layout = None
     """How the fields are stored: ``None`` for dense volumes (a :class:`torchsurf.bricks.BrickSurface`
@@ -299,7 +313,16 @@ class ImplicitSurface(nn.Module):
         return result
 
     def _reassemble(self) -> None:
-        self._assemble(self.phi)
+        self._assemble_kept(self.phi)
+
+    def _assemble_kept(self, phi: Tensor) -> None:
+        """:meth:`_assemble`, outside ``torch.inference_mode`` (:func:`_kept_outside_inference`);
+        a ``phi`` made under it is copied (an inference tensor has no version counter for
+        :meth:`_current_phi`)."""
+        with _kept_outside_inference():
+            if not torch.compiler.is_compiling() and phi.is_inference():
+                phi = phi.clone()
+            self._assemble(phi)
 
     def kept(self, key: tuple, compute: Callable[[], T]) -> T:
         """``compute()``, computed on the first call with ``key`` and kept on this surface.
@@ -311,7 +334,8 @@ class ImplicitSurface(nn.Module):
         another surface is collected (the guard then fails to build).
         """
         if key not in self._kept:
-            self._kept[key] = compute()
+            with _kept_outside_inference():
+                self._kept[key] = compute()
         return self._kept[key]
 
     def is_kept(self, key: tuple) -> bool:
@@ -406,7 +430,8 @@ class ImplicitSurface(nn.Module):
         """
         if self._haloed_normal is not None:
             return self._haloed_normal, self._haloed_weight
-        normal, weight = self._haloed_geometry()
+        with _kept_outside_inference():
+            normal, weight = self._haloed_geometry()
         if torch.is_grad_enabled() or not self.phi.requires_grad:
             self._haloed_normal, self._haloed_weight = normal, weight
         return normal, weight
@@ -450,8 +475,9 @@ class ImplicitSurface(nn.Module):
         if kept is not None and (torch.compiler.is_compiling()
                                  or kept._version == self._mean_curvature_version):
             return kept
-        value = self._faded(curvature.mean_curvature(self._gradient(), self.hessian(),
-                                                     self._directed_norm))
+        with _kept_outside_inference():
+            value = self._faded(curvature.mean_curvature(self._gradient(), self.hessian(),
+                                                         self._directed_norm))
         if torch.is_grad_enabled() or not self.phi.requires_grad:
             self._mean_curvature = value
             self._mean_curvature_version = value._version

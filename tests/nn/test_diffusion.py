@@ -375,6 +375,9 @@ def test_fixed_times_changed_in_place_or_replaced_are_followed():
     layer.fixed_time.fill_(-1.0)
     with pytest.raises(ValueError, match="fixed_time must hold finite positive values"):
         layer(u, surface)
+    layer.fixed_time = torch.tensor([1.0, 2.0])  # a bare broadcast error in the expansion
+    with pytest.raises(ValueError, match=r"fixed_time must have shape \(1,\), got \(2,\)"):
+        layer(u, surface)
 
 
 def test_a_flow_follows_a_fixed_diffusivity_changed_in_place():
@@ -528,3 +531,29 @@ def test_inductor_compiles_the_block_whole_forward_and_backward():
     finally:
         torch._dynamo.reset()
     torch.testing.assert_close(result, expected, rtol=1e-4, atol=1e-6)
+
+
+def test_an_evaluation_under_inference_mode_leaves_the_surface_trainable():
+    """A validation pass under ``torch.inference_mode`` (Lightning's default) kept inference
+    tensors on the surface (its band, stencils, haloed geometry), and the next training step
+    on the same surface failed: "Inference tensors cannot be saved for backward". A surface
+    built under inference mode failed the same way. Now both train, with the gradients of a
+    surface never used under inference mode."""
+    grid = ts.Grid.cube(18, 1.5)
+    torch.manual_seed(0)
+    u = torch.rand(1, 2, *grid.shape)
+    for layer in (LearnedDiffusion(2, time=[0.5, 2.0]), DiffusionBlock(2)):
+        with torch.inference_mode():
+            built_there = ts.ImplicitSurface(ts.sdf.sphere(grid, 0.9), grid)
+        evaluated = ts.ImplicitSurface(ts.sdf.sphere(grid, 0.9), grid)
+        with torch.inference_mode():
+            layer(u, evaluated)
+        fresh = ts.ImplicitSurface(ts.sdf.sphere(grid, 0.9), grid)
+        gradients = []
+        for surface in (fresh, evaluated, built_there):
+            layer.zero_grad()
+            layer(u, surface).square().sum().backward()
+            gradients.append([p.grad.clone() for p in layer.parameters()])
+        for other in gradients[1:]:
+            for expected, got in zip(gradients[0], other, strict=True):
+                torch.testing.assert_close(got, expected)

@@ -64,7 +64,7 @@ class BrickSurface(ImplicitSurface):
             3.0 * layout.spacing if band_width is None else band_width, "band_width"
         )
         self.eps = check_positive(eps, "eps")
-        self._assemble(phi)
+        self._assemble_kept(phi)
 
     def _reassemble(self) -> None:
         self.layout = self.layout.to(self.phi.device)  # its tables are not buffers

@@ -35,18 +35,23 @@ class HostMaximum:
     Args:
         name: the tensor's name in errors.
         tensor: its first value, read now.
+        shape: the shape it must keep (a replacement is checked too), or ``None``.
     """
 
-    def __init__(self, name: str, tensor: Tensor) -> None:
+    def __init__(self, name: str, tensor: Tensor, shape: tuple[int, ...] | None = None) -> None:
         self.name = name
+        self.shape = shape
         self._value = math.nan
         self.of(tensor)
 
     def of(self, tensor: Tensor) -> float:
         """The largest entry of ``tensor`` (the one watched); raises ``ValueError`` naming it if
-        it was changed to hold a value that is not finite and positive."""
+        it was changed to hold a value that is not finite and positive, or to another shape."""
         if torch.compiler.is_compiling():
             return self._value
+        if self.shape is not None and tuple(tensor.shape) != self.shape:
+            raise ValueError(f"{self.name} must have shape {self.shape}, got "
+                             f"{tuple(tensor.shape)}")
         largest = float(tensor.max())
         if not (math.isfinite(largest) and float(tensor.min()) > 0):
             raise ValueError(f"{self.name} must hold finite positive values, got "

@@ -116,7 +116,7 @@ class LearnedDiffusion(nn.Module):
             self.raw_time = nn.Parameter(_inverse_softplus(initial - FLOOR))
         else:
             self.register_buffer("fixed_time", initial)
-            self._largest = HostMaximum("fixed_time", self.fixed_time)
+            self._largest = HostMaximum("fixed_time", self.fixed_time, shape=(channels,))
         self.scheme = check_choice(scheme, "scheme", functional.SCHEMES)
         self.path = check_choice(path, "path", PATHS)
 
