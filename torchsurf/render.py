@@ -274,8 +274,7 @@ def _pyvista_image(mesh: trimesh.Trimesh, panels: list[tuple[str, np.ndarray]],
             plotter.add_mesh(surface, scalars="colours", rgb=True, smooth_shading=True,
                              show_scalar_bar=False)
             plotter.add_text(title, position="upper_edge", color="black",
-                             font_size=min(max(6, min(11, height // 40)),
-                                           _title_points(title, width, height, 100)))
+                             font_size=_fitted_points(title, width, max(6, min(11, height // 40))))
             plotter.camera.focal_point = tuple(centre - extent * camera.towards)
             plotter.camera.position = tuple(centre + extent * camera.towards)
             plotter.camera.up = tuple(camera.up)
@@ -325,16 +324,15 @@ def render_panels(mesh: trimesh.Trimesh, panels: list[tuple[str, np.ndarray]], p
         axes = figure.add_axes((index / count, 0.0, 1.0 / count, 1.0))
         _draw(axes, mesh, vertex_colours, camera, PolyCollection)
         axes.text(0.5, 0.98, title, transform=axes.transAxes, ha="center", va="top",
-                  fontsize=_title_points(title, width, height, dpi))
+                  fontsize=_fitted_points(title, width, max(7, min(12, height // 30)), dpi))
     return write_png(figure, path)
 
 
-def _title_points(title: str, width: int, height: int, dpi: int) -> float:
-    """A panel title's font size, points: by the panel's height, and small enough that the
-    title (about 0.6 em a character) spans at most 95% of the panel's ``width`` pixels; at
-    least 5 points."""
+def _fitted_points(title: str, width: int, points: float, dpi: int = 100) -> float:
+    """A panel title's font size: ``points``, or less where the title (about 0.6 em a
+    character) would span more than 95% of the panel's ``width`` pixels; at least 5 points."""
     by_width = 0.95 * width * 72.0 / (0.6 * dpi * max(1, len(title)))
-    return max(5.0, min(float(max(7, min(12, height // 30))), by_width))
+    return max(5.0, min(float(points), by_width))
 
 
 def write_png(figure, path: str | Path) -> Path:  # noqa: ANN001

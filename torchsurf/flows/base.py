@@ -125,8 +125,11 @@ def _range_excess(u0: Tensor, results: list[Tensor], region: Tensor, band: Tenso
 def _fewest_steps(method: str, system: System, band_cells: float, length: float,
                   end: float) -> int:
     """The steps of an interval of ``length`` that ends at the requested time ``end``: none
-    longer than those ``method`` plans for a flow to ``end`` alone (:func:`plan_steps`)."""
-    longest = end / plan_steps(method, system, end, None, band_cells=band_cells).count
+    longer than those ``method`` plans for a flow to ``end`` alone (:func:`plan_steps`; its
+    warnings are the whole run's, given once by the run's own plan)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        longest = end / plan_steps(method, system, end, None, band_cells=band_cells).count
     return max(1, math.ceil(length / longest * (1 - 1e-9)))
 
 

@@ -56,9 +56,9 @@ def _check_inputs(u: Tensor, normal: Tensor, spacing: float, weight: Tensor | No
     and the scheme): what would otherwise give a wrong shape or a bare ``KeyError`` deep in a
     kernel. Channel counts and dtypes only; the surface-level functions check the rest.
     ``vector``: ``u`` is a field of 3-vectors, ``(B, 3C, D, H, W)`` (named ``v``)."""
-    name = "v" if vector else "u"
+    data = "v" if vector else "u"
     if u.dim() != 5 or not u.is_floating_point():
-        raise ValueError(f"{name} must be a floating-point (B, C, D, H, W) tensor, got shape "
+        raise ValueError(f"{data} must be a floating-point (B, C, D, H, W) tensor, got shape "
                          f"{tuple(u.shape)} and dtype {u.dtype}")
     if vector and u.shape[1] % 3:
         raise ValueError(f"v must hold 3 components a channel, (B, 3C, D, H, W), got "
@@ -72,8 +72,7 @@ def _check_inputs(u: Tensor, normal: Tensor, spacing: float, weight: Tensor | No
             raise ValueError(f"{name} must be (B or 1, {channels}, D, H, W), got shape "
                              f"{tuple(value.shape)}")
         if value.dtype != u.dtype:
-            raise TypeError(f"{name} is {value.dtype} but {'v' if vector else 'u'} is "
-                            f"{u.dtype}: they must match")
+            raise TypeError(f"{name} is {value.dtype} but {data} is {u.dtype}: they must match")
     if not (isinstance(spacing, (int, float)) and math.isfinite(spacing) and spacing > 0):
         raise ValueError(f"spacing must be a finite number > 0, got {spacing!r}")
     if scheme is not None and scheme not in schemes:
