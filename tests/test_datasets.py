@@ -14,7 +14,7 @@ from torchsurf.shape_batch import AnalyticShape, MeshBatchAdapter
 @pytest.fixture(scope="module")
 def shapes() -> MeshBatchAdapter:
     return MeshBatchAdapter([AnalyticShape("sphere"), AnalyticShape("torus", {"minor_radius": 0.4})],
-                            resolution=25, dtype=torch.float64)
+                            resolution=25, margin=0.15, dtype=torch.float64)
 
 
 def test_smooth_signal_is_deterministic_in_range_and_smooth(shapes: MeshBatchAdapter) -> None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import os
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -134,6 +135,25 @@ def test_fit_grid_holds_the_mesh_with_margin() -> None:
     assert grid.origin[0] == pytest.approx(-1.5)
     with pytest.raises(ValueError, match="resolution"):
         tsm.fit_grid(mesh, 2)
+
+
+@pytest.mark.parametrize("resolution", [13, 16, 24, 36, 37, 64])
+def test_default_grids_leave_three_cells_around_the_shape(resolution: int) -> None:
+    # a 10% margin left 1.2 cells at 16^3 and 1.8 at 24^3: MeshAdapter and MeshBatchAdapter
+    # then warned that S came within two cells of the faces of the grid they had chosen
+    mesh = trimesh.creation.box(extents=(2.0, 1.0, 0.5))
+    grid = tsm.fit_grid(mesh, resolution)
+    free = (grid.origin[0] + 1.0) / -grid.spacing
+    assert free == pytest.approx(max(3.0, 0.1 * (resolution - 1) / 1.2))
+    sphere = trimesh.creation.icosphere(subdivisions=2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ts.MeshAdapter(sphere, resolution=resolution, dtype=torch.float64)
+        batch = ts.MeshBatchAdapter([sphere, ts.AnalyticShape("torus")], resolution=resolution,
+                                    dtype=torch.float64)
+    free = (batch.grid.origin[0] + 0.5) / -batch.grid.spacing
+    assert free >= 3 - 1e-9 and (resolution < 27 or free == pytest.approx(
+        0.15 * (resolution - 1) / 1.3))
 
 
 def test_load_errors_name_the_mesh(tmp_path: Path) -> None:

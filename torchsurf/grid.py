@@ -40,6 +40,34 @@ def _triple(value: object, name: str, check: Callable[[object, str], T]) -> tupl
         raise type(error)(f"{name} = {value!r}: {error}") from error
 
 
+MIN_MARGIN_CELLS = 3.0
+"""Free cells a fitted grid leaves, by default, on each side of a shape's box: the
+stencils read a node beyond the band, and :class:`~torchsurf.ImplicitSurface` warns when ``S``
+comes within two cells of the grid's faces."""
+
+
+def default_margin(resolution: int, fraction: float, min_cells: float = MIN_MARGIN_CELLS
+                   ) -> float:
+    """The margin of a cubic grid fitted to a shape: ``fraction`` of the shape's longest side,
+    widened where that leaves fewer than ``min_cells`` cells on each side.
+
+    A margin ``m`` (fraction of the longest side) on a ``resolution``-node grid leaves
+    ``m (resolution - 1) / (1 + 2 m)`` cells; ``fraction = 0.1`` leaves three from 37 nodes up.
+    Grids of fewer than ``4 min_cells + 1`` nodes keep a quarter of their cells free on each
+    side.
+
+    Args:
+        resolution: nodes per axis, at least 3.
+        fraction: the margin wanted, fraction of the longest side.
+        min_cells: the fewest free cells on each side.
+
+    Returns:
+        The margin, fraction of the longest side, at least ``fraction``.
+    """
+    cells = min(min_cells, (resolution - 1) / 4)
+    return max(fraction, cells / (resolution - 1 - 2 * cells))
+
+
 @dataclass(frozen=True)
 class Grid:
     """A uniform grid of nodes with equal spacing along x, y and z.

@@ -27,7 +27,7 @@ from ._checks import (
     check_volume,
 )
 from ._mesh_input import MeshLike, as_trimesh, triangle_arrays, warn_unused_vertices
-from .grid import Grid
+from .grid import Grid, default_margin
 from .sampling import sample
 from .surface import ImplicitSurface
 
@@ -52,21 +52,24 @@ def load(mesh: MeshLike) -> trimesh.Trimesh:
     return as_trimesh(mesh, "mesh")
 
 
-def fit_grid(mesh: MeshLike, resolution: int = 64, margin: float = 0.1) -> Grid:
+def fit_grid(mesh: MeshLike, resolution: int = 64, margin: float | None = None) -> Grid:
     """A cubic ``resolution^3`` grid around the mesh's bounding box.
 
     Args:
         mesh: as in :func:`load`.
         resolution: nodes along each axis (at least 3).
         margin: free space on each side, as a fraction of the box's longest side; keep it
-            larger than the band you will ask for.
+            larger than the band you will ask for. ``None``: 10%, and at least
+            :data:`~torchsurf.grid.MIN_MARGIN_CELLS` cells (:func:`~torchsurf.grid.default_margin`;
+            wider than 10% below 37 nodes).
 
     Returns:
         A grid centred on the box, spacing ``longest side * (1 + 2 margin) / (resolution - 1)``.
     """
     mesh = as_trimesh(mesh, "mesh")
     resolution = check_count(resolution, "resolution", minimum=3)
-    margin = check_nonnegative(margin, "margin")
+    margin = (default_margin(resolution, 0.1) if margin is None
+              else check_nonnegative(margin, "margin"))
     vertices, faces = triangle_arrays(mesh)
     used = vertices[np.unique(faces)]
     low, high = used.min(axis=0), used.max(axis=0)

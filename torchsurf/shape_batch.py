@@ -24,7 +24,7 @@ from torch import Tensor, nn
 from . import sdf
 from ._checks import check_count, check_dtype, check_nonnegative, check_positive, check_volume
 from ._mesh_input import MeshLike, as_trimesh, triangle_arrays
-from .grid import Grid
+from .grid import Grid, default_margin
 from .mesh import MeshAdapter, extract
 from .surface import ImplicitSurface
 
@@ -120,7 +120,9 @@ class MeshBatchAdapter(nn.Module):
             :class:`AnalyticShape`.
         resolution: nodes per axis of the common grid.
         size: longest side of every shape's box, normalised units.
-        margin: free space on each side of the box, fraction of ``size``.
+        margin: free space on each side of the box, fraction of ``size``. ``None``: 15%, and
+            at least :data:`~torchsurf.grid.MIN_MARGIN_CELLS` cells
+            (:func:`~torchsurf.grid.default_margin`; wider than 15% below 27 nodes).
         band_width: half-width of the band the adapters fill, normalised units (default
             ``5 * spacing``).
         dtype, device: of the tensors (default dtype, CPU).
@@ -155,7 +157,7 @@ class MeshBatchAdapter(nn.Module):
         shapes: Sequence[Shape],
         resolution: int = 64,
         size: float = 1.0,
-        margin: float = 0.15,
+        margin: float | None = None,
         band_width: float | None = None,
         dtype: torch.dtype | None = None,
         device: torch.device | str | None = None,
@@ -173,7 +175,8 @@ class MeshBatchAdapter(nn.Module):
             raise ValueError("shapes must hold at least one shape, got an empty sequence")
         resolution = check_count(resolution, "resolution", minimum=3)
         size = check_positive(size, "size")
-        margin = check_nonnegative(margin, "margin")
+        margin = (default_margin(resolution, 0.15) if margin is None
+                  else check_nonnegative(margin, "margin"))
         dtype = check_dtype(dtype)
         self.grid = Grid.cube(resolution, bound=0.5 * size * (1.0 + 2.0 * margin))
         phis, scales, centres, adapters = [], [], [], []

@@ -140,7 +140,7 @@ def test_the_ring_fill_reproduces_constants_and_its_transpose_is_exact():
     constant to the same constant on the whole ring (it gave 0.99-1.09 with the ring read as
     zeros), and its transpose (the sweeps' in reverse) is the adjoint."""
     mesh = trimesh.creation.annulus(r_min=0.25, r_max=0.7, height=0.5, sections=24)
-    grid = ts.mesh.fit_grid(mesh, 32)
+    grid = ts.mesh.fit_grid(mesh, 32, margin=0.1)
     surface = ts.ImplicitSurface(ts.sdf.from_mesh(mesh, grid).double(), grid)
     operator = BandLaplacian(surface, path="slicing")
     fill = operator.ring
