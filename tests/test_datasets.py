@@ -107,6 +107,19 @@ def test_derived_seeds_do_not_collide() -> None:
     assert len(seeds) == 400
 
 
+def test_piecewise_constant_signal_has_as_many_regions_as_asked(shapes: MeshBatchAdapter) -> None:
+    # centres drawn with repeats gave 38 or 39 regions for cells=40 in most of these 16 seeds
+    surface = shapes.surface
+    band = surface.band_mask()[:, 0]
+    for seed in range(16):
+        u = datasets.piecewise_constant_signal(surface, cells=40, seed=seed)
+        assert [len(u[b, 0][band[b]].unique()) for b in range(2)] == [40, 40], seed
+    candidates = int((surface.distance()[0] <= surface.spacing).sum())
+    with pytest.raises(ValueError, match=f"cells = {candidates + 1} is more than the "
+                                         f"{candidates} nodes within one spacing of S"):
+        datasets.piecewise_constant_signal(surface, cells=candidates + 1)
+
+
 def test_piecewise_constant_regions_do_not_move_with_the_problem() -> None:
     """The regions' nearest-centre test ran torch.cdist's matrix-product form in float32 on
     world coordinates: a sphere moved to 1e3 changed the value of 24% of its band's nodes."""

@@ -121,7 +121,8 @@ def piecewise_constant_signal(surface: ImplicitSurface, channels: int = 1, cells
         surface: ``B`` surfaces, dense or a :class:`~torchsurf.bricks.BrickSurface` (whose
             band gets the dense grid's values for the same seed).
         channels: ``C``; the channels share the regions and differ in their values.
-        cells: regions per surface.
+        cells: regions per surface, at most the nodes within one spacing of S (their centres
+            are drawn among those nodes' closest points, without repeats).
         seed: the same seed gives the same signal.
 
     Returns:
@@ -143,7 +144,7 @@ def piecewise_constant_signal(surface: ImplicitSurface, channels: int = 1, cells
         candidates = near[mine].flatten().nonzero().squeeze(1)
         if order is not None:  # the dense grid's order, so that the same nodes are drawn
             candidates = candidates[order[mine].flatten()[candidates].argsort()]
-        pick = torch.randint(len(candidates), (cells,), generator=random)
+        pick = _distinct_draws(len(candidates), cells, random, f"surface {b}")
         centres = entry_points[:, candidates[pick.to(points.device)]]  # (3, cells)
         # in float64 about the centres' mean, by differences: cdist's matrix-product form
         # (|x|^2 + |c|^2 - 2 x.c) in float32 swapped a third of the regions of a shape at 1e3
@@ -154,6 +155,26 @@ def piecewise_constant_signal(surface: ImplicitSurface, channels: int = 1, cells
         values = values.to(dtype=points.dtype, device=points.device)
         result[mine] = values[:, nearest].view(channels, len(mine), -1).transpose(0, 1)
     return result.view(_field_shape(surface, channels))
+
+
+def _distinct_draws(count: int, wanted: int, random: torch.Generator, name: str) -> Tensor:
+    """``wanted`` distinct integers in ``[0, count)``: uniform draws, each repeat drawn again
+    (the draws are those of ``torch.randint`` wherever none repeats)."""
+    if wanted > count:
+        raise ValueError(
+            f"cells = {wanted} is more than the {count} nodes within one spacing of S on "
+            f"{name}, among which the regions' centres are drawn: ask for at most {count}"
+        )
+    pick = torch.randint(count, (wanted,), generator=random)
+    while True:
+        seen = torch.zeros(count, dtype=torch.bool)
+        repeated = torch.zeros(wanted, dtype=torch.bool)
+        for position, value in enumerate(pick.tolist()):
+            repeated[position] = seen[value]
+            seen[value] = True
+        if not repeated.any():
+            return pick
+        pick[repeated] = torch.randint(count, (int(repeated.sum()),), generator=random)
 
 
 def _dense_order(surface: ImplicitSurface) -> Tensor:
