@@ -16,8 +16,13 @@ volume equals the level at a node only to rounding (a plane through nodes of a m
 the crossings around it fell 1e-16 apart and left triangles of no area."""
 
 NEWTON_ITERATIONS = 40
-"""Most iterations of the closest-point refinement. It converges linearly, at a rate of about
-the distance times the curvature: a few iterations near S, more at the band's edge."""
+"""Most iterations of the closest-point refinement. Its tangential move is scaled by the local
+curvature (:data:`TANGENTIAL_SLOWEST`), so that it converges about quadratically where ``S`` is
+smooth; unscaled, the rate was the distance times the curvature, and the iteration diverged
+beyond a distance of one radius of curvature outside a convex part."""
+TANGENTIAL_SLOWEST = 0.5
+"""The tangential move is ``r_t / (1 + d kappa)`` (exact on a sphere), with the divisor at
+least this: inside a convex part ``1 + d kappa`` falls to 0 at the medial axis."""
 NEWTON_TOLERANCE = 1e-7
 """A point is settled once its last move is below this many cells."""
 NEWTON_CHUNK = 2**17
@@ -27,6 +32,11 @@ NEWTON_CYCLE = 0.05
 face between two cells: the interpolant is only continuous there, its gradient jumps, and
 the iteration crosses the face back and forth by a fixed step (a closest point on a node plane
 through a sphere's centre: 0.0025 cells). The midpoint of its last two positions is kept."""
+BAND_SLACK = 0.5
+"""Cells beyond the band within which nodes are refined (and then clamped to the band)."""
+NEWTON_STEP = 1.0
+"""Longest step, in cells, of the closest-point refinement: a point asked to move further has
+jumped towards another part of ``S`` (medial axis) and keeps the marching-cubes distance."""
 NEWTON_REACH = 0.5
 """A refined distance further than this many cells from the marching-cubes one is not
 trusted (medial axis, creases of ``phi``): that node keeps the marching-cubes distance."""
@@ -128,7 +138,9 @@ def redistance(volume: np.ndarray, grid: Grid, band: float) -> np.ndarray:
     agree.
     """
     vertices, faces = level_set(volume, grid, 0.0)
-    found = _mesh_sdf.refine_band(vertices, faces, grid, band)
+    # the facets lie inside convex parts of S: a node at the band's edge can be further from
+    # them than from S
+    found = _mesh_sdf.refine_band(vertices, faces, grid, band + BAND_SLACK * grid.spacing)
     distance = interpolant_distance(volume, grid, found.nodes, found.closest, found.distance)
     sign = np.sign(volume)
     near_sign = sign[found.nodes[:, 2], found.nodes[:, 1], found.nodes[:, 0]]
@@ -146,10 +158,15 @@ def interpolant_distance(volume: np.ndarray, grid: Grid, nodes: np.ndarray, star
     on it, each node's closest point ``y`` on ``p = 0`` (``p`` the interpolant of
     :func:`torchsurf.sampling.sample`, ``"cubic"``, ``O(h^4)``) is found by Newton's iteration
     on ``p(y) = 0`` and ``x - y`` parallel to ``grad p(y)`` (Chopp 2001): ``y += -p g / |g|^2
-    + (r - (r . g) g / |g|^2)``, ``r = x - y``, ``g = grad p(y)``; a point alternating across
-    a cell face by a short step keeps its last two positions' midpoint (:data:`NEWTON_CYCLE`).
-    Where it does not settle otherwise or lands more than :data:`NEWTON_REACH` cells from the
-    marching-cubes distance, that ``fallback`` distance is kept.
+    + r_t / (1 + d kappa)``, ``r = x - y``, ``g = grad p(y)``, ``r_t = r - (r . g) g / |g|^2``
+    its tangential part, ``d`` the signed distance and ``kappa`` the normal curvature of
+    ``p = 0`` along ``r_t`` (from the interpolant's Hessian; without that factor the iteration
+    overshot by ``d kappa`` and diverged beyond one radius of curvature outside a convex part:
+    0.1 cells off around a sphere of radius 4 cells); a point alternating across a cell face by
+    a short step keeps its last two positions' midpoint (:data:`NEWTON_CYCLE`). Where a step
+    is longer than :data:`NEWTON_STEP` cells, or the point does not settle otherwise or lands
+    more than :data:`NEWTON_REACH` cells from the marching-cubes distance, that ``fallback``
+    distance is kept.
 
     Args:
         volume: ``(D, H, W)`` float64.
@@ -176,16 +193,26 @@ def interpolant_distance(volume: np.ndarray, grid: Grid, nodes: np.ndarray, star
     active = torch.arange(len(nodes))
     for _ in range(NEWTON_ITERATIONS):
         at = closest[active].requires_grad_(True)
+        offset = points[active] - at.detach()
         with torch.enable_grad():
             value = sample(field, at, grid, "cubic")[0, 0]
-            (gradient,) = torch.autograd.grad(value.sum(), at)
-        at, value = at.detach(), value.detach()
-        squared = (gradient * gradient).sum(-1, keepdim=True)
-        offset = points[active] - at
-        along = ((offset * gradient).sum(-1, keepdim=True) + value[:, None]) / squared
-        step = offset - along * gradient
+            (gradient,) = torch.autograd.grad(value.sum(), at, create_graph=True)
+            squared = (gradient * gradient).sum(-1, keepdim=True).detach()
+            tangential = offset - (offset * gradient.detach()).sum(-1, keepdim=True) \
+                * gradient.detach() / squared
+            length = tangential.norm(dim=-1, keepdim=True)
+            direction = tangential / length.clamp(min=torch.finfo(torch.float64).tiny)
+            (bending,) = torch.autograd.grad((gradient * direction).sum(), at)
+        at, value, gradient = at.detach(), value.detach(), gradient.detach()
+        # y moved by the whole tangential r overshoots by 1 + d kappa (kappa the normal
+        # curvature of p = 0 along the move, d the signed distance): at d kappa >= 1 it diverged
+        norm = squared.sqrt()
+        curvature = (bending * direction).sum(-1, keepdim=True) / norm
+        signed = (offset * gradient).sum(-1, keepdim=True) / norm
+        overshoot = (1 + signed * curvature).clamp(min=TANGENTIAL_SLOWEST)
+        step = tangential / overshoot - value[:, None] * gradient / squared
         moved = step.norm(dim=-1)
-        usable = torch.isfinite(moved) & (moved <= NEWTON_REACH * grid.spacing)
+        usable = torch.isfinite(moved) & (moved <= NEWTON_STEP * grid.spacing)
         previous[active[usable]] = at[usable]
         last_move[active[usable]] = moved[usable]
         closest[active[usable]] = torch.minimum(torch.maximum(at[usable] + step[usable], low),
