@@ -296,3 +296,19 @@ def test_a_mesh_far_from_the_origin_gets_the_same_phi(sign: str) -> None:
         phi = ts.sdf.from_mesh(moved, fit_grid(moved, 32), dtype=torch.float64, sign=sign)
         assert torch.equal(phi > 0, reference > 0), offset
         assert float((phi - reference).abs().max()) < 1e-9, offset
+
+
+@pytest.mark.parametrize("cut", [0.2, -0.4])
+def test_beyond_the_band_an_open_mesh_is_signed_node_by_node(cut: float) -> None:
+    # a far brick took the winding number at its centre: across the hole of a sphere's cap the
+    # winding number passes 1/2 away from every triangle, and 1024 nodes (cut 0.2) had the
+    # other side's sign
+    igl = pytest.importorskip("igl")
+    sphere = trimesh.creation.icosphere(subdivisions=4)
+    cap = trimesh.Trimesh(sphere.vertices, sphere.faces[sphere.triangles_center[:, 2] > cut])
+    cap.remove_unreferenced_vertices()
+    grid = ts.Grid.cube(64, bound=1.5)
+    phi = ts.sdf.from_mesh(cap, grid, dtype=torch.float64)[0, 0].numpy()
+    points = grid.points(torch.float64).numpy().reshape(-1, 3)
+    winding = igl.winding_number(np.asarray(cap.vertices), np.asarray(cap.faces), points)
+    assert np.array_equal(phi.reshape(-1) < 0, winding > 0.5)

@@ -144,19 +144,26 @@ def _far_volume(grid: Grid, far_corners: list[tuple[int, np.ndarray]], corner_va
     Coarse to fine: each level's painting is doubled in resolution and the next level's bricks
     are painted over it, so the work is a little more than one pass over the fine grid.
     """
-    volume = None
+    volume, previous = None, 1
     for (size, corners), values in zip(far_corners, corner_values, strict=True):
         coarse_shape = tuple(-(-n // size) for n in grid.shape)
         if volume is None:
             volume = np.full(coarse_shape, np.nan)
         else:
-            volume = volume.repeat(2, 0).repeat(2, 1).repeat(2, 2)
+            volume = _finer(volume, previous // size)
             volume = volume[: coarse_shape[0], : coarse_shape[1], : coarse_shape[2]]
         volume[corners[:, 2] // size, corners[:, 1] // size, corners[:, 0] // size] = values
+        previous = size
     if volume is None:
         return np.full(grid.shape, np.nan)
-    return volume.repeat(2, 0).repeat(2, 1).repeat(2, 2)[: grid.shape[0], : grid.shape[1],
-                                                         : grid.shape[2]]
+    return _finer(volume, previous)[: grid.shape[0], : grid.shape[1], : grid.shape[2]]
+
+
+def _finer(volume: np.ndarray, factor: int) -> np.ndarray:
+    """``volume`` with each entry repeated ``factor`` times along every axis."""
+    if factor == 1:
+        return volume
+    return volume.repeat(factor, 0).repeat(factor, 1).repeat(factor, 2)
 
 
 def _edge_keys(starts: np.ndarray, ends: np.ndarray, vertex_count: int) -> np.ndarray:
@@ -428,8 +435,39 @@ def signed_near(vertices: np.ndarray, faces: np.ndarray, grid: Grid, band: float
         inside_all = numbers > 0.5
         near_inside = inside_all[sum(counts):]
     far_inside = np.split(inside_all[: sum(counts)], np.cumsum(counts)[:-1]) if counts else []
+    far_inside = list(far_inside)
+    if sign == "winding" and counts:
+        nodes = _nodes_of_unclear_bricks(found.far_corners, numbers[: sum(counts)], grid)
+        if len(nodes):  # painted over their bricks, as the finest level
+            found.far_corners = [*found.far_corners, (1, nodes)]
+            far_inside.append(
+                _winding_numbers(vertices, faces, _world_nodes(grid, nodes)) > 0.5)
     near = np.where(near_inside, -1.0, 1.0) * np.minimum(found.distance, band)
-    return SignedBand(found, near, list(far_inside))
+    return SignedBand(found, near, far_inside)
+
+
+UNCLEAR_WINDING = 0.1
+"""A far brick whose centre's winding number lies further than this from 0 and from 1 is
+signed node by node: off an open mesh the winding number varies continuously (across a hole
+it passes 1/2 away from every triangle), so the centre's side is not every node's."""
+
+
+def _nodes_of_unclear_bricks(far_corners: list[tuple[int, np.ndarray]], numbers: np.ndarray,
+                             grid: Grid) -> np.ndarray:
+    """The nodes ``(M, 3)`` of the far bricks whose centre's winding number (``numbers``, one
+    per brick of every level in order) is unclear (:data:`UNCLEAR_WINDING`), within the grid."""
+    extent = np.array(grid.shape[::-1], dtype=np.int64)
+    nodes, start = [], 0
+    for size, corners in far_corners:
+        level = numbers[start: start + len(corners)]
+        start += len(corners)
+        unclear = corners[np.abs(level - 0.5) < 0.5 - UNCLEAR_WINDING]
+        if len(unclear) == 0:
+            continue
+        offsets = np.stack(np.meshgrid(*(np.arange(size),) * 3, indexing="ij"), -1).reshape(-1, 3)
+        inner = (unclear[:, None, :] + offsets).reshape(-1, 3)
+        nodes.append(inner[(inner < extent).all(axis=1)])
+    return np.concatenate(nodes) if nodes else np.zeros((0, 3), dtype=np.int64)
 
 
 def signed_band(vertices: np.ndarray, faces: np.ndarray, grid: Grid, band: float,
