@@ -7,8 +7,10 @@ The engine behind :func:`torchsurf.sdf.from_mesh`, :func:`torchsurf.sdf.redistan
 Which nodes need an exact distance is found by refining bricks of nodes, octree fashion: a
 brick whose centre lies farther than ``band + its half-diagonal`` from the mesh holds no band
 node, and all its nodes lie on the centre's side of the surface (the segment to the centre is
-shorter than the distance, so it crosses no triangle). Only the bricks that straddle the band
-are split, down to single nodes. Distances come from libigl's AABB tree; signs from libigl's
+shorter than the distance, so it crosses no triangle) when the mesh is closed; off an open
+mesh the winding number varies without crossing a triangle, and a far brick whose centre's is
+not clearly 0 or 1 is signed node by node (:data:`UNCLEAR_WINDING`). Only the bricks that
+straddle the band are split, down to single nodes. Distances come from libigl's AABB tree; signs from libigl's
 fast generalised winding number (Barill et al. 2018) or, for closed consistently wound meshes,
 from angle-weighted pseudonormals at the closest point (Baerentzen & Aanaes 2005), which give
 the same sign there at a fraction of the cost.
