@@ -323,7 +323,7 @@ def _bad_calls() -> list:
     mesh = trimesh.creation.icosphere(1)
     nan_point = torch.tensor([[float("nan"), 0.0, 0.0]])
     return [
-        (lambda: AnalyticShape("sphere", {"radius": -1.0}), ValueError, r"parameters\['radius'\]"),
+        (lambda: AnalyticShape("sphere", {"radius": -1.0}), ValueError, r"parameters of 'sphere': radius"),
         (lambda: AnalyticShape("torus", {"minor": 0.3}), ValueError, "not 'minor'"),
         (lambda: bricks.from_mesh([], []), ValueError, "at least one mesh"),
         (lambda: sphere.sample(sphere.phi, nan_point), ValueError, "points must hold finite"),
@@ -372,3 +372,22 @@ def test_bad_arguments_are_named():
     for call, error, match in _bad_calls():
         with pytest.raises(error, match=match):
             call()
+
+
+def test_points_of_analytic_shapes_are_checked_where_they_are_given():
+    # each raised "object of type 'float' has no len()", and AnalyticShape accepted a scalar
+    # half_size that only failed once a MeshBatchAdapter sampled it
+    grid = ts.Grid.cube(9, bound=1.0)
+    for make, name in ((lambda: ts.sdf.sphere(grid, center=0.0), "center"),
+                       (lambda: ts.sdf.box(grid, half_size=0.5), "half_size"),
+                       (lambda: ts.sdf.capsule(grid, start=0.0), "start"),
+                       (lambda: ts.AnalyticShape("box", {"half_size": 0.5}), "half_size")):
+        with pytest.raises(ValueError, match=f"{name} must be three numbers"):
+            make()
+    with pytest.raises(TypeError, match="each entry of center must be a finite real number"):
+        ts.sdf.sphere(grid, center=(0.0, 0.0, "a"))
+    with pytest.raises(ValueError, match="parameters of 'sphere': radius must be"):
+        ts.AnalyticShape("sphere", {"radius": -1.0})
+    # integer node indices: torch.finfo raised on them
+    inside = grid.contains_index(torch.tensor([[1, 2, 3], [9, 0, 0]]))
+    assert inside.tolist() == [True, False]

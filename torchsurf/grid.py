@@ -179,7 +179,10 @@ class Grid:
         return self.contains_index(self.world_to_index(points), tolerance)
 
     def contains_index(self, index: Tensor, tolerance: float = 0.0) -> Tensor:
-        """:meth:`contains` for continuous node indices ``(..., 3)`` ``(i, j, k)``."""
+        """:meth:`contains` for continuous node indices ``(..., 3)`` ``(i, j, k)`` (integer
+        indices too)."""
+        if not index.is_floating_point():
+            index = index.to(torch.float64)
         last = index.new_tensor([n - 1 for n in reversed(self.shape)])
         slack = tolerance + 8 * torch.finfo(index.dtype).eps * last
         return ((index >= -slack) & (index <= last + slack)).all(dim=-1)

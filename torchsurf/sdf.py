@@ -21,6 +21,7 @@ from ._checks import (
     check_dtype,
     check_finite,
     check_positive,
+    check_real,
     check_spatial_shape,
     check_volume,
 )
@@ -49,6 +50,17 @@ def from_function(
     return _sampled(grid, function, dtype, device, None)
 
 
+def _point(value: object, name: str) -> tuple[float, float, float]:
+    """Three finite numbers ``(x, y, z)`` from ``value``; raise naming ``name``."""
+    try:
+        entries = tuple(value)
+    except TypeError:
+        entries = ()
+    if len(entries) != 3:
+        raise ValueError(f"{name} must be three numbers (x, y, z), got {value!r}")
+    return tuple(check_real(entry, f"each entry of {name}") for entry in entries)
+
+
 def _sampled(grid: Grid, function: Callable[[Tensor], Tensor], dtype: torch.dtype | None,
              device: torch.device | str | None, center: Point | None) -> Tensor:
     """:func:`from_function`, ``function`` given the points relative to ``center`` (computed
@@ -56,8 +68,8 @@ def _sampled(grid: Grid, function: Callable[[Tensor], Tensor], dtype: torch.dtyp
     if not isinstance(grid, Grid):
         raise TypeError(f"grid must be a torchsurf.Grid, got {type(grid).__name__}")
     dtype = check_dtype(dtype)
-    if center is not None and len(center) != 3:
-        raise ValueError(f"center must be three coordinates (x, y, z), got {center!r}")
+    if center is not None:
+        center = _point(center, "center")
     _memory.check_fits(_memory.sampled_bytes(grid.shape, dtype),
                        f"sampling a function on a {grid.shape} grid", device)
     points = grid.points(dtype=dtype, device=device, relative_to=center)
@@ -116,8 +128,7 @@ def box(
     device: torch.device | str | None = None,
 ) -> Tensor:
     """Signed distance to the axis-aligned box of half extents ``half_size`` ``(x, y, z)``."""
-    if len(half_size) != 3:
-        raise ValueError(f"half_size must be three lengths (x, y, z), got {half_size!r}")
+    half_size = _point(half_size, "half_size")
     for length in half_size:
         check_positive(length, "half_size")
 
@@ -140,8 +151,7 @@ def capsule(
 ) -> Tensor:
     """Signed distance to the capsule of ``radius`` around the segment ``start``–``end``."""
     check_positive(radius, "radius")
-    if len(start) != 3 or len(end) != 3:
-        raise ValueError(f"start and end must be points (x, y, z), got {start!r}, {end!r}")
+    start, end = _point(start, "start"), _point(end, "end")
 
     axis64 = [float(b) - float(a) for a, b in zip(start, end, strict=True)]
     if axis64 == [0.0, 0.0, 0.0]:

@@ -65,13 +65,14 @@ class AnalyticShape:
                 raise ValueError(f"parameters must not hold {key!r}: the batch chooses it")
         accepted = set(inspect.signature(getattr(sdf, self.name)).parameters) - {
             "grid", "dtype", "device"}
-        for key, value in self.parameters.items():
+        for key in self.parameters:
             if key not in accepted:
                 raise ValueError(f"parameters: torchsurf.sdf.{self.name} takes "
                                  f"{sorted(accepted)}, not {key!r}")
-            if key in ("radius", "major_radius", "minor_radius", "half_size"):
-                for number in np.atleast_1d(np.asarray(value, dtype=np.float64)):
-                    check_positive(float(number), f"parameters[{key!r}]")
+        try:  # the function's own checks, on the smallest grid
+            getattr(sdf, self.name)(Grid.cube(3, bound=1.0), **self.parameters)
+        except (TypeError, ValueError) as error:
+            raise type(error)(f"parameters of {self.name!r}: {error}") from error
 
     def phi(self, grid: Grid, dtype: torch.dtype | None = None,
             device: torch.device | str | None = None) -> Tensor:
