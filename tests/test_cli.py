@@ -77,6 +77,8 @@ def test_builtin_config_runs_at_a_tiny_size(name, tmp_path, capsys):
     assert record["physical"]["time"] > 0
     assert None not in _leaves(record["flow"]), record["flow"]
     assert record["versions"]["torch"]
+    # the arguments given, not the process's sys.argv (pytest's here)
+    assert record["command"][:3] == ["torchsurf", "run", name]
     printed = capsys.readouterr().out
     assert "physical time" in printed
     assert not list(tmp_path.glob(".*")), "a temporary file was left behind"
@@ -196,6 +198,13 @@ def test_mesh_path_resolves_against_the_config_folder_then_the_mesh_dir(tmp_path
         (["field.kind=principal_max"], "field"),
         (["flow.method=chebyshev", "flow.steps=5"], "flow.steps"),
         (["name=" + "a" * 201], "name"),
+        # a list where a mapping is expected, or the reverse: omegaconf's TypeError escaped
+        (["surface.params=[1,2]"], "surface.params"),
+        (["render.panels={a:1}"], "render.panels"),
+        # refused only once the flow was called, after the surface was built (exit 1)
+        (["flow.kind=total_variation", "flow.method=implicit"], "flow.method"),
+        (["flow.kind=perona_malik", "flow.method=crank_nicolson"], "flow.method"),
+        (["flow.steps=99999999999999999999"], "flow.steps"),
     ],
 )
 def test_bad_settings_are_refused_with_their_key(overrides, key, tmp_path, capsys):
@@ -244,6 +253,33 @@ def test_a_bad_section_in_the_file_is_named_not_a_valid_override(tmp_path, capsy
     for overrides in ([], ["--set", "flow.time=0.001"]):
         assert cli.main(["run", str(broken), *overrides]) == cli.EXIT_USAGE
         assert "config error: grid:" in capsys.readouterr().err
+    for text, key in (("surface: {shape: sphere, params: [1, 2]}", "surface.params"),
+                      ("render: {panels: {a: 1}}", "render.panels")):
+        broken.write_text(f"name: a\n{text}\n")
+        assert cli.main(["run", str(broken)]) == cli.EXIT_USAGE
+        assert f"config error: {key}: a list given where a mapping" in capsys.readouterr().err
+
+
+def test_the_coarse_grid_of_a_field_smoothing_needs_the_bricks_margin_too(tmp_path, capsys):
+    """The margin was checked at grid.size only: the run built its surface, then failed
+    (exit 1) on the coarser grid the field's smoothing builds the shape on again."""
+    code = cli.main(["run", "flowvis_trefoil", "--set", "grid.layout=bricks", "grid.size=64",
+                     "grid.margin=0.12", "field.smoothing=32", "field.smoothing_grid=16",
+                     "--out", str(tmp_path / "out")])
+    assert code == cli.EXIT_USAGE
+    error = capsys.readouterr().err
+    assert "config error: grid.margin: 0.12 leaves 1.5 cells around the shape on the 16^3 grid" \
+        in error
+    assert not (tmp_path / "out").exists()
+
+
+def test_text_settings_are_taken_as_written():
+    # YAML read name=yes as True (pictures named True.png) and name=010 as 8
+    for text in ("yes", "010", "1e3", "0x10", "null_model"):
+        experiment, _ = config.load("heat_sphere", [f"name={text}"])
+        assert experiment.name == text
+    experiment, _ = config.load("heat_sphere", ["flow.method=null", "name='quoted'"])
+    assert experiment.flow.method is None and experiment.name == "quoted"
 
 
 def test_quiet_also_hides_the_progress_bar(tmp_path, monkeypatch):
@@ -251,7 +287,7 @@ def test_quiet_also_hides_the_progress_bar(tmp_path, monkeypatch):
 
     asked = {}
 
-    def recording(prepared, out, progress=False, log=print):
+    def recording(prepared, out, progress=False, log=print, command=None):
         asked["progress"] = progress
         raise KeyboardInterrupt
 

@@ -119,8 +119,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_USAGE
     log = (lambda message: None) if args.quiet else print
     try:
+        given = sys.argv[1:] if argv is None else list(argv)
         result = experiment.run(prepared, out,
-                                progress=_progress_wanted(args.no_progress or args.quiet), log=log)
+                                progress=_progress_wanted(args.no_progress or args.quiet), log=log,
+                                command=["torchsurf", *given])
     except ImportError as error:
         _remove_if_empty(created)
         print(f"torchsurf: {error}", file=sys.stderr)

@@ -264,6 +264,9 @@ FLOW_SETTINGS: dict[FlowKind, tuple[str, ...]] = {
 }
 """The optional settings each flow reads; the others must stay ``null``."""
 
+LINEAR_FLOWS = (FlowKind.heat, FlowKind.visualization)
+"""The flows whose rate is linear and symmetric: the implicit methods solve only those."""
+
 FLOW_DEFAULTS: dict[str, float] = {"eps": 0.05, "contrast": 0.1, "p": 1.0, "rate": 1.0 / 16.0,
                                    "isotropic": 0.0}
 """Defaults of the optional flow settings (``eps``, ``contrast``: data range per cell)."""
@@ -305,6 +308,23 @@ def time_unit(flow: FlowConfig) -> TimeUnit:
     return TimeUnit.turk if flow.kind is FlowKind.reaction_diffusion else TimeUnit.diagonal
 
 
+def _check_brick_margin(grid: GridConfig, where: str) -> None:
+    """Refuse a margin of fewer than :data:`BRICK_MARGIN_CELLS` cells on ``grid`` when it takes
+    the bricks layout; ``where`` says which grid, in the message."""
+    if layout(grid) is not Layout.bricks:
+        return
+    size, margin = grid.size, grid.margin
+    cells = margin * (size - 1) / (1 + 2 * margin)
+    if cells < BRICK_MARGIN_CELLS:
+        needed = BRICK_MARGIN_CELLS / (size - 1 - 2 * BRICK_MARGIN_CELLS)
+        advice = (f"use grid.margin >= {math.ceil(needed * 1000) / 1000:g}"
+                  if 0 < needed <= 1 else "use a larger grid.size")
+        raise ConfigError("grid.margin", f"{margin:g} leaves {cells:.1f} cells around the "
+                          f"shape {where}; the bricks layout needs {BRICK_MARGIN_CELLS:g} (the "
+                          f"band and the nodes its stencils read): {advice}, or "
+                          "grid.layout=dense")
+
+
 def layout(grid: GridConfig) -> Layout:
     """``grid.layout`` with ``auto`` resolved: bricks from :data:`BRICKS_FROM` nodes per axis."""
     if grid.layout is not Layout.auto:
@@ -341,37 +361,67 @@ def find(config: str | os.PathLike) -> Path:
     )
 
 
-def _omegaconf_error(error: OmegaConfBaseException, raw: DictConfig, overrides: list[str]
+MERGE_ERRORS = (OmegaConfBaseException, TypeError)
+"""What merging a config with the schema raises; ``TypeError`` for a list given where the
+schema has a mapping, or the reverse ("Cannot merge incompatible container types")."""
+
+
+def _omegaconf_error(error: Exception, raw: DictConfig, overrides: list[str]
                      ) -> ConfigError:
     """``error`` as a :class:`ConfigError` starting with the key's path; where omegaconf names
     none (a value given for a whole section), the file's key if the file fails alone, else the
     first override that fails with it."""
     key = getattr(error, "full_key", "") or ""
-    message = str(getattr(error, "msg", "") or error).splitlines()[0]
+    message = _message(error)
     if not key:
         try:
             OmegaConf.merge(OmegaConf.structured(Experiment), raw)
-        except OmegaConfBaseException as alone:
-            return ConfigError(_failing_section(raw), str(getattr(alone, "msg", "") or alone)
-                               .splitlines()[0])
+        except MERGE_ERRORS as alone:
+            return ConfigError(_failing_section(raw), _message(alone))
         for item in overrides:
             try:
                 OmegaConf.merge(OmegaConf.structured(Experiment), raw,
                                 OmegaConf.from_dotlist([item]))
-            except OmegaConfBaseException:
+            except MERGE_ERRORS:
                 return ConfigError(item.partition("=")[0].strip(),
                                    f"cannot take {item!r}: {message}")
     return ConfigError(str(key), message)
 
 
-def _failing_section(raw: DictConfig) -> str:
-    """The first top-level key of the file that does not merge with the schema alone."""
+def _message(error: Exception) -> str:
+    """The first line of omegaconf's message, in the config's terms."""
+    if isinstance(error, TypeError):
+        return "a list given where a mapping is expected, or a mapping where a list is"
+    return str(getattr(error, "msg", "") or error).splitlines()[0]
+
+
+def _failing_section(raw: DictConfig, path: tuple[str, ...] = ()) -> str:
+    """The deepest key of the file (dotted) that does not merge with the schema alone."""
     for name in raw:
+        nested: Any = {name: raw[name]}
+        for outer in reversed(path):
+            nested = {outer: nested}
         try:
-            OmegaConf.merge(OmegaConf.structured(Experiment), {name: raw[name]})
-        except OmegaConfBaseException:
-            return str(name)
+            OmegaConf.merge(OmegaConf.structured(Experiment), nested)
+        except MERGE_ERRORS:
+            if isinstance(raw[name], DictConfig) and _merges((*path, str(name))):
+                inner = _failing_section(raw[name], (*path, str(name)))
+                if inner:
+                    return inner
+            return ".".join((*path, str(name)))
     return ""
+
+
+def _merges(path: tuple[str, ...]) -> bool:
+    """Whether an empty mapping merges with the schema at ``path``: the key takes a mapping."""
+    empty: Any = {}
+    for outer in reversed(path):
+        empty = {outer: empty}
+    try:
+        OmegaConf.merge(OmegaConf.structured(Experiment), empty)
+    except MERGE_ERRORS:
+        return False
+    return True
 
 
 def parse_overrides(overrides: list[str]) -> list[str]:
@@ -383,6 +433,24 @@ def parse_overrides(overrides: list[str]) -> list[str]:
         if not equals or not key.strip():
             raise ConfigError("--set", f"expected key=value, got {item!r}")
     return overrides
+
+
+TEXT_KEYS = ("name", "description", "surface.mesh", "signal.image", "flow.method",
+             "render.colormap")
+"""Settings that hold text: their ``--set`` values are taken as written (YAML would read
+``name=yes`` as ``True`` and ``name=010`` as ``8``), but for ``null``."""
+
+
+def _dotlist(overrides: list[str]) -> DictConfig:
+    """``overrides`` as a config, values read as YAML, the :data:`TEXT_KEYS`' as written."""
+    parsed = OmegaConf.from_dotlist(overrides)
+    for item in overrides:
+        key, _, text = item.partition("=")
+        key, text = key.strip(), text.strip()
+        quoted = len(text) >= 2 and text[0] == text[-1] and text[0] in "'\""
+        if key in TEXT_KEYS and text not in ("null", "~", "") and not quoted:
+            OmegaConf.update(parsed, key, text, merge=False)
+    return parsed
 
 
 def load(config: str | os.PathLike, overrides: list[str] | None = None) -> tuple[Experiment, Path]:
@@ -403,9 +471,9 @@ def load(config: str | os.PathLike, overrides: list[str] | None = None) -> tuple
         raise ConfigError("", f"{path} must hold a mapping of settings, got a list")
     try:
         merged = OmegaConf.merge(OmegaConf.structured(Experiment), raw,
-                                 OmegaConf.from_dotlist(parse_overrides(overrides or [])))
+                                 _dotlist(parse_overrides(overrides or [])))
         experiment = OmegaConf.to_object(merged)
-    except OmegaConfBaseException as error:
+    except MERGE_ERRORS as error:
         raise _omegaconf_error(error, raw, overrides or []) from error
     check(experiment)
     return experiment, path.resolve().parent
@@ -451,17 +519,7 @@ def check(experiment: Experiment) -> None:
         raise ConfigError("grid.size", f"must be an integer >= 8, got {experiment.grid.size}")
     if not 0 <= experiment.grid.margin <= 1:
         raise ConfigError("grid.margin", f"must be in [0, 1], got {experiment.grid.margin}")
-    if layout(experiment.grid) is Layout.bricks:
-        size, margin = experiment.grid.size, experiment.grid.margin
-        cells = margin * (size - 1) / (1 + 2 * margin)
-        if cells < BRICK_MARGIN_CELLS:
-            needed = BRICK_MARGIN_CELLS / (size - 1 - 2 * BRICK_MARGIN_CELLS)
-            advice = (f"use grid.margin >= {math.ceil(needed * 1000) / 1000:g}"
-                      if 0 < needed <= 1 else "use a larger grid.size")
-            raise ConfigError("grid.margin", f"{margin:g} leaves {cells:.1f} cells around the "
-                              f"shape at grid.size={size}; the bricks layout needs "
-                              f"{BRICK_MARGIN_CELLS:g} (the band and the nodes its stencils "
-                              f"read): {advice}, or grid.layout=dense")
+    _check_brick_margin(experiment.grid, f"at grid.size={experiment.grid.size}")
     signal = experiment.signal
     size = experiment.grid.size
     _positive(signal.tiles, "signal.tiles")
@@ -484,14 +542,21 @@ def check(experiment: Experiment) -> None:
     _positive(flow.time, "flow.time")
     if flow.steps is not None and flow.steps < 1:
         raise ConfigError("flow.steps", f"must be an integer >= 1, got {flow.steps}")
-    if flow.method is not None:
-        from .flows import HeatFlow, check_method
+    from .flows import IMPLICIT, MAX_STEPS, HeatFlow, check_method
 
+    if flow.steps is not None and flow.steps > MAX_STEPS:
+        raise ConfigError("flow.steps", f"must be at most {MAX_STEPS}, got {flow.steps}")
+    if flow.method is not None:
         extra = HeatFlow.extra_methods if flow.kind is FlowKind.heat else ()
         try:
             check_method(flow.method, extra)
         except (TypeError, ValueError) as error:
             raise ConfigError("flow.method", str(error)) from None
+        if flow.method in IMPLICIT and flow.kind not in LINEAR_FLOWS:
+            raise ConfigError("flow.method", f"{flow.method} solves a linear system each step: "
+                              f"only for flow.kind {' or '.join(k.name for k in LINEAR_FLOWS)}, "
+                              f"not {flow.kind.name}; use rkc, euler, heun or a torchdiffeq "
+                              "method")
         if flow.kind is FlowKind.heat and flow.steps is not None:
             try:  # the flow's own refusal of steps for a method that takes none (chebyshev)
                 HeatFlow(1.0, method=flow.method, steps=flow.steps)
@@ -538,6 +603,14 @@ def check(experiment: Experiment) -> None:
                                              or experiment.field.smoothing_grid >= 8):
         raise ConfigError("field.smoothing_grid",
                           f"must be 0 or >= 8, got {experiment.field.smoothing_grid}")
+    if experiment.field is not None and experiment.field.kind not in (FieldKind.axis,
+                                                                      FieldKind.swirl):
+        coarse = smoothing_size(experiment.grid.size, experiment.field)
+        if coarse != experiment.grid.size:  # the field's smoothing builds the shape there too
+            _check_brick_margin(GridConfig(coarse, experiment.grid.margin,
+                                           experiment.grid.layout),
+                                f"on the {coarse}^3 grid the field's smoothing runs on "
+                                f"(field.smoothing_grid={experiment.field.smoothing_grid})")
     render = experiment.render
     for key in ("width", "height"):
         if not 16 <= getattr(render, key) <= 4096:

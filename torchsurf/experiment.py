@@ -17,7 +17,7 @@ import platform
 import sys
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -387,8 +387,9 @@ def _rms(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def run(prepared: Prepared, out: str | os.PathLike, progress: bool = False,
-        log: Callable[[str], None] = print) -> Result:
-    """Run a prepared experiment and write its picture and record into ``out``."""
+        log: Callable[[str], None] = print, command: Sequence[str] | None = None) -> Result:
+    """Run a prepared experiment and write its picture and record into ``out``; ``command``,
+    the command line that asked for it, goes into the record (default ``sys.argv``)."""
     experiment = prepared.experiment
     stages: dict[str, float] = {}
     clock = time.perf_counter()
@@ -485,7 +486,8 @@ def run(prepared: Prepared, out: str | os.PathLike, progress: bool = False,
             )
             stage("render")
             staged = _write_record(prepared, surface, n, spacing, diagonal, ran, physical,
-                                   metrics, stages, picture, renderer, record)
+                                   metrics, stages, picture, renderer, record,
+                                   list(sys.argv if command is None else command))
             for target in (picture, record):  # what would stop a rename, before either is made
                 if target.is_dir():
                     raise IsADirectoryError(f"{target} is a folder: the run cannot write its "
@@ -503,7 +505,7 @@ def run(prepared: Prepared, out: str | os.PathLike, progress: bool = False,
 def _write_record(prepared: Prepared, surface: ImplicitSurface, n: int, spacing: float,
                   diagonal: float, ran: dict[str, Any], physical: dict[str, float],
                   metrics: dict[str, float], stages: dict[str, float], picture: Path,
-                  renderer: str, path: Path) -> Path:
+                  renderer: str, path: Path, command: list[str]) -> Path:
     """The run's JSON record (config as requested, grid and flow as run, metrics, timings,
     versions) written beside ``path``, in a temporary file to be renamed to it."""
     experiment = prepared.experiment
@@ -521,6 +523,6 @@ def _write_record(prepared: Prepared, surface: ImplicitSurface, n: int, spacing:
         "stages_seconds": stages,
         "picture": picture.name,
         "renderer": renderer,
-        "command": sys.argv,
+        "command": command,
         "versions": _versions(),
     }, path)

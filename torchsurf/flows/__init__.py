@@ -2,7 +2,7 @@
 reaction–diffusion, flow visualisation and data extension, with explicit, implicit
 (conjugate gradients) and torchdiffeq integration."""
 
-from ._integrators import INTEGRATORS, Plan, check_method
+from ._integrators import IMPLICIT, INTEGRATORS, MAX_STEPS, Plan, check_method
 from .anisotropic import AnisotropicFlow
 from .base import Flow
 from .color import ColorDenoise
@@ -13,7 +13,9 @@ from .reaction_diffusion import ReactionDiffusion
 from .visualization import FlowVisualization
 
 __all__ = [
+    "IMPLICIT",
     "INTEGRATORS",
+    "MAX_STEPS",
     "AnisotropicFlow",
     "ColorDenoise",
     "Extension",

@@ -706,6 +706,8 @@ def check_method(method: object, extra: Sequence[str] = ()) -> str:
 
 
 IMPLICIT = ("implicit", "crank_nicolson")
+"""Methods that solve a linear system each step: only for linear symmetric flows (heat with a
+symmetric scheme, flow visualisation)."""
 
 RING_HELD = (*IMPLICIT, "euler", "heun", "rkc")
 """Methods that may hold the ring between re-extensions instead of re-extending it at every
