@@ -593,8 +593,18 @@ def check_direction(direction: object, u0: Tensor, surface: ImplicitSurface,
 def tangent_unit(field: Tensor, surface: ImplicitSurface) -> Tensor:
     """``P T / |P T|``: ``field`` ``(B, 3, D, H, W)`` made tangent to the level sets and unit.
 
-    Where ``P T`` vanishes (``T`` along the normal) the result is 0.
+    Where ``|P T|`` falls below about ``TANGENT_FLOOR |T|`` (``T`` along the normal) the
+    result goes smoothly to 0. The floor is relative to ``|T|`` at each node, so ``c T`` gives
+    the same result for every ``c > 0`` (an absolute floor shrank a field of size 1e-12 by a
+    quarter).
     """
     normal = surface.normal
+    squared = (field**2).sum(dim=1, keepdim=True)
     tangent = field - (field * normal).sum(dim=1, keepdim=True) * normal
-    return tangent / torch.sqrt((tangent**2).sum(dim=1, keepdim=True) + 1e-24)
+    floor = TANGENT_FLOOR**2 * squared + torch.finfo(field.dtype).tiny
+    return tangent / torch.sqrt((tangent**2).sum(dim=1, keepdim=True) + floor)
+
+
+TANGENT_FLOOR = 1e-6
+"""Below this fraction of ``|T|``, :func:`tangent_unit` lets ``P T`` shrink to 0 (its
+derivative there is about ``1 / (TANGENT_FLOOR |T|)``)."""

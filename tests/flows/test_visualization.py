@@ -46,3 +46,24 @@ def test_explicit_and_implicit_agree():
     implicit = FlowVisualization(0.01, isotropic=0.1, method="crank_nicolson", steps=10,
                                  **same_problem)(noise, surface, direction=e1)
     assert (explicit - implicit).abs().max() < 5e-3
+
+
+def test_the_direction_field_is_scale_free():
+    # tangent_unit divided by sqrt(|P T|^2 + 1e-24): a field of size 1e-12 moved the result by
+    # 0.24, and where P T = 0 (the poles' nodes) d/dT reached 1.7e10
+    grid = ts.Grid.cube(15, bound=1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, radius=1.0, dtype=torch.float64), grid)
+    x, y, _ = grid.points(dtype=torch.float64).unbind(-1)
+    direction = torch.stack([-y, x, 0.3 + 0 * x])[None]
+    noise = torch.rand((1, 1, *grid.shape), dtype=torch.float64,
+                       generator=torch.Generator().manual_seed(0))
+    flow = ts.FlowVisualization(0.01)
+    reference = flow(noise, surface, direction=direction)
+    for scale in (1e-6, 1e-13):
+        torch.testing.assert_close(flow(noise, surface, direction=scale * direction), reference,
+                                   rtol=0, atol=1e-12)
+    leaf = direction.clone().requires_grad_(True)
+    weights = torch.randn(reference.shape, dtype=torch.float64,
+                          generator=torch.Generator().manual_seed(1))
+    (flow(noise, surface, direction=leaf) * weights * surface.band_mask()).sum().backward()
+    assert float(leaf.grad.abs().max()) < 1e3
