@@ -183,7 +183,7 @@ def _streak_problem(resolution: int) -> tuple[ts.ImplicitSurface, torch.Tensor, 
     if not path.is_file():
         pytest.skip(f"test mesh trefoil_knot.obj not found in {MESH_DIR}")
     mesh = ts.mesh.load(path)
-    grid = ts.mesh.fit_grid(mesh, resolution)
+    grid = ts.mesh.fit_grid(mesh, resolution, margin=0.1)
     surface = ts.ImplicitSurface(ts.sdf.from_mesh(mesh, grid), grid)
     x, y, _ = grid.points().unbind(-1)
     direction = torch.stack((-y, x, torch.full_like(x, 0.3)))[None]

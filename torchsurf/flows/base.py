@@ -335,9 +335,10 @@ class Flow(nn.Module):
         progress: show a tqdm progress bar over the steps (tqdm is optional).
         reextend_every: re-extend the band and its ring along normals (closest point,
             tricubic, limited to the range of the nodes around each closest point) every this
-            many steps; ``"auto"`` (default) after as many steps as the fastest diffusion takes
-            to cross one cell, ``floor(12 / (rho dt))``, or after every step where steps are
-            longer (RKC steps that hold the ring: as many as one step could hold it for,
+            many steps; ``"auto"`` (default) once every time the fastest diffusion takes to
+            cross one cell, ``12 / (rho dt)`` steps (not whole: ``floor(t rho / 12)``
+            re-extensions whatever the steps), or after every step where steps are longer (RKC
+            steps that hold the ring: as many as one step could hold it for,
             ``floor(12 (w - 2 sqrt(3))^2 / (rho dt))`` on a band of ``w`` cells), and into each
             result at the requested times (docs/band.md). Between
             re-extensions, RKC and torchdiffeq methods re-extend the ring around the band at
@@ -497,9 +498,11 @@ class Flow(nn.Module):
         return tqdm(total=total, desc=type(self).__name__, unit="step", leave=False)
 
     def _reextension_period(self, system: System, shortest: float, longest: float,
-                            band_cells: float) -> int | None:
-        """Steps between re-extensions of the band: ``shortest`` and ``longest`` the steps
-        (physical time; requested times split some), ``band_cells`` the band's width in cells."""
+                            band_cells: float) -> float | None:
+        """Steps between re-extensions of the band, a number >= 1 that need not be whole (the
+        band is re-extended after step ``k`` where ``floor(k / period)`` grows): ``shortest``
+        and ``longest`` the steps (physical time; requested times split some), ``band_cells``
+        the band's width in cells."""
         if self.reextend_every is None:
             return None
         if self.reextend_every != "auto":
@@ -509,12 +512,16 @@ class Flow(nn.Module):
         rho = system.spectral_radius
         # the time the fastest diffusion takes to cross one cell, 12 / rho: each
         # re-extension of the band errs by a little, so many short steps must not each add one
-        crossing = max(1, math.floor(12.0 / (rho * shortest)))
+        # whole steps of crossing time re-extended as often as the steps themselves where
+        # 12 / (rho dt) lay in [1, 2): up to twice the crossings, and a TV flow's result
+        # swung with the step count (0.003-0.2 at 12-64 steps on a torus)
+        crossing = max(1.0, 12.0 / (rho * shortest))
         if self.method == "rkc" and ring_held("rkc", longest * rho, band_cells):
             # the ring is held as long as one step could hold it (HELD_RING_CELLS): short
             # steps, taken for their time error, share one re-extension
             held = 12.0 * (band_cells - HELD_RING_CELLS) ** 2
-            return max(crossing, math.floor(held / (rho * longest) * (1 + 1e-9)))
+            steps_held = math.floor(held / (rho * longest) * (1 + 1e-9))
+            return float(steps_held) if steps_held >= crossing else crossing
         return crossing
 
     def _checkpointing(self, u0: Tensor, surface: ImplicitSurface, system: System) -> bool:
@@ -526,7 +533,7 @@ class Flow(nn.Module):
         return learned or u0.requires_grad or surface.phi.requires_grad or bool(system.params)
 
     def _after_step(self, surface: ImplicitSurface, region: Tensor, bar: object | None,
-                    every: int | None, packing: PackedRegion | None = None):  # noqa: ANN202
+                    every: float | None, packing: PackedRegion | None = None):  # noqa: ANN202
         """The schedule's ``after_step`` and ``output`` hooks: the progress bar, and the band's
         re-extension every ``every`` steps and at each requested time (there into the result
         only, so that the results do not depend on which times were requested); on packed
@@ -546,10 +553,10 @@ class Flow(nn.Module):
                 extended = packing.stencil(stencil).apply
 
             def periodic(u: Tensor, k: int) -> Tensor:
-                return extended(u) if k % every == 0 else u
+                return extended(u) if _period_ends(k, every) else u
 
             def output(u: Tensor, k: int) -> Tensor:
-                return u if k % every == 0 else extended(u)
+                return u if _period_ends(k, every) else extended(u)
 
             hooks.append(periodic)
         if not hooks:
@@ -680,7 +687,7 @@ class Flow(nn.Module):
         schedule.segment = torchdiffeq_segment(width / surface.spacing, system.spectral_radius)
         schedule.checkpoint = self._checkpointing(u0, surface, system)
         held = ring_held(self.method, plan.step * system.spectral_radius,
-                         width / surface.spacing, period=every or 1)
+                         width / surface.spacing, period=math.ceil(every or 1))
         if self.reextend_every is not None and not held:
             ring = kept_stencil(surface, width, "ring", region & ~band, region, limited=True)
             path = self.path
@@ -764,3 +771,9 @@ class Flow(nn.Module):
 
     def extra_repr(self) -> str:
         return f"method={self.method!r}, steps={self.steps}"
+
+
+def _period_ends(step: int, period: float) -> bool:
+    """Whether step ``step`` (from 1) ends a period of ``period`` steps: ``floor(step /
+    period)`` grows there (every ``period``-th step for a whole ``period``)."""
+    return math.floor(step / period * (1 + 1e-12)) > math.floor((step - 1) / period * (1 + 1e-12))
