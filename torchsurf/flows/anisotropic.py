@@ -27,7 +27,9 @@ class AnisotropicFlow(Flow):
 
     ``|P grad u|`` is regularised as ``sqrt(|P grad u|^2 + eps^2)``
     (:func:`torchsurf.anisotropic_diffusion`). The flow is the gradient descent of
-    ``sum W G(|P D u|)`` (``G' = s g(s)``), so a stable step never increases that energy.
+    ``sum W G(|P D u|)`` (``G' = s g(s)``), so a stable step never increases that energy; the
+    band's re-extensions between steps can, where S has sharp creases (docs/band.md, "Sharp
+    creases").
 
     Spectral bound: ``max g * rho``, ``rho`` the Gershgorin bound of the band's
     Laplace–Beltrami operator (about ``12 / h^2``; docs/band.md): ``max g = 1`` for
