@@ -57,7 +57,7 @@ class AnisotropicFlow(Flow):
         learn_contrast: make ``K`` an ``nn.Parameter`` (kept positive by softplus).
         eps: regularisation of ``|P grad u|``, units of ``u`` per world length.
         max_diffusivity: upper bound of ``g`` for a callable ``diffusivity``.
-        scheme: ``"symmetric"`` (default) or ``"conservative"``.
+        scheme: ``"symmetric"`` (default), ``"conservative"`` or ``"octant"``.
         path: how stencils are applied.
         **kwargs: the integration settings of :class:`Flow` (no implicit methods: nonlinear).
 

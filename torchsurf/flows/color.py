@@ -32,7 +32,7 @@ class ColorDenoise(nn.Module):
         **kwargs: integration settings of :class:`Flow` for the default flows.
 
     A black node (every channel 0) has no hue: its chroma starts grey, ``(1, ..., 1) / sqrt(C)``,
-    and takes its neighbours' as the flow runs; its brightness starts at 0.
+    and takes its neighbours' as the flow runs; its brightness starts at ``eps``.
 
     Shapes: ``(B, C, D, H, W) -> (B, C, D, H, W)``, ``C >= 2`` colour channels (3 for RGB).
     """

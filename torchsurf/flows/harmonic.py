@@ -51,7 +51,7 @@ class HarmonicMapFlow(Flow):
         p: exponent, ``1 <= p <= 2`` (1: the paper's figure 3; 2: harmonic maps).
         eps: regularisation of ``|P grad u|``, units of ``u`` per world length.
         tangent: constrain ``u`` (3 channels) to the tangent plane of the level sets.
-        scheme: ``"symmetric"`` (default) or ``"conservative"``.
+        scheme: ``"symmetric"`` (default), ``"conservative"`` or ``"octant"``.
         path: how stencils are applied.
         **kwargs: integration settings of :class:`Flow` (explicit or torchdiffeq).
 
