@@ -150,6 +150,13 @@ def test_needs_two_channels(surface):
         ReactionDiffusion(time=1.0)(ReactionDiffusion.initial(surface)[:, :1], surface)
 
 
+def test_a_seed_given_as_generator_is_refused_naming_it(surface):
+    # torch.rand raised its own TypeError, naming none of this call's arguments
+    flow = ReactionDiffusion(1.0)
+    with pytest.raises(TypeError, match="generator must be a torch.Generator or None, got int"):
+        flow(ReactionDiffusion.initial(surface), surface, generator=1)
+
+
 def test_direction_batch_mismatch_names_direction_and_u0(surface):
     u0 = ReactionDiffusion.initial(surface, batch=2)
     direction = torch.zeros(3, 3, *surface.grid.shape)
