@@ -469,9 +469,9 @@ def load(config: str | os.PathLike, overrides: list[str] | None = None) -> tuple
         raise ConfigError("", f"{path} is not valid YAML: {error}") from error
     if not isinstance(raw, DictConfig):
         raise ConfigError("", f"{path} must hold a mapping of settings, got a list")
+    overrides = parse_overrides(overrides or [])
     try:
-        merged = OmegaConf.merge(OmegaConf.structured(Experiment), raw,
-                                 _dotlist(parse_overrides(overrides or [])))
+        merged = OmegaConf.merge(OmegaConf.structured(Experiment), raw, _dotlist(overrides))
         experiment = OmegaConf.to_object(merged)
     except MERGE_ERRORS as error:
         raise _omegaconf_error(error, raw, overrides or []) from error
