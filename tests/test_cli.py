@@ -298,6 +298,25 @@ def test_quiet_also_hides_the_progress_bar(tmp_path, monkeypatch):
     assert asked == {"progress": False}
 
 
+def test_the_renderer_is_loaded_before_any_folder_is_made(tmp_path, monkeypatch):
+    """VTK's import, reached after the flow, segfaulted when interrupted (5 of 9 tries) and
+    left the empty output folder behind: it now runs before the folder is made."""
+    from torchsurf import render
+
+    resolve = render.resolve_renderer
+    folder_made = []
+
+    def watched(renderer="auto"):
+        folder_made.append((tmp_path / "a").exists())
+        return resolve(renderer)
+
+    monkeypatch.setattr(render, "resolve_renderer", watched)
+    code = cli.main(["run", "heat_sphere", "--set", *TINY, "render.renderer=matplotlib",
+                     "--quiet", "--out", str(tmp_path / "a" / "b")])
+    assert code == cli.EXIT_OK
+    assert folder_made[0] is False
+
+
 def test_a_stop_after_the_picture_is_drawn_leaves_no_file(tmp_path, monkeypatch):
     """The aside picture was made before the cleanup's try began: a stop in between left a
     hidden file in --out."""

@@ -111,6 +111,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ConfigError as error:
         print(f"torchsurf: config error: {error}", file=sys.stderr)
         return EXIT_USAGE
+    try:  # VTK's import does not survive an interrupt: load it before any folder is made
+        from .render import resolve_renderer
+
+        resolve_renderer(prepared.experiment.render.renderer.name)
+    except ImportError as error:
+        print(f"torchsurf: {error}", file=sys.stderr)
+        return EXIT_FAILED
     out = Path(args.out) if args.out else Path("outputs") / prepared.experiment.name
     try:
         created = _check_writable(out)
