@@ -298,6 +298,22 @@ def test_quiet_also_hides_the_progress_bar(tmp_path, monkeypatch):
     assert asked == {"progress": False}
 
 
+def test_quiet_also_silences_warnings_and_an_empty_out_is_refused(tmp_path, capsys):
+    # at 16^3 heat_sphere's sphere comes within two cells of the faces: a RuntimeWarning
+    # that --quiet ("nothing but errors") still printed
+    import warnings
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert cli.main(["run", "heat_sphere", "--set", "grid.size=16", "--quiet",
+                         "--out", str(tmp_path / "q")]) == cli.EXIT_OK
+    assert caught == []
+    assert capsys.readouterr() == ("", "")
+    # --out "" fell back to outputs/<name> without a word
+    assert cli.main(["run", "heat_sphere", "--out", ""]) == cli.EXIT_USAGE
+    assert "--out must name a folder" in capsys.readouterr().err
+
+
 def test_the_renderer_is_loaded_before_any_folder_is_made(tmp_path, monkeypatch):
     """VTK's import, reached after the flow, segfaulted when interrupted (5 of 9 tries) and
     left the empty output folder behind: it now runs before the folder is made."""

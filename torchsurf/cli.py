@@ -11,6 +11,7 @@ import os
 import signal
 import sys
 import tempfile
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -104,8 +105,19 @@ def main(argv: Sequence[str] | None = None) -> int:
             devnull = os.open(os.devnull, os.O_WRONLY)
             os.dup2(devnull, sys.stdout.fileno())  # so that the interpreter's exit flush is quiet
         return EXIT_OK
+    with warnings.catch_warnings():
+        if args.quiet:  # "nothing but errors": the library's RuntimeWarnings too
+            warnings.simplefilter("ignore")
+        return _run(args, argv)
+
+
+def _run(args: argparse.Namespace, argv: Sequence[str] | None) -> int:
+    """``torchsurf run`` with the parsed ``args``; returns the exit code."""
     from . import experiment
 
+    if args.out is not None and not args.out.strip():
+        print("torchsurf: --out must name a folder, got an empty string", file=sys.stderr)
+        return EXIT_USAGE
     try:
         prepared = experiment.prepare(args.config, args.overrides)
     except ConfigError as error:
