@@ -423,7 +423,8 @@ def to_band(values: Tensor, mesh: MeshLike, grid: Grid, band_width: float | None
     Each node within ``band_width`` of the mesh takes the barycentric interpolant of the vertex
     values at its closest point on the mesh (constant along the normals); the others get 0.
     The functional form of :meth:`MeshAdapter.encode`; build a :class:`MeshAdapter` to reuse
-    the closest points.
+    the closest points. ``band_width``: world units, as :class:`MeshAdapter`'s (default
+    ``5 * grid.spacing``, at least ``sqrt(3) * grid.spacing``, :data:`MIN_BAND_CELLS`).
     """
     check_tensor(values, "values")
     if band_width is not None:
