@@ -397,6 +397,17 @@ def steps_taken(schedule: Schedule) -> int:
     return sum(count for _, _, count in _intervals(schedule))
 
 
+def step_ends(schedule: Schedule) -> list[float]:
+    """The time at the end of each step ``schedule`` takes, in order, physical time."""
+    ends, start = [], 0.0
+    for index, dt, count in _intervals(schedule):
+        stop = _value(schedule.times[index])
+        ends.extend(start + _value(dt) * j for j in range(1, count))
+        ends.append(stop)
+        start = stop
+    return ends
+
+
 def shortest_step(schedule: Schedule) -> float:
     """The shortest step ``schedule`` takes (requested times split the steps), physical time."""
     return min(_value(dt) for _, dt, _ in _intervals(schedule))

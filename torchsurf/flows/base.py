@@ -42,7 +42,7 @@ import functools
 import math
 import numbers
 import warnings
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 
 import numpy as np
 import torch
@@ -74,6 +74,7 @@ from ._integrators import (
     plan_steps,
     ring_held,
     shortest_step,
+    step_ends,
     steps_taken,
     with_ring,
 )
@@ -335,10 +336,11 @@ class Flow(nn.Module):
         progress: show a tqdm progress bar over the steps (tqdm is optional).
         reextend_every: re-extend the band and its ring along normals (closest point,
             tricubic, limited to the range of the nodes around each closest point) every this
-            many steps; ``"auto"`` (default) once every time the fastest diffusion takes to
-            cross one cell, ``12 / (rho dt)`` steps (not whole: ``floor(t rho / 12)``
-            re-extensions whatever the steps), or after every step where steps are longer (RKC
-            steps that hold the ring: as many as one step could hold it for,
+            many steps; ``"auto"`` (default) after each step that reaches a new multiple of
+            ``12 / rho``, the time the fastest diffusion takes to cross one cell
+            (``floor(t rho / 12)`` re-extensions whatever the steps and requested times), or
+            after every step where steps are longer (RKC steps that hold the ring: as many
+            as one step could hold it for,
             ``floor(12 (w - 2 sqrt(3))^2 / (rho dt))`` on a band of ``w`` cells), and into each
             result at the requested times (docs/band.md). Between
             re-extensions, RKC and torchdiffeq methods re-extend the ring around the band at
@@ -497,32 +499,36 @@ class Flow(nn.Module):
             ) from error
         return tqdm(total=total, desc=type(self).__name__, unit="step", leave=False)
 
-    def _reextension_period(self, system: System, shortest: float, longest: float,
-                            band_cells: float) -> float | None:
-        """Steps between re-extensions of the band, a number >= 1 that need not be whole (the
-        band is re-extended after step ``k`` where ``floor(k / period)`` grows): ``shortest``
-        and ``longest`` the steps (physical time; requested times split some), ``band_cells``
-        the band's width in cells."""
+    def _reextension_steps(self, system: System, schedule: Schedule, longest: float,
+                           band_cells: float) -> tuple[Callable[[int], bool] | None, int]:
+        """Which steps (from 1) end with a re-extension of the band (``None``: none), and
+        the most steps between two: ``longest`` the planned step (physical time; requested
+        times split some), ``band_cells`` the band's width in cells."""
         if self.reextend_every is None:
-            return None
+            return None, 1
         if self.reextend_every != "auto":
-            return self.reextend_every
+            every = self.reextend_every
+            return (lambda k: k % every == 0), every
         if self.method not in ("euler", "heun", "rkc", *IMPLICIT):
-            return 1
+            return (lambda k: True), 1
         rho = system.spectral_radius
-        # the time the fastest diffusion takes to cross one cell, 12 / rho: each
-        # re-extension of the band errs by a little, so many short steps must not each add one
-        # whole steps of crossing time re-extended as often as the steps themselves where
-        # 12 / (rho dt) lay in [1, 2): up to twice the crossings, and a TV flow's result
-        # swung with the step count (0.003-0.2 at 12-64 steps on a torus)
-        crossing = max(1.0, 12.0 / (rho * shortest))
+        shortest = shortest_step(schedule)
+        crossing = 12.0 / rho  # the time the fastest diffusion takes to cross one cell
         if self.method == "rkc" and ring_held("rkc", longest * rho, band_cells):
             # the ring is held as long as one step could hold it (HELD_RING_CELLS): short
             # steps, taken for their time error, share one re-extension
             held = 12.0 * (band_cells - HELD_RING_CELLS) ** 2
             steps_held = math.floor(held / (rho * longest) * (1 + 1e-9))
-            return float(steps_held) if steps_held >= crossing else crossing
-        return crossing
+            if steps_held * longest >= crossing:
+                return (lambda k: k % steps_held == 0), steps_held
+        # once a crossing time, by the time reached, not a whole number of steps: a period of
+        # floor(12 / (rho dt)) steps re-extended at every step where 12 / (rho dt) lay in
+        # [1, 2) (a TV flow's result swung by 0.003-0.2 as RKC's steps went from 12 to 64 on a
+        # torus), and steps split by requested times shortened it
+        ends = step_ends(schedule)
+        crossed = [math.floor(t / crossing * (1 + 1e-12)) for t in [0.0, *ends]]
+        marks = {k for k in range(1, len(ends) + 1) if crossed[k] > crossed[k - 1]}
+        return marks.__contains__, max(1, math.ceil(crossing / shortest * (1 + 1e-9)))
 
     def _checkpointing(self, u0: Tensor, surface: ImplicitSurface, system: System) -> bool:
         if self.checkpoint != "auto":
@@ -533,16 +539,17 @@ class Flow(nn.Module):
         return learned or u0.requires_grad or surface.phi.requires_grad or bool(system.params)
 
     def _after_step(self, surface: ImplicitSurface, region: Tensor, bar: object | None,
-                    every: float | None, packing: PackedRegion | None = None):  # noqa: ANN202
+                    reextends: Callable[[int], bool] | None,
+                    packing: PackedRegion | None = None):  # noqa: ANN202
         """The schedule's ``after_step`` and ``output`` hooks: the progress bar, and the band's
-        re-extension every ``every`` steps and at each requested time (there into the result
+        re-extension after the steps ``reextends`` names and at each requested time (there into the result
         only, so that the results do not depend on which times were requested); on packed
         values with ``packing``."""
         hooks = []
         if bar is not None:
             hooks.append(lambda u, k: (bar.update(1), u)[1])
         output = None
-        if every is not None:
+        if reextends is not None:
             stencil = kept_stencil(surface, self.evolving_width(surface), "region",
                                    region, region, limited=True)
             path = self.path
@@ -553,10 +560,10 @@ class Flow(nn.Module):
                 extended = packing.stencil(stencil).apply
 
             def periodic(u: Tensor, k: int) -> Tensor:
-                return extended(u) if _period_ends(k, every) else u
+                return extended(u) if reextends(k) else u
 
             def output(u: Tensor, k: int) -> Tensor:
-                return u if _period_ends(k, every) else extended(u)
+                return u if reextends(k) else extended(u)
 
             hooks.append(periodic)
         if not hooks:
@@ -680,14 +687,14 @@ class Flow(nn.Module):
             plan = Plan(steps_taken(schedule), plan.step)
         self.last_plan = plan
         bar = self._progress_bar(plan.count)
-        every = self._reextension_period(system, shortest_step(schedule), plan.step,
-                                         width / surface.spacing)
-        schedule.after_step, schedule.output = self._after_step(surface, region, bar, every,
+        reextends, gap = self._reextension_steps(system, schedule, plan.step,
+                                                 width / surface.spacing)
+        schedule.after_step, schedule.output = self._after_step(surface, region, bar, reextends,
                                                                 packing)
         schedule.segment = torchdiffeq_segment(width / surface.spacing, system.spectral_radius)
         schedule.checkpoint = self._checkpointing(u0, surface, system)
         held = ring_held(self.method, plan.step * system.spectral_radius,
-                         width / surface.spacing, period=math.ceil(every or 1))
+                         width / surface.spacing, period=gap)
         if self.reextend_every is not None and not held:
             ring = kept_stencil(surface, width, "ring", region & ~band, region, limited=True)
             path = self.path
@@ -771,9 +778,3 @@ class Flow(nn.Module):
 
     def extra_repr(self) -> str:
         return f"method={self.method!r}, steps={self.steps}"
-
-
-def _period_ends(step: int, period: float) -> bool:
-    """Whether step ``step`` (from 1) ends a period of ``period`` steps: ``floor(step /
-    period)`` grows there (every ``period``-th step for a whole ``period``)."""
-    return math.floor(step / period * (1 + 1e-12)) > math.floor((step - 1) / period * (1 + 1e-12))
