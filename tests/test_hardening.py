@@ -382,7 +382,7 @@ def test_points_of_analytic_shapes_are_checked_where_they_are_given():
                        (lambda: ts.sdf.box(grid, half_size=0.5), "half_size"),
                        (lambda: ts.sdf.capsule(grid, start=0.0), "start"),
                        (lambda: ts.AnalyticShape("box", {"half_size": 0.5}), "half_size")):
-        with pytest.raises(ValueError, match=f"{name} must be three numbers"):
+        with pytest.raises(ValueError, match=f"{name} must have three entries"):
             make()
     with pytest.raises(TypeError, match="each entry of center must be a finite real number"):
         ts.sdf.sphere(grid, center=(0.0, 0.0, "a"))

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import math
 import numbers
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from typing import TypeVar
 
 import numpy as np
 import torch
@@ -14,6 +15,9 @@ SUPPORTED_DTYPES = (torch.float32, torch.float64)
 """The floating-point dtypes torchsurf computes in. Half precision is refused: its epsilon
 (about 1e-3) is above the finite-difference errors the operators are built to, and squares of
 small gradients underflow to 0 (NaN normals)."""
+
+
+T = TypeVar("T")
 
 
 def _dtype_error(name: str, dtype: object, what: str) -> TypeError:
@@ -151,6 +155,20 @@ def as_real_tensor(value: object, name: str, expected: str) -> Tensor:
         entries = [as_float(v, f"{name}[{i}]", expected) for i, v in enumerate(value)]
         return torch.tensor(entries, dtype=torch.get_default_dtype())
     return torch.tensor(as_float(value, name, expected), dtype=torch.get_default_dtype())
+
+
+def check_triple(value: object, name: str, check: Callable[[object, str], T]) -> tuple[T, T, T]:
+    """Three entries of ``value``, each passed through ``check`` (which names ``name``)."""
+    try:
+        entries = tuple(value)
+    except TypeError:
+        entries = ()
+    if len(entries) != 3:
+        raise ValueError(f"{name} must have three entries, got {value!r}")
+    try:
+        return tuple(check(entry, f"each entry of {name}") for entry in entries)
+    except (TypeError, ValueError) as error:
+        raise type(error)(f"{name} = {value!r}: {error}") from error
 
 
 def check_real(value: object, name: str) -> float:

@@ -2,16 +2,20 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TypeVar
 
 import torch
 from torch import Tensor
 
-from ._checks import check_count, check_dtype, check_positive, check_real, check_tensor
-
-T = TypeVar("T")
+from ._checks import (
+    check_count,
+    check_dtype,
+    check_positive,
+    check_real,
+    check_tensor,
+    check_triple,
+)
 
 
 def _check_points(points: object, name: str) -> Tensor:
@@ -24,20 +28,6 @@ def _check_points(points: object, name: str) -> Tensor:
 def _size(value: object, name: str) -> int:
     """One size of ``shape``: a whole number >= 3 (integral floats such as ``17.0`` too)."""
     return check_count(value, name, minimum=3)
-
-
-def _triple(value: object, name: str, check: Callable[[object, str], T]) -> tuple[T, T, T]:
-    """Three entries of ``value``, each passed through ``check`` (which names ``name``)."""
-    try:
-        entries = tuple(value)
-    except TypeError:
-        entries = ()
-    if len(entries) != 3:
-        raise ValueError(f"{name} must have three entries, got {value!r}")
-    try:
-        return tuple(check(entry, f"each entry of {name}") for entry in entries)
-    except (TypeError, ValueError) as error:
-        raise type(error)(f"{name} = {value!r}: {error}") from error
 
 
 MIN_MARGIN_CELLS = 3.0
@@ -93,9 +83,9 @@ class Grid:
     origin: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "shape", _triple(self.shape, "shape", _size))
+        object.__setattr__(self, "shape", check_triple(self.shape, "shape", _size))
         object.__setattr__(self, "spacing", check_positive(self.spacing, "spacing"))
-        object.__setattr__(self, "origin", _triple(self.origin, "origin", check_real))
+        object.__setattr__(self, "origin", check_triple(self.origin, "origin", check_real))
 
     @classmethod
     def cube(cls, n: int, bound: float) -> Grid:

@@ -23,6 +23,7 @@ from ._checks import (
     check_positive,
     check_real,
     check_spatial_shape,
+    check_triple,
     check_volume,
 )
 from ._mesh_input import MeshLike, as_trimesh, triangle_arrays
@@ -50,17 +51,6 @@ def from_function(
     return _sampled(grid, function, dtype, device, None)
 
 
-def _point(value: object, name: str) -> tuple[float, float, float]:
-    """Three finite numbers ``(x, y, z)`` from ``value``; raise naming ``name``."""
-    try:
-        entries = tuple(value)
-    except TypeError:
-        entries = ()
-    if len(entries) != 3:
-        raise ValueError(f"{name} must be three numbers (x, y, z), got {value!r}")
-    return tuple(check_real(entry, f"each entry of {name}") for entry in entries)
-
-
 def _sampled(grid: Grid, function: Callable[[Tensor], Tensor], dtype: torch.dtype | None,
              device: torch.device | str | None, center: Point | None) -> Tensor:
     """:func:`from_function`, ``function`` given the points relative to ``center`` (computed
@@ -69,7 +59,7 @@ def _sampled(grid: Grid, function: Callable[[Tensor], Tensor], dtype: torch.dtyp
         raise TypeError(f"grid must be a torchsurf.Grid, got {type(grid).__name__}")
     dtype = check_dtype(dtype)
     if center is not None:
-        center = _point(center, "center")
+        center = check_triple(center, "center", check_real)
     _memory.check_fits(_memory.sampled_bytes(grid.shape, dtype),
                        f"sampling a function on a {grid.shape} grid", device)
     points = grid.points(dtype=dtype, device=device, relative_to=center)
@@ -128,7 +118,7 @@ def box(
     device: torch.device | str | None = None,
 ) -> Tensor:
     """Signed distance to the axis-aligned box of half extents ``half_size`` ``(x, y, z)``."""
-    half_size = _point(half_size, "half_size")
+    half_size = check_triple(half_size, "half_size", check_real)
     for length in half_size:
         check_positive(length, "half_size")
 
@@ -151,7 +141,8 @@ def capsule(
 ) -> Tensor:
     """Signed distance to the capsule of ``radius`` around the segment ``start``–``end``."""
     check_positive(radius, "radius")
-    start, end = _point(start, "start"), _point(end, "end")
+    start = check_triple(start, "start", check_real)
+    end = check_triple(end, "end", check_real)
 
     axis64 = [float(b) - float(a) for a, b in zip(start, end, strict=True)]
     if axis64 == [0.0, 0.0, 0.0]:
