@@ -363,7 +363,19 @@ def test_usage_errors_exit_2(capsys):
     assert cli.main(["paint"]) == cli.EXIT_USAGE
     assert cli.main(["run"]) == cli.EXIT_USAGE
     assert cli.main(["--help"]) == cli.EXIT_OK
-    capsys.readouterr()
+    assert cli.main(["run", "--set", "grid.size=24"]) == cli.EXIT_USAGE
+    assert "required: config" in capsys.readouterr().err
+    assert cli.main(["run", "--set", "heat_sphere", "tv_torus"]) == cli.EXIT_USAGE
+    assert "'heat_sphere', 'tv_torus'" in capsys.readouterr().err
+
+
+def test_set_before_the_config_name_leaves_the_name_to_the_config(tmp_path):
+    code = cli.main(["run", "--set", *TINY, "flow.time=0.002", "heat_sphere", "--out",
+                     str(tmp_path), "--quiet"])
+    assert code == cli.EXIT_OK
+    record = json.loads((tmp_path / "heat_sphere.json").read_text())
+    assert record["config"]["grid"]["size"] == 24
+    assert record["config"]["flow"]["time"] == 0.002
 
 
 def test_list_names_every_shipped_config(capsys):

@@ -27,7 +27,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     run = commands.add_parser("run", help="run an experiment config and write its pictures")
-    run.add_argument("config", help="a config file, or the name of a shipped config "
+    run.add_argument("config", nargs="?", help="a config file, or the name of a shipped config "
                      "(see `torchsurf list`)")
     run.add_argument("--set", dest="overrides", action="extend", nargs="+", default=[],
                      metavar="KEY=VALUE", help="override settings, e.g. --set grid.size=96 "
@@ -36,6 +36,7 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--quiet", action="store_true", help="print nothing but errors")
     run.add_argument("--no-progress", action="store_true", help="no progress bar")
     commands.add_parser("list", help="list the shipped configs and what each shows")
+    parser.set_defaults(run_parser=run)
     return parser
 
 
@@ -92,10 +93,27 @@ def _remove_if_empty(folders: list[Path]) -> None:
             return
 
 
+def _take_config_from_overrides(args: argparse.Namespace) -> None:
+    """``run --set a=1 CONFIG``: ``--set`` takes every word after it, the config name too. The
+    one word without ``=`` in ``--set``'s list is the config when none came before it."""
+    if args.config is not None:
+        return
+    names = [item for item in args.overrides if "=" not in item]
+    if not names:
+        args.run_parser.error("the following arguments are required: config")
+    if len(names) > 1:
+        args.run_parser.error(f"--set takes key=value words; {', '.join(map(repr, names))} are "
+                              "not, and only one of them can be the config")
+    args.config = names[0]
+    args.overrides = [item for item in args.overrides if item != names[0]]
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line ``argv`` (default ``sys.argv[1:]``); returns the exit code."""
     try:
         args = _parser().parse_args(argv)
+        if args.command == "run":
+            _take_config_from_overrides(args)
     except SystemExit as stop:
         return int(stop.code or 0)
     if args.command == "list":

@@ -24,6 +24,17 @@ def test_refuses_values_naming_the_parameter_and_value(value):
         Positive(value, "contrast")
 
 
+def test_a_positive_value_that_rounds_to_zero_says_so():
+    with pytest.raises(ValueError, match=r"got 1e-300, which rounds to 0 in torch.float32"):
+        HeatFlow(1e-300)
+    with pytest.raises(ValueError, match=r"got \[0.001, 1e-60\], which rounds to 0"):
+        Positive([1e-3, 1e-60], "time")
+    for not_positive in (0.0, [1e-3, 0.0], -1e-300):
+        with pytest.raises(ValueError) as refused:
+            Positive(not_positive, "time")
+        assert "rounds to 0" not in str(refused.value)
+
+
 @pytest.mark.parametrize("value", [np.float32(0.5), np.int64(2), torch.tensor(0.5),
                                    torch.tensor(2)])
 def test_accepts_numpy_and_0d_tensor_scalars(value):

@@ -65,6 +65,16 @@ def _inverse_softplus(value: Tensor) -> Tensor:
     return value + torch.log(-torch.expm1(-value))
 
 
+def _rounds_to_zero(value: object, tensor: Tensor) -> bool:
+    """Whether ``value``'s entries are all > 0 and finite but some became 0 in ``tensor``."""
+    try:
+        exact = torch.as_tensor(value, dtype=torch.float64)
+    except (TypeError, ValueError, RuntimeError):
+        return False
+    return (exact.shape == tensor.shape and bool((torch.isfinite(exact) & (exact > 0)).all())
+            and bool((tensor == 0).any()))
+
+
 class Positive(nn.Module):
     """A positive number or per-channel vector ``(C,)``, fixed or learnable through softplus.
 
@@ -97,8 +107,13 @@ class Positive(nn.Module):
         tensor = as_real_tensor(value, name, "a finite positive number or a vector (C,) of them")
         valid = torch.isfinite(tensor) & (tensor > 0)
         if tensor.dim() > 1 or tensor.numel() == 0 or not bool(valid.all()):
+            underflow = ""
+            if _rounds_to_zero(value, tensor):
+                underflow = (f", which rounds to 0 in {tensor.dtype} (its smallest positive "
+                             f"normal value is {torch.finfo(tensor.dtype).tiny:.3g})")
             raise ValueError(
-                f"{name} must be a finite positive number or a vector (C,) of them, got {value!r}"
+                f"{name} must be a finite positive number or a vector (C,) of them, got "
+                f"{value!r}{underflow}"
             )
         self.learnable = check_flag(learnable, "learnable")
         self.bound = None if bound is None else check_positive(bound, bound_name)
