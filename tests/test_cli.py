@@ -173,7 +173,11 @@ def test_mesh_path_resolves_against_the_config_folder_then_the_mesh_dir(tmp_path
         (["signal.image=no_such.png", "signal.kind=image"], "signal.image"),
         (["flow.time_unit=turk"], "flow.time_unit"),
         (["flowtime"], "--set"),
-        (["signal.grain=0"], "signal.grain"),
+        (["signal.grain=0", "signal.kind=noise", "signal.image=null", "signal.projection=null"], "signal.grain"),
+        (["signal.grain=2"], "signal.grain"),
+        (["signal.kind=checkerboard"], "signal.image"),
+        (["signal.kind=noise", "signal.image=null", "signal.projection=planar"],
+         "signal.projection"),
         (["render.renderer=povray"], "render.renderer"),
         (["render.colormap=nosuchmap"], "render.colormap"),
         (["render.elevation=nan"], "render.elevation"),
@@ -191,10 +195,13 @@ def test_mesh_path_resolves_against_the_config_folder_then_the_mesh_dir(tmp_path
         (["signal.seed=-5"], "signal.seed"),
         (["signal.seed=99999999999999999999"], "signal.seed"),
         (["signal.noise=inf"], "signal.noise"),
-        (["signal.grain=1e300", "signal.kind=noise"], "signal.grain"),
-        (["signal.tiles=1e300"], "signal.tiles"),
+        (["signal.grain=1e300", "signal.kind=noise", "signal.image=null", "signal.projection=null"],
+         "signal.grain"),
+        (["signal.tiles=1e300", "signal.kind=checkerboard", "signal.image=null",
+          "signal.projection=null"], "signal.tiles"),
         (["threads=100000"], "threads"),
-        (["signal.kind=noise", "signal.noise=0.2"], "signal.noise"),
+        (["signal.kind=noise", "signal.image=null", "signal.projection=null", "signal.noise=0.2"],
+         "signal.noise"),
         (["field.kind=principal_max"], "field"),
         (["flow.method=chebyshev", "flow.steps=5"], "flow.steps"),
         (["name=" + "a" * 201], "name"),
@@ -271,6 +278,22 @@ def test_the_coarse_grid_of_a_field_smoothing_needs_the_bricks_margin_too(tmp_pa
     assert "config error: grid.margin: 0.12 leaves 1.5 cells around the shape on the 16^3 grid" \
         in error
     assert not (tmp_path / "out").exists()
+
+
+def test_a_signal_setting_another_kind_reads_is_refused_and_null_unsets_it(tmp_path, capsys):
+    """heat_sphere's file sets signal.image and signal.projection, read by images only."""
+    code = cli.main(["run", "heat_sphere", "--set", *TINY, "signal.kind=checkerboard",
+                     "--out", str(tmp_path)])
+    assert code == cli.EXIT_USAGE
+    error = capsys.readouterr().err
+    assert "signal.image: not a setting of signal.kind=checkerboard (its settings: tiles)" in error
+    assert "--set signal.image=null unsets it" in error
+    code = cli.main(["run", "heat_sphere", "--set", *TINY, "signal.kind=checkerboard",
+                     "signal.image=null", "signal.projection=null", "--out", str(tmp_path),
+                     "--quiet"])
+    assert code == cli.EXIT_OK
+    record = json.loads((tmp_path / "heat_sphere.json").read_text())
+    assert record["config"]["signal"]["tiles"] is None  # left to its default, 8
 
 
 def test_text_settings_are_taken_as_written():

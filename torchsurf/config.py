@@ -160,16 +160,18 @@ class GridConfig:
 class SignalConfig:
     """The initial data; ``noise``: standard deviation of added Gaussian noise (units of the
     data's range; for a field, of each component before re-normalising); ``grain``: with
-    ``kind: noise``, the size of the noise's specks, cells."""
+    ``kind: noise``, the size of the noise's specks, cells. The settings of one kind
+    (:data:`SIGNAL_SETTINGS`) stay ``null`` with the others and take :data:`SIGNAL_DEFAULTS`
+    when unset."""
 
     kind: SignalKind = SignalKind.checkerboard
-    tiles: float = 8.0
-    image: str = "colour_wheel"
-    projection: Projection = Projection.spherical
-    axis: Axis = Axis.z
-    gray: bool = False
+    tiles: float | None = None
+    image: str | None = None
+    projection: Projection | None = None
+    axis: Axis | None = None
+    gray: bool | None = None
     noise: float = 0.0
-    grain: float = 1.0
+    grain: float | None = None
     seed: int = 0
 
 
@@ -271,6 +273,22 @@ FLOW_DEFAULTS: dict[str, float] = {"eps": 0.05, "contrast": 0.1, "p": 1.0, "rate
                                    "isotropic": 0.0}
 """Defaults of the optional flow settings (``eps``, ``contrast``: data range per cell)."""
 
+SIGNAL_SETTINGS: dict[SignalKind, tuple[str, ...]] = {
+    SignalKind.checkerboard: ("tiles",),
+    SignalKind.image: ("image", "projection", "axis", "gray"),
+    SignalKind.noise: ("grain",),
+    SignalKind.field: (),
+    SignalKind.turk: (),
+}
+"""The settings each signal reads besides ``noise`` and ``seed``; the others must stay
+``null``."""
+
+SIGNAL_DEFAULTS: dict[str, object] = {"tiles": 8.0, "image": "colour_wheel",
+                                      "projection": Projection.spherical, "axis": Axis.z,
+                                      "gray": False, "grain": 1.0}
+"""Defaults of the settings of :data:`SIGNAL_SETTINGS` (``tiles`` along the box diagonal,
+``grain`` in cells)."""
+
 FLOW_SIGNALS: dict[FlowKind, tuple[SignalKind, ...]] = {
     FlowKind.heat: (SignalKind.checkerboard, SignalKind.image, SignalKind.noise),
     FlowKind.total_variation: (SignalKind.checkerboard, SignalKind.image),
@@ -299,6 +317,12 @@ def flow_setting(flow: FlowConfig, name: str) -> float:
     """``flow.<name>`` or its default from :data:`FLOW_DEFAULTS`."""
     value = getattr(flow, name)
     return FLOW_DEFAULTS[name] if value is None else float(value)
+
+
+def signal_setting(signal: SignalConfig, name: str) -> Any:
+    """``signal.<name>`` or its default from :data:`SIGNAL_DEFAULTS`."""
+    value = getattr(signal, name)
+    return SIGNAL_DEFAULTS[name] if value is None else value
 
 
 def time_unit(flow: FlowConfig) -> TimeUnit:
@@ -522,15 +546,17 @@ def check(experiment: Experiment) -> None:
     _check_brick_margin(experiment.grid, f"at grid.size={experiment.grid.size}")
     signal = experiment.signal
     size = experiment.grid.size
-    _positive(signal.tiles, "signal.tiles")
-    if signal.tiles > 4 * size:
+    _check_signal_settings(signal)
+    tiles, grain = signal_setting(signal, "tiles"), signal_setting(signal, "grain")
+    _positive(tiles, "signal.tiles")
+    if tiles > 4 * size:
         raise ConfigError("signal.tiles", f"must be at most 4 x grid.size = {4 * size} (finer "
-                          f"tiles than the grid resolves), got {signal.tiles!r}")
-    _positive(signal.grain, "signal.grain")
-    if signal.grain > (size - 1) / 2:
+                          f"tiles than the grid resolves), got {tiles!r}")
+    _positive(grain, "signal.grain")
+    if grain > (size - 1) / 2:
         raise ConfigError("signal.grain", f"must be at most (grid.size - 1) / 2 = "
                           f"{(size - 1) / 2:g} cells (two specks across the grid), got "
-                          f"{signal.grain!r}")
+                          f"{grain!r}")
     _at_least_zero(signal.noise, "signal.noise")
     if signal.noise > 0 and signal.kind in (SignalKind.noise, SignalKind.turk):
         raise ConfigError("signal.noise", f"must be 0 with signal.kind={signal.kind.name} "
@@ -632,6 +658,17 @@ def check(experiment: Experiment) -> None:
     if experiment.threads is not None and not 1 <= experiment.threads <= THREADS_MAX:
         raise ConfigError("threads", f"must be an integer in [1, {THREADS_MAX}], got "
                           f"{experiment.threads}")
+
+
+def _check_signal_settings(signal: SignalConfig) -> None:
+    """Refuse a set signal setting that ``signal.kind`` does not read, saying how to unset it."""
+    allowed = SIGNAL_SETTINGS[signal.kind]
+    for name in SIGNAL_DEFAULTS:
+        if getattr(signal, name) is not None and name not in allowed:
+            listed = ", ".join(allowed) or "none besides noise, seed"
+            raise ConfigError(f"signal.{name}", f"not a setting of signal.kind="
+                              f"{signal.kind.name} (its settings: {listed}); "
+                              f"--set signal.{name}=null unsets it")
 
 
 def _check_colormap(name: str) -> None:

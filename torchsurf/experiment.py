@@ -32,7 +32,8 @@ from . import bricks, flows, render, sdf, signals
 from . import config as cfg
 from . import mesh as meshes
 from .bricks.layout import bricks_along
-from .config import ConfigError, Experiment, FlowKind, Layout, Shape, SignalKind, TimeUnit
+from .config import (ConfigError, Experiment, FlowKind, Layout, Shape, SignalKind, TimeUnit,
+                     signal_setting)
 from .grid import Grid
 from .surface import ImplicitSurface
 
@@ -109,8 +110,9 @@ def prepare(config: str | os.PathLike, overrides: list[str] | None = None) -> Pr
             SHAPES[surface.shape](Grid((3, 3, 3), 1.0), **params)
         except (TypeError, ValueError) as error:
             raise ConfigError("surface.params", str(error)) from None
-    if experiment.signal.kind is SignalKind.image and experiment.signal.image not in signals.IMAGES:
-        image = Path(experiment.signal.image).expanduser()
+    image_name = signal_setting(experiment.signal, "image")
+    if experiment.signal.kind is SignalKind.image and image_name not in signals.IMAGES:
+        image = Path(image_name).expanduser()
         image = image if image.is_absolute() else folder / image
         if not image.is_file():
             raise ConfigError("signal.image", f"neither a built-in image "
@@ -222,20 +224,22 @@ def build_signal(prepared: Prepared, surface: ImplicitSurface, box: tuple[Tensor
     kind = signal.kind
     points = signals.closest_points(surface)
     if kind is SignalKind.checkerboard:
-        clean = signals.checkerboard(points, diagonal / signal.tiles, tuple(box[0].tolist()))
+        tiles = signal_setting(signal, "tiles")
+        clean = signals.checkerboard(points, diagonal / tiles, tuple(box[0].tolist()))
     elif kind is SignalKind.image:
-        if signal.image in signals.IMAGES:
-            image = signals.builtin_image(signal.image)
+        name = signal_setting(signal, "image")
+        if name in signals.IMAGES:
+            image = signals.builtin_image(name)
         else:
-            image_path = Path(signal.image).expanduser()
+            image_path = Path(name).expanduser()
             image = signals.load_image(image_path if image_path.is_absolute()
                                        else prepared.folder / image_path)
-        clean = signals.project_image(image, points, signal.projection.name, box,
-                                      signal.axis.name, surface.normal)
-        if signal.gray and clean.shape[1] == 3:
+        clean = signals.project_image(image, points, signal_setting(signal, "projection").name,
+                                      box, signal_setting(signal, "axis").name, surface.normal)
+        if signal_setting(signal, "gray") and clean.shape[1] == 3:
             clean = signals.gray(clean)
     elif kind is SignalKind.noise:
-        clean = signals.surface_noise(surface, 1, signal.seed, signal.grain)
+        clean = signals.surface_noise(surface, 1, signal.seed, signal_setting(signal, "grain"))
     elif kind is SignalKind.field:
         clean = field
     else:
