@@ -32,8 +32,16 @@ from . import bricks, flows, render, sdf, signals
 from . import config as cfg
 from . import mesh as meshes
 from .bricks.layout import bricks_along
-from .config import (ConfigError, Experiment, FlowKind, Layout, Shape, SignalKind, TimeUnit,
-                     signal_setting)
+from .config import (
+    ConfigError,
+    Experiment,
+    FlowKind,
+    Layout,
+    Shape,
+    SignalKind,
+    TimeUnit,
+    signal_setting,
+)
 from .grid import Grid
 from .surface import ImplicitSurface
 
