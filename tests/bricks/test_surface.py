@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -117,9 +118,13 @@ def test_cat_batches_boxes_of_different_shapes(two_boxes):
 
 
 @pytest.mark.skipif(not (MESHES / "spot.obj").exists(), reason="shared meshes not present")
-def test_from_mesh_equals_the_dense_distance_on_every_stored_node_that_matters():
+@pytest.mark.parametrize("size", [40, 37])
+def test_from_mesh_equals_the_dense_distance_on_every_stored_node_that_matters(size):
+    """At 37^3 the last bricks reach 3 nodes beyond the box and the band comes within 3 nodes
+    of its faces: stored nodes beyond the box held +-reach, W was 1.5 at face nodes and took
+    15 of them into the band."""
     mesh = ts.mesh.load(MESHES / "spot.obj")
-    grid = ts.mesh.fit_grid(mesh, 40, margin=0.15)
+    grid = ts.mesh.fit_grid(mesh, size, margin=0.15)
     surface = bricks.from_mesh(mesh, grid, dtype=torch.float64)
     reach = surface.band_width + bricks.build.EXACT_REACH * grid.spacing
     dense_phi = ts.sdf.from_mesh(mesh, grid, band_width=reach, dtype=torch.float64)
@@ -129,6 +134,11 @@ def test_from_mesh_equals_the_dense_distance_on_every_stored_node_that_matters()
     dense = ts.ImplicitSurface(dense_phi, grid)
     (band,) = surface.to_dense(surface.band_mask().double())
     assert torch.equal(band > 0, dense.band_mask())
+    # beyond the box, near S: extrapolated from the last two nodes, as the dense surface reads
+    linear = surface.layout.from_dense(dense_phi, fill="linear")
+    beyond = ~surface.layout.inside
+    assert int(beyond.sum()) > (1000 if size == 37 else -1)
+    assert torch.allclose(surface.phi[beyond], linear[beyond], atol=1e-12)
 
 
 def test_intrinsic_gradient_divergence_and_sampling_equal_the_dense_ones(torus):
@@ -152,6 +162,13 @@ def test_intrinsic_gradient_divergence_and_sampling_equal_the_dense_ones(torus):
     sampled = surface.sample(packed, vertices)
     assert sampled.shape == (2, len(vertices))
     assert torch.allclose(sampled, ts.sample(u, vertices, dense.grid)[0], atol=1e-12)
+    for entry in (np.int64(0), torch.tensor(0)):  # an index read from an array or a tensor
+        assert torch.equal(surface.sample(packed, vertices, entry), sampled)
+        assert bool(surface.samplable(vertices, entry).all())
+    with pytest.raises(ValueError, match=r"entry must be in \[0, 1\), got 1"):
+        surface.sample(packed, vertices, np.int64(1))
+    with pytest.raises(ValueError, match="entry must be a whole number"):
+        surface.sample(packed, vertices, 0.5)
     with pytest.raises(ValueError, match="not stored"):
         surface.sample(packed, torch.tensor([[0.0, 0.0, 2.05]], dtype=torch.float64))  # far
     with pytest.raises(ValueError, match="outside the box"):

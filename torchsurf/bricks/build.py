@@ -146,7 +146,32 @@ def signed_bricks(meshes: list[MeshLike], grids: list[Grid], band_width: float, 
     layout = BrickLayout(torch.from_numpy(np.concatenate(coords)),
                          torch.from_numpy(np.concatenate(batch)), grids)
     phi = torch.from_numpy(np.concatenate(values)).to(device=device)[:, None]
-    return BrickSurface(phi, layout, band_width), bands
+    surface = BrickSurface(phi, layout, band_width)
+    _check_formed_band_clear_of_faces(surface)
+    return surface, bands
+
+
+def _check_formed_band_clear_of_faces(surface: BrickSurface) -> None:
+    """:func:`check_clear_of_faces` on the band ``surface`` forms (``|phi| / W``), which may hold
+    a node whose exact distance is beyond ``band_width``, at the nodes whose gradient reads
+    stored values only; only bricks that reach within :data:`REACH_CELLS` nodes of a face are
+    looked at (none, with a margin)."""
+    layout = surface.layout
+    shapes = torch.tensor([grid.shape for grid in layout.grids])[layout.batch]
+    start = layout.coords * BRICK
+    near_face = ((start < REACH_CELLS) | (start + BRICK - 1 >= shapes - REACH_CELLS)).any(dim=1)
+    if not bool(near_face.any()):
+        return
+    rows = near_face.nonzero().squeeze(1)
+    # where a gradient stencil reads a brick that is not stored (zeros), W is not phi's
+    trusted = layout.inside & layout.interior(1)
+    band = (ImplicitSurface.band_mask(surface).cpu() & trusted.cpu())[rows, 0]
+    local = torch.arange(BRICK)
+    nodes = (start[rows, None, None, None, :]
+             + torch.stack(torch.meshgrid(local, local, local, indexing="ij"), dim=-1))
+    for b, grid in enumerate(layout.grids):
+        mine = band & (layout.batch[rows] == b).view(-1, 1, 1, 1)
+        check_clear_of_faces(nodes[mine], grid, b)
 
 
 def check_clear_of_faces(band_nodes: Tensor, grid: Grid, entry: int) -> None:
@@ -237,7 +262,43 @@ def _brick_values(signed: _mesh_sdf.SignedBand, grid: Grid, reach: float, dtype:
     bz = unique // (extent[0] * extent[1])
     by = (unique // extent[0]) % extent[1]
     bx = unique % extent[0]
-    return np.stack([bz, by, bx], axis=1), values
+    coords = np.stack([bz, by, bx], axis=1)
+    _extrapolate_beyond_box(values, coords, grid.shape, stored, row_of, extent)
+    return coords, values
+
+
+def _extrapolate_beyond_box(values: np.ndarray, coords: np.ndarray, shape: tuple[int, int, int],
+                            stored: np.ndarray, row_of: np.ndarray, extent: list[int]) -> None:
+    """Fill the nodes of the last bricks beyond the box ``shape`` in place, extrapolated from
+    the box's last two nodes along each axis in turn (z, y, x), as
+    :meth:`BrickLayout.from_dense` does with ``fill="linear"``: the geometry at the faces is
+    then the dense surface's (a jump to ``+-reach`` there made ``|grad phi|`` 1.5 at face
+    nodes and took them into the band). Where the box's last node is the first of its brick
+    and the brick before it is not stored, the values are repeated instead (such nodes lie
+    farther than ``reach`` from the mesh)."""
+    strides = (extent[0] * extent[1], extent[0], 1)
+    for axis in range(3):
+        length = shape[axis]
+        last = (length - 1) % BRICK
+        if last == BRICK - 1:
+            continue
+        rows = np.flatnonzero(coords[:, axis] == (length - 1) // BRICK)
+        if len(rows) == 0:
+            continue
+        along = values[rows].swapaxes(1, 1 + axis)  # (M, 8, ., .): the axis first
+        edge = along[:, last].copy()
+        if last > 0:
+            before = along[:, last - 1]
+        else:
+            key = coords[rows] @ np.array(strides) - strides[axis]
+            previous = stored[key] if coords[rows, axis].min() > 0 else np.zeros(len(rows), bool)
+            before = edge.copy()
+            kept = np.flatnonzero(previous)
+            before[kept] = values[row_of[key[kept]]].swapaxes(1, 1 + axis)[:, BRICK - 1]
+        slope = edge - before
+        for step in range(1, BRICK - last):
+            along[:, last + step] = edge + step * slope
+        values[rows] = along.swapaxes(1, 1 + axis)
 
 
 def _brick_key(nodes: np.ndarray, extent: list[int]) -> np.ndarray:

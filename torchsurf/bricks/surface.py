@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .._checks import check_finite, check_positive, check_tensor
+from .._checks import check_count, check_finite, check_positive, check_tensor
 from ..grid import Grid
 from ..surface import ImplicitSurface
 from .layout import BRICK, BrickLayout
@@ -210,7 +210,7 @@ class BrickSurface(ImplicitSurface):
             ValueError: a point lies outside the entry's box or next to a brick that is not
                 stored.
         """
-        self._check_points(points, entry)
+        entry = self._check_points(points, entry)
         _check_like_field(points, "points", field)
         return self.sample_at_index(field, self.grids[entry].world_to_index(points), entry)
 
@@ -219,7 +219,7 @@ class BrickSurface(ImplicitSurface):
         entry's grid instead of world points (no rounding of world coordinates: a grid far
         from the origin keeps float32's precision). Returns ``(C, V)``."""
         self.check_field(field, "field")
-        self._check_points(index, entry, "index")
+        entry = self._check_points(index, entry, "index")
         _check_like_field(index, "index", field)
         inside, fraction, corners = self._cell_corners(index, entry)
         if not bool(inside.all()):
@@ -241,19 +241,23 @@ class BrickSurface(ImplicitSurface):
     def samplable(self, points: Tensor, entry: int = 0) -> Tensor:
         """``(V,)`` bool: ``points`` ``(V, 3)`` (world ``(x, y, z)``) that :meth:`sample` can
         read, inside the entry's box with the 8 nodes of their cell stored."""
-        self._check_points(points, entry)
+        entry = self._check_points(points, entry)
         inside, _, corners = self._cell_corners(self.grids[entry].world_to_index(points), entry)
         for _, brick, _ in corners:
             inside = inside & (brick >= 0)
         return inside
 
-    def _check_points(self, points: Tensor, entry: int, name: str = "points") -> None:
+    def _check_points(self, points: Tensor, entry: int, name: str = "points") -> int:
+        """Check ``points`` ``(V, 3)`` and return ``entry`` as an ``int`` (numpy and 0-d
+        tensor integers too)."""
         check_tensor(points, name)
         if points.dim() != 2 or points.shape[1] != 3:
             raise ValueError(f"{name} must have shape (V, 3), got {tuple(points.shape)}")
         check_finite(points.detach(), name)
-        if isinstance(entry, bool) or not isinstance(entry, int) or not 0 <= entry < self.batch_size:
+        entry = check_count(entry, "entry", minimum=0)
+        if entry >= self.batch_size:
             raise ValueError(f"entry must be in [0, {self.batch_size}), got {entry}")
+        return entry
 
     def _cell_corners(self, index: Tensor, entry: int
                       ) -> tuple[Tensor, Tensor, list[tuple[Tensor, Tensor, Tensor]]]:
