@@ -170,10 +170,32 @@ def test_bad_tables_are_refused(coords, batch, grids, message):
         BrickLayout(torch.tensor(coords), torch.tensor(batch), grids)
 
 
+def test_bad_tables_of_fractions_or_bools_are_refused_not_truncated():
+    grid = Grid((16, 16, 16), 0.1)
+    with pytest.raises(TypeError, match="coords must hold integers .* torch.float32"):
+        BrickLayout(torch.tensor([[1.9, 0.2, 0.7]]), torch.tensor([0]), [grid])
+    with pytest.raises(TypeError, match="batch must hold integers .* torch.bool"):
+        BrickLayout(torch.tensor([[1, 0, 0]]), torch.tensor([False]), [grid])
+    assert BrickLayout([[1, 0, 0]], [0], [grid]).coords.dtype == torch.int64
+
+
 def test_fields_of_the_wrong_shape_are_refused_with_the_expected_shape():
     layout, _ = _scattered_layout()
     with pytest.raises(ValueError, match=rf"\({len(layout)}, C, 8, 8, 8\)"):
         layout.check_field(torch.zeros(len(layout) + 1, 1, 8, 8, 8), "u")
+    expected = rf"must be a packed band field of shape \({len(layout)}, C, 8, 8, 8\)"
+    for wrong in (torch.zeros(len(layout) + 3, 1, 8, 8, 8), torch.zeros(len(layout), 8, 8, 8),
+                  torch.zeros(len(layout), 1, 6, 6, 6)):
+        with pytest.raises(ValueError, match="field " + expected):
+            layout.halo(wrong)
+        with pytest.raises(ValueError, match="x " + expected):
+            layout.entry_max(wrong)
+        with pytest.raises(ValueError, match="mask " + expected):
+            layout.dilate(wrong.bool())
+    with pytest.raises(ValueError, match="mask must be a bool field"):
+        layout.dilate(torch.zeros(len(layout), 1, 8, 8, 8))
+    with pytest.raises(ValueError, match="width must be an integer in"):
+        layout.halo(torch.zeros(len(layout), 1, 8, 8, 8), 1.5)
 
 
 def test_from_dense_refuses_an_unknown_fill_and_reads_non_contiguous_volumes():

@@ -91,8 +91,8 @@ class BrickLayout:
                 f"grids must share one spacing (bricks of one batch are stencilled together), "
                 f"got spacings {sorted(spacings)}"
             )
-        coords = torch.as_tensor(coords).long()
-        batch = torch.as_tensor(batch).long()
+        coords = _integer_tensor(coords, "coords")
+        batch = _integer_tensor(batch, "batch")
         if coords.dim() != 2 or coords.shape[1] != 3:
             raise ValueError(f"coords must have shape (N, 3), got {tuple(coords.shape)}")
         if batch.shape != coords.shape[:1]:
@@ -193,6 +193,8 @@ class BrickLayout:
 
     def check_field(self, value: Tensor, name: str) -> None:
         """Raise ``ValueError`` naming ``name`` unless ``value`` is ``(N, C, 8, 8, 8)``."""
+        if not isinstance(value, Tensor):
+            raise TypeError(f"{name} must be a tensor, got {type(value).__name__}")
         if value.dim() != 5 or value.shape[0] != len(self) or value.shape[2:] != (BRICK,) * 3:
             raise ValueError(
                 f"{name} must be a packed band field of shape ({len(self)}, C, {BRICK}, {BRICK}, "
@@ -210,8 +212,9 @@ class BrickLayout:
         Returns:
             ``(N, C, 8 + 2 width, 8 + 2 width, 8 + 2 width)``.
         """
-        if not 1 <= width <= BRICK:
-            raise ValueError(f"width must be in [1, {BRICK}], got {width}")
+        self.check_field(field, "field")
+        if isinstance(width, bool) or not isinstance(width, int) or not 1 <= width <= BRICK:
+            raise ValueError(f"width must be an integer in [1, {BRICK}], got {width!r}")
         n, channels = field.shape[:2]
         side = BRICK + 2 * width
         sources, missing = self._halo_index(width, field.device)
@@ -257,6 +260,7 @@ class BrickLayout:
     def entry_max(self, x: Tensor) -> Tensor:
         """The largest value of each batch entry and channel of a packed ``x``
         ``(N, C, 8, 8, 8)``, each brick given its entry's: ``(N, C, 1, 1, 1)``."""
+        self.check_field(x, "x")
         per_brick = x.amax(dim=(2, 3, 4))
         batch = self.batch.to(x.device)
         per_entry = per_brick.new_full((self.batch_size, x.shape[1]), -torch.inf).scatter_reduce(
@@ -266,6 +270,11 @@ class BrickLayout:
     def dilate(self, mask: Tensor, path: str = "auto") -> Tensor:
         """``mask`` ``(N, 1, 8, 8, 8)`` bool and every node a 3x3x3 stencil on it reads
         (``path``: the halo's, :meth:`halo`)."""
+        self.check_field(mask, "mask")
+        if mask.dtype != torch.bool or mask.shape[1] != 1:
+            raise ValueError(f"mask must be a bool field of shape ({len(self)}, 1, {BRICK}, "
+                             f"{BRICK}, {BRICK}), got dtype {mask.dtype} and shape "
+                             f"{tuple(mask.shape)}")
         grown = self.halo(mask, 1, path)
         for dim in (2, 3, 4):
             length = grown.shape[dim]
@@ -417,6 +426,16 @@ class BrickLayout:
                     f"{b}, got {tuple(entry.shape)}"
                 )
         return entries
+
+
+def _integer_tensor(value: object, name: str) -> Tensor:
+    """``value`` as an int64 tensor; ``TypeError`` naming ``name`` for floats or bools (a
+    float brick coordinate would be truncated without a word)."""
+    tensor = torch.as_tensor(value)
+    if tensor.dtype == torch.bool or tensor.is_floating_point() or tensor.is_complex():
+        raise TypeError(f"{name} must hold integers (brick coordinates and batch indices), got "
+                        f"dtype {tensor.dtype}")
+    return tensor.long()
 
 
 def _pad_to_bricks(volume: Tensor, fill: str) -> Tensor:
