@@ -582,3 +582,18 @@ def test_a_diverged_torchdiffeq_run_names_its_steps_as_torchdiffeq_took_them():
     with warnings.catch_warnings():
         warnings.simplefilter("error", RuntimeWarning)   # its default step is stable: no warning
         assert torch.isfinite(HeatFlow(time=end, method="rk4")(u, surface)).all()
+
+
+@pytest.mark.parametrize("options", [dict(method="chebyshev"),
+                                     dict(method="euler", reextend_every=None),
+                                     dict(method="implicit", reextend_every=None)])
+def test_a_band_without_nodes_is_refused_naming_band_width(options):
+    """A plane halfway between node layers, band_width 0.4 cells: no node is that close (the
+    Chebyshev expansion divided by the empty band's bound of 0)."""
+    grid = ts.Grid((8, 8, 8), 0.1)
+    x = torch.arange(8, dtype=torch.float64) * 0.1 - 0.35
+    phi = x.view(1, 1, 1, 1, 8).expand(1, 1, 8, 8, 8).clone()
+    surface = ts.ImplicitSurface(phi, grid)
+    u0 = torch.rand(1, 1, 8, 8, 8, dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"band holds no node: band_width=0.04 is 0.40 cells"):
+        HeatFlow(1e-3, band_width=0.04, **options)(u0, surface)

@@ -271,6 +271,16 @@ def data_shape(surface: ImplicitSurface, batch: int, channels: int) -> tuple[int
     return (len(surface.layout), channels, BRICK, BRICK, BRICK)
 
 
+def check_band_holds_nodes(band: Tensor, width: float, spacing: float) -> None:
+    """Raise ``ValueError`` naming ``band_width`` when the flow's ``band`` holds no node."""
+    if not bool(band.any()):
+        raise ValueError(
+            f"the flow's band holds no node: band_width={width:g} is {width / spacing:.2f} "
+            f"cells of this grid and no node lies that close to S; widen band_width (at "
+            f"least {MIN_BAND_CELLS} cells with re-extension)"
+        )
+
+
 def check_times_of_learned_time(time_value: Positive, times: object) -> None:
     """Refuse ``times=`` for a learned time without ``max_time`` (see :class:`Flow`)."""
     if times is not None and time_value.learnable and time_value.bound is None:
@@ -649,6 +659,8 @@ class Flow(nn.Module):
                 "with a band as wide as the diffusion length)"
             )
         band = self.band_mask(surface)
+        if not torch.compiler.is_compiling():
+            check_band_holds_nodes(band, width, surface.spacing)
         self._check_memory(u0, surface, band)
         # before the flow's system, whose bounds read u0 (reaction-diffusion's)
         check_finite(torch.where(with_ring(band, surface.layout), u0, 0.0),

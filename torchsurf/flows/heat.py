@@ -19,7 +19,7 @@ from ..surface import ImplicitSurface, check_data, check_surface
 from ._integrators import Linear, System, tensors, zero_outside
 from ._packed_band import PackedRegion
 from ._positive import Positive
-from .base import Flow, _check_times, check_times_of_learned_time
+from .base import Flow, _check_times, check_band_holds_nodes, check_times_of_learned_time
 from .exponential import BandLaplacian, heat_semigroup, kept_packing
 
 SYMMETRIC_SCHEMES = functional.SCHEMES
@@ -225,6 +225,7 @@ class HeatFlow(Flow):
         width = self.evolving_width(surface)
         operator = BandLaplacian(surface, self.scheme, width, self.path)
         if not torch.compiler.is_compiling():  # a host read: it would break a compiled graph
+            check_band_holds_nodes(operator.band, width, surface.spacing)
             check_finite(torch.where(operator.band, u0, 0.0), "u0 (in the band)")
         d = self.diffusivity.volume(u0)
         rate = (d.reshape(-1) if isinstance(d, Tensor) else u0.new_tensor(d)).expand(u0.shape[1])
