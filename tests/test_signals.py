@@ -255,3 +255,18 @@ def test_coarse_smoothing_refuses_what_it_cannot_use():
         signals.principal_direction(fine, "max", 2.0, coarse=pair)
     with pytest.raises(TypeError, match="coarse must be"):
         signals.principal_direction(fine, "max", 2.0, coarse=coarse.phi)
+
+
+def test_noise_counts_and_seeds_are_checked_by_name():
+    grid = ts.Grid.cube(9, bound=1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid), grid)
+    assert signals.uniform_noise(surface, 2.0, 0).shape == (1, 2, 9, 9, 9)  # a whole float
+    assert signals.surface_noise(surface, np.int64(2), 0).shape == (1, 2, 9, 9, 9)
+    for bad, error in ((0, ValueError), (-1, ValueError), (2.5, ValueError), ("a", TypeError)):
+        with pytest.raises(error, match="channels must be a whole number >= 1"):
+            signals.surface_noise(surface, bad, 0)
+        with pytest.raises(error, match="channels must be a whole number >= 1"):
+            signals.uniform_noise(surface, bad, 0)
+    assert signals.generator(2**64 - 1).initial_seed() == 2**64 - 1
+    with pytest.raises(ValueError, match=r"seed must be a whole number in \[0, 2\*\*64\)"):
+        signals.gaussian_noise(torch.zeros(1, 1, 3, 3, 3), 1.0, 2**64)

@@ -144,7 +144,11 @@ def piecewise_constant_signal(surface: ImplicitSurface, channels: int = 1, cells
         candidates = near[mine].flatten().nonzero().squeeze(1)
         if order is not None:  # the dense grid's order, so that the same nodes are drawn
             candidates = candidates[order[mine].flatten()[candidates].argsort()]
-        pick = _distinct_draws(len(candidates), cells, random, f"surface {b}")
+        # nodes on one normal line can share their closest point to the last bit (float32):
+        # such centres would make one region, so they count as one candidate
+        _, same_point = torch.unique(entry_points[:, candidates].T.cpu(), dim=0,
+                                     return_inverse=True)
+        pick = _distinct_draws(same_point, cells, random, f"surface {b}")
         centres = entry_points[:, candidates[pick.to(points.device)]]  # (3, cells)
         # in float64 about the centres' mean, by differences: cdist's matrix-product form
         # (|x|^2 + |c|^2 - 2 x.c) in float32 swapped a third of the regions of a shape at 1e3
@@ -157,19 +161,22 @@ def piecewise_constant_signal(surface: ImplicitSurface, channels: int = 1, cells
     return result.view(_field_shape(surface, channels))
 
 
-def _distinct_draws(count: int, wanted: int, random: torch.Generator, name: str) -> Tensor:
-    """``wanted`` distinct integers in ``[0, count)``: uniform draws, each repeat drawn again
-    (the draws are those of ``torch.randint`` wherever none repeats)."""
-    if wanted > count:
+def _distinct_draws(classes: Tensor, wanted: int, random: torch.Generator, name: str) -> Tensor:
+    """``wanted`` integers in ``[0, count)`` of distinct ``classes`` ``(count,)`` (int64 class of
+    each): uniform draws, each repeat of a class drawn again (the draws are those of
+    ``torch.randint`` wherever none repeats)."""
+    count, distinct = len(classes), int(classes.max()) + 1 if len(classes) else 0
+    if wanted > distinct:
         raise ValueError(
-            f"cells = {wanted} is more than the {count} nodes within one spacing of S on "
-            f"{name}, among which the regions' centres are drawn: ask for at most {count}"
+            f"cells = {wanted} is more than the {distinct} distinct closest points of the nodes "
+            f"within one spacing of S on {name}, among which the regions' centres are drawn: "
+            f"ask for at most {distinct}"
         )
     pick = torch.randint(count, (wanted,), generator=random)
     while True:
-        seen = torch.zeros(count, dtype=torch.bool)
+        seen = torch.zeros(distinct, dtype=torch.bool)
         repeated = torch.zeros(wanted, dtype=torch.bool)
-        for position, value in enumerate(pick.tolist()):
+        for position, value in enumerate(classes[pick].tolist()):
             repeated[position] = seen[value]
             seen[value] = True
         if not repeated.any():
@@ -271,9 +278,9 @@ class SignalDataset(Dataset):
         self.grid = surface.grid
         self.phi = surface.phi.detach().clone()  # its own: loading the adapter's state copies
         # into the adapter's phi in place, which the surfaces built here must not see
-        self._surfaces = [ImplicitSurface(self.phi[b:b + 1], self.grid, surface.band_width)
-                          for b in range(surface.batch_size)]
-        self._band_width = surface.band_width
+        self._band_width, self._eps = surface.band_width, surface.eps
+        self._surfaces = [ImplicitSurface(self.phi[b:b + 1], self.grid, self._band_width,
+                                          self._eps) for b in range(surface.batch_size)]
         self._batch_surfaces: dict[tuple[int, ...], ImplicitSurface] = {}
 
     def __getstate__(self) -> dict:
@@ -312,7 +319,7 @@ class SignalDataset(Dataset):
         key = tuple(index.flatten().tolist())
         surface = self._batch_surfaces.pop(key, None)
         if surface is None:
-            surface = ImplicitSurface(self.phi[index], self.grid, self._band_width)
+            surface = ImplicitSurface(self.phi[index], self.grid, self._band_width, self._eps)
         self._batch_surfaces[key] = surface  # the most recent last
         while len(self._batch_surfaces) > KEPT_SURFACES:
             self._batch_surfaces.pop(next(iter(self._batch_surfaces)))

@@ -186,10 +186,17 @@ def project_image(
     return _lookup(image, longitude, latitude)
 
 
+SEED_LIMIT = 2**64
+"""Seeds lie in ``[0, 2^64)``, the range of ``torch.Generator.manual_seed``."""
+
+
 def generator(seed: int) -> torch.Generator:
-    """A CPU ``torch.Generator`` seeded with ``seed`` (a whole number >= 0): the same seed gives
-    the same noise."""
-    return torch.Generator().manual_seed(check_count(seed, "seed", minimum=0))
+    """A CPU ``torch.Generator`` seeded with ``seed`` (a whole number in ``[0, 2^64)``): the
+    same seed gives the same noise."""
+    seed = check_count(seed, "seed", minimum=0)
+    if seed >= SEED_LIMIT:
+        raise ValueError(f"seed must be a whole number in [0, 2**64), got {seed}")
+    return torch.Generator().manual_seed(seed)
 
 
 def gaussian_noise(like: Tensor, std: float, seed: int, surface: ImplicitSurface | None = None
@@ -212,7 +219,7 @@ def gaussian_noise(like: Tensor, std: float, seed: int, surface: ImplicitSurface
 
 def uniform_noise(surface: ImplicitSurface, channels: int, seed: int) -> Tensor:
     """Uniform noise in ``[0, 1)`` at every node, ``(1, channels, D, H, W)``, seeded."""
-    check_count(channels, "channels")
+    channels = check_count(channels, "channels")
     values = torch.rand((1, channels, *surface.grid.shape), generator=generator(seed),
                         dtype=surface.phi.dtype)
     return values.to(surface.phi.device)
@@ -234,6 +241,7 @@ def surface_noise(surface: ImplicitSurface, channels: int, seed: int, grain: flo
         seed: the seed; the same seed and grain give the same noise.
         grain: lattice spacing, cells, > 0.
     """
+    channels = check_count(channels, "channels")
     grain = check_positive(grain, "grain")
     grid = surface.grid
     if surface.batch_size != 1:

@@ -156,3 +156,13 @@ def test_data_of_batch_one_on_a_surface_of_batch_two_gives_two_entries():
         torch.testing.assert_close(both[b:b + 1], block(u, alone))
         torch.testing.assert_close(psnr(u + 0.1, u, pair)[b], psnr(u + 0.1, u, alone)[0])
     torch.testing.assert_close(band_mse(u + 0.1, u, pair), torch.tensor(0.01, dtype=torch.float64))
+
+
+def test_counts_given_as_whole_floats_or_bad_are_named():
+    block = DiffusionBlock(2.0)  # check_count's contract: integral floats are counts
+    assert block.channels == 2 and isinstance(block.channels, int)
+    assert block.mlp[-1].out_features == 2
+    assert feature_count(3) == 6 and feature_count(3, pairs=False) == 3
+    for bad in (-3, 0, 2.5):
+        with pytest.raises(ValueError, match="channels must be a whole number >= 1"):
+            feature_count(bad)

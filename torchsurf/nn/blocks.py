@@ -60,7 +60,7 @@ class DiffusionBlock(nn.Module):
     def __init__(self, channels: int, hidden: int | None = None, time: float | list[float] = 1.0,
                  pairs: bool = True, **diffusion: object) -> None:
         super().__init__()
-        self.channels = check_count(channels, "channels")
+        self.channels = channels = check_count(channels, "channels")
         self.pairs = check_flag(pairs, "pairs")
         inputs = channels + feature_count(channels, self.pairs)
         hidden = 2 * channels + inputs if hidden is None else check_count(hidden, "hidden")

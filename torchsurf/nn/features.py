@@ -14,15 +14,17 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from .._checks import check_choice, check_flag, check_positive
+from .._checks import check_choice, check_count, check_flag, check_positive
 from ..backend import PATHS
 from ..operators import functional
 from ..surface import ImplicitSurface, check_data, check_surface
 
 
 def feature_count(channels: int, pairs: bool = True) -> int:
-    """Number of features of ``channels`` channels: ``C`` norms plus ``C (C - 1) / 2`` products."""
-    return channels + (channels * (channels - 1) // 2 if pairs else 0)
+    """Number of features of ``channels`` channels: ``C`` norms plus ``C (C - 1) / 2`` products
+    (with ``pairs``)."""
+    channels = check_count(channels, "channels")
+    return channels + (channels * (channels - 1) // 2 if check_flag(pairs, "pairs") else 0)
 
 
 def gradient_features(u: Tensor, surface: ImplicitSurface, pairs: bool = True,
