@@ -597,3 +597,58 @@ def test_a_band_without_nodes_is_refused_naming_band_width(options):
     u0 = torch.rand(1, 1, 8, 8, 8, dtype=torch.float64)
     with pytest.raises(ValueError, match=r"band holds no node: band_width=0.04 is 0.40 cells"):
         HeatFlow(1e-3, band_width=0.04, **options)(u0, surface)
+
+
+def test_requested_times_never_lengthen_a_given_step():
+    """Each interval took round(steps x its share) steps: times 1.49 steps apart made every
+    Euler step 1.49 times the stable one and the flow blew up (range [-23, 23] against
+    [-1, 2.1]), with last_plan still reporting the given steps."""
+    u0, surface = harmonics(25, torch.float64)
+    flow = HeatFlow(0.1, method="euler")
+    flow(u0, surface)
+    steps, step = flow.last_plan.count, flow.last_plan.step
+    fixed = HeatFlow(0.1, method="euler", steps=steps)
+    alone = fixed(u0, surface)
+    times = [1.49 * step * k for k in range(1, int(steps / 1.49) + 1)]
+    times = [t for t in times if t < 0.1 * (1 - 1e-3)] + [0.1]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # neither unstable nor leaving the data's range
+        result = fixed(u0, surface, times=times)[-1]
+    assert fixed.last_plan.count > steps
+    errors = decay_errors(result, surface, 0.1, "cubic")
+    assert max(errors) < 1.5 * max(decay_errors(alone, surface, 0.1, "cubic")), errors
+
+
+def test_chebyshev_refuses_what_the_other_methods_refuse():
+    """Its path skipped the step planner's checks: time=10 ran 259 pieces (3.6 s) on a 17^3
+    sphere and 1e6 would have run for days; a 1-cell band ran with errors of 0.06."""
+    grid = ts.Grid.cube(17, 1.0)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, 0.6), grid)
+    u0 = torch.rand(1, 1, *grid.shape, generator=torch.Generator().manual_seed(0))
+    for method in ("rkc", "chebyshev"):
+        with pytest.raises(ValueError, match="times the time the diffusion takes to cross"):
+            HeatFlow(1e3, method=method)(u0, surface)
+        with pytest.raises(ValueError, match="band_width=0.125 is 1.00 cells of this grid"):
+            HeatFlow(1e-3, method=method, band_width=grid.spacing)(u0, surface)
+
+
+def test_times_inside_a_torchdiffeq_step_are_re_extended():
+    """dopri5 returned u(0.3 T) of times=[0.3 T, T] as integrated, not constant along the
+    normals: 0.3 off a run to 0.3 T alone 4-5 cells from S."""
+    pytest.importorskip("torchdiffeq")
+    u0, surface = harmonics(25, torch.float64)
+    flow = HeatFlow(0.02, method="dopri5", options={"rtol": 1e-6, "atol": 1e-8})
+    early = flow(u0, surface, times=[0.006, 0.02])[0]
+    alone = HeatFlow(0.006, method="dopri5", options={"rtol": 1e-6, "atol": 1e-8})(u0, surface)
+    band = flow.band_mask(surface)
+    assert float(((early - alone) * band).abs().max()) < 1e-3
+
+
+def test_times_taken_as_the_end_and_gradients_the_times_would_lose():
+    u0, surface = harmonics(17, torch.float64)
+    flow = HeatFlow(0.01)
+    below = float(torch.tensor(0.01, dtype=torch.float32))  # 0.00999999977648258
+    assert torch.equal(flow(u0, surface, times=[below])[0], flow(u0, surface))
+    wanted = torch.tensor(0.005, dtype=torch.float64, requires_grad=True)
+    with pytest.raises(ValueError, match=r"times\[0\] requires grad"):
+        flow(u0, surface, times=[wanted, 0.01])

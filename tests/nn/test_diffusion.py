@@ -557,3 +557,16 @@ def test_an_evaluation_under_inference_mode_leaves_the_surface_trainable():
         for other in gradients[1:]:
             for expected, got in zip(gradients[0], other, strict=True):
                 torch.testing.assert_close(got, expected)
+
+
+def test_absurd_times_narrow_bands_and_times_with_gradients_are_refused():
+    grid = ts.Grid.cube(17, 1.0)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, 0.6), grid)
+    u = torch.rand(1, 2, *grid.shape, generator=torch.Generator().manual_seed(0))
+    with pytest.raises(ValueError, match=r"needs \d+ applications of the operator \(more than"):
+        LearnedDiffusion(2, time=1e6, learn_time=False)(u, surface)  # h^2 units: days of work
+    narrow = ts.ImplicitSurface(surface.phi, grid, band_width=grid.spacing)
+    with pytest.raises(ValueError, match="band_width=0.125 is 1.00 cells"):
+        LearnedDiffusion(2)(u, narrow)  # its errors on S were 0.06 at 1 cell, 0.3 at 0.5
+    with pytest.raises(ValueError, match="time is a tensor that requires grad"):
+        LearnedDiffusion(2, time=torch.ones(2, requires_grad=True), learn_time=False)

@@ -168,7 +168,8 @@ class Schedule:
         adjoint: use ``torchdiffeq.odeint_adjoint``.
         after_step: ``(u, step_index) -> u`` hook (progress bar, re-extension), or ``None``.
         output: ``(u, step_index) -> u`` applied to ``u`` at each requested time before it is
-            returned, not to the state integrated on (a final re-extension), or ``None``.
+            returned, not to the state integrated on (a final re-extension), or ``None``;
+            ``step_index`` is ``None`` for a time inside a step.
         fewest: ``(length, end) -> steps``: the fewest steps the interval of ``length`` that
             ends at the requested time ``end`` (physical time) takes when ``steps`` is
             ``None``, or ``None``.
@@ -280,6 +281,21 @@ decayed by more than ``e^-100`` on any surface the grid resolves, and a longer t
 error that would run for hours."""
 
 
+def check_before_equilibrium(end: float, rho: float, diagonal_cells: float) -> None:
+    """Refuse a linear flow's time ``end`` above :data:`EQUILIBRIUM_CROSSINGS` times the time
+    its diffusion takes to cross ``diagonal_cells`` cells, ``12 diagonal_cells^2 / rho``."""
+    crossing = 12.0 * diagonal_cells**2 / rho
+    if end > EQUILIBRIUM_CROSSINGS * crossing:
+        raise ValueError(
+            f"time={end:g} is {end / crossing:.3g} times the time the diffusion takes to "
+            f"cross the whole grid ({crossing:.3g}: its diagonal of {diagonal_cells:.0f} "
+            f"cells, from the operator's bound rho = {rho:.3g}); the flow reaches its "
+            f"equilibrium long before, and more than {EQUILIBRIUM_CROSSINGS} times is "
+            f"refused as a likely unit error (forward Euler would take {end * rho / 2:.3g} "
+            "steps): the time is in world units squared"
+        )
+
+
 def plan_steps(method: str, system: System, end: float, steps: int | None,
                band_cells: float = 3.0, diagonal_cells: float | None = None) -> Plan:
     """The steps of ``method`` over ``[0, end]``; raises before work when they are absurd.
@@ -300,16 +316,7 @@ def plan_steps(method: str, system: System, end: float, steps: int | None,
     """
     rho = system.spectral_radius
     if system.linear is not None and diagonal_cells is not None:
-        crossing = 12.0 * diagonal_cells**2 / rho
-        if end > EQUILIBRIUM_CROSSINGS * crossing:
-            raise ValueError(
-                f"time={end:g} is {end / crossing:.3g} times the time the diffusion takes to "
-                f"cross the whole grid ({crossing:.3g}: its diagonal of {diagonal_cells:.0f} "
-                f"cells, from the operator's bound rho = {rho:.3g}); the flow reaches its "
-                f"equilibrium long before, and more than {EQUILIBRIUM_CROSSINGS} times is "
-                f"refused as a likely unit error (forward Euler would take {end * rho / 2:.3g} "
-                "steps): the time is in world units squared"
-            )
+        check_before_equilibrium(end, rho, diagonal_cells)
     if steps is None:
         explicit = max(1, math.ceil(end / system.stable_step * (1 - 1e-9)))
         if method == "rkc":
@@ -382,8 +389,8 @@ def _intervals(schedule: Schedule) -> Iterator[tuple[int, Tensor | float, int]]:
     previous: float | Tensor = 0.0
     for index, time in enumerate(schedule.times):
         length = time - previous
-        if schedule.steps is not None:
-            count = max(1, round(schedule.steps * _value(length) / end))
+        if schedule.steps is not None:  # rounded up: no step longer than end / steps
+            count = max(1, math.ceil(schedule.steps * _value(length) / end * (1 - 1e-9)))
         else:
             count = max(1, math.ceil(_value(length) / step * (1 - 1e-9)))
             if schedule.fewest is not None:
@@ -417,10 +424,11 @@ def _finish(system: System, u: Tensor) -> Tensor:
     return u if system.project is None else system.project(u)
 
 
-def _returned(system: System, schedule: Schedule, u: Tensor, done: int,
+def _returned(system: System, schedule: Schedule, u: Tensor, done: int | None,
               reads: Sequence[Tensor] | None = None) -> Tensor:
     """``u`` after ``done`` steps as returned at a requested time: through ``schedule.output``
-    if any, recomputed in backward like the steps when they are checkpointed (``reads``)."""
+    if any, recomputed in backward like the steps when they are checkpointed (``reads``);
+    ``done=None`` for a time inside a step (torchdiffeq's), where no step's re-extension ran."""
     if schedule.output is None:
         return u
     output = schedule.output
@@ -611,7 +619,7 @@ def _torchdiffeq(method: str) -> Callable[[System, Tensor, Schedule], list[Tenso
         out, u, start, done = [], u0, 0.0, 0
         for stop, inner, ends_wanted in _segments(schedule):
             solution = solve(u, [start, *inner, stop])
-            out.extend(_returned(system, schedule, _finish(system, v), done)
+            out.extend(_returned(system, schedule, _finish(system, v), None)
                        for v in solution[1:len(inner) + 1])
             u, start, done = solution[-1], stop, done + 1
             if schedule.after_step is not None:

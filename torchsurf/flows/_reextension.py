@@ -23,6 +23,23 @@ from ..surface import ImplicitSurface
 from . import _limiter
 from .extension import BrickCubicStencil, CubicStencil, _corner_base, cubic_stencil
 
+MIN_BAND_CELLS = 2.9
+"""Narrowest band (in cells) that re-extension allows: the 4^3 nodes a tricubic stencil reads
+around a closest point lie within ``2 sqrt(3) h`` of S, and the band with its ring holds every
+node within ``band_width + h / sqrt(3)`` of S."""
+
+
+def check_reextension_width(width: float, spacing: float, alternative: str = "") -> None:
+    """Raise ``ValueError`` naming ``band_width`` when ``width`` is below
+    :data:`MIN_BAND_CELLS` cells of ``spacing`` (``alternative``: what else the caller can do,
+    appended to the advice)."""
+    if width < MIN_BAND_CELLS * spacing * (1 - 1e-6):
+        raise ValueError(
+            f"band_width={width:g} is {width / spacing:.2f} cells of this grid; re-extension "
+            f"reads closest points up to {MIN_BAND_CELLS} cells from S: use band_width >= "
+            f"{MIN_BAND_CELLS * spacing:.4g}{alternative}"
+        )
+
 Stencil = CubicStencil | BrickCubicStencil
 
 

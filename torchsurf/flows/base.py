@@ -80,7 +80,13 @@ from ._integrators import (
 )
 from ._packed_band import PackedRegion
 from ._positive import Positive
-from ._reextension import kept_stencil, reextend, stencil_key
+from ._reextension import (
+    MIN_BAND_CELLS,
+    check_reextension_width,
+    kept_stencil,
+    reextend,
+    stencil_key,
+)
 from ._solve import SolverOptions
 
 RANGE_SLACK = 0.25
@@ -186,6 +192,12 @@ def _check_times(times: object, end: float) -> list[float]:
             f"{times!r} ({type(times).__name__})"
             + ("; for one time use times=[t]" if isinstance(times, numbers.Real) else "")
         )
+    for i, t in enumerate(times):
+        if isinstance(t, Tensor) and t.requires_grad:
+            raise ValueError(
+                f"times[{i}] requires grad: the output times are not differentiable "
+                "(learn_time=True makes the flow's end time learnable)"
+            )
     values = [check_nonnegative(t, f"times[{i}]") for i, t in enumerate(times)]
     if not values:
         raise ValueError("times must hold at least one time, got an empty sequence")
@@ -196,14 +208,10 @@ def _check_times(times: object, end: float) -> list[float]:
             )
     if values[-1] > end * (1 + slack):
         raise ValueError(f"times must not exceed the flow's time {end:g}, got {values[-1]:g}")
-    return [min(t, end) if t > end * (1 - slack) else t for t in values]
+    return [end if t > end * (1 - slack) else t for t in values]
 
 
 REEXTEND_CHOICES = ("auto",)
-MIN_BAND_CELLS = 2.9
-"""Narrowest band (in cells) that re-extension allows: the 4^3 nodes a tricubic stencil reads
-around a closest point lie within ``2 sqrt(3) h`` of S, and the band with its ring holds every
-node within ``band_width + h / sqrt(3)`` of S."""
 
 
 WIDE_BAND_CELLS = 5.0
@@ -327,7 +335,9 @@ class Flow(nn.Module):
         steps: number of time steps (``None``: for ``"rkc"``, steps no longer than the time
             the fastest diffusion takes to cross the band (:func:`plan_steps`); for
             ``"euler"`` and ``"heun"``, the stable step ``2 / rho``, rounded so that the steps
-            end exactly at ``time``); for adaptive torchdiffeq methods, unused. A run of more
+            end exactly at ``time``); for adaptive torchdiffeq methods, unused. With
+            ``times``, each interval between requested times takes its share of ``steps``
+            rounded up, so that no step is longer than ``time / steps``. A run of more
             than ``10**6`` steps or evaluations of the rate (RKC's stages counted) is refused
             before any work; more than ``10**5`` evaluations warn with the count.
         learn_time: make ``time`` an ``nn.Parameter`` (kept positive by softplus).
@@ -572,8 +582,8 @@ class Flow(nn.Module):
             def periodic(u: Tensor, k: int) -> Tensor:
                 return extended(u) if reextends(k) else u
 
-            def output(u: Tensor, k: int) -> Tensor:
-                return u if reextends(k) else extended(u)
+            def output(u: Tensor, k: int | None) -> Tensor:
+                return u if k is not None and reextends(k) else extended(u)
 
             hooks.append(periodic)
         if not hooks:
@@ -651,13 +661,9 @@ class Flow(nn.Module):
         end = self.time_value.maximum()  # a host read only for a learned time without max_time
         wanted = None if times is None else _check_times(times, end)
         width = self.evolving_width(surface)
-        if self.reextend_every is not None and width < MIN_BAND_CELLS * surface.spacing * (1 - 1e-6):
-            raise ValueError(
-                f"band_width={width:g} is {width / surface.spacing:.2f} cells of this grid; "
-                f"re-extension reads closest points up to {MIN_BAND_CELLS} cells from S: "
-                f"use band_width >= {MIN_BAND_CELLS * surface.spacing:.4g} (or reextend_every=None "
-                "with a band as wide as the diffusion length)"
-            )
+        if self.reextend_every is not None:
+            check_reextension_width(width, surface.spacing, " (or reextend_every=None with a "
+                                    "band as wide as the diffusion length)")
         band = self.band_mask(surface)
         if not torch.compiler.is_compiling():
             check_band_holds_nodes(band, width, surface.spacing)
@@ -696,6 +702,8 @@ class Flow(nn.Module):
             # RKC's fewest steps bound the time error of the modes not yet decayed
             schedule.fewest = functools.partial(_fewest_steps, self.method, system,
                                                 width / surface.spacing)
+            plan = Plan(steps_taken(schedule), plan.step)
+        elif len(schedule.times) > 1 and plan.count is not None:
             plan = Plan(steps_taken(schedule), plan.step)
         self.last_plan = plan
         bar = self._progress_bar(plan.count)

@@ -49,6 +49,21 @@ constant source ``f`` to the solution of ``u' = L u + f``, ``u(0) = 0``, at time
 MAX_TERMS = 100_000
 """More terms than this are refused before any work: ``t rho`` near ``10^9``, a unit error."""
 
+MAX_APPLICATIONS = 10**6
+"""More operator applications than this in one expansion (its pieces' terms added up) are
+refused before any work: ``t rho`` near ``10^7``, hours of work and a likely unit error."""
+
+
+def check_applications(applications: int, time: float, bound: float) -> None:
+    """Raise ``ValueError`` before any work when an expansion over ``time`` would take more than
+    :data:`MAX_APPLICATIONS` operator ``applications``."""
+    if applications > MAX_APPLICATIONS:
+        raise ValueError(
+            f"a time of {time:g} (world units squared) needs {applications} applications of "
+            f"the operator (more than {MAX_APPLICATIONS}): time * rho = {time * bound:.3g} "
+            f"(rho = {bound:.3g}, the operator's bound), hours of work and a likely unit error"
+        )
+
 PIECE_HALF_WIDTH = 250.0
 """The largest ``a = t rho / 2`` one expansion of ``exp`` covers; longer times are applied as
 the ``m``-th power of the expansion for ``t / m`` (:func:`pieces_for`). A band operator whose
@@ -356,6 +371,7 @@ def expansion(
         top = _host_largest(times) if largest is None else largest
         pieces = pieces_for(top, bound) if kind == "exp" else 1
         terms = count_terms(kind, top / pieces, bound, x.dtype)
+        check_applications(pieces * (terms - 1), top, bound)
     if differentiable_operator and torch.is_grad_enabled():
         c = coefficients(kind, times / pieces, bound, terms)
         for _ in range(pieces):

@@ -56,7 +56,7 @@ from ..surface import ImplicitSurface
 from . import chebyshev
 from ._integrators import with_ring
 from ._packed_band import Fill, PackedBand, PackedRegion
-from ._reextension import kept_stencil, reextend
+from ._reextension import check_reextension_width, kept_stencil, reextend
 from .extension import BrickCubicStencil, CubicStencil, cubic_stencil
 
 BOUND_MARGIN = 1.1
@@ -259,6 +259,7 @@ class BandLaplacian:
                 f"scheme must be one of {functional.SCHEMES} (the divergence forms), got {scheme!r}"
             )
         width = surface.band_width if band_width is None else float(band_width)
+        check_reextension_width(width, surface.spacing)  # the ring is re-extended each time
         self.surface, self.scheme, self.path, self.width = surface, scheme, path, width
         self.band = surface.band_mask(width)
         self.region = with_ring(self.band, surface.layout)

@@ -16,10 +16,17 @@ from ..backend import PATHS
 from ..operators import functional, laplace_beltrami
 from ..operators.laplace_beltrami import SCHEMES
 from ..surface import ImplicitSurface, check_data, check_surface
-from ._integrators import Linear, System, tensors, zero_outside
+from . import chebyshev
+from ._integrators import Linear, System, check_before_equilibrium, tensors, zero_outside
 from ._packed_band import PackedRegion
 from ._positive import Positive
-from .base import Flow, _check_times, check_band_holds_nodes, check_times_of_learned_time
+from .base import (
+    Flow,
+    _check_times,
+    _diagonal_cells,
+    check_band_holds_nodes,
+    check_times_of_learned_time,
+)
 from .exponential import BandLaplacian, heat_semigroup, kept_packing
 
 SYMMETRIC_SCHEMES = functional.SCHEMES
@@ -223,9 +230,10 @@ class HeatFlow(Flow):
         if separately is not None:
             return separately
         width = self.evolving_width(surface)
+        if not torch.compiler.is_compiling():
+            check_band_holds_nodes(surface.band_mask(width), width, surface.spacing)
         operator = BandLaplacian(surface, self.scheme, width, self.path)
         if not torch.compiler.is_compiling():  # a host read: it would break a compiled graph
-            check_band_holds_nodes(operator.band, width, surface.spacing)
             check_finite(torch.where(operator.band, u0, 0.0), "u0 (in the band)")
         d = self.diffusivity.volume(u0)
         rate = (d.reshape(-1) if isinstance(d, Tensor) else u0.new_tensor(d)).expand(u0.shape[1])
@@ -233,7 +241,13 @@ class HeatFlow(Flow):
         # host floats (read from the parameters only when learned without a bound)
         end = self.time_value.maximum()
         largest = end * self.diffusivity.maximum()
-        piece = CHEBYSHEV_PIECE * (width / surface.spacing) ** 2 / float(operator.bound)
+        bound = float(operator.bound)
+        check_before_equilibrium(largest, bound, _diagonal_cells(surface))
+        piece = CHEBYSHEV_PIECE * (width / surface.spacing) ** 2 / bound
+        outer = max(1, math.ceil(largest / piece * (1 - 1e-9)))
+        inner = chebyshev.pieces_for(largest / outer, bound)
+        terms = chebyshev.count_terms("exp", largest / outer / inner, bound, u0.dtype)
+        chebyshev.check_applications(outer * inner * (terms - 1), largest, bound)
 
         def semigroup(fraction: float) -> Tensor:
             pieces = max(1, math.ceil(largest * fraction / piece * (1 - 1e-9)))
