@@ -124,6 +124,63 @@ def _warn_floored_on_surface(crossing: Tensor, grad_norm: Tensor, scale: Tensor)
         )
 
 
+FLAT_RATIO = 0.6
+"""``phi`` whose distances next to S (``|phi| / |grad phi|``) add up, across S, to less than this
+share of the nodes' spacing along the normal (1 for a distance; 1/3 for ``d^3``, 1/2 for
+``d |d|``) is warned about (:func:`_warn_flat_at_surface`)."""
+
+FLAT_SAMPLES = 4096
+"""At most this many node pairs across S are read for :func:`_warn_flat_at_surface`."""
+
+
+def _warn_flat_at_surface(phi: Tensor, crossing: Tensor, grad_norm: Tensor, floor: Tensor,
+                          normal: Tensor, spacing: float) -> None:
+    """Warn when ``phi`` ``(B, 1, D, H, W)`` flattens at S (``phi = g(d)`` with ``g'(0) = 0``,
+    such as ``d^3``): its first-order distances ``|phi| / |grad phi|`` then shrink by a factor
+    near S (``d / 3``), and with them the band, the closest points and every re-extension.
+
+    Read at up to :data:`FLAT_SAMPLES` nodes of ``crossing``: each with its neighbour across S
+    along the axis of the normal's largest component ``a``, whose distances add up to
+    ``h |n_a|`` for a distance; warned when their median share is below :data:`FLAT_RATIO`.
+    ``floor``: ``(B, 1, 1, 1, 1)``, the least ``|grad phi|`` the distances divide by."""
+    nodes = crossing[:, 0].nonzero()  # (M, 4): b, k, j, i
+    if len(nodes) == 0:
+        return
+    nodes = nodes[:: max(1, len(nodes) // FLAT_SAMPLES)]
+    b, k, j, i = nodes.unbind(1)
+    n = normal[b, :, k, j, i]  # (M, 3): x, y, z
+    axis = n.abs().argmax(dim=1)
+    along = n.gather(1, axis[:, None])[:, 0]
+    inside = phi[b, 0, k, j, i] < 0
+    step = torch.where(inside == (along > 0), 1, -1)  # towards S along the normal
+    other = nodes[:, 1:].clone()
+    other[torch.arange(len(nodes)), 2 - axis] += step  # x, y, z are dims i, j, k
+    shape = torch.tensor(phi.shape[2:], device=phi.device)
+    kept = ((other >= 0) & (other < shape)).all(dim=1)
+    b, nodes, other, along = b[kept], nodes[kept], other[kept], along[kept]
+    far = phi[b, 0, other[:, 0], other[:, 1], other[:, 2]]
+    near = phi[b, 0, nodes[:, 1], nodes[:, 2], nodes[:, 3]]
+    kept = (far < 0) != (near < 0)
+    if int(kept.sum()) < 8:
+        return
+
+    def distance(values: Tensor, at: tuple[Tensor, ...]) -> Tensor:
+        norm = grad_norm[b, 0, at[0], at[1], at[2]]
+        return values.abs() / torch.maximum(norm, floor[b, 0, 0, 0, 0])
+
+    total = (distance(near, nodes[:, 1:].unbind(1)) + distance(far, other.unbind(1)))
+    share = float((total / (spacing * along.abs()))[kept].median())
+    if share < FLAT_RATIO:
+        warnings.warn(
+            f"phi: its distances next to S (|phi| / |grad phi|) add up, across S, to "
+            f"{share:.2f} of the nodes' spacing along the normal (1 for a distance): phi "
+            f"flattens at S (as d^3 does), so the band, the closest points and the flows read "
+            f"distances {1 / share:.1f} times too short; make phi a distance near S first "
+            "(torchsurf.sdf.redistance)",
+            RuntimeWarning, stacklevel=caller_stacklevel(),
+        )
+
+
 FACE_LAYERS = 2
 """S crossing a cell of the box's outer ``FACE_LAYERS`` layers of nodes (within about two
 cells of a face) where its level sets leave the box obliquely is warned about
@@ -291,6 +348,9 @@ class ImplicitSurface(nn.Module):
             _warn_floored_on_surface(crossing, unit_norm.detach(), scale.detach())
             if self.layout is None:  # bricks keep their band off the box's faces
                 _warn_oblique_at_faces(crossing, self.normal.detach())
+                _warn_flat_at_surface(phi.detach(), crossing, grad_norm.detach(),
+                                      DISTANCE_FLOOR * (scale * magnitude).detach(),
+                                      self.normal.detach(), self.spacing)
         self._phi_version = phi._version
         self.register_buffer("_mean_curvature", None, persistent=False)
         self.register_buffer("_haloed_normal", None, persistent=False)
