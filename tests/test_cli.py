@@ -297,6 +297,19 @@ def test_a_signal_setting_another_kind_reads_is_refused_and_null_unsets_it(tmp_p
     assert record["config"]["signal"]["tiles"] is None  # left to its default, 8
 
 
+def test_a_mapping_given_whole_replaces_the_files_and_a_dotted_key_changes_one_entry():
+    """flowvis_trefoil's file sets surface.params {tube_radius: 0.2, scale: 0.4}: switching
+    the shape needed params cleared, and surface.params={} merged into them."""
+    experiment, _ = config.load("flowvis_trefoil", ["surface.shape=torus", "surface.params={}"])
+    assert experiment.surface.params == {}
+    experiment, _ = config.load("flowvis_trefoil", ["surface.params={tube_radius: 0.15}"])
+    assert experiment.surface.params == {"tube_radius": 0.15}
+    experiment, _ = config.load("flowvis_trefoil", ["surface.params.tube_radius=0.15"])
+    assert experiment.surface.params == {"tube_radius": 0.15, "scale": 0.4}
+    experiment, _ = config.load("flowvis_trefoil", ["field={kind: axis}"])
+    assert experiment.field.kind.name == "axis" and experiment.field.smoothing == 2.0
+
+
 def test_text_settings_are_taken_as_written():
     # YAML read name=yes as True (pictures named True.png) and name=010 as 8
     for text in ("yes", "010", "1e3", "0x10", "null_model"):

@@ -477,6 +477,22 @@ def _dotlist(overrides: list[str]) -> DictConfig:
     return parsed
 
 
+def _drop_replaced_mappings(raw: DictConfig, given: DictConfig, overrides: list[str]) -> None:
+    """Remove from the file's ``raw`` settings each mapping an override gives whole
+    (``surface.params={}``), so that it replaces the file's instead of merging into it
+    (``surface.params.radius=2`` still changes one entry)."""
+    for item in overrides:
+        key = item.partition("=")[0].strip()
+        if not isinstance(OmegaConf.select(given, key, default=None), DictConfig):
+            continue
+        *parents, last = key.split(".")
+        node: Any = raw
+        for part in parents:
+            node = node.get(part) if isinstance(node, DictConfig) else None
+        if isinstance(node, DictConfig) and last in node:
+            del node[last]
+
+
 def load(config: str | os.PathLike, overrides: list[str] | None = None) -> tuple[Experiment, Path]:
     """Read, merge with ``overrides`` (``["grid.size=24", ...]``) and check a config.
 
@@ -495,7 +511,9 @@ def load(config: str | os.PathLike, overrides: list[str] | None = None) -> tuple
         raise ConfigError("", f"{path} must hold a mapping of settings, got a list")
     overrides = parse_overrides(overrides or [])
     try:
-        merged = OmegaConf.merge(OmegaConf.structured(Experiment), raw, _dotlist(overrides))
+        given = _dotlist(overrides)
+        _drop_replaced_mappings(raw, given, overrides)
+        merged = OmegaConf.merge(OmegaConf.structured(Experiment), raw, given)
         experiment = OmegaConf.to_object(merged)
     except MERGE_ERRORS as error:
         raise _omegaconf_error(error, raw, overrides or []) from error
