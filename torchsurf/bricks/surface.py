@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import operator
+
 import torch
 from torch import Tensor
 
-from .._checks import check_count, check_finite, check_positive, check_tensor
+from .._checks import check_finite, check_positive, check_tensor
 from ..grid import Grid
 from ..surface import ImplicitSurface
 from .layout import BRICK, BrickLayout
@@ -249,15 +251,18 @@ class BrickSurface(ImplicitSurface):
 
     def _check_points(self, points: Tensor, entry: int, name: str = "points") -> int:
         """Check ``points`` ``(V, 3)`` and return ``entry`` as an ``int`` (numpy and 0-d
-        tensor integers too)."""
+        integer tensors too)."""
         check_tensor(points, name)
         if points.dim() != 2 or points.shape[1] != 3:
             raise ValueError(f"{name} must have shape (V, 3), got {tuple(points.shape)}")
         check_finite(points.detach(), name)
-        entry = check_count(entry, "entry", minimum=0)
-        if entry >= self.batch_size:
-            raise ValueError(f"entry must be in [0, {self.batch_size}), got {entry}")
-        return entry
+        try:
+            index = operator.index(entry) if not isinstance(entry, bool) else None
+        except TypeError:
+            index = None
+        if index is None or not 0 <= index < self.batch_size:
+            raise ValueError(f"entry must be an integer in [0, {self.batch_size}), got {entry}")
+        return index
 
     def _cell_corners(self, index: Tensor, entry: int
                       ) -> tuple[Tensor, Tensor, list[tuple[Tensor, Tensor, Tensor]]]:

@@ -390,7 +390,7 @@ def _intervals(schedule: Schedule) -> Iterator[tuple[int, Tensor | float, int]]:
     for index, time in enumerate(schedule.times):
         length = time - previous
         if schedule.steps is not None:  # rounded up: no step longer than end / steps
-            count = max(1, math.ceil(schedule.steps * _value(length) / end * (1 - 1e-9)))
+            count = max(1, math.ceil(schedule.steps * _value(length) / end * (1 - 1e-6)))
         else:
             count = max(1, math.ceil(_value(length) / step * (1 - 1e-9)))
             if schedule.fewest is not None:
