@@ -162,9 +162,9 @@ def piecewise_constant_signal(surface: ImplicitSurface, channels: int = 1, cells
 
 
 def _distinct_draws(classes: Tensor, wanted: int, random: torch.Generator, name: str) -> Tensor:
-    """``wanted`` integers in ``[0, count)`` of distinct ``classes`` ``(count,)`` (int64 class of
-    each): uniform draws, each repeat of a class drawn again (the draws are those of
-    ``torch.randint`` wherever none repeats)."""
+    """``wanted`` indices into ``classes`` ``(count,)`` (the int64 class of each candidate), no
+    two of one class: uniform draws, each repeat of a class drawn again (the draws are those
+    of ``torch.randint`` wherever none repeats)."""
     count, distinct = len(classes), int(classes.max()) + 1 if len(classes) else 0
     if wanted > distinct:
         raise ValueError(

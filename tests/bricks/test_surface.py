@@ -137,7 +137,7 @@ def test_from_mesh_equals_the_dense_distance_on_every_stored_node_that_matters(s
     # beyond the box, near S: extrapolated from the last two nodes, as the dense surface reads
     linear = surface.layout.from_dense(dense_phi, fill="linear")
     beyond = ~surface.layout.inside
-    assert int(beyond.sum()) > (1000 if size == 37 else -1)
+    assert int(beyond.sum()) > 1000 or size % 8 == 0  # 40 nodes: no brick reaches past the box
     assert torch.allclose(surface.phi[beyond], linear[beyond], atol=1e-12)
 
 

@@ -24,7 +24,6 @@ from .base import (
     Flow,
     _check_times,
     _diagonal_cells,
-    check_band_holds_nodes,
     check_times_of_learned_time,
 )
 from .exponential import BandLaplacian, heat_semigroup, kept_packing
@@ -230,8 +229,6 @@ class HeatFlow(Flow):
         if separately is not None:
             return separately
         width = self.evolving_width(surface)
-        if not torch.compiler.is_compiling():
-            check_band_holds_nodes(surface.band_mask(width), width, surface.spacing)
         operator = BandLaplacian(surface, self.scheme, width, self.path)
         if not torch.compiler.is_compiling():  # a host read: it would break a compiled graph
             check_finite(torch.where(operator.band, u0, 0.0), "u0 (in the band)")
