@@ -378,6 +378,21 @@ def test_order_two_decode_gradcheck_and_errors() -> None:
 MESH_DIR = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "meshes"
 
 
+@pytest.mark.parametrize("order", [1, 2])
+def test_decoding_reads_nothing_beyond_the_band(order: int) -> None:
+    """Nodes beyond a narrow band carry weight 0: marking them NaN or infinite (unknown
+    values) must not reach a vertex (0 * NaN is NaN)."""
+    mesh = trimesh.creation.icosphere(subdivisions=3)
+    grid = tsm.fit_grid(mesh, 33)
+    adapter = tsm.MeshAdapter(mesh, grid, band_width=2 * grid.spacing, dtype=torch.float64,
+                              order=order)
+    volume = adapter.encode(adapter.vertices[:, 2][None, None])
+    expected = adapter.decode(volume)
+    for mark in (float("nan"), float("inf")):
+        assert torch.equal(adapter.decode(volume.masked_fill(~adapter.band_mask, mark)),
+                           expected)
+
+
 @pytest.mark.parametrize("name", ["fandisk.obj", "teapot.obj"])
 def test_order_two_decode_does_not_amplify_data_on_flat_parts(name: str) -> None:
     """Where a vertex's taps read many small coplanar facets, its hat-reproducing weights

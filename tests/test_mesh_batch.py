@@ -133,6 +133,13 @@ def test_bad_input_raises() -> None:
         batch.encode(torch.zeros(count, 1))
     with pytest.raises(ValueError, match=r"values\[0\] must have shape"):
         batch.encode([torch.zeros(count + 1, 1)])
+    with pytest.raises(TypeError, match=r"values\[0\] must be a floating-point"):
+        batch.encode([torch.zeros(count, 1, dtype=torch.int64)])
+    pair = MeshBatchAdapter([AnalyticShape("sphere"), AnalyticShape("sphere")], resolution=13)
+    with pytest.raises(ValueError, match=r"values\[1\] has 1 channels of torch.float64"):
+        pair.encode([torch.zeros(count, 1), torch.zeros(count, 1, dtype=torch.float64)])
+    with pytest.raises(ValueError, match=r"values\[1\] has 2 channels"):
+        pair.encode([torch.zeros(count, 1), torch.zeros(count, 2)])
     with pytest.raises(ValueError, match="volume must hold the 1 shapes"):
         batch.decode(torch.zeros(2, 1, 13, 13, 13))
 

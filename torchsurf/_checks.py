@@ -61,6 +61,19 @@ def check_tensor(value: object, name: str) -> Tensor:
     return value
 
 
+def check_like_first(entry: Tensor, first: Tensor, name: str, first_name: str) -> None:
+    """Raise ``ValueError`` naming ``name`` unless ``entry`` (``(V_b, C)``, one of a list) has
+    the channel count, dtype and device of the list's ``first`` entry, named ``first_name``:
+    entries are joined into one batch, which would promote mixed dtypes silently."""
+    if (entry.shape[-1], entry.dtype, entry.device) != (first.shape[-1], first.dtype,
+                                                        first.device):
+        raise ValueError(
+            f"{name} has {entry.shape[-1]} channels of {entry.dtype} on {entry.device}, "
+            f"{first_name} {first.shape[-1]} of {first.dtype} on {first.device}: every entry "
+            "needs the same C, dtype and device"
+        )
+
+
 def check_volume(value: object, name: str, channels: int | None = None) -> Tensor:
     """Check that ``value`` is a floating-point volume ``(B, C, D, H, W)``.
 

@@ -195,3 +195,16 @@ def _least_change(trilinear: Tensor, usable: Tensor, offsets_world: list[Tensor]
     normal = normal + REGULARISATION * torch.eye(constraints.shape[1], dtype=torch.float64)
     correction = constraints.transpose(1, 2) @ torch.linalg.solve(normal, residual[..., None])
     return (start + correction[..., 0]) * usable
+
+
+def onto_weighted_taps(index: Tensor, weights: Tensor) -> Tensor:
+    """``index`` ``(V, 64)`` with every tap of weight 0 moved onto its vertex's heaviest tap.
+
+    A tap of weight 0 (a node beyond the band, outside the box, or of a brick not stored) adds
+    ``0 * value``, which is NaN where the value is NaN or infinite: a volume that marks the
+    nodes beyond its band so would decode to NaN at vertices that never read them. Moved onto
+    a node the vertex reads anyway, the tap adds an exact 0 at no cost per decode.
+    """
+    heaviest = index.gather(1, weights.abs().argmax(dim=1, keepdim=True))
+    return torch.where(weights != 0, index, heaviest)
+

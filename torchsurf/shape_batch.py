@@ -22,7 +22,15 @@ import trimesh
 from torch import Tensor, nn
 
 from . import sdf
-from ._checks import check_count, check_dtype, check_nonnegative, check_positive, check_volume
+from ._checks import (
+    check_count,
+    check_dtype,
+    check_like_first,
+    check_nonnegative,
+    check_positive,
+    check_tensor,
+    check_volume,
+)
 from ._mesh_input import MeshLike, as_trimesh, triangle_arrays
 from .grid import Grid, default_margin
 from .mesh import MeshAdapter, extract
@@ -254,22 +262,14 @@ class MeshBatchAdapter(nn.Module):
                 f"got {type(values).__name__}"
                 + ("" if isinstance(values, Tensor) else f" of length {len(values)}")
             )
-        channels = None
         volumes = []
         for b, (entry, adapter) in enumerate(zip(values, self.adapters, strict=True)):
             count = len(adapter.vertices)
-            if (not isinstance(entry, Tensor) or entry.dim() != 2 or entry.shape[0] != count
-                    or entry.shape[1] == 0):
-                shape = tuple(entry.shape) if isinstance(entry, Tensor) else type(entry).__name__
+            check_tensor(entry, f"values[{b}]")
+            if entry.dim() != 2 or entry.shape[0] != count or entry.shape[1] == 0:
                 raise ValueError(f"values[{b}] must have shape ({count}, C), C at least 1, got "
-                                 f"{shape}")
-            if channels is None:
-                channels = entry.shape[1]
-            elif entry.shape[1] != channels:
-                raise ValueError(
-                    f"values[{b}] has {entry.shape[1]} channels, values[0] has {channels}; "
-                    "every shape needs the same C"
-                )
+                                 f"{tuple(entry.shape)}")
+            check_like_first(entry, values[0], f"values[{b}]", "values[0]")
             volumes.append(adapter.encode(entry.T[None]))
         return torch.cat(volumes)
 

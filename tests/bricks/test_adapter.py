@@ -82,7 +82,11 @@ def test_adapter_refuses_bad_input_by_name():
     with pytest.raises(ValueError, match="sequence of 2 tensors"):
         adapter.encode([torch.zeros(count, 1, dtype=torch.float64)])
     with pytest.raises(ValueError, match=r"values\[1\] must have shape \(42, C\)"):
+        adapter.encode([torch.zeros(count, 1), torch.zeros(count + 1, 1)])
+    with pytest.raises(ValueError, match=r"values\[1\] has 2 channels"):
         adapter.encode([torch.zeros(count, 1), torch.zeros(count, 2)])
+    with pytest.raises(ValueError, match=r"values\[1\] has 1 channels of torch.float32"):
+        adapter.encode([torch.zeros(count, 1, dtype=torch.float64), torch.zeros(count, 1)])
     with pytest.raises(ValueError, match="field must be a packed band field"):
         adapter.decode(torch.zeros(1, 1, 8, 8, 8, dtype=torch.float64))
     with pytest.raises(ValueError, match="order"):
@@ -98,3 +102,17 @@ def test_adapter_refuses_bad_input_by_name():
         bricks.BrickMeshAdapter(fitted.meshes, fitted.grids[:1])
     with pytest.raises(ValueError, match="faces"):
         bricks.BrickMeshAdapter(sphere, ts.Grid.cube(20, 1.3))
+
+
+def test_decoding_reads_nothing_beyond_the_band():
+    """Nodes beyond the band (or in bricks not stored) carry weight 0: marking them NaN or
+    infinite must not reach a vertex (0 * NaN is NaN)."""
+    sphere = trimesh.creation.icosphere(3)
+    fitted = bricks.fit_grids([sphere], 33)
+    adapter = bricks.BrickMeshAdapter(fitted.meshes, fitted.grids, dtype=torch.float64,
+                                      band_width=2 * fitted.grids[0].spacing)
+    field = adapter.encode([adapter.vertices[0][:, 2:]])
+    expected = adapter.decode(field)[0]
+    for mark in (float("nan"), float("inf")):
+        decoded = adapter.decode(field.masked_fill(~adapter.band_mask, mark))[0]
+        assert torch.equal(decoded, expected)

@@ -9,7 +9,7 @@ import torch
 from torch import Tensor, nn
 
 from .. import _mesh_sdf, _vertex_decode, sdf
-from .._checks import check_dtype, check_positive, check_tensor
+from .._checks import check_dtype, check_like_first, check_positive, check_tensor
 from .._mesh_input import MeshLike, warn_unused_vertices
 from ..grid import Grid
 from ..mesh import check_adapter_band, check_decode_order
@@ -174,10 +174,11 @@ class BrickMeshAdapter(nn.Module):
             tap_row = tap_row.clamp(min=0)
             hats = _vertex_decode.Hats(corners[tap_row], triangle_weights[tap_row],
                                        offset + torch.arange(len(vertices)))
-            weights.append(_vertex_decode.weights(
+            vertex_weights = _vertex_decode.weights(
                 cells, usable, points, [points_set[tap_row] for points_set in references],
-                grid.spacing, hats))
-            indices.append(index.clamp(min=0))
+                grid.spacing, hats)
+            weights.append(vertex_weights)
+            indices.append(_vertex_decode.onto_weighted_taps(index.clamp(min=0), vertex_weights))
             offset += len(vertices)
         return torch.cat(indices), torch.cat(weights)
 
@@ -212,12 +213,12 @@ class BrickMeshAdapter(nn.Module):
             )
         for b, (entry, count) in enumerate(zip(values, self._counts, strict=True)):
             check_tensor(entry, f"values[{b}]")
-            if (entry.dim() != 2 or entry.shape[0] != count or entry.shape[1] != values[0].shape[1]
-                    or entry.shape[1] == 0):
+            if entry.dim() != 2 or entry.shape[0] != count or entry.shape[1] == 0:
                 raise ValueError(
-                    f"values[{b}] must have shape ({count}, C) with the C of values[0], C at "
-                    f"least 1, got {tuple(entry.shape)}"
+                    f"values[{b}] must have shape ({count}, C), C at least 1, got "
+                    f"{tuple(entry.shape)}"
                 )
+            check_like_first(entry, values[0], f"values[{b}]", "values[0]")
         joined = torch.cat(list(values))
         interpolated = (joined[self._corners] * self._weights.to(joined.dtype)[..., None]).sum(1)
         channels = joined.shape[1]
