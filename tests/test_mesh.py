@@ -126,6 +126,22 @@ def test_extract_bad_input_raises() -> None:
         tsm.extract(phi[0], grid)
 
 
+def test_extract_refuses_a_level_that_is_only_touched() -> None:
+    """phi reaching the level at nodes without crossing it gave a mesh of one vertex and no
+    face, or scikit-image's bare RuntimeError."""
+    grid = ts.Grid((8, 8, 8), 1.0)
+    points = grid.points(torch.float64)
+    with pytest.raises(ValueError, match="never crosses the level 0, it only touches it"):
+        tsm.extract((points - 3).norm(dim=-1)[None, None], grid)
+    with pytest.raises(ValueError, match="never crosses the level 0 in any cell"):
+        tsm.extract(-(points[..., 0] - 3).abs()[None, None], grid)
+    wide = ts.Grid((12, 12, 12), 1.0)
+    x = wide.points(torch.float64)[..., 0]
+    known = ((x <= 2) | (x >= 9))[None, None]
+    with pytest.raises(ValueError, match="in any cell .*on the known nodes"):
+        tsm.extract((x - 5.5)[None, None], wide, mask=known)
+
+
 def test_fit_grid_holds_the_mesh_with_margin() -> None:
     mesh = trimesh.creation.box(extents=(2.0, 1.0, 0.5))
     grid = tsm.fit_grid(mesh, 41, margin=0.25)

@@ -135,3 +135,66 @@ def test_pyvista_draws_the_panels_the_size_asked(tmp_path):
     picture = mpimg.imread(path)
     assert picture.shape[:2] == (60, 160)
     assert picture[:, :80, :3].std() > 0.05 and picture[:, 80:, :3].std() > 0.05
+
+
+def test_colours_refuse_what_they_would_misdraw():
+    """Equal values share a colour under equalize (they had ranks by vertex order); the
+    channel count and limits are checked (a scalar of 3 channels showed the first; limits
+    (1, 0) or NaN painted every vertex the lowest colour)."""
+    ties = np.r_[np.zeros(5), np.ones(5)][:, None]
+    grey = render.colours(ties, "scalar", "gray", equalize=True)[:, 0]
+    assert np.ptp(grey[:5]) == 0 and np.ptp(grey[5:]) == 0 and grey[5] > grey[0]
+    values = np.linspace(0, 1, 3)[:, None]
+    with pytest.raises(ValueError, match=r"needs values of shape \(V, 1\)"):
+        render.colours(np.repeat(values, 3, axis=1), "scalar")
+    with pytest.raises(ValueError, match=r"needs values of shape \(V, 3\)"):
+        render.colours(np.ones((2, 4)), "rgb")
+    for limits in [(1.0, 0.0), (float("nan"), 1.0), (0.0,), (0.0, 0.0)]:
+        with pytest.raises(ValueError, match="limits must be two finite numbers"):
+            render.colours(values, "scalar", "gray", limits)
+
+
+def test_panels_refuse_bad_sizes_and_colours(tmp_path):
+    mesh = trimesh.creation.icosphere(subdivisions=1)
+    grey = np.full((len(mesh.vertices), 3), 0.5)
+    for width in (0, -5, 10.5, True):
+        with pytest.raises(ValueError, match="width must be a positive whole number"):
+            render.render_panels(mesh, [("a", grey)], tmp_path / "a.png", width=width,
+                                 renderer="matplotlib")
+    with pytest.raises(ValueError, match="height must be"):
+        render.render_panels(mesh, [("a", grey)], tmp_path / "a.png", height=0,
+                             renderer="matplotlib")
+    for bad in (np.nan, 1.5):
+        colours = grey.copy()
+        colours[3, 1] = bad
+        with pytest.raises(ValueError, match=r"panels\[1\]: colours must lie in \[0, 1\]"):
+            render.render_panels(mesh, [("a", grey), ("b", colours)], tmp_path / "a.png",
+                                 renderer="matplotlib")
+    assert not list(tmp_path.iterdir())
+
+
+def test_vertex_values_take_the_entry_of_a_batch():
+    """A two-shape brick surface (or a batch of volumes) gave entry 0's values at the mesh of
+    entry 1, silently; entry picks the shape, and is required where there are several."""
+    from torchsurf import bricks
+
+    grid = ts.Grid((24, 24, 24), 0.1, (0.0, 0.0, 0.0))
+    distance = (grid.points(torch.float64) - 1.15).norm(dim=-1)
+    phi = torch.stack([distance - 0.7, distance - 0.5])[:, None]
+    data = torch.stack([torch.zeros_like(distance), torch.ones_like(distance)])[:, None]
+    inner = ts.mesh.extract(phi[1:], grid)
+    surface = bricks.from_dense(phi, grid)
+    for where, volume in ((surface, surface.from_dense(data)), (grid, data)):
+        with pytest.raises(ValueError, match="give entry"):
+            render.vertex_values(volume, inner, where)
+        assert np.allclose(render.vertex_values(volume, inner, where, entry=1), 1.0, atol=1e-12)
+        assert np.allclose(render.vertex_values(volume, inner, where, entry=0), 0.0, atol=1e-12)
+
+
+def test_vertex_values_outside_the_box_are_named_in_world_coordinates():
+    grid = ts.Grid((10, 10, 10), 0.1, (3.0, -2.0, 7.0))
+    mesh = trimesh.Trimesh([[10.0, 0.0, 0.0], [3.5, -1.5, 7.5], [3.6, -1.5, 7.5]], [[0, 1, 2]],
+                           process=False)
+    with pytest.raises(ValueError, match=r"1 of 3 vertices lie outside the grid's box "
+                                         r"\(3.0, -2.0, 7.0\).*vertex 0 at \[10.0, 0.0, 0.0\]"):
+        render.vertex_values(torch.zeros(1, 1, 10, 10, 10), mesh, grid)

@@ -63,15 +63,23 @@ def level_set(volume: np.ndarray, grid: Grid, level: float = 0.0,
         ValueError: ``volume`` never crosses ``level``.
     """
     held = volume if mask is None else volume[mask]
-    if held.size == 0 or not (held.min() <= level <= held.max()) or held.min() == held.max():
-        low, high = (held.min(), held.max()) if held.size else (np.nan, np.nan)
-        raise ValueError(
-            f"phi never crosses the level {level:g} (range [{low:g}, {high:g}]): there is no "
-            "surface to extract"
-        )
-    index, faces, _, _ = measure.marching_cubes(volume, level=level, gradient_direction="ascent",
-                                                mask=mask)
+    low, high = (held.min(), held.max()) if held.size else (np.nan, np.nan)
+
+    def never(how: str = "") -> ValueError:
+        known = "" if mask is None else " on the known nodes"
+        return ValueError(f"phi never crosses the level {level:g}{how} (range [{low:g}, "
+                          f"{high:g}]{known}): there is no surface to extract")
+
+    if held.size == 0 or not (low <= level <= high) or low == high:
+        raise never()
+    try:
+        index, faces, _, _ = measure.marching_cubes(volume, level=level,
+                                                    gradient_direction="ascent", mask=mask)
+    except RuntimeError as error:  # no cell crosses: the level only touched, or masked out
+        raise never(" in any cell") from error
     index, faces = _merge_coincident(_crossings_in_float64(volume, index, level), faces)
+    if len(faces) == 0:  # every triangle had no area: the level touched at nodes only
+        raise never(", it only touches it at nodes")
     # scikit-image orders vertex coordinates like the array axes, (z, y, x).
     vertices = grid.spacing * index[:, ::-1] + np.asarray(grid.origin)
     return np.ascontiguousarray(vertices), np.ascontiguousarray(faces, dtype=np.int64)

@@ -387,8 +387,8 @@ def _panel_colours(experiment: Experiment, values: dict[str, np.ndarray]) -> dic
             result[name] = render.colours(vertex, "rgb")
         elif kind is SignalKind.noise:
             result[name] = render.colours(vertex, "scalar", colormap, equalize=True)
-        elif kind is SignalKind.turk:
-            result[name] = render.colours(vertex, "scalar", colormap)
+        elif kind is SignalKind.turk:  # the first species
+            result[name] = render.colours(vertex[:, :1], "scalar", colormap)
         else:
             result[name] = render.colours(vertex, "scalar", colormap, (0.0, 1.0))
     return result

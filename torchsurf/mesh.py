@@ -95,9 +95,13 @@ def extract(phi: Tensor, grid: Grid, level: float = 0.0, mask: Tensor | None = N
 
     Returns:
         A ``trimesh.Trimesh`` in world coordinates ``(x, y, z)``, normals pointing towards
-        larger ``phi`` (outward); watertight wherever the level set stays inside the grid; no
-        two vertices coincide and no face has zero area, also where ``phi == level`` at
-        nodes.
+        larger ``phi`` (outward); watertight wherever the level set stays inside the grid and
+        does not touch itself (two sheets through a node where ``phi == level`` share its
+        vertex, and an edge there can join four faces); no two vertices coincide and no face
+        has zero area, also where ``phi == level`` at nodes.
+
+    Raises:
+        ValueError: ``phi`` never crosses ``level`` (also where it only touches it at nodes).
     """
     if not isinstance(grid, Grid):
         raise TypeError(f"grid must be a torchsurf.Grid, got {type(grid).__name__}")

@@ -55,31 +55,46 @@ def _matplotlib():  # noqa: ANN202
     return Figure, FigureCanvasAgg, PolyCollection
 
 
-def vertex_values(volume: Tensor, mesh: trimesh.Trimesh, grid: Grid | ImplicitSurface
-                  ) -> np.ndarray:
+def vertex_values(volume: Tensor, mesh: trimesh.Trimesh, grid: Grid | ImplicitSurface,
+                  entry: int | None = None) -> np.ndarray:
     """``volume`` sampled trilinearly at ``mesh``'s vertices: ``(V, C)`` float64.
 
     Args:
-        volume: ``(1, C, D, H, W)`` on ``grid``, or packed ``(N, C, 8, 8, 8)`` when ``grid`` is
-            a :class:`~torchsurf.bricks.BrickSurface` (of one shape).
-        mesh: vertices in world units, near the surface (on bricks, within the stored nodes).
+        volume: ``(B, C, D, H, W)`` on ``grid``, or packed ``(N, C, 8, 8, 8)`` when ``grid`` is
+            a :class:`~torchsurf.bricks.BrickSurface`.
+        mesh: vertices in world units, inside the box (on bricks, within the stored nodes).
         grid: the volume's grid, or the surface that holds it.
+        entry: the batch entry the mesh belongs to (``volume[entry]``, or the brick surface's
+            shape ``entry``); ``None`` when there is only one.
     """
     packed = isinstance(grid, ImplicitSurface) and grid.layout is not None
-    if not packed and volume.shape[0] != 1:
-        raise ValueError(f"volume must hold one volume (1, C, D, H, W) for one mesh, got shape "
-                         f"{tuple(volume.shape)}")
+    count = grid.batch_size if packed else volume.shape[0]
+    if entry is None:
+        if count != 1:
+            what = (f"the surface holds {count} shapes" if packed else
+                    f"volume holds {count} volumes, shape {tuple(volume.shape)}")
+            raise ValueError(f"{what}: give entry, the one the mesh belongs to")
+        entry = 0
+    elif isinstance(entry, bool) or not isinstance(entry, int) or not 0 <= entry < count:
+        raise ValueError(f"entry must be an integer in [0, {count}), got {entry!r}")
+    box = (grid.grids[entry] if packed else grid if isinstance(grid, Grid) else grid.grid)
     # world to node indices in float64, then the volume's dtype: a grid far from the origin
     # keeps the precision of its cells (1e5 away, float32 world points are off 0.06 cell)
     vertices = torch.as_tensor(np.asarray(mesh.vertices), dtype=torch.float64)
+    outside = ~box.contains(vertices, tolerance=1e-4)
+    if bool(outside.any()):
+        first = int(outside.nonzero()[0, 0])
+        high = tuple(o + s for o, s in zip(box.origin, box.size, strict=True))
+        raise ValueError(
+            f"mesh: {int(outside.sum())} of {len(vertices)} vertices lie outside the grid's box "
+            f"{box.origin} to {high}, e.g. vertex {first} at {vertices[first].tolist()}"
+        )
+    index = box.world_to_index(vertices).to(volume.dtype).to(volume.device)
     if packed:
-        index = grid.grids[0].world_to_index(vertices).to(volume.dtype)
-        values = grid.sample_at_index(volume.detach(), index.to(volume.device))
+        values = grid.sample_at_index(volume.detach(), index, entry)
     else:
-        box = grid if isinstance(grid, Grid) else grid.grid
-        at_zero = Grid(box.shape, box.spacing, (0.0, 0.0, 0.0))
-        relative = (vertices - vertices.new_tensor(box.origin)).to(volume.dtype)
-        values = sample(volume.detach(), relative.to(volume.device), at_zero)[0]
+        at_zero = Grid(box.shape, 1.0, (0.0, 0.0, 0.0))  # node indices as world points
+        values = sample(volume[entry:entry + 1].detach(), index, at_zero)[0]
     return values.T.to("cpu", torch.float64).numpy()
 
 
@@ -92,19 +107,20 @@ def colours(values: np.ndarray, mode: str = "scalar", colormap: str = "viridis",
     every colour of the map is used equally often, which shows the streaks of a flow
     visualisation whose values cluster near their mean); ``"rgb"`` (C = 3): clipped to
     ``[0, 1]``; ``"field"`` (C = 3, unit vectors up to sign): ``|T_x|, |T_y|, |T_z|``. In the
-    scalar modes, NaN or infinite values are grey and do not set the limits.
+    scalar modes, NaN or infinite values are grey and do not set the limits; equal values
+    share a colour. ``limits``: ``(low, high)``, finite, ``low < high``.
     """
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
     values = np.asarray(values, dtype=np.float64)
-    if values.ndim != 2:
-        raise ValueError(f"values must have shape (V, C), got {values.shape}")
-    if mode in ("rgb", "field") and values.shape[1] < 3:
-        raise ValueError(f"mode={mode!r} needs values (V, 3), got {values.shape}")
+    channels = 1 if mode == "scalar" else 3
+    if values.ndim != 2 or values.shape[1] != channels:
+        raise ValueError(f"mode={mode!r} needs values of shape (V, {channels}), got "
+                         f"{values.shape}")
     if mode == "rgb":
-        return np.clip(values[:, :3], 0.0, 1.0)
+        return np.clip(values, 0.0, 1.0)
     if mode == "field":
-        return np.clip(np.abs(values[:, :3]), 0.0, 1.0)
+        return np.clip(np.abs(values), 0.0, 1.0)
     Figure, _, _ = _matplotlib()
     from matplotlib import colormaps
 
@@ -113,12 +129,19 @@ def colours(values: np.ndarray, mode: str = "scalar", colormap: str = "viridis",
                          f"{colormap!r}")
     if equalize and limits is not None:
         raise ValueError("give limits or equalize=True, not both")
+    if limits is not None:
+        bounds = np.asarray(limits, dtype=np.float64)
+        if bounds.shape != (2,) or not np.isfinite(bounds).all() or not bounds[0] < bounds[1]:
+            raise ValueError(f"limits must be two finite numbers (low, high) with low < high, "
+                             f"got {limits!r}")
     missing = ~np.isfinite(values[:, 0])  # grey, and left out of the limits
     finite = values[~missing, 0]
     if equalize:
+        # equal values share the mean of their ranks, so that they share a colour
+        _, inverse, counts = np.unique(finite, return_inverse=True, return_counts=True)
+        mean_rank = np.cumsum(counts) - 0.5 * (counts + 1)
         scaled = np.zeros(len(values))
-        ranks = np.argsort(np.argsort(finite, kind="stable"), kind="stable")
-        scaled[~missing] = ranks / max(len(finite) - 1, 1)
+        scaled[~missing] = mean_rank[inverse] / max(len(finite) - 1, 1)
     else:
         low, high = (limits if limits is not None else
                      np.percentile(finite, [1.0, 99.0]) if len(finite) else (0.0, 1.0))
@@ -258,6 +281,7 @@ def _pyvista_image(mesh: trimesh.Trimesh, panels: list[tuple[str, np.ndarray]],
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
     faces = np.asarray(mesh.faces)
     cells = np.hstack((np.full((len(faces), 1), 3), faces)).ravel()
+    normals = np.asarray(trimesh.Trimesh(vertices, faces, process=False).vertex_normals)
     x0, x1, y0, y1 = camera.window
     depth = float((vertices @ camera.towards).max())
     extent = float(np.ptp(vertices @ camera.towards)) + (x1 - x0)
@@ -271,7 +295,11 @@ def _pyvista_image(mesh: trimesh.Trimesh, panels: list[tuple[str, np.ndarray]],
             surface = pyvista.PolyData(vertices, cells)
             surface.point_data["colours"] = np.round(255 * np.clip(vertex_colours, 0, 1)).astype(
                 np.uint8)
-            plotter.add_mesh(surface, scalars="colours", rgb=True, smooth_shading=True,
+            # the faces' own winding gives the normals: VTK's smooth shading would re-orient
+            # them by walking edges, which flips patches where S touches itself at a node
+            surface.point_data["normals"] = normals
+            surface.point_data.active_normals_name = "normals"
+            plotter.add_mesh(surface, scalars="colours", rgb=True, interpolation="phong",
                              show_scalar_bar=False)
             plotter.add_text(title, position="upper_edge", color="black",
                              font_size=_fitted_points(title, width, max(6, min(11, height // 40))))
@@ -303,6 +331,9 @@ def render_panels(mesh: trimesh.Trimesh, panels: list[tuple[str, np.ndarray]], p
     Returns:
         The path written.
     """
+    for name, pixels in (("width", width), ("height", height)):
+        if isinstance(pixels, bool) or not isinstance(pixels, (int, np.integer)) or pixels < 1:
+            raise ValueError(f"{name} must be a positive whole number of pixels, got {pixels!r}")
     used, _ = resolve_renderer(renderer)
     Figure, FigureCanvasAgg, PolyCollection = _matplotlib()
     if not panels:
@@ -311,6 +342,13 @@ def render_panels(mesh: trimesh.Trimesh, panels: list[tuple[str, np.ndarray]], p
         if np.shape(vertex_colours) != (len(mesh.vertices), 3):
             raise ValueError(f"panels[{index}]: colours must have shape (V, 3) = "
                              f"({len(mesh.vertices)}, 3), got {np.shape(vertex_colours)}")
+        rgb = np.asarray(vertex_colours, dtype=np.float64)
+        outside = ~((rgb >= 0.0) & (rgb <= 1.0))  # NaN too
+        if outside.any():
+            raise ValueError(f"panels[{index}]: colours must lie in [0, 1] (as render.colours "
+                             f"gives them), got {int(outside.sum())} outside, e.g. "
+                             f"{float(rgb[outside][0]):g}")
+    width, height = int(width), int(height)
     panels = [(title, np.asarray(c, dtype=np.float64)) for title, c in panels]
     count = len(panels)
     dpi = 100
