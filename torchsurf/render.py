@@ -75,8 +75,10 @@ def vertex_values(volume: Tensor, mesh: trimesh.Trimesh, grid: Grid | ImplicitSu
                     f"volume holds {count} volumes, shape {tuple(volume.shape)}")
             raise ValueError(f"{what}: give entry, the one the mesh belongs to")
         entry = 0
-    elif isinstance(entry, bool) or not isinstance(entry, int) or not 0 <= entry < count:
+    elif (isinstance(entry, bool) or not isinstance(entry, (int, np.integer))
+          or not 0 <= entry < count):
         raise ValueError(f"entry must be an integer in [0, {count}), got {entry!r}")
+    entry = int(entry)
     box = (grid.grids[entry] if packed else grid if isinstance(grid, Grid) else grid.grid)
     # world to node indices in float64, then the volume's dtype: a grid far from the origin
     # keeps the precision of its cells (1e5 away, float32 world points are off 0.06 cell)
