@@ -75,3 +75,38 @@ def test_packed_data_is_required_on_bricks(torus):
     dense, surface = torus
     with pytest.raises(ValueError, match=r"u must be a packed band field"):
         Extension()(torch.zeros(1, 1, *dense.grid.shape, dtype=torch.float64), surface)
+
+
+@pytest.mark.parametrize("settings", [
+    {"method": "closest_point"},
+    {"method": "closest_point", "interpolation": "cubic"},
+    {"method": "pde"},
+])
+def test_a_width_beyond_the_stored_band_is_refused_or_equals_dense(settings):
+    """A width wider than the bricks' band left 113 nodes within it unextended (the band
+    drops nodes whose neighbours are not stored), 0.4 off the dense extension, silently; the
+    bricks built at that width equal the dense extension."""
+    grid = ts.Grid.cube(41, 1.3)
+    h = grid.spacing
+    centre = torch.tensor([0.07, -0.05, 0.11], dtype=torch.float64)
+    phi = ((grid.points(dtype=torch.float64) - centre).norm(dim=-1) - 0.6)[None, None]
+    dense = ts.ImplicitSurface(phi, grid)
+    u = _data(grid, channels=1)
+    extension = Extension(width=4 * h, **settings)
+    narrow = bricks.from_dense(dense)
+    with pytest.raises(ValueError, match=r"width=.* reaches \d+ nodes .* band_width >= width"):
+        extension(narrow.from_dense(u), narrow)
+    wide = bricks.from_dense(phi, grid, band_width=4 * h)
+    (result,) = wide.to_dense(extension(wide.from_dense(u), wide))
+    band = dense.band_mask(4 * h)
+    assert torch.allclose(result * band, extension(u, dense) * band, atol=1e-12, rtol=0)
+
+
+def test_linear_extension_to_a_mask_beyond_the_stored_bricks_is_refused(torus):
+    """The linear path failed in the sampler, naming 'points', which the caller never gave."""
+    _, surface = torus
+    everywhere = torch.ones(len(surface.layout), 1, 8, 8, 8, dtype=torch.bool)
+    u = surface.from_dense(_data(surface.grid))
+    for interpolation in ("linear", "cubic"):
+        with pytest.raises(ValueError, match="reads nodes outside the stored bricks"):
+            closest_point_extension(u, surface, interpolation=interpolation, mask=everywhere)

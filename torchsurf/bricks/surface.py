@@ -244,10 +244,34 @@ class BrickSurface(ImplicitSurface):
         """``(V,)`` bool: ``points`` ``(V, 3)`` (world ``(x, y, z)``) that :meth:`sample` can
         read, inside the entry's box with the 8 nodes of their cell stored."""
         entry = self._check_points(points, entry)
-        inside, _, corners = self._cell_corners(self.grids[entry].world_to_index(points), entry)
+        return self.samplable_at_index(self.grids[entry].world_to_index(points), entry)
+
+    def samplable_at_index(self, index: Tensor, entry: int = 0) -> Tensor:
+        """:meth:`samplable` at continuous node indices ``index`` ``(V, 3)`` ``(i, j, k)`` of
+        the entry's grid (:meth:`sample_at_index`)."""
+        entry = self._check_points(index, entry, "index")
+        inside, _, corners = self._cell_corners(index, entry)
         for _, brick, _ in corners:
             inside = inside & (brick >= 0)
         return inside
+
+    def check_band_held(self, width: float, name: str = "width") -> None:
+        """Raise ``ValueError`` naming ``name`` where :meth:`band_mask` of ``width`` leaves out
+        nodes within ``width`` of S that it would hold with the bricks around them stored: a
+        ``width`` beyond the band the bricks were built for, whose outer nodes would keep
+        their values in an extension. (Nodes whose direct neighbours are not stored either
+        have no distance to test; a wider band always leaves out some of the former.)"""
+        if width <= self.band_width:
+            return
+        measurable = ImplicitSurface.band_mask(self, width) & self._stencilled(1)
+        left_out = int((measurable & ~self.band_mask(width)).sum())
+        if left_out:
+            raise ValueError(
+                f"{name}={width:g} reaches {left_out} nodes within it of S whose neighbours "
+                f"this BrickSurface does not store (it was built for band_width="
+                f"{self.band_width:g}): build it with torchsurf.bricks.from_dense or from_mesh "
+                f"at band_width >= {name}"
+            )
 
     def _check_points(self, points: Tensor, entry: int, name: str = "points") -> int:
         """Check ``points`` ``(V, 3)`` and return ``entry`` as an ``int`` (numpy and 0-d

@@ -66,7 +66,7 @@ def closest_point_extension(
     """
     check_data(u, "u", surface)
     check_choice(interpolation, "interpolation", INTERPOLATIONS)
-    band = surface.band_mask(width) if mask is None else _check_mask(mask, u, surface)
+    band = _band_to_extend(surface, width) if mask is None else _check_mask(mask, u, surface)
     if interpolation == "cubic":
         return cubic_stencil(surface, band).apply(u)
     if surface.layout is not None:
@@ -82,6 +82,15 @@ def closest_point_extension(
         align_corners=True,
     )
     return torch.where(band, sampled, u)
+
+
+def _band_to_extend(surface: ImplicitSurface, width: float | None) -> Tensor:
+    """``surface.band_mask(width)``; on bricks, refused (naming ``width``) where it would leave
+    out nodes the bricks cannot stencil (:meth:`~torchsurf.bricks.BrickSurface.check_band_held`):
+    they would keep their values."""
+    if surface.layout is not None and width is not None:
+        surface.check_band_held(check_positive(width, "width"))
+    return surface.band_mask(width)
 
 
 def _check_mask(mask: object, u: Tensor, surface: ImplicitSurface) -> Tensor:
@@ -700,10 +709,16 @@ def _brick_linear_extension(u: Tensor, surface: ImplicitSurface, mask: Tensor) -
     value = flat.new_zeros((channels, len(targets)))
     for entry in range(surface.batch_size):
         selected = (batch == entry).nonzero().squeeze(1)
-        if len(selected):
-            value = value.index_copy(1, selected,
-                                     surface.sample_at_index(u, index[selected].to(u.dtype),
-                                                             entry))
+        if not len(selected):
+            continue
+        points = index[selected].to(u.dtype)
+        if not bool(surface.samplable_at_index(points, entry).all()):
+            raise ValueError(
+                "closest-point extension reads nodes outside the stored bricks (or the box) at "
+                "some nodes of mask: give a mask within the band, or build the BrickSurface "
+                "with torchsurf.bricks.from_dense or from_mesh at a wider band width"
+            )
+        value = value.index_copy(1, selected, surface.sample_at_index(u, points, entry))
     result = flat.index_copy(1, targets, value)
     return result.view(channels, *u.shape[:1], *u.shape[2:]).transpose(0, 1)
 
@@ -811,7 +826,7 @@ def pde_extension(
         max_steps = int(12 * width / h) + 10
     else:
         max_steps = check_count(max_steps, "max_steps")
-    band = surface.band_mask(width)
+    band = _band_to_extend(surface, width)
     distance = surface.signed_distance()  # world units, whatever the scale of phi
     sign = distance / torch.sqrt(distance**2 + h**2)
     velocity = sign * surface.normal
