@@ -298,3 +298,30 @@ def test_only_kernels_that_build_their_indices_skip_inductors_bounds_checks(monk
         backend.compiled.cache_clear()
     assert seen[0]["options"] == {"assert_indirect_indexing": False}
     assert seen[1]["options"] is None
+
+
+def test_a_users_diffusivity_is_one_variant_and_is_not_kept_alive(monkeypatch):
+    """Each call wrapped the user's g anew, and the wrapper counted by identity: every call a
+    variant of its own (never compiled, one ledger entry a call), each holding g."""
+    import gc
+    import weakref
+
+    monkeypatch.setattr(backend, "COMPILE", "never")
+    grid = ts.Grid.cube(11, 1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid), grid)
+    u = torch.rand(1, 1, *grid.shape, generator=torch.Generator().manual_seed(0))
+
+    class Lorentzian(torch.nn.Module):
+        def forward(self, magnitude, contrast):
+            return 1.0 / (1.0 + (magnitude / contrast) ** 2)
+
+    g = Lorentzian()
+    before = len(backend._TIMINGS)
+    results = [ts.anisotropic_diffusion(u, surface, g, 0.7, path="auto") for _ in range(5)]
+    assert len(backend._TIMINGS) == before + 1
+    assert torch.equal(results[0], ts.anisotropic_diffusion(u, surface, "perona_malik", 0.7,
+                                                            path="auto"))
+    alive = weakref.ref(g)
+    del g
+    gc.collect()
+    assert alive() is None

@@ -111,26 +111,40 @@ class NativeLibrary:
         version = subprocess.run([compiler, "--version"], capture_output=True, text=True,
                                  check=True, timeout=60).stdout
         source = self._source()
-        for attempt, flags in enumerate(self._flag_sets):
+        for rebuild in (False, True):
+            for attempt, flags in enumerate(self._flag_sets):
+                try:
+                    built = self._built(source, compiler, version, flags, rebuild)
+                    break
+                except subprocess.CalledProcessError:
+                    if attempt == len(self._flag_sets) - 1:
+                        raise
             try:
-                built = self._built(source, compiler, version, flags)
-                break
-            except subprocess.CalledProcessError:
-                if attempt == len(self._flag_sets) - 1:
-                    raise
-        loaded = ctypes.CDLL(str(built))
+                return self._bound(ctypes.CDLL(str(built)))
+            except (OSError, AttributeError) as error:
+                # a cached file that is not this library (truncated, overwritten, another
+                # build's): compiled again once, in its place
+                if rebuild:
+                    raise RuntimeError(f"{built} does not load as {self.name}: {error}") from error
+        raise AssertionError("unreachable")
+
+    def _bound(self, loaded: ctypes.CDLL) -> ctypes.CDLL:
+        """``loaded`` with each exported function's argument types set (``AttributeError``
+        for one it lacks)."""
         for name, argtypes in self._functions.items():
             function = getattr(loaded, name)
             function.restype = None
             function.argtypes = list(argtypes)
         return loaded
 
-    def _built(self, source: str, compiler: str, version: str, flags: tuple[str, ...]) -> Path:
-        """The shared library for these flags, compiled unless the cache holds it."""
+    def _built(self, source: str, compiler: str, version: str, flags: tuple[str, ...],
+               rebuild: bool = False) -> Path:
+        """The shared library for these flags, compiled unless the cache holds it (or
+        ``rebuild``)."""
         key = hashlib.sha256("\0".join((source, *flags, version, _machine_key())).encode())
         folder = cache_dir()
         library = folder / f"{self.name}_{key.hexdigest()[:20]}.so"
-        if not library.exists():
+        if rebuild or not library.exists():
             folder.mkdir(parents=True, exist_ok=True)
             with tempfile.TemporaryDirectory(dir=folder) as work:
                 c_file = Path(work) / f"{self.name}.c"

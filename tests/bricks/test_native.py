@@ -268,3 +268,32 @@ def test_a_surface_pickles_after_the_kernel_ran_on_a_band(torus, native_availabl
     for _ in range(2):
         assert torch.equal(_octant(copied, u, "auto", copied.band_mask()), expected)
     assert copied.layout._geometry_plan._plan is not None
+
+
+@pytest.mark.parametrize("cached", ["empty", "another library"])
+def test_a_cached_file_that_is_not_the_kernel_is_built_again(monkeypatch, tmp_path, cached,
+                                                               native_available):
+    """A cached file that failed to load kept the kernel off for good, and one that loaded
+    without the kernel's functions raised AttributeError from every operator on bricks."""
+    import subprocess
+
+    monkeypatch.setattr(_native.LIBRARY, "_state", {})
+    monkeypatch.setenv("TORCHSURF_CACHE_DIR", str(tmp_path / "first"))
+    assert _native.library() is not None
+    (built,) = (tmp_path / "first").iterdir()
+    spoilt = tmp_path / "second" / built.name  # a path this process has not loaded
+    spoilt.parent.mkdir()
+    if cached == "empty":
+        spoilt.write_bytes(b"")
+    else:
+        source = tmp_path / "other.c"
+        source.write_text("int other(void) { return 1; }\n")
+        subprocess.run(["cc", "-shared", "-fPIC", "-o", str(spoilt), str(source)], check=True)
+    monkeypatch.setattr(_native.LIBRARY, "_state", {})
+    monkeypatch.setenv("TORCHSURF_CACHE_DIR", str(spoilt.parent))
+    loaded = _native.library()  # no exception: the kernel, or its other paths
+    if cached == "empty":  # nothing was loaded from that path: the rebuilt file loads now
+        assert loaded is not None
+    else:  # the loader keeps the first file opened at a path: the next process reads it
+        assert loaded is not None or "does not load" in _native.unavailable_reason()
+    assert all(name.encode() in spoilt.read_bytes() for name in _native.LIBRARY._functions)

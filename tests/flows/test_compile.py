@@ -7,7 +7,7 @@ import pytest
 import torch
 
 import torchsurf as ts
-from torchsurf.flows import AnisotropicFlow, HeatFlow
+from torchsurf.flows import AnisotropicFlow, HarmonicMapFlow, HeatFlow
 from torchsurf.flows._positive import Positive
 
 
@@ -177,3 +177,34 @@ def test_inductor_compiles_a_flow_recording_its_steps(sphere):
     finally:
         torch._dynamo.reset()
     torch.testing.assert_close(result, expected, rtol=1e-5, atol=1e-5)  # float32, data O(1)
+
+
+class _CoupledDiffusion(torch.nn.Module):
+    def forward(self, u: torch.Tensor, surface: ts.ImplicitSurface) -> torch.Tensor:
+        return ts.anisotropic_diffusion(u, surface, "perona_malik", 0.7, coupled=True)
+
+
+def test_coupled_operators_and_harmonic_maps_trace_without_graph_break(sphere):
+    """The coupled kernel ran its one-pass form while traced, whose graph breaks shape our own
+    compiled graphs (3 breaks); the harmonic map flow read its growth bound, which only RKC's
+    own plan uses, from the data (2 breaks)."""
+    u, surface = sphere
+    unit = u / u.norm(dim=1, keepdim=True)
+    assert _break_reasons(_CoupledDiffusion(), u, surface) == []
+    flow = HarmonicMapFlow(surface.spacing**2 / 400, method="euler", steps=1)
+    assert _break_reasons(flow, unit, surface) == []
+
+
+def test_the_compiled_path_traces_in_an_outer_compile_for_a_batch(sphere):
+    """path='compiled' marked the batch dimension dynamic inside the outer trace, which dynamo
+    refuses (a bare AssertionError) for a batch of two or more."""
+    u, surface = sphere
+    batch = torch.cat([u, 2 * u])
+    expected = ts.intrinsic_gradient(batch, surface, path="slicing")
+    torch._dynamo.reset()
+    try:
+        traced = torch.compile(lambda x: ts.intrinsic_gradient(x, surface, path="compiled"),
+                               backend="eager", fullgraph=True)
+        assert torch.allclose(traced(batch), expected, atol=1e-6)
+    finally:
+        torch._dynamo.reset()

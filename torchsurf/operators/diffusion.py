@@ -13,6 +13,8 @@ cheap pass, and cost four times the two symmetric ones.
 
 from __future__ import annotations
 
+import weakref
+
 import torch
 from torch import Tensor, nn
 
@@ -30,8 +32,30 @@ class CheckedDiffusivity:
     from deep in the stencils, naming padded sizes."""
 
     def __init__(self, g: Diffusivity) -> None:
-        self.g = g
+        # held weakly where g allows it: torchsurf.backend keeps the arguments of the variants
+        # it measured, which would otherwise keep a user's g (a module and its parameters)
+        # alive for the whole process; the caller holds g while it runs
+        try:
+            self._g = weakref.ref(g)
+        except TypeError:
+            self._g = lambda: g
+        self._id = id(g)
         self.__name__ = getattr(g, "__name__", type(g).__name__)
+
+    @property
+    def g(self) -> Diffusivity | None:
+        """The wrapped ``g`` (``None`` once it is gone)."""
+        return self._g()
+
+    # Equal for the same g: each call wraps g anew, and torchsurf.backend keys its compiled
+    # variants and eager-time ledger on the arguments; by identity, every call was a variant
+    # of its own, never compiled, and the ledger grew by one entry a call.
+    def __eq__(self, other: object) -> bool:
+        return (isinstance(other, CheckedDiffusivity) and other._id == self._id
+                and other.g is self.g)
+
+    def __hash__(self) -> int:
+        return hash((CheckedDiffusivity, self._id))
 
     def __call__(self, magnitude: Tensor, contrast: float | Tensor) -> Tensor:
         value = self.g(magnitude, contrast)

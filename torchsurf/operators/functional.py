@@ -370,7 +370,8 @@ def _coupled_halo(u, normal, weight, spacing, diffusivity, contrast, eps, power,
 
 
 _COUPLED = backend.Kernel("coupled_flux_form", _coupled_eager, fused_coupled_rate, _coupled_halo,
-                          fused_when_eager=True, eager_fused=eager_coupled_rate)
+                          fused_when_eager=True, eager_fused=eager_coupled_rate,
+                          breaks_graph=True)
 
 
 def _coupled_open(padded_u, haloed_normal, haloed_weight, weight, spacing, diffusivity, contrast,  # noqa: ANN001, ANN202
@@ -386,7 +387,7 @@ def _coupled_open_eagerly(padded_u, haloed_normal, haloed_weight, weight, spacin
 
 
 _COUPLED_OPEN = backend.Kernel("coupled_flux_form_open", _coupled_eager, _coupled_open,
-                               eager_fused=_coupled_open_eagerly)
+                               eager_fused=_coupled_open_eagerly, breaks_graph=True)
 
 
 def harmonic_map_rate(
