@@ -140,6 +140,28 @@ def _fewest_steps(method: str, system: System, band_cells: float, length: float,
     return max(1, math.ceil(length / longest * (1 - 1e-9)))
 
 
+def _marks_by_time(ends: list[float], period: float, longest_held: float) -> set[int]:
+    """The steps (from 1) whose ends ``ends`` (physical time) first reach a new multiple of
+    ``period``, and any step after which the next would end more than ``longest_held`` after
+    the last mark."""
+    marks, last, previous = set(), 0.0, 0.0
+    for k, end in enumerate(ends, start=1):
+        crossed = (math.floor(end / period * (1 + 1e-12))
+                   > math.floor(previous / period * (1 + 1e-12)))
+        overdue = k < len(ends) and ends[k] - last > longest_held * (1 + 1e-9)
+        if crossed or overdue:
+            marks.add(k)
+            last = end
+        previous = end
+    return marks
+
+
+def _most_steps_between(marks: set[int], count: int) -> int:
+    """The most steps from one mark (or the start) to the next (or the end)."""
+    edges = [0, *sorted(marks), count]
+    return max(1, *(b - a for a, b in zip(edges, edges[1:], strict=False)))
+
+
 def _steps_taken(plan: Plan) -> str:
     """The steps of a run, for messages."""
     return ("torchdiffeq's own steps" if plan.count is None
@@ -536,11 +558,16 @@ class Flow(nn.Module):
         crossing = 12.0 / rho  # the time the fastest diffusion takes to cross one cell
         if self.method == "rkc" and ring_held("rkc", longest * rho, band_cells):
             # the ring is held as long as one step could hold it (HELD_RING_CELLS): short
-            # steps, taken for their time error, share one re-extension
-            held = 12.0 * (band_cells - HELD_RING_CELLS) ** 2
-            steps_held = math.floor(held / (rho * longest) * (1 + 1e-9))
+            # steps, taken for their time error, share one re-extension, once every
+            # steps_held planned steps by the time reached, not by the steps counted (requested
+            # times split the steps: counted, they added re-extensions, and moved a
+            # Perona-Malik flow's u(T) by 0.05 near S), and before the ring would be held
+            # longer than it can be
+            held = 12.0 * (band_cells - HELD_RING_CELLS) ** 2 / rho
+            steps_held = math.floor(held / longest * (1 + 1e-9))
             if steps_held * longest >= crossing:
-                return (lambda k: k % steps_held == 0), steps_held
+                marks = _marks_by_time(step_ends(schedule), steps_held * longest, held)
+                return marks.__contains__, _most_steps_between(marks, len(step_ends(schedule)))
         # once a crossing time, by the time reached, not a whole number of steps: a period of
         # floor(12 / (rho dt)) steps re-extended at every step where 12 / (rho dt) lay in
         # [1, 2) (a TV flow's result swung by 0.003-0.2 as RKC's steps went from 12 to 64 on a
