@@ -312,3 +312,18 @@ def test_beyond_the_band_an_open_mesh_is_signed_node_by_node(cut: float) -> None
     points = grid.points(torch.float64).numpy().reshape(-1, 3)
     winding = igl.winding_number(np.asarray(cap.vertices), np.asarray(cap.faces), points)
     assert np.array_equal(phi.reshape(-1) < 0, winding > 0.5)
+
+
+def test_nodes_on_the_mesh_do_not_make_a_closed_mesh_fall_back_to_winding_numbers():
+    """An icosphere whose vertices lie on nodes: libigl's fast winding number is about 0.42
+    at nodes 2e-16 from it, and the pseudonormal check warned and signed every node by the
+    winding number (the slow path) where no side is defined."""
+    import warnings
+
+    mesh = trimesh.creation.icosphere(subdivisions=2, radius=0.8)
+    grid = ts.Grid.cube(25, 1.2)  # spacing 0.1: the vertices (0.8, 0, 0) ... are nodes
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        phi = ts.sdf.from_mesh(mesh, grid, sign="pseudonormal")
+    winding = ts.sdf.from_mesh(mesh, grid, sign="winding")
+    assert torch.allclose(phi, winding, atol=1e-6, rtol=0)  # the nodes on S: +-2e-16

@@ -170,3 +170,12 @@ def test_a_small_sphere_is_exact_across_the_whole_band(radius: float, spacing: f
     exact = (grid.points(torch.float64) - centre).norm(dim=-1)[None, None] - radius
     band = 5 * spacing
     assert (phi - exact.clamp(-band, band)).abs().max() < 1e-5 * spacing  # 2e-6 measured
+
+
+def test_a_phi_that_only_touches_zero_is_refused():
+    """phi >= 0 with a plateau of zeros inside passed (its range holds 0) and came back with
+    no negative node, 160 exact zeros up to 0.53 from S: not a distance."""
+    grid = ts.Grid((12, 14, 16), 0.2, (-1.5, -1.3, -1.1))
+    phi = ts.sdf.sphere(grid, 0.7, dtype=torch.float64).clamp(min=0)
+    with pytest.raises(ValueError, match="phi batch entry 0: phi must change sign"):
+        ts.sdf.redistance(phi, grid)

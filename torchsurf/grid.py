@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -23,6 +24,15 @@ def _check_points(points: object, name: str) -> Tensor:
     if points.dim() == 0 or points.shape[-1] != 3:
         raise ValueError(f"{name} must have shape (..., 3) (x, y, z), got {tuple(points.shape)}")
     return points
+
+
+def _check_tolerance(tolerance: object) -> float:
+    """``tolerance`` of :meth:`Grid.contains`: a finite number of cells (negative: a box
+    shrunk by that many cells)."""
+    if (isinstance(tolerance, bool) or not isinstance(tolerance, (int, float))
+            or not math.isfinite(tolerance)):
+        raise ValueError(f"tolerance must be a finite number of cells, got {tolerance!r}")
+    return float(tolerance)
 
 
 def _size(value: object, name: str) -> int:
@@ -166,11 +176,23 @@ class Grid:
         the index computation (so that every node of the grid is contained) plus
         ``tolerance`` grid cells.
         """
-        return self.contains_index(self.world_to_index(points), tolerance)
+        index = self.world_to_index(points)
+        # the index of a point is rounded at its world coordinate's scale: far from the origin
+        # in float32 (1000.5 at spacing 0.13) that is several 1e-4 cells
+        farthest = max(abs(x) for x in (*self.origin, *(o + s for o, s in
+                                                           zip(self.origin, self.size, strict=True))))
+        rounding = 8 * torch.finfo(index.dtype).eps * farthest / self.spacing
+        return self.contains_index(index, _check_tolerance(tolerance) + rounding)
 
     def contains_index(self, index: Tensor, tolerance: float = 0.0) -> Tensor:
         """:meth:`contains` for continuous node indices ``(..., 3)`` ``(i, j, k)`` (integer
-        indices too)."""
+        indices too); ``tolerance`` in cells (negative: the box shrunk by as many)."""
+        if not isinstance(index, Tensor):
+            raise TypeError(f"index must be a torch.Tensor, got {type(index).__name__}")
+        if index.dim() == 0 or index.shape[-1] != 3:
+            raise ValueError(f"index must have shape (..., 3) (i, j, k), got "
+                             f"{tuple(index.shape)}")
+        tolerance = _check_tolerance(tolerance)
         if not index.is_floating_point():
             index = index.to(torch.float64)
         last = index.new_tensor([n - 1 for n in reversed(self.shape)])

@@ -377,6 +377,9 @@ def redistance(phi: Tensor, grid: Grid, band_width: float | None = None) -> Tens
     entries = []
     for index, entry in enumerate(phi.detach().to("cpu", torch.float64).numpy()[:, 0]):
         try:
+            if not (entry.min() < 0.0 < entry.max()):  # a plateau of zeros only touches 0
+                raise ValueError(f"phi must change sign (negative inside, positive outside), "
+                                 f"its range is [{entry.min():g}, {entry.max():g}]")
             entries.append(_isosurface.redistance(entry, grid, width))
         except ValueError as error:
             raise ValueError(f"phi batch entry {index}: {error}") from error
