@@ -327,3 +327,13 @@ def test_nodes_on_the_mesh_do_not_make_a_closed_mesh_fall_back_to_winding_number
         phi = ts.sdf.from_mesh(mesh, grid, sign="pseudonormal")
     winding = ts.sdf.from_mesh(mesh, grid, sign="winding")
     assert torch.allclose(phi, winding, atol=1e-6, rtol=0)  # the nodes on S: +-2e-16
+
+
+def test_an_inward_wound_mesh_signed_by_winding_numbers_is_named_as_such():
+    mesh = trimesh.creation.icosphere(subdivisions=2, radius=0.8)
+    inward = trimesh.Trimesh(mesh.vertices, mesh.faces[:, ::-1], process=False)
+    grid = ts.Grid.cube(25, 1.23)
+    assert float(ts.sdf.from_mesh(inward, grid)[0, 0, 12, 12, 12]) < 0  # auto: the solid
+    with pytest.warns(RuntimeWarning, match="wound inward"), \
+            pytest.raises(ValueError, match=r"wound inward .*fix_normals"):
+        ts.sdf.from_mesh(inward, grid, sign="winding")

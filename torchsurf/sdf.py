@@ -260,7 +260,9 @@ def _check_sides(phi: np.ndarray, vertices: np.ndarray, grid: Grid) -> None:
         raise ValueError(
             f"mesh: no node of the grid lies inside it ({boxes}); a mesh outside the grid, "
             "or one that encloses nothing (a single triangle, an open sheet), has no surface "
-            "phi = 0 on it"
+            "phi = 0 on it; a closed mesh wound inward (its faces' normals pointing in) "
+            "encloses a cavity for sign='winding': fix its winding (trimesh.repair.fix_normals) "
+            "or use sign='auto'"
         )
     raise ValueError(
         f"mesh: every node of the grid lies inside it ({boxes}); the grid must extend beyond "
