@@ -59,6 +59,19 @@ def test_meshes_with_no_surface_on_the_grid_are_named(icosphere, arrays, match):
             make(arrays, GRID)
 
 
+@pytest.mark.parametrize("build", ["dense", "bricks"])
+def test_a_plate_thinner_than_a_cell_names_the_spacing(build):
+    # a 0.03-thick plate between the nodes of a 0.0345 spacing: no node inside
+    plate = trimesh.creation.box(extents=(0.6, 0.6, 0.03))
+    grid = ts.Grid.cube(30, 0.5)
+    make = ts.sdf.from_mesh if build == "dense" else ts.bricks.from_mesh
+    name = "mesh" if build == "dense" else r"meshes\[0\]"
+    with pytest.raises(ValueError, match=rf"^{name}: no node of the grid lies inside it .*"
+                                         r"thinner than the grid's spacing \(h = 0.03448\)"):
+        make(plate, grid)
+    make(plate, ts.Grid.cube(60, 0.5))  # resolved at half the spacing
+
+
 def test_nan_vertices_are_caught_unless_trimesh_already_dropped_them(icosphere, tmp_path):
     vertices, faces = icosphere
     broken = vertices.copy()

@@ -498,3 +498,32 @@ def signed_band(vertices: np.ndarray, faces: np.ndarray, grid: Grid, band: float
 def _signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
     corner = (vertices - _centre(vertices))[faces]  # far from the origin the terms cancel
     return float(np.einsum("ij,ij->", corner[:, 0], np.cross(corner[:, 1], corner[:, 2]))) / 6.0
+
+
+def check_sides(phi: np.ndarray, vertices: np.ndarray, grid: Grid, name: str) -> None:
+    """Raise ``ValueError`` naming the mesh ``name`` and the grid unless the signed values
+    ``phi`` (any shape) have nodes on both sides of the mesh (``vertices`` ``(V, 3)``: those its
+    faces use)."""
+    inside, outside = bool((phi < 0).any()), bool((phi > 0).any())
+    if inside and outside:
+        return
+    low = np.asarray(grid.origin)
+    boxes = (f"the mesh spans {_box(vertices.min(axis=0), vertices.max(axis=0))}; the grid "
+             f"{_box(low, low + np.asarray(grid.size))}")
+    if not inside:
+        raise ValueError(
+            f"{name}: no node of the grid lies inside it ({boxes}); a mesh outside the grid, "
+            f"a shape thinner than the grid's spacing (h = {grid.spacing:.4g}) that falls "
+            "between its nodes (refine the grid), or one that encloses nothing (a single "
+            "triangle, an open sheet) has no surface phi = 0 on it; a closed mesh wound inward "
+            "(its faces' normals pointing in) encloses a cavity for sign='winding': fix its "
+            "winding (trimesh.repair.fix_normals) or use sign='auto'"
+        )
+    raise ValueError(
+        f"{name}: every node of the grid lies inside it ({boxes}); the grid must extend beyond "
+        "the mesh (torchsurf.mesh.fit_grid)"
+    )
+
+
+def _box(low: np.ndarray, high: np.ndarray) -> str:
+    return ", ".join(f"{axis} [{a:.4g}, {b:.4g}]" for axis, a, b in zip("xyz", low, high, strict=True))

@@ -244,32 +244,6 @@ def _band(grid: Grid, band_width: float | None) -> float:
     return BAND_NODES * grid.spacing if band_width is None else check_positive(band_width, "band_width")
 
 
-def _box(low: np.ndarray, high: np.ndarray) -> str:
-    return ", ".join(f"{axis} [{a:.4g}, {b:.4g}]" for axis, a, b in zip("xyz", low, high, strict=True))
-
-
-def _check_sides(phi: np.ndarray, vertices: np.ndarray, grid: Grid) -> None:
-    """Raise ``ValueError`` naming the mesh and the grid unless ``phi`` ``(D, H, W)`` has nodes
-    on both sides of the mesh (``vertices`` ``(V, 3)``: those its faces use)."""
-    if (phi < 0).any() and (phi > 0).any():
-        return
-    low = np.asarray(grid.origin)
-    boxes = (f"the mesh spans {_box(vertices.min(axis=0), vertices.max(axis=0))}; the grid "
-             f"{_box(low, low + np.asarray(grid.size))}")
-    if not (phi < 0).any():
-        raise ValueError(
-            f"mesh: no node of the grid lies inside it ({boxes}); a mesh outside the grid, "
-            "or one that encloses nothing (a single triangle, an open sheet), has no surface "
-            "phi = 0 on it; a closed mesh wound inward (its faces' normals pointing in) "
-            "encloses a cavity for sign='winding': fix its winding (trimesh.repair.fix_normals) "
-            "or use sign='auto'"
-        )
-    raise ValueError(
-        f"mesh: every node of the grid lies inside it ({boxes}); the grid must extend beyond "
-        "the mesh (torchsurf.mesh.fit_grid)"
-    )
-
-
 def from_mesh(
     mesh: MeshLike,
     grid: Grid,
@@ -334,7 +308,7 @@ def from_mesh(
     )
     vertices, faces = triangle_arrays(mesh)
     phi, _ = _mesh_sdf.signed_band(vertices, faces, grid, width, sign)
-    _check_sides(phi, vertices[np.unique(faces)], grid)
+    _mesh_sdf.check_sides(phi, vertices[np.unique(faces)], grid, "mesh")
     return torch.as_tensor(phi, dtype=dtype, device=device)[None, None]
 
 
