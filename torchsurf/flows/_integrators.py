@@ -232,7 +232,7 @@ HELD_RING_CELLS = 2.0 * math.sqrt(3.0)
 """An RKC step of ``dt rho <= 12 (w - HELD_RING_CELLS)^2`` on a band of ``w`` cells holds the
 ring during the step and re-extends it with the band after the step: the stale ring's error
 then diffuses less than ``w - 2 sqrt(3)`` cells inward (about ``sqrt(dt rho / 12)``), short of
-the nodes within ``2 sqrt(3)`` cells of S that the band's re-extension reads (28.5 for a 5-cell
+the nodes within ``2 sqrt(3)`` cells of S that the band's re-extension reads (28.3 for a 5-cell
 band). It was ``w - 3`` (48), which let the stale error reach those nodes: the sphere's heat
 flow lost its order at 81^3 (docs/band.md: 3.8e-4 at 65^3 and 81^3, now 4.0e-4 and 2.3e-4)."""
 
