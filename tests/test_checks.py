@@ -106,3 +106,5 @@ def test_a_string_flag_is_not_read_by_its_truth() -> None:
         ts.AnisotropicDiffusion("perona_malik", contrast=0.5, coupled="False")
     with pytest.raises(TypeError, match="adjoint"):
         ts.HeatFlow(0.1, adjoint="no")
+    with pytest.raises(TypeError, match="tangent must be True or False, got 'False'"):
+        ts.HarmonicMapFlow(0.1, tangent="False")  # had been read as tangent=True

@@ -603,6 +603,23 @@ def test_a_band_without_nodes_is_refused_naming_band_width(options, message):
         HeatFlow(1e-3, band_width=0.04, **options)(u0, surface)
 
 
+@pytest.mark.parametrize("layout", ["dense", "bricks"])
+def test_a_batch_entry_whose_band_holds_no_node_is_named(layout):
+    """Entry 1's box has its faces halfway between node layers, entry 0's on them: the batch
+    came back with entry 1 unchanged, while entry 1 alone was refused."""
+    grid = ts.Grid((24, 24, 24), 0.1)
+    boxes = [ts.sdf.box(grid, half_size=half, center=(1.2, 1.2, 1.2), dtype=torch.float64)
+             for half in ((0.5, 0.5, 0.5), (0.55, 0.55, 0.55))]
+    surface = ts.ImplicitSurface(torch.cat(boxes), grid)
+    if layout == "bricks":
+        surface = ts.bricks.from_dense(surface)
+    u0 = torch.rand(surface.phi.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    with pytest.raises(ValueError, match=r"(band holds no node in batch entry \[1\]|batch entry 1: "
+                                         r"the flow.s band holds no node): "
+                                         r"band_width=0.04 is 0.40 cells"):
+        HeatFlow(1e-3, band_width=0.04, method="euler", reextend_every=None)(u0, surface)
+
+
 def test_requested_times_never_lengthen_a_given_step():
     """Each interval took round(steps x its share) steps: times 1.49 steps apart made every
     Euler step 1.49 times the stable one and the flow blew up (range [-23, 23] against

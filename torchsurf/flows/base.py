@@ -58,7 +58,7 @@ from .._checks import (
     check_positive,
 )
 from .._stack import caller_stacklevel
-from ..bricks.layout import BRICK
+from ..bricks.layout import BRICK, BrickLayout
 from ..operators.spectrum import laplace_beltrami_bound
 from ..surface import ImplicitSurface, check_data, check_surface
 from ._integrators import (
@@ -301,14 +301,26 @@ def data_shape(surface: ImplicitSurface, batch: int, channels: int) -> tuple[int
     return (len(surface.layout), channels, BRICK, BRICK, BRICK)
 
 
-def check_band_holds_nodes(band: Tensor, width: float, spacing: float) -> None:
-    """Raise ``ValueError`` naming ``band_width`` when the flow's ``band`` holds no node."""
-    if not bool(band.any()):
-        raise ValueError(
-            f"the flow's band holds no node: band_width={width:g} is {width / spacing:.2f} "
-            f"cells of this grid and no node lies that close to S; widen band_width (at "
-            f"least {MIN_BAND_CELLS} cells with re-extension)"
-        )
+def check_band_holds_nodes(band: Tensor, width: float, spacing: float,
+                           layout: BrickLayout | None = None) -> None:
+    """Raise ``ValueError`` naming ``band_width`` when the flow's ``band`` (dense
+    ``(B, 1, D, H, W)`` or packed on ``layout``) holds no node in some batch entry: that entry
+    would come back unchanged."""
+    if layout is None:
+        held = band.flatten(1).any(dim=1)
+    else:
+        held = torch.zeros(layout.batch_size, dtype=torch.bool, device=band.device)
+        held[layout.batch.to(band.device)[band.flatten(1).any(dim=1)]] = True
+    if bool(held.all()):
+        return
+    where = ("" if len(held) == 1
+             else f" in batch entr{'y' if int((~held).sum()) == 1 else 'ies'} "
+                  f"{(~held).nonzero().flatten().tolist()}")
+    raise ValueError(
+        f"the flow's band holds no node{where}: band_width={width:g} is {width / spacing:.2f} "
+        f"cells of this grid and no node lies that close to S; widen band_width (at "
+        f"least {MIN_BAND_CELLS} cells with re-extension)"
+    )
 
 
 def check_times_of_learned_time(time_value: Positive, times: object) -> None:
@@ -693,7 +705,7 @@ class Flow(nn.Module):
                                     "band as wide as the diffusion length)")
         band = self.band_mask(surface)
         if not torch.compiler.is_compiling():
-            check_band_holds_nodes(band, width, surface.spacing)
+            check_band_holds_nodes(band, width, surface.spacing, surface.layout)
         self._check_memory(u0, surface, band)
         # before the flow's system, whose bounds read u0 (reaction-diffusion's)
         check_finite(torch.where(with_ring(band, surface.layout), u0, 0.0),
@@ -802,15 +814,18 @@ class Flow(nn.Module):
         """A batch's entries ``(rows of u0 along its first dimension of size count, surface)``
         (the bricks of an entry; a dense batch's entries whose bands differ), each integrated
         alone with its own band, steps and stages: each entry's result is what it would be
-        without the others."""
+        without the others. A ``ValueError`` of an entry is raised naming the entry."""
         result = None
         self._entry_excesses = excesses = []
         try:
-            for rows, entry in entries:
+            for index, (rows, entry) in enumerate(entries):
                 own = {name: value[rows] if isinstance(value, Tensor)
                        and value.shape[:1] == (count,) else value
                        for name, value in inputs.items()}
-                part = self.forward(u0[rows.clamp(max=u0.shape[0] - 1)], entry, times, **own)
+                try:
+                    part = self.forward(u0[rows.clamp(max=u0.shape[0] - 1)], entry, times, **own)
+                except ValueError as error:
+                    raise ValueError(f"batch entry {index}: {error}") from error
                 if result is None:
                     shape = list(part.shape)
                     shape[-5] = count

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .._checks import check_choice, check_positive, check_real
+from .._checks import check_choice, check_flag, check_positive, check_real
 from ..backend import PATHS
 from ..operators import functional
 from ..operators.functional import FLUX_SCHEMES
@@ -77,7 +77,8 @@ class HarmonicMapFlow(Flow):
         p = check_real(p, "p")
         if not 1 <= p <= 2:
             raise ValueError(f"p must be a number with 1 <= p <= 2, got {p!r}")
-        self.p, self.eps, self.tangent = p, check_positive(eps, "eps"), bool(tangent)
+        self.p, self.eps = p, check_positive(eps, "eps")
+        self.tangent = check_flag(tangent, "tangent")
         self.scheme = check_choice(scheme, "scheme", FLUX_SCHEMES)
         self.path = check_choice(path, "path", PATHS)
 
