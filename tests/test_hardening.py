@@ -278,6 +278,41 @@ def test_functional_layer_checks_channel_counts_dtypes_spacing_and_scheme():
         functional.tangential_divergence(u.expand(1, 4, *grid.shape), normal, weight, h)
 
 
+def test_functional_layer_checks_grids_batches_and_the_spacing_type():
+    """Mismatched grids and batches reached torch's bare size errors, naming the padded sizes;
+    spacing=True ran as a spacing of 1."""
+    from torchsurf.operators import functional
+
+    grid = ts.Grid.cube(12, 1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid), grid)
+    normal, weight, h = surface.normal, surface.weight, surface.spacing
+    u = torch.rand(1, 1, *grid.shape)
+    wider = torch.rand(1, 1, 12, 12, 13)
+    with pytest.raises(ValueError, match=r"normal must be .* of u \(1, 1, 12, 12, 13\).*got shape "
+                                         r"\(1, 3, 12, 12, 12\)"):
+        functional.divergence_form(wider, normal, weight, h)
+    with pytest.raises(ValueError, match=r"normal must be .*of v \(1, 3, 12, 12, 13\)"):
+        functional.tangential_divergence(wider.expand(1, 3, 12, 12, 13), normal, weight, h)
+    with pytest.raises(ValueError, match=r"weight must be .* got shape \(1, 1, 1, 1, 1\)"):
+        functional.divergence_form(u, normal, weight[:, :, :1, :1, :1], h)
+    with pytest.raises(ValueError, match=r"normal must be .* of u \(3, 1, 12, 12, 12\)"):
+        functional.divergence_form(u.expand(3, 1, *grid.shape), normal.expand(2, 3, *grid.shape),
+                                   weight, h)
+    with pytest.raises(ValueError, match=r"batch sizes .* equal or 1, got \[2, 3\]"):
+        functional.divergence_form(u, normal.expand(2, 3, *grid.shape),
+                                   weight.expand(3, 1, *grid.shape), h)
+    with pytest.raises(TypeError, match="spacing must be a finite positive number, got True"):
+        functional.divergence_form(u, normal, weight, True)
+    expected = functional.divergence_form(u, normal, weight, h)
+    for spacing in (np.float64(h), torch.tensor(h, dtype=torch.float64)):
+        torch.testing.assert_close(functional.divergence_form(u, normal, weight, spacing),
+                                   expected, rtol=0, atol=0)
+    # a batch of u over one geometry and one u over a batch of geometry both broadcast
+    assert functional.divergence_form(u.expand(2, 1, *grid.shape), normal, weight, h).shape[0] == 2
+    assert functional.divergence_form(u, normal.expand(2, 3, *grid.shape),
+                                      weight.expand(2, 1, *grid.shape), h).shape[0] == 2
+
+
 def test_directional_diffusion_refuses_a_direction_batch_that_u_does_not_have():
     grid = ts.Grid.cube(12, 1.5)
     surface = ts.ImplicitSurface(ts.sdf.sphere(grid), grid)

@@ -13,8 +13,9 @@ autograd reaches every one of them and a flow can hand them to its integrator:
 
 Data ``u`` is ``(B, C, D, H, W)``. Every function takes ``path`` (:mod:`torchsurf.backend`):
 ``"auto"`` (default), ``"slicing"``, ``"conv3d"`` or ``"compiled"``, all giving the same numbers
-to rounding. Each checks its arguments' channel counts, dtypes, spacing and scheme only; the
-surface-level functions (:func:`torchsurf.laplace_beltrami`, ...) check everything.
+to rounding. Each checks its arguments' shapes (channel counts, batch sizes that broadcast,
+equal grids), dtypes, spacing and scheme, not their values; the surface-level functions
+(:func:`torchsurf.laplace_beltrami`, ...) check everything.
 
 The divergence forms ``L u = (1/W) div(W f(P grad u))`` come in three schemes (see
 :func:`torchsurf.laplace_beltrami` for their orders and errors): ``"octant"``, ``"symmetric"``,
@@ -24,7 +25,6 @@ The divergence forms ``L u = (1/W) div(W f(P grad u))`` come in three schemes (s
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Sequence
 
 import torch
@@ -32,6 +32,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from .. import backend, stencils
+from .._checks import check_positive
 from ..stencils import masked
 from ._coupled import eager_coupled_rate, fused_coupled_rate
 from ._flux_form import (
@@ -51,11 +52,12 @@ SCHEMES = ("octant", "symmetric", "conservative")
 def _check_inputs(u: Tensor, normal: Tensor, spacing: float, weight: Tensor | None = None,
                   scheme: str | None = None, schemes: Sequence[str] = SCHEMES,
                   direction: Tensor | None = None, mean_curvature: Tensor | None = None,
-                  vector: bool = False) -> None:
-    """The cheap checks of this layer's arguments (shapes' channel counts, dtypes, the spacing
-    and the scheme): what would otherwise give a wrong shape or a bare ``KeyError`` deep in a
-    kernel. Channel counts and dtypes only; the surface-level functions check the rest.
-    ``vector``: ``u`` is a field of 3-vectors, ``(B, 3C, D, H, W)`` (named ``v``)."""
+                  vector: bool = False) -> float:
+    """The cheap checks of this layer's arguments (shapes, dtypes, the spacing and the scheme):
+    what would otherwise give a wrong shape, a bare ``KeyError`` or a size mismatch between
+    padded tensors deep in a kernel. Shapes and dtypes only, no values; the surface-level
+    functions check the rest. ``vector``: ``u`` is a field of 3-vectors, ``(B, 3C, D, H, W)``
+    (named ``v``). Returns the spacing as a float."""
     data = "v" if vector else "u"
     if u.dim() != 5 or not u.is_floating_point():
         raise ValueError(f"{data} must be a floating-point (B, C, D, H, W) tensor, got shape "
@@ -68,15 +70,23 @@ def _check_inputs(u: Tensor, normal: Tensor, spacing: float, weight: Tensor | No
                                   ("mean_curvature", mean_curvature, 1)):
         if value is None:
             continue
-        if value.dim() != 5 or value.shape[1] != channels:
-            raise ValueError(f"{name} must be (B or 1, {channels}, D, H, W), got shape "
-                             f"{tuple(value.shape)}")
+        if (value.dim() != 5 or value.shape[1] != channels
+                or value.shape[2:] != u.shape[2:]
+                or value.shape[0] not in (1, u.shape[0]) and u.shape[0] != 1):
+            raise ValueError(
+                f"{name} must be (B or 1, {channels}, D, H, W) with B and (D, H, W) of {data} "
+                f"{tuple(u.shape)} (or {data}'s B of 1), got shape {tuple(value.shape)}")
         if value.dtype != u.dtype:
             raise TypeError(f"{name} is {value.dtype} but {data} is {u.dtype}: they must match")
-    if not (isinstance(spacing, (int, float)) and math.isfinite(spacing) and spacing > 0):
-        raise ValueError(f"spacing must be a finite number > 0, got {spacing!r}")
+    batches = {value.shape[0] for value in (u, normal, weight, direction, mean_curvature)
+               if value is not None} - {1}
+    if len(batches) > 1:
+        raise ValueError(f"the batch sizes of {data}, normal and the other geometry must be "
+                         f"equal or 1, got {sorted(batches)}")
+    spacing = check_positive(spacing, "spacing")
     if scheme is not None and scheme not in schemes:
         raise ValueError(f"scheme must be one of {tuple(schemes)}, got {scheme!r}")
+    return spacing
 
 
 Haloed = tuple[Tensor, Tensor] | None
@@ -220,7 +230,7 @@ def divergence_form(
     Returns:
         ``u``'s shape, units of ``u`` per world length squared (times ``W`` if weighted).
     """
-    _check_inputs(u, normal, spacing, weight, scheme)
+    spacing = _check_inputs(u, normal, spacing, weight, scheme)
     if normal.requires_grad or weight.requires_grad or not (
             torch.is_grad_enabled() and u.requires_grad):
         # no autograd node needed where autograd records nothing (a custom Function's call
@@ -340,7 +350,7 @@ def edge_stopping_form(
     Returns:
         ``u``'s shape.
     """
-    _check_inputs(u, normal, spacing, weight, scheme, FLUX_SCHEMES)
+    spacing = _check_inputs(u, normal, spacing, weight, scheme, FLUX_SCHEMES)
     if coupled and u.shape[1] > 1:
         return harmonic_map_rate(u, normal, weight, spacing, diffusivity, contrast, eps, None,
                                  scheme, path, mask, haloed, pad)
@@ -421,7 +431,7 @@ def harmonic_map_rate(
     Returns:
         ``u``'s shape.
     """
-    _check_inputs(u, normal, spacing, weight, scheme, FLUX_SCHEMES)
+    spacing = _check_inputs(u, normal, spacing, weight, scheme, FLUX_SCHEMES)
     if pad is not None:
         haloed_normal, haloed_weight = _require_haloed(haloed)
         return backend.run_haloed(_COUPLED_OPEN, path, u, pad(u, 2), haloed_normal,
@@ -483,7 +493,7 @@ def directional_form(
     Returns:
         ``u``'s shape.
     """
-    _check_inputs(u, normal, spacing, weight, scheme, FLUX_SCHEMES, direction)
+    spacing = _check_inputs(u, normal, spacing, weight, scheme, FLUX_SCHEMES, direction)
     if pad is not None:
         haloed_normal, haloed_weight = _require_haloed(haloed)
         if haloed_direction is None:
@@ -531,7 +541,7 @@ def tangential_gradient(u: Tensor, normal: Tensor, spacing: float, path: str = "
         ``(B, 3C, D, H, W)`` (or ``(N, 3C, 8, 8, 8)``): channels ``3c, 3c+1, 3c+2`` are the
         ``x, y, z`` components for channel ``c``, units of ``u`` per world length.
     """
-    _check_inputs(u, normal, spacing)
+    spacing = _check_inputs(u, normal, spacing)
     if pad is not None:
         return backend.run_haloed(_GRADIENT, path, u, pad(u, 1), normal, spacing)
     return backend.run(_GRADIENT, path, u, u, normal, spacing)
@@ -569,7 +579,7 @@ def tangential_gradient_energy(u: Tensor, normal: Tensor, spacing: float, path: 
         ``(B, 1, D, H, W)`` (or ``(N, 1, 8, 8, 8)``), units of ``u`` squared per world length
         squared.
     """
-    _check_inputs(u, normal, spacing)
+    spacing = _check_inputs(u, normal, spacing)
     if pad is not None:
         return backend.run_haloed(_ENERGY, path, u, pad(u, 1), normal, spacing)
     return backend.run(_ENERGY, path, u, u, normal, spacing)
@@ -629,7 +639,7 @@ def tangential_divergence(v: Tensor, normal: Tensor, weight: Tensor, spacing: fl
     Returns:
         ``(B, C, D, H, W)`` (or ``(N, C, 8, 8, 8)``), units of ``v`` per world length.
     """
-    _check_inputs(v, normal, spacing, weight, vector=True)
+    spacing = _check_inputs(v, normal, spacing, weight, vector=True)
     if pad is not None:
         return backend.run_haloed(_FLUX_DIVERGENCE, path, v,
                                   pad(_tangential_flux(v, normal, weight), 1), weight, spacing)
@@ -677,7 +687,7 @@ def central_laplace_beltrami(
     Returns:
         ``(B, C, D, H, W)`` (or ``(N, C, 8, 8, 8)``), units of ``u`` per world length squared.
     """
-    _check_inputs(u, normal, spacing, mean_curvature=mean_curvature)
+    spacing = _check_inputs(u, normal, spacing, mean_curvature=mean_curvature)
     if pad is not None:
         return backend.run_haloed(_CENTRAL, path, u, pad(u, 1), normal, mean_curvature, spacing)
     return backend.run(_CENTRAL, path, u, u, normal, mean_curvature, spacing)
