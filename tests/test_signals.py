@@ -270,3 +270,36 @@ def test_noise_counts_and_seeds_are_checked_by_name():
     assert signals.generator(2**64 - 1).initial_seed() == 2**64 - 1
     with pytest.raises(ValueError, match=r"seed must be a whole number in \[0, 2\*\*64\)"):
         signals.gaussian_noise(torch.zeros(1, 1, 3, 3, 3), 1.0, 2**64)
+
+
+def test_fields_and_parameters_that_would_broadcast_or_mislead_are_refused(torus):
+    """orient widened its result to the reference's batch and read a one-channel reference;
+    perturb_field turned a scalar field into a unit tangent field; a NaN origin painted NaN."""
+    shape = torus.grid.shape
+    field = torch.randn(1, 3, *shape)
+    oriented = signals.orient(field, torch.randn(1, 3, *shape))
+    assert oriented.shape == field.shape
+    assert signals.orient(field.expand(2, 3, *shape), field).shape == (2, 3, *shape)
+    for reference in (torch.randn(2, 3, *shape), torch.randn(1, 1, *shape),
+                      torch.randn(1, 3, 24, 24, 25)):
+        with pytest.raises(ValueError, match="reference must"):
+            signals.orient(field, reference)
+    for bad in (torch.rand(1, 1, *shape), torch.rand(3, *shape), torch.rand(1, 3, 24, 24, 25)):
+        with pytest.raises(ValueError, match="field"):
+            signals.perturb_field(bad, torus, 0.1, 0)
+    rgb = torch.rand(1, 3, 4, 4, 4)
+    for eps in (float("nan"), -1.0, 0.0):
+        with pytest.raises(ValueError, match="eps must be a finite positive number"):
+            signals.chroma_brightness(rgb, eps)
+    points = signals.closest_points(torus)
+    with pytest.raises(ValueError, match="origin must be three finite numbers"):
+        signals.checkerboard(points, 0.3, (math.nan, 0.0, 0.0))
+    with pytest.raises(TypeError, match="origin must be world"):
+        signals.checkerboard(points, 0.3, "abc")
+    assert torch.equal(signals.checkerboard(points, 0.3, np.array([0.1, 0.0, 0.0])),
+                       signals.checkerboard(points, 0.3, (0.1, 0.0, 0.0)))
+    with pytest.raises(TypeError, match="like must be a floating-point tensor"):
+        signals.gaussian_noise(torch.zeros(1, 1, 3, 3, 3, dtype=torch.long), 1.0, 0)
+    for size in (0, -3):
+        with pytest.raises(ValueError, match="size must be a whole number >= 1"):
+            signals.builtin_image("checker", size)

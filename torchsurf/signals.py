@@ -20,13 +20,21 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ._checks import check_choice, check_count, check_nonnegative, check_positive, check_volume
+from ._checks import (
+    as_real_tensor,
+    check_choice,
+    check_count,
+    check_nonnegative,
+    check_positive,
+    check_tensor,
+    check_volume,
+)
 from .curvature import tangent_basis
 from .flows import HeatFlow
 from .grid import Grid
 from .operators import laplace_beltrami_bound
 from .sampling import sample
-from .surface import ImplicitSurface, tangent_unit
+from .surface import ImplicitSurface, check_data, tangent_unit
 
 PROJECTIONS = ("spherical", "cylindrical", "planar", "triplanar")
 AXES = ("x", "y", "z")
@@ -69,10 +77,11 @@ def checkerboard(points: Tensor, tile: float, origin: tuple[float, float, float]
         ``(B, 1, D, H, W)``, values 0 and 1.
     """
     check_volume(points, "points", channels=3)
-    if len(origin) != 3:
-        raise ValueError(f"origin must be world (x, y, z), got {origin!r}")
+    corner = as_real_tensor(origin, "origin", "world (x, y, z)")
+    if corner.shape != (3,) or not bool(torch.isfinite(corner).all()):
+        raise ValueError(f"origin must be three finite numbers, world (x, y, z), got {origin!r}")
     tile = check_positive(tile, "tile")
-    cells = torch.floor((points - points.new_tensor(origin).view(1, 3, 1, 1, 1)) / tile)
+    cells = torch.floor((points - corner.to(points).view(1, 3, 1, 1, 1)) / tile)
     return torch.remainder(cells.sum(dim=1, keepdim=True), 2.0)
 
 
@@ -84,6 +93,7 @@ def builtin_image(name: str, size: int = 256) -> Tensor:
     from square to square; ``"checker"``: 8 x 8 black and white squares.
     """
     check_choice(name, "image", IMAGES)
+    size = check_count(size, "size")
     axis = torch.linspace(-1.0, 1.0, size)
     y, x = torch.meshgrid(axis, axis, indexing="ij")
     column, row = torch.floor((x + 1) * 4).clamp(max=7), torch.floor((y + 1) * 4).clamp(max=7)
@@ -207,6 +217,7 @@ def gaussian_noise(like: Tensor, std: float, seed: int, surface: ImplicitSurface
     ``(N, C, 8, 8, 8)``), the numbers the dense grid of each entry gets, node for node (drawn
     densely, one entry at a time, then packed).
     """
+    check_tensor(like, "like")
     check_nonnegative(std, "std")
     if surface is not None and surface.layout is not None:
         draw = generator(seed)
@@ -288,6 +299,10 @@ def orient(field: Tensor, reference: Tensor) -> Tensor:
     ``(B, 3, D, H, W)``): a line field (principal directions, defined up to sign) made a
     vector field wherever the reference is smooth."""
     check_volume(field, "field", channels=3)
+    check_volume(reference, "reference", channels=3)
+    if reference.shape[2:] != field.shape[2:] or reference.shape[0] not in (1, field.shape[0]):
+        raise ValueError(f"reference must be (B or 1, 3, D, H, W) with field's B and (D, H, W), "
+                         f"{tuple(field.shape)}, got shape {tuple(reference.shape)}")
     sign = torch.where((field * reference).sum(dim=1, keepdim=True) < 0, -1.0, 1.0)
     return field * sign.to(field.dtype)
 
@@ -422,7 +437,10 @@ def _at_closest_points(field: Tensor, coarse: ImplicitSurface, surface: Implicit
 
 
 def perturb_field(field: Tensor, surface: ImplicitSurface, std: float, seed: int) -> Tensor:
-    """``field`` plus seeded Gaussian noise of ``std`` per component, made tangent and unit."""
+    """``field`` ``(B, 3, D, H, W)`` (packed ``(N, 3, 8, 8, 8)`` on a
+    :class:`~torchsurf.bricks.BrickSurface`) plus seeded Gaussian noise of ``std`` per
+    component, made tangent and unit."""
+    check_data(field, "field", surface, channels=3)
     return tangent_unit(field + gaussian_noise(field, std, seed, surface), surface)
 
 
@@ -461,5 +479,6 @@ def chroma_brightness(rgb: Tensor, eps: float = 1e-6) -> tuple[Tensor, Tensor]:
     brightness ``|I|`` ``(B, 1, ...)``, ``|I|`` regularised as ``sqrt(|I|^2 + eps^2)``
     (the paper's §3.2, colour denoising)."""
     check_volume(rgb, "rgb", channels=3)
+    eps = check_positive(eps, "eps")
     brightness = torch.sqrt((rgb**2).sum(dim=1, keepdim=True) + eps**2)
     return rgb / brightness, brightness
