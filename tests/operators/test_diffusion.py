@@ -87,6 +87,19 @@ def test_custom_diffusivity_callable():
         ts.anisotropic_diffusion(case.u, surface, lambda s, k: torch.ones(3))
     with pytest.raises(TypeError, match="diffusivity <lambda> must return a tensor"):
         ts.anisotropic_diffusion(case.u, surface, lambda s, k: None)
+    # a float32 result on float64 data came back float64 from the operator and was named by
+    # the flows as their own normal's mismatch; a 0-d or integer result does not promote
+    assert case.u.dtype == torch.float64
+    for g in (lambda s, k: torch.ones_like(s, dtype=torch.float32),
+              lambda s, k: torch.ones_like(s, dtype=torch.float32).expand_as(s)):
+        with pytest.raises(TypeError, match=r"diffusivity <lambda> returned torch.float32 .* "
+                                            r"magnitude of torch.float64"):
+            ts.anisotropic_diffusion(case.u, surface, g)
+        with pytest.raises(TypeError, match="diffusivity <lambda> returned torch.float32"):
+            ts.AnisotropicFlow(1e-3, g, max_diffusivity=1.0)(case.u, surface)
+    torch.testing.assert_close(
+        ts.anisotropic_diffusion(case.u, surface, lambda s, k: 2 * torch.ones_like(s).long()),
+        value)
 
 
 def test_a_module_diffusivity_keeps_its_parameters_registered():

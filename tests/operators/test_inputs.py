@@ -137,3 +137,18 @@ def test_contrast_tensor_must_be_finite_and_positive(contrast):
         ts.anisotropic_diffusion(CASE.u, SURFACE, contrast=contrast.double())
     with pytest.raises(ValueError, match="contrast"):
         ts.operators.AnisotropicDiffusion(contrast=contrast.double())(CASE.u, SURFACE)
+
+
+@pytest.mark.parametrize("contrast", [-1.0, 0.0, float("nan"), torch.tensor(-1.0),
+                                      torch.ones(2, 2)])
+def test_the_module_refuses_a_bad_contrast_when_built(contrast):
+    """It was taken, and refused at the first forward only, unlike a bad eps."""
+    with pytest.raises(ValueError, match="contrast must"):
+        ts.AnisotropicDiffusion("perona_malik", contrast=contrast)
+
+
+def test_the_module_keeps_a_contrast_parameter_registered():
+    contrast = torch.nn.Parameter(torch.tensor([0.5], dtype=torch.float64))
+    module = ts.AnisotropicDiffusion("perona_malik", contrast=contrast)
+    assert module.contrast is contrast
+    assert any(p is contrast for p in module.parameters())

@@ -28,8 +28,10 @@ from .functional import FLUX_SCHEMES
 
 class CheckedDiffusivity:
     """A user's diffusivity ``g(magnitude, contrast)`` whose result is checked: a tensor of the
-    magnitude's shape (or broadcasting to it without widening it). Otherwise the error came
-    from deep in the stencils, naming padded sizes."""
+    magnitude's shape (or broadcasting to it without widening it), and of its floating dtype
+    and device unless 0-d. Otherwise the error came from deep in the stencils, naming padded
+    sizes, or from a flow naming its own tensors, and the operators silently returned another
+    dtype."""
 
     def __init__(self, g: Diffusivity) -> None:
         # held weakly where g allows it: torchsurf.backend keeps the arguments of the variants
@@ -72,6 +74,14 @@ class CheckedDiffusivity:
             raise ValueError(
                 f"diffusivity {self.__name__} returned shape {tuple(value.shape)} for a "
                 f"magnitude of shape {tuple(magnitude.shape)}: g(s, K) acts on each value of s"
+            )
+        # a 0-d tensor takes the data's dtype in arithmetic, as an integer or bool result does
+        promotes = value.is_floating_point() and value.dtype != magnitude.dtype
+        if value.dim() > 0 and (promotes or value.device != magnitude.device):
+            raise TypeError(
+                f"diffusivity {self.__name__} returned {value.dtype} on {value.device} for a "
+                f"magnitude of {magnitude.dtype} on {magnitude.device}: g(s, K) must keep the "
+                "dtype and device of s (the data's)"
             )
         return value
 
@@ -190,6 +200,18 @@ def directional_diffusion(
     )
 
 
+def _initial_contrast(contrast: float | Tensor) -> float | Tensor:
+    """``contrast`` checked as far as it can be before the data is seen (its channel count is
+    checked in the forward): a number, or a tensor ``()`` / ``(C,)``, finite and positive."""
+    if not isinstance(contrast, Tensor):
+        return check_positive(contrast, "contrast")
+    check_positive_tensor(contrast.detach(), "contrast")
+    if contrast.dim() > 1:
+        raise ValueError(f"contrast must be a number, a scalar tensor or a tensor (C,), got "
+                         f"shape {tuple(contrast.shape)}")
+    return contrast
+
+
 class AnisotropicDiffusion(nn.Module):
     """Module form of :func:`anisotropic_diffusion`: ``(B, C, D, H, W) -> (B, C, D, H, W)``.
 
@@ -209,7 +231,7 @@ class AnisotropicDiffusion(nn.Module):
     ) -> None:
         super().__init__()
         self.diffusivity = stored_diffusivity(diffusivity)
-        self.contrast = contrast
+        self.contrast = _initial_contrast(contrast)
         self.eps = check_positive(eps, "eps")
         self.coupled = check_flag(coupled, "coupled")
         self.scheme = check_choice(scheme, "scheme", FLUX_SCHEMES)
