@@ -60,6 +60,10 @@ numbers put nodes at exactly ``width`` (a sphere of radius 4 h centred on a node
 from S), where any change of ``phi`` would add or drop them and the flows' output would jump;
 the slack moves the edge off such placements."""
 
+CELLS_CAP = float(2**31)
+"""Counts of cells are capped here before they become integers: a band wider than any grid
+(``band_width=1e20``) means the whole grid, not an overflow."""
+
 
 def _kept_outside_inference() -> contextlib.AbstractContextManager:
     """Where a value the surface keeps is computed under ``torch.inference_mode`` (an
@@ -469,7 +473,7 @@ class ImplicitSurface(nn.Module):
         # a crossing node within one cell of p along every axis: a node k cells (chessboard)
         # from the nearest crossing node is at least (k - 1) h from S. No node of a distance's
         # band is lost
-        limit = math.floor(reach / self.spacing + 1)
+        limit = math.floor(min(reach / self.spacing + 1, CELLS_CAP))
         return (self.distance() <= reach) & self._near_crossing(limit)
 
     def _near_crossing(self, cells: int) -> Tensor:
