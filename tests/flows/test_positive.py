@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+import torchsurf as ts
 from torchsurf.flows import AnisotropicFlow, HeatFlow, ReactionDiffusion
 from torchsurf.flows._positive import FLOOR, Positive
 
@@ -33,6 +34,20 @@ def test_a_positive_value_that_rounds_to_zero_says_so():
         with pytest.raises(ValueError) as refused:
             Positive(not_positive, "time")
         assert "rounds to 0" not in str(refused.value)
+
+
+def test_a_value_that_overflows_or_is_a_vector_where_one_number_is_taken_says_so():
+    """time=1e300 was called not 'finite' and a flow's time offered a vector, then refused it."""
+    with pytest.raises(ValueError, match=r"time must be a single finite positive number, got "
+                                         r"1e\+300, which overflows to infinity in torch.float32"):
+        HeatFlow(1e300)
+    with pytest.raises(ValueError, match=r"time must be a single finite positive number, got "
+                                         r"\[0.1, 0.2\]$"):
+        HeatFlow([0.1, 0.2])
+    with pytest.raises(ValueError, match=r"time must be a positive number or 2 of them .*"
+                                         r"overflows to infinity"):
+        ts.nn.LearnedDiffusion(2, time=1e300)
+    assert Positive([0.1, 0.2], "contrast").channels == 2
 
 
 @pytest.mark.parametrize("value", [np.float32(0.5), np.int64(2), torch.tensor(0.5),

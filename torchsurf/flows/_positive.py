@@ -65,14 +65,23 @@ def _inverse_softplus(value: Tensor) -> Tensor:
     return value + torch.log(-torch.expm1(-value))
 
 
-def _rounds_to_zero(value: object, tensor: Tensor) -> bool:
-    """Whether ``value``'s entries are all > 0 and finite but some became 0 in ``tensor``."""
+def range_note(value: object, tensor: Tensor) -> str:
+    """``""``, or why ``value``, whose entries are all finite and > 0, is not in ``tensor``
+    (``value`` in ``tensor``'s dtype): an entry rounded to 0 or overflowed to infinity."""
     try:
         exact = torch.as_tensor(value, dtype=torch.float64)
     except (TypeError, ValueError, RuntimeError):
-        return False
-    return (exact.shape == tensor.shape and bool((torch.isfinite(exact) & (exact > 0)).all())
-            and bool((tensor == 0).any()))
+        return ""
+    if exact.shape != tensor.shape or not bool((torch.isfinite(exact) & (exact > 0)).all()):
+        return ""
+    limits = torch.finfo(tensor.dtype)
+    if bool((tensor == 0).any()):
+        return (f", which rounds to 0 in {tensor.dtype} (its smallest positive normal value is "
+                f"{limits.tiny:.3g})")
+    if bool(torch.isinf(tensor).any()):
+        return (f", which overflows to infinity in {tensor.dtype} (its largest finite value is "
+                f"{limits.max:.3g})")
+    return ""
 
 
 class Positive(nn.Module):
@@ -86,16 +95,19 @@ class Positive(nn.Module):
         bound: for a learnable value, its largest value: :meth:`value` is clamped to it (its
             gradient is zero beyond) and :meth:`maximum` returns it without reading the
             parameter. ``bound_name`` names it in errors.
+        vector: whether a vector ``(C,)`` is accepted (else a single number only).
 
     Raises:
         TypeError: ``value`` is not made of real numbers (bools, strings).
         ValueError: it is a tensor that requires grad (its gradient would be lost), has more
-            than one dimension, or an entry that is not finite and > 0;
+            than one dimension (any, without ``vector``), or an entry that is not finite and
+            > 0 in the default dtype;
             ``bound`` is given for a fixed value, or is below an entry of ``value``.
     """
 
     def __init__(self, value: float | Tensor, name: str, learnable: bool = False,
-                 bound: float | None = None, bound_name: str = "bound") -> None:
+                 bound: float | None = None, bound_name: str = "bound",
+                 vector: bool = True) -> None:
         super().__init__()
         self.name = name
         if isinstance(value, Tensor) and value.requires_grad:
@@ -104,17 +116,13 @@ class Positive(nn.Module):
                 f"would drop that gradient; use learn_{name}=True (the flow then owns the "
                 f"parameter) or pass {name}.detach()"
             )
-        tensor = as_real_tensor(value, name, "a finite positive number or a vector (C,) of them")
+        expected = ("a finite positive number or a vector (C,) of them" if vector
+                    else "a single finite positive number")
+        tensor = as_real_tensor(value, name, expected)
         valid = torch.isfinite(tensor) & (tensor > 0)
-        if tensor.dim() > 1 or tensor.numel() == 0 or not bool(valid.all()):
-            underflow = ""
-            if _rounds_to_zero(value, tensor):
-                underflow = (f", which rounds to 0 in {tensor.dtype} (its smallest positive "
-                             f"normal value is {torch.finfo(tensor.dtype).tiny:.3g})")
-            raise ValueError(
-                f"{name} must be a finite positive number or a vector (C,) of them, got "
-                f"{value!r}{underflow}"
-            )
+        if (tensor.dim() > int(vector) or tensor.numel() == 0 or not bool(valid.all())):
+            raise ValueError(f"{name} must be {expected}, got {value!r}"
+                             f"{range_note(value, tensor)}")
         self.learnable = check_flag(learnable, "learnable")
         self.bound = None if bound is None else check_positive(bound, bound_name)
         if self.bound is not None and not self.learnable:

@@ -458,9 +458,7 @@ class Flow(nn.Module):
         super().__init__()
         method = check_method(method, self.extra_methods)
         self.time_value = Positive(time, "time", learnable=learn_time, bound=max_time,
-                                   bound_name="max_time")
-        if self.time_value.channels is not None:
-            raise ValueError(f"time must be a single number, got {time!r}")
+                                   bound_name="max_time", vector=False)
         self.method = method
         self.steps = None if steps is None else check_count(steps, "steps")
         self.solver = SolverOptions(

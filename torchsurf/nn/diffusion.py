@@ -26,7 +26,7 @@ from .._checks import (
     check_positive,
 )
 from ..backend import PATHS
-from ..flows._positive import HostMaximum, _inverse_softplus
+from ..flows._positive import HostMaximum, _inverse_softplus, range_note
 from ..flows.exponential import BandLaplacian, heat_semigroup
 from ..operators import functional
 from ..surface import ImplicitSurface, check_data, check_surface
@@ -97,13 +97,14 @@ class LearnedDiffusion(nn.Module):
             )
         initial = as_real_tensor(time, "time",
                                  f"a positive number or {self.channels} of them (h^2 units)")
+        note = range_note(time, initial)
         if initial.dim() == 0:
             initial = initial.expand(self.channels).clone()
         if (initial.shape != (self.channels,) or initial.is_complex()
                 or not bool((torch.isfinite(initial) & (initial > 0)).all())):
             raise ValueError(
                 f"time must be a positive number or {self.channels} of them (h^2 units), got "
-                f"{time!r}"
+                f"{time!r}{note}"
             )
         self.learn_time = check_flag(learn_time, "learn_time")
         self.max_time = None if max_time is None else check_positive(max_time, "max_time")
