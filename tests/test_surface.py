@@ -769,3 +769,24 @@ def test_the_mean_curvature_returned_is_computed_again_if_modified():
     kept = first.clone()
     first.mul_(0.5)  # the caller's own use of the tensor it was given
     torch.testing.assert_close(surface.mean_curvature(), kept, rtol=0, atol=0)
+
+
+def test_the_curvature_functions_check_their_fields_by_name():
+    """A 3-channel Hessian failed to unpack; a 2-channel normal gave tangents silently."""
+    from torchsurf import curvature
+
+    field = torch.rand(1, 3, 5, 5, 5, dtype=torch.float64)
+    hessian, norm = torch.rand(1, 6, 5, 5, 5, dtype=torch.float64), torch.ones(1, 1, 5, 5, 5).double()
+    with pytest.raises(ValueError, match=r"hessian must be \(B, 6, \.\.\.\) on the grid of gradient"):
+        curvature.mean_curvature(field, field, norm)
+    with pytest.raises(ValueError, match=r"normal must be \(B, 3, \.\.\.\), got shape \(1, 2, 5, 5, 5\)"):
+        curvature.tangent_basis(field[:, :2])
+    with pytest.raises(ValueError, match=r"grad_norm must be .* got shape \(1, 1, 5, 5, 6\)"):
+        curvature.gaussian_curvature(field, hessian, torch.ones(1, 1, 5, 5, 6).double())
+    with pytest.raises(TypeError, match="grad_norm is torch.float32 but hessian is torch.float64"):
+        curvature.principal(hessian, field, norm.float(), 1e-6)
+    with pytest.raises(ValueError, match="batch sizes .* equal or 1, got \\[2, 3\\]"):
+        curvature.principal(hessian.expand(2, 6, 5, 5, 5), field.expand(3, 3, 5, 5, 5), norm, 1e-6)
+    with pytest.raises(ValueError, match="eps must be a finite positive number"):
+        curvature.principal(hessian, field, norm, -1.0)
+    assert curvature.mean_curvature(field, hessian, norm).shape == (1, 1, 5, 5, 5)

@@ -11,6 +11,28 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from ._checks import check_positive, check_tensor
+
+
+def _check_fields(**fields: tuple[Tensor, int]) -> None:
+    """Raise naming the argument unless each ``name=(tensor, channels)`` is a floating-point
+    ``(B, channels, ...)`` tensor, all of one dtype, with batch sizes 1 or one B and one grid."""
+    first_name, (first, _) = next(iter(fields.items()))
+    batches = set()
+    for name, (value, channels) in fields.items():
+        check_tensor(value, name)
+        if value.dim() < 3 or value.shape[1] != channels or value.shape[2:] != first.shape[2:]:
+            grid = "" if name == first_name else f" on the grid of {first_name} {tuple(first.shape)}"
+            raise ValueError(f"{name} must be (B, {channels}, ...){grid}, got shape "
+                             f"{tuple(value.shape)}")
+        if value.dtype != first.dtype:
+            raise TypeError(f"{name} is {value.dtype} but {first_name} is {first.dtype}: they "
+                            "must match")
+        batches.add(value.shape[0])
+    if len(batches - {1}) > 1:
+        raise ValueError(f"the batch sizes of {', '.join(fields)} must be equal or 1, got "
+                         f"{sorted(batches - {1})}")
+
 
 def _matrix(hessian: Tensor) -> Tensor:
     """``(B, 6, ...)`` packed Hessian to ``(B, 3, 3, ...)``."""
@@ -30,6 +52,7 @@ def mean_curvature(gradient: Tensor, hessian: Tensor, grad_norm: Tensor) -> Tens
     Formed as ``tr(S) - n^T S n`` with ``S = Hess / |g|`` and ``n = g / |g|``: no power of
     ``phi``'s scale above one, so ``c * phi`` gives the same numbers for any ``c`` float32 holds
     (``|g|^3`` overflowed float32 from ``c = 1e13``)."""
+    _check_fields(gradient=(gradient, 3), hessian=(hessian, 6), grad_norm=(grad_norm, 1))
     scaled = hessian / grad_norm
     normal = gradient / grad_norm
     trace = scaled[:, 0:1] + scaled[:, 1:2] + scaled[:, 2:3]
@@ -40,6 +63,7 @@ def gaussian_curvature(gradient: Tensor, hessian: Tensor, grad_norm: Tensor) -> 
     """``K = g^T adj(Hess) g / |g|^4``; ``(B, 1, ...)``, formed as ``n^T adj(Hess / |g|) n``
     (the adjugate is quadratic in its matrix) so that no power of ``phi``'s scale above one
     appears (``|g|^4`` overflowed float32 from ``c = 1e10``)."""
+    _check_fields(gradient=(gradient, 3), hessian=(hessian, 6), grad_norm=(grad_norm, 1))
     gradient = gradient / grad_norm
     xx, yy, zz, xy, xz, yz = (hessian / grad_norm).unbind(dim=1)
     adjugate = _matrix(
@@ -70,6 +94,7 @@ def tangent_basis(normal: Tensor) -> tuple[Tensor, Tensor]:
     where ``n`` vanishes (the medial axis) the axes themselves are returned, so values and
     gradients stay finite everywhere (the choice jumps where the ordering of ``|n_i|`` changes).
     """
+    _check_fields(normal=(normal, 3))
     order = normal.abs().argsort(dim=1)
     first = _unit_vectors(normal, order[:, 0:1])
     second = _unit_vectors(normal, order[:, 1:2])
@@ -97,6 +122,8 @@ def principal(
         ``k1, k2`` ``(B, 1, ...)`` with ``k1 >= k2``, and unit directions ``e1, e2``
         ``(B, 3, ...)``, orthonormal and tangent.
     """
+    _check_fields(hessian=(hessian, 6), normal=(normal, 3), grad_norm=(grad_norm, 1))
+    eps = check_positive(eps, "eps")
     t1, t2 = tangent_basis(normal)
     matrix = _matrix(hessian)
     m11 = _quadratic(matrix, t1, t1) / grad_norm

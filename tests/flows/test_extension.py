@@ -235,3 +235,6 @@ def test_extension_arguments_are_checked_by_name():
         ts.flows.closest_point_extension(u, surface, mask=torch.ones_like(u))
     with pytest.raises(ValueError, match=r"mask must have shape \(B or 1, 1, 12, 12, 12\)"):
         ts.flows.closest_point_extension(u, surface, mask=torch.ones(1, 1, 3, 3, 3, dtype=torch.bool))
+    meta = torch.ones(1, 1, *grid.shape, dtype=torch.bool, device="meta")
+    with pytest.raises(ValueError, match="mask is on meta but u is on cpu"):
+        ts.flows.closest_point_extension(u, surface, mask=meta)

@@ -109,6 +109,8 @@ def _check_mask(mask: object, u: Tensor, surface: ImplicitSurface) -> Tensor:
     if not fits:
         raise ValueError(f"mask must have shape {expected}, like u {tuple(u.shape)}; got "
                          f"{tuple(mask.shape)}")
+    if mask.device != u.device:
+        raise ValueError(f"mask is on {mask.device} but u is on {u.device}: they must match")
     return mask
 
 
