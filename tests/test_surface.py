@@ -790,3 +790,17 @@ def test_the_curvature_functions_check_their_fields_by_name():
     with pytest.raises(ValueError, match="eps must be a finite positive number"):
         curvature.principal(hessian, field, norm, -1.0)
     assert curvature.mean_curvature(field, hessian, norm).shape == (1, 1, 5, 5, 5)
+
+
+def test_a_band_wider_than_any_grid_is_the_whole_grid():
+    """band_width=1e20 is finite and accepted; its cell count overflowed an integer. Counts of
+    256 cells and more were compared as uint8 and wrapped: 256.5 cells held only the nodes
+    next to S."""
+    grid = Grid.cube(12, 1.5)
+    surface = ImplicitSurface(sdf.sphere(grid, 1.0), grid, band_width=1e20)
+    assert bool(surface.band_mask().all())
+    for cells in (254.5, 255.5, 256.5, 300.0, 1e6):
+        assert bool(surface.band_mask(cells * grid.spacing).all()), cells
+    u = torch.rand(1, 1, *grid.shape)
+    assert torch.isfinite(ts.flows.closest_point_extension(u, surface, width=1e20)).all()
+    assert torch.isfinite(ts.flows.pde_extension(u, surface, width=1e300)).all()
