@@ -177,12 +177,16 @@ class Grid:
         ``tolerance`` grid cells.
         """
         index = self.world_to_index(points)
-        # the index of a point is rounded at its world coordinate's scale: far from the origin
-        # in float32 (1000.5 at spacing 0.13) that is several 1e-4 cells
+        return self.contains_index(index, _check_tolerance(tolerance)
+                                   + self.world_rounding(index.dtype))
+
+    def world_rounding(self, dtype: torch.dtype) -> float:
+        """Cells by which the index of a world point in ``dtype`` may be off through rounding
+        at its world coordinate's scale: far from the origin in float32 (1000.5 at spacing
+        0.13) that is several 1e-4 cells."""
         farthest = max(abs(x) for x in (*self.origin, *(o + s for o, s in
                                                            zip(self.origin, self.size, strict=True))))
-        rounding = 8 * torch.finfo(index.dtype).eps * farthest / self.spacing
-        return self.contains_index(index, _check_tolerance(tolerance) + rounding)
+        return 8 * torch.finfo(dtype).eps * farthest / self.spacing
 
     def contains_index(self, index: Tensor, tolerance: float = 0.0) -> Tensor:
         """:meth:`contains` for continuous node indices ``(..., 3)`` ``(i, j, k)`` (integer

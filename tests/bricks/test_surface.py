@@ -214,3 +214,37 @@ def test_a_surface_forms_its_own_halos_eagerly(torus, monkeypatch):
     surface.haloed()
     halos = [path for name, path in paths if name == "brick_halo"]
     assert len(halos) >= 4 and set(halos) == {"slicing"}
+
+
+def test_world_points_far_from_the_origin_sample_as_on_the_dense_grid():
+    """A float32 point on the box's face at origin 1000 has index 19.000244 (rounding at the
+    world scale): the dense sampler read it, the bricks' refused it as outside."""
+    grid = ts.Grid((20, 20, 20), spacing=0.01, origin=(1000.0, 1000.0, 1000.0))
+    centre = 1000.0 + 0.095
+    phi = ts.sdf.sphere(grid, radius=0.05, center=(centre,) * 3, dtype=torch.float32)
+    packed = bricks.from_dense(ts.ImplicitSurface(phi, grid))
+    point = torch.tensor([[1000.19, centre, centre]], dtype=torch.float32)
+    assert bool(grid.contains(point))
+    assert packed.samplable(point).tolist() == [True]
+    torch.testing.assert_close(packed.sample(packed.phi, point), ts.sample(phi, point, grid)[0])
+    beyond = torch.tensor([[1000.192, centre, centre]], dtype=torch.float32)  # 0.2 cells out
+    assert not bool(grid.contains(beyond))
+    assert packed.samplable(beyond).tolist() == [False]
+
+
+def test_a_band_past_the_cell_count_cap_equals_the_dense_band(monkeypatch):
+    """Dense counts cells to S up to CROSSING_CELLS and takes a band that wide as every node;
+    the bricks dilated that many times and dropped nodes farther out (shown with the cap
+    lowered to 4: a 255-cell band needs a box of over 520 nodes)."""
+    import torchsurf.bricks.surface as brick_surface
+    import torchsurf.surface as dense_surface
+
+    monkeypatch.setattr(dense_surface, "CROSSING_CELLS", 4)
+    monkeypatch.setattr(brick_surface, "CROSSING_CELLS", 4)
+    grid = ts.Grid.cube(40, bound=1.0)
+    phi = ts.sdf.sphere(grid, radius=0.3, dtype=torch.float64)
+    dense = ts.ImplicitSurface(phi, grid, band_width=7 * grid.spacing)
+    packed = bricks.from_dense(dense)
+    on_bricks = packed.layout.to_dense(packed.band_mask().double())[0] > 0
+    assert int(dense.band_mask().sum()) > 0
+    assert torch.equal(on_bricks, dense.band_mask())

@@ -9,7 +9,7 @@ from torch import Tensor
 
 from .._checks import check_finite, check_positive, check_tensor
 from ..grid import Grid
-from ..surface import ImplicitSurface
+from ..surface import CROSSING_CELLS, ImplicitSurface
 from .layout import BRICK, BrickLayout
 
 STENCIL_REACH = 2
@@ -150,6 +150,8 @@ class BrickSurface(ImplicitSurface):
 
         def grow() -> Tensor:
             near = self._crossing_nodes(self.phi.detach())
+            if cells >= CROSSING_CELLS:  # the dense count's cap: every node
+                return torch.ones_like(near)
             for _ in range(cells):
                 near = self.layout.dilate(near, ONCE)
             return near
@@ -214,7 +216,9 @@ class BrickSurface(ImplicitSurface):
         """
         entry = self._check_points(points, entry)
         _check_like_field(points, "points", field)
-        return self.sample_at_index(field, self.grids[entry].world_to_index(points), entry)
+        grid = self.grids[entry]
+        return self._sample(field, grid.world_to_index(points), entry,
+                            grid.world_rounding(points.dtype))
 
     def sample_at_index(self, field: Tensor, index: Tensor, entry: int = 0) -> Tensor:
         """:meth:`sample` at continuous node indices ``index`` ``(V, 3)`` ``(i, j, k)`` of the
@@ -223,7 +227,11 @@ class BrickSurface(ImplicitSurface):
         self.check_field(field, "field")
         entry = self._check_points(index, entry, "index")
         _check_like_field(index, "index", field)
-        inside, fraction, corners = self._cell_corners(index, entry)
+        return self._sample(field, index, entry)
+
+    def _sample(self, field: Tensor, index: Tensor, entry: int, slack: float = 0.0) -> Tensor:
+        """:meth:`sample_at_index` of checked arguments, the box widened by ``slack`` cells."""
+        inside, fraction, corners = self._cell_corners(index, entry, slack)
         if not bool(inside.all()):
             raise ValueError(f"points: some lie outside the box of entry {entry} "
                              f"({self.grids[entry]})")
@@ -244,13 +252,18 @@ class BrickSurface(ImplicitSurface):
         """``(V,)`` bool: ``points`` ``(V, 3)`` (world ``(x, y, z)``) that :meth:`sample` can
         read, inside the entry's box with the 8 nodes of their cell stored."""
         entry = self._check_points(points, entry)
-        return self.samplable_at_index(self.grids[entry].world_to_index(points), entry)
+        grid = self.grids[entry]
+        return self._samplable(grid.world_to_index(points), entry,
+                               grid.world_rounding(points.dtype))
 
     def samplable_at_index(self, index: Tensor, entry: int = 0) -> Tensor:
         """:meth:`samplable` at continuous node indices ``index`` ``(V, 3)`` ``(i, j, k)`` of
         the entry's grid (:meth:`sample_at_index`)."""
         entry = self._check_points(index, entry, "index")
-        inside, _, corners = self._cell_corners(index, entry)
+        return self._samplable(index, entry)
+
+    def _samplable(self, index: Tensor, entry: int, slack: float = 0.0) -> Tensor:
+        inside, _, corners = self._cell_corners(index, entry, slack)
         for _, brick, _ in corners:
             inside = inside & (brick >= 0)
         return inside
@@ -288,14 +301,14 @@ class BrickSurface(ImplicitSurface):
             raise ValueError(f"entry must be an integer in [0, {self.batch_size}), got {entry}")
         return index
 
-    def _cell_corners(self, index: Tensor, entry: int
+    def _cell_corners(self, index: Tensor, entry: int, slack: float = 0.0
                       ) -> tuple[Tensor, Tensor, list[tuple[Tensor, Tensor, Tensor]]]:
         """For continuous node indices ``index`` ``(V, 3)`` of ``entry``: inside its box
         ``(V,)``, the fraction ``(V, 3)`` within the cell (points outside clamped to the box),
         and per corner of the cell its offset ``(3,)``, brick row ``(V,)`` (-1: not stored)
         and packed node ``(V,)``."""
         grid = self.grids[entry]
-        inside = grid.contains_index(index.detach(), tolerance=1e-4)
+        inside = grid.contains_index(index.detach(), tolerance=1e-4 + slack)
         high = torch.tensor(grid.shape[::-1], dtype=index.dtype, device=index.device) - 1
         index = torch.minimum(index.clamp(min=0), high)
         low = index.detach().floor().clamp(max=high - 1).long()
