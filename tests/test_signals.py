@@ -91,6 +91,24 @@ def test_load_image_reads_a_png(tmp_path):
         signals.load_image(tmp_path / "missing.png")
 
 
+@pytest.mark.parametrize("dtype", [np.uint16, np.int16, np.uint32, np.float32])
+def test_load_image_scales_every_integer_type_to_the_unit_range(tmp_path, dtype):
+    """Only 8- and 16-bit unsigned files were scaled: int16 came back in [0, 32767]."""
+    imageio = pytest.importorskip("imageio.v3")
+    peak = np.iinfo(dtype).max if np.issubdtype(dtype, np.integer) else 1.0
+    array = np.zeros((4, 4), dtype=dtype)
+    array[0, 0], array[1, 1] = peak, peak // 2 if np.issubdtype(dtype, np.integer) else 0.5
+    imageio.imwrite(tmp_path / "image.tif", array)
+    image = signals.load_image(tmp_path / "image.tif")
+    assert image.shape == (1, 4, 4)
+    assert float(image.max()) == 1.0 and abs(float(image[0, 1, 1]) - 0.5) < 1e-4
+    if dtype in (np.int16, np.float32):
+        array[2, 2] = -1
+        imageio.imwrite(tmp_path / "negative.tif", array)
+        with pytest.raises(ValueError, match=r"negative.tif' holds .* pixels in \[-1"):
+            signals.load_image(tmp_path / "negative.tif")
+
+
 @pytest.mark.parametrize("channels, kept", [(2, 1), (4, 3)])
 def test_load_image_drops_the_alpha_of_gray_and_colour_files(tmp_path, channels, kept):
     from PIL import Image
@@ -303,3 +321,18 @@ def test_fields_and_parameters_that_would_broadcast_or_mislead_are_refused(torus
     for size in (0, -3):
         with pytest.raises(ValueError, match="size must be a whole number >= 1"):
             signals.builtin_image("checker", size)
+
+
+def test_tensor_seeds_and_far_origins_keep_every_digit():
+    """A tensor seed went through float: seeds 2^53 and 2^53 + 1 drew the same noise. A
+    checkerboard's origin was rounded to float32 before the floor that picks a tile."""
+    like = torch.zeros(1, 1, 4, 4, 4)
+    for seed in (2**53 + 1, 2**62 - 1):
+        assert torch.equal(signals.gaussian_noise(like, 1.0, torch.tensor(seed)),
+                           signals.gaussian_noise(like, 1.0, seed))
+    assert not torch.equal(signals.gaussian_noise(like, 1.0, torch.tensor(2**53)),
+                           signals.gaussian_noise(like, 1.0, torch.tensor(2**53 + 1)))
+    point = torch.tensor([1000.3 - 1e-5, 0.5, 0.5], dtype=torch.float64).view(1, 3, 1, 1, 1)
+    for origin in ((1000.3, 0.0, 0.0), np.array([1000.3, 0.0, 0.0]),
+                   torch.tensor([1000.3, 0.0, 0.0], dtype=torch.float64)):
+        assert float(signals.checkerboard(point, 1.0, origin)) == 1.0  # the tile below 1000.3

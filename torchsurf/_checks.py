@@ -251,6 +251,9 @@ def check_count(value: object, name: str, minimum: int = 1) -> int:
     expected = f"a whole number >= {minimum}"
     if isinstance(value, numbers.Integral) and not isinstance(value, (bool, np.bool_)):
         number: float | int = int(value)
+    elif (isinstance(value, Tensor) and value.dim() == 0 and value.dtype != torch.bool
+          and not value.is_floating_point() and not value.is_complex()):
+        number = int(check_has_data(value, name))  # exact: float() rounds from 2^53
     else:
         number = as_float(value, name, expected)
         if not (math.isfinite(number) and number.is_integer()):

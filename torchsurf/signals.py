@@ -80,8 +80,11 @@ def checkerboard(points: Tensor, tile: float, origin: tuple[float, float, float]
     corner = as_real_tensor(origin, "origin", "world (x, y, z)")
     if corner.shape != (3,) or not bool(torch.isfinite(corner).all()):
         raise ValueError(f"origin must be three finite numbers, world (x, y, z), got {origin!r}")
+    # in the points' dtype from the numbers given (as_real_tensor's default dtype rounds them)
+    corner = torch.as_tensor(np.asarray(origin.detach().cpu() if isinstance(origin, Tensor)
+                                        else origin, dtype=np.float64)).to(points)
     tile = check_positive(tile, "tile")
-    cells = torch.floor((points - corner.to(points).view(1, 3, 1, 1, 1)) / tile)
+    cells = torch.floor((points - corner.view(1, 3, 1, 1, 1)) / tile)
     return torch.remainder(cells.sum(dim=1, keepdim=True), 2.0)
 
 
@@ -113,7 +116,13 @@ def builtin_image(name: str, size: int = 256) -> Tensor:
 def load_image(path: str | Path) -> Tensor:
     """An image file as ``(C, H, W)`` float32 in ``[0, 1]`` (C = 3, or 1 for gray files).
 
-    Read by scikit-image; an alpha channel is dropped.
+    Read by scikit-image; an alpha channel is dropped. Integer pixels are divided by their
+    type's largest value (255 for 8 bits, 65535 for 16 bits, ...); floating-point pixels are
+    taken as they are.
+
+    Raises:
+        ValueError: pixels below 0 (a signed integer file), or floating-point pixels outside
+            ``[0, 1]``, naming the file and the range found.
     """
     from skimage import io
 
@@ -121,8 +130,14 @@ def load_image(path: str | Path) -> Tensor:
     if not path.is_file():
         raise FileNotFoundError(f"image: no file {str(path)!r}")
     array = np.asarray(io.imread(str(path)))
-    scale = 255.0 if array.dtype == np.uint8 else (65535.0 if array.dtype == np.uint16 else 1.0)
-    image = torch.as_tensor(array.astype(np.float32) / scale)
+    scale = float(np.iinfo(array.dtype).max) if np.issubdtype(array.dtype, np.integer) else 1.0
+    values = array.astype(np.float64) / scale
+    if values.size and not (values.min() >= 0 and values.max() <= 1):
+        raise ValueError(
+            f"image: {str(path)!r} holds {array.dtype} pixels in [{array.min()}, {array.max()}]; "
+            f"expected [0, {'1' if scale == 1.0 else int(scale)}]"
+        )
+    image = torch.as_tensor(values.astype(np.float32))
     if image.dim() == 2:
         image = image[..., None]
     colours = 1 if image.shape[-1] <= 2 else 3  # gray (+ alpha) or RGB (+ alpha)
