@@ -3,7 +3,12 @@ they ran on; shared by the scripts."""
 
 from __future__ import annotations
 
+import fcntl
+import hashlib
+import os
 import platform
+import re
+import tempfile
 from pathlib import Path
 
 NEW_FILE = ("# torchsurf benchmarks\n\nFigures measured by the scripts in `benchmarks/`; each "
@@ -12,28 +17,77 @@ NEW_FILE = ("# torchsurf benchmarks\n\nFigures measured by the scripts in `bench
 
 def write_section(path: Path, name: str, heading: str, body: str,
                   after: str | None = None) -> None:
-    """Write or replace the section ``name`` (between ``<!-- BEGIN name -->`` and
+    """Write or replace the section ``name`` (between ``<!-- BEGIN name ... -->`` and
     ``<!-- END name -->``) in ``path``: ``heading``, then ``body``.
 
-    A new section goes after the section ``after`` when ``path`` has it, else at the end. The
-    file is written whole to a temporary file and renamed, so it is never left half written.
+    Only a section exactly as a run wrote it is replaced: its BEGIN marker carries a checksum of
+    what was written. A section edited by hand since (or written before the checksums) is kept
+    whole, its markers renamed ``name, kept``, and the new section goes just before it, so
+    that notes written beside the figures are never lost. A new section goes after the
+    section ``after`` when ``path`` has it, else at the end.
+
+    Writers hold a lock on ``path`` + ``.lock`` while they read and write, and write a
+    temporary file of their own that is renamed into place: the file is never left half
+    written and concurrent runs do not lose each other's sections.
+
+    Raises:
+        ValueError: ``path`` has a BEGIN marker of ``name`` without its END (or the reverse).
     """
-    begin, end = f"<!-- BEGIN {name} -->", f"<!-- END {name} -->"
-    section = f"{begin}\n{heading}\n\n{body}\n{end}\n"
-    text = path.read_text() if path.exists() else NEW_FILE
-    follows = None if after is None else f"<!-- END {after} -->"
-    if begin in text and end in text:
-        head, rest = text.split(begin, 1)
-        text = head + section + _after(rest.split(end, 1)[1])
-    elif follows is not None and follows in text:
-        head, rest = text.split(follows, 1)
-        text = head + follows + "\n\n" + section + _after(rest)
-    else:
-        text = text.rstrip("\n") + "\n\n" + section
+    content = f"{heading}\n\n{body}\n"
+    section = f"<!-- BEGIN {name} {_checksum(content)} -->\n{content}<!-- END {name} -->\n"
     path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_suffix(".tmp")
-    temporary.write_text(text)
-    temporary.replace(path)
+    with open(path.with_name(path.name + ".lock"), "a") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        text = path.read_text() if path.exists() else NEW_FILE
+        _replace_atomically(path, _with_section(text, name, section, after))
+
+
+def _with_section(text: str, name: str, section: str, after: str | None) -> str:
+    begin = re.compile(rf"<!-- BEGIN {re.escape(name)}(?: ([0-9a-f]{{16}}))? -->\n")
+    end = f"<!-- END {name} -->\n"
+    found = begin.search(text)
+    has_end = end in (text if found is None else text[found.end():])
+    if (found is not None) != has_end:
+        raise ValueError(f"a BEGIN or END marker of section {name!r} is missing its pair; "
+                         "fix the file by hand before writing the section again")
+    if found is not None:
+        stop = text.index(end, found.end())
+        content = text[found.end():stop]
+        rest = text[stop + len(end):]
+        if found.group(1) == _checksum(content):
+            return text[:found.start()] + section + rest
+        kept = (f"<!-- BEGIN {name}, kept -->\n{content}<!-- END {name}, kept -->\n")
+        return text[:found.start()] + section + "\n" + kept + rest
+    follows = None if after is None else f"<!-- END {after} -->\n"
+    if follows is not None and follows in text:
+        head, rest = text.split(follows, 1)
+        return head + follows + "\n" + section + _after(rest)
+    return text.rstrip("\n") + "\n\n" + section
+
+
+def _checksum(content: str) -> str:
+    return hashlib.sha256(content.encode()).hexdigest()[:16]
+
+
+def _replace_atomically(path: Path, text: str) -> None:
+    """``path`` holds ``text``, with its former permissions (or the umask's)."""
+    mode = path.stat().st_mode & 0o777 if path.exists() else 0o666 & ~_umask()
+    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.",
+                                         suffix=".tmp")
+    try:
+        with os.fdopen(handle, "w") as file:
+            file.write(text)
+        os.chmod(temporary, mode)
+        os.replace(temporary, path)
+    except BaseException:
+        Path(temporary).unlink(missing_ok=True)
+        raise
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
 
 
 def _after(rest: str) -> str:

@@ -74,14 +74,24 @@ def _load_sibling(name: str):
     return module
 
 
-_lb_bench = _load_sibling("bench_laplace_beltrami")
 _heat_bench = _load_sibling("bench_heat_flow")
 _learned_bench = _load_sibling("bench_learned_diffusion")
 
 
 def peak_gb() -> float:
-    """Maximum resident set of this process so far, GB."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
+    """Maximum resident set of this process so far, GB (``ru_maxrss`` is in KiB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / 1e9
+
+
+def copy_bandwidth() -> float:
+    """Copy bandwidth, GB/s, measured in a child process (``bench_laplace_beltrami``'s
+    ``memory_bandwidth``): its 1 GB of buffers would otherwise count in this process's peak
+    memory, which the scale part reports."""
+    code = ("import json, sys; sys.path.insert(0, sys.argv[1]); import bench_laplace_beltrami "
+            "as b; print(json.dumps(max(b.memory_bandwidth().values())))")
+    done = subprocess.run([sys.executable, "-c", code, str(Path(__file__).parent)],
+                          capture_output=True, text=True, check=True)
+    return float(done.stdout.strip().splitlines()[-1])
 
 
 RATIO_PAIRS = 7
@@ -101,7 +111,8 @@ def median_ms(function, repeats: int = 5) -> float:
 
 def scale(mesh_path: Path, resolution: int, bandwidth: float) -> dict[str, float]:
     mesh = ts.mesh.load(mesh_path)
-    grid = ts.mesh.fit_grid(mesh, resolution, margin=0.05)
+    # 5% of the mesh a side, and at least the 6 free cells bricks need (small --resolution)
+    grid = ts.mesh.fit_grid(mesh, resolution, margin=max(0.05, 6.0 / max(resolution - 13, 1)))
     start = time.perf_counter()
     surface = bricks.from_mesh(mesh, grid, dtype=torch.float32)
     build_s = time.perf_counter() - start
@@ -497,8 +508,11 @@ def markdown(args, bandwidth: float, scaled: dict | None, ratioed: dict | None,
 def main(argv: list[str] | None = None) -> str:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--mesh", default=str(MESHES / "bunny_closed.obj"))
-    parser.add_argument("--resolution", type=int, default=512)
-    parser.add_argument("--ratio-resolution", type=int, default=256)
+    parser.add_argument("--resolution", type=int, default=512,
+                        help="the scale part's grid (nodes a side, at least 24)")
+    parser.add_argument("--ratio-resolution", type=int, default=256,
+                        help="the ratio part's grid (nodes a side, at least 51: the sphere's "
+                             "band stays 5 cells off the box)")
     parser.add_argument("--sizes", type=int, nargs="+", default=[65, 81, 97])
     parser.add_argument("--target", type=float, default=1e-3)
     parser.add_argument("--solution-method", default="rkc",
@@ -532,7 +546,7 @@ def main(argv: list[str] | None = None) -> str:
                           after=SECTION)
         if args.parts == ["batch"]:
             return body
-    bandwidth = max(_lb_bench.memory_bandwidth().values())
+    bandwidth = copy_bandwidth()
     scaled = scale(Path(args.mesh), args.resolution, bandwidth) if "scale" in args.parts else None
     ratioed = ratio(args.ratio_resolution) if "ratio" in args.parts else None
     solved = (solution(args.sizes, args.target, args.solution_method)

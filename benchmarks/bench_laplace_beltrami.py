@@ -524,7 +524,7 @@ def main(argv: list[str] | None = None) -> list[SizeResult]:
     parser.add_argument("--sizes", type=int, nargs="+", default=[64, 128, 256])
     parser.add_argument("--repeats", type=int, default=7, help="timed calls per figure")
     parser.add_argument("--repeats-large", type=int, default=3,
-                        help="timed calls per figure for n >= 256")
+                        help="timed calls per figure for n >= 256, at most --repeats")
     parser.add_argument("--schemes", nargs="+", default=list(SCHEMES), choices=SCHEMES)
     parser.add_argument("--paths", nargs="+", default=list(PATHS), choices=PATHS)
     parser.add_argument("--output", type=Path, default=None,

@@ -1,5 +1,7 @@
-"""One training iteration of a learned diffusion at 64^3, batch 4: memory and time as the learned
-time grows, against the unrolled learnable ``HeatFlow`` (RKC, checkpointed) in the same run.
+"""One training iteration of a learned diffusion at 64^3, batch 4: memory and time by time.
+
+Memory and time as the learned time grows, against the unrolled learnable ``HeatFlow`` (RKC,
+checkpointed) in the same run.
 
 Each run is a fresh process (so that its peak resident memory is its own): a unit sphere on
 ``Grid.cube(n, 1.5)``, float32, ``batch`` noisy copies of a smooth signal with ``channels``
@@ -37,8 +39,8 @@ from __future__ import annotations
 import argparse
 import ctypes
 import json
+import math
 import os
-import platform
 import resource
 import subprocess
 import sys
@@ -47,6 +49,7 @@ import time
 from typing import NamedTuple
 
 import torch
+from _report import cpu_model  # benchmarks/_report.py, beside this script
 
 import torchsurf as ts
 
@@ -198,9 +201,9 @@ def summary(runs: list[Run], low: float, high: float) -> list[str]:
     for method in METHODS:
         mine = {r.cells: r for r in runs if r.method == method}
         if low < high and low in mine and high in mine:
-            memory = mine[high].peak_mb / mine[low].peak_mb
-            live = mine[high].live_mb / mine[low].live_mb
-            seconds = mine[high].steady / mine[low].steady
+            memory = _growth(mine[high].peak_mb, mine[low].peak_mb)
+            live = _growth(mine[high].live_mb, mine[low].live_mb)
+            seconds = _growth(mine[high].steady, mine[low].steady)
             verdict = ("meets" if live <= MEMORY_TARGET and seconds <= TIME_TARGET
                        else "misses")
             lines.append(
@@ -209,6 +212,14 @@ def summary(runs: list[Run], low: float, high: float) -> list[str]:
                 f"x{seconds:.2f} (target <= {TIME_TARGET:g}): {verdict} the targets"
             )
     return lines
+
+
+def _growth(high: float, low: float) -> float:
+    """``high / low``; a run with no new peak reads 0 (:func:`single`): 1 if both are, else
+    infinite."""
+    if low > 0:
+        return high / low
+    return 1.0 if high <= 0 else math.inf
 
 
 def table(runs: list[Run]) -> list[str]:
@@ -253,7 +264,7 @@ def main() -> None:
             runs.append(Run(**spawn([*shared, "--single", method, str(cells)])))
             print(table(runs)[-1], flush=True)
     tunables = os.environ.get("GLIBC_TUNABLES", "default glibc allocator")
-    print(f"\n{platform.processor() or platform.machine()}, {torch.get_num_threads()} thread(s), "
+    print(f"\n{cpu_model()}, {torch.get_num_threads()} thread(s), "
           f"torch {torch.__version__}, allocator: {tunables}; n = {args.n}, batch "
           f"{args.batch}, {args.channels} channels, "
           f"{'compiled where the backend chooses' if args.compiled else 'eager stencils'}\n")

@@ -35,6 +35,7 @@ import scipy.sparse as sparse
 import scipy.sparse.linalg as sparse_linalg
 import torch
 import trimesh
+from _report import cpu_model, write_section  # benchmarks/_report.py, beside this script
 
 import torchsurf as ts
 
@@ -98,15 +99,17 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--time-fraction", type=float, default=0.05,
                         help="t = (fraction x bounding-box diagonal)^2")
     parser.add_argument("--reference-steps", type=int, default=200)
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--threads", type=int, default=None,
+                        help="torch threads (default: torch's, e.g. from OMP_NUM_THREADS)")
     parser.add_argument("--output", type=Path, default=None)
     args = parser.parse_args(argv)
-    torch.set_num_threads(args.threads)
+    if args.threads is not None:
+        torch.set_num_threads(args.threads)
     time_end = args.time_fraction**2
     lines = [
         f"Date: {datetime.datetime.now().astimezone().isoformat(timespec='seconds')}. "
-        f"torch {torch.__version__}, {torch.get_num_threads()} threads, GLIBC_TUNABLES="
-        f"`{os.environ.get('GLIBC_TUNABLES', 'unset')}`.",
+        f"{cpu_model()}, torch {torch.__version__}, {torch.get_num_threads()} threads, "
+        f"GLIBC_TUNABLES=`{os.environ.get('GLIBC_TUNABLES', 'unset')}`.",
         "",
         f"Command: `PYTHONPATH=. python benchmarks/bench_mesh_heat.py {' '.join(argv)}`",
         "",
@@ -137,17 +140,7 @@ def main(argv: list[str] | None = None) -> None:
     body = "\n".join(lines) + "\n"
     print(body)
     if args.output is not None:
-        begin, end = f"<!-- BEGIN {SECTION} -->", f"<!-- END {SECTION} -->"
-        section = f"{begin}\n## Heat flow on meshes through MeshAdapter\n\n{body}{end}\n"
-        text = args.output.read_text() if args.output.exists() else "# torchsurf benchmarks\n"
-        if begin in text and end in text:
-            head, rest = text.split(begin, 1)
-            text = head + section + rest.split(end, 1)[1].lstrip("\n")
-        else:
-            text = text.rstrip("\n") + "\n\n" + section
-        tmp = args.output.with_suffix(".tmp")
-        tmp.write_text(text)
-        tmp.replace(args.output)
+        write_section(args.output, SECTION, "## Heat flow on meshes through MeshAdapter", body.rstrip("\n"))
 
 
 if __name__ == "__main__":

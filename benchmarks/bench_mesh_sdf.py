@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -23,6 +22,7 @@ import igl
 import numpy as np
 import torch
 import trimesh
+from _report import cpu_model  # benchmarks/_report.py, beside this script
 
 import torchsurf as ts
 from torchsurf.mesh import fit_grid
@@ -60,7 +60,8 @@ def main() -> None:
     parser.add_argument("--skip-full-grid", action="store_true")
     args = parser.parse_args()
     torch.set_num_threads(os.cpu_count() or 1)
-    print(f"machine: {platform.machine()}, {os.cpu_count()} CPUs, "
+    print(f"machine: {cpu_model()}, {os.cpu_count()} CPUs, {torch.get_num_threads()} torch "
+          f"threads, allocator: {os.environ.get('GLIBC_TUNABLES', 'glibc default')}, "
           f"load average {os.getloadavg()[0]:.1f} at start")
     print()
     print("| mesh | faces | grid | band | sign | wall s | CPU s | note |")

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import os
 import sys
 import time
 from pathlib import Path
@@ -24,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import torch
 import trimesh
+from _report import cpu_model, write_section  # benchmarks/_report.py, beside this script
 from bench_mesh_heat import MESH_DIR, normalised, signal
 
 import torchsurf as ts
@@ -53,7 +55,8 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     lines = [
         f"Date: {datetime.datetime.now().astimezone().isoformat(timespec='seconds')}. "
-        f"torch {torch.__version__}, float64, {torch.get_num_threads()} threads.",
+        f"{cpu_model()}, torch {torch.__version__}, float64, {torch.get_num_threads()} "
+        f"threads, GLIBC_TUNABLES=`{os.environ.get('GLIBC_TUNABLES', 'unset')}`.",
         "",
         f"Command: `PYTHONPATH=. python benchmarks/bench_mesh_transfer.py {' '.join(argv)}`",
         "",
@@ -87,17 +90,7 @@ def main(argv: list[str] | None = None) -> None:
     body = "\n".join(lines) + "\n"
     print(body)
     if args.output is not None:
-        begin, end = f"<!-- BEGIN {SECTION} -->", f"<!-- END {SECTION} -->"
-        section = f"{begin}\n## Mesh transfer: MeshAdapter round trip\n\n{body}{end}\n"
-        text = args.output.read_text() if args.output.exists() else "# torchsurf benchmarks\n"
-        if begin in text and end in text:
-            head, rest = text.split(begin, 1)
-            text = head + section + rest.split(end, 1)[1].lstrip("\n")
-        else:
-            text = text.rstrip("\n") + "\n\n" + section
-        tmp = args.output.with_suffix(".tmp")
-        tmp.write_text(text)
-        tmp.replace(args.output)
+        write_section(args.output, SECTION, "## Mesh transfer: MeshAdapter round trip", body.rstrip("\n"))
 
 
 if __name__ == "__main__":

@@ -181,5 +181,45 @@ def test_sections_are_replaced_in_place_or_added_after_their_neighbour(tmp_path)
     text = path.read_text()
     assert text.startswith(report.NEW_FILE)
     assert text.index("first again") < text.index("second") < text.index("third")
-    assert "first\n" not in text and text.count("<!-- BEGIN a -->") == 1
-    assert not path.with_suffix(".tmp").exists()
+    assert "first\n" not in text and text.count("<!-- BEGIN a ") == 1
+    assert sorted(p.name for p in path.parent.iterdir()) == ["benchmarks.md", "benchmarks.md.lock"]
+
+
+def test_notes_written_into_a_section_by_hand_are_kept(tmp_path):
+    """A rerun replaced everything between the markers: 125 lines of notes in the bricks
+    section would have gone with the command the doc quotes."""
+    report = load_benchmark("_report")
+    path = tmp_path / "benchmarks.md"
+    report.write_section(path, "a", "## A", "| run | 1 |")
+    report.write_section(path, "b", "## B", "other")
+    path.write_text(path.read_text().replace("| run | 1 |", "| run | 1 |\n\nA note by hand."))
+    report.write_section(path, "a", "## A", "| run | 2 |")
+    text = path.read_text()
+    assert text.index("| run | 2 |") < text.index("| run | 1 |") < text.index("A note by hand.")
+    assert text.count("<!-- BEGIN a, kept -->") == 1 and "other" in text
+    report.write_section(path, "a", "## A", "| run | 3 |")  # the unedited run is replaced
+    text = path.read_text()
+    assert "| run | 2 |" not in text and text.index("| run | 3 |") < text.index("A note by hand.")
+    # a legacy section with no checksum is kept the same way
+    path.write_text(path.read_text() + "<!-- BEGIN c -->\n## C\n\nold notes\n<!-- END c -->\n")
+    report.write_section(path, "c", "## C", "new")
+    assert "old notes" in path.read_text() and "new" in path.read_text()
+
+
+def test_concurrent_writers_keep_every_section_and_a_lone_marker_is_refused(tmp_path):
+    import threading
+
+    report = load_benchmark("_report")
+    path = tmp_path / "benchmarks.md"
+    threads = [threading.Thread(target=report.write_section,
+                                args=(path, f"s{i}", f"## S{i}", f"body {i}")) for i in range(12)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    text = path.read_text()
+    assert all(f"body {i}\n" in text for i in range(12))
+    path.write_text(text + "<!-- BEGIN orphan -->\nhalf\n")
+    with pytest.raises(ValueError, match="'orphan' is missing its pair"):
+        report.write_section(path, "orphan", "## O", "x")
+    assert path.read_text().endswith("half\n")

@@ -13,8 +13,6 @@ import pytest
 
 import torchsurf as ts
 
-pytestmark = pytest.mark.slow  # trains for minutes on a shared 2-core machine; run with -m slow
-
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "train_denoise.py"
 
 
