@@ -804,3 +804,14 @@ def test_a_band_wider_than_any_grid_is_the_whole_grid():
     u = torch.rand(1, 1, *grid.shape)
     assert torch.isfinite(ts.flows.closest_point_extension(u, surface, width=1e20)).all()
     assert torch.isfinite(ts.flows.pde_extension(u, surface, width=1e300)).all()
+
+
+def test_mean_curvature_refuses_a_phi_modified_in_place_like_the_rest():
+    """It returned the curvature it had kept, 23.8 off the new phi's, with no error."""
+    grid = Grid.cube(16, 1.5)
+    phi = sdf.sphere(grid, 1.0)
+    surface = ImplicitSurface(phi, grid)
+    surface.mean_curvature()
+    phi.copy_(sdf.sphere(grid, 0.6))
+    with pytest.raises(RuntimeError, match="phi was modified in place"):
+        surface.mean_curvature()

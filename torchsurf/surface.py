@@ -239,7 +239,12 @@ class ImplicitSurface(nn.Module):
     ``phi`` extrapolated linearly beyond the grid, and reused by every operator. When ``phi``
     requires grad they stay in its graph (build the surface again after each optimiser step).
     ``surface.to(...)`` (``.double()``, a device) moves ``phi`` and derives the rest again from
-    it: the same numbers as a surface built from the moved ``phi``.
+    it: the same numbers as a surface built from the moved ``phi``. Changing ``phi`` in place
+    afterwards (``phi.copy_``, ``phi.mul_``) makes every method raise ``RuntimeError``; changes
+    that leave no trace in its version counter are not seen: writes through ``phi.data``,
+    and in-place changes between calls of code compiled by an outer ``torch.compile``
+    (the check is a host read, which compiled code skips). Build a new surface from a new
+    ``phi`` instead.
 
     Nothing assumes that ``phi`` is a distance in world units: widths are measured as
     :meth:`distance` (``|phi| / |grad phi|``, floored at half ``gradient_scale``; so
@@ -540,6 +545,7 @@ class ImplicitSurface(nn.Module):
         if the tensor returned was modified in place).
         """
         kept = self._mean_curvature
+        self._current_phi()  # the kept value belongs to phi as the surface was built
         if kept is not None and (torch.compiler.is_compiling()
                                  or kept._version == self._mean_curvature_version):
             return kept

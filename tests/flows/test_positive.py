@@ -117,3 +117,32 @@ def test_reaction_diffusion_refuses_bad_beta_and_noise(kwargs, error, name):
 def test_reaction_diffusion_accepts_numpy_beta():
     flow = ReactionDiffusion(10.0, beta=np.float32(12.0), noise=np.float64(0.0))
     assert flow.beta == 12.0 and flow.noise == 0.0
+
+
+def test_compiled_code_sees_fixed_values_loaded_from_a_checkpoint():
+    positive = Positive(torch.tensor([1.0, 2.0]), "diffusivity")
+    scaled = torch.compile(lambda x: x * positive.maximum(), backend="eager")
+    assert float(scaled(torch.ones(()))) == 2.0
+    positive.load_state_dict({"values": torch.tensor([10.0, 3.0])})
+    assert float(scaled(torch.ones(()))) == 10.0
+    learned = ts.nn.LearnedDiffusion(2, time=[0.5, 1.0], learn_time=False)
+    largest = torch.compile(lambda x: x * learned.largest_time(), backend="eager")
+    assert float(largest(torch.ones(()))) == 1.0
+    learned.load_state_dict({"fixed_time": torch.tensor([20.0, 1.0])})
+    assert float(largest(torch.ones(()))) == 20.0
+
+
+@pytest.mark.slow  # a minute of tracing
+def test_compiled_flows_see_fixed_values_loaded_from_a_checkpoint():
+    """Compiled code read the host maximum of a fixed diffusivity last read eagerly: loading
+    D = 10 over D = 1 ran steps planned for 1, and the flow diverged (7e8 off, finite)."""
+    grid = ts.Grid.cube(16, 1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, 1.0), grid)
+    u = torch.randn(1, 1, *grid.shape, generator=torch.Generator().manual_seed(0))
+    flow = HeatFlow(time=0.02, diffusivity=torch.tensor([1.0]))
+    compiled = torch.compile(flow, backend="eager")
+    compiled(u, surface)
+    flow.load_state_dict({"diffusivity.values": torch.tensor([10.0])})
+    fresh = HeatFlow(time=0.02, diffusivity=torch.tensor([10.0]))(u, surface)
+    band = surface.band_mask()
+    assert float(((compiled(u, surface) - fresh) * band).abs().max()) < 1e-5

@@ -30,7 +30,10 @@ class HostMaximum:
     """The largest entry of a fixed tensor as a host float, read again at every call outside
     ``torch.compile`` (a few values: microseconds), so that a tensor changed in any way, in
     place, replaced, or through ``.data`` (which leaves no trace in ``_version``), is seen;
-    under ``torch.compile`` the value read last is used (a host read would break its graph).
+    under ``torch.compile`` the value read last is used (a host read would break its graph),
+    and the compiled code is specialised on it: its owners read it again in
+    ``load_state_dict`` (a checkpoint's values then recompile), but a value edited in place
+    between compiled calls is not seen until an eager call reads it.
 
     Args:
         name: the tensor's name in errors.
@@ -58,6 +61,11 @@ class HostMaximum:
                              f"{tensor.tolist()!r}")
         self._value = largest
         return self._value
+
+
+def _reread_largest(module: Positive, _: object) -> None:
+    """After ``load_state_dict``: the loaded values' maximum (see :class:`HostMaximum`)."""
+    module._largest.of(module.values)
 
 
 def _inverse_softplus(value: Tensor) -> Tensor:
@@ -141,6 +149,7 @@ class Positive(nn.Module):
         else:
             self.register_buffer("values", tensor.detach().clone())
             self._largest = HostMaximum(name, self.values)
+            self.register_load_state_dict_post_hook(_reread_largest)
 
     @property
     def channels(self) -> int | None:

@@ -35,6 +35,11 @@ FLOOR = 1e-6
 """Smallest learned time, ``h^2`` units: softplus alone can underflow to exactly 0."""
 
 
+
+def _reread_largest_time(module: LearnedDiffusion, _: object) -> None:
+    """After ``load_state_dict``: the loaded fixed times' maximum (see ``HostMaximum``)."""
+    module._largest.of(module.fixed_time)
+
 class LearnedDiffusion(nn.Module):
     """``u_c -> exp(t_c h^2 Lap_S) u_c`` on the surface's band, ``t_c > 0`` learned per channel.
 
@@ -125,6 +130,7 @@ class LearnedDiffusion(nn.Module):
         else:
             self.register_buffer("fixed_time", initial)
             self._largest = HostMaximum("fixed_time", self.fixed_time, shape=(channels,))
+            self.register_load_state_dict_post_hook(_reread_largest_time)
         self.scheme = check_choice(scheme, "scheme", functional.SCHEMES)
         self.path = check_choice(path, "path", PATHS)
 
