@@ -815,3 +815,13 @@ def test_mean_curvature_refuses_a_phi_modified_in_place_like_the_rest():
     phi.copy_(sdf.sphere(grid, 0.6))
     with pytest.raises(RuntimeError, match="phi was modified in place"):
         surface.mean_curvature()
+
+
+def test_moving_a_surface_to_meta_is_refused_and_leaves_it_usable():
+    """It moved phi, then failed to derive the rest: the surface could not even move back."""
+    grid = Grid.cube(12, 1.5)
+    surface = ImplicitSurface(sdf.sphere(grid, 1.0), grid)
+    with pytest.raises(NotImplementedError, match="cannot move to the meta device"):
+        surface.to("meta")
+    assert surface.phi.device.type == "cpu"
+    torch.testing.assert_close(surface.double().phi, sdf.sphere(grid, 1.0).double())

@@ -380,6 +380,10 @@ class ImplicitSurface(nn.Module):
     def _apply(self, fn, recurse=True):  # noqa: ANN001, ANN202
         # .to(), .double(), .cuda(): the normals, the weight and what flows kept are derived
         # again from phi in its new dtype and place, as a surface built from the moved phi
+        if fn(torch.empty(0, dtype=self.phi.dtype, device=self.phi.device)).is_meta:
+            raise NotImplementedError(
+                f"{type(self).__name__} cannot move to the meta device: its normals, weight and "
+                "band are derived from phi's values; the surface is left as it was")
         result = super()._apply(fn, recurse)
         self._reassemble()
         return result
