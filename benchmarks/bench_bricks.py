@@ -175,7 +175,8 @@ def _on_band_planes(surface, band):  # noqa: ANN001, ANN202
 def _native_times(u, surface, band) -> tuple[float, float, float, float]:  # noqa: ANN001
     """The C kernel (``path="auto"`` on bricks, :mod:`torchsurf.bricks._native`): every stored
     node, the band only, and the band reading the haloed planes (alternated with the former),
-    ms, and its first call (compiling it when not cached), s."""
+    ms, and the loading of its library (compiling it when not cached: what a first call adds
+    to the kernel's own time), s."""
     start = time.perf_counter()
     if _native.library() is None:
         return math.nan, math.nan, math.nan, math.nan
@@ -459,7 +460,7 @@ def markdown(args, bandwidth: float, scaled: dict | None, ratioed: dict | None,
             f"| of which the halo gather | {s['halo_ms']:.1f} ms |",
             f"| one application by the C kernel (`path=\"auto\"`), every stored node / the band "
             f"only (as a flow applies it) | {s['native_ms']:.1f} ms / "
-            f"{s['native_band_ms']:.1f} ms (first call {s['native_first_s']:.2f} s); the band "
+            f"{s['native_band_ms']:.1f} ms (loading the kernel first: {s['native_first_s']:.2f} s); the band "
             f"reading the haloed planes instead of the packed rows (alternated, medians of "
             f"{RATIO_PAIRS}): {s['planes_ms']:.1f} ms |",
             f"| traffic limit of the band's voxels / of the stored voxels | {s['limit_ms']:.2f} ms"

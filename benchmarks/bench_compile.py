@@ -370,8 +370,9 @@ def main(argv: list[str] | None = None) -> None:
         "",
         f"Unit sphere on `Grid.cube({args.size}, 1.5)`, data `({args.batch}, C, {args.size}, "
         f"{args.size}, {args.size})` {args.dtype} (C = 1 unless named). Every row is a fresh "
-        "process with an empty `TORCHINDUCTOR_CACHE_DIR` (`cold`), and for "
-        f"{', '.join(args.warm_paths)} a second one with the cache the first left (`warm`). "
+        "process with an empty `TORCHINDUCTOR_CACHE_DIR` (`cold`)"
+        + (f", and for {', '.join(args.warm_paths)} a second one with the cache the first left "
+           "(`warm`). " if args.warm_paths else ". ") +
         "`first fwd`: the process's first call, no grad; `first train`: the "
         "first forward + backward after it; steady: the fastest of "
         f"{args.repeats} calls once warm. `picked`: the kernel calls of one steady forward + "
