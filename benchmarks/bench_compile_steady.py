@@ -86,7 +86,9 @@ def measure(item: str, size: int, batch: int, repeats: int, payback: float, budg
                 train()
                 if not any(timing.pending for timing in backend._TIMINGS.values()):
                     break
-            row["auto_decided_s"] = round(time.perf_counter() - start, 1)
+            decided = not any(timing.pending for timing in backend._TIMINGS.values())
+            # None: the budget ran out with a variant still measuring
+            row["auto_decided_s"] = round(time.perf_counter() - start, 1) if decided else None
             row["auto_variants"] = len(backend._TIMINGS)
             row["auto_slower_variants"] = sum(t.slower for t in backend._TIMINGS.values())
         row[f"{path}_fwd_ms"] = round(1e3 * fastest(forward, repeats), 2)
