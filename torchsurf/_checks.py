@@ -132,6 +132,28 @@ def check_batch(value: Tensor, name: str, batch: int, against: str) -> None:
         )
 
 
+def check_alike(fields: Sequence[tuple[str, Tensor | None, int | None]]) -> None:
+    """Raise naming the argument unless the tensors ``(name, tensor, channels)`` given (a
+    ``None`` tensor is left out) are ``(B, channels, ...)`` (any channels for ``None``) on the
+    grid of the first, of its dtype, their batch sizes equal or 1 (they broadcast):
+    ``ValueError`` for a shape, ``TypeError`` for a dtype."""
+    given = [(name, value, channels) for name, value, channels in fields if value is not None]
+    first_name, first, _ = given[0]
+    for name, value, channels in given:
+        if (value.dim() != first.dim() or value.dim() < 3 or value.shape[2:] != first.shape[2:]
+                or channels is not None and value.shape[1] != channels):
+            wanted = f"(B or 1, {'C' if channels is None else channels}, ...)"
+            grid = "" if name == first_name else f" on the grid of {first_name} {tuple(first.shape)}"
+            raise ValueError(f"{name} must be {wanted}{grid}, got shape {tuple(value.shape)}")
+        if value.dtype != first.dtype:
+            raise TypeError(f"{name} is {value.dtype} but {first_name} is {first.dtype}: they "
+                            "must match")
+    batches = {value.shape[0] for _, value, _ in given} - {1}
+    if len(batches) > 1:
+        names = ", ".join(name for name, _, _ in given)
+        raise ValueError(f"the batch sizes of {names} must be equal or 1, got {sorted(batches)}")
+
+
 def check_choice(value: str, name: str, choices: Sequence[str]) -> str:
     """Raise ``ValueError`` naming ``name`` unless ``value`` is one of ``choices``."""
     if value not in choices:

@@ -500,13 +500,15 @@ def _signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
     return float(np.einsum("ij,ij->", corner[:, 0], np.cross(corner[:, 1], corner[:, 2]))) / 6.0
 
 
-def check_sides(phi: np.ndarray, vertices: np.ndarray, grid: Grid, name: str) -> None:
-    """Raise ``ValueError`` naming the mesh ``name`` and the grid unless the signed values
-    ``phi`` (any shape) have nodes on both sides of the mesh (``vertices`` ``(V, 3)``: those its
-    faces use)."""
+def check_sides(phi: np.ndarray, vertices: np.ndarray, faces: np.ndarray, grid: Grid,
+                name: str) -> None:
+    """Raise ``ValueError`` naming the mesh ``name`` (``vertices`` ``(V, 3)``, ``faces``
+    ``(F, 3)``) and the grid unless the signed values ``phi`` (any shape) have nodes on both
+    sides of it."""
     inside, outside = bool((phi < 0).any()), bool((phi > 0).any())
     if inside and outside:
         return
+    vertices = vertices[np.unique(faces)]  # the box of what the faces use
     low = np.asarray(grid.origin)
     boxes = (f"the mesh spans {_box(vertices.min(axis=0), vertices.max(axis=0))}; the grid "
              f"{_box(low, low + np.asarray(grid.size))}")

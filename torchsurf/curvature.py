@@ -11,27 +11,15 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ._checks import check_positive, check_tensor
+from ._checks import check_alike, check_positive, check_tensor
 
 
 def _check_fields(**fields: tuple[Tensor, int]) -> None:
-    """Raise naming the argument unless each ``name=(tensor, channels)`` is a floating-point
-    ``(B, channels, ...)`` tensor, all of one dtype, with batch sizes 1 or one B and one grid."""
-    first_name, (first, _) = next(iter(fields.items()))
-    batches = set()
-    for name, (value, channels) in fields.items():
+    """Raise naming the argument unless each ``name=(tensor, channels)`` is a float32 or float64
+    ``(B, channels, ...)`` tensor, all of one dtype and grid, their batch sizes equal or 1."""
+    for name, (value, _) in fields.items():
         check_tensor(value, name)
-        if value.dim() < 3 or value.shape[1] != channels or value.shape[2:] != first.shape[2:]:
-            grid = "" if name == first_name else f" on the grid of {first_name} {tuple(first.shape)}"
-            raise ValueError(f"{name} must be (B, {channels}, ...){grid}, got shape "
-                             f"{tuple(value.shape)}")
-        if value.dtype != first.dtype:
-            raise TypeError(f"{name} is {value.dtype} but {first_name} is {first.dtype}: they "
-                            "must match")
-        batches.add(value.shape[0])
-    if len(batches - {1}) > 1:
-        raise ValueError(f"the batch sizes of {', '.join(fields)} must be equal or 1, got "
-                         f"{sorted(batches - {1})}")
+    check_alike([(name, value, channels) for name, (value, channels) in fields.items()])
 
 
 def _matrix(hessian: Tensor) -> Tensor:

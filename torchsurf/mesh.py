@@ -239,7 +239,7 @@ class MeshAdapter(nn.Module):
         )
         vertices, faces = triangle_arrays(mesh)
         phi, found = _mesh_sdf.signed_band(vertices, faces, grid, width, sign)
-        _mesh_sdf.check_sides(phi, vertices[np.unique(faces)], grid, "mesh")
+        _mesh_sdf.check_sides(phi, vertices, faces, grid, "mesh")
         if order == 2:  # before the decoding weights' solve, which reads around every vertex
             _check_vertices_in_box(vertices, faces, grid)
         warn_unused_vertices(vertices, faces, "mesh")

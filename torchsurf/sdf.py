@@ -308,7 +308,7 @@ def from_mesh(
     )
     vertices, faces = triangle_arrays(mesh)
     phi, _ = _mesh_sdf.signed_band(vertices, faces, grid, width, sign)
-    _mesh_sdf.check_sides(phi, vertices[np.unique(faces)], grid, "mesh")
+    _mesh_sdf.check_sides(phi, vertices, faces, grid, "mesh")
     return torch.as_tensor(phi, dtype=dtype, device=device)[None, None]
 
 

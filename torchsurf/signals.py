@@ -77,12 +77,13 @@ def checkerboard(points: Tensor, tile: float, origin: tuple[float, float, float]
         ``(B, 1, D, H, W)``, values 0 and 1.
     """
     check_volume(points, "points", channels=3)
-    corner = as_real_tensor(origin, "origin", "world (x, y, z)")
+    as_real_tensor(origin, "origin", "world (x, y, z)")  # refuses bools, strings, complex
+    # the numbers as given, in float64: the default dtype would round them before the floor
+    corner = torch.as_tensor(np.asarray(origin.detach().cpu() if isinstance(origin, Tensor)
+                                        else origin, dtype=np.float64))
     if corner.shape != (3,) or not bool(torch.isfinite(corner).all()):
         raise ValueError(f"origin must be three finite numbers, world (x, y, z), got {origin!r}")
-    # in the points' dtype from the numbers given (as_real_tensor's default dtype rounds them)
-    corner = torch.as_tensor(np.asarray(origin.detach().cpu() if isinstance(origin, Tensor)
-                                        else origin, dtype=np.float64)).to(points)
+    corner = corner.to(points)
     tile = check_positive(tile, "tile")
     cells = torch.floor((points - corner.view(1, 3, 1, 1, 1)) / tile)
     return torch.remainder(cells.sum(dim=1, keepdim=True), 2.0)

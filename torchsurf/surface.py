@@ -490,10 +490,10 @@ class ImplicitSurface(nn.Module):
 
     def _near_crossing(self, cells: int) -> Tensor:
         """Nodes within ``cells`` (chessboard distance) of a node with a neighbour across S,
-        ``(B, 1, D, H, W)`` bool; every node from :data:`CROSSING_CELLS` on (compared as
-        ``uint8``, a larger count would wrap: 256 had meant 0)."""
+        ``(B, 1, D, H, W)`` bool; ``cells`` at most :data:`CROSSING_CELLS` (:meth:`band_mask`
+        caps it: compared as ``uint8``, 256 would wrap to 0)."""
         found = self.kept(("cells_to_crossing",), lambda: _cells_to_crossing(self.phi.detach()))
-        return found <= min(cells, CROSSING_CELLS)
+        return found <= cells
 
     def haloed(self) -> tuple[Tensor, Tensor]:
         """``normal`` and ``weight`` with a halo of one node on every side.

@@ -35,10 +35,10 @@ FLOOR = 1e-6
 """Smallest learned time, ``h^2`` units: softplus alone can underflow to exactly 0."""
 
 
-
 def _reread_largest_time(module: LearnedDiffusion, _: object) -> None:
     """After ``load_state_dict``: the loaded fixed times' maximum (see ``HostMaximum``)."""
     module._largest.of(module.fixed_time)
+
 
 class LearnedDiffusion(nn.Module):
     """``u_c -> exp(t_c h^2 Lap_S) u_c`` on the surface's band, ``t_c > 0`` learned per channel.

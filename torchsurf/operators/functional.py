@@ -32,7 +32,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from .. import backend, stencils
-from .._checks import check_positive
+from .._checks import check_alike, check_positive
 from ..stencils import masked
 from ._coupled import eager_coupled_rate, fused_coupled_rate
 from ._flux_form import (
@@ -65,24 +65,8 @@ def _check_inputs(u: Tensor, normal: Tensor, spacing: float, weight: Tensor | No
     if vector and u.shape[1] % 3:
         raise ValueError(f"v must hold 3 components a channel, (B, 3C, D, H, W), got "
                          f"{u.shape[1]} channels (shape {tuple(u.shape)})")
-    for name, value, channels in (("normal", normal, 3), ("weight", weight, 1),
-                                  ("direction", direction, 3),
-                                  ("mean_curvature", mean_curvature, 1)):
-        if value is None:
-            continue
-        if (value.dim() != 5 or value.shape[1] != channels
-                or value.shape[2:] != u.shape[2:]
-                or value.shape[0] not in (1, u.shape[0]) and u.shape[0] != 1):
-            raise ValueError(
-                f"{name} must be (B or 1, {channels}, D, H, W) with B and (D, H, W) of {data} "
-                f"{tuple(u.shape)} (or {data}'s B of 1), got shape {tuple(value.shape)}")
-        if value.dtype != u.dtype:
-            raise TypeError(f"{name} is {value.dtype} but {data} is {u.dtype}: they must match")
-    batches = {value.shape[0] for value in (u, normal, weight, direction, mean_curvature)
-               if value is not None} - {1}
-    if len(batches) > 1:
-        raise ValueError(f"the batch sizes of {data}, normal and the other geometry must be "
-                         f"equal or 1, got {sorted(batches)}")
+    check_alike([(data, u, None), ("normal", normal, 3), ("weight", weight, 1),
+                 ("direction", direction, 3), ("mean_curvature", mean_curvature, 1)])
     spacing = check_positive(spacing, "spacing")
     if scheme is not None and scheme not in schemes:
         raise ValueError(f"scheme must be one of {tuple(schemes)}, got {scheme!r}")
