@@ -429,3 +429,26 @@ def test_points_of_analytic_shapes_are_checked_where_they_are_given():
     # integer node indices: torch.finfo raised on them
     inside = grid.contains_index(torch.tensor([[1, 2, 3], [9, 0, 0]]))
     assert inside.tolist() == [True, False]
+
+
+def test_dtype_mismatches_raise_one_error_that_both_except_clauses_catch():
+    from torchsurf.operators import functional
+
+    grid = ts.Grid.cube(32, 1.6)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid), grid)
+    bricks = ts.bricks.from_dense(surface)
+    u = torch.rand(1, 1, *grid.shape, dtype=torch.float64)
+    packed = torch.rand(len(bricks.layout), 1, 8, 8, 8, dtype=torch.float64)
+    wrong = [
+        lambda: ts.laplace_beltrami(u, surface),
+        lambda: ts.HeatFlow(0.01)(u, surface),
+        lambda: ts.nn.LearnedDiffusion(1)(u, surface),
+        lambda: functional.tangential_gradient(u, surface.normal, surface.spacing),
+        lambda: ts.sample(u, torch.zeros(1, 3), grid),
+        lambda: ts.laplace_beltrami(packed, bricks),
+        lambda: bricks.sample(packed, torch.zeros(1, 3)),
+    ]
+    for call in wrong:
+        for clause in (TypeError, ValueError, ts.MismatchError):
+            with pytest.raises(clause, match="float64|float32"):
+                call()

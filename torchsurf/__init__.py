@@ -5,6 +5,7 @@ to a band around it and every intrinsic operator is computed on the Cartesian gr
 """
 
 from . import backend, bricks, datasets, exact, flows, mesh, nn, operators, sdf, shape_batch, stencils
+from ._checks import MismatchError
 from .flows import (
     AnisotropicFlow,
     ColorDenoise,
@@ -54,6 +55,7 @@ __all__ = [
     "LaplaceBeltrami",
     "MeshAdapter",
     "MeshBatchAdapter",
+    "MismatchError",
     "anisotropic_diffusion",
     "backend",
     "bricks",

@@ -20,6 +20,13 @@ small gradients underflow to 0 (NaN normals)."""
 T = TypeVar("T")
 
 
+class MismatchError(TypeError, ValueError):
+    """A tensor whose dtype or device differs from the one it is used with.
+
+    Both a ``TypeError`` and a ``ValueError``, so that either ``except`` clause catches it,
+    whichever layer (functional, module, surface, bricks, sampling) raised it."""
+
+
 def _dtype_error(name: str, dtype: object, what: str) -> TypeError:
     return TypeError(
         f"{name} must be {what} torch.float32 or torch.float64 (the dtypes torchsurf "
@@ -62,12 +69,14 @@ def check_tensor(value: object, name: str) -> Tensor:
 
 
 def check_like_first(entry: Tensor, first: Tensor, name: str, first_name: str) -> None:
-    """Raise ``ValueError`` naming ``name`` unless ``entry`` (``(V_b, C)``, one of a list) has
+    """Raise naming ``name`` (``ValueError``; :class:`MismatchError` for a dtype or device) unless
+    ``entry`` (``(V_b, C)``, one of a list) has
     the channel count, dtype and device of the list's ``first`` entry, named ``first_name``:
     entries are joined into one batch, which would promote mixed dtypes silently."""
     if (entry.shape[-1], entry.dtype, entry.device) != (first.shape[-1], first.dtype,
                                                         first.device):
-        raise ValueError(
+        error = ValueError if entry.shape[-1] != first.shape[-1] else MismatchError
+        raise error(
             f"{name} has {entry.shape[-1]} channels of {entry.dtype} on {entry.device}, "
             f"{first_name} {first.shape[-1]} of {first.dtype} on {first.device}: every entry "
             "needs the same C, dtype and device"
@@ -136,7 +145,7 @@ def check_alike(fields: Sequence[tuple[str, Tensor | None, int | None]]) -> None
     """Raise naming the argument unless the tensors ``(name, tensor, channels)`` given (a
     ``None`` tensor is left out) are ``(B, channels, ...)`` (any channels for ``None``) on the
     grid of the first, of its dtype, their batch sizes equal or 1 (they broadcast):
-    ``ValueError`` for a shape, ``TypeError`` for a dtype."""
+    ``ValueError`` for a shape, :class:`MismatchError` for a dtype."""
     given = [(name, value, channels) for name, value, channels in fields if value is not None]
     first_name, first, _ = given[0]
     for name, value, channels in given:
@@ -146,7 +155,7 @@ def check_alike(fields: Sequence[tuple[str, Tensor | None, int | None]]) -> None
             grid = "" if name == first_name else f" on the grid of {first_name} {tuple(first.shape)}"
             raise ValueError(f"{name} must be {wanted}{grid}, got shape {tuple(value.shape)}")
         if value.dtype != first.dtype:
-            raise TypeError(f"{name} is {value.dtype} but {first_name} is {first.dtype}: they "
+            raise MismatchError(f"{name} is {value.dtype} but {first_name} is {first.dtype}: they "
                             "must match")
     batches = {value.shape[0] for _, value, _ in given} - {1}
     if len(batches) > 1:

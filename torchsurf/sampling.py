@@ -6,7 +6,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ._checks import check_batch, check_choice, check_finite, check_tensor, check_volume
+from ._checks import MismatchError, check_batch, check_choice, check_finite, check_tensor, check_volume
 from .grid import Grid
 
 INTERPOLATIONS = ("linear", "cubic")
@@ -84,7 +84,7 @@ def sample(field: Tensor, points: Tensor, grid: Grid, interpolation: str = "line
             f"points must have shape (V, 3) or (B, V, 3), got {tuple(points.shape)}"
         )
     if points.dtype != field.dtype or points.device != field.device:
-        raise TypeError(
+        raise MismatchError(
             f"points ({points.dtype}, {points.device}) must have the dtype and device of "
             f"field ({field.dtype}, {field.device})"
         )

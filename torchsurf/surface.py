@@ -15,6 +15,7 @@ from torch import Tensor, nn
 
 from . import _memory, curvature, stencils
 from ._checks import (
+    MismatchError,
     check_batch,
     check_finite,
     check_positive,
@@ -628,12 +629,13 @@ def check_data(value: object, name: str, surface: object, channels: int | None =
     """``value`` checked as data on ``surface``: a volume ``(B, C, D, H, W)`` with the grid's spatial
     shape, batch 1 or the surface's, the surface's dtype and device (and ``channels``, if given).
 
-    Raises ``TypeError`` or ``ValueError`` naming ``name``; returns the volume.
+    Raises ``TypeError`` or ``ValueError`` naming ``name`` (:class:`MismatchError`, both, for a
+    dtype or device); returns the volume.
     """
     surface = check_surface(surface)
     volume = surface.check_field(value, name, channels)
     if volume.dtype != surface.phi.dtype or volume.device != surface.phi.device:
-        raise ValueError(
+        raise MismatchError(
             f"{name} has dtype {volume.dtype} on {volume.device} but surface has "
             f"{surface.phi.dtype} on {surface.phi.device}; move one of them with .to()"
         )

@@ -7,7 +7,7 @@ import operator
 import torch
 from torch import Tensor
 
-from .._checks import check_finite, check_positive, check_tensor
+from .._checks import MismatchError, check_finite, check_positive, check_tensor
 from ..grid import Grid
 from ..surface import CROSSING_CELLS, ImplicitSurface
 from .layout import BRICK, BrickLayout
@@ -339,7 +339,7 @@ class BrickSurface(ImplicitSurface):
 
 def _check_like_field(points: Tensor, name: str, field: Tensor) -> None:
     if points.dtype != field.dtype or points.device != field.device:
-        raise TypeError(
+        raise MismatchError(
             f"{name} ({points.dtype}, {points.device}) must have the dtype and device of "
             f"field ({field.dtype}, {field.device})"
         )

@@ -9,7 +9,7 @@ import math
 import torch
 from torch import Tensor, nn
 
-from .._checks import check_count, check_flag
+from .._checks import MismatchError, check_count, check_flag
 from ..flows._integrators import with_ring
 from ..surface import ImplicitSurface, check_data, check_surface
 from .diffusion import LearnedDiffusion
@@ -79,7 +79,7 @@ class DiffusionBlock(nn.Module):
         check_data(u, "u", surface, channels=self.channels)
         weight = self.mlp[0].weight
         if u.dtype != weight.dtype:
-            raise TypeError(f"u is {u.dtype} but the block's MLP is {weight.dtype}: convert one "
+            raise MismatchError(f"u is {u.dtype} but the block's MLP is {weight.dtype}: convert one "
                             f"of them (block.to({u.dtype}) or u.to({weight.dtype}))")
         if surface.layout is None and u.shape[0] == 1 and surface.batch_size > 1:
             u = u.expand(surface.batch_size, *u.shape[1:])  # one datum on every surface

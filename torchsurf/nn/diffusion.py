@@ -18,6 +18,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .._checks import (
+    MismatchError,
     as_real_tensor,
     check_choice,
     check_count,
@@ -154,7 +155,7 @@ class LearnedDiffusion(nn.Module):
         check_surface(surface)
         check_data(u, "u", surface, channels=self.channels)
         if self.learn_time and u.dtype != self.raw_time.dtype:
-            raise TypeError(
+            raise MismatchError(
                 f"u is {u.dtype} but the learned times are {self.raw_time.dtype}: convert one of "
                 f"them (layer.to({u.dtype}) or u.to({self.raw_time.dtype}))")
         operator = BandLaplacian(surface, self.scheme, path=self.path)

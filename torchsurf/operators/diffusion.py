@@ -19,7 +19,7 @@ import torch
 from torch import Tensor, nn
 
 from .. import backend
-from .._checks import check_choice, check_flag, check_positive, check_positive_tensor
+from .._checks import MismatchError, check_choice, check_flag, check_positive, check_positive_tensor
 from ..surface import ImplicitSurface, check_data, check_direction_batch
 from . import functional
 from .diffusivity import DIFFUSIVITIES, Diffusivity
@@ -78,7 +78,7 @@ class CheckedDiffusivity:
         # a 0-d tensor takes the data's dtype in arithmetic, as an integer or bool result does
         promotes = value.is_floating_point() and value.dtype != magnitude.dtype
         if value.dim() > 0 and (promotes or value.device != magnitude.device):
-            raise TypeError(
+            raise MismatchError(
                 f"diffusivity {self.__name__} returned {value.dtype} on {value.device} for a "
                 f"magnitude of {magnitude.dtype} on {magnitude.device}: g(s, K) must keep the "
                 "dtype and device of s (the data's)"
