@@ -250,7 +250,6 @@ class MeshAdapter(nn.Module):
         nodes = found.nodes[inside]
         height, width_nodes = grid.shape[1], grid.shape[2]
         flat = (nodes[:, 2] * height + nodes[:, 1]) * width_nodes + nodes[:, 0]
-        self.grid = grid
         self.band_width = width
         self.surface = ImplicitSurface(
             torch.as_tensor(phi, dtype=dtype, device=device)[None, None], grid
@@ -279,6 +278,11 @@ class MeshAdapter(nn.Module):
     def phi(self) -> Tensor:
         """The signed distance ``(1, 1, D, H, W)``, negative inside, world units."""
         return self.surface.phi
+
+    @property
+    def grid(self) -> Grid:
+        """The grid (its surface's: a loaded state brings its own)."""
+        return self.surface.grid
 
     def encode(self, values: Tensor) -> Tensor:
         """Vertex values ``(B, C, V)`` -> volume ``(B, C, D, H, W)``, constant along normals."""

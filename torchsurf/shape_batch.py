@@ -113,6 +113,14 @@ class AnalyticShape:
 Shape = MeshLike | AnalyticShape
 
 
+def _surface_of_loaded_phi(adapter: MeshBatchAdapter, incompatible: object) -> None:
+    """After ``load_state_dict`` (its surface's own state loaded too): the surface of the
+    loaded ``phi`` buffer on the loaded grid, built on the buffer, so that ``adapter.phi`` and
+    its surface stay one."""
+    adapter.grid = adapter.surface.grid
+    adapter.surface = ImplicitSurface(adapter.phi, adapter.grid)
+
+
 class MeshBatchAdapter(nn.Module):
     """Several meshes and analytic shapes on one grid, normalised, with their vertex data.
 
@@ -225,18 +233,13 @@ class MeshBatchAdapter(nn.Module):
         self.register_buffer("scale", torch.tensor(scales, dtype=torch.float64))
         self.register_buffer("centre", torch.as_tensor(np.stack(centres), dtype=torch.float64))
         self.surface = ImplicitSurface(self.phi, self.grid)
+        self.register_load_state_dict_post_hook(_surface_of_loaded_phi)
 
     def _apply(self, fn, recurse=True):  # noqa: ANN001, ANN202
         # .float() / .half() convert floating buffers: the conversions stay float64 (documented)
         result = super()._apply(fn, recurse)
         self.scale, self.centre = self.scale.double(), self.centre.double()
         return result
-
-    def _load_from_state_dict(self, state_dict: dict, prefix: str, *args: object) -> None:
-        super()._load_from_state_dict(state_dict, prefix, *args)
-        # the loaded phi was copied into the buffer the surface was built on: derive its
-        # normals and weight again (they belonged to the former values)
-        self.surface = ImplicitSurface(self.phi, self.grid)
 
     def __len__(self) -> int:
         return len(self.adapters)

@@ -247,6 +247,11 @@ class ImplicitSurface(nn.Module):
     (the check is a host read, which compiled code skips). Build a new surface from a new
     ``phi`` instead.
 
+    Its ``state_dict`` holds ``phi`` and where it lies (:meth:`get_extra_state`; everything
+    else is derived): loading another surface's state of the same shape, alone or inside a
+    model or an adapter, makes this surface that one (its ``phi`` copied, never shared).
+    Setting :attr:`band_width` or :attr:`eps` drops or derives again what depends on them.
+
     Nothing assumes that ``phi`` is a distance in world units: widths are measured as
     :meth:`distance` (``|phi| / |grad phi|``, floored at half ``gradient_scale``; so
     ``1000 * phi`` is the same surface with the same band), and where
@@ -369,6 +374,68 @@ class ImplicitSurface(nn.Module):
         self.register_buffer("_haloed_normal", None, persistent=False)
         self.register_buffer("_haloed_weight", None, persistent=False)
         self._kept: dict[tuple, object] = {}
+
+    @property
+    def band_width(self) -> float:
+        """Half-width of the band, world units. Setting it drops what flows and layers kept for
+        the former width (:meth:`kept`)."""
+        return self._band_width
+
+    @band_width.setter
+    def band_width(self, value: float) -> None:
+        self._band_width = check_positive(value, "band_width")
+        self._forget_kept()
+
+    @property
+    def eps(self) -> float:
+        """The floor of ``grad_norm``, relative to :attr:`gradient_scale`. Setting it derives
+        the normals and the weight again."""
+        return self._eps
+
+    @eps.setter
+    def eps(self, value: float) -> None:
+        self._eps = check_positive(value, "eps")
+        if "phi" in self._buffers:
+            self._reassemble()
+
+    def _forget_kept(self) -> None:
+        """Drop what was derived from the band (its width changed)."""
+        self.__dict__.get("_kept", {}).clear()
+
+    def get_extra_state(self) -> dict:
+        """What :meth:`state_dict` holds of a surface (under ``"_extra_state"``): ``phi``
+        (detached) and where it lies, every other tensor being derived from them, so that
+        loading another surface's state makes this one that surface."""
+        return {"phi": self.phi.detach(), "band_width": self.band_width, "eps": self.eps,
+                **self._placement()}
+
+    def _placement(self) -> dict:
+        grid = self.grid
+        return {"shape": grid.shape, "spacing": grid.spacing, "origin": grid.origin}
+
+    def set_extra_state(self, state: dict) -> None:
+        """Load a state of :meth:`get_extra_state`: ``phi``, its grid, band width and eps.
+        ``phi`` must have this surface's shape (as a loaded buffer must); it is copied into this
+        surface's dtype and device, and the geometry derived from it again."""
+        if not isinstance(state, dict) or not {"phi", "band_width", "eps"} <= state.keys():
+            raise ValueError(f"{type(self).__name__}: a loaded state must be the dict of "
+                             "get_extra_state(), holding phi, band_width and eps")
+        phi = state["phi"]
+        if not isinstance(phi, Tensor) or phi.shape != self.phi.shape:
+            shape = tuple(phi.shape) if isinstance(phi, Tensor) else type(phi).__name__
+            raise ValueError(
+                f"{type(self).__name__}: the loaded phi has shape {shape} but this surface's phi "
+                f"has {tuple(self.phi.shape)}: build a surface of the loaded phi instead")
+        self._place(state)
+        self._band_width = check_positive(state["band_width"], "band_width")
+        self._eps = check_positive(state["eps"], "eps")
+        self._assemble_kept(phi.detach().to(dtype=self.phi.dtype, device=self.phi.device,
+                                            copy=True))
+
+    def _place(self, state: dict) -> None:
+        grid = Grid(state["shape"], state["spacing"], state["origin"])
+        check_spatial_shape(self.phi, "the loaded phi", grid.shape, "its grid")
+        self.grid = grid
 
     def __setstate__(self, state: dict) -> None:
         # a copy (copy.deepcopy, pickle) holds fresh tensors, copied with the geometry derived

@@ -70,10 +70,31 @@ class BrickSurface(ImplicitSurface):
 
     def _reassemble(self) -> None:
         self.layout = self.layout.to(self.phi.device)  # its tables are not buffers
-        for key in [key for key in self.__dict__ if key == "_entries"
-                    or key.startswith("_stencilled_")]:
+        for key in [key for key in self.__dict__ if key.startswith("_stencilled_")]:
             del self.__dict__[key]  # kept in the former dtype and place
         super()._reassemble()
+
+    def _forget_kept(self) -> None:
+        self.__dict__.pop("_entries", None)  # built with the former width
+        super()._forget_kept()
+
+    def _assemble(self, phi: Tensor) -> None:
+        self.__dict__.pop("_entries", None)  # built on the former phi
+        super()._assemble(phi)
+
+    def _placement(self) -> dict:
+        layout = self.layout
+        return {"coords": layout.coords.cpu(), "batch": layout.batch.cpu(),
+                "grids": [(g.shape, g.spacing, g.origin) for g in layout.grids]}
+
+    def _place(self, state: dict) -> None:
+        layout, grids = self.layout, tuple(Grid(*grid) for grid in state["grids"])
+        coords, batch = state["coords"], state["batch"]
+        if (grids != layout.grids or not torch.equal(coords, layout.coords.cpu())
+                or not torch.equal(batch, layout.batch.cpu())):
+            self.layout = BrickLayout(coords, batch, grids).to(self.phi.device)
+            for key in [key for key in self.__dict__ if key.startswith("_stencilled_")]:
+                del self.__dict__[key]
 
     @property
     def grids(self) -> tuple[Grid, ...]:

@@ -362,6 +362,10 @@ def _learned_time(system: System, time: float | Tensor, nominal: float) -> None:
 class Flow(nn.Module):
     """Base of the surface flows: integration settings and the call ``flow(u0, surface)``.
 
+    ``state_dict`` holds what a flow learns and the settings given as tensors or sequences (a
+    time, diffusivity or contrast per channel, kept as buffers); a setting given as a number is
+    a constructor argument, like ``nn.Dropout``'s ``p``, and loading a state leaves it as built.
+
     Args:
         time: physical end time (world units squared for diffusion); a positive number.
         method: ``"rkc"`` (default), ``"euler"``, ``"heun"``, ``"implicit"``,

@@ -118,6 +118,10 @@ def channel_contrast(contrast: float | Tensor, u: Tensor) -> float | Tensor:
             f"contrast must be a number, a scalar tensor or a tensor (C,) = ({u.shape[1]},), "
             f"got shape {tuple(contrast.shape)}"
         )
+    if contrast.dtype != u.dtype or contrast.device != u.device:
+        raise MismatchError(
+            f"contrast is {contrast.dtype} on {contrast.device} but u is {u.dtype} on "
+            f"{u.device}: convert one of them (a (C,) contrast would change u's dtype)")
     return contrast.view(1, -1, 1, 1, 1)
 
 
@@ -217,7 +221,8 @@ class AnisotropicDiffusion(nn.Module):
 
     ``contrast`` may be an ``nn.Parameter`` (shape ``()`` or ``(C,)``); it is registered with
     the module so that an optimiser sees it. Keep it positive, e.g. by passing
-    ``log_contrast.exp()`` through a wrapper module.
+    ``log_contrast.exp()`` through a wrapper module. Another tensor that records no gradient
+    is copied into a buffer: it follows ``.to()`` and ``state_dict``.
     """
 
     def __init__(
@@ -231,7 +236,12 @@ class AnisotropicDiffusion(nn.Module):
     ) -> None:
         super().__init__()
         self.diffusivity = stored_diffusivity(diffusivity)
-        self.contrast = _initial_contrast(contrast)
+        contrast = _initial_contrast(contrast)
+        if (isinstance(contrast, Tensor) and not isinstance(contrast, nn.Parameter)
+                and not contrast.requires_grad):
+            self.register_buffer("contrast", contrast.clone())
+        else:
+            self.contrast = contrast
         self.eps = check_positive(eps, "eps")
         self.coupled = check_flag(coupled, "coupled")
         self.scheme = check_choice(scheme, "scheme", FLUX_SCHEMES)

@@ -1,0 +1,186 @@
+"""Module state: what ``state_dict`` holds of surfaces and adapters, and what loading changes.
+
+A surface is derived from ``phi`` and its grid; loading another surface's state (directly, or
+inside an adapter or a user's model) must give that surface, never keep the former geometry
+under the loaded buffers.
+"""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+import torchsurf as ts
+from torchsurf import bricks
+
+
+def _sphere_mesh(radius: float, shift: tuple[float, float, float]) -> trimesh.Trimesh:
+    mesh = trimesh.creation.icosphere(subdivisions=2, radius=radius)
+    mesh.apply_translation(shift)
+    return mesh
+
+
+def test_a_surface_loaded_from_another_is_that_surface():
+    grid = ts.Grid.cube(24, 1.5)
+    phi_a = ts.sdf.sphere(grid, radius=1.0)
+    phi_b = ts.sdf.torus(grid, 0.9, 0.35)
+    kept_b = phi_b.clone()
+    a, b = ts.ImplicitSurface(phi_a, grid), ts.ImplicitSurface(phi_b, grid, band_width=0.4)
+    u = torch.rand(1, 1, *grid.shape, generator=torch.Generator().manual_seed(0))
+    before_a = phi_a.clone()
+    assert a.load_state_dict(b.state_dict()).missing_keys == []
+    assert torch.equal(phi_a, before_a)  # the caller's tensors are never written to
+    assert torch.equal(a.phi, b.phi) and a.phi is not b.phi and a.band_width == 0.4
+    torch.testing.assert_close(ts.laplace_beltrami(u, a), ts.laplace_beltrami(u, b),
+                               rtol=0, atol=0)
+    torch.testing.assert_close(ts.HeatFlow(0.01)(u, a), ts.HeatFlow(0.01)(u, b), rtol=0, atol=0)
+    phi_b.mul_(2.0)  # a later edit of the source's phi does not reach the loaded copy
+    assert torch.equal(a.phi, kept_b)
+
+
+def test_a_surface_state_survives_a_weights_only_file_and_changes_dtype_and_grid():
+    grid = ts.Grid.cube(20, 1.5)
+    other = ts.Grid((20, 20, 20), grid.spacing, (-1.4, -1.5, -1.3))
+    source = ts.ImplicitSurface(ts.sdf.sphere(other, radius=1.0, center=(0.1, 0.0, 0.2)), other)
+    buffer = io.BytesIO()
+    torch.save(source.state_dict(), buffer)
+    buffer.seek(0)
+    state = torch.load(buffer, weights_only=True)
+    target = ts.ImplicitSurface(ts.sdf.sphere(grid, radius=0.8), grid).double()
+    target.load_state_dict(state)
+    assert target.grid == other and target.phi.dtype == torch.float64
+    torch.testing.assert_close(target.normal.float(), source.normal)
+
+
+def test_a_surface_refuses_a_state_of_another_shape_by_name():
+    small, large = ts.Grid.cube(16, 1.5), ts.Grid.cube(20, 1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(small), small)
+    with pytest.raises(ValueError, match=r"loaded phi has shape \(1, 1, 20, 20, 20\) but this "
+                                         r"surface's phi has \(1, 1, 16, 16, 16\)"):
+        surface.load_state_dict(ts.ImplicitSurface(ts.sdf.sphere(large), large).state_dict())
+
+
+def test_a_model_holding_a_surface_loads_the_other_models_surface():
+    grid = ts.Grid.cube(20, 1.5)
+
+    class Model(torch.nn.Module):
+        def __init__(self, radius: float) -> None:
+            super().__init__()
+            self.surface = ts.ImplicitSurface(ts.sdf.sphere(grid, radius=radius), grid)
+            self.operator = ts.LaplaceBeltrami()
+
+        def forward(self, u: torch.Tensor) -> torch.Tensor:
+            return self.operator(u, self.surface)
+
+    a, b = Model(0.8), Model(1.1)
+    a.load_state_dict(b.state_dict())
+    u = torch.rand(1, 1, *grid.shape, generator=torch.Generator().manual_seed(1))
+    assert torch.equal(a(u), b(u))
+
+
+def test_a_brick_surface_loads_another_layout():
+    grid = ts.Grid.cube(40, 1.5)
+    h = grid.spacing
+    a = bricks.from_dense(ts.ImplicitSurface(ts.sdf.sphere(grid, 0.6, (-4 * h, 0, 0)), grid))
+    b = bricks.from_dense(ts.ImplicitSurface(ts.sdf.sphere(grid, 0.6, (4 * h, 0, 0)), grid))
+    assert len(a.layout) == len(b.layout)
+    assert not torch.equal(a.layout.coords, b.layout.coords)
+    a.load_state_dict(b.state_dict())
+    assert torch.equal(a.layout.coords, b.layout.coords)
+    u = torch.rand(len(b.layout), 1, 8, 8, 8, generator=torch.Generator().manual_seed(2))
+    assert torch.equal(ts.laplace_beltrami(u, a), ts.laplace_beltrami(u, b))
+    assert torch.equal(a.band_mask(), b.band_mask())
+
+
+def test_a_mesh_adapter_loaded_from_another_mesh_is_that_meshs_adapter():
+    grid = ts.Grid.cube(24, 1.5)
+    first = _sphere_mesh(0.8, (0.0, 0.0, 0.0))
+    second = _sphere_mesh(0.8, (grid.spacing, 0.0, 0.0))
+    a, b = ts.MeshAdapter(first, grid), ts.MeshAdapter(second, grid)
+    a.load_state_dict(b.state_dict())
+    values = torch.randn(1, 1, len(first.vertices), generator=torch.Generator().manual_seed(3))
+    flow = ts.HeatFlow(0.01)
+    assert torch.equal(a.phi, b.phi)
+    assert torch.equal(a.decode(flow(a.encode(values), a.surface)),
+                       b.decode(flow(b.encode(values), b.surface)))
+
+
+def test_a_mesh_batch_adapter_keeps_its_adapters_and_surface_with_the_loaded_shapes():
+    squashed = trimesh.creation.icosphere(subdivisions=2)
+    squashed.apply_scale((1.0, 0.8, 0.6))
+    turned = squashed.copy()
+    turned.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, (0, 0, 1)))
+    a = ts.MeshBatchAdapter([squashed], resolution=24)
+    b = ts.MeshBatchAdapter([turned], resolution=24)
+    a.load_state_dict(b.state_dict())
+    assert torch.equal(a.adapters[0].phi, b.adapters[0].phi)
+    assert torch.equal(a.surface.phi, b.phi) and a.surface.phi is a.phi
+    assert torch.equal(a.surface.normal, b.surface.normal)
+
+
+def test_a_brick_mesh_adapter_loaded_from_another_mesh_encodes_onto_its_bricks():
+    grid = ts.Grid.cube(40, 1.5)
+    h = grid.spacing
+    first = _sphere_mesh(0.6, (-4 * h, 0.0, 0.0))
+    second = _sphere_mesh(0.6, (4 * h, 0.0, 0.0))  # one brick along x
+    a, b = bricks.BrickMeshAdapter(first, grid), bricks.BrickMeshAdapter(second, grid)
+    assert len(a.surface.layout) == len(b.surface.layout)
+    a.load_state_dict(b.state_dict())
+    values = [torch.randn(len(first.vertices), 1, generator=torch.Generator().manual_seed(4))]
+    assert torch.equal(a.surface.to_dense(a.encode(values))[0],
+                       b.surface.to_dense(b.encode(values))[0])
+    assert all(torch.equal(x, y) for x, y in zip(a.decode(a.encode(values)),
+                                                 b.decode(b.encode(values)), strict=True))
+
+
+@pytest.mark.parametrize("layout", ["dense", "bricks"])
+def test_a_new_band_width_is_the_band_every_flow_and_layer_uses(layout):
+    grid = ts.Grid.cube(32, 1.8)
+    x, y, z = grid.points().unbind(-1)
+    phi = (((x**2 + y**2 + z**2).sqrt() - 1.0) * (1.5 + 0.3 * x))[None, None]  # not a distance
+    h = grid.spacing
+
+    def build(width: float | None) -> ts.ImplicitSurface:
+        dense = ts.ImplicitSurface(phi, grid, band_width=width)
+        return dense if layout == "dense" else bricks.from_dense(dense, band_width=width)
+
+    surface, fresh = build(None), build(4 * h)
+    u = torch.rand(1, 1, *grid.shape, generator=torch.Generator().manual_seed(5))
+    if layout == "bricks":
+        u = surface.from_dense(u)
+    heat = ts.HeatFlow(0.02)
+    block = ts.nn.DiffusionBlock(1)
+    with torch.no_grad():
+        block.mlp[-1].weight.normal_(std=0.3, generator=torch.Generator().manual_seed(0))
+        heat(u, surface), block(u, surface)
+        surface.band_width = 4 * h
+        assert torch.equal(heat(u, surface), heat(u, fresh))
+        assert torch.equal(block(u, surface), block(u, fresh))
+
+
+def test_a_new_eps_derives_the_geometry_again():
+    grid = ts.Grid.cube(20, 1.5)
+    phi = ts.sdf.sphere(grid)
+    surface = ts.ImplicitSurface(phi, grid)
+    surface.eps = 0.5
+    fresh = ts.ImplicitSurface(phi, grid, eps=0.5)
+    assert torch.equal(surface.grad_norm, fresh.grad_norm)
+    with pytest.raises(ValueError, match="eps"):
+        surface.eps = -1.0
+
+
+def test_a_tensor_contrast_is_module_state_and_must_match_the_datas_dtype():
+    grid = ts.Grid.cube(20, 1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid), grid)
+    u = torch.rand(1, 2, *grid.shape, generator=torch.Generator().manual_seed(6))
+    a = ts.AnisotropicDiffusion("perona_malik", contrast=torch.tensor([0.5, 0.7]))
+    b = ts.AnisotropicDiffusion("perona_malik", contrast=torch.tensor([0.2, 0.3]))
+    a.load_state_dict(b.state_dict())
+    assert torch.equal(a(u, surface), b(u, surface))
+    assert a.double().contrast.dtype == torch.float64
+    with pytest.raises(ts.MismatchError, match="contrast is torch.float64 .* u is torch.float32"):
+        ts.anisotropic_diffusion(u, surface, "perona_malik", torch.tensor([0.5, 0.7]).double())
