@@ -205,6 +205,10 @@ def test_mesh_path_resolves_against_the_config_folder_then_the_mesh_dir(tmp_path
          "signal.noise"),
         (["field.kind=principal_max"], "field"),
         (["flow.method=chebyshev", "flow.steps=5"], "flow.steps"),
+        (["flow.method=dopri5", "flow.steps=3"], "flow.steps"),
+        (["flow.steps='5'"], "flow.steps"),
+        (["grid.size='24'"], "grid.size"),
+        (["signal.seed='12'"], "signal.seed"),
         (["name=" + "a" * 201], "name"),
         # a list where a mapping is expected, or the reverse: omegaconf's TypeError escaped
         (["surface.params=[1,2]"], "surface.params"),
@@ -548,3 +552,14 @@ def test_an_interrupted_run_takes_back_the_folders_it_made(tmp_path, monkeypatch
     with pytest.raises(KeyboardInterrupt):
         cli.main(["run", "heat_sphere", "--set", *TINY, "--out", str(tmp_path / "a" / "b")])
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize(
+    "config_name, override, key",
+    [("harmonic_p1_torus", "field.orient=x", "field.orient"),
+     ("harmonic_p1_torus", "field.smoothing=5", "field.smoothing"),
+     ("stripes_torus", "field.axis=x", "field.axis")],
+)
+def test_field_settings_the_fields_kind_does_not_read_are_refused(config_name, override, key):
+    with pytest.raises(config.ConfigError, match=rf"^{key}: not read by field.kind"):
+        config.load(config_name, [override])

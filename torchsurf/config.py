@@ -493,6 +493,19 @@ def _drop_replaced_mappings(raw: DictConfig, given: DictConfig, overrides: list[
             del node[last]
 
 
+def _refuse_quoted_numbers(given: object, merged: DictConfig, path: str = "") -> None:
+    """Raise naming the key of a number written as a string (``steps: '5'``), which omegaconf
+    would convert: a setting of the wrong type is refused, whatever it looks like."""
+    if isinstance(given, dict):
+        for key, value in given.items():
+            _refuse_quoted_numbers(value, merged, f"{path}.{key}" if path else str(key))
+    elif isinstance(given, str):
+        read = OmegaConf.select(merged, path, default=None)
+        if isinstance(read, (int, float)) and not isinstance(read, bool):
+            raise ConfigError(path, f"must be a number, got the string {given!r} (remove the "
+                              "quotes)")
+
+
 def load(config: str | os.PathLike, overrides: list[str] | None = None) -> tuple[Experiment, Path]:
     """Read, merge with ``overrides`` (``["grid.size=24", ...]``) and check a config.
 
@@ -517,6 +530,8 @@ def load(config: str | os.PathLike, overrides: list[str] | None = None) -> tuple
         experiment = OmegaConf.to_object(merged)
     except MERGE_ERRORS as error:
         raise _omegaconf_error(error, raw, overrides or []) from error
+    for source in (raw, given):
+        _refuse_quoted_numbers(OmegaConf.to_container(source, resolve=False), merged)
     check(experiment)
     return experiment, path.resolve().parent
 
@@ -540,6 +555,19 @@ def _is_file_stem(name: str) -> bool:
     """``name`` can name a file in the output folder: no separator, no leading dot."""
     allowed = set("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_-.")
     return bool(name) and not name.startswith(".") and set(name) <= allowed
+
+
+def _check_field_settings_read(field_config: FieldConfig) -> None:
+    """Refuse a ``field`` setting changed from its default that its kind does not read:
+    ``axis`` and ``swirl`` read only ``axis``; the principal directions all but ``axis``."""
+    defaults = FieldConfig()
+    directions = field_config.kind in (FieldKind.principal_max, FieldKind.principal_min)
+    unread = ("axis",) if directions else ("smoothing", "orient", "smoothing_grid")
+    for name in unread:
+        if getattr(field_config, name) != getattr(defaults, name):
+            reads = ("smoothing, orient, smoothing_grid" if directions else "axis")
+            raise ConfigError(f"field.{name}", f"not read by field.kind="
+                              f"{field_config.kind.name} (it reads {reads}); remove it")
 
 
 def check(experiment: Experiment) -> None:
@@ -587,6 +615,7 @@ def check(experiment: Experiment) -> None:
     if flow.steps is not None and flow.steps < 1:
         raise ConfigError("flow.steps", f"must be an integer >= 1, got {flow.steps}")
     from .flows import IMPLICIT, MAX_STEPS, HeatFlow, check_method
+    from .flows._integrators import ADAPTIVE_STEPS
 
     if flow.steps is not None and flow.steps > MAX_STEPS:
         raise ConfigError("flow.steps", f"must be at most {MAX_STEPS}, got {flow.steps}")
@@ -601,6 +630,9 @@ def check(experiment: Experiment) -> None:
                               f"only for flow.kind {' or '.join(k.name for k in LINEAR_FLOWS)}, "
                               f"not {flow.kind.name}; use rkc, euler, heun or a torchdiffeq "
                               "method")
+        if flow.steps is not None and flow.method in ADAPTIVE_STEPS:
+            raise ConfigError("flow.steps", f"method {flow.method} chooses its own steps: "
+                              "remove flow.steps (its tolerances are torchdiffeq's defaults)")
         if flow.kind is FlowKind.heat and flow.steps is not None:
             try:  # the flow's own refusal of steps for a method that takes none (chebyshev)
                 HeatFlow(1.0, method=flow.method, steps=flow.steps)
@@ -643,6 +675,7 @@ def check(experiment: Experiment) -> None:
                           f"reaction_diffusion and signal.kind=field); remove the section")
     if experiment.field is not None:
         _at_least_zero(experiment.field.smoothing, "field.smoothing")
+        _check_field_settings_read(experiment.field)
     if experiment.field is not None and not (experiment.field.smoothing_grid == 0
                                              or experiment.field.smoothing_grid >= 8):
         raise ConfigError("field.smoothing_grid",

@@ -70,6 +70,7 @@ from ._integrators import (
     Schedule,
     System,
     check_method,
+    check_options,
     integrate,
     plan_steps,
     ring_held,
@@ -386,10 +387,15 @@ class Flow(nn.Module):
             graph break). ``times=`` needs ``max_time``: the requested times are fractions
             of ``max_time``, applied to the learned time.
         tolerance, max_iterations: conjugate-gradient stopping rule of the implicit methods.
-        options: extra keyword options for torchdiffeq (``rtol``, ``atol``, ``step_size``...);
-            a ``step_size`` of the fixed-step methods is the longest step: the run takes equal
-            steps that end at the last time; one past an explicit method's stable step
-            (``"midpoint"``, ``"heun3"``, ``"rk4"``) warns before the run.
+        options: extra keyword options for torchdiffeq (``rtol``, ``atol``, ``step_size``...),
+            their numbers checked by name (:func:`~torchsurf.flows._integrators.check_options`).
+            A ``step_size`` (fixed-step methods only) is the longest step: the run takes equal
+            steps that end at the last time; one past the method's stable step warns before
+            the run. Without it a fixed-step method takes its stable step: Euler's ``2 / rho``,
+            or its own where shorter (torchdiffeq's Adams methods: 0.003 / rho for
+            ``"explicit_adams"``, 0.06 / rho for ``"fixed_adams"`` and ``"implicit_adams"``).
+            Adaptive methods stop with an error after ``max_num_steps`` steps in one piece
+            (default :data:`~torchsurf.flows._integrators.MAX_STEPS`).
         adjoint: integrate with ``torchdiffeq.odeint_adjoint``.
         progress: show a tqdm progress bar over the steps (tqdm is optional).
         reextend_every: re-extend the band and its ring along normals (closest point,
@@ -469,7 +475,7 @@ class Flow(nn.Module):
             None if tolerance is None else check_positive(tolerance, "tolerance"),
             check_count(max_iterations, "max_iterations"),
         )
-        self.options = dict(options or {})
+        self.options = check_options(options, method)
         self.adjoint = check_flag(adjoint, "adjoint")
         if method in INTEGRATORS and (self.options or self.adjoint):
             raise ValueError(
@@ -735,19 +741,22 @@ class Flow(nn.Module):
         wanted = None if wanted is None else wanted[len(initial):]
         plan = plan_steps(self.method, system, end, self.steps,
                           band_cells=width / surface.spacing,
-                          diagonal_cells=_diagonal_cells(surface))
+                          diagonal_cells=_diagonal_cells(surface),
+                          step_size=self.options.get("step_size"))
         schedule = self._schedule(end, wanted, None)
         schedule.step = plan.step
-        if len(schedule.times) > 1 and self.steps is None and plan.count is not None:
+        # torchdiffeq's equal steps do not stop at requested times: its count stands
+        built_in = self.method in INTEGRATORS
+        if built_in and len(schedule.times) > 1 and self.steps is None and plan.count is not None:
             # no step up to a requested time longer than a flow to that time alone would take:
             # RKC's fewest steps bound the time error of the modes not yet decayed
             schedule.fewest = functools.partial(_fewest_steps, self.method, system,
                                                 width / surface.spacing)
             plan = Plan(steps_taken(schedule), plan.step)
-        elif len(schedule.times) > 1 and plan.count is not None:
+        elif built_in and len(schedule.times) > 1 and plan.count is not None:
             plan = Plan(steps_taken(schedule), plan.step)
         self.last_plan = plan
-        bar = self._progress_bar(plan.count)
+        bar = self._progress_bar(plan.count if built_in else None)
         reextends, gap = self._reextension_steps(system, schedule, plan.step,
                                                  width / surface.spacing)
         schedule.after_step, schedule.output = self._after_step(surface, region, bar, reextends,

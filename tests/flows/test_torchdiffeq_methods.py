@@ -1,0 +1,102 @@
+"""torchdiffeq's methods through the flows: every one right on the heat flow, its options
+checked, runaway runs refused before the work, and the record of steps true."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+import torchsurf as ts
+from torchsurf.flows import HeatFlow
+from torchsurf.flows._integrators import FIXED_STEP
+
+pytest.importorskip("torchdiffeq")
+
+TIME = 0.05
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    grid = ts.Grid.cube(21, 1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, radius=1.0, dtype=torch.float64), grid)
+    x, y, z = grid.points(dtype=torch.float64).unbind(-1)
+    u0 = (z / (x * x + y * y + z * z).sqrt().clamp_min(1e-6))[None, None]
+    near = surface.distance() <= grid.spacing
+    return surface, u0, near
+
+
+@pytest.mark.parametrize("method, time", [("heun2", TIME), ("rk4", TIME),
+                                          ("fixed_adams", TIME / 10), ("explicit_adams", 0.002)])
+def test_every_fixed_step_method_takes_a_stable_step_by_default(sphere, method, time):
+    """heun2 and fixed_adams took one step per piece (not in the fixed-step list), and
+    explicit_adams Euler's step, 600 times its stable one: 0.12 off on the l = 1 harmonic.
+    (The Adams methods' stable steps are short: shorter times keep the test fast.)"""
+    surface, u0, near = sphere
+    exact = math.exp(-2 * time) * u0
+    reference = HeatFlow(time)(u0, surface)
+    noisy = u0 + 0.1 * torch.randn(u0.shape, generator=torch.Generator().manual_seed(0),
+                                   dtype=u0.dtype)
+    flow = HeatFlow(time, method=method)
+    error = (flow(u0, surface) - exact)[near].abs().max()
+    assert error < 1.2 * (reference - exact)[near].abs().max()
+    assert flow.last_plan.count is not None and flow.last_plan.count >= 4
+    smoothed = flow(noisy, surface)
+    assert (smoothed - HeatFlow(time)(noisy, surface))[near].abs().max() < 0.02
+
+
+def test_the_fixed_step_list_is_torchdiffeqs():
+    from torchdiffeq._impl.odeint import SOLVERS
+    from torchdiffeq._impl.solvers import FixedGridODESolver
+
+    fixed = {name for name, solver in SOLVERS.items() if issubclass(solver, FixedGridODESolver)}
+    assert fixed == set(FIXED_STEP)
+
+
+@pytest.mark.parametrize(
+    "options, error, match",
+    [({"step_size": -1e-3}, ValueError, r"options\['step_size'\]"),
+     ({"step_size": 0}, ValueError, r"options\['step_size'\]"),
+     ({"rtol": -1.0}, ValueError, r"options\['rtol'\]"),
+     ({"atol": float("nan")}, ValueError, r"options\['atol'\]"),
+     ({"max_num_steps": 2.5}, ValueError, r"options\['max_num_steps'\]"),
+     ("abc", TypeError, "options must be a dict")],
+)
+def test_options_are_checked_by_name(options, error, match):
+    with pytest.raises(error, match=match):
+        HeatFlow(TIME, method="rk4", options=options)
+
+
+def test_a_step_size_is_refused_for_a_method_that_chooses_its_steps():
+    HeatFlow(TIME, method="rk4", options={"step_size": 1e-3})
+    with pytest.raises(ValueError, match="fixed-step methods"):
+        HeatFlow(TIME, method="dopri5", options={"step_size": 1e-3})
+
+
+def test_a_fixed_step_run_of_too_many_steps_is_refused_before_any_work(sphere):
+    surface, u0, _ = sphere
+    with pytest.raises(ValueError, match="needs 50000000 steps of method='rk4'"):
+        HeatFlow(TIME, method="rk4", options={"step_size": 1e-9})(u0, surface)
+
+
+def test_an_adaptive_run_stops_with_an_error_after_max_num_steps(sphere):
+    surface, u0, _ = sphere
+    flow = HeatFlow(TIME, method="dopri5", options={"max_num_steps": 3, "rtol": 1e-10,
+                                                      "atol": 1e-12})
+    with pytest.raises(RuntimeError, match="method='dopri5' took more than 3 steps"):
+        flow(u0, surface)
+
+
+def test_steps_given_to_an_adaptive_method_are_not_recorded_as_taken(sphere):
+    surface, u0, _ = sphere
+    flow = HeatFlow(TIME, method="dopri5", steps=3)
+    flow(u0, surface)
+    assert flow.last_plan.count is None
+    rk4 = HeatFlow(TIME, method="rk4")
+    rk4(u0, surface)
+    assert rk4.last_plan.count == math.ceil(TIME / (2.0 / rk4_rho(rk4, u0, surface)) - 1e-9)
+
+
+def rk4_rho(flow: HeatFlow, u0: torch.Tensor, surface: ts.ImplicitSurface) -> float:
+    return flow.system(u0, surface).spectral_radius
