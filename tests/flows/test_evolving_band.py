@@ -71,19 +71,19 @@ def test_where_phi_is_not_a_distance_that_far_the_band_stays_the_surfaces(case):
 
 
 def test_ring_held_bound():
-    """``dt rho <= 12 (w - 2 sqrt(3))^2``: the stale ring's error must stay short of the nodes
-    within ``2 sqrt(3)`` cells of S that the re-extension reads. The former ``12 (w - 3)^2``
-    held it at ``dt rho = 45`` on 5 cells, where the sphere's heat flow lost its order (81^3:
-    3.8e-4 as at 65^3; now 2.3e-4)."""
-    bound = 12.0 * (5.0 - 2.0 * math.sqrt(3.0)) ** 2  # 28.5
+    """``dt rho <= 6 (w - 2 sqrt(3))^2``: the stale ring's error, spread over the heat kernel's
+    width ``sqrt(dt rho / 6)`` cells, must stay short of the nodes within ``2 sqrt(3)`` cells of
+    S that the re-extension reads. The former ``12 (w - 2 sqrt(3))^2`` (28.3 on 5 cells) let
+    the sphere's heat flow keep an error that did not shrink with h (see the next test)."""
+    bound = 6.0 * (5.0 - 2.0 * math.sqrt(3.0)) ** 2  # 14.2
     assert ring_held("rkc", bound, 5.0)
     assert not ring_held("rkc", bound + 1e-6, 5.0)
-    assert not ring_held("rkc", 45.4, 5.0)
+    assert not ring_held("rkc", 28.3, 5.0)
     assert not ring_held("rkc", 1e-3, 3.0)
     # Euler, Heun and the implicit methods hold it over their band's re-extension period
     for method in ("euler", "heun", "implicit", "crank_nicolson"):
-        assert ring_held(method, 2.0, 5.0, period=14)
-        assert not ring_held(method, 2.0, 5.0, period=15)
+        assert ring_held(method, 2.0, 5.0, period=7)
+        assert not ring_held(method, 2.0, 5.0, period=8)
         assert not ring_held(method, 1e-3, 3.0, period=1)
     assert not ring_held("dopri5", 1.0, 5.0)
 

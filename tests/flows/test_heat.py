@@ -182,11 +182,34 @@ def test_requested_times_do_not_add_reextension_error():
         assert last[degree] < 1.1 * single[degree], (single, last)
 
 
+def test_rkc_stays_second_order_where_its_steps_hold_the_ring_longest():
+    """l = 1 on a sphere of radius 0.7 at 16 and 28 cells per radius, decayed by e^-0.6: the
+    default plan holds the ring through steps at the bound. With the bound at
+    12 (w - 2 sqrt(3))^2 the stale ring's error reached the nodes the re-extension reads, and
+    the error grew with the grid: 1.6e-4 then 2.2e-4 (a floor near 3.5e-4 by 56 cells); at
+    6 (w - 2 sqrt(3))^2, 5.5e-4 then 1.6e-4."""
+    radius, time = 0.7, 0.6 * 0.7**2 / 2
+    errors = []
+    for cells in (16, 28):
+        spacing = radius / cells
+        nodes = 2 * round(1.4 * cells) + 1
+        grid = ts.Grid((nodes,) * 3, spacing, (-spacing * (nodes - 1) / 2,) * 3)
+        x, y, z = grid.points(dtype=torch.float64).unbind(-1)
+        r = (x * x + y * y + z * z).sqrt()
+        surface = ts.ImplicitSurface((r - radius)[None, None], grid)
+        u = HeatFlow(time)(((x + 0.5 * y) / r)[None, None], surface)
+        directions = fibonacci_sphere(1500, torch.float64)
+        exact = math.exp(-0.6) * (directions[:, 0] + 0.5 * directions[:, 1])
+        read = sample(u, radius * directions, grid, "cubic")[0, 0]
+        errors.append(float((read - exact).abs().max() / exact.abs().max()))
+    order = math.log(errors[0] / errors[1]) / math.log(28 / 16)
+    assert order > 1.8, (errors, order)
+
+
 def test_rkc_steps_that_hold_the_ring_share_its_reextension(sphere33, monkeypatch):
-    """RKC's eight steps at 33^3 are short for their time error (``dt rho`` 8, the band's
-    held-ring bound 28.5): three of them share one re-extension of band and ring (3 calls, not
-    8), with the errors of one per step (measured, float32: l = 1 3.5e-4 against 4.2e-4; every
-    6 steps, beyond the bound, 6.3e-4)."""
+    """RKC's eight steps at 33^3 to half the time are short for their time error (``dt rho``
+    4, the band's held-ring bound 14.2): three of them share one re-extension of band and ring
+    (3 calls, not 8), with the errors of one per step."""
     u0, surface = sphere33
     calls = []
     reextend = base.reextend
@@ -203,10 +226,11 @@ def test_rkc_steps_that_hold_the_ring_share_its_reextension(sphere33, monkeypatc
         return packed_apply(stencil, z)
 
     monkeypatch.setattr(PackedStencil, "apply", counted_packed)
-    shared = decay_errors(HeatFlow(TIME)(u0, surface), surface, TIME, interpolation="cubic")
+    time = TIME / 2
+    shared = decay_errors(HeatFlow(time)(u0, surface), surface, time, interpolation="cubic")
     count = len(calls)
     calls.clear()
-    each = decay_errors(HeatFlow(TIME, reextend_every=1)(u0, surface), surface, TIME,
+    each = decay_errors(HeatFlow(time, reextend_every=1)(u0, surface), surface, time,
                         interpolation="cubic")
     assert count == 3 and len(calls) == 8, (count, len(calls))
     for degree in range(4):
@@ -569,14 +593,15 @@ def test_steps_smooth_data_on_an_offset_as_without_it(method, dtype, offset, tol
 
 
 def test_a_diverged_torchdiffeq_run_names_its_steps_as_torchdiffeq_took_them():
-    """Its plan has no count: the message said 'None steps of <the whole time>'."""
+    """Its message said 'None steps of <the whole time>': it names the equal steps a
+    fixed-step method took (an adaptive one's, "torchdiffeq's own steps")."""
     pytest.importorskip("torchdiffeq")
     grid = ts.Grid.cube(24, 1.5)
     surface = ts.ImplicitSurface(ts.sdf.sphere(grid, 0.9, center=(0.05, 0.02, -0.03)), grid)
     u = torch.rand(1, 1, 24, 24, 24, generator=torch.Generator().manual_seed(0))
     end = 20 * grid.spacing**2
     with pytest.warns(RuntimeWarning, match="rk4 step of .* exceeds its stable step"), \
-            pytest.raises(FloatingPointError, match="torchdiffeq's own steps") as raised:
+            pytest.raises(FloatingPointError, match="2 steps of") as raised:
         HeatFlow(time=end, method="rk4", options={"step_size": end / 2})(u, surface)
     assert "None" not in str(raised.value)
     with warnings.catch_warnings():

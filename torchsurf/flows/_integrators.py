@@ -230,12 +230,20 @@ steps (2.5) did not."""
 
 
 HELD_RING_CELLS = 2.0 * math.sqrt(3.0)
-"""An RKC step of ``dt rho <= 12 (w - HELD_RING_CELLS)^2`` on a band of ``w`` cells holds the
-ring during the step and re-extends it with the band after the step: the stale ring's error
-then diffuses less than ``w - 2 sqrt(3)`` cells inward (about ``sqrt(dt rho / 12)``), short of
-the nodes within ``2 sqrt(3)`` cells of S that the band's re-extension reads (28.3 for a 5-cell
-band). It was ``w - 3`` (48), which let the stale error reach those nodes: the sphere's heat
-flow lost its order at 81^3 (docs/band.md: 3.8e-4 at 65^3 and 81^3, now 4.0e-4 and 2.3e-4)."""
+"""The nodes within ``2 sqrt(3)`` cells of S are those the band's re-extension reads: a ring
+held stale must not spread its error that far (:data:`HELD_RING_SPREAD`)."""
+
+HELD_RING_SPREAD = 6.0
+"""An RKC step of ``dt rho <= HELD_RING_SPREAD (w - HELD_RING_CELLS)^2`` on a band of ``w``
+cells (14.2 for 5 cells) holds the ring during the step and re-extends it with the band after
+the step (:func:`held_ring_bound`). The stale ring's error spreads inward over the heat
+kernel's width ``sqrt(2 dt)`` (``sqrt(dt rho / 6)`` cells, ``rho`` about ``12 / h^2``), which
+then stays within the margin ``w - 2 sqrt(3)``. The factor was 12 (28.3 at 5 cells), a width of
+``sqrt(dt rho / 12)``: the stale error reached the nodes the re-extension reads, and the
+sphere's heat flow kept an error that did not shrink with h (l = 1, R = 0.7, amplitude off by
+-2.6e-4, -3.0e-4, -3.4e-4 at 32, 40, 56 cells per radius against Heun's +8.5e-5 at 32; with
+many short steps between re-extensions held 28 / rho apart, +4.5e-4, against +1.0e-4 and
++9.2e-5 at 19 / rho and 11 / rho: docs/band.md). Before 2026-12-01 the margin was ``w - 3``."""
 
 HELD_RING_STEPS = 3.0
 """A nonlinear flow's RKC takes up to this many times the steps it would otherwise when that
@@ -257,9 +265,15 @@ def ring_held(method: str, step_times_rho: float, band_cells: float, period: int
     do. Otherwise the ring is re-extended at every evaluation of the rate, or, by the implicit
     methods (whose operator must stay symmetric during a step's solve), before every step."""
     held_steps = period if method in ("euler", "heun", *IMPLICIT) else 1
-    margin = band_cells - HELD_RING_CELLS
-    return (method in RING_HELD and margin > 0
-            and held_steps * step_times_rho <= 12.0 * margin**2 * (1 + 1e-9))
+    return (method in RING_HELD and band_cells > HELD_RING_CELLS
+            and held_steps * step_times_rho <= held_ring_bound(band_cells) * (1 + 1e-9))
+
+
+def held_ring_bound(band_cells: float) -> float:
+    """The longest time, times ``rho``, a band of ``band_cells`` cells holds its ring:
+    ``HELD_RING_SPREAD (w - HELD_RING_CELLS)^2`` (0 where ``w <= HELD_RING_CELLS``)."""
+    margin = max(0.0, band_cells - HELD_RING_CELLS)
+    return HELD_RING_SPREAD * margin**2
 
 
 @dataclass(frozen=True)
@@ -327,9 +341,8 @@ def plan_steps(method: str, system: System, end: float, steps: int | None,
             longest = min(12.0 * band_cells**2, largest_step_times_rho())
             count = max(min(RKC_STEPS, explicit), math.ceil(end * rho / longest * (1 - 1e-9)),
                         math.ceil(end * system.growth / RKC_GROWTH * (1 - 1e-9)))
-            margin = band_cells - HELD_RING_CELLS
-            if margin > 0:
-                holding = math.ceil(end * rho / (12.0 * margin**2) * (1 - 1e-9))
+            if band_cells > HELD_RING_CELLS:
+                holding = math.ceil(end * rho / held_ring_bound(band_cells) * (1 - 1e-9))
                 allowed = math.inf if system.linear is not None else HELD_RING_STEPS
                 if count < holding <= allowed * count:
                     count = holding

@@ -62,7 +62,6 @@ from ..bricks.layout import BRICK, BrickLayout
 from ..operators.spectrum import laplace_beltrami_bound
 from ..surface import ImplicitSurface, check_data, check_surface
 from ._integrators import (
-    HELD_RING_CELLS,
     IMPLICIT,
     INTEGRATORS,
     Linear,
@@ -71,6 +70,7 @@ from ._integrators import (
     System,
     check_method,
     check_options,
+    held_ring_bound,
     integrate,
     plan_steps,
     ring_held,
@@ -279,12 +279,12 @@ def _entry_surface(surface: ImplicitSurface, entry: int) -> ImplicitSurface:
 
 def torchdiffeq_segment(band_cells: float, rho: float) -> float:
     """The longest piece a torchdiffeq method integrates between re-extensions of the band,
-    physical time: as long as an RKC step may hold the ring, ``12 (w - 2 sqrt 3)^2 / rho`` on a
-    band of ``w`` cells, and at least the ``12 / rho`` the fastest diffusion takes to cross a
+    physical time: as long as an RKC step may hold the ring (:func:`held_ring_bound` over
+    ``rho``), and at least the ``12 / rho`` the fastest diffusion takes to cross a
     cell. Pieces of ``12 w^2 / rho`` (the diffusion across the whole band) let the band's level
     sets drift apart from S's: rk4 on the l = 2 sphere harmonic erred 1.3e-3, 7.7e-4, 6.0e-4,
     3.2e-4 at 33^3-81^3 against RKC's 1.2e-3, 5.1e-4, 2.7e-4, 1.6e-4."""
-    return 12.0 * max(1.0, (band_cells - HELD_RING_CELLS) ** 2) / rho
+    return max(12.0, held_ring_bound(band_cells)) / rho
 
 
 def data_shape(surface: ImplicitSurface, batch: int, channels: int) -> tuple[int, ...]:
@@ -405,7 +405,7 @@ class Flow(nn.Module):
             (``floor(t rho / 12)`` re-extensions whatever the steps and requested times), or
             after every step where steps are longer (RKC steps that hold the ring: as many
             as one step could hold it for,
-            ``floor(12 (w - 2 sqrt(3))^2 / (rho dt))`` on a band of ``w`` cells), and into each
+            ``floor(6 (w - 2 sqrt(3))^2 / (rho dt))`` on a band of ``w`` cells), and into each
             result at the requested times (docs/band.md). Between
             re-extensions, RKC and torchdiffeq methods re-extend the ring around the band at
             every evaluation of the rate (Euler and Heun need not: docs/band.md). ``None``:
@@ -577,13 +577,13 @@ class Flow(nn.Module):
         shortest = shortest_step(schedule)
         crossing = 12.0 / rho  # the time the fastest diffusion takes to cross one cell
         if self.method == "rkc" and ring_held("rkc", longest * rho, band_cells):
-            # the ring is held as long as one step could hold it (HELD_RING_CELLS): short
+            # the ring is held as long as one step could hold it (held_ring_bound): short
             # steps, taken for their time error, share one re-extension, once every
             # steps_held planned steps by the time reached, not by the steps counted (requested
             # times split the steps: counted, they added re-extensions, and moved a
             # Perona-Malik flow's u(T) by 0.05 near S), and before the ring would be held
             # longer than it can be
-            held = 12.0 * (band_cells - HELD_RING_CELLS) ** 2 / rho
+            held = held_ring_bound(band_cells) / rho
             steps_held = math.floor(held / longest * (1 + 1e-9))
             if steps_held * longest >= crossing:
                 marks = _marks_by_time(step_ends(schedule), steps_held * longest, held)
