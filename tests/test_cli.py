@@ -563,3 +563,37 @@ def test_an_interrupted_run_takes_back_the_folders_it_made(tmp_path, monkeypatch
 def test_field_settings_the_fields_kind_does_not_read_are_refused(config_name, override, key):
     with pytest.raises(config.ConfigError, match=rf"^{key}: not read by field.kind"):
         config.load(config_name, [override])
+
+
+def test_an_interrupt_during_the_renderer_probe_waits_for_the_probe(monkeypatch, tmp_path):
+    """SIGTERM in the middle of VTK's import crashed the process (exit 139): it is now held
+    until the probe returns, then taken (no folder made yet)."""
+    import signal
+
+    from torchsurf import render
+
+    class Stopped(Exception):
+        pass
+
+    def stop(number, frame):  # noqa: ANN001, ANN202
+        raise Stopped
+
+    finished = []
+    probe = render.resolve_renderer
+
+    def interrupted(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        signal.raise_signal(signal.SIGTERM)
+        result = probe(*args, **kwargs)
+        finished.append(True)
+        return result
+
+    previous = signal.signal(signal.SIGTERM, stop)
+    try:
+        monkeypatch.setattr(render, "resolve_renderer", interrupted)
+        with pytest.raises(Stopped):
+            cli.main(["run", "heat_sphere", "--set", "grid.size=16", "--out",
+                      str(tmp_path / "out"), "--quiet"])
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    assert finished == [True]
+    assert not (tmp_path / "out").exists()
