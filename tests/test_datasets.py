@@ -178,3 +178,27 @@ def test_a_dataset_keeps_the_given_surfaces_eps() -> None:
     band = given.band_mask()
     expected = datasets.smooth_signal(given, seed=datasets.derived_seed(0, 0))
     torch.testing.assert_close(dataset[0]["clean"][None][band], expected[band])
+
+
+def test_signal_options_and_shape_indices_are_checked_when_given(shapes: MeshBatchAdapter) -> None:
+    """Options were checked at the first item (in a DataLoader's worker), a list of options
+    failed in dict(), and shape indices out of range failed bare or, negative, picked a shape
+    from the end."""
+    with pytest.raises(ValueError, match=r"smooth\['frequency'\] must be a finite positive"):
+        datasets.SignalDataset(shapes, length=2, smooth={"frequency": -2.0})
+    with pytest.raises(ValueError, match=r"piecewise_constant\['cells'\] must be a whole"):
+        datasets.SignalDataset(shapes, length=2, piecewise_constant={"cells": 0})
+    with pytest.raises(TypeError, match="smooth must be a dict of smooth_signal's options"):
+        datasets.SignalDataset(shapes, length=2, smooth=[1])
+    data = datasets.SignalDataset(shapes, length=2)
+    for wrong in ([-1], [0, 5]):
+        with pytest.raises(IndexError, match=r"shapes must lie in \[0, 2\)"):
+            data.surface(wrong)
+        with pytest.raises(IndexError, match=r"shapes must lie in \[0, 2\)"):
+            data.band_mask(wrong)
+    with pytest.raises(ValueError, match="shapes must be a non-empty"):
+        data.band_mask([0.5])
+    with pytest.raises(TypeError, match="surface must be a torchsurf.ImplicitSurface"):
+        datasets.smooth_signal("s")
+    with pytest.raises(TypeError, match="surface must be a torchsurf.ImplicitSurface"):
+        datasets.piecewise_constant_signal(None)

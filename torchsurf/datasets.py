@@ -20,7 +20,7 @@ from torch.utils.data import Dataset
 from ._checks import check_choice, check_count, check_nonnegative, check_positive
 from .shape_batch import MeshBatchAdapter
 from .signals import closest_points, gaussian_noise, generator
-from .surface import ImplicitSurface
+from .surface import ImplicitSurface, check_surface
 
 KINDS = ("smooth", "piecewise_constant")
 
@@ -83,6 +83,7 @@ def smooth_signal(surface: ImplicitSurface, channels: int = 1, frequency: float 
         ``(B, C, D, H, W)`` (packed ``(N, C, 8, 8, 8)`` on bricks) in ``[0, 1]``, the
         surface's dtype and device.
     """
+    surface = check_surface(surface)
     channels = check_count(channels, "channels")
     frequency = check_positive(frequency, "frequency")
     modes = check_count(modes, "modes")
@@ -129,6 +130,7 @@ def piecewise_constant_signal(surface: ImplicitSurface, channels: int = 1, cells
         ``(B, C, D, H, W)`` (packed ``(N, C, 8, 8, 8)`` on bricks), values uniform in
         ``[0, 1)``, the surface's dtype and device.
     """
+    surface = check_surface(surface)
     channels = check_count(channels, "channels")
     cells = check_count(cells, "cells")
     random = generator(seed)
@@ -206,6 +208,28 @@ KEPT_SURFACES = 4
 """How many batch surfaces :meth:`SignalDataset.surface` keeps, the most recently used."""
 
 
+_OPTION_CHECKS = {"frequency": check_positive, "modes": check_count, "cells": check_count}
+"""How the signal functions check their options; the dataset checks them when it is built, not
+at its first item (in a DataLoader's worker)."""
+
+
+def _signal_options(options: object, name: str, make: object) -> dict:
+    """``options`` for ``make`` (a signal function) checked by name: a mapping of its own
+    keyword arguments, each value in its range."""
+    if options is None:
+        return {}
+    if not isinstance(options, dict):
+        raise TypeError(f"{name} must be a dict of {make.__name__}'s options, got "
+                        f"{type(options).__name__}")
+    accepted = set(inspect.signature(make).parameters) - {"surface", "channels", "seed"}
+    unknown = set(options) - accepted
+    if unknown:
+        raise ValueError(f"{name}: {make.__name__} takes {sorted(accepted)}, not "
+                         f"{sorted(unknown)}")
+    return {key: _OPTION_CHECKS[key](value, f"{name}[{key!r}]") if key in _OPTION_CHECKS
+            else value for key, value in options.items()}
+
+
 class SignalDataset(Dataset):
     """Noisy and clean random signals on a batch of shapes, item by item, deterministic.
 
@@ -266,15 +290,9 @@ class SignalDataset(Dataset):
         self.channels = check_count(channels, "channels")
         self.noise = check_nonnegative(noise, "noise")
         self.seed = check_count(seed, "seed", minimum=0)  # numpy SeedSequence: no negatives
-        self.options = {"smooth": dict(smooth or {}),
-                        "piecewise_constant": dict(piecewise_constant or {})}
-        for kind, make in (("smooth", smooth_signal),
-                           ("piecewise_constant", piecewise_constant_signal)):
-            accepted = set(inspect.signature(make).parameters) - {"surface", "channels", "seed"}
-            unknown = set(self.options[kind]) - accepted
-            if unknown:
-                raise ValueError(f"{kind}: {make.__name__} takes {sorted(accepted)}, not "
-                                 f"{sorted(unknown)}")
+        self.options = {"smooth": _signal_options(smooth, "smooth", smooth_signal),
+                        "piecewise_constant": _signal_options(
+                            piecewise_constant, "piecewise_constant", piecewise_constant_signal)}
         self.grid = surface.grid
         self.phi = surface.phi.detach().clone()  # its own: loading the adapter's state copies
         # into the adapter's phi in place, which the surfaces built here must not see
@@ -315,7 +333,7 @@ class SignalDataset(Dataset):
         32^3). Batches that repeat their shapes (items of one shape, or a fixed order of
         shapes, as ``examples/train_denoise.py`` draws them) reuse their surface.
         """
-        index = torch.as_tensor(shapes, dtype=torch.long, device=self.phi.device)
+        index = self._shape_indices(shapes)
         key = tuple(index.flatten().tolist())
         surface = self._batch_surfaces.pop(key, None)
         if surface is None:
@@ -327,5 +345,23 @@ class SignalDataset(Dataset):
 
     def band_mask(self, shapes: Tensor | Sequence[int]) -> Tensor:
         """``(N, 1, D, H, W)`` bool, the band of each item's surface (where to score)."""
-        index = torch.as_tensor(shapes, dtype=torch.long, device=self.phi.device)
+        index = self._shape_indices(shapes)
         return torch.cat([self._surfaces[int(b)].band_mask() for b in index.cpu()])
+
+    def _shape_indices(self, shapes: Tensor | Sequence[int]) -> Tensor:
+        """``shapes`` as a ``(N,)`` long tensor of shape indices in ``[0, B)``; raises naming
+        ``shapes`` otherwise (a negative index would pick a shape from the end silently)."""
+        try:
+            index = torch.as_tensor(shapes, device=self.phi.device)
+        except (TypeError, ValueError, RuntimeError):
+            raise TypeError(f"shapes must be a sequence or tensor of shape indices, got "
+                            f"{shapes!r}") from None
+        if index.dim() != 1 or index.is_floating_point() or index.is_complex() or (
+                index.dtype == torch.bool) or len(index) == 0:
+            raise ValueError(f"shapes must be a non-empty (N,) sequence of integer shape "
+                             f"indices, got {shapes!r}")
+        count = len(self._surfaces)
+        if bool(((index < 0) | (index >= count)).any()):
+            raise IndexError(f"shapes must lie in [0, {count}) (the items' \"shape\"), got "
+                             f"{index.tolist()}")
+        return index.long()
