@@ -184,3 +184,14 @@ def test_a_tensor_contrast_is_module_state_and_must_match_the_datas_dtype():
     assert a.double().contrast.dtype == torch.float64
     with pytest.raises(ts.MismatchError, match="contrast is torch.float64 .* u is torch.float32"):
         ts.anisotropic_diffusion(u, surface, "perona_malik", torch.tensor([0.5, 0.7]).double())
+
+
+def test_a_refused_state_leaves_the_surface_as_it_was():
+    grid = ts.Grid.cube(16, 1.5)
+    other = ts.Grid((16, 16, 16), grid.spacing, (-1.4, -1.5, -1.5))
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid), grid)
+    state = ts.ImplicitSurface(ts.sdf.sphere(other), other).state_dict()
+    state["_extra_state"] = {**state["_extra_state"], "band_width": -1.0}
+    with pytest.raises(ValueError, match="band_width"):
+        surface.load_state_dict(state)
+    assert surface.grid == grid

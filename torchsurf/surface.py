@@ -426,9 +426,10 @@ class ImplicitSurface(nn.Module):
             raise ValueError(
                 f"{type(self).__name__}: the loaded phi has shape {shape} but this surface's phi "
                 f"has {tuple(self.phi.shape)}: build a surface of the loaded phi instead")
+        band_width = check_positive(state["band_width"], "band_width")
+        eps = check_positive(state["eps"], "eps")
         self._place(state)
-        self._band_width = check_positive(state["band_width"], "band_width")
-        self._eps = check_positive(state["eps"], "eps")
+        self._band_width, self._eps = band_width, eps
         self._assemble_kept(phi.detach().to(dtype=self.phi.dtype, device=self.phi.device,
                                             copy=True))
 

@@ -100,3 +100,9 @@ def test_steps_given_to_an_adaptive_method_are_not_recorded_as_taken(sphere):
 
 def rk4_rho(flow: HeatFlow, u0: torch.Tensor, surface: ts.ImplicitSurface) -> float:
     return flow.system(u0, surface).spectral_radius
+
+
+def test_options_given_to_a_built_in_method_are_refused_as_torchdiffeq_settings():
+    """A step_size for RKC was refused as 'chooses its own steps (rtol, atol)'."""
+    with pytest.raises(ValueError, match="options and adjoint are torchdiffeq settings"):
+        HeatFlow(TIME, method="rkc", options={"step_size": 1e-3})

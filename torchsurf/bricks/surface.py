@@ -70,9 +70,12 @@ class BrickSurface(ImplicitSurface):
 
     def _reassemble(self) -> None:
         self.layout = self.layout.to(self.phi.device)  # its tables are not buffers
-        for key in [key for key in self.__dict__ if key.startswith("_stencilled_")]:
-            del self.__dict__[key]  # kept in the former dtype and place
+        self._forget_stencilled()  # kept in the former place
         super()._reassemble()
+
+    def _forget_stencilled(self) -> None:
+        for key in [key for key in self.__dict__ if key.startswith("_stencilled_")]:
+            del self.__dict__[key]
 
     def _forget_kept(self) -> None:
         self.__dict__.pop("_entries", None)  # built with the former width
@@ -93,8 +96,7 @@ class BrickSurface(ImplicitSurface):
         if (grids != layout.grids or not torch.equal(coords, layout.coords.cpu())
                 or not torch.equal(batch, layout.batch.cpu())):
             self.layout = BrickLayout(coords, batch, grids).to(self.phi.device)
-            for key in [key for key in self.__dict__ if key.startswith("_stencilled_")]:
-                del self.__dict__[key]
+            self._forget_stencilled()  # the former layout's
 
     @property
     def grids(self) -> tuple[Grid, ...]:

@@ -475,13 +475,13 @@ class Flow(nn.Module):
             None if tolerance is None else check_positive(tolerance, "tolerance"),
             check_count(max_iterations, "max_iterations"),
         )
-        self.options = check_options(options, method)
         self.adjoint = check_flag(adjoint, "adjoint")
-        if method in INTEGRATORS and (self.options or self.adjoint):
+        if method in INTEGRATORS and (options or self.adjoint):
             raise ValueError(
                 f"options and adjoint are torchdiffeq settings; method={method!r} is built in "
                 "and takes neither"
             )
+        self.options = check_options(options, method)
         self.progress = check_flag(progress, "progress")
         if reextend_every is not None and reextend_every not in REEXTEND_CHOICES:
             reextend_every = check_count(reextend_every, "reextend_every")
