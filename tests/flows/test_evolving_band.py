@@ -147,6 +147,29 @@ def test_rkc_takes_more_steps_where_its_stages_refresh_the_ring():
     assert wide.count < integrators.RKC_REFRESHED_STEPS
 
 
+def test_rkc_steps_refreshing_the_ring_are_short_for_heat_and_long_for_a_rank_one_flow():
+    """On bricks (a 3-cell band, the ring refreshed at every stage) a long heat flow's RKC
+    steps last at most 12 / rho, the period at which Euler and Heun re-extend the band: the
+    data drift off S between re-extensions. Flow visualisation, whose rank-one operator grew
+    with frequent re-extensions on a thin knot (docs/band.md, section 5), keeps longer steps."""
+    grid, phi, *_ = sphere_case(33)
+    surface = ts.bricks.from_dense(ts.ImplicitSurface(phi, grid))
+    u0 = surface.from_dense(torch.zeros(1, 1, *grid.shape, dtype=phi.dtype))
+    time = 0.5
+    heat = HeatFlow(time)
+    rho = heat.system(u0, surface).spectral_radius
+    assert time * rho > 40 * integrators.RKC_REFRESHED_STEP
+    heat(u0, surface)
+    assert heat.last_plan.step * rho <= integrators.RKC_REFRESHED_STEP * (1 + 1e-9)
+    assert heat.last_plan.count == math.ceil(time * rho / integrators.RKC_REFRESHED_STEP)
+    swirl = surface.from_dense(
+        torch.tensor([0.0, 0.0, 1.0], dtype=phi.dtype).view(1, 3, 1, 1, 1).expand(1, 3, *grid.shape))
+    streaks = ts.FlowVisualization(time)
+    system = streaks.system(u0, surface, direction=swirl)
+    plan = integrators.plan_steps("rkc", system, time, None, band_cells=3.0)
+    assert plan.step * system.spectral_radius > 4 * integrators.RKC_REFRESHED_STEP
+
+
 def test_holding_the_ring_within_the_bound_loses_nothing(monkeypatch):
     """33^3, default band (5 cells), 8 steps of ``dt rho = 8``: the same error as refreshing
     the ring at every stage, to 5%."""

@@ -121,6 +121,11 @@ class System:
             :data:`torchsurf.backend.PATHS`), the flow's ``path``.
         refresh_ring: applied by the implicit methods before each step (the ring re-extended
             from the band), or ``None`` where they hold the ring between re-extensions.
+        isotropic: the rate diffuses along every tangent direction (the Laplace-Beltrami
+            operator), so re-extending the band often stays stable on thin and folded surfaces
+            (docs/band.md, section 5): RKC steps that refresh the ring are then no longer than
+            :data:`RKC_REFRESHED_STEP`. Operators that leave a direction undamped (rank one
+            along a field, edge stopping) grew with each re-extension there and keep longer steps.
     """
 
     rate: Rate
@@ -133,6 +138,7 @@ class System:
     growth: float = 0.0
     path: str = "auto"
     refresh_ring: Callable[[Tensor], Tensor] | None = None
+    isotropic: bool = False
     _region: Tensor | None = field(default=None, init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -219,6 +225,19 @@ RKC_REFRESHED_STEPS = 16
 error, still second order, is several times that of steps holding the ring: sphere, l = 2 and
 4, t = 0.05, 3-cell band at 65^3, float64: 8 steps 6.1e-4 and 6.3e-3, 16 steps 4.6e-4 and
 5.0e-3, 128 steps 4.2e-4 and 4.6e-3 (docs/band.md)."""
+
+RKC_REFRESHED_STEP = 12.0
+"""Longest ``dt * rho`` of an RKC step whose stages re-extend the ring: the time the fastest
+diffusion takes to cross a cell, the period at which Euler and Heun re-extend such a band. The
+band is re-extended only between steps, and between re-extensions its data drift off S's values
+(each level set diffuses at its own rate) while the ring is set from S's: the step's error grows
+with the period between re-extensions, whatever the integrator. Sphere R = 0.7, l = 1, decayed
+by ``e^-0.6``, phi = ``r^2 - R^2`` (3-cell band), 16 cells per radius, float64: Heun
+re-extending every 2 / 6 / 12 / 24 / 48 ``/ rho`` erred -7.4e-4, -4.9e-4, +5.5e-5, +1.2e-3,
++1.8e-3; RKC's 16 steps of 48 ``/ rho``, +2.5e-3 (2.9e-3 at most on S); 12 ``/ rho`` on bricks,
+phi a distance, 24 cells: 3.2e-4 at most against 1.0e-3 at 108 (docs/band.md). Applied to
+isotropic rates only (:attr:`System.isotropic`): the others grew with frequent re-extensions on
+a thin knot, where RKC's long steps kept them in range (docs/band.md, section 5)."""
 
 RKC_GROWTH = 2.0
 """Largest ``step * growth`` of an RKC step (:attr:`System.growth`). RKC's stages damp the
@@ -325,8 +344,10 @@ def plan_steps(method: str, system: System, end: float, steps: int | None,
     ``band_cells`` cells wide, after which the data must be re-extended (docs/band.md), nor
     than ``RKC_GROWTH / growth`` (:data:`RKC_GROWTH`); and more where that lets each step hold
     the ring (:func:`ring_held`): as many as it takes for a linear flow, up to
-    :data:`HELD_RING_STEPS` times as many for a nonlinear one; at least
-    :data:`RKC_REFRESHED_STEPS` (or Euler's count) where the steps cannot hold it.
+    :data:`HELD_RING_STEPS` times as many for a nonlinear one; where the steps cannot hold it,
+    at least :data:`RKC_REFRESHED_STEPS` (or Euler's count), and for an isotropic rate
+    (:attr:`System.isotropic`) none longer than ``RKC_REFRESHED_STEP / rho``
+    (:data:`RKC_REFRESHED_STEP`).
 
     Refused (``ValueError``): more than :data:`MAX_STEPS` steps or evaluations of the rate; for
     a linear flow, a time above :data:`EQUILIBRIUM_CROSSINGS` times the time its diffusion
@@ -348,6 +369,8 @@ def plan_steps(method: str, system: System, end: float, steps: int | None,
                     count = holding
             if not ring_held("rkc", end / count * rho, band_cells):
                 count = max(count, min(RKC_REFRESHED_STEPS, explicit))
+                if system.isotropic:
+                    count = max(count, math.ceil(end * rho / RKC_REFRESHED_STEP * (1 - 1e-9)))
         elif method in INTEGRATORS:
             count = explicit
         elif method in FIXED_STEP:

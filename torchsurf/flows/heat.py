@@ -171,7 +171,7 @@ class HeatFlow(Flow):
             linear = Linear(operator, geometry + ((d,) if isinstance(d, Tensor) else ()))
         rho = self.diffusivity.maximum() * self.operator_bound(surface, self.scheme)
         params = tensors(d, surface.normal, surface.weight)
-        return System(rate, band, rho, linear=linear, params=params)
+        return System(rate, band, rho, linear=linear, params=params, isotropic=True)
 
     def packed_system(self, system: System, u0: Tensor, surface: ImplicitSurface
                       ) -> tuple[System, PackedRegion] | None:
