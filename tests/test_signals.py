@@ -187,6 +187,32 @@ def test_smoothed_principal_direction_keeps_a_clean_field():
     assert (oriented * signals.swirl_field(torus)).sum(1)[0][band].min() > 0.9
 
 
+def test_a_long_smoothing_keeps_rkcs_long_steps(monkeypatch):
+    """A direction field's smoothing needs no second-order accuracy in time: over 12 cells of a
+    3-cell band (phi = r^2 - R^2, not a distance) it takes steps of ``108 / rho``, not the heat
+    flow's own ``12 / rho`` there (2.6 times the time on stripes_teapot at 64^3)."""
+    plans = []
+
+    class Recorded(ts.HeatFlow):
+        def forward(self, *args, **kwargs):
+            result = super().forward(*args, **kwargs)
+            plans.append((self.last_plan, self.time_value.maximum()))
+            return result
+
+    monkeypatch.setattr(signals, "HeatFlow", Recorded)
+    grid = ts.Grid.cube(28, bound=1.4)
+    x, y, z = grid.points().unbind(-1)
+    ellipsoid = ts.ImplicitSurface(((x / 1.1) ** 2 + y**2 + (z / 0.8) ** 2 - 1)[None, None], grid)
+    field = signals.principal_direction(ellipsoid, "max", smoothing=12.0)
+    _unit_and_tangent(field, ellipsoid)
+    rho = ts.operators.laplace_beltrami_bound(ellipsoid)
+    assert plans
+    for plan, end in plans:
+        assert plan.count == max(signals.SMOOTHING_STEPS,
+                                 math.ceil(end * rho / signals.SMOOTHING_STEP))
+        assert plan.count < end * rho / 12 / 2
+
+
 def test_perturbed_field_is_unit_and_tangent(torus):
     noisy = signals.perturb_field(signals.swirl_field(torus), torus, 0.5, seed=1)
     _unit_and_tangent(noisy, torus)

@@ -399,6 +399,15 @@ def principal_direction(surface: ImplicitSurface, which: str = "max", smoothing:
 EULER_SMOOTHING_STEPS = 32
 """Smoothings that explicit Euler does in at most this many steps take it instead of RKC."""
 
+SMOOTHING_STEP = 108.0
+"""``dt * rho`` of the RKC steps of a longer smoothing (at least :data:`SMOOTHING_STEPS` of
+them). A direction field's smoothing needs no second-order accuracy: on a mesh's 3-cell band
+the heat flow's own steps, at most ``12 / rho`` long there (docs/band.md, section 1), took the
+16-cell smoothing of ``stripes_teapot`` at 64^3 from 1.2 s to 3.1 s."""
+
+SMOOTHING_STEPS = 16
+"""Fewest RKC steps of a smoothing (RKC's own fewest where its stages re-extend the ring)."""
+
 
 def _smoothed_line_tensor(surface: ImplicitSurface, length: float) -> Tensor:
     """``|k1 - k2| e1 e1^T`` (packed, :func:`_line_tensor`) after a heat flow of diffusion
@@ -410,7 +419,11 @@ def _smoothed_line_tensor(surface: ImplicitSurface, length: float) -> Tensor:
     explicit_steps = time * laplace_beltrami_bound(surface) / 2.0
     # Short smoothings take Euler: RKC's fewest steps re-extend the ring at every stage (over
     # 2 cells on the knot at 256^3: 4.2 s against 32.5 s, the same field to 1e-3 on average)
-    flow = HeatFlow(time, method="euler" if explicit_steps <= EULER_SMOOTHING_STEPS else "rkc")
+    if explicit_steps <= EULER_SMOOTHING_STEPS:
+        flow = HeatFlow(time, method="euler")
+    else:
+        flow = HeatFlow(time, steps=max(SMOOTHING_STEPS,
+                                        math.ceil(2.0 * explicit_steps / SMOOTHING_STEP)))
     # One channel at a time: the octant operator is far slower on several channels at once
     # than on each alone (measured 60x at 32^3 on the CPU).
     return torch.cat([flow(tensor[:, c:c + 1], surface) for c in range(tensor.shape[1])], dim=1)
