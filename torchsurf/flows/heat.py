@@ -63,9 +63,9 @@ class HeatFlow(Flow):
     ``12 / rho``, the period at which Euler and Heun re-extend the band: the band's data drift
     off S between re-extensions, and steps of up to ``108 / rho`` erred six times as much
     (:data:`~torchsurf.flows._integrators.RKC_REFRESHED_STEP`, docs/band.md).
-    ``"implicit"`` and ``"crank_nicolson"`` solve ``(W - theta dt D A) u_new = ...`` with ``A = W Lap_S`` symmetric negative semi-definite
-    (schemes ``"octant"``, ``"symmetric"`` and ``"conservative"``) by conjugate gradients; any
-    step size is stable.
+    ``"implicit"`` and ``"crank_nicolson"`` solve ``(W - theta dt D A) u_new = ...`` with
+    ``A = W Lap_S`` symmetric negative semi-definite (schemes ``"octant"``, ``"symmetric"`` and
+    ``"conservative"``) by conjugate gradients; any step size is stable.
 
     With those schemes and ``phi`` fixed (not requiring grad), the explicit integrators
     (``"rkc"``, ``"euler"``, ``"heun"``) run on the band and ring's values alone: the rate is
