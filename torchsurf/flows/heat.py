@@ -61,7 +61,7 @@ class HeatFlow(Flow):
     distance function, ``dt <= h^2 / 6``). On a 3-cell band (``phi`` not a distance,
     ``from_mesh``'s band, bricks), whose ring its stages refresh, its steps last at most
     ``12 / rho``, the period at which Euler and Heun re-extend the band: the band's data drift
-    off S between re-extensions, and steps of up to ``108 / rho`` erred six times as much
+    off S between re-extensions, and steps of up to ``108 / rho`` erred up to six times as much
     (:data:`~torchsurf.flows._integrators.RKC_REFRESHED_STEP`, docs/band.md).
     ``"implicit"`` and ``"crank_nicolson"`` solve ``(W - theta dt D A) u_new = ...`` with
     ``A = W Lap_S`` symmetric negative semi-definite (schemes ``"octant"``, ``"symmetric"`` and
