@@ -235,3 +235,22 @@ def test_a_compiled_packed_stencil_calls_the_kernels_and_gives_their_numbers(nat
     called = {str(node.target) for graph in explanation.graphs for node in graph.graph.nodes}
     assert any("torchsurf.limited" in target for target in called), sorted(called)
     torch.testing.assert_close(compiled, expected, rtol=1e-12, atol=1e-12)
+
+
+def test_row_blocks_laid_out_in_chunks_equal_the_whole_layout(monkeypatch):
+    """:class:`~torchsurf.flows._native_gather.RowBlocks` lays out ``LAYOUT_ROWS`` rows at a
+    time (its int64 positions of every entry at once had been the 256^3 bunny heat flow's
+    peak, 2.4 GB): chunks that split blocks of 8 and rows of 0 entries give the same layout."""
+    matrix, _ = _matrix(50, 23, seed=5)
+    offsets, columns, values = matrix.offsets, matrix.columns, matrix.values(torch.float64)
+    whole = _native_gather.RowBlocks(offsets, columns, values)
+    monkeypatch.setattr(_native_gather, "LAYOUT_ROWS", 3)
+    chunked = _native_gather.RowBlocks(offsets, columns, values)
+    for a, b in zip(whole.tensors(), chunked.tensors(), strict=True):
+        assert torch.equal(a, b)
+    assert len(whole.tensors()) >= 4
+    # the layout's slots hold every entry: the dense product through it is the matrix's
+    x = torch.randn(23, 1, dtype=torch.float64)
+    if _native_gather.LIBRARY.load() is not None:
+        assert torch.allclose(_native_gather.product(offsets, columns, values, x, 50, chunked),
+                              matrix.apply(x))

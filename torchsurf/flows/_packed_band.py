@@ -261,7 +261,7 @@ class PackedStencil:
         nodes = len(target) // 64
         self.rows = target.view(nodes, 64)[:, 0].long()
         self.matrix = GatherMatrix.of_rows(tap.view(nodes, 64), weight.view(nodes, 64), count)
-        self.taps = tap.view(nodes, 64).to(self.matrix.columns.dtype)
+        self.taps = self.matrix.columns.view(nodes, 64)  # the same indices: one copy kept
         self.corners = _limiter.corner_weights_of_taps(weight.view(nodes, 64))
 
     def apply(self, z: Tensor) -> Tensor:
