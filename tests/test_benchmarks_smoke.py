@@ -223,3 +223,16 @@ def test_concurrent_writers_keep_every_section_and_a_lone_marker_is_refused(tmp_
     with pytest.raises(ValueError, match="'orphan' is missing its pair"):
         report.write_section(path, "orphan", "## O", "x")
     assert path.read_text().endswith("half\n")
+
+
+def test_narrow_band_bench_runs_its_four_rows_and_the_bound_holds():
+    """benchmarks/bench_narrow_band.py at 12 cells per radius on both surfaces: the default RKC's
+    steps last at most 12 / rho, the baseline's are the former count."""
+    module = load_benchmark("bench_narrow_band")
+    for layout in ("dense", "bricks"):
+        rows = module.run(12, layout)
+        assert len(rows) == 4
+        cells = [row.split(" | ") for row in rows]
+        assert cells[0][2] == "rkc (default)" and float(cells[0][4]) <= 12.0 + 1e-9
+        assert cells[1][2].startswith("rkc, former bound") and int(cells[1][3]) >= 16
+        assert all(float(c[5]) < 5e-2 for c in cells), rows
