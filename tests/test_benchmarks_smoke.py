@@ -236,3 +236,19 @@ def test_narrow_band_bench_runs_its_four_rows_and_the_bound_holds():
         assert cells[0][2] == "rkc (default)" and float(cells[0][4]) <= 12.0 + 1e-9
         assert cells[1][2].startswith("rkc, former bound") and int(cells[1][3]) >= 16
         assert all(float(c[5]) < 5e-2 for c in cells), rows
+
+
+def test_narrow_band_sweep_and_phis_tabulate_what_docs_band_md_reads():
+    """``--sweep``: at every period RKC in short steps errs as Heun does (the period, not the
+    integrator, sets the error); ``--phis``: a multiple of the distance gives the distance's
+    numbers, on the 5-cell band."""
+    module = load_benchmark("bench_narrow_band")
+    rows = module.sweep(10, "dense", periods=(4, 12))
+    assert len(rows) == 2
+    for row in rows:
+        heun, short = (float(c) for c in row.strip("| ").split(" | ")[3:5])
+        assert abs(heun - short) < 0.1 * abs(heun) + 2e-4, row
+    rows = module.phis(10)
+    assert len(rows) == 2 * len(module.PHIS)
+    distance, multiple = rows[0].split(" | "), rows[2].split(" | ")
+    assert distance[2] == multiple[2] == "5" and distance[5:] == multiple[5:], rows
