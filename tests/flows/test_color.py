@@ -50,3 +50,26 @@ def test_black_nodes_get_a_grey_chroma_and_a_single_channel_is_named():
     assert torch.isfinite(gradient).all()
     with pytest.raises(ValueError, match="image must have at least 2 colour channels"):
         ColorDenoise(0.001)(image[:, :1].detach(), surface)
+
+
+def test_brightness_keeps_its_range_and_chroma_its_length_but_channels_may_leave_theirs():
+    """What the model promises: ``|I|`` stays within its start's range (total variation's
+    maximum principle) and the chroma on the unit sphere. A channel alone does not: a bright,
+    nearly grey node whose chroma turns towards a primary colour gains in that channel
+    (docstring): on a torus half pale grey, half pure green, the grey side's chroma turns
+    green near the border under its brightness of about ``sqrt(3)``."""
+    grid = ts.Grid.cube(25, bound=2.0)
+    phi = ts.sdf.torus(grid, major_radius=1.0, minor_radius=0.4, dtype=torch.float64)
+    surface = ts.ImplicitSurface(phi, grid)
+    x = grid.points(dtype=torch.float64)[..., 0][None, None]
+    grey = torch.full_like(x, 0.95)
+    image = torch.cat((torch.where(x < 0, grey, 0.0), torch.where(x < 0, grey, 1.0),
+                       torch.where(x < 0, grey, 0.0)), dim=1)
+    flow = ColorDenoise(4 * surface.spacing**2)
+    out = flow(image, surface)
+    band = flow.brightness.band_mask(surface)[0, 0]
+    brightness_in, brightness_out = image[0].norm(dim=0)[band], out[0].norm(dim=0)[band]
+    assert float(brightness_out.max()) <= float(brightness_in.max()) * (1 + 1e-9)
+    assert float(brightness_out.min()) >= float(brightness_in.min()) * (1 - 1e-9)
+    assert float(out[0][:, band].min()) >= 0.0
+    assert float(out[0, 1][band].max()) > 1.05  # green left [0, 1]: clamp if it must not

@@ -495,8 +495,13 @@ def test_bad_arguments_name_themselves():
         HeatFlow(0.1, diffusivity=0.0)
     with pytest.raises(ValueError, match="scheme"):
         HeatFlow(0.1, scheme="upwind")
+    for method in ("implicit", "crank_nicolson", "chebyshev"):
+        with pytest.raises(ValueError, match=f"method='{method}'.*scheme='central'"):
+            HeatFlow(0.1, method=method, scheme="central")
+    flow = HeatFlow(0.1, method="implicit")
+    flow.scheme = "central"  # changed after construction: refused when run
     with pytest.raises(ValueError, match="method"):
-        HeatFlow(0.1, method="implicit", scheme="central")(u0, surface)
+        flow(u0, surface)
     with pytest.raises(ValueError, match="u0"):
         HeatFlow(0.1)(u0[0], surface)
     with pytest.raises(ValueError, match="times"):

@@ -121,7 +121,7 @@ def test_heat_flow_chebyshev_times_and_diffusivity(sphere33):
     doubled = ts.HeatFlow(0.01, diffusivity=2.0, method="chebyshev")(u0[:, 1:2], surface)
     torch.testing.assert_close(several[1][:, 1:2], doubled, rtol=1e-5, atol=1e-5)
     with pytest.raises(ValueError, match="scheme"):
-        ts.HeatFlow(0.01, scheme="central", method="chebyshev")(u0, surface)
+        ts.HeatFlow(0.01, scheme="central", method="chebyshev")
     with pytest.raises(ValueError, match="steps"):
         ts.HeatFlow(0.01, method="chebyshev", steps=4)
 

@@ -34,6 +34,13 @@ class ColorDenoise(nn.Module):
     A black node (every channel 0) has no hue: its chroma starts grey, ``(1, ..., 1) / sqrt(C)``,
     and takes its neighbours' as the flow runs; its brightness starts at ``eps``.
 
+    Ranges: the brightness stays within its start's range on the band and the chroma at unit
+    length, but a channel alone may leave its range: where a bright, nearly grey region meets
+    a saturated one, the grey side's chroma turns towards the other's hue under its own
+    brightness (pale grey 0.95 beside pure green: green rises above 1; uniform RGB noise in
+    ``[0, 1]`` on a 64³ bunny at ``t = 10 h²``: up to 1.13). Clamp the result if the channels
+    must stay in ``[0, 1]``.
+
     Shapes: ``(B, C, D, H, W) -> (B, C, D, H, W)``, ``C >= 2`` colour channels (3 for RGB).
     """
 

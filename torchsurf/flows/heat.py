@@ -17,7 +17,14 @@ from ..operators import functional, laplace_beltrami
 from ..operators.laplace_beltrami import SCHEMES
 from ..surface import ImplicitSurface, check_data, check_surface
 from . import chebyshev
-from ._integrators import Linear, System, check_before_equilibrium, tensors, zero_outside
+from ._integrators import (
+    IMPLICIT,
+    Linear,
+    System,
+    check_before_equilibrium,
+    tensors,
+    zero_outside,
+)
 from ._packed_band import PackedRegion
 from ._positive import Positive
 from .base import (
@@ -135,6 +142,12 @@ class HeatFlow(Flow):
         self.diffusivity = Positive(diffusivity, "diffusivity", learnable=learn_diffusivity,
                                     bound=max_diffusivity, bound_name="max_diffusivity")
         self.scheme = check_choice(scheme, "scheme", SCHEMES)
+        if self.method in (*IMPLICIT, "chebyshev") and self.scheme not in SYMMETRIC_SCHEMES:
+            raise ValueError(
+                f"method={self.method!r} needs a divergence-form scheme {SYMMETRIC_SCHEMES}, got "
+                f"scheme={self.scheme!r}, which is not symmetric: use one of those schemes, or "
+                "method 'rkc', 'euler', 'heun' or a torchdiffeq method with 'central'"
+            )
         self.path = check_choice(path, "path", PATHS)
 
     def system(self, u0: Tensor, surface: ImplicitSurface, **inputs: Tensor) -> System:
