@@ -110,3 +110,38 @@ def test_linear_extension_to_a_mask_beyond_the_stored_bricks_is_refused(torus):
     for interpolation in ("linear", "cubic"):
         with pytest.raises(ValueError, match="reads nodes outside the stored bricks"):
             closest_point_extension(u, surface, interpolation=interpolation, mask=everywhere)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("limited", [False, True])
+def test_native_brick_interpolation_equals_the_gathers(dtype, limited):
+    """``path="auto"`` re-extends on bricks by a C kernel reading the stencil's compact form
+    (:func:`torchsurf.flows._native_gather.brick_tricubic`): the same values as the eager
+    gathers to rounding, with the limiter clamping the same nodes (random data: many), on
+    three channels, for every node of the band and for a stencil that keeps only the nodes
+    whose taps are readable."""
+    from torchsurf.flows import _native_gather
+    from torchsurf.flows.extension import cubic_stencil
+
+    if _native_gather.LIBRARY.load() is None:
+        pytest.skip("no C compiler")
+    grid = ts.Grid.cube(33, 1.8)
+    surface = bricks.from_dense(ts.ImplicitSurface(ts.sdf.torus(grid, 0.9, 0.35, dtype=dtype),
+                                                   grid))
+    u = surface.from_dense(torch.rand(1, 3, *grid.shape, dtype=dtype,
+                                      generator=torch.Generator().manual_seed(3)))
+    before = u.clone()
+    mask = surface.band_mask()
+    full = cubic_stencil(surface, mask, limited=limited)
+    part = cubic_stencil(surface, mask, limited=limited, readable=mask)
+    assert 0 < len(part.targets) < len(full.targets)
+    for stencil in (full, part):
+        native = stencil.apply(u, path="auto")
+        gathered = stencil.apply(u, path="slicing")
+        tolerance = 1e-6 if dtype == torch.float32 else 1e-14
+        torch.testing.assert_close(native, gathered, rtol=0, atol=tolerance)
+        assert not torch.equal(native, u)
+    torch.testing.assert_close(u, before, rtol=0, atol=0)
+    if limited:
+        free = cubic_stencil(surface, mask).apply(u, path="slicing")
+        assert float((free - native).abs().max()) > 1e-2  # the limiter clamped values

@@ -33,7 +33,9 @@ def test_bound_ring_and_closest_point_stencil_equal_the_dense_ones(torus):
     expected = CubicStencil(dense, region, limited=True).apply(u)
     (result,) = surface.to_dense(
         BrickCubicStencil(surface, packed_region, limited=True).apply(surface.from_dense(u)))
-    assert torch.equal(result * region, expected * region)
+    # to rounding: bricks interpolate by a C kernel whose sums round in their own order
+    torch.testing.assert_close(result * region, expected * region, rtol=0, atol=1e-14)
+    assert float(((result - u) * region).abs().max()) > 0.1  # the ring was re-extended
 
 
 @pytest.mark.parametrize("kept", [True, False])

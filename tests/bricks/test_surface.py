@@ -117,6 +117,19 @@ def test_cat_batches_boxes_of_different_shapes(two_boxes):
         both.grid  # noqa: B018
 
 
+def test_cat_refuses_mixed_dtypes_and_spacings_naming_the_entry(two_boxes):
+    """A float32 entry was promoted to float64 silently, and entries of two spacings were
+    refused for their band widths (which follow the spacing) instead of the spacing."""
+    sphere, torus, _ = two_boxes
+    single = bricks.from_dense(sphere.to_dense(sphere.phi)[0].float(), sphere.grids[0])
+    with pytest.raises(ts.MismatchError, match=r"surfaces\[1\] has phi of torch.float32"):
+        bricks.cat([sphere, single])
+    coarse_grid = ts.Grid(shape=(25, 25, 25), spacing=0.15, origin=(-1.8,) * 3)
+    coarse = bricks.from_dense(ts.sdf.sphere(coarse_grid, 0.9).double(), coarse_grid)
+    with pytest.raises(ValueError, match=r"surfaces\[2\] has grid spacing 0.15"):
+        bricks.cat([sphere, torus, coarse])
+
+
 @pytest.mark.skipif(not (MESHES / "spot.obj").exists(), reason="shared meshes not present")
 @pytest.mark.parametrize("size", [40, 37])
 def test_from_mesh_equals_the_dense_distance_on_every_stored_node_that_matters(size):

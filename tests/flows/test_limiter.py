@@ -110,20 +110,25 @@ def test_limited_values_stay_within_the_datas_range_to_the_last_bit(generator):
 
 
 
-@pytest.mark.parametrize("storage", ["dense", "bricks"])
+@pytest.mark.parametrize("storage", ["dense", "bricks", "bricks forming their taps"])
 def test_every_path_limits_the_same_values(storage, monkeypatch):
-    """The eager forms limit as they gather; after a compiled form the values outside their
-    cells' ranges are limited apart (:func:`_limiter.clamp_outside_cells`). Compilation is
-    replaced by the plain function, so that the compiled form's branch runs in seconds."""
+    """The eager forms limit as they gather; a compiled form returns each cell's range beside
+    the value and the values outside it are limited apart
+    (:func:`_limiter.clamp_outside_range`). Compilation is replaced by the plain function, so
+    that the compiled form's branch runs in seconds. Bricks keep each node's 64 tap positions
+    up to ``KEEP_SOURCES_NODES`` nodes and form them above (the 512^3 bunny's band)."""
     from torchsurf import backend, bricks
+    from torchsurf.flows import extension
     from torchsurf.flows.extension import cubic_stencil
 
     monkeypatch.setattr(backend, "compiled", lambda function, *options, **named: function)
+    if storage == "bricks forming their taps":
+        monkeypatch.setattr(extension, "KEEP_SOURCES_NODES", 0)
     grid = ts.Grid.cube(21, 1.5)
     surface = ts.ImplicitSurface(ts.sdf.sphere(grid, 0.8, dtype=torch.float64), grid)
     u = torch.rand(1, 2, *grid.shape, dtype=torch.float64,
                    generator=torch.Generator().manual_seed(3))
-    if storage == "bricks":
+    if storage != "dense":
         surface = bricks.from_dense(surface)
         u = surface.from_dense(u)
     mask = surface.band_mask()

@@ -10,7 +10,7 @@ import torch
 from torch import Tensor
 
 from .. import _mesh_sdf
-from .._checks import check_choice, check_dtype, check_positive
+from .._checks import MismatchError, check_choice, check_dtype, check_positive
 from .._mesh_input import MeshLike, as_trimesh, triangle_arrays
 from ..grid import Grid
 from ..surface import ImplicitSurface
@@ -200,13 +200,27 @@ def check_clear_of_faces(band_nodes: Tensor, grid: Grid, entry: int) -> None:
 
 def cat(surfaces: Sequence[BrickSurface]) -> BrickSurface:
     """One batch of the entries of several :class:`BrickSurface` (boxes of any shape, one
-    spacing and band width); entries keep their order.
+    spacing, band width, dtype and device); entries keep their order.
 
     Packed fields of the parts join the same way: ``torch.cat(fields)`` along dim 0.
     """
     surfaces = list(surfaces)
     if not surfaces or not all(isinstance(s, BrickSurface) for s in surfaces):
         raise TypeError("surfaces must be a non-empty sequence of BrickSurface")
+    first = surfaces[0]
+    for index, surface in enumerate(surfaces[1:], start=1):
+        if (surface.phi.dtype, surface.phi.device) != (first.phi.dtype, first.phi.device):
+            raise MismatchError(
+                f"surfaces[{index}] has phi of {surface.phi.dtype} on {surface.phi.device}, "
+                f"surfaces[0] of {first.phi.dtype} on {first.phi.device}: one batch needs one "
+                "dtype and device (move them with .to())"
+            )
+        if surface.grids[0].spacing != first.grids[0].spacing:
+            raise ValueError(
+                f"surfaces[{index}] has grid spacing {surface.grids[0].spacing!r}, surfaces[0] "
+                f"{first.grids[0].spacing!r}: bricks of one batch share one spacing "
+                "(torchsurf.bricks.fit_grids gives several meshes one)"
+            )
     widths = {s.band_width for s in surfaces}
     if len(widths) > 1:
         raise ValueError(f"surfaces must share one band_width, got {sorted(widths)}")

@@ -147,14 +147,14 @@ def clamp_gathered(value: Tensor, gathered: Tensor, weights: Tensor) -> Tensor:
     return value.index_copy(1, nodes, limited)
 
 
-def clamp_outside_cells(value: Tensor, flat: Tensor, cells: Tensor,
+def clamp_outside_range(value: Tensor, least: Tensor, most: Tensor, flat: Tensor,
                         taps: Callable[[Tensor], Tensor], weights: Tensor) -> Tensor:
-    """The interpolated ``value`` ``(C, N)`` limited: the cells' 8 nodes (flat positions
-    ``cells`` ``(N, 8)`` in ``flat`` ``(C, M)``) read for every node, the 64 taps
-    (``taps(nodes)``: ``(n, 64)``) only where the value leaves its cell's range (the bounds hold
-    it: the others are not clamped); ``weights`` ``(3, N, 4)`` the per-axis weights."""
-    cell = flat.index_select(1, cells.flatten()).view(flat.shape[0], *cells.shape)
-    outside = ((value < cell.amin(-1)) | (value > cell.amax(-1))).any(dim=0)
+    """The interpolated ``value`` ``(C, N)`` limited, given each cell's range ``least, most``
+    ``(C, N)`` (the compiled interpolations form it from the taps they hold): the 64 taps of a
+    node (``taps(nodes)``: flat positions ``(n, 64)`` in ``flat`` ``(C, M)``) are read only
+    where ``value`` leaves that range (the bounds hold it: the others are not clamped);
+    ``weights`` ``(3, N, 4)`` the per-axis weights."""
+    outside = ((value < least) | (value > most)).any(dim=0)
     nodes = outside.nonzero().squeeze(1)
     if len(nodes) == 0:
         return value

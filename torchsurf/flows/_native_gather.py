@@ -301,6 +301,98 @@ void clamp_back_SUFFIX(const int32_t *taps, const REAL *corners, const int64_t *
         }
 }
 
+/* A brick closest-point stencil's tricubic interpolation (BrickCubicStencil's compact form),
+   nodes [first, stop) of N: tap (k, j, i) of node r (z, y, x; 16 k + 4 j + i) lies at the
+   packed position bases[(4 sz[k] + 2 sy[j] + sx[i]) N + r] + lz[k] + ly[j] + lx[i], where
+   s* = second[axis][r][0:4] (axis 0 z, 1 y, 2 x) says whether the tap lies in the block's second
+   brick along that axis and l* = local[axis][r][0:4] is its in-brick offset; its weight is
+   wz[k] wy[j] wx[i] with w* = weights[axis][r][0:4] (axis 0 x, 1 y, 2 z). out[f N + r] for the
+   F channels of flat (channel f at flat + f M). With limit, a value outside the range of its
+   cell's 8 nodes is clamped to the limiter's bounds (clamp_into's test and bounds). */
+void brick_tricubic_SUFFIX(const int32_t *bases, const uint8_t *second, const int16_t *local,
+        const REAL *weights, const REAL *flat, int64_t M, REAL *out, int64_t N, int64_t F,
+        int64_t limit, int64_t first, int64_t stop)
+{
+    for (int64_t r = first; r < stop; ++r) {
+        const uint8_t *sz = second + 4 * r, *sy = second + 4 * (N + r),
+                      *sx = second + 4 * (2 * N + r);
+        const int16_t *lz = local + 4 * r, *ly = local + 4 * (N + r), *lx = local + 4 * (2 * N + r);
+        const REAL *wx = weights + 4 * r, *wy = weights + 4 * (N + r), *wz = weights + 4 * (2 * N + r);
+        /* row[4 k + j][b]: the position of tap (k, j, 0) moved to the brick b along x, less
+           that tap's x offset; tap (k, j, i) = row[4 k + j][sx[i]] + lx[i] */
+        int64_t row[16][2], corner[8];
+        for (int c = 0; c < 8; ++c) corner[c] = bases[c * N + r];
+        for (int k = 0; k < 4; ++k)
+            for (int j = 0; j < 4; ++j) {
+                const int b = 4 * sz[k] + 2 * sy[j];
+                const int64_t offset = (int64_t)lz[k] + ly[j];
+                row[4 * k + j][0] = corner[b] + offset;
+                row[4 * k + j][1] = corner[b + 1] + offset;
+            }
+        int64_t column[4][2];
+        for (int i = 0; i < 4; ++i) { column[i][0] = sx[i]; column[i][1] = lx[i]; }
+        /* all 4 taps along x in one brick, one after the other (not clamped at a face) */
+        const int contiguous = sx[0] == sx[3] && lx[3] - lx[0] == 3;
+        if (contiguous) for (int k = 0; k < 16; ++k) row[k][0] = row[k][sx[0]];
+        const v4_SUFFIX along_x = {wx[0], wx[1], wx[2], wx[3]};
+#define TAP_SUFFIX(k, j, i) (row[4 * (k) + (j)][column[i][0]] + column[i][1])
+        REAL corners[8];
+        if (limit) {
+            REAL fx, fy, fz;
+            fx = wx[2] + 2 * wx[3] - wx[0]; fx = fx < 0 ? 0 : (fx > 1 ? 1 : fx);
+            fy = wy[2] + 2 * wy[3] - wy[0]; fy = fy < 0 ? 0 : (fy > 1 ? 1 : fy);
+            fz = wz[2] + 2 * wz[3] - wz[0]; fz = fz < 0 ? 0 : (fz > 1 ? 1 : fz);
+            for (int c = 0; c < 8; ++c)
+                corners[c] = ((c >> 2) ? fz : 1 - fz) * (((c >> 1) & 1) ? fy : 1 - fy)
+                             * ((c & 1) ? fx : 1 - fx);
+        }
+        for (int64_t f = 0; f < F; ++f) {
+            const REAL *x = flat + f * M;
+            v4_SUFFIX sum = {0, 0, 0, 0};
+            if (contiguous) {   /* each row's 4 taps side by side: one vector load a row */
+                for (int k = 0; k < 4; ++k)
+                    for (int j = 0; j < 4; ++j) {
+                        v4_SUFFIX taps;
+                        memcpy(&taps, x + row[4 * k + j][0] + column[0][1], sizeof taps);
+                        sum += (wz[k] * wy[j]) * (along_x * taps);
+                    }
+            } else {
+                for (int k = 0; k < 4; ++k)
+                    for (int j = 0; j < 4; ++j) {
+                        v4_SUFFIX taps = {x[TAP_SUFFIX(k, j, 0)], x[TAP_SUFFIX(k, j, 1)],
+                                          x[TAP_SUFFIX(k, j, 2)], x[TAP_SUFFIX(k, j, 3)]};
+                        sum += (wz[k] * wy[j]) * (along_x * taps);
+                    }
+            }
+            REAL v = (sum[0] + sum[1]) + (sum[2] + sum[3]);
+            if (limit) {
+                REAL least = x[TAP_SUFFIX(1, 1, 1)], most = least;
+                for (int k = 1; k < 3; ++k)
+                    for (int j = 1; j < 3; ++j)
+                        for (int i = 1; i < 3; ++i) {
+                            const REAL node = x[TAP_SUFFIX(k, j, i)];
+                            least = node < least ? node : least;
+                            most = node > most ? node : most;
+                        }
+                if (!(v >= least && v <= most) && v == v) {
+                    REAL u[64], low, high;
+                    int nan = 0;
+                    for (int t = 0; t < 64; ++t) {
+                        u[t] = x[TAP_SUFFIX(t >> 4, (t >> 2) & 3, t & 3)];
+                        nan |= u[t] != u[t];
+                    }
+                    bounds_SUFFIX(u, corners, &low, &high);
+                    if (nan) v = (REAL)NAN;
+                    else if (v < low) v = low;
+                    else if (v > high) v = high;
+                }
+            }
+            out[f * N + r] = v;
+        }
+#undef TAP_SUFFIX
+    }
+}
+
 /* out[columns[e], :] += weights[e] g[r, :] over every entry: the transposed product, into a
    zeroed out (columns, F); g (rows, F) contiguous. */
 void scatter_SUFFIX(const int32_t *offsets, const int32_t *columns, const REAL *weights,
@@ -343,7 +435,9 @@ LIBRARY = NativeLibrary(
      **{f"clamp_back_{s}": [ctypes.c_void_p] * 8 + [ctypes.c_int64] * 2
         for s in ("f32", "f64")},
      **{f"product_blocks_{s}": [ctypes.c_void_p] * 7 + [ctypes.c_int64] * 2
-        for s in ("f32", "f64")}},
+        for s in ("f32", "f64")},
+     **{f"brick_tricubic_{s}": [ctypes.c_void_p] * 5 + [ctypes.c_int64] + [ctypes.c_void_p]
+        + [ctypes.c_int64] * 5 for s in ("f32", "f64")}},
     # the vectors are written out; loops vectorized by the compiler become gathers
     # (vgatherdps), twice as slow as scalar loads on an AMD EPYC
     flags=("-fno-tree-vectorize",))
@@ -689,3 +783,36 @@ if TRACEABLE:
         return grad, None, None, None, None, None, None
 
     _limited_op.register_autograd(_limited_backward, setup_context=_save_limited)
+
+
+def brick_tricubic(flat: Tensor, bases: Tensor, second: Tensor, local: Tensor, weights: Tensor,
+                   limited: bool) -> Tensor | None:
+    """A :class:`~torchsurf.flows.extension.BrickCubicStencil`'s interpolation of ``flat``
+    ``(C, M)`` (packed values, channels first) at its ``N`` nodes, ``(C, N)``, from its compact
+    form: ``bases`` ``(8, N)`` int32, ``second`` ``(3, N, 4)`` bool, ``local`` ``(3, N, 4)``
+    int16, ``weights`` ``(3, N, 4)`` of ``flat``'s dtype; limited (:mod:`._limiter`) if
+    ``limited``. Without forming the ``(N, 64)`` tap positions (the compiled gather formed each
+    tap's brick by selects at every application: 3-4x slower). ``None`` where the kernel does
+    not run: not the CPU, float32 or float64, or 32-bit bases; a gradient to record; while
+    ``torch.compile`` traces; or no compiler."""
+    if (flat.device.type != "cpu" or flat.dtype not in _SUFFIX or bases.dtype != torch.int32
+            or second.dtype != torch.bool or local.dtype != torch.int16
+            or weights.dtype != flat.dtype or torch.compiler.is_compiling()
+            or (torch.is_grad_enabled() and flat.requires_grad)):
+        return None
+    library = LIBRARY.load()
+    if library is None:
+        return None
+    kernel = getattr(library, f"brick_tricubic_{_SUFFIX[flat.dtype]}")
+    flat, bases, second, local, weights = (
+        t.contiguous() for t in (flat, bases, second, local, weights))
+    channels, nodes = flat.shape[0], bases.shape[1]
+    out = torch.empty(channels, nodes, dtype=flat.dtype)
+
+    def run(first: int, stop: int) -> None:
+        kernel(bases.data_ptr(), second.data_ptr(), local.data_ptr(), weights.data_ptr(),
+               flat.data_ptr(), flat.shape[1], out.data_ptr(), nodes, channels, int(limited),
+               first, stop)
+
+    in_threads(run, nodes, THREAD_MIN_ROWS)
+    return out

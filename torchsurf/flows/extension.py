@@ -29,12 +29,13 @@ from .._checks import check_choice, check_count, check_flag, check_positive
 from ..bricks.layout import BRICK, BrickLayout
 from ..sampling import cubic_lagrange_weights
 from ..surface import ImplicitSurface, check_data
-from . import _closest, _limiter
+from . import _closest, _limiter, _native_gather
 
 Limit = bool | Literal["eager"]
 """Where a tricubic kernel limits its values (:mod:`._limiter`): ``False`` nowhere, ``True``
 in every form, ``"eager"`` in the eager forms only, which hold the 64 taps' values anyway (the
-compiled forms then leave it to :func:`._limiter.clamp_outside_cells`: see
+compiled forms then return ``(3, C, N)``: the value and its cell's least and greatest node
+values, and leave the limiting to :func:`._limiter.clamp_outside_range`: see
 :func:`_limit_flag`)."""
 
 METHODS = ("closest_point", "pde")
@@ -228,7 +229,9 @@ def _summed_terms(tap: Callable[[int, int, int], Tensor], weights: Tensor, limit
                   by_offset: bool = False) -> Tensor:
     """The tricubic sum as 64 terms ``tap(k, j, i)`` (the values at offsets ``k, j, i`` along
     z, y, x), with separable ``weights`` ``(3, N, 4)`` (``(3, 4, N)`` if ``by_offset``):
-    compiled, one loop over the nodes; limited only if ``limited is True`` (:data:`Limit`)."""
+    compiled, one loop over the nodes; limited only if ``limited is True``. With ``limited ==
+    "eager"``, ``(3, C, N)``: the value, then the least and greatest of its cell's 8 nodes
+    (:data:`Limit`), for the caller to limit the few values outside that range."""
     wx, wy, wz = (w.t() if by_offset else w for w in weights.unbind(0))
     value = None
     taps: list[Tensor] = []
@@ -240,6 +243,12 @@ def _summed_terms(tap: Callable[[int, int, int], Tensor], weights: Tensor, limit
                 taps.append(values)
                 term = (weight * wx[:, i]) * values
                 value = term if value is None else value + term
+    if limited == "eager":
+        cell = [taps[position] for position in _limiter.CELL]
+        least = most = cell[0]
+        for node in cell[1:]:
+            least, most = torch.minimum(least, node), torch.maximum(most, node)
+        return torch.stack((value, least, most))
     if limited is True:
         low, high = _limiter.corner_extremes_of_taps(taps)
         corners = _limiter.corner_weights(wx, wy, wz).t()
@@ -321,13 +330,6 @@ class CubicStencil:
             None if anchors is None else weights.transpose(1, 2).contiguous()
             for anchors, (_, _, weights) in zip(self.anchors, self.parts, strict=True)
         ]
-        # the limiter reads each cell's 8 nodes at every application (_limiter.CELL)
-        self.cells = [
-            None if not self.limited
-            else _dense_tap_indices(corners[:, :, 1:3], height, width)(slice(None)).to(
-                torch.int32 if small else torch.long)
-            for _, corners, _ in self.parts
-        ]
 
     def apply(self, u: Tensor, path: str = "auto", in_place: bool = False) -> Tensor:
         """``u`` ``(B, C, D, H, W)`` with the masked nodes re-extended; a new tensor.
@@ -366,7 +368,7 @@ class CubicStencil:
                 kept = self.sources[part]
                 taps = (_dense_tap_indices(corners, height, width) if kept is None
                         else kept.__getitem__)
-                value = _limiter.clamp_outside_cells(value, flat, self.cells[part], taps,
+                value = _limiter.clamp_outside_range(*value.unbind(0), flat, taps,
                                                      weights.to(u.dtype))
             if in_place:
                 flat.index_copy_(1, targets, value)
@@ -519,12 +521,17 @@ about 125 bytes a node (docs/bricks.md: 512^3 under 4 GB)."""
 
 class BrickCubicStencil:
     """:class:`CubicStencil` on a :class:`~torchsurf.bricks.BrickSurface`: the same numbers at
-    the same nodes, reading packed fields ``(N, C, 8, 8, 8)``.
+    the same nodes (to rounding), reading packed fields ``(N, C, 8, 8, 8)``.
+
+    Applied on the CPU with no gradient to record, under ``path="auto"``, by a C kernel that
+    reads this compact form (:func:`._native_gather.brick_tricubic`: no ``(n, 64)`` tap
+    positions formed, nothing compiled); otherwise by the eager or compiled gathers.
 
     Each node keeps the first packed index of the (at most) 8 bricks its 4^3 taps meet, and per
     axis whether each tap lies in the second brick, its in-brick offset and its weight (about
-    125 bytes per node); a stencil of at most :data:`KEEP_SOURCES_NODES` nodes also keeps the
-    packed index of each tap (256 bytes more a node, 4x faster to apply). Taps are clamped to
+    125 bytes per node); where the gathers run, a stencil of at most
+    :data:`KEEP_SOURCES_NODES` nodes also keeps the packed index of each tap (256 bytes more a
+    node, 4x faster to gather). Taps are clamped to
     each entry's box, as the dense stencil replicates its data.
 
     Args:
@@ -562,31 +569,34 @@ class BrickCubicStencil:
                 "closest-point re-extension reads nodes outside the stored bricks: build the "
                 "BrickSurface with torchsurf.bricks.from_dense or from_mesh at this band width"
             )
-        self.sources = None
-        if len(self.targets) <= KEEP_SOURCES_NODES:
-            self.sources = torch.cat([
+        self._sources: Tensor | None = None
+
+    @property
+    def sources(self) -> Tensor | None:
+        """The packed position of each node's 64 taps, ``(n, 64)``, for a stencil of at most
+        :data:`KEEP_SOURCES_NODES` nodes (else ``None``): formed at the first use by the
+        gathers or the backward and kept; the C kernel of ``path="auto"`` needs none."""
+        if self._sources is None and len(self.targets) <= KEEP_SOURCES_NODES:
+            self._sources = torch.cat([
                 self._tap_indices(slice(start, start + STENCIL_CHUNK)).to(self.bases.dtype)
                 for start in range(0, max(len(self.targets), 1), STENCIL_CHUNK)
             ])
+        return self._sources
 
-    def _clamp_outside_cells(self, value: Tensor, flat: Tensor, part: slice,
+    def _clamp_outside_range(self, value: Tensor, flat: Tensor, part: slice,
                              weights: Tensor) -> Tensor:
-        """:func:`._limiter.clamp_outside_cells` for a slice of the nodes."""
-        bases = [b.long() for b in self.bases[:, part].unbind(0)]
-        bits = self.second[:, part].unbind(0)
-        zl, yl, xl = self.local[:, part].long().unbind(0)
-        cells = torch.stack([_corner_base(bases, bits, k, j, i) + zl[:, k] + yl[:, j] + xl[:, i]
-                             for k in (1, 2) for j in (1, 2) for i in (1, 2)], dim=1)
+        """:func:`._limiter.clamp_outside_range` for a slice of the nodes, ``value`` the
+        compiled interpolation's ``(3, C, n)``."""
         if self.sources is not None:
-            return _limiter.clamp_outside_cells(value, flat, cells, self.sources[part].__getitem__,
-                                                weights)
+            return _limiter.clamp_outside_range(*value.unbind(0), flat,
+                                                self.sources[part].__getitem__, weights)
         first = part.start
 
         def taps(nodes: Tensor) -> Tensor:
             return _brick_sources(self.bases[:, first + nodes], self.second[:, first + nodes],
                                   self.local[:, first + nodes])
 
-        return _limiter.clamp_outside_cells(value, flat, cells, taps, weights)
+        return _limiter.clamp_outside_range(*value.unbind(0), flat, taps, weights)
 
     def _tap_indices(self, part: slice) -> Tensor:
         """Packed positions ``(n, 64)`` of the taps of a slice of the nodes, negative for a
@@ -637,6 +647,18 @@ class BrickCubicStencil:
         channels = u.shape[1]
         flat = u.transpose(0, 1).reshape(channels, -1)
         weights = self.weights.to(u.dtype)
+        value = None
+        if path == "auto" and len(self.targets) > 0:
+            value = _native_gather.brick_tricubic(flat, self.bases, self.second, self.local,
+                                                  weights, self.limited)
+        if value is None:
+            value = self._interpolated(u, flat, weights, path)
+        result = flat.index_copy(1, self.targets, value)
+        return result.view(channels, *u.shape[:1], *u.shape[2:]).transpose(0, 1)
+
+    def _interpolated(self, u: Tensor, flat: Tensor, weights: Tensor, path: str) -> Tensor:
+        """The values ``(C, n)`` at the masked nodes by the eager or compiled gathers,
+        :data:`APPLY_CHUNK` nodes at a time."""
         values = []
         limit = _limit_flag(self.limited)
         for start in range(0, max(len(self.targets), 1), APPLY_CHUNK):
@@ -649,11 +671,9 @@ class BrickCubicStencil:
                     _BRICK_INTERPOLATION, path, u, flat, self.bases[:, part],
                     self.second[:, part], self.local[:, part], weights[:, part], limit)
             if limit == "eager" and taken == "compiled":
-                value = self._clamp_outside_cells(value, flat, part, weights[:, part])
+                value = self._clamp_outside_range(value, flat, part, weights[:, part])
             values.append(value)
-        value = values[0] if len(values) == 1 else torch.cat(values, dim=1)
-        result = flat.index_copy(1, self.targets, value)
-        return result.view(channels, *u.shape[:1], *u.shape[2:]).transpose(0, 1)
+        return values[0] if len(values) == 1 else torch.cat(values, dim=1)
 
     def transpose(self, v: Tensor) -> Tensor:
         """The transpose of :meth:`apply` (``limited=False`` only, where it is linear), as
@@ -729,8 +749,9 @@ def _limit_flag(limited: bool) -> Limit:
     """Where a limited stencil's kernels clamp their values themselves (:data:`Limit`): in
     every form where an outer ``torch.compile`` traces them (no data-dependent shapes);
     otherwise in the eager forms only, which hold the 64 taps and test the values against
-    their cells' ranges at little cost. After a compiled form
-    :func:`._limiter.clamp_outside_cells` limits the few values outside their cell's range
+    their cells' ranges at little cost. After a compiled form, which
+    returns each cell's range beside the value, :func:`._limiter.clamp_outside_range` limits
+    the few values outside their cell's range
     (1% of random data, 0.01% of smooth data): the bounds cost 2.4x the compiled
     interpolation where every node forms them."""
     if not limited:
