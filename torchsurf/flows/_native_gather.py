@@ -8,7 +8,8 @@ row's entries into vector registers, the columns of ``x`` in blocks of 32, 16, 8
 rest one by one; a single column in blocks of 8 rows (:class:`RowBlocks`), each tap one vector
 multiply-add over the 8 rows. Rows are split between threads. Its transpose scatters each row's
 entries, on one thread. An autograd function pairs the two, so gradients (of any order) reach
-``x``.
+``x``. :func:`brick_tricubic` applies a brick closest-point stencil from its compact form (no
+matrix assembled), for bands too large to pack.
 
 It runs on the CPU in float32 and float64 with 32-bit indices: as ctypes calls, and inside a
 graph ``torch.compile`` traces as custom operators (``torch.ops.torchsurf``, torch 2.4 and
@@ -306,12 +307,13 @@ void clamp_back_SUFFIX(const int32_t *taps, const REAL *corners, const int64_t *
    packed position bases[(4 sz[k] + 2 sy[j] + sx[i]) N + r] + lz[k] + ly[j] + lx[i], where
    s* = second[axis][r][0:4] (axis 0 z, 1 y, 2 x) says whether the tap lies in the block's second
    brick along that axis and l* = local[axis][r][0:4] is its in-brick offset; its weight is
-   wz[k] wy[j] wx[i] with w* = weights[axis][r][0:4] (axis 0 x, 1 y, 2 z). out[f N + r] for the
-   F channels of flat (channel f at flat + f M). With limit, a value outside the range of its
-   cell's 8 nodes is clamped to the limiter's bounds (clamp_into's test and bounds). */
+   wz[k] wy[j] wx[i] with w* = weights[axis][r][0:4] (axis 0 x, 1 y, 2 z). Written to
+   out[f ldo + r - first] for the F channels of flat (channel f at flat + f M). With limit,
+   a value outside the range of its cell's 8 nodes is clamped to the limiter's bounds
+   (clamp_into's test and bounds). */
 void brick_tricubic_SUFFIX(const int32_t *bases, const uint8_t *second, const int16_t *local,
-        const REAL *weights, const REAL *flat, int64_t M, REAL *out, int64_t N, int64_t F,
-        int64_t limit, int64_t first, int64_t stop)
+        const REAL *weights, const REAL *flat, int64_t M, REAL *restrict out, int64_t ldo,
+        int64_t N, int64_t F, int64_t limit, int64_t first, int64_t stop)
 {
     for (int64_t r = first; r < stop; ++r) {
         const uint8_t *sz = second + 4 * r, *sy = second + 4 * (N + r),
@@ -387,7 +389,7 @@ void brick_tricubic_SUFFIX(const int32_t *bases, const uint8_t *second, const in
                     else if (v > high) v = high;
                 }
             }
-            out[f * N + r] = v;
+            out[f * ldo + r - first] = v;
         }
 #undef TAP_SUFFIX
     }
@@ -437,7 +439,7 @@ LIBRARY = NativeLibrary(
      **{f"product_blocks_{s}": [ctypes.c_void_p] * 7 + [ctypes.c_int64] * 2
         for s in ("f32", "f64")},
      **{f"brick_tricubic_{s}": [ctypes.c_void_p] * 5 + [ctypes.c_int64] + [ctypes.c_void_p]
-        + [ctypes.c_int64] * 5 for s in ("f32", "f64")}},
+        + [ctypes.c_int64] * 6 for s in ("f32", "f64")}},
     # the vectors are written out; loops vectorized by the compiler become gathers
     # (vgatherdps), twice as slow as scalar loads on an AMD EPYC
     flags=("-fno-tree-vectorize",))
@@ -786,15 +788,15 @@ if TRACEABLE:
 
 
 def brick_tricubic(flat: Tensor, bases: Tensor, second: Tensor, local: Tensor, weights: Tensor,
-                   limited: bool) -> Tensor | None:
+                   limited: bool, nodes: slice) -> Tensor | None:
     """A :class:`~torchsurf.flows.extension.BrickCubicStencil`'s interpolation of ``flat``
-    ``(C, M)`` (packed values, channels first) at its ``N`` nodes, ``(C, N)``, from its compact
-    form: ``bases`` ``(8, N)`` int32, ``second`` ``(3, N, 4)`` bool, ``local`` ``(3, N, 4)``
-    int16, ``weights`` ``(3, N, 4)`` of ``flat``'s dtype; limited (:mod:`._limiter`) if
-    ``limited``. Without forming the ``(N, 64)`` tap positions (the compiled gather formed each
-    tap's brick by selects at every application: 3-4x slower). ``None`` where the kernel does
-    not run: not the CPU, float32 or float64, or 32-bit bases; a gradient to record; while
-    ``torch.compile`` traces; or no compiler."""
+    ``(C, M)`` (packed values, channels first) at its nodes ``nodes`` (a slice of its ``N``),
+    ``(C, n)``, from its compact form: ``bases`` ``(8, N)`` int32, ``second`` ``(3, N, 4)``
+    bool, ``local`` ``(3, N, 4)`` int16, ``weights`` ``(3, N, 4)`` of ``flat``'s dtype; limited
+    (:mod:`._limiter`) if ``limited``. The ``(n, 64)`` tap positions are not formed (the
+    compiled gather forms each tap's brick by selects at every application: 1.4x slower,
+    limited). ``None`` where the kernel does not run: not the CPU, float32 or float64, or
+    32-bit bases; a gradient to record; while ``torch.compile`` traces; or no compiler."""
     if (flat.device.type != "cpu" or flat.dtype not in _SUFFIX or bases.dtype != torch.int32
             or second.dtype != torch.bool or local.dtype != torch.int16
             or weights.dtype != flat.dtype or torch.compiler.is_compiling()
@@ -806,13 +808,15 @@ def brick_tricubic(flat: Tensor, bases: Tensor, second: Tensor, local: Tensor, w
     kernel = getattr(library, f"brick_tricubic_{_SUFFIX[flat.dtype]}")
     flat, bases, second, local, weights = (
         t.contiguous() for t in (flat, bases, second, local, weights))
-    channels, nodes = flat.shape[0], bases.shape[1]
-    out = torch.empty(channels, nodes, dtype=flat.dtype)
+    start, stop, _ = nodes.indices(bases.shape[1])
+    channels = flat.shape[0]
+    out = torch.empty(channels, stop - start, dtype=flat.dtype)
 
-    def run(first: int, stop: int) -> None:
+    def run(first: int, last: int) -> None:
         kernel(bases.data_ptr(), second.data_ptr(), local.data_ptr(), weights.data_ptr(),
-               flat.data_ptr(), flat.shape[1], out.data_ptr(), nodes, channels, int(limited),
-               first, stop)
+               flat.data_ptr(), flat.shape[1], out.data_ptr() + first * out.element_size(),
+               out.shape[1], bases.shape[1], channels, int(limited), start + first,
+               start + last)
 
-    in_threads(run, nodes, THREAD_MIN_ROWS)
+    in_threads(run, stop - start, THREAD_MIN_ROWS)
     return out

@@ -583,6 +583,21 @@ class BrickCubicStencil:
             ])
         return self._sources
 
+    def _gathered(self, u: Tensor, flat: Tensor, weights: Tensor, path: str, part: slice
+                  ) -> Tensor:
+        """The values ``(C, n)`` at the nodes ``part`` by the eager or compiled gathers."""
+        limit = _limit_flag(self.limited)
+        if self.sources is not None:
+            value, taken = backend.run_on_path(_KEPT_INTERPOLATION, path, u, flat,
+                                               self.sources[part], weights[:, part], limit)
+        else:
+            value, taken = backend.run_on_path(
+                _BRICK_INTERPOLATION, path, u, flat, self.bases[:, part],
+                self.second[:, part], self.local[:, part], weights[:, part], limit)
+        if limit == "eager" and taken == "compiled":
+            value = self._clamp_outside_range(value, flat, part, weights[:, part])
+        return value
+
     def _clamp_outside_range(self, value: Tensor, flat: Tensor, part: slice,
                              weights: Tensor) -> Tensor:
         """:func:`._limiter.clamp_outside_range` for a slice of the nodes, ``value`` the
@@ -647,32 +662,22 @@ class BrickCubicStencil:
         channels = u.shape[1]
         flat = u.transpose(0, 1).reshape(channels, -1)
         weights = self.weights.to(u.dtype)
-        value = None
-        if path == "auto" and len(self.targets) > 0:
-            value = _native_gather.brick_tricubic(flat, self.bases, self.second, self.local,
-                                                  weights, self.limited)
-        if value is None:
-            value = self._interpolated(u, flat, weights, path)
+        value = self._interpolated(u, flat, weights, path)
         result = flat.index_copy(1, self.targets, value)
         return result.view(channels, *u.shape[:1], *u.shape[2:]).transpose(0, 1)
 
     def _interpolated(self, u: Tensor, flat: Tensor, weights: Tensor, path: str) -> Tensor:
-        """The values ``(C, n)`` at the masked nodes by the eager or compiled gathers,
-        :data:`APPLY_CHUNK` nodes at a time."""
+        """The values ``(C, n)`` at the masked nodes, :data:`APPLY_CHUNK` nodes at a time: by
+        the C kernel where it runs, else by the eager or compiled gathers."""
         values = []
-        limit = _limit_flag(self.limited)
         for start in range(0, max(len(self.targets), 1), APPLY_CHUNK):
             part = slice(start, start + APPLY_CHUNK)
-            if self.sources is not None:
-                value, taken = backend.run_on_path(_KEPT_INTERPOLATION, path, u, flat,
-                                                   self.sources[part], weights[:, part], limit)
-            else:
-                value, taken = backend.run_on_path(
-                    _BRICK_INTERPOLATION, path, u, flat, self.bases[:, part],
-                    self.second[:, part], self.local[:, part], weights[:, part], limit)
-            if limit == "eager" and taken == "compiled":
-                value = self._clamp_outside_range(value, flat, part, weights[:, part])
-            values.append(value)
+            value = None
+            if path == "auto" and len(self.targets) > 0:
+                value = _native_gather.brick_tricubic(flat, self.bases, self.second,
+                                                      self.local, weights, self.limited, part)
+            values.append(self._gathered(u, flat, weights, path, part) if value is None
+                          else value)
         return values[0] if len(values) == 1 else torch.cat(values, dim=1)
 
     def transpose(self, v: Tensor) -> Tensor:
