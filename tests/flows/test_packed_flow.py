@@ -165,3 +165,34 @@ def test_the_flow_and_the_semigroup_share_one_packing():
     packing = surface.kept(("packed region", "octant", width), lambda: None)
     assert packing is not None
     assert BandLaplacian(surface, band_width=width).packed().packing is packing
+
+
+def test_large_brick_bands_flow_by_the_re_extension_kernel_as_packed_ones(monkeypatch):
+    """Bricks whose band and ring exceed ``PACKED_BRICK_NODES`` (a 256^3 bunny's) flow on
+    volumes, re-extending by the C kernel of ``BrickCubicStencil`` (the 512^3 bunny's flow:
+    259 -> 58 s): the same flow as the packed one to rounding, inside the start's range on
+    both entries of a batch, the caller's data untouched."""
+    from torchsurf.flows import _native_gather
+
+    if _native_gather.LIBRARY.load() is None:
+        pytest.skip("no C compiler")
+    bricks = _surface("bricks")
+    v = _fields(bricks, 1, seed=6)[0]
+    before = v.clone()
+    packed = HeatFlow(6 * bricks.spacing**2)(v, bricks)
+    ran = []
+    kernel = _native_gather.brick_tricubic
+    monkeypatch.setattr(_native_gather, "brick_tricubic",
+                        lambda *args: ran.append(1) or kernel(*args))
+    monkeypatch.setattr(heat, "PACKED_BRICK_NODES", 0)
+    volume = HeatFlow(6 * bricks.spacing**2)(v, bricks)
+    assert ran  # the kernel re-extended the band and its ring
+    band = bricks.band_mask().expand_as(v)
+    torch.testing.assert_close(volume[band], packed[band], rtol=0, atol=1e-12)
+    for entry in range(bricks.batch_size):
+        rows = (bricks.layout.batch == entry)
+        start, end = v[rows][band[rows]], volume[rows][band[rows]]
+        assert float(start.min()) - 1e-12 <= float(end.min())
+        assert float(end.max()) <= float(start.max()) + 1e-12
+        assert float(end.std()) < 0.5 * float(start.std())
+    torch.testing.assert_close(v, before, rtol=0, atol=0)
