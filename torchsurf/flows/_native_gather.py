@@ -242,6 +242,21 @@ static void bounds_SUFFIX(const REAL *u, const REAL *weight, REAL *low, REAL *hi
     *high = within_SUFFIX(highs, h);
 }
 
+/* v clamped to the limiter's bounds from its 64 taps' values u and its corners' weights: the
+   code 0 (kept), 1 (raised to the lower bound) or 2 (lowered to the upper); NaN among the taps
+   makes v NaN, as torch's clamp keeps a NaN. */
+static uint8_t clamp_to_bounds_SUFFIX(REAL *v, const REAL *u, const REAL *corners)
+{
+    REAL low, high;
+    int nan = 0;
+    for (int t = 0; t < 64; ++t) nan |= u[t] != u[t];
+    bounds_SUFFIX(u, corners, &low, &high);
+    if (nan) { *v = (REAL)NAN; return 0; }
+    if (*v < low) { *v = low; return 1; }
+    if (*v > high) { *v = high; return 2; }
+    return 0;
+}
+
 void clamp_into_SUFFIX(const int32_t *taps, const REAL *corners, const int64_t *rows,
         const REAL *x, const REAL *value, REAL *out, uint8_t *codes, uint8_t *extremes,
         int64_t first, int64_t stop, int64_t F)
@@ -260,16 +275,9 @@ void clamp_into_SUFFIX(const int32_t *taps, const REAL *corners, const int64_t *
                 most = w > most ? w : most;
             }
             if (!(v >= least && v <= most) && v == v) {
-                REAL u[64], low, high;
-                int nan = 0;
-                for (int t = 0; t < 64; ++t) {
-                    u[t] = x[(int64_t)tap[t] * F + f];
-                    nan |= u[t] != u[t];
-                }
-                bounds_SUFFIX(u, corners + r * 8, &low, &high);
-                if (nan) v = (REAL)NAN;   /* as torch's clamp keeps a NaN */
-                else if (v < low) { v = low; code = 1; }
-                else if (v > high) { v = high; code = 2; }
+                REAL u[64];
+                for (int t = 0; t < 64; ++t) u[t] = x[(int64_t)tap[t] * F + f];
+                code = clamp_to_bounds_SUFFIX(&v, u, corners + r * 8);
                 if (code && codes)
                     for (int c = 0; c < 8; ++c)
                         extremes[(r * F + f) * 8 + c] = extreme_tap_SUFFIX(u, c, code == 1 ? 1 : -1);
@@ -377,16 +385,9 @@ void brick_tricubic_SUFFIX(const int32_t *bases, const uint8_t *second, const in
                             most = node > most ? node : most;
                         }
                 if (!(v >= least && v <= most) && v == v) {
-                    REAL u[64], low, high;
-                    int nan = 0;
-                    for (int t = 0; t < 64; ++t) {
-                        u[t] = x[TAP_SUFFIX(t >> 4, (t >> 2) & 3, t & 3)];
-                        nan |= u[t] != u[t];
-                    }
-                    bounds_SUFFIX(u, corners, &low, &high);
-                    if (nan) v = (REAL)NAN;
-                    else if (v < low) v = low;
-                    else if (v > high) v = high;
+                    REAL u[64];
+                    for (int t = 0; t < 64; ++t) u[t] = x[TAP_SUFFIX(t >> 4, (t >> 2) & 3, t & 3)];
+                    clamp_to_bounds_SUFFIX(&v, u, corners);
                 }
             }
             out[f * ldo + r - first] = v;
