@@ -143,6 +143,43 @@ def test_packed_operator_is_the_volume_operator(kind, scheme):
                                atol=1e-13 * float(region.abs().max()))
 
 
+def _odd_box_surface() -> ts.ImplicitSurface:
+    """An ellipsoid's ``phi`` that is not a distance (a quadric times a factor varying along
+    x), in a box of three different sides that cuts the surface at one face and comes within a
+    cell of it at two others."""
+    grid = ts.Grid((19, 23, 17), 0.13, (-1.2, -1.5, -1.0))
+    x, y, z = grid.points(dtype=torch.float64).unbind(-1)
+    phi = (x / 1.05) ** 2 + (y / 1.3) ** 2 + (z / 0.9) ** 2 - 1.0
+    return ts.ImplicitSurface(phi[None, None] * (1.0 + 0.5 * torch.sin(3.0 * x))[None, None],
+                              grid)
+
+
+@pytest.mark.parametrize("kind", ["two shapes", "at the faces", "tanh", "bunny", "odd box"])
+def test_dense_octant_rows_equal_the_probes(kind):
+    """The dense octant ``W^-1 A`` formed in closed form at the band's rows equals, entry by
+    entry, the one read off the volume operator by colour probes."""
+    surface = _odd_box_surface() if kind == "odd box" else _surface(kind)
+    operator = BandLaplacian(surface, "octant", path="slicing")
+    packed = operator.packed().packing
+    storage, rows = packed.storage, packed.nodes[:packed.band_count]
+    count = len(packed.nodes)
+    formed = _packed_band._octant_rows(surface, storage, rows, packed.lookup, count)
+    probed = _packed_band._probed_by_colours(surface, "octant", operator.region, storage, rows,
+                                             packed.lookup, count)
+    mine, reference = _sparse(formed), _sparse(probed)
+    assert reference.values().abs().min() > 0 and len(reference.values()) > 19 * len(rows) // 2
+    scale = float(reference.values().abs().max())
+    assert float((mine - reference).coalesce().values().abs().max()) < 1e-13 * scale
+
+
+def _sparse(matrix: GatherMatrix) -> torch.Tensor:
+    """A :class:`GatherMatrix` as a coalesced sparse COO tensor."""
+    counts = (matrix.offsets[1:] - matrix.offsets[:-1]).long()
+    rows = torch.repeat_interleave(torch.arange(matrix.shape[0]), counts)
+    indices = torch.stack([rows, matrix.columns.long()])
+    return torch.sparse_coo_tensor(indices, matrix.values(torch.float64), matrix.shape).coalesce()
+
+
 @pytest.mark.parametrize("kind", ["two shapes", "bunny", "bricks"])
 def test_heat_semigroup_equals_the_volume_path(kind, monkeypatch):
     """Results and gradients (data and times) of the packed path against the volume path's."""

@@ -6,7 +6,12 @@ import pytest
 import torch
 
 import torchsurf as ts
-from torchsurf.operators.spectrum import gershgorin_bound, laplace_beltrami_bound
+from torchsurf.operators.spectrum import (
+    NEIGHBOURHOOD,
+    gershgorin_bound,
+    laplace_beltrami_bound,
+    laplace_beltrami_rows,
+)
 
 
 def dense_matrix(operator, mask: torch.Tensor) -> torch.Tensor:
@@ -95,3 +100,59 @@ def test_directional_bound_is_the_largest_row_sum_of_the_directional_operator():
     packed = bricks.from_dense(dense)
     assert directional_bound(packed, packed.from_dense(field)) == pytest.approx(
         directional_bound(dense, field), rel=1e-9)
+
+
+def _cut_ellipsoids() -> ts.ImplicitSurface:
+    """A batch of two ``phi`` that are not distances (a quadric times a varying factor), in a
+    box of three different sides that cuts both surfaces."""
+    grid = ts.Grid((7, 9, 8), 0.3, (-1.0, -1.3, -0.9))
+    x, y, z = grid.points(dtype=torch.float64).unbind(-1)
+    quadric = (x / 1.05) ** 2 + (y / 1.3) ** 2 + (z / 0.9) ** 2 - 1.0
+    phi = torch.stack([quadric * (1.0 + 0.5 * torch.sin(3.0 * x)),
+                       torch.tanh(2.0 * quadric) + 0.1 * y])[:, None]
+    return ts.ImplicitSurface(phi, grid)
+
+
+def test_octant_rows_are_the_volume_operators_matrix():
+    """Each row formed in closed form equals the one assembled column by column from the
+    volume operator, faces included (a neighbour beyond a face folds onto the face node)."""
+    surface = _cut_ellipsoids()
+    shape = surface.grid.shape
+    batch, size = 2, surface.grid.shape[0] * shape[1] * shape[2]
+    columns = []
+    for node in range(batch * size):
+        probe = torch.zeros(batch * size, dtype=torch.float64)
+        probe[node] = 1.0
+        columns.append(ts.laplace_beltrami(probe.view(batch, 1, *shape), surface).flatten())
+    matrix = torch.stack(columns, dim=1)
+    nodes = torch.arange(batch * size)
+    rows = laplace_beltrami_rows(surface, nodes)
+    assembled = torch.zeros_like(matrix)
+    entry = nodes // size
+    at = ((nodes // (shape[1] * shape[2])) % shape[0], (nodes // shape[2]) % shape[1],
+          nodes % shape[2])
+    for k, offset in enumerate(NEIGHBOURHOOD):
+        z, y, x = ((a + o).clamp(0, n - 1) for a, o, n in zip(at, offset, shape, strict=True))
+        assembled.index_put_((nodes, ((entry * shape[0] + z) * shape[1] + y) * shape[2] + x),
+                             rows[:, k], accumulate=True)
+    scale = float(matrix.abs().max())
+    assert float((assembled - matrix).abs().max()) < 1e-13 * scale
+    # rows of nodes at a face hold nothing beyond it
+    assert float(rows[at[2] == 0][:, [k for k, o in enumerate(NEIGHBOURHOOD) if o[2] < 0]]
+                 .abs().max()) == 0.0
+
+
+def test_dense_octant_bound_from_rows_equals_the_probes():
+    """The dense octant bound, from rows formed in closed form, is the colour probes' bound
+    of the same operator: on surfaces cut by the box and not distances, a batch, a thin torus."""
+    thin = ts.Grid.cube(25, 1.3)
+    for surface in (_cut_ellipsoids(), ts.ImplicitSurface(
+            ts.sdf.torus(thin, 0.8, 0.07, dtype=torch.float64), thin)):
+        mask = surface.band_mask()
+
+        def operator(x, surface=surface, mask=mask):
+            inside = torch.where(mask, x, 0.0)
+            return torch.where(mask, ts.laplace_beltrami(inside, surface, "octant"), 0.0)
+
+        probed = gershgorin_bound(operator, mask, torch.float64)
+        assert laplace_beltrami_bound(surface, "octant") == pytest.approx(probed, rel=1e-12)

@@ -15,7 +15,12 @@ from .diffusion import (
 )
 from .diffusivity import DIFFUSIVITIES, charbonnier, perona_malik, total_variation
 from .laplace_beltrami import LaplaceBeltrami, laplace_beltrami
-from .spectrum import directional_bound, gershgorin_bound, laplace_beltrami_bound
+from .spectrum import (
+    directional_bound,
+    gershgorin_bound,
+    laplace_beltrami_bound,
+    laplace_beltrami_rows,
+)
 
 __all__ = [
     "DIFFUSIVITIES",
@@ -34,6 +39,7 @@ __all__ = [
     "intrinsic_gradient",
     "laplace_beltrami",
     "laplace_beltrami_bound",
+    "laplace_beltrami_rows",
     "perona_malik",
     "total_variation",
 ]

@@ -23,6 +23,7 @@ about half the arithmetic of the two-composition ``"symmetric"`` scheme's fused 
 
 from __future__ import annotations
 
+import torch
 from torch import Tensor
 
 from .. import stencils
@@ -134,3 +135,91 @@ def eager_octant(
         total = term if total is None else total + term
     scale = 4.0 * spacing * spacing
     return masked(total / scale if weighted else total / (scale * grad_norm), mask)
+
+
+NEIGHBOURHOOD = [(dz, dy, dx) for dz in (-1, 0, 1) for dy in (-1, 0, 1) for dx in (-1, 0, 1)]
+"""The 27 offsets ``(dz, dy, dx)`` of :func:`octant_rows`' columns, in this order."""
+
+
+def octant_rows(normal: Tensor, weight: Tensor, spacing: float, entry: Tensor,
+                at: tuple[Tensor, Tensor, Tensor]) -> Tensor:
+    """The rows of the octant scheme's ``L`` (the volume operator's, faces included) at the
+    nodes ``at``, formed from the closed form instead of by applying the operator.
+
+    In index units, times ``4 h^2 W(p)``, with ``c_a = W (1 - n_a^2)``, ``m_ab = W n_a n_b``,
+    and ``s_a``, ``s_b`` signs, row ``p`` holds
+
+    - at ``p``: ``-2 sum_a (c_a(p - e_a) + 2 c_a(p) + c_a(p + e_a))``;
+    - at ``p + s_a e_a``: ``2 (c_a(p) + c_a(p + s_a e_a))``;
+    - at ``p + s_a e_a + s_b e_b``: ``-s_a s_b (m_ab(p + s_a e_a) + m_ab(p + s_b e_b))``.
+
+    Beyond the box's faces the geometry is :func:`fused_octant`'s halo (``W`` and ``n``
+    replicated, ``n_a`` negated beyond the faces across ``a``) and ``u`` replicated, so an
+    entry whose node lies beyond a face is added to the face node's (its offset clamped).
+
+    Args:
+        normal: ``(B or 1, 3, D, H, W)``; weight: ``W``, ``(B or 1, 1, D, H, W)``.
+        spacing: ``h``, world units.
+        entry: ``(R,)`` the batch entry of each node (any, with geometry of batch 1).
+        at: ``(z, y, x)``, ``(R,)`` each, the nodes' grid indices.
+
+    Returns:
+        ``(R, 27)``: the coefficient of each node's neighbour at offset
+        :data:`NEIGHBOURHOOD` ``[k]``, zero for offsets beyond the box; units ``1 / world
+        length^2``.
+    """
+    shape = normal.shape[-3:]
+    if normal.shape[0] == 1:
+        entry = torch.zeros_like(entry)
+    normal = normal.reshape(normal.shape[0], 3, -1)
+    weight = weight.reshape(weight.shape[0], -1)
+    dim = (2, 1, 0)  # the index (z, y, x) of world axis a (x, y, z)
+    unit = stencils.unit
+
+    def clamped(offset: tuple[int, int, int]) -> tuple[list[Tensor], list[Tensor]]:
+        """The in-box indices of ``p + offset`` and, per index, whether it lay beyond."""
+        moved = [a + o for a, o in zip(at, offset, strict=True)]
+        beyond = [(m < 0) | (m >= n) for m, n in zip(moved, shape, strict=True)]
+        return [m.clamp(0, n - 1) for m, n in zip(moved, shape, strict=True)], beyond
+
+    geometry = {}
+    for offset in [stencils.CENTRE] + [unit(a, s) for a in range(3) for s in (-1, 1)]:
+        (z, y, x), beyond = clamped(offset)
+        flat = (z * shape[1] + y) * shape[2] + x
+        geometry[offset] = (weight[entry, flat], normal[entry, :, flat], beyond)
+
+    def diagonal_coefficient(axis: int, offset: tuple[int, int, int]) -> Tensor:
+        w, n, _ = geometry[offset]
+        return w - w * n[:, axis] * n[:, axis]
+
+    def cross_coefficient(a: int, b: int, offset: tuple[int, int, int]) -> Tensor:
+        w, n, beyond = geometry[offset]
+        value = w * n[:, a] * n[:, b]
+        return torch.where(beyond[dim[a]] ^ beyond[dim[b]], -value, value)
+
+    centre = stencils.CENTRE
+    terms: list[tuple[tuple[int, int, int], Tensor]] = []
+    diagonal = None
+    for a in range(3):
+        here = diagonal_coefficient(a, centre)
+        sides = [diagonal_coefficient(a, unit(a, s)) for s in (-1, 1)]
+        term = sides[0] + 2.0 * here + sides[1]
+        diagonal = term if diagonal is None else diagonal + term
+        terms += [(unit(a, s), 2.0 * (here + side)) for s, side in zip((-1, 1), sides,
+                                                                       strict=True)]
+    terms.append((centre, -2.0 * diagonal))
+    for a in range(3):
+        for b in range(a + 1, 3):
+            for sa in (-1, 1):
+                for sb in (-1, 1):
+                    value = (cross_coefficient(a, b, unit(a, sa))
+                             + cross_coefficient(a, b, unit(b, sb)))
+                    offset = stencils.add(unit(a, sa), unit(b, sb))
+                    terms.append((offset, -sa * sb * value))
+    rows = geometry[centre][0].new_zeros((len(entry), len(NEIGHBOURHOOD)))
+    for offset, value in terms:
+        _, beyond = clamped(offset)
+        folded = [torch.where(out, 0, o) for out, o in zip(beyond, offset, strict=True)]
+        column = (folded[0] + 1) * 9 + (folded[1] + 1) * 3 + folded[2] + 1
+        rows.scatter_add_(1, column[:, None], value[:, None])
+    return rows / (4.0 * spacing * spacing * geometry[centre][0][:, None])
