@@ -145,3 +145,27 @@ def test_native_brick_interpolation_equals_the_gathers(dtype, limited):
     if limited:
         free = cubic_stencil(surface, mask).apply(u, path="slicing")
         assert float((free - native).abs().max()) > 1e-2  # the limiter clamped values
+
+
+def test_native_readability_check_equals_the_tap_gathers(torus, monkeypatch):
+    """A stencil with ``readable`` keeps the nodes whose 64 taps are all stored and readable:
+    the C check (:func:`torchsurf.flows._native_gather.brick_taps_readable`, no ``(n, 64)``
+    positions formed) keeps the same nodes as the gathered positions, here with taps in
+    bricks that are not stored (every stored node a target) and a random tenth of the nodes
+    unreadable."""
+    from torchsurf.flows import _native_gather
+    from torchsurf.flows.extension import BrickCubicStencil
+
+    if _native_gather.LIBRARY.load() is None:
+        pytest.skip("no C compiler")
+    _, surface = torus
+    everywhere = torch.ones(len(surface.layout), 1, 8, 8, 8, dtype=torch.bool)
+    readable = torch.rand(everywhere.shape, generator=torch.Generator().manual_seed(7)) > 0.1
+    native = BrickCubicStencil(surface, everywhere, readable=readable)
+    monkeypatch.setattr(_native_gather, "brick_taps_readable", lambda *args: None)
+    gathered = BrickCubicStencil(surface, everywhere, readable=readable)
+    assert 0 < len(native.targets) < everywhere.sum() // 2
+    assert torch.equal(native.targets, gathered.targets)
+    for mine, reference in zip((native.bases, native.local, native.weights),
+                               (gathered.bases, gathered.local, gathered.weights), strict=True):
+        assert torch.equal(mine, reference)

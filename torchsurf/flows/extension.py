@@ -558,8 +558,11 @@ class BrickCubicStencil:
         self.bases, self.second, self.local, self.weights = (
             torch.cat(pieces, dim=1) for pieces in zip(*parts, strict=True))
         if readable is not None:
-            keep = _closest.taps_inside(readable.reshape(-1), self._tap_indices,
-                                        len(self.targets))
+            keep = _native_gather.brick_taps_readable(self.bases, self.second, self.local,
+                                                      readable.reshape(-1))
+            if keep is None:
+                keep = _closest.taps_inside(readable.reshape(-1), self._tap_indices,
+                                            len(self.targets))
             if not bool(keep.all()):
                 self.targets = self.targets[keep]
                 self.bases, self.second, self.local, self.weights = (
