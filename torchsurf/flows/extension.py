@@ -551,10 +551,13 @@ class BrickCubicStencil:
         self.limited = check_flag(limited, "limited")
         self.targets = mask.reshape(-1).nonzero().squeeze(1)
         distance = surface.signed_distance() / surface.spacing
-        parts = [self._assemble(surface, self.targets[start: start + STENCIL_CHUNK], distance)
+        fields = _closest.brick_fields(distance, surface.normal)
+        parts = [self._assemble(surface, self.targets[start: start + STENCIL_CHUNK], distance,
+                                fields)
                  for start in range(0, len(self.targets), STENCIL_CHUNK)]
         if not parts:
-            parts = [self._assemble(surface, self.targets, distance)]
+            parts = [self._assemble(surface, self.targets, distance, fields)]
+        del fields
         self.bases, self.second, self.local, self.weights = (
             torch.cat(pieces, dim=1) for pieces in zip(*parts, strict=True))
         if readable is not None:
@@ -622,18 +625,18 @@ class BrickCubicStencil:
         return _brick_sources(self.bases[:, part], self.second[:, part], self.local[:, part])
 
     @staticmethod
-    def _assemble(surface: ImplicitSurface, targets: Tensor, distance: Tensor
-                  ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    def _assemble(surface: ImplicitSurface, targets: Tensor, distance: Tensor,
+                  fields: list[Tensor]) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """The stencil of ``targets`` (packed node indices), read from the surface's fields at
-        those nodes only; ``distance`` is the packed ``phi / (W h)``. Bases of bricks that are
-        not stored are negative."""
+        those nodes only; ``distance`` is the packed ``phi / (W h)``, ``fields`` the
+        closest points' reads (:func:`._closest.brick_fields`). Bases of bricks that are not
+        stored are negative."""
         layout = surface.layout
         device = surface.phi.device
-        index, batch = _brick_closest_indices(surface, targets)
+        index, batch = _brick_closest_indices(surface, targets, distance)
         shapes = torch.tensor([g.shape[::-1] for g in layout.grids], device=device)[batch]
         lookup = layout.lookup.to(device)
-        at = _closest.refine(index, _closest.brick_reader(
-            distance, surface.normal, lookup, batch, shapes))
+        at = _closest.refine(index, _closest.brick_reader(fields, lookup, batch, shapes))
         extent_z, extent_y, extent_x = layout.extent
         base = _cell(at)
         offsets = torch.arange(-1, 3, device=device)
@@ -704,10 +707,12 @@ class BrickCubicStencil:
         return result.view(channels, *v.shape[:1], *v.shape[2:]).transpose(0, 1)
 
 
-def _brick_closest_indices(surface: ImplicitSurface, targets: Tensor) -> tuple[Tensor, Tensor]:
+def _brick_closest_indices(surface: ImplicitSurface, targets: Tensor,
+                           distance: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """``x - d n`` (``d = surface.signed_distance()``) at the packed node indices ``targets``
     ``(M,)`` of a brick surface, in continuous node indices ``(M, 3)`` ``(i, j, k)`` of each
-    node's entry's grid, and each node's batch entry ``(M,)``.
+    node's entry's grid, and each node's batch entry ``(M,)``. ``distance``: the packed
+    ``d / h`` if already formed.
 
     Formed as the dense :func:`_closest_indices`, with the same rounding, so that the limiter
     of a stencil picks the same cell."""
@@ -724,7 +729,9 @@ def _brick_closest_indices(surface: ImplicitSurface, targets: Tensor) -> tuple[T
         return field.reshape(field.shape[0], field.shape[1], -1)[row, :, inside]
 
     normal = at_targets(surface.normal)
-    distance = at_targets(surface.signed_distance() / surface.spacing)[:, 0]
+    if distance is None:
+        distance = surface.signed_distance() / surface.spacing
+    distance = at_targets(distance)[:, 0]
     return nodes - distance[:, None] * normal, batch
 
 
