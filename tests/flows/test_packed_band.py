@@ -154,17 +154,18 @@ def _odd_box_surface() -> ts.ImplicitSurface:
                               grid)
 
 
+@pytest.mark.parametrize("scheme", ["octant", "symmetric", "conservative"])
 @pytest.mark.parametrize("kind", ["two shapes", "at the faces", "tanh", "bunny", "odd box"])
-def test_dense_octant_rows_equal_the_probes(kind):
-    """The dense octant ``W^-1 A`` formed in closed form at the band's rows equals, entry by
+def test_dense_rows_equal_the_probes(kind, scheme):
+    """A dense surface's ``W^-1 A`` formed in closed form at the band's rows equals, entry by
     entry, the one read off the volume operator by colour probes."""
     surface = _odd_box_surface() if kind == "odd box" else _surface(kind)
-    operator = BandLaplacian(surface, "octant", path="slicing")
+    operator = BandLaplacian(surface, scheme, path="slicing")
     packed = operator.packed().packing
     storage, rows = packed.storage, packed.nodes[:packed.band_count]
     count = len(packed.nodes)
-    formed = _packed_band._octant_rows(surface, storage, rows, packed.lookup, count)
-    probed = _packed_band._probed_by_colours(surface, "octant", operator.region, storage, rows,
+    formed = _packed_band._formed_rows(surface, scheme, storage, rows, packed.lookup, count)
+    probed = _packed_band._probed_by_colours(surface, scheme, operator.region, storage, rows,
                                              packed.lookup, count)
     mine, reference = _sparse(formed), _sparse(probed)
     assert reference.values().abs().min() > 0 and len(reference.values()) > 19 * len(rows) // 2

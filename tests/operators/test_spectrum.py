@@ -113,7 +113,8 @@ def _cut_ellipsoids() -> ts.ImplicitSurface:
     return ts.ImplicitSurface(phi, grid)
 
 
-def test_octant_rows_are_the_volume_operators_matrix():
+@pytest.mark.parametrize("scheme", ["octant", "symmetric", "conservative"])
+def test_rows_are_the_volume_operators_matrix(scheme):
     """Each row formed in closed form equals the one assembled column by column from the
     volume operator, faces included (a neighbour beyond a face folds onto the face node)."""
     surface = _cut_ellipsoids()
@@ -123,10 +124,11 @@ def test_octant_rows_are_the_volume_operators_matrix():
     for node in range(batch * size):
         probe = torch.zeros(batch * size, dtype=torch.float64)
         probe[node] = 1.0
-        columns.append(ts.laplace_beltrami(probe.view(batch, 1, *shape), surface).flatten())
+        columns.append(ts.laplace_beltrami(probe.view(batch, 1, *shape), surface, scheme)
+                       .flatten())
     matrix = torch.stack(columns, dim=1)
     nodes = torch.arange(batch * size)
-    rows = laplace_beltrami_rows(surface, nodes)
+    rows = laplace_beltrami_rows(surface, nodes, scheme)
     assembled = torch.zeros_like(matrix)
     entry = nodes // size
     at = ((nodes // (shape[1] * shape[2])) % shape[0], (nodes // shape[2]) % shape[1],
@@ -142,9 +144,10 @@ def test_octant_rows_are_the_volume_operators_matrix():
                  .abs().max()) == 0.0
 
 
-def test_dense_octant_bound_from_rows_equals_the_probes():
-    """The dense octant bound, from rows formed in closed form, is the colour probes' bound
-    of the same operator: on surfaces cut by the box and not distances, a batch, a thin torus."""
+@pytest.mark.parametrize("scheme", ["octant", "symmetric", "conservative"])
+def test_dense_bound_from_rows_equals_the_probes(scheme):
+    """The dense bound, from rows formed in closed form, is the colour probes' bound of the
+    same operator: on surfaces cut by the box and not distances, a batch, a thin torus."""
     thin = ts.Grid.cube(25, 1.3)
     for surface in (_cut_ellipsoids(), ts.ImplicitSurface(
             ts.sdf.torus(thin, 0.8, 0.07, dtype=torch.float64), thin)):
@@ -152,7 +155,7 @@ def test_dense_octant_bound_from_rows_equals_the_probes():
 
         def operator(x, surface=surface, mask=mask):
             inside = torch.where(mask, x, 0.0)
-            return torch.where(mask, ts.laplace_beltrami(inside, surface, "octant"), 0.0)
+            return torch.where(mask, ts.laplace_beltrami(inside, surface, scheme), 0.0)
 
         probed = gershgorin_bound(operator, mask, torch.float64)
-        assert laplace_beltrami_bound(surface, "octant") == pytest.approx(probed, rel=1e-12)
+        assert laplace_beltrami_bound(surface, scheme) == pytest.approx(probed, rel=1e-12)

@@ -12,7 +12,7 @@ to packed values ``(nodes, C, K)``:
   operator itself: the operator applied to indicator volumes of the region's nodes of each of
   ``(2 r + 1)^3`` colours (``r`` the scheme's reach), no two nodes of a colour within ``2 r``
   of each other, gives each band node's coefficient for each of its neighbours (the heat flow's
-  rate, :meth:`torchsurf.flows.HeatFlow.packed_system`); a dense surface's octant rows are
+  rate, :meth:`torchsurf.flows.HeatFlow.packed_system`); a dense surface's rows are
   formed at the band's nodes in closed form instead
   (:func:`torchsurf.operators.spectrum.laplace_beltrami_rows`);
 - :class:`PackedStencil`: a limited closest-point stencil (the flows' re-extensions), from the
@@ -385,12 +385,13 @@ def _probe_reader(surface: ImplicitSurface, scheme: str, region: Tensor, storage
     return dense, len(region) * math.prod(cropped)
 
 
-def _octant_rows(surface: ImplicitSurface, storage: _Storage, rows: Tensor, lookup: Tensor,
-                 count: int) -> GatherMatrix:
-    """A dense surface's octant ``W^-1 A`` on the band's rows, formed at the rows in closed
-    form (:func:`torchsurf.operators.spectrum.laplace_beltrami_rows`) instead of probed over
-    the volume: at 200^3, the 27 eager volume passes took 12 of a flow's first 24 s."""
-    coefficients = laplace_beltrami_rows(surface, rows)
+def _formed_rows(surface: ImplicitSurface, scheme: str, storage: _Storage, rows: Tensor,
+                 lookup: Tensor, count: int) -> GatherMatrix:
+    """A dense surface's ``W^-1 A`` on the band's rows, formed at the rows in closed form
+    (:func:`torchsurf.operators.spectrum.laplace_beltrami_rows`) instead of probed over the
+    volume: at 200^3, the octant scheme's 27 eager volume passes took 12 of a flow's first
+    24 s."""
+    coefficients = laplace_beltrami_rows(surface, rows, scheme)
     take = torch.arange(len(rows), device=rows.device)
     row_parts, column_parts, value_parts = [], [], []
     for k, offset in enumerate(NEIGHBOURHOOD):
@@ -408,9 +409,9 @@ def _probed(surface: ImplicitSurface, scheme: str, region: Tensor, storage: _Sto
             rows: Tensor, lookup: Tensor, count: int) -> GatherMatrix:
     """``W^-1 A`` on the band's rows (positions ``rows``) and the region's columns, read off
     the volume operator applied to colour indicators of the region's nodes (module
-    docstring); a dense surface's octant scheme in closed form (:func:`_octant_rows`)."""
-    if scheme == "octant" and storage.layout is None:
-        return _octant_rows(surface, storage, rows, lookup, count)
+    docstring); a dense surface's in closed form (:func:`_formed_rows`)."""
+    if storage.layout is None:
+        return _formed_rows(surface, scheme, storage, rows, lookup, count)
     return _probed_by_colours(surface, scheme, region, storage, rows, lookup, count)
 
 

@@ -190,3 +190,72 @@ def fused_flux_form(
             total = term if total is None else total + term
     scale = spacing * len(sides)
     return total / scale if weighted else total / (scale * grad_norm)
+
+
+def flux_form_rows(normal: Tensor, weight: Tensor, spacing: float, scheme: str, entry: Tensor,
+                   at: tuple[Tensor, Tensor, Tensor]) -> Tensor:
+    """The rows of a flux scheme's Laplace–Beltrami matrix (:func:`flux_form` with the identity
+    flux map; the volume operator's, faces included) at the nodes ``at``, formed from the
+    compositions instead of by applying the operator.
+
+    A composition of sides ``s`` (one per axis) is, at ``p``,
+    ``(1 / (W(p) h^2)) sum_a s_a (F_a(p) - F_a(p - s_a e_a))`` with the flux through the face
+    between ``x`` and ``x + s_a e_a``
+    ``F_a(x) = W(x) sum_b (delta_ab - n_a n_b)(x) s_b (u(x + s_b e_b) - u(x))``, zero where that
+    face lies outside the box; ``u`` is replicated beyond the faces, so an entry whose node
+    lies beyond a face is added to the face node's. The scheme is the mean of its
+    compositions (:data:`SIDES`).
+
+    Args:
+        normal: ``(B or 1, 3, D, H, W)``; weight: ``W``, ``(B or 1, 1, D, H, W)``.
+        spacing: ``h``, world units.
+        scheme: ``"conservative"``, ``"symmetric"`` or ``"octant"``.
+        entry: ``(R,)`` the batch entry of each node (any, with geometry of batch 1).
+        at: ``(z, y, x)``, ``(R,)`` each, the nodes' grid indices.
+
+    Returns:
+        ``(R, 27)``: the coefficient of each node's neighbour at offset ``(dz, dy, dx)``, the
+        offsets of ``{-1, 0, 1}^3`` in order (``dz`` slowest), zero beyond the box; units
+        ``1 / world length^2``.
+    """
+    shape = normal.shape[-3:]
+    if normal.shape[0] == 1:
+        entry = torch.zeros_like(entry)
+    normal = normal.reshape(normal.shape[0], 3, -1)
+    weight = weight.reshape(weight.shape[0], -1)
+
+    def clamped(offset: Offset) -> tuple[Tensor, Tensor]:
+        """The flat in-box position of ``p + offset`` (clamped) and whether it was in the box."""
+        moved = [a + o for a, o in zip(at, offset, strict=True)]
+        inside = torch.ones_like(moved[0], dtype=torch.bool)
+        for m, n in zip(moved, shape, strict=True):
+            inside &= (m >= 0) & (m < n)
+        z, y, x = (m.clamp(0, n - 1) for m, n in zip(moved, shape, strict=True))
+        return (z * shape[1] + y) * shape[2] + x, inside
+
+    def column(offset: Offset) -> Tensor:
+        """Each node's column ``(R,)`` for its neighbour at ``offset``: the offset with the
+        components that leave the box set to 0."""
+        folded = []
+        for a, o, n in zip(at, offset, shape, strict=True):
+            folded.append(torch.where((a + o < 0) | (a + o >= n), 0, o) + 1)
+        return (folded[0] * 3 + folded[1]) * 3 + folded[2]
+
+    centre_flat, _ = clamped(stencils.CENTRE)
+    rows = weight.new_zeros((len(entry), 27))
+    sides = SIDES[scheme]
+    scale = 1.0 / (spacing * spacing * len(sides) * weight[entry, centre_flat])
+    for side in sides:
+        for a, s_a in enumerate(side):
+            for sign, x_offset in ((1.0, stencils.CENTRE), (-1.0, stencils.unit(a, -s_a))):
+                flat, inside = clamped(x_offset)
+                _, ahead = clamped(stencils.add(x_offset, stencils.unit(a, s_a)))
+                open_face = (inside & ahead).to(rows.dtype)
+                w, n = weight[entry, flat], normal[entry, :, flat]
+                for b, s_b in enumerate(side):
+                    projector = (1.0 if a == b else 0.0) - n[:, a] * n[:, b]
+                    value = (sign * s_a * s_b) * open_face * w * projector * scale
+                    target = stencils.add(x_offset, stencils.unit(b, s_b))
+                    rows.scatter_add_(1, column(target)[:, None], value[:, None])
+                    rows.scatter_add_(1, column(x_offset)[:, None], -value[:, None])
+    return rows

@@ -9,9 +9,10 @@ user brought: a thin feature, a medial axis or a ``phi`` that is not a distance 
 coefficients there, and the bound with them, instead of blowing up a step chosen from the nominal
 ``h^2 / 6``.
 
-On a dense surface the octant scheme's rows are formed where they are needed, from the
-scheme's closed form (:func:`laplace_beltrami_rows`), instead of probing the whole volume: the
-27 eager probes of a 200^3 box took 8.6 s (one thread), the rows of its band a fraction of that.
+On a dense surface the divergence-form schemes' rows are formed where they are needed, from
+the schemes' closed forms (:func:`laplace_beltrami_rows`), instead of probing the whole volume:
+the 27 eager probes of the octant scheme on a 200^3 box took 8.6 s (one thread), the rows of
+its band a fraction of that.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from torch import Tensor
 
 from .._checks import check_choice
 from ..surface import ImplicitSurface
+from ._flux_form import flux_form_rows
 from ._octant import NEIGHBOURHOOD, octant_rows
 from .diffusion import directional_diffusion
 from .laplace_beltrami import SCHEMES, laplace_beltrami
@@ -35,16 +37,23 @@ ROWS_AT_ONCE = 2**18
 about as many temporaries a node)."""
 
 
-def laplace_beltrami_rows(surface: ImplicitSurface, nodes: Tensor) -> Tensor:
-    """The rows of the octant Laplace–Beltrami matrix of a dense surface at some of its nodes.
+ROW_SCHEMES = ("octant", "symmetric", "conservative")
+"""The schemes whose rows :func:`laplace_beltrami_rows` forms (the divergence forms)."""
 
-    The matrix is the volume operator's (:func:`laplace_beltrami` with ``scheme="octant"``),
-    no-flux faces included; each row is formed from the scheme's closed form
-    (:mod:`torchsurf.operators._octant`), not by applying the operator.
+
+def laplace_beltrami_rows(surface: ImplicitSurface, nodes: Tensor, scheme: str = "octant"
+                          ) -> Tensor:
+    """The rows of the Laplace–Beltrami matrix of a dense surface at some of its nodes.
+
+    The matrix is the volume operator's (:func:`laplace_beltrami` with ``scheme``), no-flux
+    faces included; each row is formed from the scheme's closed form (the octant one-pass
+    expression of :mod:`torchsurf.operators._octant`, the flux schemes' compositions of
+    :mod:`torchsurf.operators._flux_form`), not by applying the operator.
 
     Args:
         surface: a dense :class:`~torchsurf.surface.ImplicitSurface` of batch ``B``.
         nodes: ``(R,)`` integer flat positions in ``(B, D, H, W)``.
+        scheme: ``"octant"`` (default), ``"symmetric"`` or ``"conservative"``.
 
     Returns:
         ``(R, 27)`` in the surface's dtype: the coefficient of each node's neighbour at offset
@@ -53,15 +62,19 @@ def laplace_beltrami_rows(surface: ImplicitSurface, nodes: Tensor) -> Tensor:
         those coefficients are added to the face node's); units ``1 / world length^2``.
 
     Raises:
-        ValueError: ``surface`` stores bricks.
+        ValueError: ``surface`` stores bricks, or ``scheme`` is not one of
+            :data:`ROW_SCHEMES`.
     """
+    check_choice(scheme, "scheme", ROW_SCHEMES)
     if surface.layout is not None:
         raise ValueError("laplace_beltrami_rows: surface stores bricks; give a dense surface")
     depth, height, width = surface.grid.shape
     nodes = nodes.long()
+    entry = nodes // (depth * height * width)
     at = ((nodes // (height * width)) % depth, (nodes // width) % height, nodes % width)
-    return octant_rows(surface.normal, surface.weight, surface.spacing,
-                       nodes // (depth * height * width), at)
+    if scheme == "octant":
+        return octant_rows(surface.normal, surface.weight, surface.spacing, entry, at)
+    return flux_form_rows(surface.normal, surface.weight, surface.spacing, scheme, entry, at)
 
 
 def _probes(mask: Tensor, channels: range, colour: Tensor | None = None) -> Tensor:
@@ -164,8 +177,8 @@ def directional_bound(
 
 def _band_bound(surface: ImplicitSurface, scheme: str, width: float) -> float:
     check_choice(scheme, "scheme", SCHEMES)
-    if scheme == "octant" and surface.layout is None:
-        return _octant_bound(surface, surface.band_mask(width))
+    if scheme in ROW_SCHEMES and surface.layout is None:
+        return _bound_from_rows(surface, surface.band_mask(width), scheme)
     return _bound_on_band(surface, width,
                           lambda x, path: laplace_beltrami(x, surface, scheme, path))
 
@@ -184,8 +197,9 @@ def _bound_on_band(surface: ImplicitSurface, width: float,
     )
 
 
-def _octant_bound(surface: ImplicitSurface, mask: Tensor) -> float:
-    """:func:`gershgorin_bound` of the dense octant ``Lap_S`` on ``mask`` from its rows."""
+def _bound_from_rows(surface: ImplicitSurface, mask: Tensor, scheme: str) -> float:
+    """:func:`gershgorin_bound` of a dense surface's ``Lap_S`` on ``mask`` from its rows
+    (:func:`laplace_beltrami_rows`)."""
     depth, height, width = surface.grid.shape
     flat_mask = mask.reshape(-1)
     nodes = flat_mask.nonzero().squeeze(1)
@@ -193,7 +207,7 @@ def _octant_bound(surface: ImplicitSurface, mask: Tensor) -> float:
     with torch.no_grad():
         for start in range(0, len(nodes), ROWS_AT_ONCE):
             part = nodes[start: start + ROWS_AT_ONCE]
-            rows = laplace_beltrami_rows(surface, part).abs()
+            rows = laplace_beltrami_rows(surface, part, scheme).abs()
             entry = part // (depth * height * width)
             at = ((part // (height * width)) % depth, (part // width) % height, part % width)
             total = torch.zeros_like(rows[:, 0])
