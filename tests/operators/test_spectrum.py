@@ -159,3 +159,24 @@ def test_dense_bound_from_rows_equals_the_probes(scheme):
 
         probed = gershgorin_bound(operator, mask, torch.float64)
         assert laplace_beltrami_bound(surface, scheme) == pytest.approx(probed, rel=1e-12)
+
+
+def test_rows_refuse_what_they_cannot_form():
+    """Bricks, a scheme without a divergence form and positions outside the volumes are
+    named in the errors."""
+    from torchsurf import bricks
+
+    surface = _cut_ellipsoids()
+    with pytest.raises(ValueError, match="scheme"):
+        laplace_beltrami_rows(surface, torch.tensor([3]), "central")
+    with pytest.raises(ValueError, match=r"nodes must lie in \[0, 1008\)"):
+        laplace_beltrami_rows(surface, torch.tensor([0, 1008]))
+    with pytest.raises(ValueError, match="1-D integer tensor.*float32"):
+        laplace_beltrami_rows(surface, torch.tensor([1.0]))
+    with pytest.raises(ValueError, match=r"shape \(1, 2\)"):
+        laplace_beltrami_rows(surface, torch.tensor([[1, 2]]))
+    grid = ts.Grid.cube(24, 2.0)
+    packed = bricks.from_dense(ts.ImplicitSurface(ts.sdf.sphere(grid), grid))
+    with pytest.raises(ValueError, match="bricks"):
+        laplace_beltrami_rows(packed, torch.tensor([0]))
+    assert laplace_beltrami_rows(surface, torch.zeros(0, dtype=torch.int64)).shape == (0, 27)

@@ -62,13 +62,25 @@ def laplace_beltrami_rows(surface: ImplicitSurface, nodes: Tensor, scheme: str =
         those coefficients are added to the face node's); units ``1 / world length^2``.
 
     Raises:
-        ValueError: ``surface`` stores bricks, or ``scheme`` is not one of
-            :data:`ROW_SCHEMES`.
+        ValueError: ``surface`` stores bricks, ``scheme`` is not one of :data:`ROW_SCHEMES`,
+            or ``nodes`` is not a 1-D integer tensor of positions in the surface's volumes.
+        TypeError: ``nodes`` is not a tensor.
     """
     check_choice(scheme, "scheme", ROW_SCHEMES)
     if surface.layout is not None:
         raise ValueError("laplace_beltrami_rows: surface stores bricks; give a dense surface")
     depth, height, width = surface.grid.shape
+    size = surface.batch_size * depth * height * width
+    if not isinstance(nodes, Tensor):
+        raise TypeError(f"nodes must be a torch.Tensor, got {type(nodes).__name__}")
+    if nodes.dim() != 1 or nodes.dtype.is_floating_point or nodes.dtype.is_complex \
+            or nodes.dtype == torch.bool:
+        raise ValueError(f"nodes must be a 1-D integer tensor of flat positions, got shape "
+                         f"{tuple(nodes.shape)} and dtype {nodes.dtype}")
+    if len(nodes) and (int(nodes.min()) < 0 or int(nodes.max()) >= size):
+        raise ValueError(f"nodes must lie in [0, {size}) (the surface's {surface.batch_size} "
+                         f"volume(s) of {depth}x{height}x{width}), got values from "
+                         f"{int(nodes.min())} to {int(nodes.max())}")
     nodes = nodes.long()
     entry = nodes // (depth * height * width)
     at = ((nodes // (height * width)) % depth, (nodes // width) % height, nodes % width)
