@@ -673,17 +673,16 @@ class BrickCubicStencil:
         return result.view(channels, *u.shape[:1], *u.shape[2:]).transpose(0, 1)
 
     def _interpolated(self, u: Tensor, flat: Tensor, weights: Tensor, path: str) -> Tensor:
-        """The values ``(C, n)`` at the masked nodes, :data:`APPLY_CHUNK` nodes at a time: by
-        the C kernel where it runs, else by the eager or compiled gathers."""
-        values = []
-        for start in range(0, max(len(self.targets), 1), APPLY_CHUNK):
-            part = slice(start, start + APPLY_CHUNK)
-            value = None
-            if path == "auto" and len(self.targets) > 0:
-                value = _native_gather.brick_tricubic(flat, self.bases, self.second,
-                                                      self.local, weights, self.limited, part)
-            values.append(self._gathered(u, flat, weights, path, part) if value is None
-                          else value)
+        """The values ``(C, n)`` at the masked nodes: by the C kernel where it runs (in one
+        call, into one tensor: it needs no temporaries), else by the eager or compiled
+        gathers, :data:`APPLY_CHUNK` nodes at a time."""
+        if path == "auto" and len(self.targets) > 0:
+            value = _native_gather.brick_tricubic(flat, self.bases, self.second, self.local,
+                                                  weights, self.limited, slice(None))
+            if value is not None:
+                return value
+        values = [self._gathered(u, flat, weights, path, slice(start, start + APPLY_CHUNK))
+                  for start in range(0, max(len(self.targets), 1), APPLY_CHUNK)]
         return values[0] if len(values) == 1 else torch.cat(values, dim=1)
 
     def transpose(self, v: Tensor) -> Tensor:
