@@ -339,7 +339,8 @@ def _probe_reader(surface: ImplicitSurface, scheme: str, region: Tensor, storage
     nodes of each of ``colours``, and ``read(take, which)`` its values at ``rows[take]`` for
     colour ``which``. A dense surface is probed on the box around its region, with a margin of
     more than the stencil's reach (its rows see the geometry and box faces the whole volume
-    does); bricks are probed whole."""
+    does): no longer on a flow's path (:func:`_formed_rows`), kept as the reference its rows
+    are tested against; bricks are probed whole."""
     reach = REACH[scheme]
     side = 2 * reach + 1
     if storage.layout is not None:
