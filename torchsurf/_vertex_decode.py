@@ -129,6 +129,12 @@ def _hat_constraints(usable: Tensor, hats: Hats) -> tuple[Tensor, Tensor, Tensor
     return values.reshape(count, HAT_LIMIT, taps), target, covered
 
 
+DECODE_CHUNK = 2048
+"""Vertices whose weights are solved at once: each holds ``(1 + 3 sets + HAT_LIMIT) x 64``
+float64 constraints and their products (about 50 kB a vertex at a time; all of bunny_closed's
+35k vertices at once peaked 1.8 GB above the adapter's other memory, whatever the grid)."""
+
+
 def weights(found: Cells, usable: Tensor, vertices: Tensor, references: list[Tensor],
             spacing: float, hats: Hats | None = None) -> Tensor:
     """Decoding weights ``(V, 64)``, float64: the trilinear weights plus the least change
@@ -151,8 +157,19 @@ def weights(found: Cells, usable: Tensor, vertices: Tensor, references: list[Ten
             keeps the weights of the reference sets alone.
 
     The weights sum to 1 to rounding at every vertex with a usable tap (constants decode
-    exactly).
+    exactly). Solved :data:`DECODE_CHUNK` vertices at a time.
     """
+    if len(vertices) > DECODE_CHUNK:
+        parts = []
+        for start in range(0, len(vertices), DECODE_CHUNK):
+            part = slice(start, start + DECODE_CHUNK)
+            parts.append(weights(
+                Cells(tuple(n[part] for n in found.nodes), found.inside[part],
+                      found.trilinear[part]),
+                usable[part], vertices[part], [points[part] for points in references], spacing,
+                None if hats is None else Hats(hats.corners[part], hats.barycentric[part],
+                                               hats.own[part])))
+        return torch.cat(parts)
     offsets_world = [(points - vertices[:, None]).permute(0, 2, 1) / spacing
                      for points in references]
     target = torch.zeros(len(vertices), 1 + 3 * len(references), dtype=torch.float64)
