@@ -252,3 +252,17 @@ def test_narrow_band_sweep_and_phis_tabulate_what_docs_band_md_reads():
     assert len(rows) == 2 * len(module.PHIS)
     distance, multiple = rows[0].split(" | "), rows[2].split(" | ")
     assert distance[2] == multiple[2] == "5" and distance[5:] == multiple[5:], rows
+
+
+def test_first_call_benchmark_runs_a_flow_and_writes_its_section(tmp_path, capsys):
+    """``bench_first_call.py`` on a tiny grid, this checkout against itself: one fresh process
+    a run, both calls timed, the results equal, the section written."""
+    module = load_benchmark("bench_first_call")
+    if not (module.MESH_DIR / "spot.obj").is_file():
+        pytest.skip(f"test mesh spot.obj not found in {module.MESH_DIR}")
+    output = tmp_path / "benchmarks.md"
+    module.main(["--meshes", "spot", "--resolution", "20", "--flows", "heat", "--runs", "1",
+                 "--baseline", str(module.ROOT), "--output", str(output)])
+    text = output.read_text()
+    assert "| spot | 20 | heat | this |" in text and "| spot | 20 | heat | baseline |" in text
+    assert "first call, this ÷ baseline" in text and "| 0.0e+00 |" in text

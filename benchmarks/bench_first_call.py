@@ -1,0 +1,142 @@
+"""First calls of the flows on a mesh through a dense ``MeshAdapter``, against a baseline checkout.
+
+What a user pays once per surface: a flow's first call builds the surface's stencils, the
+Gershgorin bound of its operator and (for ``HeatFlow``) the packed band operator before it
+steps; the second call reuses them. Each run is a fresh process (nothing kept between runs):
+it builds ``MeshAdapter(mesh, resolution=n)``, then calls the flow twice on noise in ``[0, 1]``
+and reports both wall times and the process's resident peak. With ``--baseline`` (the root of
+another checkout, e.g. a ``git worktree`` of an older commit), its runs alternate with this
+checkout's, so that the machine's drift falls on both; read the ratios.
+
+Flows: ``heat`` is ``HeatFlow(time=(8 h)^2)`` (RKC on packed band values, octant scheme);
+``tv`` is ``AnisotropicFlow`` (total variation, scheme ``"symmetric"``, ``eps = 1 / h``) to
+``2 h``.
+
+Run with one thread and the team's allocator setting::
+
+    OMP_NUM_THREADS=1 \\
+    GLIBC_TUNABLES=glibc.malloc.mmap_threshold=4294967296:glibc.malloc.trim_threshold=68719476736 \\
+        python benchmarks/bench_first_call.py --resolution 200 --baseline /tmp/old
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import statistics
+import subprocess
+import sys
+from pathlib import Path
+
+from _report import cpu_model, write_section
+from bench_mesh_heat import MESH_DIR
+
+ROOT = Path(__file__).resolve().parents[1]
+SECTION = "bench_first_call"
+FLOWS = ("heat", "tv")
+
+
+def worker(mesh: str, resolution: int, flow_name: str) -> dict[str, float]:
+    """One run in this process: the adapter, then the flow twice; seconds and GB."""
+    import resource
+    import time
+
+    import torch
+    import trimesh
+
+    import torchsurf as ts
+
+    torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1")))
+    start = time.perf_counter()
+    adapter = ts.MeshAdapter(trimesh.load(Path(MESH_DIR) / f"{mesh}.obj", force="mesh"),
+                             resolution=resolution)
+    surface, h = adapter.surface, adapter.grid.spacing
+    setup = time.perf_counter() - start
+    u = torch.rand((1, 1, *adapter.grid.shape), generator=torch.Generator().manual_seed(0))
+    if flow_name == "heat":
+        flow = ts.HeatFlow(time=(8 * h) ** 2)
+    else:
+        flow = ts.AnisotropicFlow(time=2 * h, eps=1.0 / h)
+    times = []
+    for _ in range(2):
+        start = time.perf_counter()
+        result = flow(u, surface)
+        times.append(time.perf_counter() - start)
+    return {"setup": setup, "first": times[0], "second": times[1],
+            "peak_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
+            "checksum": float(result.double().sum())}
+
+
+def run_once(root: Path, mesh: str, resolution: int, flow: str) -> dict[str, float]:
+    """:func:`worker` in a fresh process importing torchsurf from ``root``."""
+    environment = {**os.environ, "PYTHONPATH": str(root)}
+    command = [sys.executable, __file__, "--worker", "--meshes", mesh, "--resolution",
+               str(resolution), "--flows", flow]
+    output = subprocess.run(command, env=environment, check=True, capture_output=True,
+                            text=True).stdout
+    return json.loads(output.strip().splitlines()[-1])
+
+
+def main(argv: list[str] | None = None) -> None:
+    argv = sys.argv[1:] if argv is None else argv
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--meshes", nargs="+", default=["bunny_closed"])
+    parser.add_argument("--resolution", type=int, default=200)
+    parser.add_argument("--flows", nargs="+", choices=FLOWS, default=list(FLOWS))
+    parser.add_argument("--runs", type=int, default=2, help="fresh processes per checkout")
+    parser.add_argument("--baseline", type=Path, default=None,
+                        help="root of another checkout to alternate with")
+    parser.add_argument("--output", type=Path, default=None)
+    parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.worker:
+        print(json.dumps(worker(args.meshes[0], args.resolution, args.flows[0])))
+        return
+    roots = {"this": ROOT} if args.baseline is None else {"this": ROOT, "baseline": args.baseline}
+    rows = ["| mesh | n | flow | checkout | first call s | second call s | resident peak GB "
+            "| result's sum, off this checkout's first run by |",
+            "|---|---:|---|---|---:|---:|---:|---:|"]
+    for mesh in args.meshes:
+        for flow in args.flows:
+            runs: dict[str, list[dict[str, float]]] = {name: [] for name in roots}
+            for _ in range(args.runs):
+                for name, root in roots.items():
+                    runs[name].append(run_once(root, mesh, args.resolution, flow))
+            reference = runs["this"][0]["checksum"]
+            for name in roots:
+                firsts = " / ".join(f"{r['first']:.1f}" for r in runs[name])
+                seconds = " / ".join(f"{r['second']:.1f}" for r in runs[name])
+                peaks = " / ".join(f"{r['peak_gb']:.2f}" for r in runs[name])
+                offsets = " / ".join(
+                    f"{abs(r['checksum'] - reference) / max(abs(reference), 1e-300):.1e}"
+                    for r in runs[name])
+                rows.append(f"| {mesh} | {args.resolution} | {flow} | {name} | {firsts} "
+                            f"| {seconds} | {peaks} | {offsets} |")
+                print(rows[-1], flush=True)
+            if "baseline" in runs:
+                ratio = (statistics.median(r["first"] for r in runs["this"])
+                         / statistics.median(r["first"] for r in runs["baseline"]))
+                rows.append(f"| | | | first call, this ÷ baseline | {ratio:.2f} | | | |")
+                print(rows[-1], flush=True)
+    allocator = os.environ.get("GLIBC_TUNABLES", "glibc default")
+    body = "\n".join([
+        f"{datetime.date.today()}, {cpu_model()}, {os.cpu_count()} cores, "
+        f"`OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', 'unset')}`, allocator: "
+        f"`{allocator}`. Each figure one fresh process, the checkouts alternated. "
+        "The last column: how far each run's result, summed in float64, lies from this "
+        "checkout's first run's, relative (0: the same sum).",
+        "",
+        f"    python benchmarks/bench_first_call.py {' '.join(argv)}",
+        "",
+        *rows,
+    ])
+    print(body)
+    if args.output is not None:
+        write_section(args.output, SECTION, "## First calls of flows through a dense MeshAdapter",
+                      body)
+
+
+if __name__ == "__main__":
+    main()
