@@ -64,6 +64,39 @@ def add(a: Offset, b: Offset) -> Offset:
 _AXES = "xyz"
 CENTRE: Offset = (0, 0, 0)
 
+
+NEIGHBOURHOOD: list[Offset] = [(dz, dy, dx) for dz in (-1, 0, 1) for dy in (-1, 0, 1)
+                               for dx in (-1, 0, 1)]
+"""The 27 offsets of a node's 3x3x3 block, ``dz`` slowest: the columns of an assembled
+operator's rows (:func:`torchsurf.operators.spectrum.laplace_beltrami_rows`)."""
+
+
+def neighbour_in_box(at: Sequence[Tensor], offset: Offset, shape: Sequence[int]
+                     ) -> tuple[Tensor, list[Tensor]]:
+    """Nodes ``at + offset`` clamped to the box, as replicated data reads them.
+
+    Args:
+        at: ``(z, y, x)`` grid indices, ``(R,)`` each.
+        offset: ``(dz, dy, dx)``.
+        shape: the box ``(D, H, W)``.
+
+    Returns:
+        The flat positions ``(R,)`` in one ``D x H x W`` volume, and per index ``(z, y, x)``
+        whether the node lay beyond the box (bool ``(R,)``).
+    """
+    moved = [a + o for a, o in zip(at, offset, strict=True)]
+    beyond = [(m < 0) | (m >= n) for m, n in zip(moved, shape, strict=True)]
+    z, y, x = (m.clamp(0, n - 1) for m, n in zip(moved, shape, strict=True))
+    return (z * shape[1] + y) * shape[2] + x, beyond
+
+
+def neighbourhood_column(offset: Offset, beyond: Sequence[Tensor]) -> Tensor:
+    """The index in :data:`NEIGHBOURHOOD` of ``offset`` folded onto the box: its components
+    that lead beyond the box (``beyond``, from :func:`neighbour_in_box`) set to 0, as
+    replicated data folds a node beyond a face onto the face node. ``(R,)`` int64."""
+    folded = [torch.where(out, 0, o) + 1 for out, o in zip(beyond, offset, strict=True)]
+    return (folded[0] * 3 + folded[1]) * 3 + folded[2]
+
 FORWARD: tuple[Stencil, ...] = tuple(
     Stencil(f"forward_{_AXES[a]}", ((CENTRE, -1.0), (unit(a), 1.0))) for a in range(3)
 )

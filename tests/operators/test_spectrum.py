@@ -7,11 +7,11 @@ import torch
 
 import torchsurf as ts
 from torchsurf.operators.spectrum import (
-    NEIGHBOURHOOD,
     gershgorin_bound,
     laplace_beltrami_bound,
     laplace_beltrami_rows,
 )
+from torchsurf.stencils import NEIGHBOURHOOD
 
 
 def dense_matrix(operator, mask: torch.Tensor) -> torch.Tensor:

@@ -35,7 +35,8 @@ from torch import Tensor
 
 from ..bricks.layout import BRICK
 from ..operators import functional
-from ..operators.spectrum import NEIGHBOURHOOD, laplace_beltrami_rows
+from ..operators.spectrum import laplace_beltrami_rows
+from ..stencils import NEIGHBOURHOOD
 from ..surface import ImplicitSurface
 from . import _limiter, _native_gather
 from ._gather_matrix import GatherMatrix

@@ -214,8 +214,8 @@ def flux_form_rows(normal: Tensor, weight: Tensor, spacing: float, scheme: str, 
         at: ``(z, y, x)``, ``(R,)`` each, the nodes' grid indices.
 
     Returns:
-        ``(R, 27)``: the coefficient of each node's neighbour at offset ``(dz, dy, dx)``, the
-        offsets of ``{-1, 0, 1}^3`` in order (``dz`` slowest), zero beyond the box; units
+        ``(R, 27)``: the coefficient of each node's neighbour at offset
+        :data:`torchsurf.stencils.NEIGHBOURHOOD` ``[k]``, zero beyond the box; units
         ``1 / world length^2``.
     """
     shape = normal.shape[-3:]
@@ -225,24 +225,16 @@ def flux_form_rows(normal: Tensor, weight: Tensor, spacing: float, scheme: str, 
     weight = weight.reshape(weight.shape[0], -1)
 
     def clamped(offset: Offset) -> tuple[Tensor, Tensor]:
-        """The flat in-box position of ``p + offset`` (clamped) and whether it was in the box."""
-        moved = [a + o for a, o in zip(at, offset, strict=True)]
-        inside = torch.ones_like(moved[0], dtype=torch.bool)
-        for m, n in zip(moved, shape, strict=True):
-            inside &= (m >= 0) & (m < n)
-        z, y, x = (m.clamp(0, n - 1) for m, n in zip(moved, shape, strict=True))
-        return (z * shape[1] + y) * shape[2] + x, inside
+        """The flat in-box position of ``p + offset`` and whether it lies in the box."""
+        flat, beyond = stencils.neighbour_in_box(at, offset, shape)
+        return flat, ~(beyond[0] | beyond[1] | beyond[2])
 
     def column(offset: Offset) -> Tensor:
-        """Each node's column ``(R,)`` for its neighbour at ``offset``: the offset with the
-        components that leave the box set to 0."""
-        folded = []
-        for a, o, n in zip(at, offset, shape, strict=True):
-            folded.append(torch.where((a + o < 0) | (a + o >= n), 0, o) + 1)
-        return (folded[0] * 3 + folded[1]) * 3 + folded[2]
+        return stencils.neighbourhood_column(offset, stencils.neighbour_in_box(at, offset,
+                                                                               shape)[1])
 
     centre_flat, _ = clamped(stencils.CENTRE)
-    rows = weight.new_zeros((len(entry), 27))
+    rows = weight.new_zeros((len(entry), len(stencils.NEIGHBOURHOOD)))
     sides = SIDES[scheme]
     scale = 1.0 / (spacing * spacing * len(sides) * weight[entry, centre_flat])
     for side in sides:

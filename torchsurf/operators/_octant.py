@@ -137,10 +137,6 @@ def eager_octant(
     return masked(total / scale if weighted else total / (scale * grad_norm), mask)
 
 
-NEIGHBOURHOOD = [(dz, dy, dx) for dz in (-1, 0, 1) for dy in (-1, 0, 1) for dx in (-1, 0, 1)]
-"""The 27 offsets ``(dz, dy, dx)`` of :func:`octant_rows`' columns, in this order."""
-
-
 def octant_rows(normal: Tensor, weight: Tensor, spacing: float, entry: Tensor,
                 at: tuple[Tensor, Tensor, Tensor]) -> Tensor:
     """The rows of the octant scheme's ``L`` (the volume operator's, faces included) at the
@@ -165,7 +161,7 @@ def octant_rows(normal: Tensor, weight: Tensor, spacing: float, entry: Tensor,
 
     Returns:
         ``(R, 27)``: the coefficient of each node's neighbour at offset
-        :data:`NEIGHBOURHOOD` ``[k]``, zero for offsets beyond the box; units ``1 / world
+        :data:`torchsurf.stencils.NEIGHBOURHOOD` ``[k]``, zero for offsets beyond the box; units ``1 / world
         length^2``.
     """
     shape = normal.shape[-3:]
@@ -176,16 +172,9 @@ def octant_rows(normal: Tensor, weight: Tensor, spacing: float, entry: Tensor,
     dim = (2, 1, 0)  # the index (z, y, x) of world axis a (x, y, z)
     unit = stencils.unit
 
-    def clamped(offset: tuple[int, int, int]) -> tuple[list[Tensor], list[Tensor]]:
-        """The in-box indices of ``p + offset`` and, per index, whether it lay beyond."""
-        moved = [a + o for a, o in zip(at, offset, strict=True)]
-        beyond = [(m < 0) | (m >= n) for m, n in zip(moved, shape, strict=True)]
-        return [m.clamp(0, n - 1) for m, n in zip(moved, shape, strict=True)], beyond
-
     geometry = {}
     for offset in [stencils.CENTRE] + [unit(a, s) for a in range(3) for s in (-1, 1)]:
-        (z, y, x), beyond = clamped(offset)
-        flat = (z * shape[1] + y) * shape[2] + x
+        flat, beyond = stencils.neighbour_in_box(at, offset, shape)
         geometry[offset] = (weight[entry, flat], normal[entry, :, flat], beyond)
 
     def diagonal_coefficient(axis: int, offset: tuple[int, int, int]) -> Tensor:
@@ -216,10 +205,9 @@ def octant_rows(normal: Tensor, weight: Tensor, spacing: float, entry: Tensor,
                              + cross_coefficient(a, b, unit(b, sb)))
                     offset = stencils.add(unit(a, sa), unit(b, sb))
                     terms.append((offset, -sa * sb * value))
-    rows = geometry[centre][0].new_zeros((len(entry), len(NEIGHBOURHOOD)))
+    rows = geometry[centre][0].new_zeros((len(entry), len(stencils.NEIGHBOURHOOD)))
     for offset, value in terms:
-        _, beyond = clamped(offset)
-        folded = [torch.where(out, 0, o) for out, o in zip(beyond, offset, strict=True)]
-        column = (folded[0] + 1) * 9 + (folded[1] + 1) * 3 + folded[2] + 1
+        _, beyond = stencils.neighbour_in_box(at, offset, shape)
+        column = stencils.neighbourhood_column(offset, beyond)
         rows.scatter_add_(1, column[:, None], value[:, None])
     return rows / (4.0 * spacing * spacing * geometry[centre][0][:, None])

@@ -23,9 +23,10 @@ import torch
 from torch import Tensor
 
 from .._checks import check_choice
+from ..stencils import NEIGHBOURHOOD, neighbour_in_box
 from ..surface import ImplicitSurface
 from ._flux_form import flux_form_rows
-from ._octant import NEIGHBOURHOOD, octant_rows
+from ._octant import octant_rows
 from .diffusion import directional_diffusion
 from .laplace_beltrami import SCHEMES, laplace_beltrami
 
@@ -57,9 +58,9 @@ def laplace_beltrami_rows(surface: ImplicitSurface, nodes: Tensor, scheme: str =
 
     Returns:
         ``(R, 27)`` in the surface's dtype: the coefficient of each node's neighbour at offset
-        ``(dz, dy, dx)`` = ``NEIGHBOURHOOD[k]`` (all offsets in ``{-1, 0, 1}^3``, ``dz``
-        slowest), zero at offsets beyond the box (``u`` is replicated across the faces, so
-        those coefficients are added to the face node's); units ``1 / world length^2``.
+        :data:`torchsurf.stencils.NEIGHBOURHOOD` ``[k]`` (all offsets ``(dz, dy, dx)`` in
+        ``{-1, 0, 1}^3``, ``dz`` slowest), zero at offsets beyond the box (``u`` is replicated
+        across the faces, so those coefficients are added to the face node's); units ``1 / world length^2``.
 
     Raises:
         ValueError: ``surface`` stores bricks, ``scheme`` is not one of :data:`ROW_SCHEMES`,
@@ -81,9 +82,7 @@ def laplace_beltrami_rows(surface: ImplicitSurface, nodes: Tensor, scheme: str =
         raise ValueError(f"nodes must lie in [0, {size}) (the surface's {surface.batch_size} "
                          f"volume(s) of {depth}x{height}x{width}), got values from "
                          f"{int(nodes.min())} to {int(nodes.max())}")
-    nodes = nodes.long()
-    entry = nodes // (depth * height * width)
-    at = ((nodes // (height * width)) % depth, (nodes // width) % height, nodes % width)
+    entry, at = _node_coordinates(nodes.long(), surface.grid.shape)
     if scheme == "octant":
         return octant_rows(surface.normal, surface.weight, surface.spacing, entry, at)
     return flux_form_rows(surface.normal, surface.weight, surface.spacing, scheme, entry, at)
@@ -220,14 +219,19 @@ def _bound_from_rows(surface: ImplicitSurface, mask: Tensor, scheme: str) -> flo
         for start in range(0, len(nodes), ROWS_AT_ONCE):
             part = nodes[start: start + ROWS_AT_ONCE]
             rows = laplace_beltrami_rows(surface, part, scheme).abs()
-            entry = part // (depth * height * width)
-            at = ((part // (height * width)) % depth, (part // width) % height, part % width)
+            entry, at = _node_coordinates(part, surface.grid.shape)
             total = torch.zeros_like(rows[:, 0])
             for k, offset in enumerate(NEIGHBOURHOOD):
-                moved = [a + o for a, o in zip(at, offset, strict=True)]
-                z, y, x = (m.clamp(0, n - 1) for m, n in zip(moved, surface.grid.shape,
-                                                             strict=True))
-                evolving = flat_mask[((entry * depth + z) * height + y) * width + x]
+                flat, _ = neighbour_in_box(at, offset, surface.grid.shape)
+                evolving = flat_mask[entry * (depth * height * width) + flat]
                 total += torch.where(evolving, rows[:, k], 0.0)
             largest = max(largest, float(total.max()))
     return largest
+
+
+def _node_coordinates(nodes: Tensor, shape: tuple[int, int, int]
+                      ) -> tuple[Tensor, tuple[Tensor, Tensor, Tensor]]:
+    """Batch entry and grid indices ``(z, y, x)`` of flat positions in ``(B, D, H, W)``."""
+    depth, height, width = shape
+    return nodes // (depth * height * width), (
+        (nodes // (height * width)) % depth, (nodes // width) % height, nodes % width)
