@@ -156,11 +156,16 @@ class NativeLibrary:
         return library
 
 
+def in_parts(count: int, least: int) -> int:
+    """The parts :func:`in_threads` splits ``count`` items into (at least ``least`` each)."""
+    return max(1, min(torch.get_num_threads(), count // max(least, 1)))
+
+
 def in_threads(run: Callable[[int, int], None], count: int, least: int) -> None:
     """``run(first, stop)`` over ``[0, count)`` in up to :func:`torch.get_num_threads` parts of
     at least ``least`` items, on threads started for the call (ctypes releases the GIL; no pool
     to outlive a ``fork``)."""
-    parts = max(1, min(torch.get_num_threads(), count // max(least, 1)))
+    parts = in_parts(count, least)
     bounds = [count * i // parts for i in range(parts + 1)]
     workers = [threading.Thread(target=run, args=(bounds[i], bounds[i + 1]))
                for i in range(1, parts)]

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 import torchsurf as ts
-from torchsurf.flows import HeatFlow, heat
+from torchsurf.flows import HeatFlow, base, heat
 from torchsurf.flows.exponential import BandLaplacian
 from torchsurf.operators import functional
 
@@ -196,3 +196,167 @@ def test_large_brick_bands_flow_by_the_re_extension_kernel_as_packed_ones(monkey
         assert float(end.max()) <= float(start.max()) + 1e-12
         assert float(end.std()) < 0.5 * float(start.std())
     torch.testing.assert_close(v, before, rtol=0, atol=0)
+
+
+def _radial_square_surface() -> ts.ImplicitSurface:
+    """``phi = r^2 - R^2`` (not a distance): the 3-cell band, whose ring RKC re-extends at every
+    stage."""
+    grid = ts.Grid.cube(25, 1.4)
+    x, y, z = grid.points(dtype=torch.float64).unbind(-1)
+    return ts.ImplicitSurface((x * x + y * y + z * z - 0.7**2)[None, None], grid)
+
+
+def _counting_fused_stages(monkeypatch) -> list[str]:
+    """Record each whole step and each stage the native RKC stages run."""
+    from torchsurf.flows import _packed_band
+
+    calls = []
+    step, stage = _packed_band.FusedStage.step, _packed_band.FusedStage.__call__
+    monkeypatch.setattr(_packed_band.FusedStage, "step",
+                        lambda self, *args: calls.append("step") or step(self, *args))
+    monkeypatch.setattr(_packed_band.FusedStage, "__call__",
+                        lambda self, *args: calls.append("stage") or stage(self, *args))
+    return calls
+
+
+def _held_surface(kind: str) -> ts.ImplicitSurface:
+    """Distances on the default 5-cell band, whose ring a heat flow's RKC steps hold."""
+    if kind == "sphere":
+        grid = ts.Grid.cube(31, 1.5)
+        return ts.ImplicitSurface(ts.sdf.sphere(grid, 0.8, dtype=torch.float64), grid)
+    return _surface(kind)
+
+
+@pytest.mark.parametrize("kind", ["sphere", "at the faces", "two shapes", "bricks", "r^2 - R^2"])
+@pytest.mark.parametrize("options", [
+    {}, {"diffusivity": 2.5}, {"cells": 60.0}, {"scheme": "symmetric"},
+    {"learn_time": True, "max_time": 16.0},
+])
+def test_one_columns_native_stages_are_the_volume_flow(kind, options, monkeypatch):
+    """One signal of one channel, no gradient: where a step holds the ring, RKC's stages run
+    natively (the operator's rows and the stage's combination in one pass, a whole step in
+    one call) and give the volume path's numbers; a diffusivity scales them. A learned time
+    (scaled into the rate) and a ring re-extended at every stage (a 3-cell band: bricks,
+    ``phi`` not a distance, the two shapes' small box) keep the stages that apply the flow's
+    own rate."""
+    surface = _radial_square_surface() if kind == "r^2 - R^2" else _held_surface(kind)
+    options = dict(options)
+    cells = options.pop("cells", 8.0)
+    if "max_time" in options:
+        options["max_time"] *= surface.spacing**2
+    u = _fields(surface, 1, seed=6)[0][:, :1]
+    if surface.layout is None:
+        u = u[:surface.batch_size]
+    u = u - u.min()
+    calls = _counting_fused_stages(monkeypatch)
+    held = []
+    ring_held = base.ring_held
+    monkeypatch.setattr(base, "ring_held", lambda *args, **kwargs: held.append(
+        ring_held(*args, **kwargs)) or held[-1])
+    with torch.no_grad():
+        packed, volume = _both(lambda: HeatFlow(cells * surface.spacing**2, **options).double(),
+                               u, surface, monkeypatch)
+    scale = float(volume.abs().max())
+    assert float((packed - volume).abs().max()) < 1e-12 * scale
+    assert held[0] == (kind in ("sphere", "at the faces"))
+    assert bool(calls) == (held[0] and "learn_time" not in options), calls
+    assert "stage" not in calls  # one thread, or rows too few to split: whole steps
+
+
+def test_native_stages_split_between_threads_give_one_calls_numbers(monkeypatch):
+    """Rows split between threads run the stages one by one, each split: the same numbers as a
+    whole step in one call, bit for bit; and those of the eager stages to rounding."""
+    from torchsurf.flows import _native_gather
+
+    if _native_gather.LIBRARY.load() is None:
+        pytest.skip("no C compiler")
+    surface = _held_surface("sphere")
+    u = _fields(surface, 1, seed=3)[0][:1, :1]
+    flow = HeatFlow(12 * surface.spacing**2).double()
+    calls = _counting_fused_stages(monkeypatch)
+    with torch.no_grad():
+        whole = flow(u, surface)
+        assert calls and set(calls) == {"step"}
+        calls.clear()
+        threads = torch.get_num_threads()
+        monkeypatch.setattr(_native_gather, "THREAD_MIN_ROWS", 64)
+        try:
+            torch.set_num_threads(2)
+            split = flow(u, surface)
+        finally:
+            torch.set_num_threads(threads)
+        assert "stage" in calls  # the whole step declined
+        monkeypatch.setattr(HeatFlow, "packed_system", lambda self, *args: None)
+        volume = flow(u, surface)
+    assert torch.equal(split, whole)
+    torch.testing.assert_close(whole, volume, rtol=1e-12, atol=1e-12)
+
+
+def test_one_pass_re_extension_is_the_product_and_clamp(monkeypatch):
+    """The packed stencils' one-pass kernel (separable weights formed in the kernel, the
+    limiter's test on the taps just read) against the product and the clamp in two passes:
+    rough data (many values clamped), one and three columns, both dtypes, the band's stencil
+    (every node a target) and the ring's (a few)."""
+    from torchsurf.flows import _native_gather
+
+    if _native_gather.LIBRARY.load() is None:
+        pytest.skip("no C compiler")
+    surface = _surface("two shapes")
+    flow = HeatFlow(6 * surface.spacing**2, reextend_every=1).double()
+    u = _fields(surface, 1, seed=4)[0][:, :1]
+    flow(u, surface)
+    packing = next(v for k, v in surface._kept.items() if k[0] == "packed region")
+    stencils = [stencil for _, stencil in packing._stencils.values()]
+    assert {len(s.rows) == len(packing.nodes) for s in stencils} == {True, False}
+    generator = torch.Generator().manual_seed(5)
+    for dtype in (torch.float64, torch.float32):
+        for columns in (1, 3):
+            z = torch.rand(len(packing.nodes), columns, 1, generator=generator).to(dtype)
+            for stencil in stencils:
+                one_pass = stencil.apply(z)
+                with monkeypatch.context() as patch:
+                    patch.setattr(stencil, "tricubic", None)
+                    two_passes = stencil.apply(z)
+                clamped = stencil.apply(z).reshape(len(z), -1)[stencil.rows] != (
+                    stencil.matrix.apply(z.reshape(len(z), -1)))
+                assert int(clamped.sum()) > 10
+                tolerance = 1e-14 if dtype == torch.float64 else 1e-6
+                torch.testing.assert_close(one_pass, two_passes, rtol=tolerance, atol=tolerance)
+                untouched = torch.ones(len(z), dtype=torch.bool)
+                untouched[stencil.rows] = False
+                assert torch.equal(one_pass[untouched], z[untouched])
+
+
+@pytest.mark.parametrize("kind", ["sphere", "two shapes"])
+def test_packed_results_are_checked_and_unpacked_as_volumes(kind):
+    """A packed flow's checks and output read its packed values: the range it left (per channel
+    and batch entry) is the volumes' where the packing holds one volume's nodes, and the values
+    written onto ``u0`` are ``u0`` with the band and ring replaced, gradients included (a batch
+    of shapes too, whose packing holds several entries' nodes)."""
+    from torchsurf.flows._integrators import with_ring
+
+    surface = _held_surface(kind)
+    u = _fields(surface, 1, seed=11)[0]
+    flow = HeatFlow(4 * surface.spacing**2)
+    flow(u, surface)
+    packing = next(v for k, v in surface._kept.items() if k[0] == "packed region")
+    band = flow.band_mask(surface)
+    region = with_ring(band, None)
+    start = packing.pack_region(u)
+    generator = torch.Generator().manual_seed(12)
+    results = [start * 1.3 - 0.1, start + 0.2 * torch.randn(start.shape, generator=generator,
+                                                            dtype=start.dtype)]
+    volumes = [torch.where(region, packing.unpack(r, u), u) for r in results]
+    if packing.entries == 1:  # else the packed nodes mix the entries: the flow checks volumes
+        assert base._packed_range_excess(start, results, packing.band_count) == pytest.approx(
+            base._range_excess(u, volumes, region, band, False), rel=1e-14)
+
+    values = results[1].clone().requires_grad_()
+    like = u.clone().requires_grad_()
+    g = torch.randn(u.shape, generator=generator, dtype=u.dtype)
+    got = packing.unpack_onto(values, like, region)
+    expected = torch.where(region, packing.unpack(values, like), like)
+    assert torch.equal(got, expected)
+    for a, b in zip(torch.autograd.grad((got * g).sum(), [values, like]),
+                    torch.autograd.grad((expected * g).sum(), [values, like]), strict=True):
+        assert torch.equal(a, b)

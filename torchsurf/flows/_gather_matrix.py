@@ -92,12 +92,7 @@ class GatherMatrix:
         if self.nonzeros == 0:
             return x.new_zeros((self.shape[0], x.shape[1]))
         if _native_gather.applies(self.offsets, x):
-            blocks = None
-            if x.shape[1] == 1:
-                if self._blocks is None:
-                    self._blocks = _native_gather.RowBlocks(self.offsets, self.columns,
-                                                            self.values(x.dtype))
-                blocks = self._blocks
+            blocks = self.blocks() if x.shape[1] == 1 else None
             return _native_gather.product(self.offsets, self.columns, self.values(x.dtype), x,
                                           self.shape[0], blocks)
         if x.dtype in BAGGED:
@@ -107,6 +102,14 @@ class GatherMatrix:
         if self._padded is None:
             self._padded = _Padded(self)
         return self._padded.apply(x)
+
+    def blocks(self) -> _native_gather.RowBlocks:
+        """The entries laid out for one column (:class:`~._native_gather.RowBlocks`), formed at
+        the first call and kept; for the native kernels only (32-bit indices)."""
+        if self._blocks is None:
+            self._blocks = _native_gather.RowBlocks(self.offsets, self.columns,
+                                                    next(iter(self._values.values())))
+        return self._blocks
 
     def transposed(self) -> GatherMatrix:
         """``A^T``, exactly (the same entries)."""

@@ -25,7 +25,7 @@ from .._stack import caller_stacklevel
 from ..bricks.layout import BrickLayout
 from ..surface import power_of_two_below
 from ._recompute import declared, independent, recomputed
-from ._rkc import MAX_STAGES, largest_step_times_rho, rkc_step, stages_for
+from ._rkc import MAX_STAGES, LinearStage, largest_step_times_rho, rkc_step, rkc_step_linear, stages_for
 from ._solve import SolverOptions, solve_symmetric
 
 Rate = Callable[[Tensor], Tensor]
@@ -121,6 +121,8 @@ class System:
             :data:`torchsurf.backend.PATHS`), the flow's ``path``.
         refresh_ring: applied by the implicit methods before each step (the ring re-extended
             from the band), or ``None`` where they hold the ring between re-extensions.
+        linear_stage: for a linear rate, its RKC stages each in one pass
+            (:class:`~torchsurf.flows._rkc.LinearStage`), used where it applies; or ``None``.
         isotropic: the rate diffuses along every tangent direction (the Laplace-Beltrami
             operator), so re-extending the band often stays stable on thin and folded surfaces
             (docs/band.md, section 5): RKC steps that refresh the ring are then no longer than
@@ -139,6 +141,7 @@ class System:
     path: str = "auto"
     refresh_ring: Callable[[Tensor], Tensor] | None = None
     isotropic: bool = False
+    linear_stage: LinearStage | None = None
     _region: Tensor | None = field(default=None, init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -557,6 +560,9 @@ def _euler_step(system: System, u: Tensor, dt: Tensor | float) -> Tensor:
 
 def _rkc_step(system: System, u: Tensor, dt: Tensor | float) -> Tensor:
     stages = stages_for(_value(dt) * system.spectral_radius)
+    if (system.linear_stage is not None and not isinstance(dt, Tensor)
+            and system.linear_stage.applies(u)):
+        return rkc_step_linear(system.linear_stage, u, dt, stages)
     # the stages' combinations of u are exact only up to rounding: keep u outside the band as is
     return torch.where(system.band, rkc_step(system.rate, u, dt, stages, system.path), u)
 

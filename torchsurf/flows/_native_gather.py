@@ -8,8 +8,11 @@ row's entries into vector registers, the columns of ``x`` in blocks of 32, 16, 8
 rest one by one; a single column in blocks of 8 rows (:class:`RowBlocks`), each tap one vector
 multiply-add over the 8 rows. Rows are split between threads. Its transpose scatters each row's
 entries, on one thread. An autograd function pairs the two, so gradients (of any order) reach
-``x``. :func:`brick_tricubic` applies a brick closest-point stencil from its compact form (no
-matrix assembled), for bands too large to pack.
+``x``. :func:`limited` applies a packed closest-point stencil and its limiter in one pass,
+its weights formed from the separable ones (:class:`TricubicBlocks`); :func:`rkc_stage` and
+:func:`rkc_step` run Runge-Kutta-Chebyshev stages of a linear packed rate, each operator
+application and stage combination in one pass. :func:`brick_tricubic` applies a brick
+closest-point stencil from its compact form (no matrix assembled), for bands too large to pack.
 
 It runs on the CPU in float32 and float64 with 32-bit indices: as ctypes calls, and inside a
 graph ``torch.compile`` traces as custom operators (``torch.ops.torchsurf``, torch 2.4 and
@@ -20,12 +23,13 @@ later) that call the same kernels; elsewhere :func:`applies` is false and the ca
 from __future__ import annotations
 
 import ctypes
+from collections.abc import Callable
 from typing import Protocol
 
 import torch
 from torch import Tensor
 
-from .._native import NativeLibrary, in_threads
+from .._native import NativeLibrary, in_parts, in_threads
 
 
 class RowMatrix(Protocol):
@@ -34,7 +38,6 @@ class RowMatrix(Protocol):
 
     offsets: Tensor
     columns: Tensor
-
     def values(self, dtype: torch.dtype) -> Tensor: ...
 
     def apply(self, x: Tensor) -> Tensor: ...
@@ -138,40 +141,96 @@ void product_SUFFIX(const int32_t *offsets, const int32_t *columns, const REAL *
    [starts[b] + 8 k + lane] (tap k of the 8 rows side by side), so that the 8 rows' sums fill
    one vector register and each tap is one vector multiply-add. The first shared[b] taps (the
    block's shortest row's count) run so; the rest row by row up to each row's count[8 b + lane]
-   (the padded slots are never read). Blocks [first, stop), out (8 blocks,). */
+   (the padded slots are never read). sums[lane] = sum_k w_k (x[c_k] - shift) over block b's
+   rows. */
+static inline void block_sums_SUFFIX(const int64_t *starts, const int32_t *shared,
+        const int32_t *count, const int32_t *columns, const REAL *weights, const REAL *x,
+        REAL shift, int64_t b, REAL sums[8])
+{
+    const int32_t *c = columns + starts[b];
+    const REAL *w = weights + starts[b];
+    const v8_SUFFIX offset = {shift, shift, shift, shift, shift, shift, shift, shift};
+    v8_SUFFIX even = {0}, odd = {0};
+    int32_t k = 0, common = shared[b];
+    for (; k + 1 < common; k += 2, c += 16, w += 16) {
+        v8_SUFFIX a = {x[c[0]], x[c[1]], x[c[2]], x[c[3]], x[c[4]], x[c[5]], x[c[6]], x[c[7]]};
+        v8_SUFFIX b8 = {x[c[8]], x[c[9]], x[c[10]], x[c[11]], x[c[12]], x[c[13]], x[c[14]],
+                        x[c[15]]};
+        v8_SUFFIX wa, wb;
+        memcpy(&wa, w, sizeof wa);
+        memcpy(&wb, w + 8, sizeof wb);
+        even += wa * (a - offset);
+        odd += wb * (b8 - offset);
+    }
+    if (k < common) {
+        v8_SUFFIX a = {x[c[0]], x[c[1]], x[c[2]], x[c[3]], x[c[4]], x[c[5]], x[c[6]], x[c[7]]};
+        v8_SUFFIX wa;
+        memcpy(&wa, w, sizeof wa);
+        even += wa * (a - offset);
+        ++k; c += 8; w += 8;
+    }
+    even += odd;
+    memcpy(sums, &even, 8 * sizeof(REAL));
+    for (int lane = 0; lane < 8; ++lane)
+        for (int32_t j = k; j < count[8 * b + lane]; ++j)
+            sums[lane] += w[8 * (j - k) + lane] * (x[c[8 * (j - k) + lane]] - shift);
+}
+
+/* The product in blocks of 8 rows (block_sums, no shift): blocks [first, stop), out (8 blocks,). */
 void product_blocks_SUFFIX(const int64_t *starts, const int32_t *shared, const int32_t *count,
         const int32_t *columns, const REAL *weights, const REAL *x, REAL *out, int64_t first,
         int64_t stop)
 {
-    for (int64_t b = first; b < stop; ++b) {
-        const int32_t *c = columns + starts[b];
-        const REAL *w = weights + starts[b];
-        v8_SUFFIX even = {0}, odd = {0};
-        int32_t k = 0, common = shared[b];
-        for (; k + 1 < common; k += 2, c += 16, w += 16) {
-            v8_SUFFIX a = {x[c[0]], x[c[1]], x[c[2]], x[c[3]], x[c[4]], x[c[5]], x[c[6]], x[c[7]]};
-            v8_SUFFIX b8 = {x[c[8]], x[c[9]], x[c[10]], x[c[11]], x[c[12]], x[c[13]], x[c[14]],
-                            x[c[15]]};
-            v8_SUFFIX wa, wb;
-            memcpy(&wa, w, sizeof wa);
-            memcpy(&wb, w + 8, sizeof wb);
-            even += wa * a;
-            odd += wb * b8;
-        }
-        if (k < common) {
-            v8_SUFFIX a = {x[c[0]], x[c[1]], x[c[2]], x[c[3]], x[c[4]], x[c[5]], x[c[6]], x[c[7]]};
-            v8_SUFFIX wa;
-            memcpy(&wa, w, sizeof wa);
-            even += wa * a;
-            ++k; c += 8; w += 8;
-        }
-        even += odd;
+    for (int64_t b = first; b < stop; ++b)
+        block_sums_SUFFIX(starts, shared, count, columns, weights, x, 0, b, out + 8 * b);
+}
+
+/* One Runge-Kutta-Chebyshev stage of u' = A u on packed values (A's rows in blocks of 8, as
+   product_blocks), blocks [first, stop) of the rows r < rows: with s = sum_k w_k (current[c_k]
+   - current[0]) (A's row; the shift leaves the sums the rounding of the data's variation),
+   following[r] = (current[r] - u[r]) mu + a s + b rate0[r] + (previous[r] - u[r]) nu + u[r],
+   added in that order (the eager stage's); rate0 NULL reads zeros; rate, if not NULL,
+   receives s. */
+void rkc_stage_SUFFIX(const int64_t *starts, const int32_t *shared, const int32_t *count,
+        const int32_t *columns, const REAL *weights, const REAL *current, const REAL *u,
+        const REAL *previous, const REAL *rate0, REAL *following, REAL *rate, REAL mu, REAL nu,
+        REAL a, REAL b, int64_t rows, int64_t first, int64_t stop)
+{
+    const REAL shift = current[0];
+    const v8_SUFFIX vmu = {mu, mu, mu, mu, mu, mu, mu, mu}, vnu = {nu, nu, nu, nu, nu, nu, nu, nu},
+                    va = {a, a, a, a, a, a, a, a}, vb = {b, b, b, b, b, b, b, b};
+    for (int64_t block = first; block < stop; ++block) {
         REAL sums[8];
-        memcpy(sums, &even, sizeof sums);
-        for (int lane = 0; lane < 8; ++lane)
-            for (int32_t j = k; j < count[8 * b + lane]; ++j)
-                sums[lane] += w[8 * (j - k) + lane] * x[c[8 * (j - k) + lane]];
-        memcpy(out + 8 * b, sums, sizeof sums);
+        block_sums_SUFFIX(starts, shared, count, columns, weights, current, shift, block, sums);
+        const int64_t r0 = 8 * block;
+        if (r0 + 8 <= rows) {   /* the block's 8 rows as vectors */
+            v8_SUFFIX s8, c8, u8, p8, v;
+            memcpy(&s8, sums, sizeof s8);
+            memcpy(&c8, current + r0, sizeof c8);
+            memcpy(&u8, u + r0, sizeof u8);
+            memcpy(&p8, previous + r0, sizeof p8);
+            v = (c8 - u8) * vmu;
+            v += va * s8;
+            if (rate0) {
+                v8_SUFFIX q8;
+                memcpy(&q8, rate0 + r0, sizeof q8);
+                v += vb * q8;
+            }
+            v += (p8 - u8) * vnu;
+            v += u8;
+            memcpy(following + r0, &v, sizeof v);
+            if (rate) memcpy(rate + r0, &s8, sizeof s8);
+            continue;
+        }
+        for (int64_t r = r0; r < rows; ++r) {
+            const REAL s = sums[r - r0];
+            REAL v = (current[r] - u[r]) * mu;
+            v += a * s;
+            if (rate0) v += b * rate0[r];
+            v += (previous[r] - u[r]) * nu;
+            following[r] = v + u[r];
+            if (rate) rate[r] = s;
+        }
     }
 }
 
@@ -286,6 +345,92 @@ void clamp_into_SUFFIX(const int32_t *taps, const REAL *corners, const int64_t *
             if (codes) codes[r * F + f] = code;
         }
     }
+}
+
+/* A whole Runge-Kutta-Chebyshev step of u' = A u (rows as rkc_stage's, all blocks on this
+   thread): stage 1 into stage[1 % 3] with its rate into rate0 (rows,), then stages j = 2..s
+   into the three buffers in turn (stage[j % 3]; stage j - 2 and j - 1 are read from the other
+   two, u for stage 0), with weights[4 j .. 4 j + 3] = (mu, nu, a, b) of stage j (a and b the
+   rate's factors times dt). Each buffer is (nodes,), its rows >= rows already holding u's
+   values (the rate is zero there). The step ends in stage[s % 3]. */
+void rkc_step_SUFFIX(const int64_t *starts, const int32_t *shared, const int32_t *count,
+        const int32_t *columns, const REAL *laid, const REAL *u, REAL *stage0, REAL *stage1,
+        REAL *stage2, REAL *rate0, const double *weights, int64_t stages, int64_t rows,
+        int64_t blocks)
+{
+    REAL *stage[3] = {stage0, stage1, stage2};
+    rkc_stage_SUFFIX(starts, shared, count, columns, laid, u, u, u, NULL, stage[1], rate0, 0, 0,
+                     (REAL)weights[4 + 2], 0, rows, 0, blocks);
+    for (int64_t j = 2; j <= stages; ++j) {
+        const REAL *current = stage[(j - 1) % 3], *previous = j == 2 ? u : stage[(j - 2) % 3];
+        const double *w = weights + 4 * j;
+        rkc_stage_SUFFIX(starts, shared, count, columns, laid, current, u, previous, rate0,
+                         stage[j % 3], NULL, (REAL)w[0], (REAL)w[1], (REAL)w[2], (REAL)w[3], rows,
+                         0, blocks);
+    }
+}
+
+/* A limited tricubic stencil in one pass (its product, then clamp_into's test and bounds) for
+   R rows in blocks of 8: block b's tap t (16 z + 4 y + x) of a lane at columns[(64 b + t) 8 +
+   lane], the row's separable weights at axes[((3 b + axis) 4 + k) 8 + lane] (axis 0 x, 1 y,
+   2 z), the tap's weight wz wy wx formed as tap_weights does ((wz wy) wx). For the F columns
+   of x (nodes, F): out[rows[r], f] = row r's sum, clamped to the limiter's bounds with
+   corners[r, 0:8] where it lies outside its cell's range. Blocks [first, stop). */
+static inline void limited_tricubic_block_SUFFIX(const int32_t *restrict c,
+        const REAL *restrict axes, const REAL *corners, const int64_t *rows, const REAL *x,
+        REAL *out, int64_t R, int64_t F, int64_t b)
+{
+    v8_SUFFIX w[3][4];
+    memcpy(w, axes, sizeof w);
+    const int lanes = R - 8 * b < 8 ? (int)(R - 8 * b) : 8;
+    for (int64_t f = 0; f < F; ++f) {
+        v8_SUFFIX even = {0}, odd = {0};
+        for (int k = 0; k < 4; ++k)
+            for (int j = 0; j < 4; ++j) {
+                const v8_SUFFIX zy = w[2][k] * w[1][j];
+                for (int i = 0; i < 4; ++i) {
+                    const int32_t *t = c + 8 * (16 * k + 4 * j + i);
+                    v8_SUFFIX a = {x[t[0] * F + f], x[t[1] * F + f], x[t[2] * F + f],
+                                   x[t[3] * F + f], x[t[4] * F + f], x[t[5] * F + f],
+                                   x[t[6] * F + f], x[t[7] * F + f]};
+                    if (i & 1) odd += (zy * w[0][i]) * a;
+                    else even += (zy * w[0][i]) * a;
+                }
+            }
+        even += odd;
+        REAL sums[8];
+        memcpy(sums, &even, sizeof sums);
+        for (int lane = 0; lane < lanes; ++lane) {
+            const int64_t r = 8 * b + lane;
+            REAL v = sums[lane];
+            REAL least = x[c[8 * CELL_TAPS_SUFFIX[0] + lane] * F + f], most = least;
+            for (int n = 1; n < 8; ++n) {
+                const REAL node = x[c[8 * CELL_TAPS_SUFFIX[n] + lane] * F + f];
+                least = node < least ? node : least;
+                most = node > most ? node : most;
+            }
+            if (!(v >= least && v <= most) && v == v) {
+                REAL u[64];
+                for (int t = 0; t < 64; ++t) u[t] = x[c[8 * t + lane] * F + f];
+                clamp_to_bounds_SUFFIX(&v, u, corners + r * 8);
+            }
+            out[rows[r] * F + f] = v;
+        }
+    }
+}
+
+void limited_tricubic_SUFFIX(const int32_t *columns, const REAL *axes, const REAL *corners,
+        const int64_t *rows, const REAL *x, REAL *out, int64_t R, int64_t F, int64_t first,
+        int64_t stop)
+{
+    if (F == 1)   /* a constant F: no index products */
+        for (int64_t b = first; b < stop; ++b)
+            limited_tricubic_block_SUFFIX(columns + 512 * b, axes + 96 * b, corners, rows, x,
+                                          out, R, 1, b);
+    else
+        for (int64_t b = first; b < stop; ++b)
+            limited_tricubic_block_SUFFIX(columns + 512 * b, axes + 96 * b, corners, rows, x,
+                                          out, R, F, b);
 }
 
 /* The clamp's backward: for each target r and column, the gradient g[rows[r]] goes to the
@@ -465,6 +610,12 @@ LIBRARY = NativeLibrary(
         for s in ("f32", "f64")},
      **{f"product_blocks_{s}": [ctypes.c_void_p] * 7 + [ctypes.c_int64] * 2
         for s in ("f32", "f64")},
+     **{f"limited_tricubic_{s}": [ctypes.c_void_p] * 6 + [ctypes.c_int64] * 4
+        for s in ("f32", "f64")},
+     **{f"rkc_step_{s}": [ctypes.c_void_p] * 11 + [ctypes.c_int64] * 3
+        for s in ("f32", "f64")},
+     **{f"rkc_stage_{s}": [ctypes.c_void_p] * 11 + [real] * 4 + [ctypes.c_int64] * 3
+        for s, real in (("f32", ctypes.c_float), ("f64", ctypes.c_double))},
      **{f"brick_tricubic_{s}": [ctypes.c_void_p] * 5 + [ctypes.c_int64] + [ctypes.c_void_p]
         + [ctypes.c_int64] * 6 for s in ("f32", "f64")},
      "brick_taps_readable": [ctypes.c_void_p] * 4 + [ctypes.c_int64, ctypes.c_void_p]
@@ -575,6 +726,57 @@ def _block_product(laid: list[Tensor], x: Tensor, rows: int) -> Tensor:
 
     in_threads(run, blocks, THREAD_MIN_ROWS // 8)
     return out[:rows]
+
+
+def rkc_stage(blocks: RowBlocks, current: Tensor, u: Tensor, previous: Tensor,
+              rate0: Tensor | None, weights: tuple[float, float, float, float],
+              rate: Tensor | None = None) -> Tensor:
+    """One stage of a Runge-Kutta-Chebyshev step of ``u' = A u`` in one pass, for ``A`` laid out
+    as ``blocks`` (``(rows, nodes)``, rows the first of the nodes; its other nodes' rate zero)
+    and one column of values ``current``, ``u``, ``previous`` ``(nodes, 1)``: the new stage
+    ``u + mu (current - u) + a A current + b rate0 + nu (previous - u)`` for ``weights = (mu,
+    nu, a, b)`` on the rows (``A current`` formed from ``current`` less its first value, as
+    :meth:`PackedRegion.weighted_apply`), ``u`` on the other nodes; a new ``(nodes, 1)``
+    tensor. ``rate0`` ``(rows, 1)`` or ``None`` (zero); ``rate`` ``(rows, 1)``, if given,
+    receives ``A current``. All contiguous, in one dtype the kernel takes (:func:`applies`);
+    no autograd."""
+    following = torch.empty_like(u)
+    following[blocks.rows:] = u[blocks.rows:]
+    starts, shared, counts, columns, laid = blocks.laid(u.dtype)
+    kernel = getattr(LIBRARY.load(), f"rkc_stage_{_SUFFIX[u.dtype]}")
+    mu, nu, a, b = (float(w) for w in weights)
+    rate0_pointer = None if rate0 is None else rate0.data_ptr()
+    rate_pointer = None if rate is None else rate.data_ptr()
+
+    def run(first: int, stop: int) -> None:
+        kernel(starts.data_ptr(), shared.data_ptr(), counts.data_ptr(), columns.data_ptr(),
+               laid.data_ptr(), current.data_ptr(), u.data_ptr(), previous.data_ptr(),
+               rate0_pointer, following.data_ptr(), rate_pointer, mu, nu, a, b, blocks.rows,
+               first, stop)
+
+    in_threads(run, blocks.blocks, THREAD_MIN_ROWS // 8)
+    return following
+
+
+def rkc_step(blocks: RowBlocks, u: Tensor, weights: Tensor) -> Tensor | None:
+    """A whole RKC step of ``u' = A u`` in one call, its stages as :func:`rkc_stage`'s with
+    ``weights`` ``(stages + 1, 4)`` float64 (row ``j``: stage ``j``'s ``(mu, nu, a, b)``; row
+    1 ``(0, 0, a, 0)``): a new ``(nodes, 1)`` tensor; ``None`` where the rows would be split
+    between threads (the stages are then called one by one, each split)."""
+    if in_parts(blocks.blocks, THREAD_MIN_ROWS // 8) > 1:
+        return None
+    stage = [torch.empty_like(u) for _ in range(3)]
+    for buffer in stage:
+        buffer[blocks.rows:] = u[blocks.rows:]
+    rate0 = u.new_empty((blocks.rows, 1))
+    starts, shared, counts, columns, laid = blocks.laid(u.dtype)
+    weights = weights.to(torch.float64).contiguous()
+    stages = len(weights) - 1
+    getattr(LIBRARY.load(), f"rkc_step_{_SUFFIX[u.dtype]}")(
+        starts.data_ptr(), shared.data_ptr(), counts.data_ptr(), columns.data_ptr(),
+        laid.data_ptr(), u.data_ptr(), *(t.data_ptr() for t in stage), rate0.data_ptr(),
+        weights.data_ptr(), stages, blocks.rows, blocks.blocks)
+    return stage[stages % 3]
 
 
 def _product(offsets: Tensor, columns: Tensor, weights: Tensor, x: Tensor,
@@ -707,15 +909,16 @@ def _clamped_back(g: Tensor, taps: Tensor, corners: Tensor, rows: Tensor, codes:
     return grad
 
 
-def limited(z: Tensor, matrix: RowMatrix, taps: Tensor, corners: Tensor, rows: Tensor
-            ) -> Tensor | None:
+def limited(z: Tensor, matrix: RowMatrix, taps: Tensor, corners: Tensor, rows: Tensor,
+            separable: Callable[[], TricubicBlocks] | None = None) -> Tensor | None:
     """A copy of ``z`` ``(nodes, F)`` whose rows ``rows`` ``(R,)`` (int64, distinct) hold
     ``matrix @ z`` ``(R, F)`` clamped to the limiter's bounds (:mod:`._limiter`) over each
     row's 64 taps ``taps`` ``(R, 64)`` (int32 rows of ``z``, in the order ``16 z + 4 y + x``)
     with its corners' trilinear weights ``corners`` ``(R, 8)`` (``z``'s dtype); in autograd's
     graph when ``z`` is (the gradient of a clamped value reaches the taps holding its corners'
-    extremes, with the corners' weights). ``None`` where the kernel does not run
-    (:func:`applies`)."""
+    extremes, with the corners' weights). ``separable``, if given, returns the same stencil
+    as :class:`TricubicBlocks`, which computes it in one pass where no gradient is recorded.
+    ``None`` where the kernel does not run (:func:`applies`)."""
     if (not applies(matrix.offsets, z) or taps.dtype != torch.int32
             or rows.dtype != torch.int64 or corners.dtype != z.dtype):
         return None
@@ -726,7 +929,53 @@ def limited(z: Tensor, matrix: RowMatrix, taps: Tensor, corners: Tensor, rows: T
         return out
     if torch.is_grad_enabled() and z.requires_grad:
         return _Limited.apply(z, matrix, taps, corners, rows)
+    if separable is not None:
+        return _limited_tricubic(z, separable(), corners, rows)
     return _clamped_into(z, matrix.apply(z), taps, corners, rows, None, None)
+
+
+class TricubicBlocks:
+    """A limited tricubic stencil's rows laid out for one pass (:func:`limited`): rows in blocks
+    of 8, each block's 64 taps interleaved (tap ``t`` of its 8 rows side by side) and its
+    separable weights likewise (3 axes x 4 taps x 8 rows), the tap weights formed in the
+    kernel: 304 bytes a row in float32 against the 512 of the taps and their 64 weights
+    (:class:`RowBlocks`), read once for the product and the limiter's test.
+
+    Args:
+        taps: ``(R, 64)`` int32 taps (rows of the values), in the order ``16 z + 4 y + x``.
+        axes: ``(3, R, 4)`` separable weights (x, y, z), as
+            :func:`~torchsurf.flows.extension.tap_weights` takes them.
+    """
+
+    def __init__(self, taps: Tensor, axes: Tensor) -> None:
+        self.rows = len(taps)
+        self.blocks = (self.rows + 7) // 8
+        pad = self.blocks * 8 - self.rows
+        taps = torch.cat([taps.to(torch.int32), taps.new_zeros((pad, 64), dtype=torch.int32)])
+        self.columns = taps.view(self.blocks, 8, 64).transpose(1, 2).contiguous()
+        axes = torch.cat([axes, axes.new_zeros((3, pad, 4))], dim=1)
+        self._axes = {axes.dtype: axes.view(3, self.blocks, 8, 4).permute(1, 0, 3, 2).contiguous()}
+
+    def axes(self, dtype: torch.dtype) -> Tensor:
+        """The separable weights in this layout, in ``dtype`` (converted once and kept)."""
+        if dtype not in self._axes:
+            self._axes[dtype] = next(iter(self._axes.values())).to(dtype)
+        return self._axes[dtype]
+
+
+def _limited_tricubic(z: Tensor, blocks: TricubicBlocks, corners: Tensor, rows: Tensor
+                      ) -> Tensor:
+    """:func:`limited` by the separable layout ``blocks`` in one pass; no autograd."""
+    out = torch.empty_like(z) if len(rows) == len(z) else z.clone()  # rows are distinct
+    columns, axes = blocks.columns, blocks.axes(z.dtype)
+    kernel = getattr(LIBRARY.load(), f"limited_tricubic_{_SUFFIX[z.dtype]}")
+
+    def run(first: int, stop: int) -> None:
+        kernel(columns.data_ptr(), axes.data_ptr(), corners.data_ptr(), rows.data_ptr(),
+               z.data_ptr(), out.data_ptr(), blocks.rows, z.shape[1], first, stop)
+
+    in_threads(run, blocks.blocks, THREAD_MIN_ROWS // 8)
+    return out
 
 
 # The kernels as custom operators: a graph ``torch.compile`` traces calls them, opaque to

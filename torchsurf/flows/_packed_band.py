@@ -145,6 +145,15 @@ class PackedRegion:
         flat = values.new_zeros((batch * size, channels)).index_copy(0, self.nodes, values[..., 0])
         return flat.reshape(batch, *self.volume_shape, channels).permute(0, 4, 1, 2, 3)
 
+    def unpack_onto(self, values: Tensor, like: Tensor, region: Tensor) -> Tensor:
+        """``like`` with the nodes of ``region`` (this packing's band and ring, a bool mask of
+        the storage) replaced by the region values ``values`` ``(nodes, C, K)``: a new tensor
+        shaped like :meth:`unpack`'s (autograd reaches both)."""
+        if self.entries != 1:
+            return torch.where(region, self.unpack(values, like), like)
+        flat = like.reshape(like.shape[0], like.shape[1], -1).clone()
+        return flat.index_copy_(2, self.nodes, values.permute(2, 1, 0)).reshape(like.shape)
+
     def band_mask(self) -> Tensor:
         """``(nodes, 1, 1)`` bool, true on the band's nodes (a packed flow's band)."""
         if self._band_mask is None:
@@ -177,6 +186,52 @@ class PackedRegion:
             self._stencils[key] = (stencil, PackedStencil(stencil, self.storage, self.lookup,
                                                           len(self.nodes)))
         return self._stencils[key][1]
+
+
+class FusedStage:
+    """The RKC stages of the heat rate ``scale W^-1 A z`` on a packed region's values, each in
+    one native pass (:func:`~._native_gather.rkc_stage`: the operator's rows and the stage's
+    combination together, instead of a product and seven pointwise passes; the ring's values
+    held), for one column of values and no gradient (:meth:`applies`). A
+    :class:`~._rkc.LinearStage`.
+
+    Args:
+        packing: the packed band and ring.
+        scale: the rate's constant factor (the diffusivity).
+    """
+
+    def __init__(self, packing: PackedRegion, scale: float) -> None:
+        self.packing, self.scale = packing, float(scale)
+
+    def applies(self, u: Tensor) -> bool:
+        """Whether the stages run natively for region values ``u`` ``(nodes, C, K)``."""
+        if u.shape[1:].numel() != 1 or torch.compiler.is_compiling():
+            return False
+        if torch.is_grad_enabled() and u.requires_grad:
+            return False
+        matrix = self.packing.weighted
+        return matrix.nonzeros > 0 and _native_gather.applies(matrix.offsets, u.reshape(-1, 1))
+
+    def step(self, u: Tensor, weights: list[tuple[float, float, float, float]]) -> Tensor | None:
+        """The whole step in one native call (:func:`~._native_gather.rkc_step`), or ``None``
+        where its rows are split between threads."""
+        scaled = torch.tensor(weights, dtype=torch.float64)
+        scaled[:, 2:] *= self.scale
+        whole = _native_gather.rkc_step(self.packing.weighted.blocks(),
+                                        u.reshape(-1, 1).contiguous(), scaled)
+        return None if whole is None else whole.reshape(u.shape)
+
+    def __call__(self, current: Tensor, u: Tensor, previous: Tensor, rate0: Tensor | None,
+                 weights: tuple[float, float, float, float], rate: Tensor | None = None
+                 ) -> Tensor:
+        mu, nu, a, b = weights
+        column = (t.reshape(-1, 1).contiguous() for t in (current, u, previous))
+        following = _native_gather.rkc_stage(
+            self.packing.weighted.blocks(), *column,
+            None if rate0 is None else rate0.reshape(-1, 1),
+            (mu, nu, a * self.scale, b * self.scale),
+            None if rate is None else rate.reshape(-1, 1))
+        return following.reshape(u.shape)
 
 
 class PackedBand:
@@ -267,6 +322,14 @@ class PackedStencil:
         self.matrix = GatherMatrix.of_rows(tap.view(nodes, 64), weight.view(nodes, 64), count)
         self.taps = self.matrix.columns.view(nodes, 64)  # the same indices: one copy kept
         self.corners = _limiter.corner_weights_of_taps(weight.view(nodes, 64))
+        self._tricubic: _native_gather.TricubicBlocks | None = None
+        self._axes = _stencil_axes(stencil)
+
+    def tricubic(self) -> _native_gather.TricubicBlocks:
+        """The stencil laid out for the one-pass kernel, formed at its first use and kept."""
+        if self._tricubic is None:
+            self._tricubic = _native_gather.TricubicBlocks(self.taps, self._axes)
+        return self._tricubic
 
     def apply(self, z: Tensor) -> Tensor:
         """``z`` ``(nodes, C, K)`` with the targets re-extended; a new tensor (autograd reaches
@@ -275,7 +338,8 @@ class PackedStencil:
             return z.clone()
         flat = z.reshape(z.shape[0], -1)
         corners = self.corners.to(z.dtype)
-        native = _native_gather.limited(flat, self.matrix, self.taps, corners, self.rows)
+        native = _native_gather.limited(flat, self.matrix, self.taps, corners, self.rows,
+                                        self.tricubic)
         if native is not None:
             return native.reshape(z.shape)
         value = self.matrix.apply(flat)  # (R, F)
@@ -470,6 +534,14 @@ def _stencil_entries(stencil: Stencil, storage: _Storage, lookup: Tensor
         taps.append(torch.where(sources >= 0, lookup[sources.clamp(min=0)], -1).reshape(-1))
         weights.append(tap_weights(weight).reshape(-1))
     return torch.cat(targets), torch.cat(taps), torch.cat(weights)
+
+
+def _stencil_axes(stencil: Stencil) -> Tensor:
+    """A closest-point stencil's separable weights ``(3, n, 4)`` (x, y, z), its nodes in the
+    order of :func:`_stencil_entries`."""
+    if isinstance(stencil, CubicStencil):
+        return torch.cat([weight for _, _, weight in stencil.parts], dim=1)
+    return stencil.weights
 
 
 def _first_pass(ring: RingFill, storage: _Storage, lookup: Tensor, band_count: int,

@@ -19,6 +19,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Protocol
 
 import torch
 from torch import Tensor
@@ -118,6 +119,40 @@ def rkc_step(rate: Callable[[Tensor], Tensor], u: Tensor, dt: float | Tensor,
     for j in range(2, stages + 1):
         following = _stage(c, j, dt, u, current, previous, rate(current), rate0, path)
         previous, current = current, following
+    return current
+
+
+class LinearStage(Protocol):
+    """One RKC stage of a linear rate ``u' = A u`` in one pass (e.g.
+    :class:`~torchsurf.flows._packed_band.FusedStage`): the new stage ``u + mu (current - u) +
+    a A current + b rate0 + nu (previous - u)`` for ``weights = (mu, nu, a, b)``, ``A current``
+    written into ``rate`` when given; ``rate0`` ``None`` reads zeros."""
+
+    def applies(self, u: Tensor) -> bool: ...
+
+    def step(self, u: Tensor, weights: list[tuple[float, float, float, float]]) -> Tensor | None:
+        """The whole step in one call (stage ``j``'s weights ``weights[j]``), or ``None``."""
+
+    def __call__(self, current: Tensor, u: Tensor, previous: Tensor, rate0: Tensor | None,
+                 weights: tuple[float, float, float, float], rate: Tensor | None = None
+                 ) -> Tensor: ...
+
+
+def rkc_step_linear(stage: LinearStage, u: Tensor, dt: float, stages: int) -> Tensor:
+    """:func:`rkc_step` for a linear rate, each stage one call of ``stage`` (its operator
+    application and combination in one pass): the same step to rounding."""
+    c = coefficients(stages)
+    weights = [(0.0, 0.0, 0.0, 0.0), (0.0, 0.0, c.mu_tilde[1] * dt, 0.0)] + [
+        (c.mu[j], c.nu[j], c.mu_tilde[j] * dt, c.gamma_tilde[j] * dt)
+        for j in range(2, stages + 1)]
+    whole = stage.step(u, weights)
+    if whole is not None:
+        return whole
+    rate0 = torch.empty_like(u)
+    current = stage(u, u, u, None, weights[1], rate0)
+    previous = u
+    for j in range(2, stages + 1):
+        previous, current = current, stage(current, u, previous, rate0, weights[j])
     return current
 
 

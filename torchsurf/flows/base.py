@@ -130,6 +130,22 @@ def _range_excess(u0: Tensor, results: list[Tensor], region: Tensor, band: Tenso
     return excess
 
 
+def _packed_range_excess(start: Tensor, results: list[Tensor], band_count: int) -> float:
+    """:func:`_range_excess` on one volume's packed region values ``(nodes, C, K)`` (the band's
+    nodes first, ``band_count`` of them): per channel and batch entry ``K``."""
+    with torch.no_grad():
+        start = start.detach()
+        low, high = start.amin(0), start.amax(0)
+        rounding = RANGE_ROUNDING * torch.finfo(start.dtype).eps * torch.maximum(low.abs(), high.abs())
+        span = torch.maximum(high - low, rounding).clamp_min(torch.finfo(start.dtype).tiny)
+        excess = 0.0
+        for value in results:
+            band = value.detach()[:band_count]
+            beyond = torch.maximum(band.amax(0) - high, low - band.amin(0)) / span
+            excess = max(excess, float(beyond.max()))
+    return excess
+
+
 def _fewest_steps(method: str, system: System, band_cells: float, length: float,
                   end: float) -> int:
     """The steps of an interval of ``length`` that ends at the requested time ``end``: none
@@ -353,6 +369,7 @@ def _learned_time(system: System, time: float | Tensor, nominal: float) -> None:
     scale = time / nominal
     rate = system.rate
     system.rate = lambda u: scale * rate(u)
+    system.linear_stage = None  # its stages would not scale
     if system.linear is not None:
         operator = system.linear.operator
         system.linear = Linear(lambda x, *params: params[-1] * operator(x, *params[:-1]),
@@ -523,8 +540,12 @@ class Flow(nn.Module):
 
     def band_mask(self, surface: ImplicitSurface) -> Tensor:
         """The evolving band, a bool mask ``(B or 1, 1, D, H, W)``: within
-        :meth:`evolving_width` of S."""
-        return surface.band_mask(self.evolving_width(surface))
+        :meth:`evolving_width` of S. Kept on the surface while ``phi`` needs no gradient (a
+        learned ``phi`` may change in place between calls)."""
+        width = self.evolving_width(surface)
+        if surface.phi.requires_grad:
+            return surface.band_mask(width)
+        return surface.kept(("flow band", width), lambda: surface.band_mask(width))
 
     def operator_bound(self, surface: ImplicitSurface, scheme: str = "octant") -> float:
         """Gershgorin bound of ``Lap_S`` restricted to this flow's band, ``1 / world length^2``."""
@@ -775,6 +796,7 @@ class Flow(nn.Module):
             else:
                 rate = system.rate
                 system.rate = lambda u: rate(fill(u))
+                system.linear_stage = None  # its stages would skip the fill
         # nodes beyond the band and its ring are never read, but a rate computed on the whole
         # volume and masked after still takes their derivatives: 0 * NaN in a backward
         recorded = torch.is_grad_enabled()
@@ -787,13 +809,17 @@ class Flow(nn.Module):
         finally:
             if bar is not None:
                 bar.close()
+        # checked on the packed values where they are one volume's (the region's nodes alone)
+        checked = (start, result) if packing is not None and packing.entries == 1 else None
         if packing is not None:
-            result = [torch.where(region, packing.unpack(value, u0), u0) for value in result]
+            result = [packing.unpack_onto(value, u0, region) for value in result]
         elif recorded:
             result = [torch.where(region, value, u0) for value in result]
         if not torch.compiler.is_compiling():  # a host read: it would break a traced graph
-            for value in result:
-                if not bool(torch.isfinite(torch.where(region, value.detach(), 0.0)).all()):
+            for value in (result if checked is None else checked[1]):
+                finite = (torch.isfinite(value.detach()) if checked is not None
+                          else torch.isfinite(torch.where(region, value.detach(), 0.0)))
+                if not bool(finite.all()):
                     other = "" if self.method == "rkc" else "method='rkc', "
                     raise FloatingPointError(
                         f"{type(self).__name__} (method={self.method!r}, {_steps_taken(plan)}) "
@@ -801,7 +827,9 @@ class Flow(nn.Module):
                         f"{other}more steps, or smaller parameters"
                     )
             if self.keeps_range:
-                excess = _range_excess(u0, result, region, band, surface.layout is not None)
+                excess = (_range_excess(u0, result, region, band, surface.layout is not None)
+                          if checked is None
+                          else _packed_range_excess(*checked, packing.band_count))
                 if self._entry_excesses is not None:  # one entry of a batch: its caller warns
                     self._entry_excesses.append((excess, plan))
                 elif excess > RANGE_SLACK:

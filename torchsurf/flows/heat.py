@@ -25,7 +25,7 @@ from ._integrators import (
     tensors,
     zero_outside,
 )
-from ._packed_band import PackedRegion
+from ._packed_band import FusedStage, PackedRegion
 from ._positive import Positive
 from .base import (
     Flow,
@@ -221,8 +221,10 @@ class HeatFlow(Flow):
                 return value
             return value * (d.reshape(1, -1, 1) if isinstance(d, Tensor) else d)
 
+        fused = (FusedStage(packing, d) if isinstance(d, float) and self.path == "auto"
+                 else None)
         packed = replace(system, rate=rate, band=packing.band_mask(), layout=None,
-                         params=tensors(d))
+                         params=tensors(d), linear_stage=fused)
         return packed, packing
 
     def forward(
