@@ -254,3 +254,44 @@ def test_row_blocks_laid_out_in_chunks_equal_the_whole_layout(monkeypatch):
     if _native_gather.LIBRARY.load() is not None:
         assert torch.allclose(_native_gather.product(offsets, columns, values, x, 50, chunked),
                               matrix.apply(x))
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("columns", [1, 3])
+def test_separable_stencils_one_pass_is_the_product_and_clamp(native_available, dtype,
+                                                              columns):
+    """A limited tricubic stencil by its separable layouts against the compressed-row product
+    and the clamp: rows whose taps lie 4 by 4 side by side (runs: one column) mixed with rows
+    whose taps do not (blocks of 8, the last one partial), rough data (values clamped), a
+    subset of the nodes as targets; the other nodes are copied."""
+    from torchsurf.flows import _limiter
+    from torchsurf.flows.extension import tap_weights
+
+    generator = torch.Generator().manual_seed(21)
+    nodes, count = 300, 45
+    starts = torch.randint(0, nodes - 4, (count, 16), generator=generator)
+    taps = (starts[:, :, None] + torch.arange(4)).reshape(count, 64)
+    scattered = torch.arange(count) % 3 == 1
+    taps[scattered] = torch.randint(0, nodes, (int(scattered.sum()), 64), generator=generator)
+    taps = taps.to(torch.int32)
+    fractions = torch.rand(3, count, generator=generator, dtype=torch.float64)
+    t = fractions[..., None]
+    axes = torch.cat([-t * (1 - t) ** 2 / 2, (2 - 5 * t**2 + 3 * t**3) / 2,
+                      t * (1 + 4 * t - 3 * t**2) / 2, -(t**2) * (1 - t) / 2], dim=-1)
+    weights = tap_weights(axes)
+    corners = _limiter.corner_weights_of_taps(weights)
+    rows = torch.randperm(nodes, generator=generator)[:count]
+    matrix = GatherMatrix.of_rows(taps.long(), weights, nodes)
+    stencil = _native_gather.SeparableStencil(taps, axes, corners, rows)
+    z = torch.rand(nodes, columns, generator=generator, dtype=torch.float64).to(dtype)
+    one_pass = _native_gather.limited(z, matrix, taps, corners.to(dtype), rows, lambda: stencil)
+    two_passes = _native_gather.limited(z, matrix, taps, corners.to(dtype), rows)
+    names = [name for name, _, _ in stencil.parts(columns, dtype)]
+    assert names == (["limited_runs", "limited_tricubic"] if columns == 1 else ["limited_tricubic"])
+    clamped = one_pass[rows] != matrix.apply(z)
+    assert int(clamped.sum()) > 5
+    tolerance = 1e-14 if dtype == torch.float64 else 2e-6
+    torch.testing.assert_close(one_pass, two_passes, rtol=tolerance, atol=tolerance)
+    others = torch.ones(nodes, dtype=torch.bool)
+    others[rows] = False
+    assert torch.equal(one_pass[others], z[others])

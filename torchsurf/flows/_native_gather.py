@@ -9,7 +9,7 @@ rest one by one; a single column in blocks of 8 rows (:class:`RowBlocks`), each 
 multiply-add over the 8 rows. Rows are split between threads. Its transpose scatters each row's
 entries, on one thread. An autograd function pairs the two, so gradients (of any order) reach
 ``x``. :func:`limited` applies a packed closest-point stencil and its limiter in one pass,
-its weights formed from the separable ones (:class:`TricubicBlocks`); :func:`rkc_stage` and
+its weights formed from the separable ones (:class:`SeparableStencil`); :func:`rkc_stage` and
 :func:`rkc_step` run Runge-Kutta-Chebyshev stages of a linear packed rate, each operator
 application and stage combination in one pass. :func:`brick_tricubic` applies a brick
 closest-point stencil from its compact form (no matrix assembled), for bands too large to pack.
@@ -433,6 +433,43 @@ void limited_tricubic_SUFFIX(const int32_t *columns, const REAL *axes, const REA
                                           out, R, F, b);
 }
 
+/* limited_tricubic for one column and rows whose taps lie 4 by 4 side by side along x: row r's
+   run k j (16 of them, z then y) holds taps starts[16 r + 4 k + j] + 0..3, its separable
+   weights axes[12 r + 4 axis + i] (axis 0 x, 1 y, 2 z); each run one vector load. Rows
+   [first, stop) of R. */
+void limited_runs_SUFFIX(const int32_t *starts, const REAL *axes, const REAL *corners,
+        const int64_t *rows, const REAL *x, REAL *out, int64_t first, int64_t stop)
+{
+    for (int64_t r = first; r < stop; ++r) {
+        const int32_t *run = starts + 16 * r;
+        const REAL *wy = axes + 12 * r + 4, *wz = axes + 12 * r + 8;
+        v4_SUFFIX wx;
+        memcpy(&wx, axes + 12 * r, sizeof wx);
+        v4_SUFFIX sum = {0, 0, 0, 0};
+        for (int k = 0; k < 4; ++k)
+            for (int j = 0; j < 4; ++j) {
+                v4_SUFFIX taps;
+                memcpy(&taps, x + run[4 * k + j], sizeof taps);
+                sum += ((wz[k] * wy[j]) * wx) * taps;
+            }
+        REAL v = (sum[0] + sum[1]) + (sum[2] + sum[3]);
+        REAL least = x[run[5] + 1], most = least;
+        for (int k = 1; k < 3; ++k)
+            for (int j = 1; j < 3; ++j)
+                for (int i = 1; i < 3; ++i) {
+                    const REAL node = x[run[4 * k + j] + i];
+                    least = node < least ? node : least;
+                    most = node > most ? node : most;
+                }
+        if (!(v >= least && v <= most) && v == v) {
+            REAL u[64];
+            for (int t = 0; t < 64; ++t) u[t] = x[run[t >> 2] + (t & 3)];
+            clamp_to_bounds_SUFFIX(&v, u, corners + r * 8);
+        }
+        out[rows[r]] = v;
+    }
+}
+
 /* The clamp's backward: for each target r and column, the gradient g[rows[r]] goes to the
    values' taps (into free[r], for the transposed product) if not clamped, else to the taps
    holding its corners' extremes, with the corners' weights (added into grad, whose target rows
@@ -611,6 +648,8 @@ LIBRARY = NativeLibrary(
      **{f"product_blocks_{s}": [ctypes.c_void_p] * 7 + [ctypes.c_int64] * 2
         for s in ("f32", "f64")},
      **{f"limited_tricubic_{s}": [ctypes.c_void_p] * 6 + [ctypes.c_int64] * 4
+        for s in ("f32", "f64")},
+     **{f"limited_runs_{s}": [ctypes.c_void_p] * 6 + [ctypes.c_int64] * 2
         for s in ("f32", "f64")},
      **{f"rkc_step_{s}": [ctypes.c_void_p] * 11 + [ctypes.c_int64] * 3
         for s in ("f32", "f64")},
@@ -910,14 +949,15 @@ def _clamped_back(g: Tensor, taps: Tensor, corners: Tensor, rows: Tensor, codes:
 
 
 def limited(z: Tensor, matrix: RowMatrix, taps: Tensor, corners: Tensor, rows: Tensor,
-            separable: Callable[[], TricubicBlocks] | None = None) -> Tensor | None:
+            separable: Callable[[], SeparableStencil] | None = None) -> Tensor | None:
     """A copy of ``z`` ``(nodes, F)`` whose rows ``rows`` ``(R,)`` (int64, distinct) hold
     ``matrix @ z`` ``(R, F)`` clamped to the limiter's bounds (:mod:`._limiter`) over each
     row's 64 taps ``taps`` ``(R, 64)`` (int32 rows of ``z``, in the order ``16 z + 4 y + x``)
     with its corners' trilinear weights ``corners`` ``(R, 8)`` (``z``'s dtype); in autograd's
     graph when ``z`` is (the gradient of a clamped value reaches the taps holding its corners'
     extremes, with the corners' weights). ``separable``, if given, returns the same stencil
-    as :class:`TricubicBlocks`, which computes it in one pass where no gradient is recorded.
+    as a :class:`SeparableStencil`, which computes it in one pass where no gradient is
+    recorded.
     ``None`` where the kernel does not run (:func:`applies`)."""
     if (not applies(matrix.offsets, z) or taps.dtype != torch.int32
             or rows.dtype != torch.int64 or corners.dtype != z.dtype):
@@ -930,51 +970,91 @@ def limited(z: Tensor, matrix: RowMatrix, taps: Tensor, corners: Tensor, rows: T
     if torch.is_grad_enabled() and z.requires_grad:
         return _Limited.apply(z, matrix, taps, corners, rows)
     if separable is not None:
-        return _limited_tricubic(z, separable(), corners, rows)
+        return _limited_separable(z, separable())
     return _clamped_into(z, matrix.apply(z), taps, corners, rows, None, None)
 
 
-class TricubicBlocks:
-    """A limited tricubic stencil's rows laid out for one pass (:func:`limited`): rows in blocks
-    of 8, each block's 64 taps interleaved (tap ``t`` of its 8 rows side by side) and its
-    separable weights likewise (3 axes x 4 taps x 8 rows), the tap weights formed in the
-    kernel: 304 bytes a row in float32 against the 512 of the taps and their 64 weights
-    (:class:`RowBlocks`), read once for the product and the limiter's test.
+class SeparableStencil:
+    """A limited tricubic stencil laid out for one pass (:func:`limited`), its 64 tap weights
+    formed in the kernel from the 12 separable ones:
+
+    - for one column, the rows whose taps lie 4 by 4 side by side along x (every row of a
+      sphere's band at 35^3) by their 16 runs' first taps (112 bytes a row in float32), each
+      run one vector load;
+    - the other rows, and every row for several columns, in blocks of 8, each block's 64 taps
+      interleaved (tap ``t`` of its 8 rows side by side) and its separable weights likewise
+      (304 bytes a row, against the 512 of the taps and their 64 weights), the limiter's test
+      reading the taps the product has just read.
+
+    Each layout is formed at its first use and kept.
 
     Args:
         taps: ``(R, 64)`` int32 taps (rows of the values), in the order ``16 z + 4 y + x``.
         axes: ``(3, R, 4)`` separable weights (x, y, z), as
             :func:`~torchsurf.flows.extension.tap_weights` takes them.
+        corners: ``(R, 8)`` the corners' weights of the limiter's bounds.
+        rows: ``(R,)`` int64, the distinct target rows of the values.
     """
 
-    def __init__(self, taps: Tensor, axes: Tensor) -> None:
-        self.rows = len(taps)
-        self.blocks = (self.rows + 7) // 8
-        pad = self.blocks * 8 - self.rows
-        taps = torch.cat([taps.to(torch.int32), taps.new_zeros((pad, 64), dtype=torch.int32)])
-        self.columns = taps.view(self.blocks, 8, 64).transpose(1, 2).contiguous()
-        axes = torch.cat([axes, axes.new_zeros((3, pad, 4))], dim=1)
-        self._axes = {axes.dtype: axes.view(3, self.blocks, 8, 4).permute(1, 0, 3, 2).contiguous()}
+    def __init__(self, taps: Tensor, axes: Tensor, corners: Tensor, rows: Tensor) -> None:
+        self.taps, self.axes, self.corners, self.rows = taps, axes, corners, rows
+        self._layouts: dict[tuple[str, torch.dtype], list] = {}
 
-    def axes(self, dtype: torch.dtype) -> Tensor:
-        """The separable weights in this layout, in ``dtype`` (converted once and kept)."""
-        if dtype not in self._axes:
-            self._axes[dtype] = next(iter(self._axes.values())).to(dtype)
-        return self._axes[dtype]
+    def parts(self, columns: int, dtype: torch.dtype) -> list:
+        """The kernels' arguments for ``columns`` columns of ``dtype`` values: for each part, its
+        kernel's name, its tensors and its row count."""
+        key = ("runs" if columns == 1 else "blocks", dtype)
+        if key not in self._layouts:
+            self._layouts[key] = self._laid(columns == 1, dtype)
+        return self._layouts[key]
+
+    def _laid(self, by_runs: bool, dtype: torch.dtype) -> list:
+        runs = self.taps.view(-1, 16, 4).long()
+        side_by_side = (runs - runs[:, :, :1] == torch.arange(4, device=runs.device)).all(2).all(1)
+        if not by_runs:
+            side_by_side = torch.zeros_like(side_by_side)
+        parts = []
+        chosen = side_by_side.nonzero().squeeze(1)
+        if len(chosen):
+            axes = self.axes[:, chosen].to(dtype).permute(1, 0, 2).reshape(-1, 12).contiguous()
+            parts.append(("limited_runs", [runs[chosen, :, 0].to(torch.int32).contiguous(), axes,
+                                           *self._targets(chosen, dtype)], len(chosen)))
+        rest = (~side_by_side).nonzero().squeeze(1)
+        if len(rest):
+            count = len(rest)
+            blocks = (count + 7) // 8
+            pad = blocks * 8 - count
+            taps = torch.cat([self.taps[rest].to(torch.int32),
+                              self.taps.new_zeros((pad, 64), dtype=torch.int32)])
+            columns = taps.view(blocks, 8, 64).transpose(1, 2).contiguous()
+            axes = torch.cat([self.axes[:, rest].to(dtype),
+                              self.axes.new_zeros((3, pad, 4), dtype=dtype)], dim=1)
+            axes = axes.view(3, blocks, 8, 4).permute(1, 0, 3, 2).contiguous()
+            parts.append(("limited_tricubic", [columns, axes, *self._targets(rest, dtype)], count))
+        return parts
+
+    def _targets(self, chosen: Tensor, dtype: torch.dtype) -> list[Tensor]:
+        return [self.corners[chosen].to(dtype).contiguous(), self.rows[chosen].contiguous()]
 
 
-def _limited_tricubic(z: Tensor, blocks: TricubicBlocks, corners: Tensor, rows: Tensor
-                      ) -> Tensor:
-    """:func:`limited` by the separable layout ``blocks`` in one pass; no autograd."""
-    out = torch.empty_like(z) if len(rows) == len(z) else z.clone()  # rows are distinct
-    columns, axes = blocks.columns, blocks.axes(z.dtype)
-    kernel = getattr(LIBRARY.load(), f"limited_tricubic_{_SUFFIX[z.dtype]}")
+def _limited_separable(z: Tensor, stencil: SeparableStencil) -> Tensor:
+    """:func:`limited` by ``stencil``'s layouts in one pass; no autograd."""
+    out = torch.empty_like(z) if len(stencil.rows) == len(z) else z.clone()  # rows distinct
+    library, features = LIBRARY.load(), z.shape[1]
+    for name, tensors, count in stencil.parts(features, z.dtype):
+        kernel = getattr(library, f"{name}_{_SUFFIX[z.dtype]}")
+        pointers = [t.data_ptr() for t in tensors]
+        if name == "limited_runs":
+            def run(first: int, stop: int, kernel=kernel, pointers=pointers) -> None:  # noqa: ANN001
+                kernel(*pointers, z.data_ptr(), out.data_ptr(), first, stop)
 
-    def run(first: int, stop: int) -> None:
-        kernel(columns.data_ptr(), axes.data_ptr(), corners.data_ptr(), rows.data_ptr(),
-               z.data_ptr(), out.data_ptr(), blocks.rows, z.shape[1], first, stop)
+            in_threads(run, count, THREAD_MIN_ROWS)
+        else:
+            def run(first: int, stop: int, kernel=kernel, pointers=pointers,  # noqa: ANN001
+                    count=count) -> None:
+                kernel(*pointers, z.data_ptr(), out.data_ptr(), count, features, first, stop)
 
-    in_threads(run, blocks.blocks, THREAD_MIN_ROWS // 8)
+            in_threads(run, (count + 7) // 8, THREAD_MIN_ROWS // 8)
     return out
 
 

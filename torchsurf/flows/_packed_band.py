@@ -322,14 +322,13 @@ class PackedStencil:
         self.matrix = GatherMatrix.of_rows(tap.view(nodes, 64), weight.view(nodes, 64), count)
         self.taps = self.matrix.columns.view(nodes, 64)  # the same indices: one copy kept
         self.corners = _limiter.corner_weights_of_taps(weight.view(nodes, 64))
-        self._tricubic: _native_gather.TricubicBlocks | None = None
-        self._axes = _stencil_axes(stencil)
+        self._separable = _native_gather.SeparableStencil(self.taps, _stencil_axes(stencil),
+                                                          self.corners, self.rows)
 
-    def tricubic(self) -> _native_gather.TricubicBlocks:
-        """The stencil laid out for the one-pass kernel, formed at its first use and kept."""
-        if self._tricubic is None:
-            self._tricubic = _native_gather.TricubicBlocks(self.taps, self._axes)
-        return self._tricubic
+    def tricubic(self) -> _native_gather.SeparableStencil:
+        """The stencil laid out for the one-pass kernels (its layouts formed at their first
+        use)."""
+        return self._separable
 
     def apply(self, z: Tensor) -> Tensor:
         """``z`` ``(nodes, C, K)`` with the targets re-extended; a new tensor (autograd reaches
