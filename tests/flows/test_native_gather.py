@@ -284,8 +284,11 @@ def test_separable_stencils_one_pass_is_the_product_and_clamp(native_available, 
     matrix = GatherMatrix.of_rows(taps.long(), weights, nodes)
     stencil = _native_gather.SeparableStencil(taps, axes, corners, rows)
     z = torch.rand(nodes, columns, generator=generator, dtype=torch.float64).to(dtype)
-    one_pass = _native_gather.limited(z, matrix, taps, corners.to(dtype), rows, lambda: stencil)
+    one_pass = _native_gather._limited_separable(z, stencil)
     two_passes = _native_gather.limited(z, matrix, taps, corners.to(dtype), rows)
+    by_limited = _native_gather.limited(z, matrix, taps, corners.to(dtype), rows, lambda: stencil)
+    # limited takes the separable layouts for one column only
+    assert torch.equal(by_limited, one_pass if columns == 1 else two_passes)
     names = [name for name, _, _ in stencil.parts(columns, dtype)]
     assert names == (["limited_runs", "limited_tricubic"] if columns == 1 else ["limited_tricubic"])
     clamped = one_pass[rows] != matrix.apply(z)

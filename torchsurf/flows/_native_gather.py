@@ -956,9 +956,10 @@ def limited(z: Tensor, matrix: RowMatrix, taps: Tensor, corners: Tensor, rows: T
     with its corners' trilinear weights ``corners`` ``(R, 8)`` (``z``'s dtype); in autograd's
     graph when ``z`` is (the gradient of a clamped value reaches the taps holding its corners'
     extremes, with the corners' weights). ``separable``, if given, returns the same stencil
-    as a :class:`SeparableStencil`, which computes it in one pass where no gradient is
-    recorded.
-    ``None`` where the kernel does not run (:func:`applies`)."""
+    as a :class:`SeparableStencil`, which computes one column in one pass where no gradient is
+    recorded (for several columns the product's row-major kernel and the clamp are faster: a
+    batch of 4 at 64^3 took 1.25x the time the other way). ``None`` where the kernel does not
+    run (:func:`applies`)."""
     if (not applies(matrix.offsets, z) or taps.dtype != torch.int32
             or rows.dtype != torch.int64 or corners.dtype != z.dtype):
         return None
@@ -969,7 +970,7 @@ def limited(z: Tensor, matrix: RowMatrix, taps: Tensor, corners: Tensor, rows: T
         return out
     if torch.is_grad_enabled() and z.requires_grad:
         return _Limited.apply(z, matrix, taps, corners, rows)
-    if separable is not None:
+    if separable is not None and z.shape[1] == 1:
         return _limited_separable(z, separable())
     return _clamped_into(z, matrix.apply(z), taps, corners, rows, None, None)
 
