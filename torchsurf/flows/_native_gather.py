@@ -779,7 +779,7 @@ def rkc_stage(blocks: RowBlocks, current: Tensor, u: Tensor, previous: Tensor,
     tensor. ``rate0`` ``(rows, 1)`` or ``None`` (zero); ``rate`` ``(rows, 1)``, if given,
     receives ``A current``. All contiguous, in one dtype the kernel takes (:func:`applies`);
     no autograd."""
-    following = torch.empty_like(u)
+    following = torch.empty(u.shape, dtype=u.dtype)  # standard strides, whatever u's
     following[blocks.rows:] = u[blocks.rows:]
     starts, shared, counts, columns, laid = blocks.laid(u.dtype)
     kernel = getattr(LIBRARY.load(), f"rkc_stage_{_SUFFIX[u.dtype]}")
@@ -804,7 +804,7 @@ def rkc_step(blocks: RowBlocks, u: Tensor, weights: Tensor) -> Tensor | None:
     between threads (the stages are then called one by one, each split)."""
     if in_parts(blocks.blocks, THREAD_MIN_ROWS // 8) > 1:
         return None
-    stage = [torch.empty_like(u) for _ in range(3)]
+    stage = [torch.empty(u.shape, dtype=u.dtype) for _ in range(3)]
     for buffer in stage:
         buffer[blocks.rows:] = u[blocks.rows:]
     rate0 = u.new_empty((blocks.rows, 1))
@@ -1040,7 +1040,8 @@ class SeparableStencil:
 
 def _limited_separable(z: Tensor, stencil: SeparableStencil) -> Tensor:
     """:func:`limited` by ``stencil``'s layouts in one pass; no autograd."""
-    out = torch.empty_like(z) if len(stencil.rows) == len(z) else z.clone()  # rows distinct
+    out = (torch.empty(z.shape, dtype=z.dtype) if len(stencil.rows) == len(z)  # rows distinct
+           else z.clone(memory_format=torch.contiguous_format))
     library, features = LIBRARY.load(), z.shape[1]
     for name, tensors, count in stencil.parts(features, z.dtype):
         kernel = getattr(library, f"{name}_{_SUFFIX[z.dtype]}")

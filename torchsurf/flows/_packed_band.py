@@ -28,6 +28,7 @@ tests/flows/test_packed_flow.py).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Protocol
 
 import torch
@@ -126,7 +127,10 @@ class PackedRegion:
     def _gathered(self, u: Tensor, nodes: Tensor) -> Tensor:
         flat = u.reshape(u.shape[0], u.shape[1], -1)
         if self.entries == 1:
-            return flat.index_select(2, nodes).permute(2, 1, 0).contiguous()
+            # a copy with the standard strides: (nodes, 1, 1) permuted keeps strides (1, N, N),
+            # "contiguous" to torch, whose copies of such tensors ran 15x slower
+            return flat.index_select(2, nodes).permute(2, 1, 0).clone(
+                memory_format=torch.contiguous_format)
         flat = flat.expand(self.entries, *flat.shape[1:])
         size = flat.shape[-1]
         return flat[nodes // size, :, nodes % size][..., None]
@@ -192,16 +196,24 @@ class FusedStage:
     """The RKC stages of the heat rate ``scale W^-1 A z`` on a packed region's values, each in
     one native pass (:func:`~._native_gather.rkc_stage`: the operator's rows and the stage's
     combination together, instead of a product and seven pointwise passes; the ring's values
-    held), for one column of values and no gradient (:meth:`applies`). A
-    :class:`~._rkc.LinearStage`.
+    held, or re-extended before each stage by ``fill``), for one column of values and no
+    gradient (:meth:`applies`). A :class:`~._rkc.LinearStage`.
 
     Args:
         packing: the packed band and ring.
         scale: the rate's constant factor (the diffusivity).
+        fill: the ring's re-extension from the band's values, applied to each stage's input
+            (region values ``(nodes, C, K)`` -> new ones), or ``None`` where a step holds the
+            ring.
     """
 
-    def __init__(self, packing: PackedRegion, scale: float) -> None:
-        self.packing, self.scale = packing, float(scale)
+    def __init__(self, packing: PackedRegion, scale: float,
+                 fill: Callable[[Tensor], Tensor] | None = None) -> None:
+        self.packing, self.scale, self.fill = packing, float(scale), fill
+
+    def filled(self, fill: Callable[[Tensor], Tensor]) -> FusedStage:
+        """These stages with the ring re-extended by ``fill`` before each."""
+        return FusedStage(self.packing, self.scale, fill)
 
     def applies(self, u: Tensor) -> bool:
         """Whether the stages run natively for region values ``u`` ``(nodes, C, K)``."""
@@ -214,7 +226,9 @@ class FusedStage:
 
     def step(self, u: Tensor, weights: list[tuple[float, float, float, float]]) -> Tensor | None:
         """The whole step in one native call (:func:`~._native_gather.rkc_step`), or ``None``
-        where its rows are split between threads."""
+        where its rows are split between threads or the ring is re-extended at each stage."""
+        if self.fill is not None:
+            return None
         scaled = torch.tensor(weights, dtype=torch.float64)
         scaled[:, 2:] *= self.scale
         whole = _native_gather.rkc_step(self.packing.weighted.blocks(),
@@ -225,6 +239,8 @@ class FusedStage:
                  weights: tuple[float, float, float, float], rate: Tensor | None = None
                  ) -> Tensor:
         mu, nu, a, b = weights
+        if self.fill is not None:  # the band's rows and the combination are the same
+            current = self.fill(current)
         column = (t.reshape(-1, 1).contiguous() for t in (current, u, previous))
         following = _native_gather.rkc_stage(
             self.packing.weighted.blocks(), *column,

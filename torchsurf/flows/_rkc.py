@@ -130,6 +130,9 @@ class LinearStage(Protocol):
 
     def applies(self, u: Tensor) -> bool: ...
 
+    def filled(self, fill: Callable[[Tensor], Tensor]) -> LinearStage:
+        """The same stages applying the rate to ``fill(current)``."""
+
     def step(self, u: Tensor, weights: list[tuple[float, float, float, float]]) -> Tensor | None:
         """The whole step in one call (stage ``j``'s weights ``weights[j]``), or ``None``."""
 

@@ -796,7 +796,8 @@ class Flow(nn.Module):
             else:
                 rate = system.rate
                 system.rate = lambda u: rate(fill(u))
-                system.linear_stage = None  # its stages would skip the fill
+                if system.linear_stage is not None:
+                    system.linear_stage = system.linear_stage.filled(fill)
         # nodes beyond the band and its ring are never read, but a rate computed on the whole
         # volume and masked after still takes their derivatives: 0 * NaN in a backward
         recorded = torch.is_grad_enabled()
