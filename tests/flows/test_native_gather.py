@@ -257,13 +257,15 @@ def test_row_blocks_laid_out_in_chunks_equal_the_whole_layout(monkeypatch):
 
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
-@pytest.mark.parametrize("columns", [1, 3])
+@pytest.mark.parametrize("columns", [1, 3, 8])
+@pytest.mark.parametrize("scattered_share", [1 / 3, 2 / 3])
 def test_separable_stencils_one_pass_is_the_product_and_clamp(native_available, dtype,
-                                                              columns):
+                                                              columns, scattered_share):
     """A limited tricubic stencil by its separable layouts against the compressed-row product
-    and the clamp: rows whose taps lie 4 by 4 side by side (runs: one column) mixed with rows
-    whose taps do not (blocks of 8, the last one partial), rough data (values clamped), a
-    subset of the nodes as targets; the other nodes are copied."""
+    and the clamp: rows whose taps lie 4 by 4 side by side (runs) mixed with rows whose taps do
+    not (blocks of 8, the last one partial), one to eight columns, rough data (values clamped),
+    a subset of the nodes as targets; the other nodes are copied. Several columns take the
+    layouts only where most rows lie in runs."""
     from torchsurf.flows import _limiter
     from torchsurf.flows.extension import tap_weights
 
@@ -271,7 +273,7 @@ def test_separable_stencils_one_pass_is_the_product_and_clamp(native_available, 
     nodes, count = 300, 45
     starts = torch.randint(0, nodes - 4, (count, 16), generator=generator)
     taps = (starts[:, :, None] + torch.arange(4)).reshape(count, 64)
-    scattered = torch.arange(count) % 3 == 1
+    scattered = torch.arange(count) % 3 < round(3 * scattered_share)
     taps[scattered] = torch.randint(0, nodes, (int(scattered.sum()), 64), generator=generator)
     taps = taps.to(torch.int32)
     fractions = torch.rand(3, count, generator=generator, dtype=torch.float64)
@@ -284,13 +286,13 @@ def test_separable_stencils_one_pass_is_the_product_and_clamp(native_available, 
     matrix = GatherMatrix.of_rows(taps.long(), weights, nodes)
     stencil = _native_gather.SeparableStencil(taps, axes, corners, rows)
     z = torch.rand(nodes, columns, generator=generator, dtype=torch.float64).to(dtype)
+    taken = columns == 1 or stencil.runs_share >= _native_gather.RUNS_SHARE
+    assert (stencil.parts(columns, dtype) is not None) == taken
+    stencil.runs_share = 1.0  # the layouts under test whatever the share
     one_pass = _native_gather._limited_separable(z, stencil)
-    two_passes = _native_gather.limited(z, matrix, taps, corners.to(dtype), rows)
-    by_limited = _native_gather.limited(z, matrix, taps, corners.to(dtype), rows, lambda: stencil)
-    # limited takes the separable layouts for one column only
-    assert torch.equal(by_limited, one_pass if columns == 1 else two_passes)
     names = [name for name, _, _ in stencil.parts(columns, dtype)]
-    assert names == (["limited_runs", "limited_tricubic"] if columns == 1 else ["limited_tricubic"])
+    assert names == ["limited_runs", "limited_tricubic"]
+    two_passes = _native_gather.limited(z, matrix, taps, corners.to(dtype), rows)
     clamped = one_pass[rows] != matrix.apply(z)
     assert int(clamped.sum()) > 5
     tolerance = 1e-14 if dtype == torch.float64 else 2e-6

@@ -387,6 +387,6 @@ def test_one_columns_packed_values_have_the_standard_strides():
         return
     column = packed.reshape(-1, 1)
     rate0 = torch.zeros((packing.band_count, 1), dtype=torch.float64)
-    stage = _native_gather.rkc_stage(packing.weighted.blocks(), column, column, column, rate0,
+    stage = _native_gather.rkc_stage(packing.weighted, column, column, column, rate0,
                                      (0.5, 0.1, 0.01, 0.01))
     assert stage.stride() == (1, 1)

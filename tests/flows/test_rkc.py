@@ -113,8 +113,10 @@ def test_a_flow_runs_its_stages_on_its_own_path(path, monkeypatch):
     monkeypatch.setattr(_rkc.backend, "compiled", lambda function, *options: function)
     grid = ts.Grid.cube(13, 1.5)
     surface = ts.ImplicitSurface(ts.sdf.sphere(grid), grid)
-    # two channels: one column's stages run in the native kernel (tests/flows/test_packed_flow.py)
-    u = torch.rand((1, 2, *grid.shape), generator=torch.Generator().manual_seed(0))
+    # more channels than the native stages take (tests/flows/test_packed_flow.py)
+    from torchsurf.flows._native_gather import STAGE_COLUMNS
+
+    u = torch.rand((1, STAGE_COLUMNS + 1, *grid.shape), generator=torch.Generator().manual_seed(0))
     ts.HeatFlow(0.01, path=path)(u, surface)
     assert seen and set(seen) == {path}
 

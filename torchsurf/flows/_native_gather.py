@@ -33,14 +33,18 @@ from .._native import NativeLibrary, in_parts, in_threads
 
 
 class RowMatrix(Protocol):
-    """What :func:`limited` reads of a compressed-row matrix
+    """What :func:`limited` and :func:`rkc_stage` read of a compressed-row matrix
     (:class:`~torchsurf.flows._gather_matrix.GatherMatrix` is one)."""
 
     offsets: Tensor
     columns: Tensor
+    shape: tuple[int, int]
+
     def values(self, dtype: torch.dtype) -> Tensor: ...
 
     def apply(self, x: Tensor) -> Tensor: ...
+
+    def blocks(self) -> RowBlocks: ...
 
 
 _BODY = r"""
@@ -347,6 +351,52 @@ void clamp_into_SUFFIX(const int32_t *taps, const REAL *corners, const int64_t *
     }
 }
 
+/* rkc_stage for F columns (values row-major (nodes, F), F <= 32) and A's compressed rows
+   (offsets, columns, weights), row by row: each column shifted by its first value. Rows
+   [first, stop) of the rows < rows; F a constant where inlined with one. */
+static inline void rkc_stage_rows_of_SUFFIX(const int32_t *restrict offsets,
+        const int32_t *restrict columns, const REAL *restrict weights,
+        const REAL *restrict current, const REAL *restrict u, const REAL *restrict previous,
+        const REAL *restrict rate0, REAL *restrict following, REAL *restrict rate, REAL mu,
+        REAL nu, REAL a, REAL b, int64_t F, int64_t first, int64_t stop)
+{
+    REAL shift[32];
+    for (int64_t f = 0; f < F; ++f) shift[f] = current[f];
+    for (int64_t r = first; r < stop; ++r) {
+        REAL sums[32];
+        for (int64_t f = 0; f < F; ++f) sums[f] = 0;
+        for (int32_t e = offsets[r]; e < offsets[r + 1]; ++e) {
+            const REAL w = weights[e], *x = current + (int64_t)columns[e] * F;
+            for (int64_t f = 0; f < F; ++f) sums[f] += w * (x[f] - shift[f]);
+        }
+        for (int64_t f = 0; f < F; ++f) {
+            const int64_t i = r * F + f;
+            REAL v = (current[i] - u[i]) * mu;
+            v += a * sums[f];
+            if (rate0) v += b * rate0[i];
+            v += (previous[i] - u[i]) * nu;
+            following[i] = v + u[i];
+            if (rate) rate[i] = sums[f];
+        }
+    }
+}
+
+void rkc_stage_rows_SUFFIX(const int32_t *offsets, const int32_t *columns, const REAL *weights,
+        const REAL *current, const REAL *u, const REAL *previous, const REAL *rate0,
+        REAL *following, REAL *rate, REAL mu, REAL nu, REAL a, REAL b, int64_t F,
+        int64_t first, int64_t stop)
+{
+#define STAGE_ROWS_SUFFIX(W) rkc_stage_rows_of_SUFFIX(offsets, columns, weights, current, u, \
+        previous, rate0, following, rate, mu, nu, a, b, W, first, stop)
+    switch (F) {
+    case 2: STAGE_ROWS_SUFFIX(2); break;
+    case 3: STAGE_ROWS_SUFFIX(3); break;
+    case 4: STAGE_ROWS_SUFFIX(4); break;
+    default: STAGE_ROWS_SUFFIX(F);
+    }
+#undef STAGE_ROWS_SUFFIX
+}
+
 /* A whole Runge-Kutta-Chebyshev step of u' = A u (rows as rkc_stage's, all blocks on this
    thread): stage 1 into stage[1 % 3] with its rate into rate0 (rows,), then stages j = 2..s
    into the three buffers in turn (stage[j % 3]; stage j - 2 and j - 1 are read from the other
@@ -433,41 +483,72 @@ void limited_tricubic_SUFFIX(const int32_t *columns, const REAL *axes, const REA
                                           out, R, F, b);
 }
 
-/* limited_tricubic for one column and rows whose taps lie 4 by 4 side by side along x: row r's
-   run k j (16 of them, z then y) holds taps starts[16 r + 4 k + j] + 0..3, its separable
-   weights axes[12 r + 4 axis + i] (axis 0 x, 1 y, 2 z); each run one vector load. Rows
-   [first, stop) of R. */
-void limited_runs_SUFFIX(const int32_t *starts, const REAL *axes, const REAL *corners,
-        const int64_t *rows, const REAL *x, REAL *out, int64_t first, int64_t stop)
+/* limited_tricubic for rows whose taps lie 4 by 4 side by side along x: row r's run k j (16 of
+   them, z then y) holds taps starts[16 r + 4 k + j] + 0..3, its separable weights
+   axes[12 r + 4 axis + i] (axis 0 x, 1 y, 2 z); the F <= 8 columns of x (nodes, F) row-major,
+   so that a run's 4 F values lie side by side, read as F vectors of 4. Rows [first, stop). */
+static inline void limited_runs_of_SUFFIX(const int32_t *restrict starts,
+        const REAL *restrict axes, const REAL *corners, const int64_t *rows, const REAL *x,
+        REAL *out, int64_t F, int64_t first, int64_t stop)
 {
     for (int64_t r = first; r < stop; ++r) {
         const int32_t *run = starts + 16 * r;
-        const REAL *wy = axes + 12 * r + 4, *wz = axes + 12 * r + 8;
-        v4_SUFFIX wx;
-        memcpy(&wx, axes + 12 * r, sizeof wx);
-        v4_SUFFIX sum = {0, 0, 0, 0};
+        const REAL *wx = axes + 12 * r, *wy = axes + 12 * r + 4, *wz = axes + 12 * r + 8;
+        /* the run's 4 F values side by side, in F vectors of 4: value m (node m / F, column
+           m % F) weighted by wx[m / F] */
+        v4_SUFFIX pattern[8], acc[8];
+        for (int64_t c = 0; c < F; ++c)
+            for (int e = 0; e < 4; ++e) {
+                pattern[c][e] = wx[(4 * c + e) / F];
+                acc[c][e] = 0;
+            }
         for (int k = 0; k < 4; ++k)
             for (int j = 0; j < 4; ++j) {
-                v4_SUFFIX taps;
-                memcpy(&taps, x + run[4 * k + j], sizeof taps);
-                sum += ((wz[k] * wy[j]) * wx) * taps;
-            }
-        REAL v = (sum[0] + sum[1]) + (sum[2] + sum[3]);
-        REAL least = x[run[5] + 1], most = least;
-        for (int k = 1; k < 3; ++k)
-            for (int j = 1; j < 3; ++j)
-                for (int i = 1; i < 3; ++i) {
-                    const REAL node = x[run[4 * k + j] + i];
-                    least = node < least ? node : least;
-                    most = node > most ? node : most;
+                const REAL zy = wz[k] * wy[j], *t = x + (int64_t)run[4 * k + j] * F;
+                for (int64_t c = 0; c < F; ++c) {
+                    v4_SUFFIX values;
+                    memcpy(&values, t + 4 * c, sizeof values);
+                    acc[c] += (zy * pattern[c]) * values;
                 }
-        if (!(v >= least && v <= most) && v == v) {
-            REAL u[64];
-            for (int t = 0; t < 64; ++t) u[t] = x[run[t >> 2] + (t & 3)];
-            clamp_to_bounds_SUFFIX(&v, u, corners + r * 8);
+            }
+        for (int64_t f = 0; f < F; ++f) {
+            REAL v;
+            if (F == 1) {
+                v = (acc[0][0] + acc[0][1]) + (acc[0][2] + acc[0][3]);
+            } else {
+                v = 0;
+                for (int64_t m = f; m < 4 * F; m += F) v += acc[m / 4][m % 4];
+            }
+#define NODE_SUFFIX(k, j, i) x[((int64_t)run[4 * (k) + (j)] + (i)) * F + f]
+            REAL least = NODE_SUFFIX(1, 1, 1), most = least;
+            for (int k = 1; k < 3; ++k)
+                for (int j = 1; j < 3; ++j)
+                    for (int i = 1; i < 3; ++i) {
+                        const REAL node = NODE_SUFFIX(k, j, i);
+                        least = node < least ? node : least;
+                        most = node > most ? node : most;
+                    }
+            if (!(v >= least && v <= most) && v == v) {
+                REAL u[64];
+                for (int t = 0; t < 64; ++t) u[t] = NODE_SUFFIX(t >> 4, (t >> 2) & 3, t & 3);
+                clamp_to_bounds_SUFFIX(&v, u, corners + r * 8);
+            }
+#undef NODE_SUFFIX
+            out[rows[r] * F + f] = v;
         }
-        out[rows[r]] = v;
     }
+}
+
+void limited_runs_SUFFIX(const int32_t *starts, const REAL *axes, const REAL *corners,
+        const int64_t *rows, const REAL *x, REAL *out, int64_t F, int64_t first, int64_t stop)
+{
+    switch (F) {   /* a constant F: no index products */
+    case 1: limited_runs_of_SUFFIX(starts, axes, corners, rows, x, out, 1, first, stop); break;
+    case 2: limited_runs_of_SUFFIX(starts, axes, corners, rows, x, out, 2, first, stop); break;
+    case 3: limited_runs_of_SUFFIX(starts, axes, corners, rows, x, out, 3, first, stop); break;
+    case 4: limited_runs_of_SUFFIX(starts, axes, corners, rows, x, out, 4, first, stop); break;
+    default: limited_runs_of_SUFFIX(starts, axes, corners, rows, x, out, F, first, stop);
+    }   /* F <= 8: SeparableStencil.parts */
 }
 
 /* The clamp's backward: for each target r and column, the gradient g[rows[r]] goes to the
@@ -649,10 +730,12 @@ LIBRARY = NativeLibrary(
         for s in ("f32", "f64")},
      **{f"limited_tricubic_{s}": [ctypes.c_void_p] * 6 + [ctypes.c_int64] * 4
         for s in ("f32", "f64")},
-     **{f"limited_runs_{s}": [ctypes.c_void_p] * 6 + [ctypes.c_int64] * 2
+     **{f"limited_runs_{s}": [ctypes.c_void_p] * 6 + [ctypes.c_int64] * 3
         for s in ("f32", "f64")},
      **{f"rkc_step_{s}": [ctypes.c_void_p] * 11 + [ctypes.c_int64] * 3
         for s in ("f32", "f64")},
+     **{f"rkc_stage_rows_{s}": [ctypes.c_void_p] * 9 + [real] * 4 + [ctypes.c_int64] * 3
+        for s, real in (("f32", ctypes.c_float), ("f64", ctypes.c_double))},
      **{f"rkc_stage_{s}": [ctypes.c_void_p] * 11 + [real] * 4 + [ctypes.c_int64] * 3
         for s, real in (("f32", ctypes.c_float), ("f64", ctypes.c_double))},
      **{f"brick_tricubic_{s}": [ctypes.c_void_p] * 5 + [ctypes.c_int64] + [ctypes.c_void_p]
@@ -767,33 +850,50 @@ def _block_product(laid: list[Tensor], x: Tensor, rows: int) -> Tensor:
     return out[:rows]
 
 
-def rkc_stage(blocks: RowBlocks, current: Tensor, u: Tensor, previous: Tensor,
+STAGE_COLUMNS = 8
+"""Most columns :func:`rkc_stage` takes row by row (beyond, the product's vector kernels and
+one compiled pass for the combination)."""
+
+
+def rkc_stage(matrix: RowMatrix, current: Tensor, u: Tensor, previous: Tensor,
               rate0: Tensor | None, weights: tuple[float, float, float, float],
               rate: Tensor | None = None) -> Tensor:
-    """One stage of a Runge-Kutta-Chebyshev step of ``u' = A u`` in one pass, for ``A`` laid out
-    as ``blocks`` (``(rows, nodes)``, rows the first of the nodes; its other nodes' rate zero)
-    and one column of values ``current``, ``u``, ``previous`` ``(nodes, 1)``: the new stage
-    ``u + mu (current - u) + a A current + b rate0 + nu (previous - u)`` for ``weights = (mu,
-    nu, a, b)`` on the rows (``A current`` formed from ``current`` less its first value, as
-    :meth:`PackedRegion.weighted_apply`), ``u`` on the other nodes; a new ``(nodes, 1)``
-    tensor. ``rate0`` ``(rows, 1)`` or ``None`` (zero); ``rate`` ``(rows, 1)``, if given,
-    receives ``A current``. All contiguous, in one dtype the kernel takes (:func:`applies`);
-    no autograd."""
+    """One stage of a Runge-Kutta-Chebyshev step of ``u' = A u`` in one pass, for ``A``
+    ``(rows, nodes)`` (rows the first of the nodes; its other nodes' rate zero) and values
+    ``current``, ``u``, ``previous`` ``(nodes, F)``: the new stage ``u + mu (current - u) + a A
+    current + b rate0 + nu (previous - u)`` for ``weights = (mu, nu, a, b)`` on the rows (``A
+    current`` formed from ``current`` less its first row, as
+    :meth:`~torchsurf.flows._packed_band.PackedRegion.weighted_apply`), ``u`` on the other
+    nodes; a new ``(nodes, F)`` tensor. One column runs by ``matrix.blocks()``, up to
+    :data:`STAGE_COLUMNS` row by row. ``rate0`` ``(rows, F)`` or ``None`` (zero); ``rate``
+    ``(rows, F)``, if given, receives ``A current``. All contiguous, in one dtype the kernel
+    takes (:func:`applies`); no autograd."""
+    rows, features = matrix.shape[0], u.shape[1]
     following = torch.empty(u.shape, dtype=u.dtype)  # standard strides, whatever u's
-    following[blocks.rows:] = u[blocks.rows:]
-    starts, shared, counts, columns, laid = blocks.laid(u.dtype)
-    kernel = getattr(LIBRARY.load(), f"rkc_stage_{_SUFFIX[u.dtype]}")
+    following[rows:] = u[rows:]
     mu, nu, a, b = (float(w) for w in weights)
     rate0_pointer = None if rate0 is None else rate0.data_ptr()
     rate_pointer = None if rate is None else rate.data_ptr()
+    values = [current.data_ptr(), u.data_ptr(), previous.data_ptr(), rate0_pointer,
+              following.data_ptr(), rate_pointer, mu, nu, a, b]
+    if features == 1:
+        blocks = matrix.blocks()
+        laid = [t.data_ptr() for t in blocks.laid(u.dtype)]
+        kernel = getattr(LIBRARY.load(), f"rkc_stage_{_SUFFIX[u.dtype]}")
 
-    def run(first: int, stop: int) -> None:
-        kernel(starts.data_ptr(), shared.data_ptr(), counts.data_ptr(), columns.data_ptr(),
-               laid.data_ptr(), current.data_ptr(), u.data_ptr(), previous.data_ptr(),
-               rate0_pointer, following.data_ptr(), rate_pointer, mu, nu, a, b, blocks.rows,
-               first, stop)
+        def run(first: int, stop: int) -> None:
+            kernel(*laid, *values, rows, first, stop)
 
-    in_threads(run, blocks.blocks, THREAD_MIN_ROWS // 8)
+        in_threads(run, blocks.blocks, THREAD_MIN_ROWS // 8)
+    else:
+        laid = [matrix.offsets.data_ptr(), matrix.columns.data_ptr(),
+                matrix.values(u.dtype).data_ptr()]
+        kernel = getattr(LIBRARY.load(), f"rkc_stage_rows_{_SUFFIX[u.dtype]}")
+
+        def run(first: int, stop: int) -> None:
+            kernel(*laid, *values, features, first, stop)
+
+        in_threads(run, rows, THREAD_MIN_ROWS)
     return following
 
 
@@ -956,10 +1056,9 @@ def limited(z: Tensor, matrix: RowMatrix, taps: Tensor, corners: Tensor, rows: T
     with its corners' trilinear weights ``corners`` ``(R, 8)`` (``z``'s dtype); in autograd's
     graph when ``z`` is (the gradient of a clamped value reaches the taps holding its corners'
     extremes, with the corners' weights). ``separable``, if given, returns the same stencil
-    as a :class:`SeparableStencil`, which computes one column in one pass where no gradient is
-    recorded (for several columns the product's row-major kernel and the clamp are faster: a
-    batch of 4 at 64^3 took 1.25x the time the other way). ``None`` where the kernel does not
-    run (:func:`applies`)."""
+    as a :class:`SeparableStencil`, which computes it in one pass where no gradient is recorded
+    (several columns only where most rows lie in runs: :data:`RUNS_SHARE`). ``None`` where the
+    kernel does not run (:func:`applies`)."""
     if (not applies(matrix.offsets, z) or taps.dtype != torch.int32
             or rows.dtype != torch.int64 or corners.dtype != z.dtype):
         return None
@@ -970,24 +1069,36 @@ def limited(z: Tensor, matrix: RowMatrix, taps: Tensor, corners: Tensor, rows: T
         return out
     if torch.is_grad_enabled() and z.requires_grad:
         return _Limited.apply(z, matrix, taps, corners, rows)
-    if separable is not None and z.shape[1] == 1:
-        return _limited_separable(z, separable())
+    if separable is not None:
+        out = _limited_separable(z, separable())
+        if out is not None:
+            return out
     return _clamped_into(z, matrix.apply(z), taps, corners, rows, None, None)
+
+
+RUNS_SHARE = 0.5
+"""Several columns take :class:`SeparableStencil` where at least this share of its rows lie in
+runs: the blocks of 8 were slower than the product and the clamp for several columns (a batch
+of 4 at 64^3: 1.25x the time)."""
+
+
+RUNS_COLUMNS = 8
+"""Most columns :class:`SeparableStencil` takes (its runs kernel holds 4 x 8 values a run)."""
 
 
 class SeparableStencil:
     """A limited tricubic stencil laid out for one pass (:func:`limited`), its 64 tap weights
     formed in the kernel from the 12 separable ones:
 
-    - for one column, the rows whose taps lie 4 by 4 side by side along x (every row of a
-      sphere's band at 35^3) by their 16 runs' first taps (112 bytes a row in float32), each
-      run one vector load;
-    - the other rows, and every row for several columns, in blocks of 8, each block's 64 taps
-      interleaved (tap ``t`` of its 8 rows side by side) and its separable weights likewise
-      (304 bytes a row, against the 512 of the taps and their 64 weights), the limiter's test
-      reading the taps the product has just read.
+    - the rows whose taps lie 4 by 4 side by side along x (every row of a sphere's band at
+      35^3) by their 16 runs' first taps (112 bytes a row in float32), a run's values read
+      side by side (one vector load for one column);
+    - the other rows in blocks of 8, each block's 64 taps interleaved (tap ``t`` of its 8 rows
+      side by side) and its separable weights likewise (304 bytes a row, against the 512 of
+      the taps and their 64 weights), the limiter's test reading the taps the product has just
+      read.
 
-    Each layout is formed at its first use and kept.
+    The layout is formed at its first use in a dtype and kept.
 
     Args:
         taps: ``(R, 64)`` int32 taps (rows of the values), in the order ``16 z + 4 y + x``.
@@ -999,28 +1110,32 @@ class SeparableStencil:
 
     def __init__(self, taps: Tensor, axes: Tensor, corners: Tensor, rows: Tensor) -> None:
         self.taps, self.axes, self.corners, self.rows = taps, axes, corners, rows
-        self._layouts: dict[tuple[str, torch.dtype], list] = {}
+        runs = taps.view(-1, 16, 4).long()
+        self._side_by_side = (runs - runs[:, :, :1] == torch.arange(4, device=runs.device)
+                              ).all(2).all(1)
+        self.runs_share = float(self._side_by_side.float().mean()) if len(taps) else 1.0
+        self._layouts: dict[torch.dtype, list] = {}
 
-    def parts(self, columns: int, dtype: torch.dtype) -> list:
+    def parts(self, columns: int, dtype: torch.dtype) -> list | None:
         """The kernels' arguments for ``columns`` columns of ``dtype`` values: for each part, its
-        kernel's name, its tensors and its row count."""
-        key = ("runs" if columns == 1 else "blocks", dtype)
-        if key not in self._layouts:
-            self._layouts[key] = self._laid(columns == 1, dtype)
-        return self._layouts[key]
+        kernel's name, its tensors and its row count; ``None`` for more than
+        :data:`RUNS_COLUMNS` columns, or several where fewer than :data:`RUNS_SHARE` of the rows
+        lie in runs."""
+        if columns > RUNS_COLUMNS or (columns > 1 and self.runs_share < RUNS_SHARE):
+            return None
+        if dtype not in self._layouts:
+            self._layouts[dtype] = self._laid(dtype)
+        return self._layouts[dtype]
 
-    def _laid(self, by_runs: bool, dtype: torch.dtype) -> list:
-        runs = self.taps.view(-1, 16, 4).long()
-        side_by_side = (runs - runs[:, :, :1] == torch.arange(4, device=runs.device)).all(2).all(1)
-        if not by_runs:
-            side_by_side = torch.zeros_like(side_by_side)
+    def _laid(self, dtype: torch.dtype) -> list:
         parts = []
-        chosen = side_by_side.nonzero().squeeze(1)
+        chosen = self._side_by_side.nonzero().squeeze(1)
         if len(chosen):
+            starts = self.taps.view(-1, 16, 4)[chosen, :, 0].to(torch.int32).contiguous()
             axes = self.axes[:, chosen].to(dtype).permute(1, 0, 2).reshape(-1, 12).contiguous()
-            parts.append(("limited_runs", [runs[chosen, :, 0].to(torch.int32).contiguous(), axes,
-                                           *self._targets(chosen, dtype)], len(chosen)))
-        rest = (~side_by_side).nonzero().squeeze(1)
+            parts.append(("limited_runs", [starts, axes, *self._targets(chosen, dtype)],
+                          len(chosen)))
+        rest = (~self._side_by_side).nonzero().squeeze(1)
         if len(rest):
             count = len(rest)
             blocks = (count + 7) // 8
@@ -1038,17 +1153,22 @@ class SeparableStencil:
         return [self.corners[chosen].to(dtype).contiguous(), self.rows[chosen].contiguous()]
 
 
-def _limited_separable(z: Tensor, stencil: SeparableStencil) -> Tensor:
-    """:func:`limited` by ``stencil``'s layouts in one pass; no autograd."""
+def _limited_separable(z: Tensor, stencil: SeparableStencil) -> Tensor | None:
+    """:func:`limited` by ``stencil``'s layout in one pass, or ``None`` where it does not take
+    ``z``'s columns (:meth:`SeparableStencil.parts`); no autograd."""
+    features = z.shape[1]
+    parts = stencil.parts(features, z.dtype)
+    if parts is None:
+        return None
     out = (torch.empty(z.shape, dtype=z.dtype) if len(stencil.rows) == len(z)  # rows distinct
            else z.clone(memory_format=torch.contiguous_format))
-    library, features = LIBRARY.load(), z.shape[1]
-    for name, tensors, count in stencil.parts(features, z.dtype):
+    library = LIBRARY.load()
+    for name, tensors, count in parts:
         kernel = getattr(library, f"{name}_{_SUFFIX[z.dtype]}")
         pointers = [t.data_ptr() for t in tensors]
         if name == "limited_runs":
             def run(first: int, stop: int, kernel=kernel, pointers=pointers) -> None:  # noqa: ANN001
-                kernel(*pointers, z.data_ptr(), out.data_ptr(), first, stop)
+                kernel(*pointers, z.data_ptr(), out.data_ptr(), features, first, stop)
 
             in_threads(run, count, THREAD_MIN_ROWS)
         else:

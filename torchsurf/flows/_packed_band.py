@@ -196,8 +196,9 @@ class FusedStage:
     """The RKC stages of the heat rate ``scale W^-1 A z`` on a packed region's values, each in
     one native pass (:func:`~._native_gather.rkc_stage`: the operator's rows and the stage's
     combination together, instead of a product and seven pointwise passes; the ring's values
-    held, or re-extended before each stage by ``fill``), for one column of values and no
-    gradient (:meth:`applies`). A :class:`~._rkc.LinearStage`.
+    held, or re-extended before each stage by ``fill``), for up to
+    :data:`~._native_gather.STAGE_COLUMNS` columns of values and no gradient (:meth:`applies`).
+    A :class:`~._rkc.LinearStage`.
 
     Args:
         packing: the packed band and ring.
@@ -217,7 +218,7 @@ class FusedStage:
 
     def applies(self, u: Tensor) -> bool:
         """Whether the stages run natively for region values ``u`` ``(nodes, C, K)``."""
-        if u.shape[1:].numel() != 1 or torch.compiler.is_compiling():
+        if u.shape[1:].numel() > _native_gather.STAGE_COLUMNS or torch.compiler.is_compiling():
             return False
         if torch.is_grad_enabled() and u.requires_grad:
             return False
@@ -227,7 +228,7 @@ class FusedStage:
     def step(self, u: Tensor, weights: list[tuple[float, float, float, float]]) -> Tensor | None:
         """The whole step in one native call (:func:`~._native_gather.rkc_step`), or ``None``
         where its rows are split between threads or the ring is re-extended at each stage."""
-        if self.fill is not None:
+        if self.fill is not None or u.shape[1:].numel() != 1:
             return None
         scaled = torch.tensor(weights, dtype=torch.float64)
         scaled[:, 2:] *= self.scale
@@ -241,12 +242,13 @@ class FusedStage:
         mu, nu, a, b = weights
         if self.fill is not None:  # the band's rows and the combination are the same
             current = self.fill(current)
-        column = (t.reshape(-1, 1).contiguous() for t in (current, u, previous))
+        rows = len(u)
+        values = (t.reshape(rows, -1).contiguous() for t in (current, u, previous))
         following = _native_gather.rkc_stage(
-            self.packing.weighted.blocks(), *column,
-            None if rate0 is None else rate0.reshape(-1, 1),
+            self.packing.weighted, *values,
+            None if rate0 is None else rate0.reshape(len(rate0), -1),
             (mu, nu, a * self.scale, b * self.scale),
-            None if rate is None else rate.reshape(-1, 1))
+            None if rate is None else rate.reshape(len(rate), -1))
         return following.reshape(u.shape)
 
 
