@@ -260,7 +260,8 @@ def test_row_blocks_laid_out_in_chunks_equal_the_whole_layout(monkeypatch):
 @pytest.mark.parametrize("columns", [1, 3, 8])
 @pytest.mark.parametrize("scattered_share", [1 / 3, 2 / 3])
 def test_separable_stencils_one_pass_is_the_product_and_clamp(native_available, dtype,
-                                                              columns, scattered_share):
+                                                              columns, scattered_share,
+                                                              monkeypatch):
     """A limited tricubic stencil by its separable layouts against the compressed-row product
     and the clamp: rows whose taps lie 4 by 4 side by side (runs) mixed with rows whose taps do
     not (blocks of 8, the last one partial), one to eight columns, rough data (values clamped),
@@ -288,7 +289,7 @@ def test_separable_stencils_one_pass_is_the_product_and_clamp(native_available, 
     z = torch.rand(nodes, columns, generator=generator, dtype=torch.float64).to(dtype)
     taken = columns == 1 or stencil.runs_share >= _native_gather.RUNS_SHARE
     assert (stencil.parts(columns, dtype) is not None) == taken
-    stencil.runs_share = 1.0  # the layouts under test whatever the share
+    monkeypatch.setattr(_native_gather, "RUNS_SHARE", 0.0)  # the layouts whatever the share
     one_pass = _native_gather._limited_separable(z, stencil)
     names = [name for name, _, _ in stencil.parts(columns, dtype)]
     assert names == ["limited_runs", "limited_tricubic"]

@@ -1110,11 +1110,32 @@ class SeparableStencil:
 
     def __init__(self, taps: Tensor, axes: Tensor, corners: Tensor, rows: Tensor) -> None:
         self.taps, self.axes, self.corners, self.rows = taps, axes, corners, rows
-        runs = taps.view(-1, 16, 4).long()
-        self._side_by_side = (runs - runs[:, :, :1] == torch.arange(4, device=runs.device)
-                              ).all(2).all(1)
-        self.runs_share = float(self._side_by_side.float().mean()) if len(taps) else 1.0
+        self._side_by_side: Tensor | None = None
         self._layouts: dict[torch.dtype, list] = {}
+
+    @property
+    def side_by_side(self) -> Tensor:
+        """Whether each row's taps lie in 16 runs of 4 consecutive rows ``(R,)`` bool (found at
+        the first use, :data:`LAYOUT_ROWS` rows at a time: no ``(R, 64)`` temporaries)."""
+        if self._side_by_side is None:
+            self._find_runs()
+        return self._side_by_side
+
+    @property
+    def runs_share(self) -> float:
+        """The share of the rows whose taps lie in runs (1 without rows)."""
+        if self._side_by_side is None:
+            self._find_runs()
+        return self._runs_share
+
+    def _find_runs(self) -> None:
+        step = torch.arange(4, dtype=torch.int32, device=self.taps.device)
+        runs = self.taps.view(-1, 16, 4)
+        found = [(runs[low:low + LAYOUT_ROWS] - runs[low:low + LAYOUT_ROWS, :, :1] == step)
+                 .flatten(1).all(1) for low in range(0, len(runs), LAYOUT_ROWS)]
+        self._side_by_side = (torch.cat(found) if found
+                              else torch.zeros(0, dtype=torch.bool, device=self.taps.device))
+        self._runs_share = float(self._side_by_side.float().mean()) if found else 1.0
 
     def parts(self, columns: int, dtype: torch.dtype) -> list | None:
         """The kernels' arguments for ``columns`` columns of ``dtype`` values: for each part, its
@@ -1129,13 +1150,13 @@ class SeparableStencil:
 
     def _laid(self, dtype: torch.dtype) -> list:
         parts = []
-        chosen = self._side_by_side.nonzero().squeeze(1)
+        chosen = self.side_by_side.nonzero().squeeze(1)
         if len(chosen):
             starts = self.taps.view(-1, 16, 4)[chosen, :, 0].to(torch.int32).contiguous()
             axes = self.axes[:, chosen].to(dtype).permute(1, 0, 2).reshape(-1, 12).contiguous()
             parts.append(("limited_runs", [starts, axes, *self._targets(chosen, dtype)],
                           len(chosen)))
-        rest = (~self._side_by_side).nonzero().squeeze(1)
+        rest = (~self.side_by_side).nonzero().squeeze(1)
         if len(rest):
             count = len(rest)
             blocks = (count + 7) // 8
