@@ -390,3 +390,21 @@ def test_one_columns_packed_values_have_the_standard_strides():
     stage = _native_gather.rkc_stage(packing.weighted, column, column, column, rate0,
                                      (0.5, 0.1, 0.01, 0.01))
     assert stage.stride() == (1, 1)
+
+
+def test_native_stages_under_inference_mode_on_a_channel_slice(monkeypatch):
+    """A user's call under ``torch.inference_mode`` on one channel sliced out of a
+    channels-last field (not contiguous): the native stages run and give the volume flow's
+    numbers; the caller's field is untouched."""
+    surface = _held_surface("sphere")
+    field = torch.rand((1, *surface.grid.shape, 3), generator=torch.Generator().manual_seed(4),
+                       dtype=torch.float64).permute(0, 4, 1, 2, 3)
+    before = field.clone()
+    u = field[:, 1:2]
+    assert not u.is_contiguous()
+    calls = _counting_fused_stages(monkeypatch)
+    with torch.inference_mode():
+        packed, volume = _both(lambda: HeatFlow(10 * surface.spacing**2), u, surface, monkeypatch)
+    assert calls
+    torch.testing.assert_close(packed, volume, rtol=1e-12, atol=1e-12)
+    assert torch.equal(field, before)
