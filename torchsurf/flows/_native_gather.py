@@ -851,8 +851,8 @@ def _block_product(laid: list[Tensor], x: Tensor, rows: int) -> Tensor:
 
 
 STAGE_COLUMNS = 8
-"""Most columns :func:`rkc_stage` takes row by row (beyond, the product's vector kernels and
-one compiled pass for the combination)."""
+"""Most columns :func:`rkc_stage` takes row by row (beyond, the stages keep the product's
+vector kernels and the eager or compiled combination)."""
 
 
 def rkc_stage(matrix: RowMatrix, current: Tensor, u: Tensor, previous: Tensor,

@@ -223,7 +223,8 @@ class FusedStage:
         if torch.is_grad_enabled() and u.requires_grad:
             return False
         matrix = self.packing.weighted
-        return matrix.nonzeros > 0 and _native_gather.applies(matrix.offsets, u.reshape(-1, 1))
+        return matrix.nonzeros > 0 and _native_gather.applies(matrix.offsets,
+                                                              u.reshape(len(u), -1))
 
     def step(self, u: Tensor, weights: list[tuple[float, float, float, float]]) -> Tensor | None:
         """The whole step in one native call (:func:`~._native_gather.rkc_step`), or ``None``
@@ -343,7 +344,7 @@ class PackedStencil:
         self._separable = _native_gather.SeparableStencil(self.taps, _stencil_axes(stencil),
                                                           self.corners, self.rows)
 
-    def tricubic(self) -> _native_gather.SeparableStencil:
+    def separable(self) -> _native_gather.SeparableStencil:
         """The stencil laid out for the one-pass kernels (its layouts formed at their first
         use)."""
         return self._separable
@@ -356,7 +357,7 @@ class PackedStencil:
         flat = z.reshape(z.shape[0], -1)
         corners = self.corners.to(z.dtype)
         native = _native_gather.limited(flat, self.matrix, self.taps, corners, self.rows,
-                                        self.tricubic)
+                                        self.separable)
         if native is not None:
             return native.reshape(z.shape)
         value = self.matrix.apply(flat)  # (R, F)

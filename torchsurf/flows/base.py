@@ -42,7 +42,7 @@ import functools
 import math
 import numbers
 import warnings
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 import torch
@@ -119,30 +119,28 @@ def _range_excess(u0: Tensor, results: list[Tensor], region: Tensor, band: Tenso
     entry: a brick batch of several is integrated one entry at a time)."""
     dims = [0, 2, 3, 4] if packed else [2, 3, 4]
     with torch.no_grad():
-        low, high = _masked_range(u0.detach(), region, dims)
-        rounding = RANGE_ROUNDING * torch.finfo(u0.dtype).eps * torch.maximum(low.abs(), high.abs())
-        span = torch.maximum(high - low, rounding).clamp_min(torch.finfo(u0.dtype).tiny)
-        excess = 0.0
-        for value in results:
-            least, largest = _masked_range(value.detach(), band, dims)
-            beyond = torch.maximum(largest - high, low - least) / span
-            excess = max(excess, float(beyond.max()))
-    return excess
+        return _excess(_masked_range(u0.detach(), region, dims),
+                       (_masked_range(value.detach(), band, dims) for value in results))
 
 
 def _packed_range_excess(start: Tensor, results: list[Tensor], band_count: int) -> float:
     """:func:`_range_excess` on one volume's packed region values ``(nodes, C, K)`` (the band's
     nodes first, ``band_count`` of them): per channel and batch entry ``K``."""
     with torch.no_grad():
-        start = start.detach()
-        low, high = start.amin(0), start.amax(0)
-        rounding = RANGE_ROUNDING * torch.finfo(start.dtype).eps * torch.maximum(low.abs(), high.abs())
-        span = torch.maximum(high - low, rounding).clamp_min(torch.finfo(start.dtype).tiny)
-        excess = 0.0
-        for value in results:
-            band = value.detach()[:band_count]
-            beyond = torch.maximum(band.amax(0) - high, low - band.amin(0)) / span
-            excess = max(excess, float(beyond.max()))
+        bands = (value.detach()[:band_count] for value in results)
+        return _excess(torch.aminmax(start.detach(), dim=0),
+                       (torch.aminmax(band, dim=0) for band in bands))
+
+
+def _excess(start: tuple[Tensor, Tensor], results: Iterable[tuple[Tensor, Tensor]]) -> float:
+    """The largest step of the ``(least, largest)`` ``results`` beyond the ``(low, high)`` of
+    ``start``, as a fraction of ``high - low`` (at least the rounding of the values)."""
+    low, high = start
+    rounding = RANGE_ROUNDING * torch.finfo(low.dtype).eps * torch.maximum(low.abs(), high.abs())
+    span = torch.maximum(high - low, rounding).clamp_min(torch.finfo(low.dtype).tiny)
+    excess = 0.0
+    for least, largest in results:
+        excess = max(excess, float((torch.maximum(largest - high, low - least) / span).max()))
     return excess
 
 
