@@ -193,3 +193,23 @@ def test_flows_not_ported_to_bricks_say_so(torus):
         ts.flows.Flow(time=0.01)(u, surface)  # a flow that does not declare supports_bricks
     with pytest.raises(NotImplementedError, match="Flow does not run on a BrickSurface"):
         ts.flows.ColorDenoise(0.01, brightness=ts.flows.Flow(time=0.01))(u, surface)
+
+
+def test_flows_keep_their_band_and_ring_and_dilate_once_per_surface(torus, monkeypatch):
+    """The ring around a flow's band is a halo gather on bricks: formed on the first call and
+    kept beside the band, with the same numbers; re-formed at every call while phi needs grad."""
+    dense, surface = torus
+    u = surface.from_dense(_data(dense.grid, channels=1))
+    flow = ts.flows.HeatFlow(time=0.004)
+    first = flow(u, surface)
+    band = flow.band_mask(surface)
+    assert torch.equal(flow.region_mask(surface, band), with_ring(band, surface.layout))
+    calls = []
+    dilate = type(surface.layout).dilate
+    monkeypatch.setattr(type(surface.layout), "dilate",
+                        lambda self, *a, **k: calls.append(1) or dilate(self, *a, **k))
+    assert torch.equal(flow(u, surface), first)
+    assert calls == []
+    learned = bricks.BrickSurface(surface.phi.clone().requires_grad_(), surface.layout)
+    flow(u, learned)
+    assert len(calls) >= 1

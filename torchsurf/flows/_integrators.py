@@ -164,6 +164,12 @@ class System:
             self._region = with_ring(self.band, self.layout)
         return self._region
 
+    @region.setter
+    def region(self, value: Tensor) -> None:
+        """The ring computed and kept by the caller (:meth:`Flow.region_mask`): it must be
+        :func:`with_ring` of :attr:`band`."""
+        self._region = value
+
 
 @dataclass
 class Schedule:

@@ -7,7 +7,6 @@ from torch import Tensor, nn
 
 from .._checks import check_finite, check_positive
 from ..surface import ImplicitSurface, check_data, check_surface
-from ._integrators import with_ring
 from .anisotropic import AnisotropicFlow
 from .base import Flow
 from .harmonic import HarmonicMapFlow
@@ -84,7 +83,7 @@ class ColorDenoise(nn.Module):
             raise ValueError(f"image must have at least 2 colour channels (a chroma of one "
                              f"channel is constant), got shape {tuple(image.shape)}")
         if not torch.compiler.is_compiling() and isinstance(self.chroma, Flow):
-            region = with_ring(self.chroma.band_mask(surface), surface.layout)
+            region = self.chroma.region_mask(surface, self.chroma.band_mask(surface))
             check_finite(torch.where(region, image, 0.0), "image (in the band and its ring)")
         squared = (image**2).sum(dim=1, keepdim=True)
         brightness = torch.sqrt(squared + self.eps**2)
