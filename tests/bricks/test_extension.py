@@ -71,6 +71,27 @@ def test_gradcheck_linear_closest_point_extension_on_bricks_in_data_and_phi():
     assert torch.autograd.gradcheck(in_phi, (scale,))
 
 
+@pytest.mark.parametrize("interpolation", ["linear", "cubic"])
+def test_gradcheck_closest_point_extension_on_bricks_in_phi_alone(interpolation):
+    """``phi`` learned, the data fixed: the native tricubic gather (which records no graph)
+    must not run where the stencil's weights need a gradient from ``phi``."""
+    grid = ts.Grid.cube(19, 1.6)
+    points = grid.points(dtype=torch.float64)
+    reference = bricks.from_dense(ts.sdf.sphere(grid, 0.75).double(), grid)
+    bump = reference.from_dense(torch.sin(3 * points[..., 0] - points[..., 2])[None, None])
+    u = reference.from_dense(torch.sin(3 * points[..., 0] + 2 * points[..., 1])[None, None])
+    picked = reference.band_mask().flatten().nonzero().flatten()[::37]
+
+    def in_phi(amount):
+        surface = bricks.BrickSurface(reference.phi.detach() + amount * bump, reference.layout,
+                                      reference.band_width)
+        return closest_point_extension(u, surface, interpolation=interpolation).flatten()[picked]
+
+    amount = torch.full((), 0.02, dtype=torch.float64, requires_grad=True)
+    assert in_phi(amount).requires_grad
+    assert torch.autograd.gradcheck(in_phi, (amount,))
+
+
 def test_packed_data_is_required_on_bricks(torus):
     dense, surface = torus
     with pytest.raises(ValueError, match=r"u must be a packed band field"):

@@ -213,3 +213,31 @@ def test_flows_keep_their_band_and_ring_and_dilate_once_per_surface(torus, monke
     learned = bricks.BrickSurface(surface.phi.clone().requires_grad_(), surface.layout)
     flow(u, learned)
     assert len(calls) >= 1
+
+
+def test_heat_flow_on_bricks_differentiates_a_learned_phi_alone():
+    """The data fixed, ``phi`` learned: the flow's re-extensions take their gradient to
+    ``phi`` (the native gather, which records no graph, does not run): the dense flow's."""
+    grid = Grid.cube(19, 1.6)
+    points = grid.points(dtype=torch.float64)
+    base = ts.sdf.sphere(grid, 0.75).double()
+    bump = torch.sin(3 * points[..., 0] - points[..., 2])[None, None]
+    u = torch.sin(3 * points[..., 0] + 2 * points[..., 1])[None, None]
+    weight = torch.cos(5 * points[..., 0] - points[..., 1])[None, None]
+    layout = bricks.from_dense(base, grid).layout
+    flow = ts.flows.HeatFlow(time=0.01, method="euler", steps=3, band_width=3 * grid.spacing)
+    gradients = []
+    for layer in ("dense", "bricks"):
+        amount = torch.full((), 0.02, dtype=torch.float64, requires_grad=True)
+        phi = base + amount * bump
+        if layer == "dense":
+            surface = ts.ImplicitSurface(phi, grid)
+            loss = (weight * surface.band_mask() * flow(u, surface)).sum()
+        else:
+            surface = bricks.BrickSurface(layout.from_dense(phi, fill="linear"), layout)
+            loss = (surface.from_dense(weight) * surface.band_mask()
+                    * flow(surface.from_dense(u), surface)).sum()
+        (gradient,) = torch.autograd.grad(loss, amount)
+        gradients.append(gradient)
+    assert abs(float(gradients[0])) > 1e-3
+    torch.testing.assert_close(gradients[1], gradients[0], rtol=1e-9, atol=0)

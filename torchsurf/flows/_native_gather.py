@@ -1297,11 +1297,12 @@ def brick_tricubic(flat: Tensor, bases: Tensor, second: Tensor, local: Tensor, w
     (:mod:`._limiter`) if ``limited``. The ``(n, 64)`` tap positions are not formed (the
     compiled gather forms each tap's brick by selects at every application: 1.4x slower,
     limited). ``None`` where the kernel does not run: not the CPU, float32 or float64, or
-    32-bit bases; a gradient to record; while ``torch.compile`` traces; or no compiler."""
+    32-bit bases; a gradient to record (to ``flat``, or from ``phi`` to ``weights``); while
+    ``torch.compile`` traces; or no compiler."""
     if (flat.device.type != "cpu" or flat.dtype not in _SUFFIX or bases.dtype != torch.int32
             or second.dtype != torch.bool or local.dtype != torch.int16
             or weights.dtype != flat.dtype or torch.compiler.is_compiling()
-            or (torch.is_grad_enabled() and flat.requires_grad)):
+            or (torch.is_grad_enabled() and (flat.requires_grad or weights.requires_grad))):
         return None
     library = LIBRARY.load()
     if library is None:
