@@ -13,7 +13,8 @@ device (by shifted slices or by conv3d), and optionally a one-pass form over hal
   and shape, and the first compile in a process more (the compiler's start-up:
   docs/benchmarks.md, "Compile cost"), so on the CPU ``"auto"`` runs a kernel eagerly until
   the eager time measured on that kernel and shape in this process reaches
-  :data:`COMPILE_PAYBACK_SECONDS`, about what compiling it costs, and compiles it then: a call
+  :data:`COMPILE_PAYBACK_SECONDS` times the kernel's :attr:`Kernel.compile_weight`, about what
+  compiling it costs, and compiles it then: a call
   with less eager work than that never waits for a compiler, a flow run or a training loop is
   compiled after seconds of eager work, and no run spends more than about twice what the
   better choice in hindsight would have. It then times the compiled kernel too, and goes back
@@ -133,6 +134,9 @@ class Kernel:
         breaks_graph: ``fused`` shapes its own compiled graphs with
             ``torch._dynamo.graph_break()``: traced by an outer ``torch.compile``, the eager
             arrangement (:meth:`fused_eagerly`) runs instead, which has no break.
+        compile_weight: what compiling one variant of ``fused`` costs, in units of a typical
+            kernel's compile: ``"auto"`` compiles a variant once its eager time reaches
+            ``compile_weight * COMPILE_PAYBACK_SECONDS`` (:data:`COMPILE_PAYBACK_SECONDS`).
     """
 
     name: str
@@ -144,6 +148,13 @@ class Kernel:
     eager_fused: Callable[..., Tensor] | None = None
     trusted_indices: bool = False
     breaks_graph: bool = False
+    compile_weight: float = 1.0
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.compile_weight, (int, float)) and self.compile_weight > 0
+                and math.isfinite(self.compile_weight)):
+            raise ValueError(f"Kernel {self.name!r}: compile_weight must be a positive finite "
+                             f"number, got {self.compile_weight!r}")
 
     def fused_eagerly(self, *haloed_args: object) -> Tensor:
         """The one-pass form evaluated eagerly (:attr:`eager_fused` if given)."""
@@ -428,7 +439,7 @@ def _choose(volume: Tensor, kernel: Kernel | None, recording: bool, variant: tup
     if timings.slower:
         return eager
     if (at_once or volume.numel() >= COMPILE_AT_ONCE_VOXELS or timings.compiled
-            or timings.eager_seconds >= COMPILE_PAYBACK_SECONDS):
+            or timings.eager_seconds >= COMPILE_PAYBACK_SECONDS * kernel.compile_weight):
         return "compiled"
     return eager
 

@@ -289,6 +289,11 @@ def _edge_fused_eagerly(padded_u, haloed_normal, haloed_weight, weight, spacing,
                               box_faces=box_faces, coupled=coupled)
 
 
+COUPLED_COMPILE_WEIGHT = 3.0
+"""Compiling the coupled (harmonic-map, colour) rate costs 2.2-3.0x a Laplace–Beltrami's at
+64^3 with an empty inductor cache, and more with a dynamic batch of bricks (about 70 s at
+128^3): :attr:`backend.Kernel.compile_weight` (docs/benchmarks.md, "Compile weights")."""
+
 _EDGE_STOPPING = backend.Kernel("edge_stopping", _edge_eager, _edge_fused, _edge_halo,
                                 fused_when_eager=True, eager_fused=_edge_fused_eagerly)
 
@@ -365,7 +370,7 @@ def _coupled_halo(u, normal, weight, spacing, diffusivity, contrast, eps, power,
 
 _COUPLED = backend.Kernel("coupled_flux_form", _coupled_eager, fused_coupled_rate, _coupled_halo,
                           fused_when_eager=True, eager_fused=eager_coupled_rate,
-                          breaks_graph=True)
+                          breaks_graph=True, compile_weight=COUPLED_COMPILE_WEIGHT)
 
 
 def _coupled_open(padded_u, haloed_normal, haloed_weight, weight, spacing, diffusivity, contrast,  # noqa: ANN001, ANN202
@@ -381,7 +386,8 @@ def _coupled_open_eagerly(padded_u, haloed_normal, haloed_weight, weight, spacin
 
 
 _COUPLED_OPEN = backend.Kernel("coupled_flux_form_open", _coupled_eager, _coupled_open,
-                               eager_fused=_coupled_open_eagerly, breaks_graph=True)
+                               eager_fused=_coupled_open_eagerly, breaks_graph=True,
+                               compile_weight=COUPLED_COMPILE_WEIGHT)
 
 
 def harmonic_map_rate(
