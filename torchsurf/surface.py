@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import contextlib
 import math
 import warnings
 from collections.abc import Callable
@@ -22,6 +21,7 @@ from ._checks import (
     check_spatial_shape,
     check_volume,
 )
+from ._inference import outside_inference
 from ._stack import caller_stacklevel
 from .grid import Grid
 
@@ -65,19 +65,6 @@ CROSSING_CELLS = 255
 """Chessboard distances to S are counted up to this many cells (``uint8``): a node farther
 counts as this far, and a band of at least this many cells holds every node its distance
 admits."""
-
-
-def _kept_outside_inference() -> contextlib.AbstractContextManager:
-    """Where a value the surface keeps is computed under ``torch.inference_mode`` (an
-    evaluation loop's): compute it as under ``torch.no_grad`` instead. An inference tensor
-    kept on the surface could not be saved for backward by a later training call on the same
-    surface ("Inference tensors cannot be saved for backward")."""
-    if torch.compiler.is_compiling() or not torch.is_inference_mode_enabled():
-        return contextlib.nullcontext()
-    stack = contextlib.ExitStack()
-    stack.enter_context(torch.inference_mode(False))
-    stack.enter_context(torch.no_grad())
-    return stack
 
 
 def _crossing(inside: Tensor) -> Tensor:
@@ -461,10 +448,10 @@ class ImplicitSurface(nn.Module):
         self._assemble_kept(self.phi)
 
     def _assemble_kept(self, phi: Tensor) -> None:
-        """:meth:`_assemble`, outside ``torch.inference_mode`` (:func:`_kept_outside_inference`);
+        """:meth:`_assemble`, outside ``torch.inference_mode`` (:func:`outside_inference`);
         a ``phi`` made under it is copied (an inference tensor has no version counter for
         :meth:`_current_phi`)."""
-        with _kept_outside_inference():
+        with outside_inference():
             if not torch.compiler.is_compiling() and phi.is_inference():
                 phi = phi.clone()
             self._assemble(phi)
@@ -479,7 +466,7 @@ class ImplicitSurface(nn.Module):
         another surface is collected (the guard then fails to build).
         """
         if key not in self._kept:
-            with _kept_outside_inference():
+            with outside_inference():
                 self._kept[key] = compute()
         return self._kept[key]
 
@@ -576,7 +563,7 @@ class ImplicitSurface(nn.Module):
         """
         if self._haloed_normal is not None:
             return self._haloed_normal, self._haloed_weight
-        with _kept_outside_inference():
+        with outside_inference():
             normal, weight = self._haloed_geometry()
         if torch.is_grad_enabled() or not self.phi.requires_grad:
             self._haloed_normal, self._haloed_weight = normal, weight
@@ -622,7 +609,7 @@ class ImplicitSurface(nn.Module):
         if kept is not None and (torch.compiler.is_compiling()
                                  or kept._version == self._mean_curvature_version):
             return kept
-        with _kept_outside_inference():
+        with outside_inference():
             value = self._faded(curvature.mean_curvature(self._gradient(), self.hessian(),
                                                          self._directed_norm))
         if torch.is_grad_enabled() or not self.phi.requires_grad:

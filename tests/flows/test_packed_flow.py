@@ -8,6 +8,7 @@ import pytest
 import torch
 
 import torchsurf as ts
+from torchsurf import bricks
 from torchsurf.flows import HeatFlow, base, heat
 from torchsurf.flows.exponential import BandLaplacian
 from torchsurf.operators import functional
@@ -426,3 +427,55 @@ def test_several_columns_native_stages_are_the_volume_flow(kind, channels, monke
                                u, surface, monkeypatch)
     assert "stage" in calls
     torch.testing.assert_close(packed, volume, rtol=1e-12, atol=1e-12)
+
+
+def _inference_tensors(root: object) -> list[str]:
+    """Paths to every inference tensor reachable from ``root`` (containers and objects'
+    attributes)."""
+    found, seen, stack = [], set(), [("root", root)]
+    while stack:
+        path, value = stack.pop()
+        if id(value) in seen:
+            continue
+        seen.add(id(value))
+        if isinstance(value, torch.Tensor):
+            if value.is_inference():
+                found.append(path)
+        elif isinstance(value, (tuple, list)):
+            stack += [(f"{path}[{i}]", item) for i, item in enumerate(value)]
+        elif isinstance(value, dict):
+            stack += [(f"{path}[{key!r}]", item) for key, item in value.items()]
+        elif hasattr(value, "__dict__") and not isinstance(value, type) and not callable(value):
+            stack += [(f"{path}.{key}", item) for key, item in vars(value).items()]
+    return found
+
+
+@pytest.mark.parametrize("layout", ["dense", "bricks"])
+@pytest.mark.parametrize("method", ["rkc", "euler", "chebyshev"])
+def test_an_evaluation_under_inference_mode_keeps_no_inference_tensor(layout, method):
+    """The packed band's layouts (blocks, separable runs, values per dtype) are formed at their
+    first use: under ``torch.inference_mode`` they were inference tensors, kept on the surface,
+    and the next training call on it failed ("Inference tensors cannot be saved for
+    backward"). Now nothing kept is, and that call's gradient is a fresh surface's."""
+    grid = ts.Grid.cube(22, 1.5)
+    phi = ts.sdf.sphere(grid, 0.9).double()
+    u = torch.rand(1, 2, *grid.shape, dtype=torch.float64,
+                   generator=torch.Generator().manual_seed(3))
+
+    def surface_and_data():
+        if layout == "dense":
+            return ts.ImplicitSurface(phi, grid), u
+        surface = bricks.from_dense(phi, grid)
+        return surface, surface.from_dense(u)
+
+    flow = ts.flows.HeatFlow(time=0.01, method=method)
+    evaluated, data = surface_and_data()
+    with torch.inference_mode():
+        flow(data, evaluated)
+    assert _inference_tensors(evaluated._kept) == []
+    gradients = []
+    for surface in (evaluated, surface_and_data()[0]):
+        leaf = data.clone().requires_grad_()
+        (flow(leaf, surface) * data).sum().backward()
+        gradients.append(leaf.grad)
+    torch.testing.assert_close(gradients[0], gradients[1], rtol=1e-12, atol=1e-12)

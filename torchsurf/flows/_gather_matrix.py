@@ -24,6 +24,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from .._inference import outside_inference
 from . import _native_gather
 
 PADDING = 1.2
@@ -77,7 +78,8 @@ class GatherMatrix:
     def values(self, dtype: torch.dtype) -> Tensor:
         """The entries ``(nnz,)`` in row order, in ``dtype`` (converted once and kept)."""
         if dtype not in self._values:
-            self._values[dtype] = next(iter(self._values.values())).to(dtype)
+            with outside_inference():
+                self._values[dtype] = next(iter(self._values.values())).to(dtype)
         return self._values[dtype]
 
     def rows(self) -> Tensor:
@@ -100,15 +102,17 @@ class GatherMatrix:
                                    per_sample_weights=self.values(x.dtype),
                                    include_last_offset=True)
         if self._padded is None:
-            self._padded = _Padded(self)
+            with outside_inference():
+                self._padded = _Padded(self)
         return self._padded.apply(x)
 
     def blocks(self) -> _native_gather.RowBlocks:
         """The entries laid out for one column (:class:`~._native_gather.RowBlocks`), formed at
         the first call and kept; for the native kernels only (32-bit indices)."""
         if self._blocks is None:
-            self._blocks = _native_gather.RowBlocks(self.offsets, self.columns,
-                                                    next(iter(self._values.values())))
+            with outside_inference():
+                self._blocks = _native_gather.RowBlocks(self.offsets, self.columns,
+                                                        next(iter(self._values.values())))
         return self._blocks
 
     def transposed(self) -> GatherMatrix:
@@ -163,7 +167,8 @@ class _Padded:
 
     def weights(self, dtype: torch.dtype) -> list[Tensor]:
         if dtype not in self._weights:
-            self._weights[dtype] = [w.to(dtype) for w in next(iter(self._weights.values()))]
+            with outside_inference():
+                self._weights[dtype] = [w.to(dtype) for w in next(iter(self._weights.values()))]
         return self._weights[dtype]
 
     def apply(self, x: Tensor) -> Tensor:

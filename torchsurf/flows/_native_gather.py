@@ -29,6 +29,7 @@ from typing import Protocol
 import torch
 from torch import Tensor
 
+from .._inference import outside_inference
 from .._native import NativeLibrary, in_parts, in_threads
 
 
@@ -818,7 +819,8 @@ class RowBlocks:
     def weights(self, dtype: torch.dtype) -> Tensor:
         """The entries in this layout, in ``dtype`` (converted once and kept)."""
         if dtype not in self._weights:
-            self._weights[dtype] = next(iter(self._weights.values())).to(dtype)
+            with outside_inference():
+                self._weights[dtype] = next(iter(self._weights.values())).to(dtype)
         return self._weights[dtype]
 
     def tensors(self) -> list[Tensor]:
@@ -1129,6 +1131,10 @@ class SeparableStencil:
         return self._runs_share
 
     def _find_runs(self) -> None:
+        with outside_inference():
+            self._found_runs()
+
+    def _found_runs(self) -> None:
         step = torch.arange(4, dtype=torch.int32, device=self.taps.device)
         runs = self.taps.view(-1, 16, 4)
         found = [(runs[low:low + LAYOUT_ROWS] - runs[low:low + LAYOUT_ROWS, :, :1] == step)
@@ -1145,7 +1151,8 @@ class SeparableStencil:
         if columns > RUNS_COLUMNS or (columns > 1 and self.runs_share < RUNS_SHARE):
             return None
         if dtype not in self._layouts:
-            self._layouts[dtype] = self._laid(dtype)
+            with outside_inference():
+                self._layouts[dtype] = self._laid(dtype)
         return self._layouts[dtype]
 
     def _laid(self, dtype: torch.dtype) -> list:

@@ -34,6 +34,7 @@ from typing import Protocol
 import torch
 from torch import Tensor
 
+from .._inference import outside_inference
 from ..bricks.layout import BRICK
 from ..operators import functional
 from ..operators.spectrum import laplace_beltrami_rows
@@ -161,9 +162,10 @@ class PackedRegion:
     def band_mask(self) -> Tensor:
         """``(nodes, 1, 1)`` bool, true on the band's nodes (a packed flow's band)."""
         if self._band_mask is None:
-            self._band_mask = torch.zeros((len(self.nodes), 1, 1), dtype=torch.bool,
-                                          device=self.nodes.device)
-            self._band_mask[:self.band_count] = True
+            with outside_inference():
+                self._band_mask = torch.zeros((len(self.nodes), 1, 1), dtype=torch.bool,
+                                              device=self.nodes.device)
+                self._band_mask[:self.band_count] = True
         return self._band_mask
 
     def weighted_apply(self, z: Tensor) -> Tensor:
@@ -187,8 +189,9 @@ class PackedRegion:
         (assembled once per stencil and kept)."""
         key = id(stencil)
         if key not in self._stencils:  # the stencil is kept too: its id is not reused
-            self._stencils[key] = (stencil, PackedStencil(stencil, self.storage, self.lookup,
-                                                          len(self.nodes)))
+            with outside_inference():
+                self._stencils[key] = (stencil, PackedStencil(stencil, self.storage,
+                                                              self.lookup, len(self.nodes)))
         return self._stencils[key][1]
 
 
