@@ -72,6 +72,39 @@ def test_a_kernel_that_costs_more_to_compile_waits_for_more_eager_time(monkeypat
         backend.Kernel("bad", kernel.eager, kernel.fused, compile_weight=0.0)
 
 
+def test_inside_a_plan_auto_compiles_once_the_remaining_steps_would_pay_for_it(monkeypatch):
+    """A flow plans its steps (``backend.planned``): a kernel whose remaining steps' eager time
+    reaches the payback compiles after the first step measured it; a short plan stays eager
+    (and a kernel first seen mid-plan is measured from there)."""
+    calls: list[str] = []
+    volume = torch.zeros(1, 1, 4, 4, 4)
+    monkeypatch.setattr(backend, "compiled", lambda f, *options: f)
+    clock = iter(float(t) for t in range(1000))
+    monkeypatch.setattr(backend.time, "perf_counter", lambda: next(clock))
+    monkeypatch.setattr(backend, "COMPILE_PAYBACK_SECONDS", 5.0)
+
+    def steps(kernel: backend.Kernel, count: int, taken: int) -> None:
+        with backend.planned(count):
+            for _ in range(taken):
+                backend.run(kernel, "auto", volume, volume)  # one second each
+                backend.step_taken()
+
+    steps(_kernel("test_long_plan", calls), count=10, taken=3)
+    assert calls == ["slicing", "fused", "fused"]  # 9 steps left at 1 s >= 5 s
+    calls.clear()
+    steps(_kernel("test_short_plan", calls), count=4, taken=4)
+    assert calls == ["slicing"] * 4  # 3, 2, 1 s left: below the payback
+    calls.clear()
+    late = _kernel("test_late", calls)
+    with backend.planned(10):
+        for step in range(10):
+            if step >= 8:
+                backend.run(late, "auto", volume, volume)
+            backend.step_taken()
+    assert calls == ["slicing", "slicing"]  # first seen with 2 steps left
+    backend.step_taken()  # outside a plan: nothing to count
+
+
 def test_auto_never_compiles_on_a_first_call_but_inside_warm_up():
     """Even a large volume runs eagerly until its eager time pays for compiling it (the first
     compile in a process costs seconds to a minute); :func:`backend.warm_up` compiles at once,

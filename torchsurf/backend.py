@@ -17,7 +17,9 @@ device (by shifted slices or by conv3d), and optionally a one-pass form over hal
   compiling it costs, and compiles it then: a call
   with less eager work than that never waits for a compiler, a flow run or a training loop is
   compiled after seconds of eager work, and no run spends more than about twice what the
-  better choice in hindsight would have. It then times the compiled kernel too, and goes back
+  better choice in hindsight would have. Inside a flow, which plans its steps
+  (:func:`planned`), it compiles earlier, as soon as the eager time its remaining steps would
+  spend in the kernel reaches that payback. It then times the compiled kernel too, and goes back
   to eager for good if its fastest call is slower than the fastest eager one; a call autograd
   records is timed forward and backward together, so a compiled backward slower than eager's
   keeps the kernel eager. While autograd
@@ -366,6 +368,55 @@ def warm_up() -> Iterator[None]:
         _AT_ONCE.reset(token)
 
 
+@dataclass
+class _Plan:
+    """Steps a caller has planned (:func:`planned`) and taken, and per variant the eager
+    seconds and steps taken when the plan first ran it."""
+
+    total: int
+    done: int = 0
+    seen: dict[tuple, tuple[float, int]] = field(default_factory=dict)
+
+    def remaining_eager_seconds(self, variant: tuple, eager_seconds: float) -> float:
+        """The eager seconds ``variant`` would take over the plan's remaining steps, at the
+        rate measured since the plan first ran it (0 before one whole step measured it)."""
+        start_seconds, start_step = self.seen.setdefault(variant, (eager_seconds, self.done))
+        steps = self.done - start_step
+        if steps < 1:
+            return 0.0
+        return (eager_seconds - start_seconds) / steps * (self.total - self.done)
+
+
+_PLAN: contextvars.ContextVar[_Plan | None] = contextvars.ContextVar(
+    "torchsurf_backend_plan", default=None
+)
+
+
+@contextlib.contextmanager
+def planned(steps: int) -> Iterator[None]:
+    """Inside, the caller takes ``steps`` steps that each run the same kernels, and calls
+    :func:`step_taken` after each: ``"auto"`` then also compiles a variant as soon as the eager
+    time the remaining steps would spend in it, at the rate measured so far, reaches its
+    payback (:data:`COMPILE_PAYBACK_SECONDS` times :attr:`Kernel.compile_weight`), instead of
+    after that much eager work (a long flow compiles after its first step, not after seconds
+    of eager work). The flows' integrators plan their steps."""
+    token = _PLAN.set(_Plan(int(steps)))
+    try:
+        yield
+    finally:
+        _PLAN.reset(token)
+
+
+def step_taken() -> None:
+    """One of the steps of the innermost :func:`planned` is done (nothing outside one, or
+    while ``torch.compile`` traces the caller)."""
+    if torch.compiler.is_compiling():
+        return
+    plan = _PLAN.get()
+    if plan is not None:
+        plan.done += 1
+
+
 _PICKS: contextvars.ContextVar[list[str] | None] = contextvars.ContextVar(
     "torchsurf_backend_picks", default=None
 )
@@ -438,8 +489,12 @@ def _choose(volume: Tensor, kernel: Kernel | None, recording: bool, variant: tup
     timings = _TIMINGS.get(variant) or _Timings()
     if timings.slower:
         return eager
+    payback = COMPILE_PAYBACK_SECONDS * kernel.compile_weight
+    plan = _PLAN.get()
     if (at_once or volume.numel() >= COMPILE_AT_ONCE_VOXELS or timings.compiled
-            or timings.eager_seconds >= COMPILE_PAYBACK_SECONDS * kernel.compile_weight):
+            or timings.eager_seconds >= payback
+            or (plan is not None and variant is not None
+                and plan.remaining_eager_seconds(variant, timings.eager_seconds) >= payback)):
         return "compiled"
     return eager
 

@@ -20,6 +20,7 @@ from dataclasses import dataclass, field, replace
 import torch
 from torch import Tensor
 
+from .. import backend
 from .._checks import check_count, check_nonnegative, check_positive
 from .._stack import caller_stacklevel
 from ..bricks.layout import BrickLayout
@@ -505,6 +506,7 @@ def _explicit(
             if schedule.after_step is not None:
                 u = schedule.after_step(u, done)
             u = _finish(system, u)
+            backend.step_taken()
         return u
 
     def integrate(system: System, u0: Tensor, schedule: Schedule) -> list[Tensor]:
@@ -622,6 +624,7 @@ def _theta_method(theta: float) -> Callable[[System, Tensor, Schedule], list[Ten
                 if schedule.after_step is not None:
                     u = schedule.after_step(u, done)
                 u = _finish(system, u)
+                backend.step_taken()
             out.append(_returned(system, schedule, u, done))
         return out
 
@@ -865,5 +868,11 @@ re-extension reads: docs/band.md). The implicit methods hold it during each step
 
 def integrate(method: str, system: System, u0: Tensor, schedule: Schedule) -> list[Tensor]:
     """Run ``method`` on ``system`` from ``u0``; returns ``u`` at each of ``schedule.times``."""
-    integrator = INTEGRATORS.get(method) or _torchdiffeq(method)
-    return integrator(system, u0, schedule)
+    integrator = INTEGRATORS.get(method)
+    if integrator is None:
+        return _torchdiffeq(method)(system, u0, schedule)
+    if torch.compiler.is_compiling() or (schedule.steps is None and schedule.step is None):
+        return integrator(system, u0, schedule)
+    # the backend weighs compiling a kernel against the eager time the remaining steps need
+    with backend.planned(steps_taken(schedule)):
+        return integrator(system, u0, schedule)

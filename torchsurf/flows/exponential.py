@@ -343,6 +343,16 @@ class _Extend(torch.autograd.Function):
         return None, grad if grad.shape[0] == ctx.batch else grad.sum(dim=0, keepdim=True), None
 
 
+def _first_band_values(u: Tensor, band: Tensor) -> Tensor:
+    """``u``'s values ``(1, C, 1, ...)`` at the first node of ``band`` (bool, broadcastable to
+    ``u``'s first channel; node 0 where it is empty), read without a host sync."""
+    mask = band.expand(u.shape[0], 1, *u.shape[2:]).reshape(-1)
+    first = mask.to(torch.uint8).argmax().view(1)
+    channels = u.shape[1]
+    values = u.transpose(0, 1).reshape(channels, -1).index_select(1, first)
+    return values.view(1, channels, *([1] * (u.dim() - 2)))
+
+
 def heat_semigroup(u0: Tensor, operator: BandLaplacian, times: Tensor,
                    largest: float | None = None) -> Tensor:
     """``exp(t_c L) u0`` per channel on the band, then re-extended along normals.
@@ -384,15 +394,16 @@ def heat_semigroup(u0: Tensor, operator: BandLaplacian, times: Tensor,
         filled = Fill.apply(packed, result) + offset
         extended = packed.unpack(packed.packing.stencil(operator.extension).apply(filled), u0)
         return torch.where(operator.region, extended, u0)
-    inside = torch.where(operator.band, u0, u0.new_zeros(()))
+    offset = _first_band_values(u0, operator.band)  # as on packed values, above
+    inside = torch.where(operator.band, u0 - offset, u0.new_zeros(()))
     result = chebyshev.expansion(
         operator.apply, inside, times, operator.bound, adjoint=operator.transpose,
         differentiable_operator=operator.differentiable, reads=(operator.surface.phi,),
         largest=largest,
     )
     if operator.differentiable:
-        filled = operator.ring.apply(result, operator.path)
+        filled = operator.ring.apply(result, operator.path) + offset
     else:
-        filled = _Extend.apply(operator.ring, result, operator.path)
+        filled = _Extend.apply(operator.ring, result, operator.path) + offset
     extended = reextend(operator.extension, filled, operator.path)
     return torch.where(operator.region, extended, u0)
