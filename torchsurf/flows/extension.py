@@ -269,9 +269,15 @@ def _interpolate_terms(flat: Tensor, corners: Tensor, weights: Tensor, height: i
     return _summed_terms(tap, weights, limited)
 
 
+GATHER_COMPILE_WEIGHT = 4.0
+"""Compiling a tricubic gather (dynamic shapes) costs about four times a Laplace–Beltrami's,
+the compiler's start-up included: about 35 s with an empty inductor cache (float64, a 40^3
+bunny's band; docs/benchmarks.md, "Compile weights"): :attr:`backend.Kernel.compile_weight`."""
+
+
 _INTERPOLATION = backend.Kernel(
     "tricubic_interpolation", _interpolate_gathered, _interpolate_terms, lambda *args: args,
-    dynamic=True, trusted_indices=True,
+    dynamic=True, trusted_indices=True, compile_weight=GATHER_COMPILE_WEIGHT,
 )
 
 
@@ -450,7 +456,7 @@ def _brick_terms(flat: Tensor, bases: Tensor, second: Tensor, local: Tensor, wei
 
 _BRICK_INTERPOLATION = backend.Kernel(
     "tricubic_interpolation_bricks", _brick_gathered, _brick_terms, lambda *args: args,
-    dynamic=True, trusted_indices=True,
+    dynamic=True, trusted_indices=True, compile_weight=GATHER_COMPILE_WEIGHT,
 )
 
 
@@ -472,7 +478,7 @@ def _kept_terms(flat: Tensor, sources: Tensor, weights: Tensor, limited: Limit) 
 
 _KEPT_INTERPOLATION = backend.Kernel(
     "tricubic_interpolation_kept", _kept_gathered, _kept_terms, lambda *args: args,
-    dynamic=True, trusted_indices=True,
+    dynamic=True, trusted_indices=True, compile_weight=GATHER_COMPILE_WEIGHT,
 )
 
 
@@ -499,6 +505,7 @@ def _anchored_terms(flat: Tensor, sources: Tensor, anchors: Tensor, weights: Ten
 _ANCHORED_INTERPOLATION = backend.Kernel(
     "tricubic_interpolation_anchored", _anchored_gathered, _anchored_terms,
     lambda *args: args, dynamic=True, trusted_indices=True,
+    compile_weight=GATHER_COMPILE_WEIGHT,
 )
 
 
