@@ -1131,16 +1131,13 @@ class SeparableStencil:
         return self._runs_share
 
     def _find_runs(self) -> None:
-        with outside_inference():
-            self._found_runs()
-
-    def _found_runs(self) -> None:
         step = torch.arange(4, dtype=torch.int32, device=self.taps.device)
         runs = self.taps.view(-1, 16, 4)
         found = [(runs[low:low + LAYOUT_ROWS] - runs[low:low + LAYOUT_ROWS, :, :1] == step)
                  .flatten(1).all(1) for low in range(0, len(runs), LAYOUT_ROWS)]
-        self._side_by_side = (torch.cat(found) if found
-                              else torch.zeros(0, dtype=torch.bool, device=self.taps.device))
+        with outside_inference():
+            self._side_by_side = (torch.cat(found) if found
+                                  else torch.zeros(0, dtype=torch.bool, device=self.taps.device))
         self._runs_share = float(self._side_by_side.float().mean()) if found else 1.0
 
     def parts(self, columns: int, dtype: torch.dtype) -> list | None:

@@ -545,14 +545,14 @@ class Flow(nn.Module):
             return surface.band_mask(width)
         return surface.kept(("flow band", width), lambda: surface.band_mask(width))
 
-    def region_mask(self, surface: ImplicitSurface, band: Tensor) -> Tensor:
-        """``band`` (this flow's :meth:`band_mask` on ``surface``) and the ring of nodes its
-        3x3x3 stencils read, bool like ``band``; kept beside the band while ``phi`` needs no
-        gradient (on bricks the dilation is a halo gather: 1.5 ms of a 13 ms flow at 35^3)."""
+    def region_mask(self, surface: ImplicitSurface) -> Tensor:
+        """:meth:`band_mask` and the ring of nodes its 3x3x3 stencils read, bool like it; kept
+        beside the band while ``phi`` needs no gradient (on bricks the dilation is a halo
+        gather: 1.5 ms of a 13 ms flow at 35^3)."""
         if surface.phi.requires_grad:
-            return with_ring(band, surface.layout)
-        width = self.evolving_width(surface)
-        return surface.kept(("flow region", width), lambda: with_ring(band, surface.layout))
+            return with_ring(self.band_mask(surface), surface.layout)
+        return surface.kept(("flow region", self.evolving_width(surface)),
+                            lambda: with_ring(self.band_mask(surface), surface.layout))
 
     def operator_bound(self, surface: ImplicitSurface, scheme: str = "octant") -> float:
         """Gershgorin bound of ``Lap_S`` restricted to this flow's band, ``1 / world length^2``."""
@@ -744,7 +744,7 @@ class Flow(nn.Module):
             check_band_holds_nodes(band, width, surface.spacing, surface.layout)
         self._check_memory(u0, surface, band)
         # before the flow's system, whose bounds read u0 (reaction-diffusion's)
-        region = self.region_mask(surface, band)
+        region = self.region_mask(surface)
         check_finite(torch.where(region, u0, 0.0), "u0 (in the band and its ring)")
         system = self.system(u0, surface, **inputs)
         if system.band is band:

@@ -83,7 +83,7 @@ class ColorDenoise(nn.Module):
             raise ValueError(f"image must have at least 2 colour channels (a chroma of one "
                              f"channel is constant), got shape {tuple(image.shape)}")
         if not torch.compiler.is_compiling() and isinstance(self.chroma, Flow):
-            region = self.chroma.region_mask(surface, self.chroma.band_mask(surface))
+            region = self.chroma.region_mask(surface)
             check_finite(torch.where(region, image, 0.0), "image (in the band and its ring)")
         squared = (image**2).sum(dim=1, keepdim=True)
         brightness = torch.sqrt(squared + self.eps**2)

@@ -289,11 +289,6 @@ def _edge_fused_eagerly(padded_u, haloed_normal, haloed_weight, weight, spacing,
                               box_faces=box_faces, coupled=coupled)
 
 
-COUPLED_COMPILE_WEIGHT = 3.0
-"""Compiling the coupled (harmonic-map, colour) rate costs 2.2-3.0x a Laplace–Beltrami's at
-64^3 with an empty inductor cache, and more with a dynamic batch of bricks (about 70 s at
-128^3): :attr:`backend.Kernel.compile_weight` (docs/benchmarks.md, "Compile weights")."""
-
 _EDGE_STOPPING = backend.Kernel("edge_stopping", _edge_eager, _edge_fused, _edge_halo,
                                 fused_when_eager=True, eager_fused=_edge_fused_eagerly)
 
@@ -366,6 +361,12 @@ def _coupled_halo(u, normal, weight, spacing, diffusivity, contrast, eps, power,
                   haloed):
     return (_replicated(u, 2), *_geometry_halo(normal, weight, haloed), weight, spacing,
             diffusivity, contrast, eps, scheme, power, mask)
+
+
+COUPLED_COMPILE_WEIGHT = 3.0
+"""Compiling the coupled (harmonic-map, colour) rate costs 2.2-3.0x a Laplace–Beltrami's at
+64^3 with an empty inductor cache, and more with a dynamic batch of bricks (about 70 s at
+128^3): :attr:`backend.Kernel.compile_weight` (docs/benchmarks.md, "Compile weights")."""
 
 
 _COUPLED = backend.Kernel("coupled_flux_form", _coupled_eager, fused_coupled_rate, _coupled_halo,
