@@ -79,7 +79,8 @@ def case(cells: int, layout: str, phi: str = "r^2 - R^2"
     u0 = ((x + 0.5 * y) / r)[None, None]
     if layout == "dense":
         return ts.ImplicitSurface(PHIS[phi](x, r)[None, None], grid), u0, grid
-    surface = ts.bricks.from_dense(ts.ImplicitSurface((r - RADIUS)[None, None], grid))
+    surface = ts.bricks.from_dense(ts.ImplicitSurface((r - RADIUS)[None, None], grid),
+                                   flow_band=False)  # the 3-cell band, as the dense phi's
     return surface, surface.from_dense(u0), grid
 
 

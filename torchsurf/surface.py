@@ -66,6 +66,19 @@ CROSSING_CELLS = 255
 counts as this far, and a band of at least this many cells holds every node its distance
 admits."""
 
+WIDE_BAND_CELLS = 5.0
+"""Half-width (cells) of the band flows evolve on a surface whose ``phi`` is a distance out to
+it and its ring (:meth:`ImplicitSurface.evolving_widths`): wide enough that RKC steps of up to
+``6 (5 - 2 sqrt(3))^2 / rho`` may hold the ring
+(:func:`~torchsurf.flows._integrators.ring_held`), which costs nothing in the dense operators
+(they run over the whole box) and saves the ring's re-extension at every stage: 1.5x faster to
+the same error on a sphere at 37^3-65^3 (docs/band.md, section 1b)."""
+
+DISTANCE_TOLERANCE = 0.1
+"""``phi`` counts as a distance where ``|grad phi|`` is within this fraction of
+``gradient_scale``: the medial axis, thin features and the edge of the band in which a mesh's
+distance was computed all fall outside it."""
+
 
 def _crossing(inside: Tensor) -> Tensor:
     """Nodes of a dense ``(B, 1, D, H, W)`` bool volume with a neighbour on the other side."""
@@ -543,6 +556,30 @@ class ImplicitSurface(nn.Module):
         # band is lost
         limit = math.floor(min(reach / self.spacing + 1, CROSSING_CELLS))
         return (self.distance() <= reach) & self._near_crossing(limit)
+
+    def evolving_widths(self) -> tuple[float, ...]:
+        """Half-width, world units, of the band flows evolve on by default, one per batch entry
+        (:meth:`torchsurf.flows.Flow.evolving_width`).
+
+        :data:`WIDE_BAND_CELLS` cells for an entry whose ``phi`` is a distance
+        (``|grad phi|`` within :data:`DISTANCE_TOLERANCE` of ``gradient_scale``) at every node
+        within that width of S and the ring of nodes beyond it (an analytic distance, a
+        ``redistance``d phi, ``1000 * sdf``); ``band_width`` elsewhere (``sdf.from_mesh``'s
+        5-cell distances, thin features, phi that is not a distance). Kept on the surface while
+        ``phi`` needs no gradient.
+        """
+        if self.phi.requires_grad:
+            return self._distance_widths()
+        return self.kept(("evolving widths",), self._distance_widths)
+
+    def _distance_widths(self) -> tuple[float, ...]:
+        wide = WIDE_BAND_CELLS * self.spacing
+        if wide <= self.band_width:
+            return (self.band_width,) * self.batch_size
+        reach = self.distance() <= wide + self.spacing * math.sqrt(3.0)
+        deviation = (self.grad_norm.detach() / self.gradient_scale.detach() - 1.0).abs()
+        far = ((deviation > DISTANCE_TOLERANCE) & reach).flatten(1).any(dim=1)
+        return tuple(self.band_width if bool(f) else wide for f in far)
 
     def _near_crossing(self, cells: int) -> Tensor:
         """Nodes within ``cells`` (chessboard distance) of a node with a neighbour across S,

@@ -75,23 +75,55 @@ def test_heat_flow_equals_the_dense_flow_on_the_band(torus, method):
     assert torch.allclose(result * band, expected * band, atol=1e-12, rtol=0)
 
 
-def test_bricks_run_the_surfaces_band_where_a_dense_distance_runs_a_wider_one():
-    """On an analytic distance a dense flow evolves ``WIDE_BAND_CELLS`` cells; bricks store the
-    surface's 3-cell band and evolve that one: the dense flow given that band equals them to
-    rounding (docs/bricks.md), the default dense flow differs by the bands' discretisations."""
+@pytest.mark.parametrize("method", ["rkc", "euler"])
+def test_bricks_of_a_distance_run_the_dense_flows_wider_band(method):
+    """On an analytic distance a dense flow evolves ``WIDE_BAND_CELLS`` cells (RKC then holds
+    the ring); ``from_dense`` stores that band too, and the bricks' flow equals the dense one to
+    rounding. With ``flow_band=False`` the bricks hold the surface's 3-cell band and evolve it,
+    as the dense flow given that band does."""
     grid = Grid.cube(41, 2.0)
     dense = ts.ImplicitSurface(ts.sdf.sphere(grid, 1.0).double(), grid)
-    surface = bricks.from_dense(dense)
     u = torch.randn(1, 1, *grid.shape, dtype=torch.float64,
                     generator=torch.Generator().manual_seed(4))
     band = dense.band_mask()
-    (result,) = surface.to_dense(ts.flows.HeatFlow(time=0.02)(surface.from_dense(u), surface))
-    wide = ts.flows.HeatFlow(time=0.02)
-    assert wide.evolving_width(dense) > dense.band_width
-    assert ts.flows.HeatFlow(time=0.02).evolving_width(surface) == surface.band_width
-    same_band = ts.flows.HeatFlow(time=0.02, band_width=dense.band_width)(u, dense)
+    flow = ts.flows.HeatFlow(time=0.02, method=method)
+    wide = flow.evolving_width(dense)
+    assert wide == pytest.approx(ts.surface.WIDE_BAND_CELLS * grid.spacing)
+
+    surface = bricks.from_dense(dense)
+    assert flow.evolving_width(surface) == wide
+    (result,) = surface.to_dense(flow(surface.from_dense(u), surface))
+    assert torch.allclose(result * band, flow(u, dense) * band, atol=1e-12, rtol=0)
+
+    narrow = bricks.from_dense(dense, flow_band=False)
+    assert len(narrow.layout) < len(surface.layout)
+    assert flow.evolving_width(narrow) == narrow.band_width
+    (result,) = narrow.to_dense(flow(narrow.from_dense(u), narrow))
+    same_band = ts.flows.HeatFlow(time=0.02, method=method, band_width=dense.band_width)(u, dense)
     assert torch.allclose(result * band, same_band * band, atol=1e-12, rtol=0)
-    assert not torch.allclose(result * band, wide(u, dense) * band, atol=1e-6, rtol=0)
+    assert not torch.allclose(result * band, flow(u, dense) * band, atol=1e-6, rtol=0)
+
+
+def test_bricks_keep_the_surfaces_band_where_the_wider_one_nears_the_box():
+    """A sphere 6 cells from the faces: its 5-cell band would come within 2 nodes of them,
+    where bricks have no faces to stop the flux at; that entry keeps its 3-cell band, the other
+    of the batch does not, and each equals the dense flow on its band alone."""
+    grid = Grid.cube(33, 2.0)
+    radii = (2.0 - 6 * grid.spacing, 1.2)
+    phi = torch.cat([ts.sdf.sphere(grid, r) for r in radii]).double()
+    dense = ts.ImplicitSurface(phi, grid)
+    wide = ts.surface.WIDE_BAND_CELLS * grid.spacing
+    assert dense.evolving_widths() == pytest.approx((wide, wide))
+    surface = bricks.from_dense(dense)
+    assert surface.evolving_widths() == pytest.approx((dense.band_width, wide))
+    u = torch.randn(2, 1, *grid.shape, dtype=torch.float64,
+                    generator=torch.Generator().manual_seed(5))
+    result = surface.to_dense(ts.flows.HeatFlow(time=0.01)(surface.from_dense(u), surface))
+    for b, width in enumerate((dense.band_width, wide)):
+        alone = ts.ImplicitSurface(phi[b:b + 1], grid)
+        expected = ts.flows.HeatFlow(time=0.01, band_width=width)(u[b:b + 1], alone)
+        band = alone.band_mask()
+        assert torch.allclose(result[b] * band, expected * band, atol=1e-12, rtol=0), b
 
 
 @pytest.mark.parametrize("sharpness", [0.1, 0.05])

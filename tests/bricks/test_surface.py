@@ -261,3 +261,48 @@ def test_a_band_past_the_cell_count_cap_equals_the_dense_band(monkeypatch):
     on_bricks = packed.layout.to_dense(packed.band_mask().double())[0] > 0
     assert int(dense.band_mask().sum()) > 0
     assert torch.equal(on_bricks, dense.band_mask())
+
+
+def test_the_flows_band_widths_follow_entries_cat_copies_and_states(two_boxes):
+    """``evolving_widths`` are checked, kept by ``cat``, by each entry alone, by deep copies
+    and by a loaded state (a state without them gives ``band_width``)."""
+    import copy
+
+    sphere, torus, _ = two_boxes
+    h = sphere.spacing
+    layout = sphere.layout
+    with pytest.raises(ValueError, match="evolving_widths must be at least band_width"):
+        bricks.BrickSurface(sphere.phi, layout, 3 * h, evolving_widths=2 * h)
+    with pytest.raises(ValueError, match=r"one width per batch entry \(1\), got 2"):
+        bricks.BrickSurface(sphere.phi, layout, 3 * h, evolving_widths=[4 * h, 4 * h])
+    wide = bricks.BrickSurface(sphere.phi, layout, 3 * h, evolving_widths=4 * h)
+    both = bricks.cat([wide, torus])
+    assert both.evolving_widths() == (4 * h, torus.band_width)
+    assert [entry.evolving_widths() for _, entry in both.entries()] == [(4 * h,), (torus.band_width,)]
+    assert copy.deepcopy(both).evolving_widths() == both.evolving_widths()
+    plain = bricks.BrickSurface(sphere.phi.clone(), layout, 3 * h)
+    plain.load_state_dict(wide.state_dict())
+    assert plain.evolving_widths() == (4 * h,)
+    state = wide.state_dict()
+    del state["_extra_state"]["evolving_widths"]
+    plain.load_state_dict(state)
+    assert plain.evolving_widths() == (3 * h,)
+
+
+def test_sample_refuses_a_field_not_packed_on_the_layout(torus):
+    """``sample`` read a dense volume, or a field of twice the bricks, as if packed: wrong
+    numbers and no error (``sample_at_index`` checked)."""
+    dense, surface = torus
+    points = torch.tensor([[1.0, 0.0, 0.0]], dtype=torch.float64)
+    packed = surface.from_dense(torch.zeros(1, 1, *dense.grid.shape, dtype=torch.float64))
+    for field in (torch.zeros(1, 1, *dense.grid.shape, dtype=torch.float64),
+                  torch.cat([packed, packed]), packed[: len(packed) // 2]):
+        with pytest.raises(ValueError, match="field must be a packed band field"):
+            surface.sample(field, points)
+
+
+def test_packing_entries_of_different_dtypes_is_refused(two_boxes):
+    _, _, both = two_boxes
+    first, second = (torch.zeros(1, 1, *grid.shape) for grid in both.grids)
+    with pytest.raises(ts.MismatchError, match=r"volume\[1\] is torch.float64 .* volume\[0\]"):
+        both.layout.from_dense([first, second.double()])

@@ -33,7 +33,8 @@ def _grown(mask: Tensor, cells: int) -> Tensor:
 
 
 def from_dense(phi: Tensor | ImplicitSurface, grid: Grid | None = None,
-               band_width: float | None = None, eps: float = 1e-6) -> BrickSurface:
+               band_width: float | None = None, eps: float = 1e-6,
+               flow_band: bool = True) -> BrickSurface:
     """The bricks of a dense ``phi`` that hold its band and every node the band's stencils read.
 
     The small-case route (and the reference the band path is tested against): it builds the
@@ -46,6 +47,12 @@ def from_dense(phi: Tensor | ImplicitSurface, grid: Grid | None = None,
         grid: the grid of ``phi`` (not with a surface).
         band_width: half-width of the band, world units (default ``3 * grid.spacing``).
         eps: as in :class:`~torchsurf.ImplicitSurface`.
+        flow_band: also store the band flows evolve on the dense surface
+            (:meth:`~torchsurf.ImplicitSurface.evolving_widths`: 5 cells where ``phi`` is a
+            distance out to them, as an analytic distance is), so that flows on the bricks
+            evolve it too and equal the dense flows; about 1.5x the bricks of the 3-cell
+            band. An entry whose wider band would come within :data:`REACH_CELLS` nodes of
+            its box's faces keeps its surface's band. ``False``: the surface's band only.
 
     Returns:
         A :class:`BrickSurface` whose band, and fields on it, equal the dense surface's.
@@ -61,11 +68,26 @@ def from_dense(phi: Tensor | ImplicitSurface, grid: Grid | None = None,
     band = dense.band_mask()
     for b in range(dense.batch_size):
         check_clear_of_faces(band[b, 0].nonzero(), dense.grid, b)
-    masks = [_grown(band[b, 0], REACH_CELLS) for b in range(dense.batch_size)]
+    widths = _stored_flow_widths(dense) if flow_band else [dense.band_width] * dense.batch_size
+    bands = {width: band if width == dense.band_width else dense.band_mask(width)
+             for width in set(widths)}
+    masks = [_grown(bands[width][b, 0], REACH_CELLS) for b, width in enumerate(widths)]
     grids = [dense.grid] * dense.batch_size
     layout = bricks_of_mask(masks, grids)
     packed = layout.from_dense(dense.phi, fill="linear")
-    return BrickSurface(packed, layout, dense.band_width, dense.eps)
+    return BrickSurface(packed, layout, dense.band_width, dense.eps, widths)
+
+
+def _stored_flow_widths(dense: ImplicitSurface) -> list[float]:
+    """Each entry's :meth:`~torchsurf.ImplicitSurface.evolving_widths`, or its band width
+    where that wider band comes within :data:`REACH_CELLS` nodes of the box's faces."""
+    widths = list(dense.evolving_widths())
+    for width in set(widths) - {dense.band_width}:
+        band = dense.band_mask(width)
+        for b in range(dense.batch_size):
+            if widths[b] == width and _clearance(band[b, 0].nonzero(), dense.grid) < REACH_CELLS:
+                widths[b] = dense.band_width
+    return widths
 
 
 def from_mesh(meshes: MeshLike | Sequence[MeshLike], grids: Grid | Sequence[Grid],
@@ -175,15 +197,20 @@ def _check_formed_band_clear_of_faces(surface: BrickSurface) -> None:
         check_clear_of_faces(nodes[mine], grid, b)
 
 
+def _clearance(band_nodes: Tensor, grid: Grid) -> int | float:
+    """Nodes between the band's nodes ``(M, 3)`` and the nearest face of ``grid``'s box
+    (infinite for no node)."""
+    if len(band_nodes) == 0:
+        return math.inf
+    return int(torch.minimum(band_nodes.min(dim=0).values,
+                             torch.tensor(grid.shape) - 1 - band_nodes.max(dim=0).values).min())
+
+
 def check_clear_of_faces(band_nodes: Tensor, grid: Grid, entry: int) -> None:
     """Raise ``ValueError`` if a band node ``(M, 3)`` ``(k, j, i)`` lies within
     :data:`REACH_CELLS` nodes of the faces of ``grid``'s box (bricks have no faces to stop the
     flux at: the dense and band results would differ there)."""
-    if len(band_nodes) == 0:
-        return
-    clearance = int(torch.minimum(band_nodes.min(dim=0).values,
-                                  torch.tensor(grid.shape) - 1 - band_nodes.max(dim=0).values
-                                  ).min())
+    clearance = _clearance(band_nodes, grid)
     if clearance < REACH_CELLS:
         wider = REACH_CELLS - clearance
         raise ValueError(
@@ -234,7 +261,8 @@ def cat(surfaces: Sequence[BrickSurface]) -> BrickSurface:
         [g for s in surfaces for g in s.grids],
     )
     phi = torch.cat([s.phi for s in surfaces])
-    return BrickSurface(phi, layout, surfaces[0].band_width, surfaces[0].eps)
+    return BrickSurface(phi, layout, surfaces[0].band_width, surfaces[0].eps,
+                        [w for s in surfaces for w in s.evolving_widths()])
 
 
 def _is_array_pair(value: object) -> bool:

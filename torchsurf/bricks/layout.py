@@ -26,7 +26,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from .. import backend
-from .._checks import check_choice
+from .._checks import MismatchError, check_choice, check_tensor
 from ..grid import Grid
 from . import _native
 
@@ -413,7 +413,15 @@ class BrickLayout:
                 )
             entries = list(volume.unbind(0))
         else:
-            entries = [v[0] if v.dim() == 5 else v for v in volume]
+            entries = [check_tensor(v, f"{name}[{b}]") for b, v in enumerate(volume)]
+            entries = [v[0] if v.dim() == 5 else v for v in entries]
+            for b, entry in enumerate(entries):
+                if (entry.dtype, entry.device) != (entries[0].dtype, entries[0].device):
+                    raise MismatchError(
+                        f"{name}[{b}] is {entry.dtype} on {entry.device} but {name}[0] is "
+                        f"{entries[0].dtype} on {entries[0].device}: the entries of one packed "
+                        "field must match"
+                    )
             if len(entries) != self.batch_size:
                 raise ValueError(
                     f"{name} must hold one volume per batch entry ({self.batch_size}), got "

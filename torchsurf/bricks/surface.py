@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import operator
+from collections.abc import Sequence
 
 import torch
 from torch import Tensor
@@ -42,6 +43,11 @@ class BrickSurface(ImplicitSurface):
         layout: the bricks.
         band_width: half-width of the band, world units (default ``3 * spacing``).
         eps: as in :class:`~torchsurf.ImplicitSurface`.
+        evolving_widths: half-width, world units, of the band flows evolve on by default
+            (:meth:`evolving_widths`), one per batch entry or one for all, each at least
+            ``band_width``; the bricks must store every node that band's stencils read.
+            Default ``band_width``. :func:`~torchsurf.bricks.from_dense` passes the dense
+            surface's (wider where ``phi`` is a distance).
 
     Attributes:
         phi, grad_norm, normal, weight: as in :class:`~torchsurf.ImplicitSurface`, packed
@@ -51,7 +57,8 @@ class BrickSurface(ImplicitSurface):
     """
 
     def __init__(self, phi: Tensor, layout: BrickLayout, band_width: float | None = None,
-                 eps: float = 1e-6) -> None:
+                 eps: float = 1e-6, evolving_widths: float | Sequence[float] | None = None
+                 ) -> None:
         torch.nn.Module.__init__(self)
         if not isinstance(layout, BrickLayout):
             raise TypeError(f"layout must be a torchsurf.bricks.BrickLayout, got "
@@ -66,7 +73,34 @@ class BrickSurface(ImplicitSurface):
             3.0 * layout.spacing if band_width is None else band_width, "band_width"
         )
         self.eps = check_positive(eps, "eps")
+        self._evolving = self._checked_widths(evolving_widths, layout.batch_size)
         self._assemble_kept(phi)
+
+    def _checked_widths(self, widths: float | Sequence[float | None] | None,
+                        count: int) -> tuple[float | None, ...]:
+        """One width per entry, ``None`` for ``band_width`` (which it then follows)."""
+        if widths is None:
+            return (None,) * count
+        if not isinstance(widths, (list, tuple)):
+            widths = (widths,) * count
+        if len(widths) != count:
+            raise ValueError(f"evolving_widths must hold one width per batch entry ({count}), "
+                             f"got {len(widths)}")
+        widths = tuple(None if w is None else check_positive(w, "evolving_widths")
+                       for w in widths)
+        narrowest = min((w for w in widths if w is not None), default=self.band_width)
+        if narrowest < self.band_width:
+            raise ValueError(f"evolving_widths must be at least band_width={self.band_width:g}, "
+                             f"got {narrowest:g}")
+        return tuple(None if w == self.band_width else w for w in widths)
+
+    def evolving_widths(self) -> tuple[float, ...]:
+        """Half-width, world units, of the band flows evolve on by default, one per batch
+        entry: what the constructor was given (:func:`~torchsurf.bricks.from_dense` stores
+        the dense surface's :meth:`~torchsurf.ImplicitSurface.evolving_widths`), and never
+        less than ``band_width`` (a wider ``band_width`` set later)."""
+        return tuple(self.band_width if w is None else max(w, self.band_width)
+                     for w in self._evolving)
 
     def _reassemble(self) -> None:
         self.layout = self.layout.to(self.phi.device)  # its tables are not buffers
@@ -88,7 +122,14 @@ class BrickSurface(ImplicitSurface):
     def _placement(self) -> dict:
         layout = self.layout
         return {"coords": layout.coords.cpu(), "batch": layout.batch.cpu(),
-                "grids": [(g.shape, g.spacing, g.origin) for g in layout.grids]}
+                "grids": [(g.shape, g.spacing, g.origin) for g in layout.grids],
+                "evolving_widths": list(self.evolving_widths())}
+
+    def set_extra_state(self, state: dict) -> None:
+        """As :meth:`ImplicitSurface.set_extra_state`, with the bricks and the flows' band
+        widths (``band_width`` for a state saved without them)."""
+        super().set_extra_state(state)
+        self._evolving = self._checked_widths(state.get("evolving_widths"), self.batch_size)
 
     def _place(self, state: dict) -> None:
         layout, grids = self.layout, tuple(Grid(*grid) for grid in state["grids"])
@@ -215,7 +256,8 @@ class BrickSurface(ImplicitSurface):
             layout = BrickLayout(self.layout.coords[rows].cpu(),
                                  torch.zeros(len(rows), dtype=torch.long), [grid])
             rows = rows.to(self.phi.device)
-            parts.append((rows, BrickSurface(self.phi[rows], layout, self.band_width, self.eps)))
+            parts.append((rows, BrickSurface(self.phi[rows], layout, self.band_width, self.eps,
+                                             self._evolving[b])))
         if not self.phi.requires_grad:
             self.__dict__["_entries"] = parts
         return parts
@@ -237,6 +279,7 @@ class BrickSurface(ImplicitSurface):
             ValueError: a point lies outside the entry's box or next to a brick that is not
                 stored.
         """
+        self.check_field(field, "field")
         entry = self._check_points(points, entry)
         _check_like_field(points, "points", field)
         grid = self.grids[entry]

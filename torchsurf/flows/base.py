@@ -60,7 +60,13 @@ from .._checks import (
 from .._stack import caller_stacklevel
 from ..bricks.layout import BRICK, BrickLayout
 from ..operators.spectrum import laplace_beltrami_bound
-from ..surface import ImplicitSurface, check_data, check_surface
+from ..surface import (  # noqa: F401  (WIDE_BAND_CELLS, DISTANCE_TOLERANCE: documented here too)
+    DISTANCE_TOLERANCE,
+    WIDE_BAND_CELLS,
+    ImplicitSurface,
+    check_data,
+    check_surface,
+)
 from ._integrators import (
     IMPLICIT,
     INTEGRATORS,
@@ -116,7 +122,7 @@ def _range_excess(u0: Tensor, results: list[Tensor], region: Tensor, band: Tenso
                   packed: bool) -> float:
     """How far the worst of ``results`` leaves the range of ``u0`` (over ``region``) in the
     ``band``, as a fraction of that range, per batch entry and channel (a packed field is one
-    entry: a brick batch of several is integrated one entry at a time)."""
+    entry: a batch of several surfaces is integrated one entry at a time)."""
     dims = [0, 2, 3, 4] if packed else [2, 3, 4]
     with torch.no_grad():
         return _excess(_masked_range(u0.detach(), region, dims),
@@ -249,33 +255,6 @@ def _check_times(times: object, end: float) -> list[float]:
 
 
 REEXTEND_CHOICES = ("auto",)
-
-
-WIDE_BAND_CELLS = 5.0
-"""Half-width (cells) of the band a flow evolves on a dense surface whose ``phi`` is a distance
-out to it and its ring (:meth:`Flow.evolving_width`): wide enough that RKC steps of up to
-``12 (5 - 3)^2 / rho`` may hold the ring (:func:`~torchsurf.flows._integrators.ring_held`),
-which costs nothing in the dense operators (they run over the whole box) and saves the ring's
-re-extension at every stage: 1.5x faster to the same error on a sphere at 37^3-65^3
-(docs/band.md)."""
-
-DISTANCE_TOLERANCE = 0.1
-"""``phi`` counts as a distance where ``|grad phi|`` is within this fraction of
-``gradient_scale``: the medial axis, thin features and the edge of the band in which a mesh's
-distance was computed all fall outside it."""
-
-
-def _distance_band_widths(surface: ImplicitSurface) -> tuple[float, ...]:
-    """For each entry: :data:`WIDE_BAND_CELLS` cells if its ``phi`` is a distance
-    (:data:`DISTANCE_TOLERANCE`) at every node within that width and its ring, else
-    ``surface.band_width``."""
-    wide = WIDE_BAND_CELLS * surface.spacing
-    if wide <= surface.band_width:
-        return (surface.band_width,) * surface.batch_size
-    reach = surface.distance() <= wide + surface.spacing * math.sqrt(3.0)
-    deviation = (surface.grad_norm.detach() / surface.gradient_scale.detach() - 1.0).abs()
-    far = ((deviation > DISTANCE_TOLERANCE) & reach).flatten(1).any(dim=1)
-    return tuple(surface.band_width if bool(f) else wide for f in far)
 
 
 def _entry_surface(surface: ImplicitSurface, entry: int) -> ImplicitSurface:
@@ -426,9 +405,10 @@ class Flow(nn.Module):
             every evaluation of the rate (Euler and Heun need not: docs/band.md). ``None``:
             never (the ring keeps ``u0``: only right for a band as wide as the diffusion
             length).
-        band_width: half-width of the evolving band, world units. Default: on a dense
-            surface whose ``phi`` is a distance out to :data:`WIDE_BAND_CELLS` cells and its
-            ring, that width; otherwise ``surface.band_width`` (:meth:`evolving_width`).
+        band_width: half-width of the evolving band, world units. Default: on a surface
+            whose ``phi`` is a distance out to :data:`WIDE_BAND_CELLS` cells and its ring,
+            that width; otherwise ``surface.band_width``
+            (:meth:`~torchsurf.ImplicitSurface.evolving_widths`).
         checkpoint: keep only ``u`` every ``sqrt(steps)`` steps for backward and recompute
             the stages in between (explicit methods: RKC, Euler, Heun): memory
             ``O(sqrt(steps))`` volumes instead of every stage's, for about 1.3-2x the time.
@@ -515,26 +495,25 @@ class Flow(nn.Module):
     def evolving_width(self, surface: ImplicitSurface) -> float:
         """Half-width of the band this flow evolves on ``surface``, world units.
 
-        ``band_width`` when given. Otherwise, on a dense surface whose ``phi`` is a distance
-        (``|grad phi|`` within :data:`DISTANCE_TOLERANCE` of its scale) at every node out to
-        :data:`WIDE_BAND_CELLS` cells and the ring beyond, that width (an analytic distance, a
-        ``redistance``d phi); elsewhere (``sdf.from_mesh``'s 5-cell distances, thin features,
-        bricks, which store the surface's band only) ``surface.band_width``. Decided for each
+        ``band_width`` when given. Otherwise the surface's
+        :meth:`~torchsurf.ImplicitSurface.evolving_widths`: on a dense surface whose ``phi``
+        is a distance (``|grad phi|`` within :data:`DISTANCE_TOLERANCE` of its scale) at every
+        node out to :data:`WIDE_BAND_CELLS` cells and the ring beyond, that width (an analytic
+        distance, a ``redistance``d phi); elsewhere (``sdf.from_mesh``'s 5-cell distances, thin
+        features) ``surface.band_width``; on bricks the width their builder stored
+        (:func:`torchsurf.bricks.from_dense` stores the dense surface's). Decided for each
         entry of a batch, once per surface and kept (each call while ``phi`` requires grad);
-        entries that differ are integrated one at a time, and this returns the narrowest.
+        the entries of a batch of several surfaces are integrated one at a time, each on its
+        own band, and this returns the narrowest.
         """
         return min(self._entry_widths(surface))
 
     def _entry_widths(self, surface: ImplicitSurface) -> tuple[float, ...]:
-        """:meth:`evolving_width` of each entry (a batch whose entries differ is integrated
-        one entry at a time, each on its own band)."""
+        """:meth:`evolving_width` of each entry (the entries of a batch of several surfaces
+        are integrated one at a time, each on its own band)."""
         if self.band_width is not None:
             return (self.band_width,)
-        if surface.layout is not None:
-            return (surface.band_width,)
-        if surface.phi.requires_grad:
-            return _distance_band_widths(surface)
-        return surface.kept(("flow band widths",), lambda: _distance_band_widths(surface))
+        return surface.evolving_widths()
 
     def band_mask(self, surface: ImplicitSurface) -> Tensor:
         """The evolving band, a bool mask ``(B or 1, 1, D, H, W)``: within
@@ -848,20 +827,23 @@ class Flow(nn.Module):
 
     def _entries_apart(self, u0: Tensor, surface: ImplicitSurface, times: object,
                        inputs: dict[str, Tensor]) -> Tensor | None:
-        """The result of integrating each entry of the batch alone where the entries need it
-        (a brick batch of several entries; dense entries whose bands differ), else ``None``."""
-        if surface.layout is not None and surface.batch_size > 1:
+        """The result of integrating each entry of a batch of several surfaces alone, else
+        ``None``: each entry's band, bound, steps and re-extensions are then its own, and its
+        result what it would be without the others (a shared plan, from the batch's largest
+        bound, left an off-centre sphere 2.6e-4 off its run alone beside a box; alone, dense
+        batches of four shapes at 48^3 took 0.96-1.08x the time of the shared plan)."""
+        if surface.batch_size == 1:
+            return None
+        if surface.layout is not None:
             return self._each_entry(u0, surface.entries(), len(surface.layout), times, inputs)
-        if surface.layout is None and len(set(self._entry_widths(surface))) > 1:
-            entries = ((torch.tensor([b], device=u0.device), _entry_surface(surface, b))
-                       for b in range(surface.batch_size))
-            return self._each_entry(u0, entries, surface.batch_size, times, inputs)
-        return None
+        entries = ((torch.tensor([b], device=u0.device), _entry_surface(surface, b))
+                   for b in range(surface.batch_size))
+        return self._each_entry(u0, entries, surface.batch_size, times, inputs)
 
     def _each_entry(self, u0: Tensor, entries: Iterator[tuple[Tensor, ImplicitSurface]],
                     count: int, times: object, inputs: dict[str, Tensor]) -> Tensor:
         """A batch's entries ``(rows of u0 along its first dimension of size count, surface)``
-        (the bricks of an entry; a dense batch's entries whose bands differ), each integrated
+        (the bricks of an entry, or a dense entry's own surface), each integrated
         alone with its own band, steps and stages: each entry's result is what it would be
         without the others. A ``ValueError`` of an entry is raised naming the entry."""
         result = None
