@@ -133,8 +133,12 @@ def test_extract_refuses_a_level_that_is_only_touched() -> None:
     points = grid.points(torch.float64)
     with pytest.raises(ValueError, match="never crosses the level 0, it only touches it"):
         tsm.extract((points - 3).norm(dim=-1)[None, None], grid)
-    with pytest.raises(ValueError, match="never crosses the level 0 in any cell"):
-        tsm.extract(-(points[..., 0] - 3).abs()[None, None], grid)
+    # |x| on a node plane (an unsigned distance) gave two coincident sheets wound both ways
+    for touching in (-(points[..., 0] - 3).abs(), (points[..., 0] - 3).abs(),
+                     ts.sdf.box(grid, half_size=(2.0, 2.0, 2.0), center=(3.0, 3.0, 3.0),
+                                dtype=torch.float64)[0, 0].abs()):
+        with pytest.raises(ValueError, match="never crosses the level 0, it only touches it"):
+            tsm.extract(touching[None, None], grid)
     wide = ts.Grid((12, 12, 12), 1.0)
     x = wide.points(torch.float64)[..., 0]
     known = ((x <= 2) | (x >= 9))[None, None]
@@ -246,6 +250,17 @@ def test_adapter_bad_values_raise(adapter: tsm.MeshAdapter) -> None:
         adapter.encode(torch.zeros(1, 1, 3, dtype=torch.float64))
     with pytest.raises(ValueError, match="volume"):
         adapter.decode(torch.zeros(1, 25, 25, 25, dtype=torch.float64))
+
+
+def test_adapter_refuses_data_of_another_dtype(adapter: tsm.MeshAdapter) -> None:
+    """float32 data on a float64 adapter came back float32 through float64 weights cast down
+    (and float64 data on a float32 adapter through float32 weights), silently."""
+    values = torch.zeros(1, 1, len(adapter.vertices))
+    with pytest.raises(ts.MismatchError, match=r"values is torch.float32 .* adapter is torch.float64"):
+        adapter.encode(values)
+    volume = adapter.encode(values.double())
+    with pytest.raises(ts.MismatchError, match=r"volume is torch.float32 .* adapter is torch.float64"):
+        adapter.decode(volume.float())
 
 
 TETRAHEDRON = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\n{extra}f 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n{faces}"

@@ -142,6 +142,10 @@ def test_bad_input_raises() -> None:
         pair.encode([torch.zeros(count, 1), torch.zeros(count, 2)])
     with pytest.raises(ValueError, match="volume must hold the 1 shapes"):
         batch.decode(torch.zeros(2, 1, 13, 13, 13))
+    with pytest.raises(ts.MismatchError, match=r"values\[0\] is torch.float64 .* adapter is torch.float32"):
+        batch.encode([torch.zeros(count, 1, dtype=torch.float64)])
+    with pytest.raises(ts.MismatchError, match=r"volume is torch.float64 .* adapter is torch.float32"):
+        batch.decode(torch.zeros(1, 1, 13, 13, 13, dtype=torch.float64))
 
 
 @pytest.mark.skipif(not SPOT.exists(), reason="shared meshes not present")

@@ -83,6 +83,17 @@ def check_like_first(entry: Tensor, first: Tensor, name: str, first_name: str) -
         )
 
 
+def check_module_dtype(value: Tensor, name: str, reference: Tensor, owner: str) -> None:
+    """Raise :class:`MismatchError` naming ``name`` unless ``value`` has the dtype and device
+    of ``reference``, a buffer of the module ``owner`` (its weights would otherwise be cast,
+    or the result promoted, silently)."""
+    if (value.dtype, value.device) != (reference.dtype, reference.device):
+        raise MismatchError(
+            f"{name} is {value.dtype} on {value.device} but the {owner} is {reference.dtype} on "
+            f"{reference.device}: they must match (convert one, e.g. {owner}.to(...))"
+        )
+
+
 def check_volume(value: object, name: str, channels: int | None = None) -> Tensor:
     """Check that ``value`` is a floating-point volume ``(B, C, D, H, W)``.
 

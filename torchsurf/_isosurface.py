@@ -72,6 +72,8 @@ def level_set(volume: np.ndarray, grid: Grid, level: float = 0.0,
 
     if held.size == 0 or not (low <= level <= high) or low == high:
         raise never()
+    if low == level or high == level:  # |x|: two sheets on the nodes where it touches
+        raise never(", it only touches it at nodes")
     try:
         index, faces, _, _ = measure.marching_cubes(volume, level=level,
                                                     gradient_direction="ascent", mask=mask)

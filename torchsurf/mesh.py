@@ -20,6 +20,7 @@ from . import _isosurface, _memory, _mesh_sdf, _vertex_decode, sdf
 from ._checks import (
     check_count,
     check_dtype,
+    check_module_dtype,
     check_nonnegative,
     check_positive,
     check_spatial_shape,
@@ -285,14 +286,18 @@ class MeshAdapter(nn.Module):
         return self.surface.grid
 
     def encode(self, values: Tensor) -> Tensor:
-        """Vertex values ``(B, C, V)`` -> volume ``(B, C, D, H, W)``, constant along normals."""
+        """Vertex values ``(B, C, V)`` -> volume ``(B, C, D, H, W)``, constant along normals.
+        ``values`` must have the adapter's dtype and device (:class:`MismatchError`)."""
+        check_module_dtype(check_tensor(values, "values"), "values", self.vertices, "adapter")
         return _scatter_to_band(
             values, self._band_index, self._corners, self._weights, self.grid, len(self.vertices)
         )
 
     def decode(self, volume: Tensor) -> Tensor:
-        """Volume ``(B, C, D, H, W)`` -> values ``(B, C, V)`` at the vertices (see ``order``)."""
+        """Volume ``(B, C, D, H, W)`` -> values ``(B, C, V)`` at the vertices (see ``order``),
+        of the adapter's dtype and device (:class:`MismatchError`)."""
         check_volume(volume, "volume")
+        check_module_dtype(volume, "volume", self.vertices, "adapter")
         check_spatial_shape(volume, "volume", self.grid.shape, "grid")
         if self._decode_index is None:
             return sample(volume, self.vertices.to(volume.dtype), self.grid)

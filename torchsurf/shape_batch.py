@@ -26,6 +26,7 @@ from ._checks import (
     check_count,
     check_dtype,
     check_like_first,
+    check_module_dtype,
     check_nonnegative,
     check_positive,
     check_tensor,
@@ -273,6 +274,7 @@ class MeshBatchAdapter(nn.Module):
                 raise ValueError(f"values[{b}] must have shape ({count}, C), C at least 1, got "
                                  f"{tuple(entry.shape)}")
             check_like_first(entry, values[0], f"values[{b}]", "values[0]")
+            check_module_dtype(entry, f"values[{b}]", adapter.vertices, "adapter")
             volumes.append(adapter.encode(entry.T[None]))
         return torch.cat(volumes)
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import warnings
 from collections.abc import Callable
+from contextlib import nullcontext
 from typing import TypeVar
 
 import numpy as np
@@ -463,8 +464,10 @@ class ImplicitSurface(nn.Module):
     def _assemble_kept(self, phi: Tensor) -> None:
         """:meth:`_assemble`, outside ``torch.inference_mode`` (:func:`outside_inference`);
         a ``phi`` made under it is copied (an inference tensor has no version counter for
-        :meth:`_current_phi`)."""
-        with outside_inference():
+        :meth:`_current_phi`). A ``phi`` that requires grad gets its geometry in its graph
+        even under ``torch.no_grad`` or ``inference_mode``: a later training call's gradient
+        to ``phi`` would otherwise miss the normals' and weight's part, silently."""
+        with outside_inference(), torch.enable_grad() if phi.requires_grad else nullcontext():
             if not torch.compiler.is_compiling() and phi.is_inference():
                 phi = phi.clone()
             self._assemble(phi)

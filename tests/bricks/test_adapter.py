@@ -89,6 +89,12 @@ def test_adapter_refuses_bad_input_by_name():
         adapter.encode([torch.zeros(count, 1, dtype=torch.float64), torch.zeros(count, 1)])
     with pytest.raises(ValueError, match="field must be a packed band field"):
         adapter.decode(torch.zeros(1, 1, 8, 8, 8, dtype=torch.float64))
+    # float32 data on a float64 adapter were promoted silently
+    with pytest.raises(ts.MismatchError, match=r"values\[0\] is torch.float32 .* adapter is torch.float64"):
+        adapter.encode([torch.zeros(count, 1), torch.zeros(count, 1)])
+    field = adapter.encode([torch.zeros(count, 1, dtype=torch.float64)] * 2)
+    with pytest.raises(ts.MismatchError, match=r"field is torch.float32 .* adapter is torch.float64"):
+        adapter.decode(field.float())
     with pytest.raises(ValueError, match="order"):
         bricks.BrickMeshAdapter(fitted.meshes, fitted.grids, order=3)
     with pytest.raises(ValueError, match="order must be one of"):

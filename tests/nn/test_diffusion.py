@@ -280,6 +280,23 @@ def test_layer_shapes_batches_and_untouched_inputs(sphere33):
     torch.testing.assert_close(mixed[:, 1:2], alone, rtol=1e-5, atol=1e-6)
 
 
+@pytest.mark.parametrize("phi_grad", [False, True])
+def test_data_of_batch_one_on_a_surface_of_batch_two_gives_two_entries(phi_grad):
+    """The volume path (``phi`` requiring grad) read the first band node of data of batch 1 on
+    a surface of batch 2 and raised a bare broadcast error; the packed path expanded it."""
+    grid = ts.Grid.cube(18, bound=1.7)
+    phis = torch.cat([ts.sdf.sphere(grid, radius=0.8, dtype=torch.float64),
+                      ts.sdf.torus(grid, major_radius=0.8, minor_radius=0.35, dtype=torch.float64)])
+    u = torch.rand(1, 1, *grid.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
+    surface = ts.ImplicitSurface(phis.clone().requires_grad_(phi_grad), grid)
+    for layer in (LearnedDiffusion(1, time=2.0).double(),
+                  ts.flows.HeatFlow(2.0 * grid.spacing**2, method="chebyshev")):
+        out = layer(u, surface)
+        expected = layer(u.expand(2, -1, -1, -1, -1), surface)
+        assert out.shape == (2, 1, *grid.shape)
+        torch.testing.assert_close(out, expected, rtol=0, atol=1e-14)
+
+
 def test_bad_arguments_are_named(sphere33):
     u0, surface = sphere33
     with pytest.raises(ValueError, match="time"):

@@ -9,7 +9,13 @@ import torch
 from torch import Tensor, nn
 
 from .. import _mesh_sdf, _vertex_decode, sdf
-from .._checks import check_dtype, check_like_first, check_positive, check_tensor
+from .._checks import (
+    check_dtype,
+    check_like_first,
+    check_module_dtype,
+    check_positive,
+    check_tensor,
+)
 from .._mesh_input import MeshLike, warn_unused_vertices
 from ..grid import Grid
 from ..mesh import check_adapter_band, check_decode_order
@@ -219,6 +225,7 @@ class BrickMeshAdapter(nn.Module):
                     f"{tuple(entry.shape)}"
                 )
             check_like_first(entry, values[0], f"values[{b}]", "values[0]")
+        check_module_dtype(values[0], "values[0]", self._weights, "adapter")
         joined = torch.cat(list(values))
         interpolated = (joined[self._corners] * self._weights.to(joined.dtype)[..., None]).sum(1)
         channels = joined.shape[1]
@@ -230,6 +237,7 @@ class BrickMeshAdapter(nn.Module):
         """Packed field ``(N, C, 8, 8, 8)`` -> ``B`` tensors ``(V_b, C)`` at the vertices (see
         ``order``)."""
         self.surface.check_field(field, "field")
+        check_module_dtype(field, "field", self._weights, "adapter")
         if self._decode_index is None:
             return [self.surface.sample(field, vertices.to(field.dtype), b).T
                     for b, vertices in enumerate(self.vertices)]

@@ -394,6 +394,8 @@ def heat_semigroup(u0: Tensor, operator: BandLaplacian, times: Tensor,
         filled = Fill.apply(packed, result) + offset
         extended = packed.unpack(packed.packing.stencil(operator.extension).apply(filled), u0)
         return torch.where(operator.region, extended, u0)
+    # data of batch 1 on a surface of batch B: B entries, as on packed values
+    u0 = u0.expand(max(u0.shape[0], operator.band.shape[0]), *u0.shape[1:])
     offset = _first_band_values(u0, operator.band)  # as on packed values, above
     inside = torch.where(operator.band, u0 - offset, u0.new_zeros(()))
     result = chebyshev.expansion(
