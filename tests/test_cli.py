@@ -257,6 +257,40 @@ def test_an_image_file_that_cannot_serve_is_refused_before_any_work(tmp_path, ca
         assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize("override", ["flow.time=nan", "grid.margin=inf", "flow.time=-inf"])
+def test_a_non_finite_number_is_refused_as_such(override, tmp_path, capsys):
+    """YAML reads nan and inf unquoted as strings: they were refused as "a string (remove the
+    quotes)", though none were typed."""
+    code = cli.main(["run", "heat_sphere", "--set", override, "--out", str(tmp_path / "out")])
+    assert code == cli.EXIT_USAGE
+    error = capsys.readouterr().err
+    assert f"config error: {override.split('=')[0]}: must be a finite number" in error
+    assert "quotes" not in error
+
+
+def test_a_mesh_file_that_cannot_be_read_is_refused_before_any_work(tmp_path, capsys):
+    """A file that is no mesh failed mid-run (exit 1, "run failed"), naming no setting."""
+    for name, text in (("broken.obj", "not a mesh\n"), ("notes.md", "# no mesh\n")):
+        path = tmp_path / name
+        path.write_text(text)
+        code = cli.main(["run", "heat_sphere", "--set", "surface.shape=mesh",
+                         f"surface.mesh={path}", "--out", str(tmp_path / "out")])
+        assert code == cli.EXIT_USAGE
+        assert "config error: surface.mesh:" in capsys.readouterr().err
+        assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("radius", ["1e-20", "1e300"])
+def test_a_shape_beyond_float32_grids_is_refused_naming_its_parameters(tmp_path, capsys, radius):
+    """A radius of 1e-20 failed in the flow ("no finite positive spectral bound"), 1e300 in
+    the distances, both exit 1 naming no setting."""
+    code = cli.main(["run", "heat_sphere", "--set", f"surface.params.radius={radius}",
+                     "--out", str(tmp_path / "out")])
+    assert code == cli.EXIT_USAGE
+    assert "config error: surface.params: the sphere spans" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
 def test_a_bad_section_in_the_file_is_named_not_a_valid_override(tmp_path, capsys):
     """omegaconf names no key for a value given for a whole section: it was blamed on the
     first --set, valid or not, or on nothing."""
@@ -389,6 +423,39 @@ def test_a_stop_after_the_picture_is_drawn_leaves_no_file(tmp_path, monkeypatch)
     with pytest.raises(KeyboardInterrupt):
         cli.main(["run", "heat_sphere", "--set", *TINY, "--quiet", "--out", str(tmp_path)])
     assert list(tmp_path.iterdir()) == []
+
+
+def test_an_interrupt_between_the_renames_waits_for_both(tmp_path, monkeypatch):
+    """SIGTERM after the picture's rename and before the record's left the new picture beside
+    the old record: it is now taken once both are in place."""
+    import signal
+
+    from torchsurf import experiment
+
+    class Stopped(Exception):
+        pass
+
+    def stop(number, frame):  # noqa: ANN001, ANN202
+        raise Stopped
+
+    (tmp_path / "heat_sphere.png").write_text("old")
+    (tmp_path / "heat_sphere.json").write_text("old")
+    rename = os.replace
+
+    def interrupted(source, target):  # noqa: ANN001, ANN202
+        rename(source, target)
+        if Path(target) == tmp_path / "heat_sphere.png":
+            signal.raise_signal(signal.SIGTERM)
+
+    previous = signal.signal(signal.SIGTERM, stop)
+    try:
+        monkeypatch.setattr(experiment.os, "replace", interrupted)
+        with pytest.raises(Stopped):
+            cli.main(["run", "heat_sphere", "--set", *TINY, "--quiet", "--out", str(tmp_path)])
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["heat_sphere.json", "heat_sphere.png"]
+    assert all(p.read_bytes() != b"old" for p in tmp_path.iterdir())
 
 
 def test_list_into_a_reader_that_stops_early_is_quiet(tmp_path):

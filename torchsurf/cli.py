@@ -7,16 +7,15 @@ Exit codes: 0 done, 2 usage or config error (nothing computed), 1 the run itself
 from __future__ import annotations
 
 import argparse
-import contextlib
 import os
 import signal
 import sys
 import tempfile
-import threading
 import warnings
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 
+from ._signals import signals_held
 from .config import ConfigError, builtin_folder, builtin_names
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE = 0, 1, 2
@@ -131,28 +130,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         return _run(args, argv)
 
 
-@contextlib.contextmanager
-def _signals_held() -> Iterator[None]:
-    """Hold SIGINT and SIGTERM until the block ends, then take them: an interrupt in the middle
-    of VTK's import (or its EGL probe) crashed the process (exit 139) instead of exiting 143.
-    Python runs signal handlers in the main thread, so recording them there holds a signal
-    whichever thread the system gave it to."""
-    if threading.current_thread() is not threading.main_thread():  # no handlers to set there
-        yield
-        return
-    pending: list[int] = []
-    held = (signal.SIGINT, signal.SIGTERM)
-    previous = {number: signal.signal(number, lambda number, frame: pending.append(number))
-                for number in held}
-    try:
-        yield
-    finally:
-        for number, handler in previous.items():
-            signal.signal(number, handler)
-        if pending:
-            signal.raise_signal(pending[0])
-
-
 def _run(args: argparse.Namespace, argv: Sequence[str] | None) -> int:
     """``torchsurf run`` with the parsed ``args``; returns the exit code."""
     from . import experiment
@@ -168,7 +145,7 @@ def _run(args: argparse.Namespace, argv: Sequence[str] | None) -> int:
     try:  # VTK's import does not survive an interrupt: load it before any folder is made
         from .render import resolve_renderer
 
-        with _signals_held():
+        with signals_held():
             resolve_renderer(prepared.experiment.render.renderer.name)
     except ImportError as error:
         print(f"torchsurf: {error}", file=sys.stderr)

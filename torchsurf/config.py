@@ -502,8 +502,17 @@ def _refuse_quoted_numbers(given: object, merged: DictConfig, path: str = "") ->
     elif isinstance(given, str):
         read = OmegaConf.select(merged, path, default=None)
         if isinstance(read, (int, float)) and not isinstance(read, bool):
+            if _is_non_finite(given):  # `--set flow.time=nan`: YAML reads nan, inf as strings
+                raise ConfigError(path, f"must be a finite number, got {given}")
             raise ConfigError(path, f"must be a number, got the string {given!r} (remove the "
                               "quotes)")
+
+
+def _is_non_finite(text: str) -> bool:
+    try:
+        return not math.isfinite(float(text))
+    except ValueError:
+        return False
 
 
 def load(config: str | os.PathLike, overrides: list[str] | None = None) -> tuple[Experiment, Path]:

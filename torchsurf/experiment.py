@@ -31,6 +31,7 @@ from torch import Tensor
 from . import bricks, flows, render, sdf, signals
 from . import config as cfg
 from . import mesh as meshes
+from ._signals import signals_held
 from .bricks.layout import bricks_along
 from .config import (
     ConfigError,
@@ -64,6 +65,8 @@ class Prepared:
     folder: Path
     params: dict[str, Any]
     mesh_path: Path | None
+    mesh: trimesh.Trimesh | None = None
+    """The mesh file, read (and checked) by :func:`prepare`."""
 
 
 @dataclass
@@ -107,17 +110,23 @@ def prepare(config: str | os.PathLike, overrides: list[str] | None = None) -> Pr
     """
     experiment, folder = cfg.load(config, overrides)
     surface = experiment.surface
-    mesh_path, params = None, {}
+    mesh_path, mesh, params = None, None, {}
     if surface.shape is Shape.mesh:
         if surface.params:
             raise ConfigError("surface.params", "a mesh takes no shape parameters")
         mesh_path = cfg.resolve_mesh(surface.mesh, folder)
+        try:  # read now, so that a file that is no mesh fails before any work
+            mesh = meshes.load(str(mesh_path))
+        except (TypeError, ValueError) as error:
+            raise ConfigError("surface.mesh", f"{str(mesh_path)!r} cannot be read as a mesh: "
+                              f"{error}") from None
     else:
         params = _shape_params(surface.shape, dict(surface.params))
         try:  # the shape's own checks, on a grid of 27 nodes: before any real work
             SHAPES[surface.shape](Grid((3, 3, 3), 1.0), **params)
         except (TypeError, ValueError) as error:
             raise ConfigError("surface.params", str(error)) from None
+        _check_extent(surface.shape, params)
     image_name = signal_setting(experiment.signal, "image")
     if experiment.signal.kind is SignalKind.image and image_name not in signals.IMAGES:
         image = Path(image_name).expanduser()
@@ -138,7 +147,27 @@ def prepare(config: str | os.PathLike, overrides: list[str] | None = None) -> Pr
             render.resolve_renderer("pyvista")
         except ImportError as error:
             raise ConfigError("render.renderer", str(error)) from error
-    return Prepared(experiment, folder, params, mesh_path)
+    return Prepared(experiment, folder, params, mesh_path, mesh)
+
+
+SHAPE_EXTENT = (1e-6, 1e6)
+"""Sizes (world units) a built-in shape's bounding box may span: the grid is fitted to it, and
+float32 spacings and their squares (the operators divide by ``h^2``) stay far from float32's
+limits only within this range (the flows are measured scale-free there, docs/cli.md)."""
+
+
+def _check_extent(shape: Shape, params: dict[str, Any]) -> None:
+    """Raise :class:`ConfigError` naming ``surface.params`` for a shape too small or too large
+    for float32 grids (a radius of 1e-20 failed in the flow, 1e300 in the distances)."""
+    low, high = _builtin_box(shape, params)
+    extent = float(np.max(high - low))
+    centre = float(np.abs(0.5 * (low + high)).max())
+    smallest, largest = SHAPE_EXTENT
+    if not (smallest <= extent <= largest) or centre > largest:
+        raise ConfigError("surface.params", f"the {shape.value} spans {extent:g} world units "
+                          f"around a centre {centre:g} from the origin; built-in shapes must span "
+                          f"{smallest:g} to {largest:g} and lie within {largest:g} of the origin "
+                          "(float32 grids)")
 
 
 def _builtin_box(shape: Shape, p: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
@@ -166,7 +195,7 @@ def build_surface(prepared: Prepared) -> ImplicitSurface:
     size, margin = experiment.grid.size, experiment.grid.margin
     packed = cfg.layout(experiment.grid) is Layout.bricks
     if prepared.mesh_path is not None:
-        mesh = meshes.load(str(prepared.mesh_path))
+        mesh = prepared.mesh if prepared.mesh is not None else meshes.load(str(prepared.mesh_path))
         grid = meshes.fit_grid(mesh, size, margin)
         if packed:
             return bricks.from_mesh(mesh, grid)
@@ -504,8 +533,9 @@ def run(prepared: Prepared, out: str | os.PathLike, progress: bool = False,
                 if target.is_dir():
                     raise IsADirectoryError(f"{target} is a folder: the run cannot write its "
                                             "file")
-            os.replace(drawn, picture)
-            os.replace(staged, record)
+            with signals_held():  # an interrupt between the two would leave one of them new
+                os.replace(drawn, picture)
+                os.replace(staged, record)
         except BaseException:
             drawn.unlink(missing_ok=True)
             if staged is not None:
