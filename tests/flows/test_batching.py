@@ -211,3 +211,19 @@ def test_entries_of_one_band_width_and_different_bounds_equal_their_runs_alone(m
     together = flow(u, both)
     for b, phi in enumerate(phis):
         assert torch.equal(together[b:b + 1], flow(u[b:b + 1], ts.ImplicitSurface(phi, grid))), b
+
+
+def test_a_batch_integrated_entry_by_entry_does_not_warn_about_its_surface_again():
+    """Each entry's own surface repeated the batch surface's warnings (S near the box's
+    faces) at the first flow call."""
+    import warnings
+
+    grid = ts.Grid.cube(16, bound=1.05)
+    phi = torch.cat([ts.sdf.sphere(grid, 1.0), ts.sdf.sphere(grid, 0.5)])
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        surface = ts.ImplicitSurface(phi, grid)
+        built = len(caught)
+        ts.HeatFlow(0.01)(torch.rand(2, 1, *grid.shape, generator=torch.Generator().manual_seed(0)),
+                          surface)
+    assert built == 1 and len(caught) == 1

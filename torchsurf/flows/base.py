@@ -262,8 +262,10 @@ def _entry_surface(surface: ImplicitSurface, entry: int) -> ImplicitSurface:
     ``phi``'s graph), kept on ``surface`` unless ``phi`` requires grad."""
 
     def build() -> ImplicitSurface:
-        return ImplicitSurface(surface.phi[entry:entry + 1], surface.grid,
-                               band_width=surface.band_width, eps=surface.eps)
+        with warnings.catch_warnings():  # the batch's surface warned about this phi already
+            warnings.simplefilter("ignore", RuntimeWarning)
+            return ImplicitSurface(surface.phi[entry:entry + 1], surface.grid,
+                                   band_width=surface.band_width, eps=surface.eps)
 
     if surface.phi.requires_grad:
         return build()
