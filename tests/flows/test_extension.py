@@ -238,3 +238,20 @@ def test_extension_arguments_are_checked_by_name():
     meta = torch.ones(1, 1, *grid.shape, dtype=torch.bool, device="meta")
     with pytest.raises(ValueError, match="mask is on meta but u is on cpu"):
         ts.flows.closest_point_extension(u, surface, mask=meta)
+
+
+@pytest.mark.parametrize("method", ["closest_point", "pde"])
+def test_non_finite_data_in_the_band_is_refused_and_beyond_it_left_alone(method):
+    """A NaN in the band spread through the extension silently (flows refuse it)."""
+    grid = ts.Grid.cube(24, 1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, 0.9, dtype=torch.float64), grid)
+    u = torch.rand(1, 1, *grid.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    band = surface.band_mask()
+    inside = u.clone()
+    inside[tuple(band.nonzero()[0])] = float("nan")
+    with pytest.raises(ValueError, match=r"u \(in the band\) must hold finite values"):
+        Extension(method)(inside, surface)
+    beyond = torch.where(band, u, float("nan"))
+    result = Extension(method)(beyond, surface)
+    assert torch.isfinite(result[band.expand_as(result)]).all()
+    assert torch.isnan(result[~band.expand_as(result)]).all()

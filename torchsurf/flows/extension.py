@@ -25,7 +25,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .. import backend, stencils
-from .._checks import check_choice, check_count, check_flag, check_positive
+from .._checks import check_choice, check_count, check_finite, check_flag, check_positive
 from ..bricks.layout import BRICK, BrickLayout
 from ..sampling import cubic_lagrange_weights
 from ..surface import ImplicitSurface, check_data
@@ -922,6 +922,16 @@ class Extension(nn.Module):
         self.max_steps = None if max_steps is None else check_count(max_steps, "max_steps")
 
     def forward(self, u: Tensor, surface: ImplicitSurface) -> Tensor:
+        """``u`` ``(B, C, D, H, W)`` (packed ``(N, C, 8, 8, 8)`` on bricks) extended inside the
+        band of :attr:`width`; nodes beyond it are returned as they are (NaN there too).
+
+        Raises:
+            ValueError: ``u`` holds NaN or infinity in the band (the flows refuse it too: it
+                would spread through the extension silently).
+        """
+        check_data(u, "u", surface)
+        band = _band_to_extend(surface, self.width)
+        check_finite(torch.where(band, u.detach(), 0.0), "u (in the band)")
         if self.method == "closest_point":
             return closest_point_extension(u, surface, self.width, self.interpolation)
         return pde_extension(u, surface, self.width, self.tolerance, self.max_steps)
