@@ -560,6 +560,11 @@ class ImplicitSurface(nn.Module):
         limit = math.floor(min(reach / self.spacing + 1, CROSSING_CELLS))
         return (self.distance() <= reach) & self._near_crossing(limit)
 
+    def check_band_held(self, width: float, name: str = "width") -> None:
+        """Raise ``ValueError`` naming ``name`` where :meth:`band_mask` of ``width`` would
+        leave out nodes within ``width`` of S: never on a dense grid, which holds every node
+        (a :class:`~torchsurf.bricks.BrickSurface` holds the bricks it was built for)."""
+
     def evolving_widths(self) -> tuple[float, ...]:
         """Half-width, world units, of the band flows evolve on by default, one per batch entry
         (:meth:`torchsurf.flows.Flow.evolving_width`).

@@ -71,3 +71,29 @@ def test_training_signals_on_a_brick_batch_are_the_dense_signals_on_each_band():
         result = torch.cat(packed_surface.to_dense(packed))
         expected = make(dense, channels=2, seed=5)
         assert torch.allclose(result * band, expected * band, atol=1e-12), make.__name__
+
+
+def test_widths_beyond_the_stored_bricks_are_refused_by_losses_and_flows():
+    """``band_mse`` / ``psnr`` with a ``width`` (and a flow with a ``band_width``) wider than
+    the bricks hold measured or evolved fewer nodes than the dense surface (5097 against 5421
+    at 5 cells in an audit's case), silently; within the stored band they equal the dense."""
+    import pytest
+
+    from torchsurf import bricks
+
+    grid = ts.Grid.cube(22, bound=1.6)
+    h = grid.spacing
+    dense = ts.ImplicitSurface(ts.sdf.sphere(grid, 0.9, center=(0.03, -0.02, 0.01),
+                                             dtype=torch.float64), grid)
+    surface = bricks.from_dense(dense)
+    generator = torch.Generator().manual_seed(0)
+    prediction, target = (torch.rand(1, 1, *grid.shape, dtype=torch.float64, generator=generator)
+                          for _ in range(2))
+    packed = surface.from_dense(prediction), surface.from_dense(target)
+    torch.testing.assert_close(band_mse(*packed, surface, width=3 * h),
+                               band_mse(prediction, target, dense, width=3 * h), rtol=1e-14, atol=0)
+    for loss in (band_mse, psnr):
+        with pytest.raises(ValueError, match=r"width=.* reaches \d+ nodes"):
+            loss(*packed, surface, width=5 * h)
+    with pytest.raises(ValueError, match=r"band_width=.* reaches \d+ nodes"):
+        ts.HeatFlow(0.01, band_width=5 * h)(packed[0], surface)

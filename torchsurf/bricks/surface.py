@@ -340,10 +340,14 @@ class BrickSurface(ImplicitSurface):
         ``width`` beyond the band the bricks were built for, whose outer nodes would keep
         their values in an extension. (Nodes whose direct neighbours are not stored either
         have no distance to test; a wider band always leaves out some of the former.)"""
-        if width <= self.band_width:
+        if width <= max(self.band_width, *self.evolving_widths()):  # stored by the builder
             return
-        measurable = ImplicitSurface.band_mask(self, width) & self._stencilled(1)
-        left_out = int((measurable & ~self.band_mask(width)).sum())
+
+        def count() -> int:
+            measurable = ImplicitSurface.band_mask(self, width) & self._stencilled(1)
+            return int((measurable & ~self.band_mask(width)).sum())
+
+        left_out = count() if self.phi.requires_grad else self.kept(("left out", width), count)
         if left_out:
             raise ValueError(
                 f"{name}={width:g} reaches {left_out} nodes within it of S whose neighbours "

@@ -514,6 +514,7 @@ class Flow(nn.Module):
         """:meth:`evolving_width` of each entry (the entries of a batch of several surfaces
         are integrated one at a time, each on its own band)."""
         if self.band_width is not None:
+            surface.check_band_held(self.band_width, "band_width")
             return (self.band_width,)
         return surface.evolving_widths()
 

@@ -260,6 +260,7 @@ class BandLaplacian:
             )
         width = surface.band_width if band_width is None else float(band_width)
         check_reextension_width(width, surface.spacing)  # the ring is re-extended each time
+        surface.check_band_held(width, "band_width")
         self.surface, self.scheme, self.path, self.width = surface, scheme, path, width
         self.band = surface.band_mask(width)
         self.region = with_ring(self.band, surface.layout)

@@ -89,7 +89,7 @@ def _band_to_extend(surface: ImplicitSurface, width: float | None) -> Tensor:
     """``surface.band_mask(width)``; on bricks, refused (naming ``width``) where it would leave
     out nodes the bricks cannot stencil (:meth:`~torchsurf.bricks.BrickSurface.check_band_held`):
     they would keep their values."""
-    if surface.layout is not None and width is not None:
+    if width is not None:
         surface.check_band_held(check_positive(width, "width"))
     return surface.band_mask(width)
 

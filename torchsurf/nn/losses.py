@@ -24,6 +24,8 @@ def _squared_errors(prediction: Tensor, target: Tensor, surface: ImplicitSurface
     # data of batch 1 on a surface of batch B is measured on each of the B surfaces
     batch = max(prediction.shape[0], surface.batch_size) if surface.layout is None else \
         prediction.shape[0]
+    if width is not None:  # bricks built for a narrower band would leave nodes out
+        surface.check_band_held(check_positive(width, "width"))
     band = surface.band_mask(width).expand(batch, 1, *prediction.shape[2:])
     errors = torch.where(band, prediction - target, prediction.new_zeros(()))
     counts = (band.sum(dim=(1, 2, 3, 4)) * prediction.shape[1]).to(prediction.dtype)
