@@ -8,7 +8,9 @@ signals' mean PSNR over the band, then evaluated on held-out signals on the trai
 the held-out shape against two tuned baselines: the heat flow at the best fixed time and
 total-variation flow at the best fixed time, each picked by a sweep on the training signals of
 each kind. Writes a table (``results.md``, ``results.csv``), pictures of the held-out shape
-(``heldout_*.png``) and the trained weights (``denoiser.pt``) to ``--output``.
+(``heldout_*.png``) and the trained weights (``denoiser.pt``) to ``--output``, all written
+aside first and renamed into place once every one is ready (a failed run leaves the former
+results as they were).
 
     python examples/train_denoise.py [--output outputs/train_denoise] [--quick]
 
@@ -315,31 +317,23 @@ def train(model: Denoiser, data: SignalSet, iterations: int, lr: float, seed: in
     return scores
 
 
-def write_atomically(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` through a temporary file in its folder, then rename it."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".tmp")
+@contextlib.contextmanager
+def staged_outputs(output: Path) -> Iterator[Path]:
+    """A hidden folder in ``output`` to write every result into; when the block ends, each
+    file is renamed into ``output`` (one after the other, after all are written), so that a
+    run that fails or is stopped before then leaves the former results as they were, not a
+    mix of new and old; a failure removes the folder."""
+    output.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(dir=output, prefix=".staged."))
     try:
-        with os.fdopen(handle, "w") as stream:
-            stream.write(text)
-            os.fchmod(stream.fileno(), render.FILE_MODE)
-        os.replace(temporary, path)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
-        raise
-
-
-def save_model(model: nn.Module, path: Path) -> None:
-    """``model``'s state dict to ``path``, atomically (see :func:`write_atomically`)."""
-    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".tmp")
-    try:
-        with os.fdopen(handle, "wb") as stream:
-            torch.save(model.state_dict(), stream)
-            os.fchmod(stream.fileno(), render.FILE_MODE)
-        os.replace(temporary, path)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
-        raise
+        yield staging
+        for path in sorted(staging.iterdir()):
+            os.chmod(path, render.FILE_MODE)
+            os.replace(path, output / path.name)
+    finally:
+        for path in staging.iterdir():
+            path.unlink()
+        staging.rmdir()
 
 
 def tables(scores: dict[tuple[str, str, str], float],
@@ -524,11 +518,13 @@ def run(args: argparse.Namespace) -> dict[tuple[str, str, str], float]:
         "heat times in h^2, total-variation times in h, each the best on the training signals "
         f"of its kind. {elapsed:.0f} s to this table, {torch.get_num_threads()} thread(s).\n\n"
     )
-    write_atomically(output / "results.md", header + markdown)
-    write_atomically(output / "results.csv", table)
-    save_model(model, output / "denoiser.pt")
-    for path in pictures(held_shape, grid, methods, output, args.picture_size):
-        print(f"written {path}", flush=True)
+    with staged_outputs(output) as staging:
+        (staging / "results.md").write_text(header + markdown)
+        (staging / "results.csv").write_text(table)
+        torch.save(model.state_dict(), staging / "denoiser.pt")
+        drawn = pictures(held_shape, grid, methods, staging, args.picture_size)
+    for path in drawn:
+        print(f"written {output / path.name}", flush=True)
     print(f"written {output / 'results.md'}, {output / 'results.csv'}, {output / 'denoiser.pt'} "
           f"({time.perf_counter() - begin:.0f} s in all)", flush=True)
     return scores

@@ -51,6 +51,28 @@ def test_quick_run_writes_table_and_pictures(example, tmp_path):
     assert not list(output.glob(".*")), "a temporary file was left behind"
 
 
+def test_outputs_are_staged_and_a_failure_leaves_the_former_ones(example, tmp_path, monkeypatch):
+    """A failure on the second picture left the new table, weights and first picture beside
+    the former second picture: every output is written aside and renamed once all are."""
+    former = {name: b"former" for name in ("results.md", "results.csv", "denoiser.pt",
+                                           "heldout_smooth.png", "heldout_piecewise_constant.png")}
+    for name, data in former.items():
+        (tmp_path / name).write_bytes(data)
+    drawn = example.render.render_panels
+    calls = []
+
+    def failing(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise RuntimeError("the second picture failed")
+        return drawn(*args, **kwargs)
+
+    monkeypatch.setattr(example.render, "render_panels", failing)
+    with pytest.raises(RuntimeError, match="second picture"):
+        example.main(["--quick", "--output", str(tmp_path)])
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == former
+
+
 @pytest.mark.parametrize(("argv", "named"), [
     (["--resolution", "8"], "--resolution"),
     (["--iterations", "0"], "--iterations"),
