@@ -306,3 +306,44 @@ def test_packing_entries_of_different_dtypes_is_refused(two_boxes):
     first, second = (torch.zeros(1, 1, *grid.shape) for grid in both.grids)
     with pytest.raises(ts.MismatchError, match=r"volume\[1\] is torch.float64 .* volume\[0\]"):
         both.layout.from_dense([first, second.double()])
+
+
+def test_a_wider_band_width_is_refused_where_the_bricks_do_not_hold_it():
+    """Set wider than the bricks were built for, the band kept u0 at the nodes it left out
+    (2.48 off the dense flow at 5 cells, silently); within the flows' stored band it equals a
+    fresh surface, and each entry of a batch runs with it."""
+    grid = Grid.cube(33, 2.0)
+    h = grid.spacing
+    distance = ts.sdf.sphere(grid, 1.0, center=(0.04, -0.03, 0.02), dtype=torch.float64)
+    x, y, z = grid.points(dtype=torch.float64).unbind(-1)
+    quadric = ((x * x + y * y + z * z) - 0.8**2)[None, None]  # not a distance: 3 cells
+    narrow = bricks.from_dense(quadric, grid)
+    with pytest.raises(ValueError, match=r"band_width=.* reaches \d+ nodes"):
+        narrow.band_width = 5 * h
+    assert narrow.band_width == pytest.approx(3 * h)
+    wide = bricks.from_dense(distance, grid)
+    assert wide.evolving_widths() == pytest.approx((5 * h,))
+    both = bricks.cat([wide, bricks.from_dense(distance, grid)])
+    both.band_width = 4 * h
+    fresh = bricks.from_dense(distance, grid, band_width=4 * h)
+    u = fresh.from_dense(torch.rand(1, 1, *grid.shape, dtype=torch.float64,
+                                    generator=torch.Generator().manual_seed(1)))
+    flow = ts.HeatFlow(0.01)
+    together = flow(torch.cat([u, u]), both)
+    assert torch.equal(together[: len(u)], flow(u, fresh))
+
+
+def test_a_brick_batch_evaluated_under_inference_mode_then_trains():
+    """The batch's kept entry rows were inference tensors: the next training call raised
+    'Inference tensors cannot be saved for backward'."""
+    grid = Grid.cube(29, 1.4)
+    one = bricks.from_dense(ts.sdf.sphere(grid, 0.8, dtype=torch.float64), grid)
+    both = bricks.cat([one, bricks.from_dense(ts.sdf.sphere(grid, 0.7, dtype=torch.float64), grid)])
+    u = torch.rand(len(both.layout), 1, 8, 8, 8, dtype=torch.float64,
+                   generator=torch.Generator().manual_seed(2))
+    flow = ts.HeatFlow(0.01)
+    with torch.inference_mode():
+        flow(u, both)
+    trained = u.clone().requires_grad_()
+    flow(trained, both).sum().backward()
+    assert torch.isfinite(trained.grad).all()

@@ -9,6 +9,7 @@ import torch
 from torch import Tensor
 
 from .._checks import MismatchError, check_finite, check_positive, check_tensor
+from .._inference import outside_inference
 from ..grid import Grid
 from ..surface import CROSSING_CELLS, ImplicitSurface
 from .layout import BRICK, BrickLayout
@@ -110,6 +111,20 @@ class BrickSurface(ImplicitSurface):
     def _forget_stencilled(self) -> None:
         for key in [key for key in self.__dict__ if key.startswith("_stencilled_")]:
             del self.__dict__[key]
+
+    @property
+    def band_width(self) -> float:
+        """Half-width of the band, world units. Setting it drops what was kept for the former
+        width; a width beyond the band the bricks were built for (and the flows' bands they
+        store) is refused where it would leave out nodes within it of S (:meth:`check_band_held`)."""
+        return self._band_width
+
+    @band_width.setter
+    def band_width(self, value: float) -> None:
+        value = check_positive(value, "band_width")
+        if "phi" in self._buffers:  # not while the constructor sets it
+            self.check_band_held(value, "band_width")
+        ImplicitSurface.band_width.fset(self, value)
 
     def _forget_kept(self) -> None:
         self.__dict__.pop("_entries", None)  # built with the former width
@@ -251,13 +266,15 @@ class BrickSurface(ImplicitSurface):
             return cached
         batch = self.layout.batch
         parts = []
-        for b, grid in enumerate(self.grids):
-            rows = (batch == b).nonzero().squeeze(1)
-            layout = BrickLayout(self.layout.coords[rows].cpu(),
-                                 torch.zeros(len(rows), dtype=torch.long), [grid])
-            rows = rows.to(self.phi.device)
-            parts.append((rows, BrickSurface(self.phi[rows], layout, self.band_width, self.eps,
-                                             self._evolving[b])))
+        widths = self.evolving_widths()
+        with outside_inference():  # kept: an evaluation's rows must serve a training call
+            for b, grid in enumerate(self.grids):
+                rows = (batch == b).nonzero().squeeze(1)
+                layout = BrickLayout(self.layout.coords[rows].cpu(),
+                                     torch.zeros(len(rows), dtype=torch.long), [grid])
+                rows = rows.to(self.phi.device)
+                parts.append((rows, BrickSurface(self.phi[rows], layout, self.band_width,
+                                                 self.eps, widths[b])))
         if not self.phi.requires_grad:
             self.__dict__["_entries"] = parts
         return parts
@@ -353,7 +370,7 @@ class BrickSurface(ImplicitSurface):
                 f"{name}={width:g} reaches {left_out} nodes within it of S whose neighbours "
                 f"this BrickSurface does not store (it was built for band_width="
                 f"{self.band_width:g}): build it with torchsurf.bricks.from_dense or from_mesh "
-                f"at band_width >= {name}"
+                f"at band_width >= {width:g}"
             )
 
     def _check_points(self, points: Tensor, entry: int, name: str = "points") -> int:
