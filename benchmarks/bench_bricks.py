@@ -1,6 +1,6 @@
 """Band storage as bricks: scale on a mesh, cost against the dense volume, time to solution.
 
-Four parts, each against a baseline measured in the same run:
+Five parts, each against a baseline measured in the same run (peak: against the target):
 
 - **scale**: ``bunny_closed.obj`` (``--mesh``) on a ``--resolution``^3 grid (512 by default)
   built straight into bricks (:func:`torchsurf.bricks.from_mesh`): build time, bricks, stored
@@ -24,6 +24,9 @@ Four parts, each against a baseline measured in the same run:
   own 4 cells), against each shape alone in its own units on its own grid to its own time, each
   run in a fresh process: times, peak resident memory and live peak, the largest difference of
   an entry to its shape alone and the maximum principle on each entry.
+- **peak** (``--parts peak``, printed alone): a user's run in a fresh process, the scale part's
+  build and heat flow with nothing else timed, and its resident peak (the scale part's process
+  also times the compiled operator over every stored node, which leaves its heap larger).
 
     PYTHONPATH=. python benchmarks/bench_bricks.py --output docs/benchmarks.md
     PYTHONPATH=. python benchmarks/bench_bricks.py --resolution 128 --ratio-resolution 96 --sizes 49
@@ -152,6 +155,43 @@ def scale(mesh_path: Path, resolution: int, bandwidth: float) -> dict[str, float
         "noise_before": float(u[band].std()), "noise_after": float(smoothed[band].std()),
         "peak_gb": peak_gb(),
     }
+
+
+def peak_run(mesh_path: Path, resolution: int) -> dict[str, float]:
+    """A user's run alone, in this (fresh) process: the bricks built from the mesh and the
+    heat flow of :func:`scale` called twice; its resident peak, with nothing else timed in the
+    process (the scale part also times the compiled operator over every stored node, whose
+    halos leave the heap larger)."""
+    mesh = ts.mesh.load(mesh_path)
+    grid = ts.mesh.fit_grid(mesh, resolution, margin=max(0.05, 6.0 / max(resolution - 13, 1)))
+    start = time.perf_counter()
+    surface = bricks.from_mesh(mesh, grid, dtype=torch.float32)
+    build_s = time.perf_counter() - start
+    built_gb = peak_gb()
+    u = torch.randn(len(surface.layout), 1, 8, 8, 8, generator=torch.Generator().manual_seed(0))
+    flow = ts.flows.HeatFlow(time=(8 * grid.spacing) ** 2)
+    seconds = []
+    with torch.no_grad():
+        for _ in range(2):
+            start = time.perf_counter()
+            flow(u, surface)
+            seconds.append(time.perf_counter() - start)
+    return {"resolution": resolution, "build_s": build_s, "built_gb": built_gb,
+            "flow_first_s": seconds[0], "flow_s": seconds[1], "steps": flow.last_plan.count,
+            "peak_gb": peak_gb()}
+
+
+def peak(mesh_path: Path, resolution: int) -> str:
+    """:func:`peak_run` in a fresh process, as Markdown."""
+    arguments = [sys.executable, __file__, "--mesh", str(mesh_path), "--resolution",
+                 str(resolution), "--peak-run"]
+    done = subprocess.run(arguments, capture_output=True, text=True, check=True)
+    figures = json.loads(done.stdout.strip().splitlines()[-1])
+    return (f"**A user's run alone** ({resolution}³ `{mesh_path.name}`, a fresh process: "
+            f"`bricks.from_mesh`, then `HeatFlow` to (8 h)² twice): build {figures['build_s']:.1f} s, "
+            f"peak after the build {figures['built_gb']:.2f} GB, flow {figures['flow_s']:.1f} s "
+            f"(first call {figures['flow_first_s']:.1f} s, {figures['steps']} steps), "
+            f"**peak {figures['peak_gb']:.2f} GB**.")
 
 
 def _on_band(u, surface, band, path: str = "auto"):  # noqa: ANN001, ANN202
@@ -519,7 +559,7 @@ def main(argv: list[str] | None = None) -> str:
     parser.add_argument("--solution-method", default="rkc",
                         choices=["rkc", "euler", "heun"])
     parser.add_argument("--parts", nargs="+", default=["scale", "ratio", "solution"],
-                        choices=["scale", "ratio", "solution", "batch"])
+                        choices=["scale", "ratio", "solution", "batch", "peak"])
     parser.add_argument("--batch-meshes", nargs="+", type=Path,
                         default=[MESHES / f"{name}.obj" for name in BATCH_MESHES])
     parser.add_argument("--batch-resolutions", type=int, nargs="+",
@@ -527,10 +567,20 @@ def main(argv: list[str] | None = None) -> str:
     parser.add_argument("--batch-cells", type=float, default=BATCH_CELLS)
     parser.add_argument("--batch-run", nargs=2, metavar=("WHICH", "OUTPUT"),
                         help=argparse.SUPPRESS)
+    parser.add_argument("--peak-run", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--output", type=Path, default=None)
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
+    if args.peak_run:
+        figures = peak_run(Path(args.mesh), args.resolution)
+        print(json.dumps(figures))
+        return json.dumps(figures)
+    if "peak" in args.parts:
+        body = peak(Path(args.mesh), args.resolution)
+        print(body)
+        if args.parts == ["peak"]:
+            return body
     if args.batch_run is not None:
         which = None if args.batch_run[0] == "batch" else int(args.batch_run[0])
         figures = batch_run(args.batch_meshes, args.batch_resolutions, args.batch_cells, which,

@@ -78,6 +78,15 @@ def test_bricks_benchmark_time_to_solution_and_report():
 
 
 
+def test_bricks_benchmark_peak_part_runs_a_users_run_in_a_child_process():
+    module = load_benchmark("bench_bricks")
+    mesh = module.MESHES / "bunny_closed.obj"
+    if not mesh.exists():
+        pytest.skip("shared meshes not present")
+    text = module.peak(mesh, 40)
+    assert "A user's run alone** (40³ `bunny_closed.obj`" in text and "GB**." in text
+
+
 def test_bricks_benchmark_times_the_c_kernel_and_reports_it():
     module = load_benchmark("bench_bricks")
     grid = ts.Grid.cube(33, 1.5)
