@@ -68,26 +68,17 @@ def from_dense(phi: Tensor | ImplicitSurface, grid: Grid | None = None,
     band = dense.band_mask()
     for b in range(dense.batch_size):
         check_clear_of_faces(band[b, 0].nonzero(), dense.grid, b)
-    widths = _stored_flow_widths(dense) if flow_band else [dense.band_width] * dense.batch_size
-    bands = {width: band if width == dense.band_width else dense.band_mask(width)
-             for width in set(widths)}
+    widths = list(dense.evolving_widths()) if flow_band else [dense.band_width] * dense.batch_size
+    bands = {width: dense.band_mask(width) for width in set(widths) - {dense.band_width}}
+    bands[dense.band_width] = band
+    for b, width in enumerate(widths):  # bricks have no faces: a wider band must stay clear
+        if _clearance(bands[width][b, 0].nonzero(), dense.grid) < REACH_CELLS:
+            widths[b] = dense.band_width
     masks = [_grown(bands[width][b, 0], REACH_CELLS) for b, width in enumerate(widths)]
     grids = [dense.grid] * dense.batch_size
     layout = bricks_of_mask(masks, grids)
     packed = layout.from_dense(dense.phi, fill="linear")
     return BrickSurface(packed, layout, dense.band_width, dense.eps, widths)
-
-
-def _stored_flow_widths(dense: ImplicitSurface) -> list[float]:
-    """Each entry's :meth:`~torchsurf.ImplicitSurface.evolving_widths`, or its band width
-    where that wider band comes within :data:`REACH_CELLS` nodes of the box's faces."""
-    widths = list(dense.evolving_widths())
-    for width in set(widths) - {dense.band_width}:
-        band = dense.band_mask(width)
-        for b in range(dense.batch_size):
-            if widths[b] == width and _clearance(band[b, 0].nonzero(), dense.grid) < REACH_CELLS:
-                widths[b] = dense.band_width
-    return widths
 
 
 def from_mesh(meshes: MeshLike | Sequence[MeshLike], grids: Grid | Sequence[Grid],

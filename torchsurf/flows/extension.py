@@ -933,7 +933,8 @@ class Extension(nn.Module):
         band = _band_to_extend(surface, self.width)
         check_finite(torch.where(band, u.detach(), 0.0), "u (in the band)")
         if self.method == "closest_point":
-            return closest_point_extension(u, surface, self.width, self.interpolation)
+            return closest_point_extension(u, surface, interpolation=self.interpolation,
+                                           mask=band)
         return pde_extension(u, surface, self.width, self.tolerance, self.max_steps)
 
     def extra_repr(self) -> str:
