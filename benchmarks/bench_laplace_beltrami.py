@@ -99,7 +99,7 @@ def numpy_normals(phi: np.ndarray, spacing: float, eps: float = 1e-6
 
 
 class AppendixB:
-    """Plain numpy ``L u = (1/W) D- . (W P D+ u)`` (SPEC §3 steps 1-4) with reused buffers.
+    """Plain numpy ``L u = (1/W) D- . (W P D+ u)`` (the paper's Appendix B) with reused buffers.
 
     Normals and ``W`` are computed once, at construction. The call does the paper's steps with
     numpy slicing, in place where natural: forward differences ``g = D+ u`` (zero on the last

@@ -1,10 +1,10 @@
-"""Convergence of the Laplace–Beltrami schemes on the exact cases of SPEC §5.
+"""Convergence of the Laplace–Beltrami schemes on the exact cases of :mod:`torchsurf.exact`.
 
 Prints a table of the max-norm error on the nodes within one cell of the surface and the
 observed order between successive grids, for a sphere harmonic of each degree and a torus, and
 writes it as Markdown (default ``outputs/convergence.md``).
 
-    python examples/convergence.py [--sizes 17 33 65 129] [--output outputs/convergence.md]
+    python examples/convergence.py [--sizes 17 33 65] [--output outputs/convergence.md]
 """
 
 from __future__ import annotations
@@ -74,8 +74,10 @@ def write_atomically(path: Path, text: str) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--sizes", type=int, nargs="+", default=[17, 33, 65])
-    parser.add_argument("--output", type=Path, default=Path("outputs/convergence.md"))
+    parser.add_argument("--sizes", type=int, nargs="+", default=[17, 33, 65],
+                        help="grid sizes n (n^3 nodes), coarse to fine (default: 17 33 65)")
+    parser.add_argument("--output", type=Path, default=Path("outputs/convergence.md"),
+                        help="Markdown table written here (default: outputs/convergence.md)")
     args = parser.parse_args()
     torch.set_default_dtype(torch.float64)
     table = convergence_table(args.sizes)

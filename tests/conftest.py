@@ -1,4 +1,4 @@
-"""Shared helpers for the tests: exact geometry of the validation cases (SPEC §5) and orders.
+"""Shared helpers for the tests: exact geometry of the validation cases with exact answers and orders.
 
 Everything here takes and returns tensors; points are ``(..., 3)`` world ``(x, y, z)`` as
 :meth:`torchsurf.Grid.points` gives them, and :func:`channels` turns such a field into the
@@ -107,7 +107,7 @@ def torus_principal_curvatures(v: Tensor, major_radius: float, minor_radius: Ten
 
 def torus_curvatures(v: Tensor, major_radius: float, minor_radius: Tensor | float
                      ) -> tuple[Tensor, Tensor]:
-    """SPEC §5: ``H = (R + 2 r cos v) / (r (R + r cos v))``, ``K = cos v / (r (R + r cos v))``."""
+    """``H = (R + 2 r cos v) / (r (R + r cos v))``, ``K = cos v / (r (R + r cos v))``."""
     R, r, c = major_radius, minor_radius, torch.cos(v)
     mean = (R + 2 * r * c) / (r * (R + r * c))
     gaussian = c / (r * (R + r * c))
@@ -128,7 +128,7 @@ def torus_directions(theta: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
 
 def ellipsoid_gaussian_curvature(points: Tensor, a: Tensor | float, b: Tensor | float,
                                  c: Tensor | float) -> Tensor:
-    """SPEC §5: ``K = 1 / (a^2 b^2 c^2 (x^2/a^4 + y^2/b^4 + z^2/c^4)^2)`` at a point on it.
+    """``K = 1 / (a^2 b^2 c^2 (x^2/a^4 + y^2/b^4 + z^2/c^4)^2)`` at a point on it.
 
     ``a, b, c`` may be tensors broadcasting against ``points[..., 0]`` (one ellipsoid per point).
     """

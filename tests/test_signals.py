@@ -362,3 +362,19 @@ def test_tensor_seeds_and_far_origins_keep_every_digit():
     for origin in ((1000.3, 0.0, 0.0), np.array([1000.3, 0.0, 0.0]),
                    torch.tensor([1000.3, 0.0, 0.0], dtype=torch.float64)):
         assert float(signals.checkerboard(point, 1.0, origin)) == 1.0  # the tile below 1000.3
+
+
+def test_tangent_unit_and_orient_check_their_fields():
+    """Both took a field of 1 channel, of another dtype or with a spatial size of 1 silently
+    (tangent_unit broadcast it to (1, 3, D, H, W))."""
+    grid = ts.Grid.cube(9, 1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid), grid)
+    good = torch.ones(1, 3, 9, 9, 9)
+    assert signals.tangent_unit(good, surface).shape == good.shape
+    for bad in (torch.ones(1, 1, 9, 9, 9), torch.ones(1, 3, 9, 9, 1), torch.ones(3, 9, 9, 9)):
+        with pytest.raises(ValueError, match="field"):
+            signals.tangent_unit(bad, surface)
+    with pytest.raises(ts.MismatchError, match="field"):
+        signals.tangent_unit(good.double(), surface)
+    with pytest.raises(ts.MismatchError, match="reference"):
+        signals.orient(good.double(), good)

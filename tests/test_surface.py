@@ -411,7 +411,7 @@ def test_principal_curvatures_consistent_with_h_and_k(torus33):
     torch.testing.assert_close((k1 * k2).masked_select(near),
                                surface.gaussian_curvature().masked_select(near),
                                rtol=1e-9, atol=1e-9)
-    # H/2 +- sqrt(H^2/4 - K) (SPEC §4)
+    # H/2 +- sqrt(H^2/4 - K)
     mean, gaussian = surface.mean_curvature(), surface.gaussian_curvature()
     root = torch.sqrt(mean**2 / 4 - gaussian)
     torch.testing.assert_close(k1.masked_select(near), (mean / 2 + root).masked_select(near),

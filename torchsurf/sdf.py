@@ -117,7 +117,8 @@ def box(
     dtype: torch.dtype | None = None,
     device: torch.device | str | None = None,
 ) -> Tensor:
-    """Signed distance to the axis-aligned box of half extents ``half_size`` ``(x, y, z)``."""
+    """Signed distance to the axis-aligned box of half extents ``half_size`` ``(x, y, z)``;
+    ``(1, 1, D, H, W)``."""
     half_size = check_triple(half_size, "half_size", check_real)
     for length in half_size:
         check_positive(length, "half_size")
@@ -139,7 +140,8 @@ def capsule(
     dtype: torch.dtype | None = None,
     device: torch.device | str | None = None,
 ) -> Tensor:
-    """Signed distance to the capsule of ``radius`` around the segment ``start``–``end``."""
+    """Signed distance to the capsule of ``radius`` around the segment ``start``–``end``;
+    ``(1, 1, D, H, W)``."""
     check_positive(radius, "radius")
     start = check_triple(start, "start", check_real)
     end = check_triple(end, "end", check_real)

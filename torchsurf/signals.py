@@ -21,6 +21,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from ._checks import (
+    MismatchError,
     as_real_tensor,
     check_choice,
     check_count,
@@ -316,6 +317,9 @@ def orient(field: Tensor, reference: Tensor) -> Tensor:
     vector field wherever the reference is smooth."""
     check_volume(field, "field", channels=3)
     check_volume(reference, "reference", channels=3)
+    if (reference.dtype, reference.device) != (field.dtype, field.device):
+        raise MismatchError(f"reference is {reference.dtype} on {reference.device} but field is "
+                            f"{field.dtype} on {field.device}: they must match")
     if reference.shape[2:] != field.shape[2:] or reference.shape[0] not in (1, field.shape[0]):
         raise ValueError(f"reference must be (B or 1, 3, D, H, W) with field's B and (D, H, W), "
                          f"{tuple(field.shape)}, got shape {tuple(reference.shape)}")

@@ -281,8 +281,8 @@ class ImplicitSurface(nn.Module):
         gradient_scale: the median of ``|grad phi|`` over the nodes next to a sign change of
             ``phi`` (1 for a distance function), ``(B, 1, 1, 1, 1)``.
         weight: ``W = max(grad_norm, WEIGHT_FLOOR * slope, MINIMUM_WEIGHT *
-            gradient_scale)``, ``slope`` the larger one-sided differences of ``phi`` along
-            each axis (:func:`_squared_slope`); the weight of every divergence-form operator
+            gradient_scale)``, ``slope`` the root mean square of the one-sided differences of
+            ``phi`` along each axis (:func:`_squared_slope`); the weight of every divergence-form operator
             ``(1/W) div(W ...)``, ``(B, 1, D, H, W)``.
 
     Example:
@@ -777,7 +777,12 @@ def tangent_unit(field: Tensor, surface: ImplicitSurface) -> Tensor:
     result goes smoothly to 0. The floor is relative to ``|T|`` at each node, so ``c T`` gives
     the same result for every ``c > 0`` (an absolute floor shrank a field of size 1e-12 by a
     quarter).
+
+    Raises:
+        ValueError: naming ``field`` unless it is data on ``surface`` with 3 channels
+            (:class:`MismatchError` for another dtype or device).
     """
+    field = check_data(field, "field", surface, channels=3)
     normal = surface.normal
     squared = (field**2).sum(dim=1, keepdim=True)
     tangent = field - (field * normal).sum(dim=1, keepdim=True) * normal

@@ -103,7 +103,7 @@ def assert_scale_follows_the_rate(rates, cells):
 def test_pattern_scale_follows_the_rate(sphere41):
     """The pattern's wavelength scales like ``1 / sqrt(s)``: ``s`` = 1/128 and 1/32, ratio 2.
 
-    Turk's model (SPEC §2): with ``t' = s t`` and ``x' = sqrt(s) x`` the equations lose ``s``,
+    Turk's reaction–diffusion model: with ``t' = s t`` and ``x' = sqrt(s) x`` the equations lose ``s``,
     ``a_t' = 16 - a b + D_a L' a`` and ``b_t' = a b - b - beta + D_b L' b``, so at equal ``s t``
     the patterns of two rates are the same up to a length scale ``1 / sqrt(s)`` (the sphere's
     fixed radius and the per-node noise of ``beta`` break this only mildly). Linearised about

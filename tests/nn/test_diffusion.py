@@ -16,7 +16,7 @@ from torchsurf.sampling import sample
 
 
 def harmonics(n: int, dtype: torch.dtype):
-    """Degrees 1..4 of SPEC §5 as four channels, and their surface."""
+    """Sphere harmonics of degrees 1..4 (torchsurf.exact) as four channels, and their surface."""
     cases = [ts.exact.sphere_harmonic(degree, n, dtype=dtype) for degree in (1, 2, 3, 4)]
     return torch.cat([case.u for case in cases], dim=1), ts.ImplicitSurface(cases[0].phi, cases[0].grid)
 

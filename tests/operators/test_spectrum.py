@@ -180,3 +180,16 @@ def test_rows_refuse_what_they_cannot_form():
     with pytest.raises(ValueError, match="bricks"):
         laplace_beltrami_rows(packed, torch.tensor([0]))
     assert laplace_beltrami_rows(surface, torch.zeros(0, dtype=torch.int64)).shape == (0, 27)
+
+
+@pytest.mark.parametrize("mask, operator, message", [
+    (torch.ones(1, 1, 5, 5, 5), None, "mask must be a bool volume"),
+    (torch.ones(1, 2, 5, 5, 5, dtype=torch.bool), None, "mask"),
+    (torch.ones(1, 5, 5, 5, dtype=torch.bool), None, "mask"),
+    (torch.ones(1, 1, 5, 5, 5, dtype=torch.bool), "laplace_beltrami", "operator must be a callable"),
+])
+def test_bad_arguments_are_named(mask, operator, message):
+    """A float mask raised torch's "bitwise_and_cpu not implemented", a 4-D mask returned a bound
+    silently, a string operator raised "'str' object is not callable"."""
+    with pytest.raises((TypeError, ValueError), match=message):
+        gershgorin_bound(operator or (lambda x: x), mask, torch.float64)

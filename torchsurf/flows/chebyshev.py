@@ -3,7 +3,7 @@
 
 ``L`` is any linear operator ``apply(x)`` on volumes ``(B, C, D, H, W)`` whose spectrum lies in
 ``[-rho, 0]`` and which is self-adjoint in the ``W``-weighted inner product, ``L^T = W L W^-1``
-(the divergence-form Laplace–Beltrami restricted to a band: docs/SPEC §6, docs/learning.md).
+(the divergence-form Laplace–Beltrami restricted to a band: docs/learning.md).
 With ``Y = I + (2 / rho) L`` (spectrum in ``[-1, 1]``) and ``T_k`` the Chebyshev polynomials,
 
     f(L) x ~= sum_{k < K} c_k T_k(Y) x,      T_{k+1}(Y) x = 2 Y T_k(Y) x - T_{k-1}(Y) x,

@@ -22,7 +22,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from .._checks import check_choice
+from .._checks import check_choice, check_count, check_dtype
 from ..stencils import NEIGHBOURHOOD, neighbour_in_box
 from ..surface import ImplicitSurface
 from ._flux_form import flux_form_rows
@@ -125,6 +125,9 @@ def gershgorin_bound(
     Returns:
         The bound, in the operator's units (``1 / world length^2`` for a diffusion operator).
     """
+    _check_bound_arguments(operator, mask, chunk, colour)
+    if dtype is not None:
+        dtype = check_dtype(dtype)
     total = None
     with torch.no_grad():
         for start in range(0, COLOURS, chunk):
@@ -135,6 +138,28 @@ def gershgorin_bound(
             total = image if total is None else total + image
         total = torch.where(mask, total, torch.zeros((), dtype=total.dtype, device=total.device))
         return float(total.max())
+
+
+def _check_bound_arguments(operator: object, mask: object, chunk: object,
+                           colour: object) -> None:
+    """Raise naming the argument unless :func:`gershgorin_bound`'s inputs are as documented."""
+    if not callable(operator):
+        raise TypeError(f"operator must be a callable (a linear map of volumes), got "
+                        f"{type(operator).__name__}")
+    if not isinstance(mask, Tensor) or mask.dtype != torch.bool:
+        got = f"dtype {mask.dtype}" if isinstance(mask, Tensor) else type(mask).__name__
+        raise TypeError(f"mask must be a bool volume (B, 1, D, H, W), got {got}")
+    if mask.dim() != 5 or mask.shape[1] != 1:
+        raise ValueError(f"mask must be a bool volume (B, 1, D, H, W), got shape {tuple(mask.shape)}")
+    check_count(chunk, "chunk")
+    if colour is not None:
+        if not isinstance(colour, Tensor):
+            raise TypeError(f"colour must be a tensor, got {type(colour).__name__}")
+        try:
+            torch.broadcast_shapes(colour.shape, mask.shape)
+        except RuntimeError:
+            raise ValueError(f"colour must broadcast to mask's shape {tuple(mask.shape)}, got "
+                             f"shape {tuple(colour.shape)}") from None
 
 
 def laplace_beltrami_bound(
