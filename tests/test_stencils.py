@@ -173,6 +173,17 @@ def test_pad_linear_exact_for_affine(generator):
     torch.testing.assert_close(padded[0, 0], affine, rtol=0, atol=1e-12)
 
 
+def test_pad_quadratic_exact_for_quadratics(generator):
+    c = torch.randn(10, generator=generator, dtype=torch.float64)
+    x, y, z = (a - 1 for a in _index_coordinates((SHAPE[0] + 2, SHAPE[1] + 2, SHAPE[2] + 2)))
+    quadratic = (c[0] + c[1] * x + c[2] * y + c[3] * z + c[4] * x * x + c[5] * y * y + c[6] * z * z
+                 + c[7] * x * y + c[8] * x * z + c[9] * y * z)
+    padded = stencils.pad(_interior(quadratic)[None, None], "quadratic")
+    torch.testing.assert_close(padded[0, 0], quadratic, rtol=0, atol=1e-10)
+    with pytest.raises(ValueError, match="at least 3 nodes"):
+        stencils.pad(torch.zeros(1, 1, 3, 2, 3), "quadratic")
+
+
 def test_pad_invalid_mode():
     with pytest.raises(ValueError, match="mode"):
         stencils.pad(torch.zeros(1, 1, 3, 3, 3), "reflect")

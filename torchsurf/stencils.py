@@ -27,7 +27,7 @@ from ._checks import check_choice
 Offset = tuple[int, int, int]
 
 PATHS = ("auto", "slicing", "conv3d")
-PAD_MODES = ("replicate", "linear", "zeros")
+PAD_MODES = ("replicate", "linear", "quadratic", "zeros")
 
 
 @dataclass(frozen=True)
@@ -165,8 +165,12 @@ def pad(volume: Tensor, mode: str = "replicate") -> Tensor:
     Args:
         volume: ``(B, C, D, H, W)``.
         mode: ``"replicate"`` copies the edge (zero normal derivative: the data's default),
-            ``"linear"`` extrapolates ``2 u[0] - u[1]`` (exact for affine fields: the default
-            for ``phi``), ``"zeros"`` fills zeros.
+            ``"linear"`` extrapolates ``2 u[0] - u[1]`` (exact for affine fields),
+            ``"quadratic"`` extrapolates ``3 u[0] - 3 u[1] + u[2]`` (exact for quadratic
+            fields; along the diagonal at edges and corners: the default for ``phi``, whose
+            central differences at the face nodes are then the second-order one-sided ones),
+            ``"zeros"`` fills zeros. The last three axes need at least 3 nodes for
+            ``"quadratic"``.
 
     Returns:
         ``(B, C, D + 2, H + 2, W + 2)``.
@@ -178,7 +182,24 @@ def pad(volume: Tensor, mode: str = "replicate") -> Tensor:
     replicated = F.pad(volume, halo, mode="replicate")
     if mode == "replicate":
         return replicated
-    return 2.0 * replicated - F.pad(volume, halo, mode="reflect")
+    reflected = F.pad(volume, halo, mode="reflect")
+    if mode == "linear":
+        return 2.0 * replicated - reflected
+    if min(volume.shape[-3:]) < 3:
+        raise ValueError(f"volume must have at least 3 nodes along each of its last three axes "
+                         f"for mode='quadratic', got shape {tuple(volume.shape)}")
+    return 3.0 * (replicated - reflected) + _reflected_twice(volume)
+
+
+def _reflected_twice(volume: Tensor) -> Tensor:
+    """``volume`` with a halo of one node holding the values two nodes in from each face
+    (``u[2]`` beyond ``u[0]``; ``u[2, 2]`` at an edge), ``(B, C, D + 2, H + 2, W + 2)``."""
+    wide = F.pad(volume, (2, 2, 2, 2, 2, 2), mode="reflect")
+    for dim in (-3, -2, -1):
+        n = volume.shape[dim]
+        keep = torch.tensor([0, *range(2, n + 2), n + 3], device=volume.device)
+        wide = wide.index_select(dim, keep)
+    return wide
 
 
 def pad_mirrored(field: Tensor) -> Tensor:

@@ -238,7 +238,8 @@ class ImplicitSurface(nn.Module):
     """The zero level set of ``phi`` on ``grid``, with its normals, band and curvatures.
 
     ``|grad phi|`` and the unit normals are computed once, by central differences with
-    ``phi`` extrapolated linearly beyond the grid, and reused by every operator. When ``phi``
+    ``phi`` extrapolated quadratically beyond the grid (second-order one-sided differences at the
+    box's faces), and reused by every operator. When ``phi``
     requires grad they stay in its graph (build the surface again after each optimiser step).
     ``surface.to(...)`` (``.double()``, a device) moves ``phi`` and derives the rest again from
     it: the same numbers as a surface built from the moved ``phi``. Changing ``phi`` in place
@@ -333,7 +334,7 @@ class ImplicitSurface(nn.Module):
 
     def _assemble(self, phi: Tensor) -> None:
         """``grad_norm``, ``normal``, ``gradient_scale`` and ``weight`` from ``phi``."""
-        padded = self._pad(phi, "linear")
+        padded = self._pad(phi, "quadratic")
         gradient = stencils.apply(padded, stencils.CENTRAL)[:, 0]
         gradient = gradient / self.spacing
         # squares of |grad phi| in units of a power of two per entry (exact to divide and
@@ -633,7 +634,7 @@ class ImplicitSurface(nn.Module):
 
         Central differences, world units (``1 / length``).
         """
-        padded = self._pad(self._current_phi(), "linear")
+        padded = self._pad(self._current_phi(), "quadratic")
         return stencils.apply(padded, stencils.HESSIAN)[:, 0] / self.spacing**2
 
     def _gradient(self) -> Tensor:

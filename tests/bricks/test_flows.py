@@ -266,7 +266,7 @@ def test_heat_flow_on_bricks_differentiates_a_learned_phi_alone():
             surface = ts.ImplicitSurface(phi, grid)
             loss = (weight * surface.band_mask() * flow(u, surface)).sum()
         else:
-            surface = bricks.BrickSurface(layout.from_dense(phi, fill="linear"), layout)
+            surface = bricks.BrickSurface(layout.from_dense(phi, fill="quadratic"), layout)
             loss = (surface.from_dense(weight) * surface.band_mask()
                     * flow(surface.from_dense(u), surface)).sum()
         (gradient,) = torch.autograd.grad(loss, amount)

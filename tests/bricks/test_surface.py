@@ -147,11 +147,11 @@ def test_from_mesh_equals_the_dense_distance_on_every_stored_node_that_matters(s
     dense = ts.ImplicitSurface(dense_phi, grid)
     (band,) = surface.to_dense(surface.band_mask().double())
     assert torch.equal(band > 0, dense.band_mask())
-    # beyond the box, near S: extrapolated from the last two nodes, as the dense surface reads
-    linear = surface.layout.from_dense(dense_phi, fill="linear")
+    # beyond the box, near S: extrapolated from the last three nodes, as the dense surface reads
+    extrapolated = surface.layout.from_dense(dense_phi, fill="quadratic")
     beyond = ~surface.layout.inside
     assert int(beyond.sum()) > 1000 or size % 8 == 0  # 40 nodes: no brick reaches past the box
-    assert torch.allclose(surface.phi[beyond], linear[beyond], atol=1e-12)
+    assert torch.allclose(surface.phi[beyond], extrapolated[beyond], atol=1e-12)
 
 
 def test_intrinsic_gradient_divergence_and_sampling_equal_the_dense_ones(torus):

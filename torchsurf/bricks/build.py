@@ -77,7 +77,7 @@ def from_dense(phi: Tensor | ImplicitSurface, grid: Grid | None = None,
     masks = [_grown(bands[width][b, 0], REACH_CELLS) for b, width in enumerate(widths)]
     grids = [dense.grid] * dense.batch_size
     layout = bricks_of_mask(masks, grids)
-    packed = layout.from_dense(dense.phi, fill="linear")
+    packed = layout.from_dense(dense.phi, fill="quadratic")
     return BrickSurface(packed, layout, dense.band_width, dense.eps, widths)
 
 
@@ -304,12 +304,12 @@ def _brick_values(signed: _mesh_sdf.SignedBand, grid: Grid, reach: float, dtype:
 def _extrapolate_beyond_box(values: np.ndarray, coords: np.ndarray, shape: tuple[int, int, int],
                             stored: np.ndarray, row_of: np.ndarray, extent: list[int]) -> None:
     """Fill the nodes of the last bricks beyond the box ``shape`` in place, extrapolated from
-    the box's last two nodes along each axis in turn (z, y, x), as
-    :meth:`BrickLayout.from_dense` does with ``fill="linear"``: the geometry at the faces is
+    the box's last three nodes along each axis in turn (z, y, x), as
+    :meth:`BrickLayout.from_dense` does with ``fill="quadratic"``: the geometry at the faces is
     then the dense surface's (a jump to ``+-reach`` there made ``|grad phi|`` 1.5 at face
-    nodes and took them into the band). Where the box's last node is the first of its brick
-    and the brick before it is not stored, the values are repeated instead (such nodes lie
-    farther than ``reach`` from the mesh)."""
+    nodes and took them into the band). Where the box's last nodes begin their brick and the
+    brick before it is not stored, the extrapolation is linear, or the values are repeated
+    (such nodes lie farther than ``reach`` from the mesh)."""
     strides = (extent[0] * extent[1], extent[0], 1)
     for axis in range(3):
         length = shape[axis]
@@ -321,15 +321,22 @@ def _extrapolate_beyond_box(values: np.ndarray, coords: np.ndarray, shape: tuple
             continue
         along = values[rows].swapaxes(1, 1 + axis)  # (M, 8, ., .): the axis first
         edge = along[:, last].copy()
-        if last > 0:
-            before = along[:, last - 1]
-        else:
-            key = coords[rows] @ np.array(strides) - strides[axis]
-            previous = stored[key] if coords[rows, axis].min() > 0 else np.zeros(len(rows), bool)
-            before = edge.copy()
+        key = coords[rows] @ np.array(strides) - strides[axis]
+        previous = stored[key] if coords[rows, axis].min() > 0 else np.zeros(len(rows), bool)
+
+        def behind(k: int, fallback: np.ndarray) -> np.ndarray:
+            """The values ``k`` nodes before the box's last, ``fallback`` where not stored."""
+            if last >= k:
+                return along[:, last - k]
+            found = fallback.copy()
             kept = np.flatnonzero(previous)
-            before[kept] = values[row_of[key[kept]]].swapaxes(1, 1 + axis)[:, BRICK - 1]
+            found[kept] = values[row_of[key[kept]]].swapaxes(1, 1 + axis)[:, BRICK + last - k]
+            return found
+
+        before = behind(1, edge)
         slope = edge - before
+        if length > 2:
+            slope = 2.0 * slope - (before - behind(2, 2.0 * before - edge))
         for step in range(1, BRICK - last):
             along[:, last + step] = edge + step * slope
         values[rows] = along.swapaxes(1, 1 + axis)

@@ -33,7 +33,7 @@ from . import _native
 BRICK = 8
 """Nodes along each side of a brick."""
 
-FILLS = ("replicate", "linear")
+FILLS = ("replicate", "linear", "quadratic")
 """How :meth:`BrickLayout.from_dense` fills the nodes of a brick beyond its entry's box."""
 
 OFFSETS: tuple[tuple[int, int, int], ...] = tuple(itertools.product((-1, 0, 1), repeat=3))
@@ -363,7 +363,10 @@ class BrickLayout:
                 ``(1, C, D_b, H_b, W_b)`` (or ``(C, D_b, H_b, W_b)``) volume per entry, each on
                 its entry's grid.
             fill: values of the nodes outside an entry's box: ``"replicate"`` (its edge) or
-                ``"linear"`` (extrapolated from its last two nodes: right for ``phi``).
+                ``"linear"`` (extrapolated from its last two nodes) or ``"quadratic"`` (the
+                first node beyond the box ``3 u[-1] - 3 u[-2] + u[-3]``, as the dense surface
+                pads ``phi``, the next ones on the line through it and ``u[-1]``: right for
+                ``phi``).
         """
         check_choice(fill, "fill", FILLS)
         volumes = self._entries(volume, "volume")
@@ -454,8 +457,11 @@ def _pad_to_bricks(volume: Tensor, fill: str) -> Tensor:
         if missing == 0:
             continue
         last = volume.narrow(dim, length - 1, 1)
-        if fill == "linear" and length > 1:
+        if fill in ("linear", "quadratic") and length > 1:
             slope = last - volume.narrow(dim, length - 2, 1)
+            if fill == "quadratic" and length > 2:
+                slope = 2.0 * slope - (volume.narrow(dim, length - 2, 1)
+                                       - volume.narrow(dim, length - 3, 1))
             steps = torch.arange(1, missing + 1, dtype=volume.dtype, device=volume.device)
             shape = [1] * volume.dim()
             shape[dim] = missing
