@@ -131,7 +131,7 @@ def test_cat_refuses_mixed_dtypes_and_spacings_naming_the_entry(two_boxes):
 
 
 @pytest.mark.skipif(not (MESHES / "spot.obj").exists(), reason="shared meshes not present")
-@pytest.mark.parametrize("size", [40, 37])
+@pytest.mark.parametrize("size", [40, 37, 41, 42])
 def test_from_mesh_equals_the_dense_distance_on_every_stored_node_that_matters(size):
     """At 37^3 the last bricks reach 3 nodes beyond the box and the band comes within 3 nodes
     of its faces: stored nodes beyond the box held +-reach, W was 1.5 at face nodes and took

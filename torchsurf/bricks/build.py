@@ -323,20 +323,16 @@ def _extrapolate_beyond_box(values: np.ndarray, coords: np.ndarray, shape: tuple
         edge = along[:, last].copy()
         key = coords[rows] @ np.array(strides) - strides[axis]
         previous = stored[key] if coords[rows, axis].min() > 0 else np.zeros(len(rows), bool)
-
-        def behind(k: int, fallback: np.ndarray) -> np.ndarray:
-            """The values ``k`` nodes before the box's last, ``fallback`` where not stored."""
-            if last >= k:
-                return along[:, last - k]
-            found = fallback.copy()
-            kept = np.flatnonzero(previous)
-            found[kept] = values[row_of[key[kept]]].swapaxes(1, 1 + axis)[:, BRICK + last - k]
-            return found
-
-        before = behind(1, edge)
+        before_rows = values[row_of[key[previous]]].swapaxes(1, 1 + axis)
+        layers = np.concatenate([np.zeros_like(along[:, :BRICK]), along], axis=1)
+        layers[previous, :BRICK] = before_rows   # the axis's 16 nodes from the brick before
+        known = np.ones(len(rows), bool) if last >= 1 else previous
+        before = np.where(known[:, None, None], layers[:, BRICK + last - 1], edge)
         slope = edge - before
         if length > 2:
-            slope = 2.0 * slope - (before - behind(2, 2.0 * before - edge))
+            known = known if last >= 2 else previous
+            second = np.where(known[:, None, None], layers[:, BRICK + last - 2], 2.0 * before - edge)
+            slope = 2.0 * slope - (before - second)
         for step in range(1, BRICK - last):
             along[:, last + step] = edge + step * slope
         values[rows] = along.swapaxes(1, 1 + axis)
