@@ -732,3 +732,22 @@ def test_times_taken_as_the_end_and_gradients_the_times_would_lose():
     wanted = torch.tensor(0.005, dtype=torch.float64, requires_grad=True)
     with pytest.raises(ValueError, match=r"times\[0\] requires grad"):
         flow(u0, surface, times=[wanted, 0.01])
+
+
+@pytest.mark.parametrize("method", ["euler", "implicit", "rk4"])
+def test_two_times_within_the_end_slack_are_two_times(method):
+    """Both entries of ``[T (1 - 1e-7), T]`` were taken as ``T``: Euler, Heun and the implicit
+    methods divided by a zero interval (ZeroDivisionError), rk4 and dopri5 returned one result
+    for two times."""
+    pytest.importorskip("torchdiffeq") if method == "rk4" else None
+    u0, surface = harmonics(13, torch.float64)
+    end = 0.01
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        out = HeatFlow(end, method=method)(u0, surface, times=[end * (1 - 1e-7), end])
+    assert out.shape[0] == 2 and bool(torch.isfinite(out).all())
+    band = surface.band_mask()
+    # the tiny last step: a step of the method and a re-extension of the band
+    torch.testing.assert_close(out[1] * band, out[0] * band, rtol=0, atol=2e-3)
+    with pytest.raises(ValueError, match=r"times\[0\]"):
+        HeatFlow(end)(u0, surface, times=[end * (1 + 1e-7), end * (1 + 2e-7)])

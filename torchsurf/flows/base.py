@@ -209,8 +209,9 @@ def _check_times(times: object, end: float) -> list[float]:
     """``times`` as increasing floats in ``[0, end]``; raises naming ``times`` otherwise.
 
     ``times`` is a sequence of numbers (Python, numpy or 0-d tensors), a 1-D numpy array or a
-    1-D real tensor that does not require grad. Entries within a relative ``1e-6`` of ``end``
-    (float32 rounding: ``float(torch.tensor(0.1)) > 0.1``) are taken as ``end``.
+    1-D real tensor that does not require grad. The last entry, within a relative ``1e-6`` of
+    ``end`` (float32 rounding: ``float(torch.tensor(0.1)) > 0.1``), is taken as ``end``; the
+    others stay as given (taken as ``end`` too, two times close to it were one).
     """
     slack = 1e-6
     if isinstance(times, np.ndarray):
@@ -251,7 +252,10 @@ def _check_times(times: object, end: float) -> list[float]:
             )
     if values[-1] > end * (1 + slack):
         raise ValueError(f"times must not exceed the flow's time {end:g}, got {values[-1]:g}")
-    return [end if t > end * (1 - slack) else t for t in values]
+    if len(values) > 1 and values[-2] >= end:
+        raise ValueError(f"times must not exceed the flow's time {end:g} before their last, got "
+                         f"times[{len(values) - 2}] = {values[-2]:g}")
+    return values[:-1] + [end if values[-1] > end * (1 - slack) else values[-1]]
 
 
 REEXTEND_CHOICES = ("auto",)
