@@ -152,3 +152,20 @@ def test_the_module_keeps_a_contrast_parameter_registered():
     module = ts.AnisotropicDiffusion("perona_malik", contrast=contrast)
     assert module.contrast is contrast
     assert any(p is contrast for p in module.parameters())
+
+
+def test_functional_layer_names_arguments_of_the_wrong_type():
+    """A numpy u or normal raised "'numpy.ndarray' object has no attribute 'dim'", an int64 u a
+    ValueError, and float16 inputs ran (every other layer refuses them)."""
+    functional = ts.operators.functional
+    grid = ts.Grid.cube(9, 1.3)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, 0.7), grid)
+    u = torch.rand(1, 1, 9, 9, 9)
+    normal, weight, h = surface.normal, surface.weight, grid.spacing
+    for call, name in ((lambda: functional.divergence_form(u.numpy(), normal, weight, h), "u"),
+                       (lambda: functional.divergence_form(u, normal.numpy(), weight, h), "normal"),
+                       (lambda: functional.tangential_gradient(u.long(), normal, h), "u"),
+                       (lambda: functional.divergence_form(u.half(), normal.half(), weight.half(), h),
+                        "u")):
+        with pytest.raises(TypeError, match=rf"^{name} must be"):
+            call()

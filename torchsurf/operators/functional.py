@@ -32,7 +32,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from .. import backend, stencils
-from .._checks import check_alike, check_positive
+from .._checks import SUPPORTED_DTYPES, check_alike, check_positive
 from ..stencils import masked
 from ._coupled import eager_coupled_rate, fused_coupled_rate
 from ._flux_form import (
@@ -59,6 +59,13 @@ def _check_inputs(u: Tensor, normal: Tensor, spacing: float, weight: Tensor | No
     functions check the rest. ``vector``: ``u`` is a field of 3-vectors, ``(B, 3C, D, H, W)``
     (named ``v``). Returns the spacing as a float."""
     data = "v" if vector else "u"
+    for name, value in ((data, u), ("normal", normal), ("weight", weight),
+                        ("direction", direction), ("mean_curvature", mean_curvature)):
+        if value is not None and not isinstance(value, Tensor):
+            raise TypeError(f"{name} must be a torch.Tensor, got {type(value).__name__}")
+        if value is not None and value.dtype not in SUPPORTED_DTYPES:
+            raise TypeError(f"{name} must be a float32 or float64 tensor (the dtypes torchsurf "
+                            f"supports), got dtype {value.dtype}")
     if u.dim() != 5 or not u.is_floating_point():
         raise ValueError(f"{data} must be a floating-point (B, C, D, H, W) tensor, got shape "
                          f"{tuple(u.shape)} and dtype {u.dtype}")
