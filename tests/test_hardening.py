@@ -261,7 +261,9 @@ def test_functional_layer_checks_channel_counts_dtypes_spacing_and_scheme():
         functional.divergence_form(u, normal[:, :1], weight, h)
     with pytest.raises(ValueError, match="direction must be"):
         functional.directional_form(u, normal, weight, h, normal[:, :2])
-    with pytest.raises(TypeError, match="normal is torch.float32 but u is torch.float16"):
+    with pytest.raises(TypeError, match="normal is torch.float64 but u is torch.float32"):
+        functional.tangential_gradient(u, normal.double(), h)
+    with pytest.raises(TypeError, match="u must be a float32 or float64 tensor"):
         functional.tangential_gradient(u.half(), normal, h)
     with pytest.raises(ValueError, match="spacing"):
         functional.divergence_form(u, normal, weight, 0.0)
