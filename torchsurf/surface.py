@@ -238,9 +238,9 @@ class ImplicitSurface(nn.Module):
     """The zero level set of ``phi`` on ``grid``, with its normals, band and curvatures.
 
     ``|grad phi|`` and the unit normals are computed once, by central differences with
-    ``phi`` extrapolated quadratically beyond the grid (second-order one-sided differences at the
-    box's faces), and reused by every operator. When ``phi``
-    requires grad they stay in its graph (build the surface again after each optimiser step).
+    ``phi`` extrapolated quadratically beyond the grid (second-order one-sided differences at
+    the box's faces), and reused by every operator. When ``phi`` requires grad they stay in its
+    graph (build the surface again after each optimiser step).
     ``surface.to(...)`` (``.double()``, a device) moves ``phi`` and derives the rest again from
     it: the same numbers as a surface built from the moved ``phi``. Changing ``phi`` in place
     afterwards (``phi.copy_``, ``phi.mul_``) makes every method raise ``RuntimeError``; changes
@@ -283,8 +283,8 @@ class ImplicitSurface(nn.Module):
             ``phi`` (1 for a distance function), ``(B, 1, 1, 1, 1)``.
         weight: ``W = max(grad_norm, WEIGHT_FLOOR * slope, MINIMUM_WEIGHT *
             gradient_scale)``, ``slope`` the root mean square of the one-sided differences of
-            ``phi`` along each axis (:func:`_squared_slope`); the weight of every divergence-form operator
-            ``(1/W) div(W ...)``, ``(B, 1, D, H, W)``.
+            ``phi`` along each axis (:func:`_squared_slope`); the weight of every
+            divergence-form operator ``(1/W) div(W ...)``, ``(B, 1, D, H, W)``.
 
     Example:
         >>> grid = Grid.cube(33, bound=1.5)

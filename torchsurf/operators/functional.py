@@ -66,9 +66,8 @@ def _check_inputs(u: Tensor, normal: Tensor, spacing: float, weight: Tensor | No
         if value is not None and value.dtype not in SUPPORTED_DTYPES:
             raise TypeError(f"{name} must be a float32 or float64 tensor (the dtypes torchsurf "
                             f"supports), got dtype {value.dtype}")
-    if u.dim() != 5 or not u.is_floating_point():
-        raise ValueError(f"{data} must be a floating-point (B, C, D, H, W) tensor, got shape "
-                         f"{tuple(u.shape)} and dtype {u.dtype}")
+    if u.dim() != 5:
+        raise ValueError(f"{data} must be a (B, C, D, H, W) tensor, got shape {tuple(u.shape)}")
     if vector and u.shape[1] % 3:
         raise ValueError(f"v must hold 3 components a channel, (B, 3C, D, H, W), got "
                          f"{u.shape[1]} channels (shape {tuple(u.shape)})")
