@@ -133,7 +133,8 @@ def sweep(cells: int, layout: str, periods: tuple[int, ...] = SWEEP_PERIODS) -> 
     rho = HeatFlow(end).system(u0, surface).spectral_radius
     rows = []
     for period in periods:
-        flows = (HeatFlow(end, method="heun", reextend_every=max(1, period // 2)),
+        flows = (HeatFlow(end, method="heun", steps=math.ceil(end * rho / 2),
+                          reextend_every=max(1, period // 2)),
                  HeatFlow(end, steps=math.ceil(end * rho / 4), reextend_every=max(1, period // 4)),
                  HeatFlow(end, steps=math.ceil(end * rho / period)))
         cells_ = [f"{errors_on_sphere(flow(u0, surface), surface, grid)[1]:+.2e}"

@@ -158,6 +158,12 @@ class System:
         return 2.0 / self.spectral_radius
 
     @property
+    def explicit_step(self) -> float:
+        """Euler's and Heun's default step, :data:`EXPLICIT_STEP_FRACTION` of
+        :attr:`stable_step` (``1.8 / rho``), physical time."""
+        return EXPLICIT_STEP_FRACTION * self.stable_step
+
+    @property
     def region(self) -> Tensor:
         """The band and the ring of nodes its 3x3x3 stencils read, a bool mask like ``band``."""
         # kept by hand: functools.cached_property takes a lock, which torch.compile cannot trace
@@ -228,6 +234,14 @@ RKC_STEPS = 8
 """Fewest RKC steps to a flow's end time (unless forward Euler would need fewer): the time
 error of RKC2 on a mode decaying by ``e^-1`` over the flow stays below the second-order space
 error at 33^3-65^3 (docs/band.md)."""
+
+EXPLICIT_STEP_FRACTION = 0.9
+"""Default explicit steps (Euler, Heun and torchdiffeq's fixed-step methods) are this fraction
+of their stability limit on the Gershgorin bound ``rho`` (Euler's ``1.8 / rho``). At the limit
+itself the fastest mode is not damped where ``rho`` is the top eigenvalue (S flat and aligned
+with the grid): a checkerboard on a plane kept 0.90 of its size after ``40 h^2`` at Euler's
+``2 / rho`` (RKC and the implicit methods: 0.002). At 0.9 of the limit a step multiplies that
+mode by -0.8 at most."""
 
 RKC_REFRESHED_STEPS = 16
 """Fewest RKC steps whose stages re-extend the ring (steps too long for the band to hold it,
@@ -348,7 +362,8 @@ def plan_steps(method: str, system: System, end: float, steps: int | None,
     ``steps`` given: ``end / steps`` (explicit steps above the stable step warn; an adaptive
     torchdiffeq method ignores it: its count is ``None``). Otherwise: torchdiffeq's fixed-step
     methods take :func:`fixed_step_count` (``step_size`` the option, if given), adaptive ones
-    ``None``; Euler, Heun and the implicit methods take the stable explicit step ``2 / rho``; RKC takes
+    ``None``; Euler and Heun take :attr:`System.explicit_step` (``1.8 / rho``), the implicit methods
+    Euler's stable step ``2 / rho``; RKC takes
     :data:`RKC_STEPS` steps (or Euler's count, if smaller) or more, none longer than
     ``12 band_cells^2 / rho``: about the time the diffusion takes to cross a band
     ``band_cells`` cells wide, after which the data must be re-extended (docs/band.md), nor
@@ -381,6 +396,8 @@ def plan_steps(method: str, system: System, end: float, steps: int | None,
                 count = max(count, min(RKC_REFRESHED_STEPS, explicit))
                 if system.isotropic:
                     count = max(count, math.ceil(end * rho / RKC_REFRESHED_STEP * (1 - 1e-9)))
+        elif method in ("euler", "heun"):
+            count = max(1, math.ceil(end / system.explicit_step * (1 - 1e-9)))
         elif method in INTEGRATORS:
             count = explicit
         elif method in FIXED_STEP:
@@ -765,13 +782,14 @@ unless the options say otherwise, so that a run that would take longer stops wit
 def fixed_step_count(method: str, system: System, end: float, steps: int | None,
                      step_size: float | None) -> int:
     """Steps of a fixed-step torchdiffeq ``method`` over ``[0, end]``: ``steps``, else equal
-    steps no longer than ``step_size``, else than the method's stable step on ``system``
-    (Euler's ``2 / rho`` or its own stability interval over ``rho``, the shorter)."""
+    steps no longer than ``step_size``, else than :data:`EXPLICIT_STEP_FRACTION` of the method's
+    stable step on ``system`` (Euler's ``2 / rho`` or its own stability interval over ``rho``,
+    the shorter)."""
     if steps is not None:
         return steps
     if step_size is None:
         interval = min(2.0, _STABLE_INTERVAL.get(method, 2.0))
-        step_size = system.stable_step * interval / 2.0
+        step_size = EXPLICIT_STEP_FRACTION * system.stable_step * interval / 2.0
     return max(1, math.ceil(end / step_size * (1 - 1e-9)))
 
 

@@ -9,8 +9,9 @@ a constructor choice:
   the assembled operator's spectrum; its steps are limited by the time the diffusion takes to
   cross the band, not by stability (about 4x fewer operator applications than Euler on a
   3-cell band);
-- ``"euler"`` (forward Euler) or ``"heun"`` (second order): the step ``2 / rho`` from the same
-  bound, or ``time / steps`` when ``steps`` is given;
+- ``"euler"`` (forward Euler) or ``"heun"`` (second order): the step ``1.8 / rho`` from the same
+  bound (0.9 of the stability limit ``2 / rho``, so that the fastest mode is damped), or
+  ``time / steps`` when ``steps`` is given;
 - ``"implicit"`` (backward Euler) or ``"crank_nicolson"``: for the linear symmetric flows, each
   step a matrix-free conjugate-gradient solve, differentiated implicitly (a second solve);
 - any torchdiffeq method (``"dopri5"``, ``"rk4"``, ...): torchdiffeq is optional
@@ -373,8 +374,8 @@ class Flow(nn.Module):
             ``"crank_nicolson"`` (linear flows only) or a torchdiffeq method name.
         steps: number of time steps (``None``: for ``"rkc"``, steps no longer than the time
             the fastest diffusion takes to cross the band (:func:`plan_steps`); for
-            ``"euler"`` and ``"heun"``, the stable step ``2 / rho``, rounded so that the steps
-            end exactly at ``time``); for adaptive torchdiffeq methods, unused. With
+            ``"euler"`` and ``"heun"``, ``1.8 / rho``, 0.9 of the stable step ``2 / rho``,
+            rounded so that the steps end exactly at ``time``); for adaptive torchdiffeq methods, unused. With
             ``times``, each interval between requested times takes its share of ``steps``
             rounded up, so that no step is longer than ``time / steps``. A run of more
             than ``10**6`` steps or evaluations of the rate (RKC's stages counted) is refused
@@ -391,9 +392,9 @@ class Flow(nn.Module):
             their numbers checked by name (:func:`~torchsurf.flows._integrators.check_options`).
             A ``step_size`` (fixed-step methods only) is the longest step: the run takes equal
             steps that end at the last time; one past the method's stable step warns before
-            the run. Without it a fixed-step method takes its stable step: Euler's ``2 / rho``,
-            or its own where shorter (torchdiffeq's Adams methods: 0.003 / rho for
-            ``"explicit_adams"``, 0.06 / rho for ``"fixed_adams"`` and ``"implicit_adams"``).
+            the run. Without it a fixed-step method takes 0.9 of its stable step: of Euler's
+            ``2 / rho``, or of its own where shorter (torchdiffeq's Adams methods: 0.003 / rho
+            for ``"explicit_adams"``, 0.06 / rho for ``"fixed_adams"`` and ``"implicit_adams"``).
             Adaptive methods stop with an error after ``max_num_steps`` steps in one piece
             (default :data:`~torchsurf.flows._integrators.MAX_STEPS`).
         adjoint: integrate with ``torchdiffeq.odeint_adjoint``.
