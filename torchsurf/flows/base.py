@@ -190,11 +190,12 @@ def _steps_taken(plan: Plan) -> str:
             else f"{plan.count} steps of {plan.step:.3g}")
 
 
-def _warn_range_left(flow: Flow, excess: float, plan: Plan) -> None:
+def _warn_range_left(flow: Flow, excess: float, plan: Plan | str) -> None:
     """The warning of a flow that keeps ``u`` within the range of ``u0`` and left it by
-    ``excess`` of that range (more than :data:`RANGE_SLACK`)."""
-    steps = _steps_taken(plan)
-    remedy = ("a finer grid" if flow.method == "rkc"
+    ``excess`` of that range (more than :data:`RANGE_SLACK`); ``plan`` its steps, or what it
+    did in words."""
+    steps = plan if isinstance(plan, str) else _steps_taken(plan)
+    remedy = ("a finer grid" if flow.method in ("rkc", "chebyshev")
               else "method='rkc' (stable there in every case measured) or a finer grid")
     warnings.warn(
         f"{type(flow).__name__} (method={flow.method!r}, {steps}) left the range of u0 "
@@ -438,11 +439,10 @@ class Flow(nn.Module):
     does, a call whose result leaves that range by more than :data:`RANGE_SLACK` of it warns
     (``RuntimeWarning``, once per call): the steps and re-extensions were unstable on that
     surface. The range is each batch entry's and channel's, and at least
-    :data:`RANGE_ROUNDING` rounding units of its magnitude. Checked for the methods
-    :meth:`forward` integrates; ``HeatFlow(method="chebyshev")``, which applies its semigroup
-    itself, is not checked (its tests hold it to the range)."""
+    :data:`RANGE_ROUNDING` rounding units of its magnitude. Checked for every method,
+    ``HeatFlow(method="chebyshev")``'s semigroup too."""
 
-    _entry_excesses: list[tuple[float, Plan]] | None = None
+    _entry_excesses: list[tuple[float, Plan | str]] | None = None
 
     extra_methods: tuple[str, ...] = ()
     """Methods the flow integrates itself, beyond the built-in integrators and torchdiffeq's."""

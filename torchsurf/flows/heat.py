@@ -28,9 +28,12 @@ from ._integrators import (
 from ._packed_band import FusedStage, PackedRegion
 from ._positive import Positive
 from .base import (
+    RANGE_SLACK,
     Flow,
     _check_times,
     _diagonal_cells,
+    _range_excess,
+    _warn_range_left,
     check_times_of_learned_time,
 )
 from .exponential import BandLaplacian, heat_semigroup, kept_packing
@@ -274,8 +277,18 @@ class HeatFlow(Flow):
             return u
 
         if times is None:
-            return semigroup(1.0)
-        return torch.stack([u0 if t == 0 else semigroup(t / end) for t in _check_times(times, end)])
+            results = [semigroup(1.0)]
+        else:
+            results = [u0 if t == 0 else semigroup(t / end) for t in _check_times(times, end)]
+        if not torch.compiler.is_compiling():  # a host read: it would break a traced graph
+            excess = _range_excess(u0, results, operator.region, operator.band,
+                                   surface.layout is not None)
+            applications = f"{outer * inner * (terms - 1)} applications of the operator"
+            if self._entry_excesses is not None:  # one entry of a batch: its caller warns
+                self._entry_excesses.append((excess, applications))
+            elif excess > RANGE_SLACK:
+                _warn_range_left(self, excess, applications)
+        return results[0] if times is None else torch.stack(results)
 
     def extra_repr(self) -> str:
         return f"{super().extra_repr()}, scheme={self.scheme!r}"
