@@ -169,3 +169,30 @@ def test_functional_layer_names_arguments_of_the_wrong_type():
                         "u")):
         with pytest.raises(TypeError, match=rf"^{name} must be"):
             call()
+
+
+def test_functional_layer_names_a_missing_tensor():
+    """``weight=None`` raised "'NoneType' object has no attribute 'dim'" (or 'shape') deep in
+    a kernel; every function that needs a tensor now names it."""
+    functional = ts.operators.functional
+    grid = ts.Grid.cube(9, 1.3)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, 0.7), grid)
+    u = torch.rand(1, 1, 9, 9, 9)
+    v = torch.rand(1, 3, 9, 9, 9)
+    normal, weight, h = surface.normal, surface.weight, grid.spacing
+    calls = {
+        "weight": [lambda: functional.divergence_form(u, normal, None, h),
+                   lambda: functional.edge_stopping_form(u, normal, None, h, "perona_malik", 1.0,
+                                                                 1e-6),
+                   lambda: functional.harmonic_map_rate(v, normal, None, h, 1.0, 0.0, 1e-6, None),
+                   lambda: functional.directional_form(u, normal, None, h, v),
+                   lambda: functional.tangential_divergence(v, normal, None, h)],
+        "direction": [lambda: functional.directional_form(u, normal, weight, h, None)],
+        "mean_curvature": [lambda: functional.central_laplace_beltrami(u, normal, None, h)],
+        "normal": [lambda: functional.tangential_gradient(u, None, h)],
+        "u": [lambda: functional.tangential_gradient_energy(None, normal, h)],
+    }
+    for name, group in calls.items():
+        for call in group:
+            with pytest.raises(TypeError, match=rf"^{name} must be a torch.Tensor, got None"):
+                call()

@@ -52,15 +52,18 @@ SCHEMES = ("octant", "symmetric", "conservative")
 def _check_inputs(u: Tensor, normal: Tensor, spacing: float, weight: Tensor | None = None,
                   scheme: str | None = None, schemes: Sequence[str] = SCHEMES,
                   direction: Tensor | None = None, mean_curvature: Tensor | None = None,
-                  vector: bool = False) -> float:
+                  vector: bool = False, required: Sequence[str] = ("weight",)) -> float:
     """The cheap checks of this layer's arguments (shapes, dtypes, the spacing and the scheme):
     what would otherwise give a wrong shape, a bare ``KeyError`` or a size mismatch between
     padded tensors deep in a kernel. Shapes and dtypes only, no values; the surface-level
     functions check the rest. ``vector``: ``u`` is a field of 3-vectors, ``(B, 3C, D, H, W)``
-    (named ``v``). Returns the spacing as a float."""
+    (named ``v``); ``required``: the optional arguments the caller needs (``None`` among them
+    is a ``TypeError``). Returns the spacing as a float."""
     data = "v" if vector else "u"
     for name, value in ((data, u), ("normal", normal), ("weight", weight),
                         ("direction", direction), ("mean_curvature", mean_curvature)):
+        if value is None and (name in required or name in (data, "normal")):
+            raise TypeError(f"{name} must be a torch.Tensor, got None")
         if value is not None and not isinstance(value, Tensor):
             raise TypeError(f"{name} must be a torch.Tensor, got {type(value).__name__}")
         if value is not None and value.dtype not in SUPPORTED_DTYPES:
@@ -490,7 +493,8 @@ def directional_form(
     Returns:
         ``u``'s shape.
     """
-    spacing = _check_inputs(u, normal, spacing, weight, scheme, FLUX_SCHEMES, direction)
+    spacing = _check_inputs(u, normal, spacing, weight, scheme, FLUX_SCHEMES, direction,
+                           required=("weight", "direction"))
     if pad is not None:
         haloed_normal, haloed_weight = _require_haloed(haloed)
         if haloed_direction is None:
@@ -538,7 +542,7 @@ def tangential_gradient(u: Tensor, normal: Tensor, spacing: float, path: str = "
         ``(B, 3C, D, H, W)`` (or ``(N, 3C, 8, 8, 8)``): channels ``3c, 3c+1, 3c+2`` are the
         ``x, y, z`` components for channel ``c``, units of ``u`` per world length.
     """
-    spacing = _check_inputs(u, normal, spacing)
+    spacing = _check_inputs(u, normal, spacing, required=())
     if pad is not None:
         return backend.run_haloed(_GRADIENT, path, u, pad(u, 1), normal, spacing)
     return backend.run(_GRADIENT, path, u, u, normal, spacing)
@@ -576,7 +580,7 @@ def tangential_gradient_energy(u: Tensor, normal: Tensor, spacing: float, path: 
         ``(B, 1, D, H, W)`` (or ``(N, 1, 8, 8, 8)``), units of ``u`` squared per world length
         squared.
     """
-    spacing = _check_inputs(u, normal, spacing)
+    spacing = _check_inputs(u, normal, spacing, required=())
     if pad is not None:
         return backend.run_haloed(_ENERGY, path, u, pad(u, 1), normal, spacing)
     return backend.run(_ENERGY, path, u, u, normal, spacing)
@@ -684,7 +688,8 @@ def central_laplace_beltrami(
     Returns:
         ``(B, C, D, H, W)`` (or ``(N, C, 8, 8, 8)``), units of ``u`` per world length squared.
     """
-    spacing = _check_inputs(u, normal, spacing, mean_curvature=mean_curvature)
+    spacing = _check_inputs(u, normal, spacing, mean_curvature=mean_curvature,
+                           required=("mean_curvature",))
     if pad is not None:
         return backend.run_haloed(_CENTRAL, path, u, pad(u, 1), normal, mean_curvature, spacing)
     return backend.run(_CENTRAL, path, u, u, normal, mean_curvature, spacing)
