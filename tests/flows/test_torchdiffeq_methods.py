@@ -88,6 +88,21 @@ def test_an_adaptive_run_stops_with_an_error_after_max_num_steps(sphere):
         flow(u0, surface)
 
 
+def test_torchdiffeqs_other_stops_are_named(sphere, monkeypatch):
+    """torchdiffeq stops a run whose steps shrink without end with a bare AssertionError
+    ("underflow in dt ..."), which leaked through every flow; it is now a RuntimeError naming
+    the method and the remedy."""
+    import torchdiffeq
+
+    def underflow(*args, **kwargs):
+        raise AssertionError("underflow in dt 7.5e-19")
+
+    surface, u0, _ = sphere
+    monkeypatch.setattr(torchdiffeq, "odeint", underflow)
+    with pytest.raises(RuntimeError, match=r"method='dopri5' stopped \(underflow in dt .*'rkc'"):
+        HeatFlow(TIME, method="dopri5")(u0, surface)
+
+
 def test_steps_given_to_an_adaptive_method_are_not_recorded_as_taken(sphere):
     surface, u0, _ = sphere
     flow = HeatFlow(TIME, method="dopri5", steps=3)

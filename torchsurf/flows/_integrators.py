@@ -108,7 +108,8 @@ class System:
         band: ``(B or 1, 1, D, H, W)`` bool mask of the nodes that evolve.
         spectral_radius: ``rho``, an upper bound of the spectral radius of ``rate``'s Jacobian
             on the band, ``1 / time``.
-        project: applied after every step (e.g. ``u / |u|``), or ``None``.
+        project: applied after every step (e.g. ``u / |u|``; by torchdiffeq's methods to the
+            start, between their pieces and at the requested times), or ``None``.
         linear: the symmetric linear form, for the implicit integrators; ``None`` if nonlinear.
         params: tensors ``rate`` reads that may need gradients (for ``odeint_adjoint`` and
             the recomputed segments of a checkpointed run, which check that no other is read);
@@ -690,7 +691,10 @@ def _torchdiffeq(method: str) -> Callable[[System, Tensor, Schedule], list[Tenso
                 return solve_piece(u, times)
             except AssertionError as error:  # torchdiffeq's way of stopping a run
                 if "max_num_steps" not in str(error):
-                    raise
+                    raise RuntimeError(
+                        f"method={method!r} stopped ({error}): its steps shrank without end, "
+                        "as on an unstable or very stiff flow; use method='rkc' (or 'euler' "
+                        "for the flows it suits), or a smaller time") from None
                 raise RuntimeError(
                     f"method={method!r} took more than {options['max_num_steps']} steps in one "
                     f"piece of the flow ({error}): the time is long for this surface's operator "
@@ -708,7 +712,9 @@ def _torchdiffeq(method: str) -> Callable[[System, Tensor, Schedule], list[Tenso
             return torchdiffeq.odeint(func, u, times, method=method,
                                       options=options or None, **kwargs)
 
-        out, u, start, done = [], u0, 0.0, 0
+        # projected first: the pieces run many steps before the next projection (a raw noise
+        # field made tangent only after the first piece grew to NaN under rk4 and midpoint)
+        out, u, start, done = [], _finish(system, u0), 0.0, 0
         for stop, inner, ends_wanted in _segments(schedule):
             solution = solve(u, [start, *inner, stop])
             out.extend(_returned(system, schedule, _finish(system, v), None)

@@ -10,7 +10,7 @@ from ..backend import PATHS
 from ..operators import functional
 from ..operators.functional import FLUX_SCHEMES
 from ..surface import ImplicitSurface
-from ._integrators import System, tensors, with_ring
+from ._integrators import INTEGRATORS, System, tensors, with_ring
 from .base import Flow
 
 
@@ -29,8 +29,11 @@ class HarmonicMapFlow(Flow):
 
     ``|P grad u|^2 = sum_i |P grad u_i|^2`` couples the channels (the coupled norm of
     :func:`torchsurf.anisotropic_diffusion` with ``g(s) = s^(p-2)``), regularised by ``eps``.
-    After every explicit step ``u <- u / |u|`` in the band and its ring (torchdiffeq methods: at
-    the requested times only); elsewhere ``u`` is returned as it is. With ``tangent=True`` the
+    After every explicit step ``u <- u / |u|`` in the band and its ring; elsewhere ``u`` is
+    returned as it is. torchdiffeq's methods project at the start, between their pieces and at
+    the requested times, and integrate the rate without its part along ``u``, which keeps
+    ``|u|`` in between (the rate as it is pushed ``|u|`` off 1 and ended in NaN, or 0.10 from
+    the converged flow where it did not; ``tests/flows/test_harmonic.py``). With ``tangent=True`` the
     field is kept tangent to the level sets (``u <- P u / |P u|``), for direction fields on S.
 
     Spectral bound: ``eps^(p-2) rho`` (``max g = eps^(p-2)``), ``rho`` the Gershgorin bound of
@@ -103,11 +106,19 @@ class HarmonicMapFlow(Flow):
         spacing, eps, path = surface.spacing, self.eps, self.path
         pad = None if surface.layout is None else surface.layout.halo
 
+        between_pieces = self.method not in INTEGRATORS
+
         def rate(u: Tensor) -> Tensor:
-            return functional.harmonic_map_rate(
+            du = functional.harmonic_map_rate(
                 u, normal, weight, spacing, power_diffusivity, exponent, eps, self.p / 2.0,
                 self.scheme, path, band, haloed, pad,
             )
+            if self.tangent:  # keeps a tangent u tangent between the projections too
+                du = du - (du * normal).sum(dim=1, keepdim=True) * normal
+            if between_pieces:  # |u| kept: the radial part, which grows off the unit sphere
+                length2 = (u * u).sum(dim=1, keepdim=True).clamp_min(torch.finfo(u.dtype).tiny)
+                du = du - (du * u).sum(dim=1, keepdim=True) / length2 * u
+            return du
 
         def project(u: Tensor) -> Tensor:
             # in the band and its ring only, as Flow promises (a brick surface's normals equal

@@ -30,7 +30,7 @@ class ReactionDiffusion(Flow):
     as ``s`` shrinks.
 
     After every step ``b`` is clamped at 0 (Turk's rule; with torchdiffeq methods only at
-    the output times).
+    the start, between their pieces and at the output times).
 
     Spectral bound: ``max(D_a rho_a, D_b rho) + s (max a + max b + 1)``, the diffusion's
     (``rho`` the Gershgorin bound of the band's Laplace–Beltrami operator, about ``12 / h^2``;
