@@ -83,3 +83,28 @@ def test_implicit_flows_warn_when_conjugate_gradients_stop_early(method):
     u0 = grid.points(dtype=torch.float64)[..., 2][None, None]
     with pytest.warns(RuntimeWarning, match="conjugate gradients stopped at max_iterations = 1"):
         HeatFlow(0.05, method=method, steps=1, max_iterations=1)(u0, surface)
+
+
+@pytest.mark.parametrize("method", ["implicit", "crank_nicolson"])
+@pytest.mark.parametrize("dtype, factors", [(torch.float32, (1e-25, 1e-12, 1e12, 1e20)),
+                                            (torch.float64, (1e-160, 1e150))])
+def test_implicit_flows_are_equivariant_in_the_data_scale(method, dtype, factors):
+    """``flow(k u0) = k flow(u0)``: in float32 the squared norms of data near 1e-20 underflowed
+    and the solve stopped at once (0.49 off at k = 1e-25), near 1e19 they overflowed
+    (FloatingPointError); the explicit methods were equivariant. Now to rounding. A batch of
+    two scales at once gives each its own."""
+    import torchsurf as ts
+
+    grid = ts.Grid.cube(16, 1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, radius=1.0, dtype=dtype), grid)
+    u0 = torch.rand((1, 1, 16, 16, 16), generator=torch.Generator().manual_seed(0), dtype=dtype)
+    flow = ts.HeatFlow(8 * surface.spacing**2, method=method)
+    reference = flow(u0, surface)
+    band = flow.band_mask(surface)
+    rounding = 64 * torch.finfo(dtype).eps
+    for k in factors:
+        scaled = flow(k * u0, surface) / k
+        assert (scaled - reference)[band].abs().max() < rounding, k
+    both = flow(torch.cat([factors[0] * u0, factors[-1] * u0]), surface)
+    for entry, k in enumerate((factors[0], factors[-1])):
+        assert (both[entry:entry + 1] / k - reference)[band].abs().max() < rounding, k
