@@ -754,3 +754,25 @@ def test_two_times_within_the_end_slack_are_two_times(method):
             assert error <= 1.2 * reference + 1e-5, (error, reference)
     with pytest.raises(ValueError, match=r"times\[0\]"):
         HeatFlow(end)(u0, surface, times=[end * (1 + 1e-7), end * (1 + 2e-7)])
+
+
+@pytest.mark.parametrize("method", ["rkc", "euler", "crank_nicolson"])
+def test_each_diffusivity_runs_with_its_own_steps(method):
+    """Channels of ``D = (1, 100, 1)`` were planned together for ``D = 100``: the ``D = 1``
+    channels took its re-extensions too and erred 5-9 times as much as alone (l = 2 harmonic,
+    33^3-49^3). Each group of channels now runs alone: the result equals each channel's own
+    flow, in the caller's channel order, with requested times and gradients."""
+    case = ts.exact.sphere_harmonic(2, 21, dtype=torch.float64)
+    surface = ts.ImplicitSurface(case.phi, case.grid)
+    u0 = torch.cat([case.u, 2 * case.u, -case.u], dim=1).requires_grad_(True)
+    steps = {"steps": 6} if method == "crank_nicolson" else {}
+    flow = HeatFlow(0.01, diffusivity=torch.tensor([1.0, 100.0, 1.0], dtype=torch.float64),
+                    method=method, **steps)
+    u = flow(u0, surface, times=[0.005, 0.01])
+    for channel, d in enumerate((1.0, 100.0, 1.0)):
+        alone = HeatFlow(0.01, diffusivity=d, method=method, **steps)(
+            u0[:, channel:channel + 1].detach(), surface, times=[0.005, 0.01])
+        torch.testing.assert_close(u[:, :, channel:channel + 1], alone, rtol=0, atol=1e-13)
+    u[-1].sum().backward()
+    assert u0.grad is not None and bool(torch.isfinite(u0.grad).all())
+    assert u0.grad[:, 0].abs().sum() > 0 and u0.grad[:, 1].abs().sum() > 0

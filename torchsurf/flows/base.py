@@ -427,7 +427,8 @@ class Flow(nn.Module):
         last_plan: the :class:`~torchsurf.flows.Plan` of the last call, the number of steps
             it took (``None`` for adaptive torchdiffeq methods) and their size; ``None``
             before the first call and for methods that take no steps (``"chebyshev"``).
-            Where a batch's entries are integrated apart, the last entry's.
+            Where a batch's entries (or a heat flow's channels of different fixed
+            diffusivities) are integrated apart, the last one's.
     """
 
     supports_bricks = False
