@@ -329,3 +329,15 @@ def test_the_semigroup_warns_when_it_leaves_its_range_too():
     with pytest.warns(RuntimeWarning, match="method='chebyshev'") as caught:
         flow(torch.cat([u0, u0]), pair)
     assert [w.filename for w in _range_warnings(caught)] == [__file__]
+
+
+def test_channels_and_entries_apart_warn_once():
+    """A heat flow whose channels of different diffusivities and whose batch entries each run
+    alone still warns once per call, naming the caller's line."""
+    surface, u0 = _two_spheres(48, 2.0)
+    pair = ts.ImplicitSurface(torch.cat([surface.phi, surface.phi]), surface.grid)
+    flow = ts.HeatFlow(60 * surface.spacing**2, method="euler",
+                       diffusivity=torch.tensor([1.0, 0.5], dtype=torch.float64))
+    with pytest.warns(RuntimeWarning, match="left the range") as caught:
+        flow(torch.cat([u0, u0]).expand(2, 2, *u0.shape[2:]), pair)
+    assert [w.filename for w in _range_warnings(caught)] == [__file__]

@@ -856,7 +856,10 @@ class Flow(nn.Module):
         alone with its own band, steps and stages: each entry's result is what it would be
         without the others. A ``ValueError`` of an entry is raised naming the entry."""
         result = None
-        self._entry_excesses = excesses = []
+        outer = self._entry_excesses is None  # else a caller gathers them (channels apart)
+        if outer:
+            self._entry_excesses = []
+        excesses = self._entry_excesses
         try:
             for index, (rows, entry) in enumerate(entries):
                 own = {name: value[rows] if isinstance(value, Tensor)
@@ -872,9 +875,10 @@ class Flow(nn.Module):
                     result = part.new_zeros(shape)
                 result = result.index_copy(part.dim() - 5, rows, part)
         finally:
-            self._entry_excesses = None
+            if outer:
+                self._entry_excesses = None
         worst = max(excesses, key=lambda pair: pair[0], default=None)
-        if worst is not None and worst[0] > RANGE_SLACK:
+        if outer and worst is not None and worst[0] > RANGE_SLACK:
             _warn_range_left(self, *worst)
         return result
 
