@@ -184,6 +184,16 @@ def _most_steps_between(marks: set[int], count: int) -> int:
     return max(1, *(b - a for a, b in zip(edges, edges[1:], strict=False)))
 
 
+def placed(result: Tensor | None, part: Tensor, index: Tensor, size: int, axis: int) -> Tensor:
+    """``part`` written at ``index`` along ``axis`` (counted from the end) of ``result``, or of
+    zeros of ``part``'s shape with ``size`` along ``axis`` when ``result`` is ``None``."""
+    if result is None:
+        shape = list(part.shape)
+        shape[axis] = size
+        result = part.new_zeros(shape)
+    return result.index_copy(part.dim() + axis, index, part)
+
+
 def _steps_taken(plan: Plan) -> str:
     """The steps of a run, for messages."""
     return ("torchdiffeq's own steps" if plan.count is None
@@ -856,10 +866,7 @@ class Flow(nn.Module):
         alone with its own band, steps and stages: each entry's result is what it would be
         without the others. A ``ValueError`` of an entry is raised naming the entry."""
         result = None
-        outer = self._entry_excesses is None  # else a caller gathers them (channels apart)
-        if outer:
-            self._entry_excesses = []
-        excesses = self._entry_excesses
+        excesses, outer = self._gather_excesses()
         try:
             for index, (rows, entry) in enumerate(entries):
                 own = {name: value[rows] if isinstance(value, Tensor)
@@ -869,18 +876,32 @@ class Flow(nn.Module):
                     part = self.forward(u0[rows.clamp(max=u0.shape[0] - 1)], entry, times, **own)
                 except ValueError as error:
                     raise ValueError(f"batch entry {index}: {error}") from error
-                if result is None:
-                    shape = list(part.shape)
-                    shape[-5] = count
-                    result = part.new_zeros(shape)
-                result = result.index_copy(part.dim() - 5, rows, part)
+                result = placed(result, part, rows, count, -5)
         finally:
-            if outer:
-                self._entry_excesses = None
+            self._stop_gathering(outer)
+        self._warn_gathered(excesses, outer)
+        return result
+
+    def _gather_excesses(self) -> tuple[list[tuple[float, Plan | str]], bool]:
+        """Start gathering the range excesses of the runs a call makes apart (batch entries,
+        channels) for one warning: the list, and whether this call started it (a caller that
+        runs parts apart may already gather them)."""
+        outer = self._entry_excesses is None
+        if outer:
+            self._entry_excesses = []
+        return self._entry_excesses, outer
+
+    def _stop_gathering(self, outer: bool) -> None:
+        """End what :meth:`_gather_excesses` started, where this call started it."""
+        if outer:
+            self._entry_excesses = None
+
+    def _warn_gathered(self, excesses: list[tuple[float, Plan | str]], outer: bool) -> None:
+        """Where this call gathered the excesses, warn once for the worst past
+        :data:`RANGE_SLACK`."""
         worst = max(excesses, key=lambda pair: pair[0], default=None)
         if outer and worst is not None and worst[0] > RANGE_SLACK:
             _warn_range_left(self, *worst)
-        return result
 
     def extra_repr(self) -> str:
         return f"method={self.method!r}, steps={self.steps}"

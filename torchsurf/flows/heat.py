@@ -35,6 +35,7 @@ from .base import (
     _range_excess,
     _warn_range_left,
     check_times_of_learned_time,
+    placed,
 )
 from .exponential import BandLaplacian, heat_semigroup, kept_packing
 
@@ -319,28 +320,18 @@ class HeatFlow(Flow):
         ``D = 100`` erred 5-9 times as much as alone (33^3-49^3, every stepping method; the
         re-extensions, once per cell-crossing time of the fastest channel, each add a little)."""
         fixed = self._modules["diffusivity"]
-        outer = self._entry_excesses is None
-        if outer:
-            self._entry_excesses = []
-        excesses = self._entry_excesses
+        excesses, outer = self._gather_excesses()
         result = None
         try:
             for value, channels in groups:
                 self._modules["diffusivity"] = Positive(value, "diffusivity")
                 index = torch.tensor(channels, device=u0.device)
                 part = self.forward(u0.index_select(-4, index), surface, times, **inputs)
-                if result is None:
-                    shape = list(part.shape)
-                    shape[-4] = u0.shape[-4]
-                    result = part.new_zeros(shape)
-                result = result.index_copy(part.dim() - 4, index, part)
+                result = placed(result, part, index, u0.shape[-4], -4)
         finally:
             self._modules["diffusivity"] = fixed
-            if outer:
-                self._entry_excesses = None
-        worst = max(excesses, key=lambda pair: pair[0], default=None)
-        if outer and worst is not None and worst[0] > RANGE_SLACK:
-            _warn_range_left(self, *worst)
+            self._stop_gathering(outer)
+        self._warn_gathered(excesses, outer)
         return result
 
     def extra_repr(self) -> str:
