@@ -174,6 +174,8 @@ def test_functional_layer_names_arguments_of_the_wrong_type():
 def test_functional_layer_names_a_missing_tensor():
     """``weight=None`` raised "'NoneType' object has no attribute 'dim'" (or 'shape') deep in
     a kernel; every function that needs a tensor now names it."""
+    from torchsurf.operators.diffusivity import total_variation
+
     functional = ts.operators.functional
     grid = ts.Grid.cube(9, 1.3)
     surface = ts.ImplicitSurface(ts.sdf.sphere(grid, 0.7), grid)
@@ -182,9 +184,10 @@ def test_functional_layer_names_a_missing_tensor():
     normal, weight, h = surface.normal, surface.weight, grid.spacing
     calls = {
         "weight": [lambda: functional.divergence_form(u, normal, None, h),
-                   lambda: functional.edge_stopping_form(u, normal, None, h, "perona_malik", 1.0,
-                                                                 1e-6),
-                   lambda: functional.harmonic_map_rate(v, normal, None, h, 1.0, 0.0, 1e-6, None),
+                   lambda: functional.edge_stopping_form(u, normal, None, h, total_variation,
+                                                         1.0, 1e-6),
+                   lambda: functional.harmonic_map_rate(v, normal, None, h, total_variation,
+                                                        1.0, 1e-6, None),
                    lambda: functional.directional_form(u, normal, None, h, v),
                    lambda: functional.tangential_divergence(v, normal, None, h)],
         "direction": [lambda: functional.directional_form(u, normal, weight, h, None)],

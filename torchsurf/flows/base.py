@@ -386,7 +386,8 @@ class Flow(nn.Module):
         steps: number of time steps (``None``: for ``"rkc"``, steps no longer than the time
             the fastest diffusion takes to cross the band (:func:`plan_steps`); for
             ``"euler"`` and ``"heun"``, ``1.8 / rho``, 0.9 of the stable step ``2 / rho``,
-            rounded so that the steps end exactly at ``time``); for adaptive torchdiffeq methods, unused. With
+            rounded so that the steps end exactly at ``time``); for adaptive torchdiffeq
+            methods, unused. With
             ``times``, each interval between requested times takes its share of ``steps``
             rounded up, so that no step is longer than ``time / steps``. A run of more
             than ``10**6`` steps or evaluations of the rate (RKC's stages counted) is refused

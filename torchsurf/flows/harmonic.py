@@ -33,8 +33,9 @@ class HarmonicMapFlow(Flow):
     returned as it is. torchdiffeq's methods project at the start, between their pieces and at
     the requested times, and integrate the rate without its part along ``u``, which keeps
     ``|u|`` in between (the rate as it is pushed ``|u|`` off 1 and ended in NaN, or 0.10 from
-    the converged flow where it did not; ``tests/flows/test_harmonic.py``). With ``tangent=True`` the
-    field is kept tangent to the level sets (``u <- P u / |P u|``), for direction fields on S.
+    the converged flow where it did not; ``tests/flows/test_harmonic.py``). With
+    ``tangent=True`` the field is kept tangent to the level sets (``u <- P u / |P u|``; the
+    rate too, under torchdiffeq), for direction fields on S.
 
     Spectral bound: ``eps^(p-2) rho`` (``max g = eps^(p-2)``), ``rho`` the Gershgorin bound of
     the band's Laplace–Beltrami operator (about ``12 / h^2``). Growth: the largest
