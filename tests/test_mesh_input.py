@@ -8,6 +8,7 @@ import torch
 import trimesh
 
 import torchsurf as ts
+from torchsurf import _mesh_sdf
 
 
 @pytest.fixture(scope="module")
@@ -86,3 +87,50 @@ def test_nan_vertices_are_caught_unless_trimesh_already_dropped_them(icosphere, 
     # trimesh's default processing drops the vertex and its faces before torchsurf sees them
     processed = trimesh.Trimesh(broken, faces)
     assert len(processed.vertices) == len(vertices) - 1
+
+
+def _flipped(faces: np.ndarray, chosen: np.ndarray) -> np.ndarray:
+    faces = faces.copy()
+    faces[chosen] = faces[chosen][:, ::-1]
+    return faces
+
+
+@pytest.mark.parametrize("which", ["random quarter", "half x > 0"])
+def test_faces_wound_against_their_neighbours_are_reoriented(which):
+    """An icosphere with some faces flipped: the winding number of such a mesh is meaningless
+    (with a random quarter flipped, 72% of the inside was signed outside, without a word). The
+    faces are re-oriented before signing, with a warning, and phi equals the clean mesh's."""
+    mesh = trimesh.creation.icosphere(subdivisions=3)
+    vertices, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    if which == "random quarter":
+        chosen = np.random.default_rng(0).random(len(faces)) < 0.25
+    else:
+        chosen = mesh.triangles_center[:, 0] > 0
+    grid = ts.Grid.cube(24, 1.5)
+    clean = ts.sdf.from_mesh((vertices, faces), grid, dtype=torch.float64)
+    with pytest.warns(RuntimeWarning, match="wound against their neighbours") as caught:
+        phi = ts.sdf.from_mesh((vertices, _flipped(faces, chosen)), grid, dtype=torch.float64)
+    assert caught[0].filename == __file__
+    torch.testing.assert_close(phi, clean, atol=1e-12, rtol=0)
+
+
+def test_edges_of_more_than_two_faces_are_not_clashes():
+    """Two cubes sharing one edge, each wound consistently: that edge has four faces, two
+    traversing it each way, and nothing is re-oriented."""
+    first = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
+    second = first.copy()
+    second.apply_translation((1.0, 1.0, 0.0))
+    both = trimesh.util.concatenate([first, second])
+    both.merge_vertices()
+    assert _mesh_sdf._wound_against_neighbours(np.asarray(both.faces), len(both.vertices)) == 0
+    flipped = _flipped(np.asarray(both.faces), np.arange(len(both.faces)) == 0)
+    assert _mesh_sdf._wound_against_neighbours(flipped, len(both.vertices)) == 3
+
+
+def test_two_meshes_for_one_are_named():
+    """A list of two meshes is not read as ``(vertices, faces)``: the error says what to use."""
+    mesh = trimesh.creation.icosphere(subdivisions=1)
+    with pytest.raises(TypeError, match="mesh must be one mesh.*MeshBatchAdapter"):
+        ts.MeshAdapter([mesh, mesh.copy()], resolution=9)
+    with pytest.raises(TypeError, match="mesh must be one mesh"):
+        ts.sdf.from_mesh([mesh, mesh.copy()], GRID)

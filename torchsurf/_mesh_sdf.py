@@ -172,6 +172,37 @@ def _edge_keys(starts: np.ndarray, ends: np.ndarray, vertex_count: int) -> np.nd
     return starts * vertex_count + ends
 
 
+def _wound_against_neighbours(faces: np.ndarray, vertex_count: int) -> int:
+    """How many edges shared by exactly two faces both traverse the same way: 0 when every
+    face is wound like its neighbours (edges of three or more faces are not counted)."""
+    starts, ends = faces.reshape(-1), faces[:, [1, 2, 0]].reshape(-1)
+    undirected = _edge_keys(np.minimum(starts, ends), np.maximum(starts, ends), vertex_count)
+    _, first, counts = np.unique(undirected, return_inverse=True, return_counts=True)
+    pair = counts[first] == 2
+    directed, shared = np.unique(_edge_keys(starts, ends, vertex_count)[pair], return_counts=True)
+    return int((shared == 2).sum())
+
+
+def consistently_wound(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """``faces``, or a copy re-oriented so that neighbouring faces agree (with a warning)
+    where some do not: the winding number and the pseudonormals both need every face wound
+    like its neighbours (an icosphere with a quarter of its faces flipped had most of its
+    inside signed outside)."""
+    clashes = _wound_against_neighbours(faces, len(vertices))
+    if not clashes:
+        return faces
+    import trimesh
+
+    mesh = trimesh.Trimesh(vertices, faces.copy(), process=False)
+    trimesh.repair.fix_winding(mesh)
+    warnings.warn(
+        f"mesh: {clashes} edges are traversed the same way by the two faces that share them (faces "
+        "wound against their neighbours); re-oriented them consistently before signing "
+        "(trimesh.repair.fix_winding). Fix the mesh's winding to silence this",
+        RuntimeWarning, stacklevel=caller_stacklevel())
+    return np.asarray(mesh.faces, dtype=faces.dtype)
+
+
 def _is_closed(faces: np.ndarray, vertex_count: int) -> bool:
     """Every edge shared by exactly two faces that traverse it in opposite directions."""
     starts, ends = faces.reshape(-1), faces[:, [1, 2, 0]].reshape(-1)
@@ -408,6 +439,7 @@ def signed_near(vertices: np.ndarray, faces: np.ndarray, grid: Grid, band: float
             or ``"auto"``: pseudonormal for closed, consistently wound meshes, else winding.
     """
     requested = check_choice(sign, "sign", SIGN_METHODS)
+    faces = consistently_wound(vertices, faces)
     if sign == "auto":
         sign = "pseudonormal" if _is_closed(faces, len(vertices)) else "winding"
     if sign == "pseudonormal" and _signed_volume(vertices, faces) < 0:

@@ -259,9 +259,12 @@ def from_mesh(
     Every node within ``band_width`` of the mesh gets its exact distance to the nearest triangle
     (libigl's AABB tree, float64); only the nodes near the surface are visited (bricks of nodes
     far from the mesh are skipped whole). Signs come from the generalised winding number
-    (inside where it exceeds 1/2; libigl's fast winding number), so meshes with holes, several
-    components or inconsistent orientation still get a sensible inside; signs are right
-    everywhere except in a thin shell around holes, where the winding number passes 1/2.
+    (inside where it exceeds 1/2; libigl's fast winding number), so meshes with holes or several
+    components still get a sensible inside; signs are right everywhere except in a thin shell
+    around holes, where the winding number passes 1/2. Faces wound against their neighbours
+    (an edge of two faces that both traverse it the same way) are re-oriented first
+    (``trimesh.repair.fix_winding``, with a ``RuntimeWarning``): both sign methods need a
+    consistent winding.
 
     Args:
         mesh: a ``trimesh.Trimesh``, a path to any file trimesh reads, or a pair
