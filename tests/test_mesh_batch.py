@@ -148,6 +148,29 @@ def test_bad_input_raises() -> None:
         batch.decode(torch.zeros(1, 1, 13, 13, 13, dtype=torch.float64))
 
 
+def test_errors_name_the_shape_or_the_argument() -> None:
+    """A shape too thin for the grid names its index and the remedy; a bad ``order`` or
+    ``band_width`` names the argument, not the first shape."""
+    with pytest.raises(ValueError, match=r"shapes\[1\]: box .* not resolved .* raise resolution"):
+        MeshBatchAdapter([AnalyticShape("sphere"),
+                          AnalyticShape("box", {"half_size": (1.0, 1.0, 0.005)})], resolution=16)
+    with pytest.raises(ValueError, match=r"^order must be one of"):
+        MeshBatchAdapter([AnalyticShape("sphere")], resolution=16, order=0)
+    with pytest.raises(ValueError, match=r"^band_width must be at least"):
+        MeshBatchAdapter([AnalyticShape("sphere")], resolution=16, band_width=0.001)
+
+
+def test_an_analytic_shape_keeps_its_own_parameters() -> None:
+    """The checked parameters are copied: the caller's dict changed later changes nothing, and
+    shapes hash like the frozen dataclass they are."""
+    parameters = {"radius": 0.5}
+    shape = AnalyticShape("sphere", parameters)
+    parameters["radius"] = -2.0
+    assert shape.parameters == {"radius": 0.5}
+    assert hash(shape) == hash(AnalyticShape("sphere", {"radius": 0.5}))
+    assert shape == AnalyticShape("sphere", {"radius": 0.5})
+
+
 @pytest.mark.skipif(not SPOT.exists(), reason="shared meshes not present")
 def test_mesh_files_and_shapes_mix() -> None:
     batch = MeshBatchAdapter([SPOT, AnalyticShape("trefoil")], resolution=33)

@@ -69,6 +69,12 @@ def as_trimesh(mesh: MeshLike, name: str = "mesh") -> trimesh.Trimesh:
     if isinstance(mesh, (str, os.PathLike)):
         mesh = _read(mesh, name)
     elif isinstance(mesh, (tuple, list)) and len(mesh) == 2:
+        if any(isinstance(part, (trimesh.Trimesh, str, os.PathLike)) for part in mesh):
+            raise TypeError(
+                f"{name} must be one mesh, got a {type(mesh).__name__} of two meshes (read as "
+                "(vertices, faces)): for several meshes use torchsurf.MeshBatchAdapter or one "
+                "call per mesh"
+            )
         vertices = _as_array(mesh[0])
         faces = _as_array(mesh[1])
         _check_arrays(vertices, faces, name)

@@ -34,7 +34,7 @@ from ._checks import (
 )
 from ._mesh_input import MeshLike, as_trimesh, triangle_arrays
 from .grid import Grid, default_margin
-from .mesh import MeshAdapter, extract
+from .mesh import MeshAdapter, check_adapter_band, check_decode_order, extract
 from .surface import ImplicitSurface
 
 ANALYTIC = ("sphere", "torus", "box", "capsule", "trefoil")
@@ -64,9 +64,14 @@ class AnalyticShape:
     """
 
     name: str
-    parameters: Mapping[str, object] = field(default_factory=dict)
+    parameters: Mapping[str, object] = field(default_factory=dict, hash=False)
 
     def __post_init__(self) -> None:
+        if not isinstance(self.parameters, Mapping):
+            raise TypeError(f"parameters must be a mapping of keyword arguments, got "
+                            f"{type(self.parameters).__name__}")
+        # a copy: the caller's dict changed later does not change a checked shape
+        object.__setattr__(self, "parameters", dict(self.parameters))
         if self.name not in ANALYTIC:
             raise ValueError(f"name must be one of {ANALYTIC}, got {self.name!r}")
         for key in ("grid", "dtype", "device"):
@@ -196,7 +201,10 @@ class MeshBatchAdapter(nn.Module):
         margin = (default_margin(resolution, 0.15) if margin is None
                   else check_nonnegative(margin, "margin"))
         dtype = check_dtype(dtype)
+        order = check_decode_order(order)
         self.grid = Grid.cube(resolution, bound=0.5 * size * (1.0 + 2.0 * margin))
+        if band_width is not None:
+            check_adapter_band(sdf._band(self.grid, band_width), self.grid.spacing)
         phis, scales, centres, adapters = [], [], [], []
         for index, shape in enumerate(shapes):
             name = f"shapes[{index}]"
@@ -211,16 +219,22 @@ class MeshBatchAdapter(nn.Module):
             if longest == 0:
                 raise ValueError(f"{name}: its bounding box has no extent")
             scale, centre = size / longest, (low + high) / 2
-            if isinstance(shape, AnalyticShape):
-                own = Grid(self.grid.shape, self.grid.spacing / scale,
-                           tuple(float(c) for c in centre + np.asarray(self.grid.origin) / scale))
-                phi = scale * shape.phi(own, dtype=torch.float64)
-                mesh = extract(phi, self.grid)
-                phi = phi.to(dtype=dtype, device=device)
-            else:
-                mesh = trimesh.Trimesh(scale * (vertices - centre), faces, process=False)
-                phi = None
             try:
+                if isinstance(shape, AnalyticShape):
+                    own = Grid(self.grid.shape, self.grid.spacing / scale,
+                               tuple(float(c) for c in centre + np.asarray(self.grid.origin) / scale))
+                    phi = scale * shape.phi(own, dtype=torch.float64)
+                    try:
+                        mesh = extract(phi, self.grid)
+                    except ValueError as error:
+                        raise ValueError(
+                            f"{shape.name} {dict(shape.parameters)} is not resolved by this "
+                            f"grid of {resolution} nodes a side: {error}; raise resolution"
+                        ) from error
+                    phi = phi.to(dtype=dtype, device=device)
+                else:
+                    mesh = trimesh.Trimesh(scale * (vertices - centre), faces, process=False)
+                    phi = None
                 adapter = MeshAdapter(mesh, self.grid, band_width=band_width, dtype=dtype,
                                       device=device, order=order)
             except ValueError as error:
