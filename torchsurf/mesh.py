@@ -405,7 +405,10 @@ def _decode_stencil(grid: Grid, vertices: Tensor, band_index: Tensor, references
     hats = None
     if triangles is not None:
         corners, barycentric = triangles
-        hats = _vertex_decode.Hats(corners[row], barycentric[row], torch.arange(len(vertices)))
+        # vertices at one position (a triangle soup, as STL stores it) are one hat function:
+        # counted apart, a soup's vertices read past HAT_LIMIT and lost their exact decode
+        _, same = torch.unique(vertices, dim=0, return_inverse=True)
+        hats = _vertex_decode.Hats(same[corners[row]], barycentric[row], same)
     weights = _vertex_decode.weights(found, usable, vertices,
                                      [points[row] for points in references], grid.spacing, hats)
     return _vertex_decode.onto_weighted_taps(index, weights), weights

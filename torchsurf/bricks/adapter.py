@@ -160,6 +160,11 @@ class BrickMeshAdapter(nn.Module):
         references = [torch.cat(mesh_points), torch.cat(grid_points) - step]
         corners = self._corners.to("cpu").long()
         triangle_weights = torch.as_tensor(np.concatenate(barycentric))
+        # vertices at one position in one mesh are one hat function (MeshAdapter's decode)
+        _, same = torch.unique(torch.cat([
+            torch.cat([torch.full((len(vertices), 1), float(b), dtype=torch.float64),
+                       torch.from_numpy(vertices)], dim=1)
+            for b, (vertices, _, _) in enumerate(bands)]), dim=0, return_inverse=True)
         indices, weights, offset = [], [], 0
         for b, (vertices, _, _) in enumerate(bands):
             grid = layout.grids[b]
@@ -178,8 +183,8 @@ class BrickMeshAdapter(nn.Module):
             tap_row = torch.where(index >= 0, row[index.clamp(min=0)], -1)
             usable = cells.inside & (tap_row >= 0)
             tap_row = tap_row.clamp(min=0)
-            hats = _vertex_decode.Hats(corners[tap_row], triangle_weights[tap_row],
-                                       offset + torch.arange(len(vertices)))
+            hats = _vertex_decode.Hats(same[corners[tap_row]], triangle_weights[tap_row],
+                                       same[offset + torch.arange(len(vertices))])
             vertex_weights = _vertex_decode.weights(
                 cells, usable, points, [points_set[tap_row] for points_set in references],
                 grid.spacing, hats)
