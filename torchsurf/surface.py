@@ -688,6 +688,10 @@ class ImplicitSurface(nn.Module):
         made orthogonal to it) and the curvatures are kept at least ``eps`` =
         ``1e-6 / spacing`` apart; values and gradients stay finite. (A sampled sphere's shape
         operator is umbilic only to its discretisation error, which separates them more.)
+        At a node where ``grad phi`` vanishes (the centre of a sphere or an ellipsoid centred
+        on a node) ``n`` and the choice of tangent are not differentiable in ``phi``: the
+        gradient there is one of the one-sided ones, and ``gradcheck`` in ``phi`` through the
+        directions fails if such a node lies in the band.
         """
         _, _, e1, e2 = self._principal()
         return e1, e2
