@@ -762,6 +762,36 @@ def test_phi_modified_in_place_after_building_is_refused():
             operator(u, surface)
 
 
+def test_phi_made_to_require_grad_after_building_is_refused():
+    """The normals and weight were derived outside phi's graph: a layer's gradient to phi missed
+    their part (6.06 off a largest entry of 6.17), silently."""
+    grid = Grid.cube(13, BOUND)
+    phi = sdf.sphere(grid, 0.7, center=(0.03, -0.05, 0.02), dtype=torch.float64)
+    surface = ImplicitSurface(phi, grid)
+    phi.requires_grad_()
+    u = torch.rand(phi.shape, dtype=torch.float64)
+    for operator in (ts.laplace_beltrami, ts.nn.gradient_features,
+                     ts.nn.LearnedDiffusion(1, time=2.0).double()):
+        with pytest.raises(RuntimeError, match="require grad after this surface was built"):
+            operator(u, surface)
+    phi.requires_grad_(False)  # made constant again: the graph built with it is still right
+    ts.laplace_beltrami(u, surface)
+
+
+def test_half_precision_leaves_the_surface_in_its_dtype():
+    """``model.half()`` converts the rest of a model; the surface, which the constructor
+    refuses in float16, stays float32 with a warning (it had converted and every call failed
+    on ``u``'s dtype)."""
+    grid = Grid.cube(13, BOUND)
+    surface = ImplicitSurface(sdf.sphere(grid, 0.7), grid)
+    model = torch.nn.ModuleDict({"surface": surface, "linear": torch.nn.Linear(2, 2)})
+    with pytest.warns(RuntimeWarning, match="stays torch.float32"):
+        model.half()
+    assert model["linear"].weight.dtype == torch.float16
+    assert surface.phi.dtype == surface.normal.dtype == torch.float32
+    ts.laplace_beltrami(torch.rand(surface.phi.shape), surface)
+
+
 def test_the_mean_curvature_returned_is_computed_again_if_modified():
     grid = Grid.cube(17, BOUND)
     surface = ImplicitSurface(sdf.sphere(grid, 1.0, dtype=torch.float64), grid)

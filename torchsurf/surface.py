@@ -15,6 +15,7 @@ from torch import Tensor, nn
 
 from . import _memory, curvature, stencils
 from ._checks import (
+    SUPPORTED_DTYPES,
     MismatchError,
     check_batch,
     check_finite,
@@ -372,6 +373,7 @@ class ImplicitSurface(nn.Module):
                                       DISTANCE_FLOOR * (scale * magnitude).detach(),
                                       self.normal.detach(), self.spacing)
         self._phi_version = phi._version
+        self._phi_required_grad = phi.requires_grad
         self.register_buffer("_mean_curvature", None, persistent=False)
         self.register_buffer("_haloed_normal", None, persistent=False)
         self.register_buffer("_haloed_weight", None, persistent=False)
@@ -445,16 +447,28 @@ class ImplicitSurface(nn.Module):
         # from them: it starts a new record of in-place changes
         super().__setstate__(state)
         self._phi_version = self.phi._version
+        self._phi_required_grad = self.phi.requires_grad
         if self._mean_curvature is not None:
             self._mean_curvature_version = self._mean_curvature._version
 
     def _apply(self, fn, recurse=True):  # noqa: ANN001, ANN202
         # .to(), .double(), .cuda(): the normals, the weight and what flows kept are derived
         # again from phi in its new dtype and place, as a surface built from the moved phi
-        if fn(torch.empty(0, dtype=self.phi.dtype, device=self.phi.device)).is_meta:
+        probe = fn(torch.empty(0, dtype=self.phi.dtype, device=self.phi.device))
+        if probe.is_meta:
             raise NotImplementedError(
                 f"{type(self).__name__} cannot move to the meta device: its normals, weight and "
                 "band are derived from phi's values; the surface is left as it was")
+        if probe.dtype != self.phi.dtype and probe.dtype not in SUPPORTED_DTYPES:
+            # model.half(): the rest of the model converts, the surface keeps its dtype
+            warnings.warn(
+                f"{type(self).__name__} stays {self.phi.dtype}: torchsurf computes in float32 or "
+                f"float64, not {probe.dtype} (feed it data of its dtype, or autocast)",
+                RuntimeWarning, stacklevel=caller_stacklevel())
+            device = probe.device
+            result = super()._apply(lambda tensor: tensor.to(device), recurse)
+            self._reassemble()
+            return result
         result = super()._apply(fn, recurse)
         self._reassemble()
         return result
@@ -620,12 +634,21 @@ class ImplicitSurface(nn.Module):
 
     def _current_phi(self) -> Tensor:
         """``phi``, unless it was modified in place after the normals and weight were derived
-        from it (they would then belong to another surface)."""
-        if not torch.compiler.is_compiling() and self.phi._version != self._phi_version:
+        from it (they would then belong to another surface), or made to require grad after
+        them (they would then be outside its graph, and its gradient would miss their part)."""
+        if torch.compiler.is_compiling():
+            return self.phi
+        if self.phi._version != self._phi_version:
             raise RuntimeError(
                 "phi was modified in place after this surface was built: its normals and "
                 "weight belong to the former values; build a new surface from the new phi "
                 "(or pass phi.clone() to keep a phi you will change)"
+            )
+        if self.phi.requires_grad and not self._phi_required_grad:
+            raise RuntimeError(
+                "phi was made to require grad after this surface was built: its normals and "
+                "weight are not in phi's graph, and phi's gradient would miss their part; call "
+                "phi.requires_grad_() before building the surface (or build a new one)"
             )
         return self.phi
 

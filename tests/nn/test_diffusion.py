@@ -580,10 +580,25 @@ def test_absurd_times_narrow_bands_and_times_with_gradients_are_refused():
     grid = ts.Grid.cube(17, 1.0)
     surface = ts.ImplicitSurface(ts.sdf.sphere(grid, 0.6), grid)
     u = torch.rand(1, 2, *grid.shape, generator=torch.Generator().manual_seed(0))
-    with pytest.raises(ValueError, match=r"needs \d+ applications of the operator \(more than"):
+    with pytest.raises(ValueError, match=r"time: 1e\+06 h\^2 needs \d+ applications of the "
+                       r"operator \(more than"):
         LearnedDiffusion(2, time=1e6, learn_time=False)(u, surface)  # h^2 units: days of work
     narrow = ts.ImplicitSurface(surface.phi, grid, band_width=grid.spacing)
     with pytest.raises(ValueError, match="band_width=0.125 is 1.00 cells"):
         LearnedDiffusion(2)(u, narrow)  # its errors on S were 0.06 at 1 cell, 0.3 at 0.5
     with pytest.raises(ValueError, match="time is a tensor that requires grad"):
         LearnedDiffusion(2, time=torch.ones(2, requires_grad=True), learn_time=False)
+
+
+@pytest.mark.parametrize("max_time", [None, 10.0])
+def test_a_diverged_learned_time_is_named_in_h2_units(max_time):
+    """A NaN learned time raised only without ``max_time`` (with it the output was NaN,
+    silently), in world units; it now raises either way, naming ``time`` in ``h^2``."""
+    grid = ts.Grid.cube(17, 1.0)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, 0.6), grid)
+    layer = LearnedDiffusion(2, time=2.0, max_time=max_time)
+    with torch.no_grad():
+        layer.raw_time[0] = float("nan")
+    with pytest.raises(ValueError, match=r"time must be finite and positive \(h\^2 units\), "
+                       r"got \[nan, 2.0"):
+        layer(torch.rand(1, 2, *grid.shape), surface)

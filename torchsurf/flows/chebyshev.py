@@ -54,15 +54,25 @@ MAX_APPLICATIONS = 10**6
 refused before any work: ``t rho`` near ``10^7``, hours of work and a likely unit error."""
 
 
-def check_applications(applications: int, time: float, bound: float) -> None:
-    """Raise ``ValueError`` before any work when an expansion over ``time`` would take more than
-    :data:`MAX_APPLICATIONS` operator ``applications``."""
-    if applications > MAX_APPLICATIONS:
-        raise ValueError(
+class TooManyApplications(ValueError):
+    """An expansion over ``time`` would take ``applications`` operator applications, more than
+    :data:`MAX_APPLICATIONS` (``bound``: the operator's ``rho``); raised before any work. A
+    caller whose times are in other units restates it in them."""
+
+    def __init__(self, applications: int, time: float, bound: float) -> None:
+        self.applications, self.time, self.bound = applications, time, bound
+        super().__init__(
             f"a time of {time:g} (world units squared) needs {applications} applications of "
             f"the operator (more than {MAX_APPLICATIONS}): time * rho = {time * bound:.3g} "
             f"(rho = {bound:.3g}, the operator's bound), hours of work and a likely unit error"
         )
+
+
+def check_applications(applications: int, time: float, bound: float) -> None:
+    """Raise :class:`TooManyApplications` (a ``ValueError``) before any work when an expansion
+    over ``time`` would take more than :data:`MAX_APPLICATIONS` operator ``applications``."""
+    if applications > MAX_APPLICATIONS:
+        raise TooManyApplications(applications, time, bound)
 
 PIECE_HALF_WIDTH = 250.0
 """The largest ``a = t rho / 2`` one expansion of ``exp`` covers; longer times are applied as

@@ -28,12 +28,23 @@ from .._checks import (
 )
 from ..backend import PATHS
 from ..flows._positive import HostMaximum, _inverse_softplus, range_note
+from ..flows.chebyshev import MAX_APPLICATIONS, TooManyApplications
 from ..flows.exponential import BandLaplacian, heat_semigroup
 from ..operators import functional
 from ..surface import ImplicitSurface, check_data, check_surface
 
 FLOOR = 1e-6
 """Smallest learned time, ``h^2`` units: softplus alone can underflow to exactly 0."""
+
+
+def check_times(times: Tensor) -> None:
+    """Raise ``ValueError`` naming ``time`` unless the learned ``times`` ``(C,)`` (``h^2``
+    units) are finite and positive: a step of the optimiser diverged. Read on the host."""
+    if not bool((torch.isfinite(times) & (times > 0)).all()):
+        raise ValueError(
+            f"time must be finite and positive (h^2 units), got {times.detach().tolist()!r}: an "
+            "optimiser step diverged (layer.time)"
+        )
 
 
 def _reread_largest_time(module: LearnedDiffusion, _: object) -> None:
@@ -162,8 +173,19 @@ class LearnedDiffusion(nn.Module):
         check_finite(torch.where(operator.band, u.detach(), 0.0), "u (in the band)")
         area = surface.spacing**2
         largest = self.largest_time()
-        return heat_semigroup(u, operator, self.time.to(u.dtype) * area,
-                              None if largest is None else largest * area)
+        times = self.time
+        if self.learn_time and not torch.compiler.is_compiling():
+            check_times(times)
+        try:
+            return heat_semigroup(u, operator, times.to(u.dtype) * area,
+                                  None if largest is None else largest * area)
+        except TooManyApplications as error:
+            raise ValueError(
+                f"time: {error.time / area:g} h^2 needs {error.applications} applications of the "
+                f"operator (more than {MAX_APPLICATIONS}; time * rho = "
+                f"{error.time * error.bound:.3g}), hours of work and a likely unit error: the "
+                "layer's times are in units of h^2"
+            ) from error
 
     def extra_repr(self) -> str:
         bound = "" if self.max_time is None else f", max_time={self.max_time:g}"
