@@ -98,6 +98,10 @@ def test_dense_round_trip_and_shapes():
     assert back.shape == volume.shape
     assert torch.equal(back[stored], volume[stored])
     assert stored.sum() == layout.inside.sum() * 3
+    integers = layout.from_dense(torch.ones(1, 1, *grid.shape, dtype=torch.int64))
+    assert int(layout.to_dense(integers, fill=-1)[0].min()) == -1
+    with pytest.raises(ValueError, match=r"fill=0.5 cannot be held by field's dtype torch.int64"):
+        layout.to_dense(integers, fill=0.5)  # it had truncated to 0, like the stored zeros
 
 
 def test_linear_fill_extends_affine_data_exactly_beyond_the_box():

@@ -312,7 +312,7 @@ def test_bad_arguments_are_named(sphere33):
     diverged = LearnedDiffusion(4)
     with torch.no_grad():
         diverged.raw_time[1] = float("nan")
-    with pytest.raises(ValueError, match="times must be finite"):
+    with pytest.raises(ValueError, match=r"time must be finite and positive \(h\^2 units\)"):
         diverged(u0, surface)
 
 

@@ -392,6 +392,9 @@ class BrickLayout:
         """Dense volumes of a packed field: one ``(1, C, D_b, H_b, W_b)`` per entry, ``fill``
         outside the stored bricks; differentiable."""
         self.check_field(field, "field")
+        if not (field.is_floating_point() or field.is_complex()) and fill != int(fill):
+            raise ValueError(f"fill={fill!r} cannot be held by field's dtype {field.dtype}: "
+                             "give an integer fill, or a floating-point field")
         channels = field.shape[1]
         volumes = []
         for b, grid in enumerate(self.grids):

@@ -368,9 +368,8 @@ class BrickSurface(ImplicitSurface):
         if left_out:
             raise ValueError(
                 f"{name}={width:g} reaches {left_out} nodes within it of S whose neighbours "
-                f"this BrickSurface does not store (it was built for band_width="
-                f"{self.band_width:g}): build it with torchsurf.bricks.from_dense or from_mesh "
-                f"at band_width >= {width:g}"
+                f"this BrickSurface does not store (its bricks hold a narrower band): build it "
+                f"with torchsurf.bricks.from_dense or from_mesh at band_width >= {width:g}"
             )
 
     def _check_points(self, points: Tensor, entry: int, name: str = "points") -> int:
