@@ -756,11 +756,12 @@ def test_two_times_within_the_end_slack_are_two_times(method):
         HeatFlow(end)(u0, surface, times=[end * (1 + 1e-7), end * (1 + 2e-7)])
 
 
-@pytest.mark.parametrize("method", ["rkc", "euler", "crank_nicolson"])
+@pytest.mark.parametrize("method", ["rkc", "euler", "crank_nicolson", "chebyshev"])
 def test_each_diffusivity_runs_with_its_own_steps(method):
     """Channels of ``D = (1, 100, 1)`` were planned together for ``D = 100``: the ``D = 1``
     channels took its re-extensions too and erred 5-9 times as much as alone (l = 2 harmonic,
-    33^3-49^3). Each group of channels now runs alone: the result equals each channel's own
+    33^3-49^3; under ``"chebyshev"`` its pieces, a change of 3.7e-2 on noise beside
+    ``D = 30``). Each group of channels now runs alone: the result equals each channel's own
     flow, in the caller's channel order, with requested times and gradients."""
     case = ts.exact.sphere_harmonic(2, 21, dtype=torch.float64)
     surface = ts.ImplicitSurface(case.phi, case.grid)
