@@ -58,7 +58,8 @@ def closest_point_extension(
         interpolation: ``"linear"`` (trilinear, error ``O(h^2)``: repeated every few steps
             of a flow, it smooths the data and costs second-order flows their accuracy) or
             ``"cubic"`` (tricubic Lagrange on the 4^3 nodes around each point, error
-            ``O(h^4)``, evaluated at band nodes only).
+            ``O(h^4)``, evaluated at band nodes only; it reads nodes up to ``2 sqrt(3)``
+            cells from S, beyond a narrower band).
         mask: bool ``(B or 1, 1, D, H, W)`` (packed ``(N, 1, 8, 8, 8)`` on bricks): the nodes
             to extend to, instead of the band of ``width``.
 
@@ -791,6 +792,22 @@ def cubic_stencil(surface: ImplicitSurface, mask: Tensor, limited: bool = False,
     return CubicStencil(surface, mask, limited, readable)
 
 
+def _read_by(stencil: CubicStencil | BrickCubicStencil, like: Tensor) -> Tensor:
+    """The nodes ``stencil`` reads, a bool mask shaped like ``like`` (``(B or 1, 1, D, H, W)``,
+    or packed ``(N, 1, 8, 8, 8)``)."""
+    if isinstance(stencil, BrickCubicStencil):
+        read = torch.zeros(like.numel(), dtype=torch.bool, device=like.device)
+        for start in range(0, len(stencil.targets), STENCIL_CHUNK):
+            taps = stencil._tap_indices(slice(start, start + STENCIL_CHUNK)).long().flatten()
+            read[taps[taps >= 0]] = True
+        return read.view(like.shape)
+    height, width = like.shape[-2:]
+    read = torch.zeros(len(stencil.parts), like[0].numel(), dtype=torch.bool, device=like.device)
+    for b, (_, corners, _) in enumerate(stencil.parts):
+        read[b, _dense_tap_indices(corners, height, width)(slice(None)).flatten()] = True
+    return read.view(len(stencil.parts), *like.shape[1:])
+
+
 def _closest_indices(surface: ImplicitSurface, dtype: torch.dtype) -> Tensor:
     """``x - d n``, ``d = surface.signed_distance()``, at every node, in continuous node
     indices ``(B, D, H, W, 3)`` ``(i, j, k)``.
@@ -883,7 +900,7 @@ def pde_extension(
     active = torch.ones_like(scale, dtype=torch.bool)
     for _ in range(max_steps):
         updated = torch.where(band & active, _upwind_step(u, velocity, h, 0.5, layout), u)
-        change = _volume_max((updated - u).detach().abs(), layout)
+        change = _volume_max(torch.where(band, (updated - u).detach().abs(), 0.0), layout)
         u = updated
         active = active & (change > tolerance * scale)
         if not bool(active.any()):
@@ -923,18 +940,31 @@ class Extension(nn.Module):
 
     def forward(self, u: Tensor, surface: ImplicitSurface) -> Tensor:
         """``u`` ``(B, C, D, H, W)`` (packed ``(N, C, 8, 8, 8)`` on bricks) extended inside the
-        band of :attr:`width`; nodes beyond it are returned as they are (NaN there too).
+        band of :attr:`width`; nodes beyond it are returned as they are.
+
+        What is read: trilinear interpolation reads the band only; tricubic interpolation reads
+        the ``4^3`` nodes around each closest point, up to ``2 sqrt(3)`` cells from S, beyond a
+        band narrower than that; ``"pde"`` reads the band and the nodes next to it. ``u`` may
+        hold anything (NaN too) where nothing is read.
 
         Raises:
-            ValueError: ``u`` holds NaN or infinity in the band (the flows refuse it too: it
-                would spread through the extension silently).
+            ValueError: ``u`` holds NaN or infinity where it is read (the flows refuse it too:
+                it would spread through the extension silently).
         """
         check_data(u, "u", surface)
         band = _band_to_extend(surface, self.width)
-        check_finite(torch.where(band, u.detach(), 0.0), "u (in the band)")
+        if self.method == "closest_point" and self.interpolation == "cubic":
+            stencil = cubic_stencil(surface, band)
+            check_finite(torch.where(band | _read_by(stencil, band), u.detach(), 0.0),
+                         "u (in the band and the nodes its cubic interpolation reads)")
+            return stencil.apply(u)
         if self.method == "closest_point":
-            return closest_point_extension(u, surface, interpolation=self.interpolation,
-                                           mask=band)
+            check_finite(torch.where(band, u.detach(), 0.0), "u (in the band)")
+            return closest_point_extension(u, surface, mask=band)
+        layout = surface.layout
+        read = (layout.dilate(band) if layout is not None
+                else F.max_pool3d(band.to(u.dtype), 3, stride=1, padding=1) > 0)
+        check_finite(torch.where(read, u.detach(), 0.0), "u (in the band and next to it)")
         return pde_extension(u, surface, self.width, self.tolerance, self.max_steps)
 
     def extra_repr(self) -> str:
