@@ -217,6 +217,10 @@ def test_mesh_path_resolves_against_the_config_folder_then_the_mesh_dir(tmp_path
         (["flow.kind=total_variation", "flow.method=implicit"], "flow.method"),
         (["flow.kind=perona_malik", "flow.method=crank_nicolson"], "flow.method"),
         (["flow.steps=99999999999999999999"], "flow.steps"),
+        # the sphere's poles touched the faces and the picture showed it cut flat (exit 0)
+        (["grid.size=32", "grid.margin=0"], "grid.margin"),
+        (["grid.size=32", "grid.margin=0.02"], "grid.margin"),
+        (["signal.gray=1"], "signal.gray"),  # taken as true
     ],
 )
 def test_bad_settings_are_refused_with_their_key(overrides, key, tmp_path, capsys):
@@ -346,6 +350,41 @@ def test_a_mapping_given_whole_replaces_the_files_and_a_dotted_key_changes_one_e
     assert experiment.surface.params == {"tube_radius": 0.15, "scale": 0.4}
     experiment, _ = config.load("flowvis_trefoil", ["field={kind: axis}"])
     assert experiment.field.kind.name == "axis" and experiment.field.smoothing == 2.0
+
+
+@pytest.mark.parametrize("text", ["name: 010", "name: yes", "name: x\ndescription: 3"])
+def test_text_that_yaml_reads_as_a_number_or_a_boolean_is_refused_in_a_file(text, tmp_path, capsys):
+    """``name: 010`` wrote ``8.png`` and ``name: yes`` ``True.png``: quote it."""
+    path = tmp_path / "typed.yaml"
+    path.write_text(f"{text}\nsurface: {{shape: sphere}}\ngrid: {{size: 24}}\n")
+    assert cli.main(["run", str(path), "--out", str(tmp_path / "out")]) == cli.EXIT_USAGE
+    key = text.splitlines()[-1].split(":")[0]
+    assert f"config error: {key}: must be text" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_relative_path_given_with_set_names_a_file_of_the_current_folder(tmp_path, monkeypatch):
+    """``--set signal.image=mine.png`` on a shipped config was looked up in the package's
+    folder; a file of the current folder is taken now."""
+    image = np.zeros((8, 8, 3))
+    image[:, :4] = 1.0
+    mpimg.imsave(tmp_path / "mine.png", image)
+    monkeypatch.chdir(tmp_path)
+    experiment, _ = config.load("heat_sphere", ["signal.image=mine.png"])
+    assert experiment.signal.image == str((tmp_path / "mine.png").resolve())
+    experiment, _ = config.load("heat_sphere", ["signal.image=checker"])
+    assert experiment.signal.image == "checker"  # no such file here: a built-in name
+
+
+def test_ctrl_c_exits_130_with_one_line(monkeypatch, capsys):
+    def interrupted(argv=None):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "main", interrupted)
+    with pytest.raises(SystemExit) as stop:
+        cli.entry_point()
+    assert stop.value.code == 130
+    assert capsys.readouterr().err == "torchsurf: interrupted\n"
 
 
 def test_text_settings_are_taken_as_written():

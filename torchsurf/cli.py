@@ -186,6 +186,12 @@ def _exit_on_terminate(signum: int, frame: object) -> None:
 def entry_point() -> None:
     """The console script: ``sys.exit(main())``. ``SIGTERM`` (``kill``, a job scheduler's
     stop) exits like Ctrl-C does, through the cleanup that removes half-written files: by
-    default it ended the process on the spot and left an empty temporary picture behind."""
+    default it ended the process on the spot and left an empty temporary picture behind.
+    Ctrl-C exits with 130 and one line, once that cleanup has run (not a traceback)."""
     signal.signal(signal.SIGTERM, _exit_on_terminate)
-    sys.exit(main())
+    try:
+        code = main()
+    except KeyboardInterrupt:
+        print("torchsurf: interrupted", file=sys.stderr)
+        code = 128 + signal.SIGINT
+    sys.exit(code)

@@ -121,6 +121,12 @@ class Layout(Enum):
 BRICKS_FROM = 128
 """Grid size from which ``layout: auto`` stores bricks."""
 
+DENSE_MARGIN_CELLS = 1.0
+"""Free cells dense volumes need around the shape's box: S at least a cell inside the box, so
+that the central differences of ``phi`` and the closest points around it read a node on each
+side of S (at a margin of 0 the sphere's poles touched the faces and the pictures showed it
+flattened there)."""
+
 BRICK_MARGIN_CELLS = 5.0
 """Free cells the bricks layout needs around the shape's box: the 3-cell band and the 2 nodes
 its stencils read (:func:`torchsurf.bricks.from_mesh` refuses less)."""
@@ -334,19 +340,22 @@ def time_unit(flow: FlowConfig) -> TimeUnit:
 
 def _check_brick_margin(grid: GridConfig, where: str) -> None:
     """Refuse a margin of fewer than :data:`BRICK_MARGIN_CELLS` cells on ``grid`` when it takes
-    the bricks layout; ``where`` says which grid, in the message."""
-    if layout(grid) is not Layout.bricks:
-        return
+    the bricks layout, of fewer than :data:`DENSE_MARGIN_CELLS` on dense volumes; ``where``
+    says which grid, in the message."""
+    bricks = layout(grid) is Layout.bricks
+    least = BRICK_MARGIN_CELLS if bricks else DENSE_MARGIN_CELLS
     size, margin = grid.size, grid.margin
     cells = margin * (size - 1) / (1 + 2 * margin)
-    if cells < BRICK_MARGIN_CELLS:
-        needed = BRICK_MARGIN_CELLS / (size - 1 - 2 * BRICK_MARGIN_CELLS)
+    if cells < least:
+        needed = least / (size - 1 - 2 * least)
         advice = (f"use grid.margin >= {math.ceil(needed * 1000) / 1000:g}"
                   if 0 < needed <= 1 else "use a larger grid.size")
+        what = ("the bricks layout needs {:g} (the band and the nodes its stencils read)"
+                if bricks else "dense volumes need {:g} (S a cell inside the box, so that the "
+                "stencils read a node on each side of it; closer, the shape is cut flat)")
         raise ConfigError("grid.margin", f"{margin:g} leaves {cells:.1f} cells around the "
-                          f"shape {where}; the bricks layout needs {BRICK_MARGIN_CELLS:g} (the "
-                          f"band and the nodes its stencils read): {advice}, or "
-                          "grid.layout=dense")
+                          f"shape {where}; {what.format(least)}: {advice}"
+                          + (", or grid.layout=dense" if bricks else ""))
 
 
 def layout(grid: GridConfig) -> Layout:
@@ -494,18 +503,27 @@ def _drop_replaced_mappings(raw: DictConfig, given: DictConfig, overrides: list[
 
 
 def _refuse_quoted_numbers(given: object, merged: DictConfig, path: str = "") -> None:
-    """Raise naming the key of a number written as a string (``steps: '5'``), which omegaconf
-    would convert: a setting of the wrong type is refused, whatever it looks like."""
+    """Raise naming the key of a value that omegaconf would convert to the setting's type: a
+    number written as a string (``steps: '5'``), a number or a boolean where text belongs
+    (``name: 010``, which YAML reads as 8; ``name: yes``, True), a number where a boolean
+    belongs (``signal.gray: 1``). A setting of the wrong type is refused, whatever it looks
+    like."""
     if isinstance(given, dict):
         for key, value in given.items():
             _refuse_quoted_numbers(value, merged, f"{path}.{key}" if path else str(key))
-    elif isinstance(given, str):
-        read = OmegaConf.select(merged, path, default=None)
+        return
+    read = OmegaConf.select(merged, path, default=None)
+    if isinstance(given, str):
         if isinstance(read, (int, float)) and not isinstance(read, bool):
             if _is_non_finite(given):  # `--set flow.time=nan`: YAML reads nan, inf as strings
                 raise ConfigError(path, f"must be a finite number, got {given}")
             raise ConfigError(path, f"must be a number, got the string {given!r} (remove the "
                               "quotes)")
+    elif isinstance(given, (bool, int, float)) and isinstance(read, str):
+        raise ConfigError(path, f"must be text, got {given!r} (YAML reads 010 as the number 8 "
+                          "and yes as true): write the text in quotes")
+    elif isinstance(given, (int, float)) and not isinstance(given, bool) and isinstance(read, bool):
+        raise ConfigError(path, f"must be true or false, got {given!r}")
 
 
 def _is_non_finite(text: str) -> bool:
@@ -541,8 +559,29 @@ def load(config: str | os.PathLike, overrides: list[str] | None = None) -> tuple
         raise _omegaconf_error(error, raw, overrides or []) from error
     for source in (raw, given):
         _refuse_quoted_numbers(OmegaConf.to_container(source, resolve=False), merged)
+    _take_paths_from_the_current_folder(experiment, overrides)
     check(experiment)
     return experiment, path.resolve().parent
+
+
+FILE_KEYS = {"surface.mesh": ("surface", "mesh"), "signal.image": ("signal", "image")}
+"""Settings that name a file, as ``(section, field)``."""
+
+
+def _take_paths_from_the_current_folder(experiment: Experiment, overrides: list[str]) -> None:
+    """A relative file path given with ``--set`` names a file of the current folder where one
+    is there (made absolute); otherwise it is looked up beside the config as in a file."""
+    for item in overrides:
+        key, _, text = item.partition("=")
+        if key.strip() not in FILE_KEYS:
+            continue
+        section, field_name = FILE_KEYS[key.strip()]
+        value = getattr(getattr(experiment, section), field_name)
+        if value is None or Path(value).expanduser().is_absolute():
+            continue
+        here = Path.cwd() / Path(value).expanduser()
+        if here.is_file():
+            setattr(getattr(experiment, section), field_name, str(here.resolve()))
 
 
 def to_dict(experiment: Experiment) -> dict[str, Any]:
