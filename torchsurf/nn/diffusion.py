@@ -174,11 +174,13 @@ class LearnedDiffusion(nn.Module):
         area = surface.spacing**2
         largest = self.largest_time()
         times = self.time
-        if self.learn_time and not torch.compiler.is_compiling():
+        bound = None if largest is None else largest * area
+        if torch.compiler.is_compiling():  # traced whole: no host reads, no handler
+            return heat_semigroup(u, operator, times.to(u.dtype) * area, bound)
+        if self.learn_time:
             check_times(times)
         try:
-            return heat_semigroup(u, operator, times.to(u.dtype) * area,
-                                  None if largest is None else largest * area)
+            return heat_semigroup(u, operator, times.to(u.dtype) * area, bound)
         except TooManyApplications as error:
             raise ValueError(
                 f"time: {error.time / area:g} h^2 needs {error.applications} applications of the "
