@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import igl
 import numpy as np
+import trimesh
 
 from ._checks import check_choice
 from ._stack import caller_stacklevel
@@ -179,7 +180,7 @@ def _wound_against_neighbours(faces: np.ndarray, vertex_count: int) -> int:
     undirected = _edge_keys(np.minimum(starts, ends), np.maximum(starts, ends), vertex_count)
     _, first, counts = np.unique(undirected, return_inverse=True, return_counts=True)
     pair = counts[first] == 2
-    directed, shared = np.unique(_edge_keys(starts, ends, vertex_count)[pair], return_counts=True)
+    _, shared = np.unique(_edge_keys(starts, ends, vertex_count)[pair], return_counts=True)
     return int((shared == 2).sum())
 
 
@@ -191,8 +192,6 @@ def consistently_wound(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     clashes = _wound_against_neighbours(faces, len(vertices))
     if not clashes:
         return faces
-    import trimesh
-
     mesh = trimesh.Trimesh(vertices, faces.copy(), process=False)
     trimesh.repair.fix_winding(mesh)
     warnings.warn(

@@ -803,8 +803,10 @@ def _read_by(stencil: CubicStencil | BrickCubicStencil, like: Tensor) -> Tensor:
         return read.view(like.shape)
     height, width = like.shape[-2:]
     read = torch.zeros(len(stencil.parts), like[0].numel(), dtype=torch.bool, device=like.device)
-    for b, (_, corners, _) in enumerate(stencil.parts):
-        read[b, _dense_tap_indices(corners, height, width)(slice(None)).flatten()] = True
+    for b, (targets, corners, _) in enumerate(stencil.parts):
+        taps = _dense_tap_indices(corners, height, width)
+        for start in range(0, len(targets), STENCIL_CHUNK):
+            read[b, taps(slice(start, start + STENCIL_CHUNK)).flatten()] = True
     return read.view(len(stencil.parts), *like.shape[1:])
 
 
