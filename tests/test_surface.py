@@ -715,6 +715,31 @@ def test_a_phi_that_flattens_at_s_is_warned_about():
             assert "sdf.redistance" in flat[0]
 
 
+def test_a_phi_that_flattens_away_from_s_is_warned_about():
+    """``tanh(d / eps)`` with ``eps`` below a cell or two is a distance at S and nearly
+    constant a cell beyond: heat on a sphere was 2e-2 (eps 0.05) and 0.25 (eps 0.02) off at
+    33^3, against 1e-3 on the distance, without a word. Gentler phi with the same zero set,
+    scaled or not, are not warned about."""
+    grid = Grid.cube(33, 1.4)
+    points = grid.points(dtype=torch.float64)
+    d = sdf.sphere(grid, 0.9, center=(0.03, -0.02, 0.01), dtype=torch.float64)
+    r = (points - torch.tensor([0.03, -0.02, 0.01], dtype=torch.float64)).norm(dim=-1)
+    cases = {"tanh(d / 0.02)": (torch.tanh(d / 0.02), True),
+             "tanh(d / 0.05)": (torch.tanh(d / 0.05), True),
+             "d": (d, False), "1e6 d": (1e6 * d, False),
+             "r^2 - R^2": ((r**2 - 0.81)[None, None], False),
+             "d exp(3x)": (d * torch.exp(3 * points[..., 0]), False),
+             "d^3": (d**3, False)}  # flat at S, a warning of its own
+    for name, (phi, warned) in cases.items():
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            ImplicitSurface(phi, grid)
+        flat = [str(w.message) for w in caught if "flattens away from S" in str(w.message)]
+        assert bool(flat) == warned, (name, flat)
+        if warned:
+            assert "sdf.redistance" in flat[0] and caught[0].filename == __file__
+
+
 @pytest.mark.parametrize(("margin", "warned"), [(1.0, True), (1.5, True), (3.0, False)])
 def test_a_surface_that_turns_back_near_the_faces_is_warned_about(margin, warned):
     """The stencils see no flux through the box's faces: a unit sphere a cell from them got a
