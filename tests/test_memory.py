@@ -88,3 +88,10 @@ def test_from_mesh_on_a_3000_cubed_grid_is_refused_at_once():
     with pytest.raises(MemoryError, match="sampling a function"):
         ts.sdf.sphere(grid)
     assert time.perf_counter() - start < 5.0
+
+
+def test_a_device_torch_cannot_read_is_named():
+    """``device="gpu"`` raised torch's own RuntimeError from inside the memory check."""
+    grid = ts.Grid.cube(9, 1.0)
+    with pytest.raises(ValueError, match="device must name a torch device.*'gpu'"):
+        ts.sdf.sphere(grid, 0.5, device="gpu")

@@ -27,12 +27,22 @@ STENCIL_TAPS = 64
 """Source nodes per node of the flows' tricubic closest-point stencil (4^3)."""
 
 
+def as_device(device: torch.device | str | int) -> torch.device:
+    """``torch.device(device)``; raises ``ValueError`` naming ``device`` where torch cannot
+    read it (``"gpu"``)."""
+    try:
+        return torch.device(device)
+    except (RuntimeError, TypeError) as error:
+        raise ValueError(f"device must name a torch device ('cpu', 'cuda', 'cuda:0', ...), got "
+                         f"{device!r}") from error
+
+
 def available_bytes(device: torch.device | str | None = None) -> int | None:
     """Memory that ``device`` can still allocate, in bytes, or ``None`` when unknown.
 
     CPU on Linux: ``MemAvailable`` of ``/proc/meminfo``. Anything else: ``None`` (no check).
     """
-    if device is not None and torch.device(device).type != "cpu":
+    if device is not None and as_device(device).type != "cpu":
         return None
     try:
         with open("/proc/meminfo", encoding="ascii") as meminfo:

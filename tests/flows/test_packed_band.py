@@ -255,3 +255,20 @@ def test_the_volume_path_when_the_matrices_would_not_fit(monkeypatch):
         assert (operator.packed() is None) == (node_bytes == 2**60)
         results.append(heat_semigroup(u, operator, times))
     torch.testing.assert_close(results[0], results[1], rtol=1e-10, atol=1e-10)
+
+
+def test_more_float32_columns_than_the_kernel_takes_go_through_it_in_groups(monkeypatch):
+    """The limited re-extension's C kernel takes 16 float32 columns: a batch of 17 fell back to
+    gathering 64 values a row and column (0.1 s -> 1.2 s at 48^3 and 460 MB above the field).
+    Groups of columns now go through the kernel, and the fallback without it gathers in
+    chunks: both equal the entries run apart."""
+    grid = ts.Grid.cube(24, bound=1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, 1.0), grid)
+    u0 = torch.rand(17, 1, *grid.shape, generator=torch.Generator().manual_seed(0))
+    flow = ts.HeatFlow(time=20 * grid.spacing**2)
+    apart = torch.cat([flow(u0[:16], surface), flow(u0[16:], surface)])
+    torch.testing.assert_close(flow(u0, surface), apart, rtol=0, atol=1e-6)
+    monkeypatch.setattr(_packed_band, "GATHER_ROWS", 100)
+    monkeypatch.setattr(_packed_band._native_gather, "limited", lambda *args, **kwargs: None)
+    torch.testing.assert_close(flow(u0, ts.ImplicitSurface(surface.phi, grid)), apart,
+                               rtol=0, atol=1e-5)

@@ -68,7 +68,7 @@ class HeatFlow(Flow):
     65^3, 97^3, 129^3, sampled at 2000 points on S; docs/benchmarks.md).
 
     The default integrator is Runge–Kutta–Chebyshev (:class:`Flow`), with stages from a
-    Gershgorin bound ``rho`` of the operator assembled on the band (close to ``12 / h^2`` on a
+    Gershgorin bound ``rho`` of the operator assembled on the band (close to ``10 / h^2`` on a
     distance function, ``dt <= h^2 / 6``). On a 3-cell band (``phi`` not a distance,
     ``from_mesh``'s band, bricks), whose ring its stages refresh, its steps last at most
     ``12 / rho``, the period at which Euler and Heun re-extend the band: the band's data drift

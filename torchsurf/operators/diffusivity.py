@@ -15,17 +15,29 @@ Diffusivity = Callable[[Tensor, "float | Tensor"], Tensor]
 
 
 def total_variation(magnitude: Tensor, contrast: float | Tensor) -> Tensor:
-    """``g(s) = 1 / s``: total-variation flow (the paper's eq. 10); ``contrast`` is unused."""
+    """``g(s) = 1 / s``: total-variation flow (the paper's eq. 10); ``contrast`` is unused.
+
+    ``magnitude``: ``|grad_S u| = s``, any shape (``(B, 1 or C, D, H, W)`` from the operators),
+    data units per world length; ``contrast`` ``K``: the same units, a float or a tensor that
+    broadcasts against it. Returns ``g`` elementwise, ``magnitude``'s shape."""
     return 1.0 / magnitude
 
 
 def perona_malik(magnitude: Tensor, contrast: float | Tensor) -> Tensor:
-    """``g(s) = 1 / (1 + (s / K)^2)``: Perona–Malik, stops diffusion across edges ``s >> K``."""
+    """``g(s) = 1 / (1 + (s / K)^2)``: Perona–Malik, stops diffusion across edges ``s >> K``.
+
+    ``magnitude``: ``|grad_S u| = s``, any shape (``(B, 1 or C, D, H, W)`` from the operators),
+    data units per world length; ``contrast`` ``K``: the same units, a float or a tensor that
+    broadcasts against it. Returns ``g`` elementwise, ``magnitude``'s shape."""
     return 1.0 / (1.0 + (magnitude / contrast) ** 2)
 
 
 def charbonnier(magnitude: Tensor, contrast: float | Tensor) -> Tensor:
-    """``g(s) = 1 / sqrt(1 + (s / K)^2)``: Charbonnier, convex, TV-like for ``s >> K``."""
+    """``g(s) = 1 / sqrt(1 + (s / K)^2)``: Charbonnier, convex, TV-like for ``s >> K``.
+
+    ``magnitude``: ``|grad_S u| = s``, any shape (``(B, 1 or C, D, H, W)`` from the operators),
+    data units per world length; ``contrast`` ``K``: the same units, a float or a tensor that
+    broadcasts against it. Returns ``g`` elementwise, ``magnitude``'s shape."""
     return torch.rsqrt(1.0 + (magnitude / contrast) ** 2)
 
 

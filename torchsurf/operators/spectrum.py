@@ -168,7 +168,7 @@ def laplace_beltrami_bound(
     """Gershgorin bound of ``Lap_S`` (:func:`laplace_beltrami`) restricted to the band.
 
     Computed once per surface, scheme and width, and kept on the surface. On a
-    distance function it is close to ``12 / h^2``; where ``|grad phi|`` departs from 1 the
+    distance function it is close to ``10 / h^2``; where ``|grad phi|`` departs from 1 the
     floored weight of :class:`ImplicitSurface` keeps it within a small factor of that.
 
     Args:
