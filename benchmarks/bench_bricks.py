@@ -493,7 +493,7 @@ def markdown(args, bandwidth: float, scaled: dict | None, ratioed: dict | None,
             f"| build (`bricks.from_mesh`) | {s['build_s']:.1f} s |",
             f"| bricks / stored voxels / band voxels | {s['bricks']:,} / {s['stored'] / 1e6:.2f} M"
             f" / {s['band'] / 1e6:.2f} M ({100 * s['band'] / s['dense']:.2f}% of the "
-            f"{s['dense'] / 1e6:.0f} M-voxel box) |",
+            f"{s['dense'] / 1e6:.3g} M-voxel box) |",
             f"| peak memory after the build | {s['built_gb']:.2f} GB |",
             f"| one Laplace–Beltrami application, compiled | {s['lb_ms']:.1f} ms (first call "
             f"{s['first_s']:.1f} s) |",

@@ -116,6 +116,7 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     backend.COMPILE = "auto"
+    args.output.parent.mkdir(parents=True, exist_ok=True)  # before the first minute of work
     for item in args.operators:
         row = measure(item, args.size, args.batch, args.repeats, args.payback, args.budget)
         print(json.dumps(row), flush=True)

@@ -58,8 +58,11 @@ def main() -> None:
     parser.add_argument("--resolution", type=int, default=128)
     parser.add_argument("--large", type=int, default=256)
     parser.add_argument("--skip-full-grid", action="store_true")
+    parser.add_argument("--threads", type=int, default=None,
+                        help="torch threads (default: torch's, which follows OMP_NUM_THREADS)")
     args = parser.parse_args()
-    torch.set_num_threads(os.cpu_count() or 1)
+    if args.threads is not None:
+        torch.set_num_threads(args.threads)
     print(f"machine: {cpu_model()}, {os.cpu_count()} CPUs, {torch.get_num_threads()} torch "
           f"threads, allocator: {os.environ.get('GLIBC_TUNABLES', 'glibc default')}, "
           f"load average {os.getloadavg()[0]:.1f} at start")

@@ -28,6 +28,7 @@ import csv
 import io
 import math
 import os
+import signal
 import tempfile
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -530,5 +531,12 @@ def run(args: argparse.Namespace) -> dict[tuple[str, str, str], float]:
     return scores
 
 
+def _exit_on_terminate(signum: int, frame: object) -> None:
+    raise SystemExit(128 + signum)
+
+
 if __name__ == "__main__":
+    # SIGTERM (kill, a job scheduler) ends the run through staged_outputs' cleanup, as Ctrl-C
+    # does: by default it left the hidden staging folder behind
+    signal.signal(signal.SIGTERM, _exit_on_terminate)
     main()
