@@ -71,6 +71,23 @@ def test_flows_refuse_before_any_work(monkeypatch):
         flow(u0, surface)
 
 
+def test_the_results_of_requested_times_are_counted(monkeypatch):
+    """200 requested times return 200 results, stacked: they were not counted, and such a call
+    passed the check and died in the allocator after the whole flow (an audit, 48^3)."""
+    grid = ts.Grid.cube(17, 1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid), grid)
+    u0 = torch.zeros(4, 1, *grid.shape)
+    flow = HeatFlow(0.01)
+    band = int(surface.band_mask().sum())
+    alone = _memory.flow_bytes(tuple(u0.shape), 1, u0.dtype, False, band)
+    expected = _memory.flow_bytes(tuple(u0.shape), 1, u0.dtype, False, band, snapshots=200)
+    assert expected == alone + 2 * 200 * u0.numel() * 4
+    monkeypatch.setattr(_memory, "available_bytes", lambda device=None: expected - 1)
+    monkeypatch.setattr(flow, "system", _no_work)
+    with pytest.raises(MemoryError, match=rf"needs at least {expected} bytes"):
+        flow(u0, surface, times=torch.linspace(0, 0.01, 201)[1:].tolist())
+
+
 def test_a_run_that_fits_is_not_refused():
     grid = ts.Grid.cube(17, 1.5)
     surface = ts.ImplicitSurface(ts.sdf.sphere(grid), grid)

@@ -670,9 +670,11 @@ class Flow(nn.Module):
 
         return after_step, output
 
-    def _check_memory(self, u0: Tensor, surface: ImplicitSurface, band: Tensor) -> None:
-        """Raise ``MemoryError`` before any work if the call cannot fit (:mod:`torchsurf._memory`);
-        not while ``torch.compile`` traces (the band's size and the memory are host reads)."""
+    def _check_memory(self, u0: Tensor, surface: ImplicitSurface, band: Tensor,
+                      snapshots: int = 0) -> None:
+        """Raise ``MemoryError`` before any work if the call cannot fit (:mod:`torchsurf._memory`;
+        ``snapshots``: the requested times, whose results are all returned); not while
+        ``torch.compile`` traces (the band's size and the memory are host reads)."""
         if torch.compiler.is_compiling():
             return
         cached = (not surface.phi.requires_grad
@@ -680,7 +682,7 @@ class Flow(nn.Module):
         band_nodes = None if cached else int(band.sum())
         _memory.check_fits(
             _memory.flow_bytes(tuple(u0.shape), surface.batch_size, u0.dtype,
-                               self.method in IMPLICIT, band_nodes),
+                               self.method in IMPLICIT, band_nodes, snapshots),
             f"{type(self).__name__} on u0 of shape {tuple(u0.shape)}", u0.device,
         )
 
@@ -741,7 +743,7 @@ class Flow(nn.Module):
         band = self.band_mask(surface)
         if not torch.compiler.is_compiling():
             check_band_holds_nodes(band, width, surface.spacing, surface.layout)
-        self._check_memory(u0, surface, band)
+        self._check_memory(u0, surface, band, 0 if wanted is None else len(wanted))
         # before the flow's system, whose bounds read u0 (reaction-diffusion's)
         region = self.region_mask(surface)
         check_finite(torch.where(region, u0, 0.0), "u0 (in the band and its ring)")
