@@ -338,6 +338,29 @@ def test_one_compiled_variant_serves_every_batch_size_of_two_or_more(monkeypatch
         assert backend.resolve("auto", x, kernel, args=(x, weight)) == expected
 
 
+def test_numbers_compile_no_graph_of_their_own():
+    """A grid's spacing and a contrast reached the compiled kernels as floats, on whose values
+    dynamo guards: each mesh of its own spacing, each contrast, compiled its own graph (about
+    10 s each), and past 64 the kernels silently ran eager. They now share one; the results
+    equal the eager path's."""
+    counters = torch._dynamo.utils.counters["stats"]
+    u = torch.rand(1, 1, 12, 12, 12, generator=torch.Generator().manual_seed(0))
+    for first, *others in ([1.5, 1.6, 1.7], [0.5, 0.6]):
+        for value in (first, *others):
+            if value == others[0]:
+                before = counters["unique_graphs"]
+            if first == 1.5:
+                grid = ts.Grid.cube(12, bound=value)
+                surface = ts.ImplicitSurface(ts.sdf.sphere(grid, 0.7), grid)
+                results = [ts.laplace_beltrami(u, surface, path=path)
+                           for path in ("compiled", "slicing")]
+            else:
+                results = [ts.anisotropic_diffusion(u, surface, "perona_malik", contrast=value,
+                                                    path=path) for path in ("compiled", "slicing")]
+            torch.testing.assert_close(*results)
+        assert counters["unique_graphs"] == before, (first, others)
+
+
 def test_only_kernels_that_build_their_indices_skip_inductors_bounds_checks(monkeypatch):
     from torchsurf.flows import extension
     from torchsurf.operators import functional

@@ -331,6 +331,10 @@ def _run_compiled(kernel: Kernel, volume: Tensor, args: tuple, recording: bool) 
     """
     if not recording:  # before marking: a detached tensor is a new object, unmarked
         args = tuple(arg.detach() if isinstance(arg, Tensor) else arg for arg in args)
+    # numbers (a grid's spacing, a contrast) as 0-d tensors: dynamo guards on a float's value,
+    # and every mesh of its own spacing, every contrast, had compiled a graph of its own
+    args = tuple(torch.tensor(arg, dtype=torch.float64) if type(arg) is float else arg
+                 for arg in args)
     batch = volume.shape[0]
     if batch > 1:
         for arg in args:
