@@ -105,3 +105,19 @@ def cpu_model() -> str:
     except OSError:
         pass
     return platform.processor() or platform.machine()
+
+
+def run_context() -> str:
+    """One line that says where and how a figure was measured: the CPU, its count, torch's
+    threads and version, the allocator setting (``GLIBC_TUNABLES``), the load average and the
+    time (UTC)."""
+    import datetime
+    import os
+
+    import torch
+
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    when = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    return (f"{cpu_model()}, {os.cpu_count()} CPUs, {torch.get_num_threads()} torch thread(s), "
+            f"torch {torch.__version__}, allocator: "
+            f"{os.environ.get('GLIBC_TUNABLES', 'glibc default')}, load average {load:.1f}, {when}")

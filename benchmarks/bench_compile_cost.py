@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import subprocess
 import sys
 import tempfile
@@ -81,9 +80,8 @@ def main() -> None:
     if args.child:
         print(json.dumps(measure(args.child, args.size)))
         return
-    print(f"{platform.processor() or platform.machine()}, torch {torch.__version__}, "
-          f"{torch.get_num_threads()} thread(s), {args.size}^3, batch 1, float32, load average "
-          f"{os.getloadavg()[0]:.1f}")
+    from _report import run_context  # benchmarks/_report.py, beside this script
+    print(f"{run_context()}; {args.size}^3, batch 1, float32")
     print("| operator | eager ms | compiled ms | compile s (empty cache) | weight | start-up s |")
     print("|---|---:|---:|---:|---:|---:|")
     reference = None

@@ -31,6 +31,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_compile  # noqa: E402
+from _report import run_context  # noqa: E402
 
 from torchsurf import backend  # noqa: E402
 
@@ -119,6 +120,7 @@ def main(argv: list[str] | None = None) -> None:
     args.output.parent.mkdir(parents=True, exist_ok=True)  # before the first minute of work
     for item in args.operators:
         row = measure(item, args.size, args.batch, args.repeats, args.payback, args.budget)
+        row["context"] = run_context()
         print(json.dumps(row), flush=True)
         with args.output.open("a") as output:
             output.write(json.dumps(row) + "\n")

@@ -487,8 +487,9 @@ def main(argv: list[str] | None = None) -> None:
                                 method=args.paired_method)))
         return
     dtype = torch.float64 if args.float64 else torch.float32
-    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, {dtype}; "
-          f"mesh peer float64, scipy splu, {args.mesh_operators} operators")
+    from _report import run_context  # benchmarks/_report.py, beside this script
+    print(f"{run_context()}; {dtype}; mesh peer float64, scipy splu, {args.mesh_operators} "
+          "operators")
     print("| n | method | surface samples / vertices | wall time (s) | max relative error on S "
           "| read trilinearly | fastest torchsurf time ÷ mesh time |")
     print("|---|---|---:|---:|---:|---:|---:|")

@@ -195,9 +195,8 @@ def main() -> None:
             print("\n".join(rows), flush=True)
             lines += rows
     if args.output is not None:
-        from _report import cpu_model, write_section  # benchmarks/_report.py, beside this script
-        body = (f"{cpu_model()}, {torch.get_num_threads()} thread(s), torch "
-                f"{torch.__version__}.\n\n" + "\n".join(lines))
+        from _report import run_context, write_section  # benchmarks/_report.py, beside it
+        body = f"{run_context()}.\n\n" + "\n".join(lines)
         write_section(args.output, "narrow-band", "### Heat flow on a 3-cell band", body)
 
 
