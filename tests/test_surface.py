@@ -743,7 +743,8 @@ def test_a_phi_that_flattens_away_from_s_is_warned_about():
 @pytest.mark.parametrize(("margin", "warned"), [(1.0, True), (1.5, True), (3.0, False)])
 def test_a_surface_that_turns_back_near_the_faces_is_warned_about(margin, warned):
     """The stencils see no flux through the box's faces: a unit sphere a cell from them got a
-    Laplace–Beltrami 33% wrong at 49^3, more at finer grids (the margin in cells)."""
+    Laplace–Beltrami 94% wrong over the band at 49^3, more at finer grids (the margin in
+    cells)."""
     n = 33
     spacing = 2.0 / (n - 1 - 2 * margin)
     grid = Grid.cube(n, (n - 1) * spacing / 2)

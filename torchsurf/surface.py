@@ -243,7 +243,8 @@ def _warn_oblique_at_faces(crossing: Tensor, normal: Tensor) -> None:
     The stencils see no flux through the faces, which holds for level sets that meet them at
     right angles (a cylinder along an axis) and not for those of a surface that turns back near
     a face: the octant Laplace–Beltrami of a degree-2 harmonic on a unit sphere one cell from
-    the faces was 10%, 33% and 75% wrong at 25^3, 49^3 and 97^3 (0.2% at two cells). Read from
+    the faces was 44% and 94% wrong over the 3-cell band at 25^3 and 49^3 (21% and 48% at two
+    cells, 1.4% and 0.2% at three; remeasured 2026-12-06, relative max). Read from
     the zero set, not from ``|phi| / W``, which is no distance where ``phi`` is none."""
     hits = 0
     for axis in range(3):
