@@ -346,11 +346,13 @@ def tables(scores: dict[tuple[str, str, str], float],
         "| method | " + " | ".join(f"{s}, {k.replace('_', '-')}" for s, k in columns) + " |",
         "|---|" + "---|" * len(columns),
     ]
+    units = {"heat": " h^2", "total variation": " h"}  # the sweeps' units
     for method in METHODS:
         label = method
         if method in chosen:
-            label += " (" + ", ".join(f"{k.split('_')[0]} t = {chosen[method][k][0]:g}"
-                                      for k in KINDS) + ")"
+            label += " (" + ", ".join(
+                f"{k.split('_')[0]} t = {chosen[method][k][0]:g}{units.get(method, '')}"
+                for k in KINDS) + ")"
         lines.append(f"| {label} | " + " | ".join(f"{scores[method, s, k]:.2f}"
                                                  for s, k in columns) + " |")
     lines.append("| learned - heat | " + " | ".join(
