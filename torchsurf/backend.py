@@ -222,7 +222,8 @@ def _describe(value: object, batch: int, dynamic: bool, recording: bool) -> obje
     A tensor: its dtype, whether autograd records it (only while the call is recorded: other
     calls run the compiled kernel on detached inputs), and its shape, with the batch size
     ``batch`` of two or more generalised (one variant serves them all) and every size left out
-    for a ``dynamic`` kernel. Numbers are left out for a dynamic kernel (symbolic), other
+    for a ``dynamic`` kernel. Floats are left out (they reach the compiled kernel as 0-d
+    tensors, :func:`_run_compiled`), and integers for a dynamic kernel (symbolic); other
     values (flags, scheme names, functions) are kept as they are.
     """
     if isinstance(value, Tensor):
@@ -235,7 +236,8 @@ def _describe(value: object, batch: int, dynamic: bool, recording: bool) -> obje
         return ("tensor", shape, value.dtype, grad)
     if isinstance(value, (tuple, list)):
         return tuple(_describe(item, batch, dynamic, recording) for item in value)
-    if dynamic and isinstance(value, (int, float)) and not isinstance(value, bool):
+    if type(value) is float or (dynamic and isinstance(value, int)
+                                 and not isinstance(value, bool)):
         return type(value).__name__
     try:
         hash(value)
