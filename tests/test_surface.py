@@ -705,14 +705,7 @@ def test_a_phi_that_flattens_at_s_is_warned_about():
     d = sdf.sphere(grid, 0.9, dtype=torch.float64)
     cases = {"d^3": (d**3, True), "d|d|": (d * d.abs(), True), "1e-3 d": (1e-3 * d, False),
              "tanh(d / 0.05)": (torch.tanh(d / 0.05), False), "d + 4 d^3": (d + 4 * d**3, False)}
-    for name, (phi, warned) in cases.items():
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            ImplicitSurface(phi, grid)
-        flat = [str(w.message) for w in caught if "flattens at S" in str(w.message)]
-        assert bool(flat) == warned, (name, flat)
-        if warned:
-            assert "sdf.redistance" in flat[0]
+    _check_warned(cases, grid, "flattens at S")
 
 
 def test_a_phi_that_flattens_away_from_s_is_warned_about():
@@ -730,14 +723,20 @@ def test_a_phi_that_flattens_away_from_s_is_warned_about():
              "r^2 - R^2": ((r**2 - 0.81)[None, None], False),
              "d exp(3x)": (d * torch.exp(3 * points[..., 0]), False),
              "d^3": (d**3, False)}  # flat at S, a warning of its own
+    _check_warned(cases, grid, "flattens away from S")
+
+
+def _check_warned(cases: dict, grid: Grid, phrase: str) -> None:
+    """Each case ``{name: (phi, warned)}``: building its surface warns with ``phrase`` (naming
+    the remedy, at the caller's line) exactly where ``warned``."""
     for name, (phi, warned) in cases.items():
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             ImplicitSurface(phi, grid)
-        flat = [str(w.message) for w in caught if "flattens away from S" in str(w.message)]
-        assert bool(flat) == warned, (name, flat)
+        found = [w for w in caught if phrase in str(w.message)]
+        assert bool(found) == warned, (name, [str(w.message) for w in found])
         if warned:
-            assert "sdf.redistance" in flat[0] and caught[0].filename == __file__
+            assert "sdf.redistance" in str(found[0].message) and found[0].filename == __file__
 
 
 @pytest.mark.parametrize(("margin", "warned"), [(1.0, True), (1.5, True), (3.0, False)])
