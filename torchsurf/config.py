@@ -572,10 +572,10 @@ def _take_paths_from_the_current_folder(experiment: Experiment, overrides: list[
     """A relative file path given with ``--set`` names a file of the current folder where one
     is there (made absolute); otherwise it is looked up beside the config as in a file."""
     for item in overrides:
-        key, _, text = item.partition("=")
-        if key.strip() not in FILE_KEYS:
+        key = item.partition("=")[0].strip()
+        if key not in FILE_KEYS:
             continue
-        section, field_name = FILE_KEYS[key.strip()]
+        section, field_name = FILE_KEYS[key]
         value = getattr(getattr(experiment, section), field_name)
         if value is None or Path(value).expanduser().is_absolute():
             continue
