@@ -338,7 +338,7 @@ def time_unit(flow: FlowConfig) -> TimeUnit:
     return TimeUnit.turk if flow.kind is FlowKind.reaction_diffusion else TimeUnit.diagonal
 
 
-def _check_brick_margin(grid: GridConfig, where: str) -> None:
+def _check_margin(grid: GridConfig, where: str) -> None:
     """Refuse a margin of fewer than :data:`BRICK_MARGIN_CELLS` cells on ``grid`` when it takes
     the bricks layout, of fewer than :data:`DENSE_MARGIN_CELLS` on dense volumes; ``where``
     says which grid, in the message."""
@@ -637,7 +637,7 @@ def check(experiment: Experiment) -> None:
         raise ConfigError("grid.size", f"must be an integer >= 8, got {experiment.grid.size}")
     if not 0 <= experiment.grid.margin <= 1:
         raise ConfigError("grid.margin", f"must be in [0, 1], got {experiment.grid.margin}")
-    _check_brick_margin(experiment.grid, f"at grid.size={experiment.grid.size}")
+    _check_margin(experiment.grid, f"at grid.size={experiment.grid.size}")
     signal = experiment.signal
     size = experiment.grid.size
     _check_signal_settings(signal)
@@ -732,7 +732,7 @@ def check(experiment: Experiment) -> None:
                                                                       FieldKind.swirl):
         coarse = smoothing_size(experiment.grid.size, experiment.field)
         if coarse != experiment.grid.size:  # the field's smoothing builds the shape there too
-            _check_brick_margin(GridConfig(coarse, experiment.grid.margin,
+            _check_margin(GridConfig(coarse, experiment.grid.margin,
                                            experiment.grid.layout),
                                 f"on the {coarse}^3 grid the field's smoothing runs on "
                                 f"(field.smoothing_grid={experiment.field.smoothing_grid})")

@@ -7,6 +7,7 @@ import torch
 
 import torchsurf as ts
 from torchsurf.flows import Extension
+from torchsurf.flows._integrators import with_ring
 
 
 def case(n=33, dtype=torch.float64):
@@ -260,8 +261,7 @@ def test_non_finite_data_where_read_is_refused_and_beyond_it_left_alone(kind, st
     if kind == "cubic":
         read = band | ts.flows.extension._read_by(ts.flows.extension.cubic_stencil(surface, band), band)
     elif kind == "pde":
-        read = (surface.layout.dilate(band) if surface.layout is not None
-                else torch.nn.functional.max_pool3d(band.double(), 3, stride=1, padding=1) > 0)
+        read = with_ring(band, surface.layout)
     else:
         read = band
     assert bool((read & ~band).any()) == (kind != "linear")

@@ -32,7 +32,8 @@ class AnisotropicFlow(Flow):
     creases").
 
     Spectral bound: ``max g * rho``, ``rho`` the Gershgorin bound of the band's
-    Laplace–Beltrami operator (about ``12 / h^2``; docs/band.md): ``max g = 1`` for
+    Laplace–Beltrami operator (about ``10 / h^2`` on a distance, 14-15 on meshes' phi;
+    docs/band.md): ``max g = 1`` for
     Perona–Malik and Charbonnier, ``1 / eps`` for total variation (so TV's explicit steps scale
     with ``eps`` and its RKC stages with ``sqrt(1 / eps)``; choose ``eps`` at the scale of the
     smallest gradient worth keeping). For a callable ``g``, pass ``max_diffusivity``.

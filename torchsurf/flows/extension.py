@@ -30,6 +30,7 @@ from ..bricks.layout import BRICK, BrickLayout
 from ..sampling import cubic_lagrange_weights
 from ..surface import ImplicitSurface, check_data
 from . import _closest, _limiter, _native_gather
+from ._integrators import with_ring
 
 Limit = bool | Literal["eager"]
 """Where a tricubic kernel limits its values (:mod:`._limiter`): ``False`` nowhere, ``True``
@@ -963,10 +964,8 @@ class Extension(nn.Module):
         if self.method == "closest_point":
             check_finite(torch.where(band, u.detach(), 0.0), "u (in the band)")
             return closest_point_extension(u, surface, mask=band)
-        layout = surface.layout
-        read = (layout.dilate(band) if layout is not None
-                else F.max_pool3d(band.to(u.dtype), 3, stride=1, padding=1) > 0)
-        check_finite(torch.where(read, u.detach(), 0.0), "u (in the band and next to it)")
+        check_finite(torch.where(with_ring(band, surface.layout), u.detach(), 0.0),
+                     "u (in the band and next to it)")
         return pde_extension(u, surface, self.width, self.tolerance, self.max_steps)
 
     def extra_repr(self) -> str:

@@ -38,7 +38,8 @@ class HarmonicMapFlow(Flow):
     rate too, under torchdiffeq), for direction fields on S.
 
     Spectral bound: ``eps^(p-2) rho`` (``max g = eps^(p-2)``), ``rho`` the Gershgorin bound of
-    the band's Laplace–Beltrami operator (about ``12 / h^2``). Growth: the largest
+    the band's Laplace–Beltrami operator (about ``10 / h^2`` on a distance, 14-15 on meshes'
+    phi). Growth: the largest
     ``|P grad u0|^p`` in the band, the rate at which the energy term pushes ``u`` outwards
     before it is renormalised; RKC steps are kept short against it (a field with sign jumps,
     ``4 / h^2`` at p = 2, takes more steps).

@@ -33,7 +33,8 @@ class ReactionDiffusion(Flow):
     the start, between their pieces and at the output times).
 
     Spectral bound: ``max(D_a rho_a, D_b rho) + s (max a + max b + 1)``, the diffusion's
-    (``rho`` the Gershgorin bound of the band's Laplace–Beltrami operator, about ``12 / h^2``;
+    (``rho`` the Gershgorin bound of the band's Laplace–Beltrami operator, about ``10 / h^2``
+    on a distance, 14-15 on meshes' phi;
     ``rho_a`` that of the directional operator along ``direction`` if one is given, or ``rho``)
     and the reaction's (its Jacobian has entries ``s a``, ``s b``, ``s``); Euler steps ``1.8 /``
     that (0.9 of the stability limit).
