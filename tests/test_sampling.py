@@ -60,6 +60,24 @@ def test_gradient_with_respect_to_points_is_the_field_gradient() -> None:
     torch.testing.assert_close(points.grad, expected, atol=1e-10, rtol=0)
 
 
+@pytest.mark.parametrize("interpolation", ["linear", "cubic"])
+def test_points_on_the_faces_and_corners_keep_the_field_gradient(interpolation) -> None:
+    # a point on a face is in the cell inside it: moving it inward changes the value at the
+    # field's rate (linear reads through a clamping sampler had 0 across the face)
+    field = linear_field(GRID, (0.7, -1.3, 2.1, 0.4))
+    low = torch.tensor(GRID.origin, dtype=torch.float64)
+    high = low + torch.tensor(GRID.size, dtype=torch.float64)
+    inside = (low + high) / 2
+    points = torch.stack([low, high, torch.stack([low[0], inside[1], inside[2]]),
+                          torch.stack([inside[0], high[1], inside[2]]),
+                          torch.stack([inside[0], inside[1], low[2]])]).requires_grad_(True)
+    sample(field, points, GRID, interpolation).sum().backward()
+    expected = torch.tensor([0.7, -1.3, 2.1], dtype=torch.float64).expand(len(points), 3)
+    torch.testing.assert_close(points.grad, expected, atol=1e-10, rtol=0)
+    corner = high[None].clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda p: sample(field, p, GRID, interpolation), (corner,))
+
+
 def test_gradcheck() -> None:
     grid = ts.Grid(shape=(3, 4, 3), spacing=0.5)
     field = torch.randn(1, 2, *grid.shape, dtype=torch.float64, requires_grad=True)
@@ -196,7 +214,7 @@ def test_cubic_chunks_agree(monkeypatch) -> None:
     field = torch.randn(1, 1, *GRID.shape, dtype=torch.float64)
     points = random_points(GRID, 37)
     whole = sample(field, points, GRID, interpolation="cubic")
-    monkeypatch.setattr(ts.sampling, "CUBIC_CHUNK", 8)
+    monkeypatch.setattr(ts.sampling, "SAMPLE_CHUNK", 8)
     torch.testing.assert_close(sample(field, points, GRID, interpolation="cubic"), whole,
                                atol=0, rtol=0)
 

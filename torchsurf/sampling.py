@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from ._checks import MismatchError, check_batch, check_choice, check_finite, check_tensor, check_volume
@@ -12,12 +11,12 @@ from .grid import Grid
 INTERPOLATIONS = ("linear", "cubic")
 """Values of :func:`sample`'s ``interpolation``."""
 
-CUBIC_CHUNK = 2**15
+SAMPLE_CHUNK = 2**15
 """Points whose ``4^3`` taps are gathered at once by the tricubic sampler (about 1.5 kB of
 temporaries a point and channel)."""
 
-# Points this many cells outside the grid's box are still accepted (and read the border), so
-# that points on the boundary survive floating-point rounding.
+# Points this many cells outside the grid's box are still accepted (their boundary cell's
+# polynomial extended to them), so that points on the boundary survive floating-point rounding.
 _OUTSIDE_TOLERANCE = 1e-4
 
 
@@ -36,9 +35,8 @@ def cubic_lagrange_weights(t: Tensor) -> list[Tensor]:
 def sample(field: Tensor, points: Tensor, grid: Grid, interpolation: str = "linear") -> Tensor:
     """Trilinear (default) or tricubic interpolation of ``field`` at world ``points``.
 
-    ``"linear"``: exact for fields linear in ``(x, y, z)``, error ``O(h^2)``
-    (``torch.nn.functional.grid_sample`` with ``align_corners=True``, so the first and last
-    nodes sit exactly at the grid's box). ``"cubic"``: tensor-product Lagrange interpolation on
+    ``"linear"``: exact for fields linear in ``(x, y, z)``, error ``O(h^2)`` (the first and
+    last nodes sit exactly at the grid's box). ``"cubic"``: tensor-product Lagrange interpolation on
     the ``4^3`` nodes around each point (the stencil of the flows' closest-point
     re-extension), exact for polynomials of degree 3 in each coordinate, error ``O(h^4)``,
     up to the box's faces (in the first and last cell of an axis the four nodes are the
@@ -47,7 +45,8 @@ def sample(field: Tensor, points: Tensor, grid: Grid, interpolation: str = "line
     Reading a second-order solution trilinearly adds an ``O(h^2)`` error of the read-out's
     own, often larger than the solution's (heat flow on a sphere at 65^3: 1.2e-3 read
     trilinearly, 2.4e-4 tricubically; docs/benchmarks.md). Both are differentiable with
-    respect to ``field`` and ``points``.
+    respect to ``field`` and ``points``, also at points on the box's faces and corners (the
+    gradient of the cell inside).
 
     Args:
         field: ``(B, C, D, H, W)`` values at the nodes of ``grid``.
@@ -94,38 +93,35 @@ def sample(field: Tensor, points: Tensor, grid: Grid, interpolation: str = "line
         points = points[None]
     check_batch(points, "points", field.shape[0], "field")
     batch = max(field.shape[0], points.shape[0])
-    if interpolation == "cubic":
-        return _tricubic(field.expand(batch, -1, -1, -1, -1),
-                         grid.world_to_index(points).expand(batch, -1, -1))
-    normalized = grid.world_to_normalized(points).expand(batch, -1, -1)
-    values = F.grid_sample(
-        field.expand(batch, -1, -1, -1, -1),
-        normalized[:, :, None, None, :],
-        mode="bilinear",
-        padding_mode="border",
-        align_corners=True,
-    )
-    return values[:, :, :, 0, 0]
+    index = grid.world_to_index(points).expand(batch, -1, -1)
+    return _interpolate(field.expand(batch, -1, -1, -1, -1), index, cubic=interpolation == "cubic")
 
 
-def _tricubic(field: Tensor, index: Tensor) -> Tensor:
-    """Tricubic Lagrange values of ``field`` ``(B, C, D, H, W)`` at fractional node indices
-    ``index`` ``(B, V, 3)`` (``x, y, z``); ``(B, C, V)``."""
+def _interpolate(field: Tensor, index: Tensor, cubic: bool) -> Tensor:
+    """Trilinear or tricubic Lagrange values of ``field`` ``(B, C, D, H, W)`` at fractional
+    node indices ``index`` ``(B, V, 3)`` (``x, y, z``); ``(B, C, V)``.
+
+    A point's weights are polynomials in its offset from a base node that is fixed by the
+    point's cell alone (clamped into the box, never by the point's own clamping), so a point on
+    a face of the box has the gradient of the cell inside it, as any other point of that cell.
+    """
     sizes = field.shape[:1:-1]  # W, H, D: the sizes along x, y, z
-    # the second of the stencil's four nodes (base - 1 .. base + 2): the cell's first node,
-    # moved in beside the faces along an axis of four nodes or more so that all four lie in
-    # the box (one-sided there, still exact for cubics); a shorter axis keeps the cell (a
-    # point on the last face at t = 1) and interpolates linearly in it
+    # cubic: the second of the stencil's four nodes (base - 1 .. base + 2), the cell's first
+    # node moved in beside the faces along an axis of four nodes or more so that all four lie
+    # in the box (one-sided there, still exact for cubics); a shorter axis, and every axis of
+    # the linear read, keeps the cell (a point on the last face at t = 1) and is linear in it
     base = torch.stack([index[..., axis].detach().floor().clamp(
-        *((1, size - 3) if size >= 4 else (0, max(size - 2, 0))))
+        *((1, size - 3) if cubic and size >= 4 else (0, max(size - 2, 0))))
         for axis, size in enumerate(sizes)], dim=-1)
     fraction = index - base
-    offsets = torch.arange(-1, 3, device=field.device)
+    offsets = torch.arange(-1, 3, device=field.device) if cubic else torch.arange(0, 2, device=field.device)
     nodes, weights = [], []
     for axis, size in enumerate(sizes):
-        nodes.append((base[..., axis, None].long() + offsets).clamp(0, size - 1))  # (B, V, 4)
+        nodes.append((base[..., axis, None].long() + offsets).clamp(0, size - 1))  # (B, V, taps)
         t = fraction[..., axis]
-        if size >= 4:
+        if not cubic:
+            weights.append(torch.stack([1 - t, t], dim=-1))
+        elif size >= 4:
             weights.append(torch.stack(cubic_lagrange_weights(t), dim=-1))
         else:
             zero = torch.zeros_like(t)
@@ -134,10 +130,10 @@ def _tricubic(field: Tensor, index: Tensor) -> Tensor:
     height, width = field.shape[-2:]
     flat = field.flatten(2)
     results = []
-    for start in range(0, max(index.shape[1], 1), CUBIC_CHUNK):  # one (empty) chunk for no point
-        part = slice(start, start + CUBIC_CHUNK)
+    for start in range(0, max(index.shape[1], 1), SAMPLE_CHUNK):  # one (empty) chunk for no point
+        part = slice(start, start + SAMPLE_CHUNK)
         taps = ((z[:, part, :, None, None] * height + y[:, part, None, :, None]) * width
-                + x[:, part, None, None, :]).flatten(2)  # (B, v, 64)
+                + x[:, part, None, None, :]).flatten(2)  # (B, v, taps^3)
         tap_weights = (wz[:, part, :, None, None] * wy[:, part, None, :, None]
                        * wx[:, part, None, None, :]).flatten(2)
         gathered = flat.gather(2, taps.flatten(1)[:, None].expand(-1, flat.shape[1], -1))
