@@ -199,6 +199,51 @@ def test_a_copied_surface_is_usable_and_equal(copy_of):
         copied.hessian()
 
 
+@pytest.mark.parametrize("copy_of", ["deepcopy", "pickle"])
+@pytest.mark.parametrize("layout", ["dense", "bricks"])
+def test_a_copy_of_a_surface_whose_phi_requires_grad_keeps_phi_s_gradient(copy_of, layout):
+    """The copy's normals and weight must be in its own phi's graph: copied as they were, they
+    came back as leaves cut off from it (phi's gradient None, silently), or deepcopy refused
+    them (a tensor with a graph)."""
+    import copy
+    import pickle
+
+    from torchsurf import bricks
+
+    grid = Grid.cube(20, 2.0)
+    centre = torch.tensor([0.1, -0.05, 0.0], dtype=torch.float64)
+    phi = sdf.from_function(grid, lambda p: (p - centre).norm(dim=-1) - 0.8,
+                            dtype=torch.float64).requires_grad_(True)
+    surface = ImplicitSurface(phi, grid) if layout == "dense" else bricks.from_dense(phi, grid)
+    copied = (copy.deepcopy(surface) if copy_of == "deepcopy"
+              else pickle.loads(pickle.dumps(surface)))
+    u = torch.rand(1, 1, *grid.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    if layout == "bricks":
+        u = surface.layout.from_dense(u)
+
+    def phi_gradient(of: ImplicitSurface) -> torch.Tensor:
+        loss = laplace_beltrami(u, of).square().sum()
+        return torch.autograd.grad(loss, of.phi)[0]
+
+    assert copied.phi is not surface.phi and copied.phi.requires_grad
+    torch.testing.assert_close(phi_gradient(copied), phi_gradient(surface), rtol=1e-12, atol=1e-12)
+
+
+def test_a_phi_viewing_part_of_a_batch_being_filled_is_not_taken_for_changed():
+    """Writing the next entry of a preallocated batch bumps the version counter its views
+    share: the surface of the first entry must not refuse its (unchanged) phi."""
+    grid = Grid.cube(17, BOUND)
+    phis = torch.zeros(2, 1, *grid.shape)
+    phis[0:1] = sdf.sphere(grid, 1.0)
+    surface = ImplicitSurface(phis[0:1], grid)
+    phis[1:2] = sdf.sphere(grid, 0.8)
+    u = torch.rand(1, 1, *grid.shape, generator=torch.Generator().manual_seed(0))
+    expected = laplace_beltrami(u, ImplicitSurface(sdf.sphere(grid, 1.0), grid))
+    torch.testing.assert_close(laplace_beltrami(u, surface), expected)
+    phis[0:1] = sdf.sphere(grid, 0.9)  # the surface kept the values it was built from
+    torch.testing.assert_close(laplace_beltrami(u, surface), expected)
+
+
 def test_plane_exact_at_every_node():
     """An affine ``phi`` (a plane): ``phi`` is extrapolated linearly beyond the grid, so the
     normal is exact and the Hessian and curvatures vanish on every node, faces included."""

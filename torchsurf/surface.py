@@ -276,6 +276,15 @@ def _cells_to_crossing(phi: Tensor) -> Tensor:
     return torch.from_numpy(np.stack(cells)[:, None].astype(np.uint8)).to(phi.device)
 
 
+def _part_of_larger(phi: Tensor) -> bool:
+    """``phi`` does not require grad and is a view of a tensor holding more than it."""
+    return not phi.requires_grad and phi._base is not None and phi._base.numel() > phi.numel()
+
+
+_DERIVE_ON_LOAD = "_derive_geometry_on_load"
+"""Key of a copied surface's state whose geometry is derived again from its ``phi``."""
+
+
 class ImplicitSurface(nn.Module):
     """The zero level set of ``phi`` on ``grid``, with its normals, band and curvatures.
 
@@ -483,10 +492,26 @@ class ImplicitSurface(nn.Module):
         check_spatial_shape(self.phi, "the loaded phi", grid.shape, "its grid")
         self.grid = grid
 
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        if self.phi.requires_grad:
+            # the geometry is in phi's graph: a copy derives its own from the copied phi (a
+            # copied normal would be a leaf cut off from the copy's phi, and deepcopy refuses
+            # tensors with a graph); a phi computed from others (bricks.from_dense of a phi
+            # that requires grad) is copied as a leaf, as pickle copies it
+            phi = self.phi if self.phi.is_leaf else self.phi.detach().requires_grad_()
+            state["_buffers"] = {name: phi if name == "phi" else None for name in self._buffers}
+            state["_kept"] = {}
+            state[_DERIVE_ON_LOAD] = True
+        return state
+
     def __setstate__(self, state: dict) -> None:
         # a copy (copy.deepcopy, pickle) holds fresh tensors, copied with the geometry derived
         # from them: it starts a new record of in-place changes
+        derive = state.pop(_DERIVE_ON_LOAD, False)
         super().__setstate__(state)
+        if derive:
+            self._reassemble()
         self._phi_version = self.phi._version
         self._phi_required_grad = self.phi.requires_grad
         if self._mean_curvature is not None:
@@ -520,11 +545,13 @@ class ImplicitSurface(nn.Module):
     def _assemble_kept(self, phi: Tensor) -> None:
         """:meth:`_assemble`, outside ``torch.inference_mode`` (:func:`outside_inference`);
         a ``phi`` made under it is copied (an inference tensor has no version counter for
-        :meth:`_current_phi`). A ``phi`` that requires grad gets its geometry in its graph
+        :meth:`_current_phi`), and so is a ``phi`` that does not require grad and views part
+        of a larger tensor (writing the rest, e.g. the next entry of a batch being filled,
+        counts as a change of the view too). A ``phi`` that requires grad gets its geometry in its graph
         even under ``torch.no_grad`` or ``inference_mode``: a later training call's gradient
         to ``phi`` would otherwise miss the normals' and weight's part, silently."""
         with outside_inference(), torch.enable_grad() if phi.requires_grad else nullcontext():
-            if not torch.compiler.is_compiling() and phi.is_inference():
+            if not torch.compiler.is_compiling() and (phi.is_inference() or _part_of_larger(phi)):
                 phi = phi.clone()
             self._assemble(phi)
 
