@@ -51,6 +51,29 @@ def _sphere17() -> tuple[ts.Grid, ts.ImplicitSurface]:
     return grid, ts.ImplicitSurface(ts.sdf.sphere(grid), grid)
 
 
+def test_the_functional_layer_names_a_device_mismatch_and_no_channel():
+    """Its checks compared dtypes only: another device or C = 0 ended in raw torch errors."""
+    from torchsurf.operators import functional
+
+    grid, surface = _sphere17()
+    u = torch.rand(1, 2, *grid.shape)
+    normal, weight, h = surface.normal, surface.weight, grid.spacing
+    with pytest.raises(ts.MismatchError, match="normal is on meta but u is on cpu"):
+        functional.divergence_form(u, normal.to("meta"), weight, h)
+    with pytest.raises(ts.MismatchError, match="weight is on meta"):
+        functional.divergence_form(u, normal, weight.to("meta"), h)
+    with pytest.raises(ValueError, match="u must have at least one channel"):
+        functional.divergence_form(u[:, :0], normal, weight, h)
+    with pytest.raises(ValueError, match="u must have at least one channel"):
+        functional.tangential_gradient(u[:, :0], normal, h)
+
+
+def test_a_surface_called_like_a_layer_says_how_it_is_used():
+    grid, surface = _sphere17()
+    with pytest.raises(TypeError, match="is not called: pass it to an operator"):
+        surface(torch.zeros(1, 1, *grid.shape))
+
+
 def test_meta_tensors_are_refused_by_name_and_device():
     grid, surface = _sphere17()
     with pytest.raises(ValueError, match="phi is on the meta device"):

@@ -112,3 +112,24 @@ def test_a_device_torch_cannot_read_is_named():
     grid = ts.Grid.cube(9, 1.0)
     with pytest.raises(ValueError, match="device must name a torch device.*'gpu'"):
         ts.sdf.sphere(grid, 0.5, device="gpu")
+
+
+def test_every_entry_taking_a_device_names_one_torch_cannot_read():
+    """The entries that build tensors from meshes or grids raised torch's raw RuntimeError."""
+    import trimesh
+
+    from torchsurf import bricks
+
+    grid = ts.Grid.cube(12, 1.5)
+    mesh = trimesh.creation.icosphere(subdivisions=1)
+    entries = {
+        "Grid.points": lambda: grid.points(device="gpu"),
+        "sdf.from_mesh": lambda: ts.sdf.from_mesh(mesh, grid, device="gpu"),
+        "MeshAdapter": lambda: ts.MeshAdapter(mesh, resolution=12, device="gpu"),
+        "MeshBatchAdapter": lambda: ts.MeshBatchAdapter([mesh], resolution=12, device="gpu"),
+        "bricks.BrickMeshAdapter": lambda: bricks.BrickMeshAdapter(mesh, grid, device="gpu"),
+    }
+    for name, call in entries.items():
+        with pytest.raises(ValueError, match="device must name a torch device.*'gpu'"):
+            call()
+            pytest.fail(name)

@@ -63,6 +63,7 @@ def test_encode_decode_lists(batch: MeshBatchAdapter) -> None:
         assert float((out - value).abs().max()) < 0.01
     # each entry of the batch is that shape's own adapter
     torch.testing.assert_close(volume[1:2], batch.adapters[1].encode(values[1].T[None]))
+    assert torch.equal(batch(values), volume)  # called, it encodes, as MeshAdapter does
 
 
 def test_shape_time_converts_by_the_square_of_the_scale(batch: MeshBatchAdapter) -> None:

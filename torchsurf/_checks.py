@@ -43,6 +43,18 @@ def check_dtype(dtype: object, name: str = "dtype") -> torch.dtype:
     return dtype
 
 
+def check_device(device: object, name: str = "device") -> torch.device | None:
+    """``None``, or ``torch.device(device)``; raise ``ValueError`` naming ``name`` where torch
+    cannot read it (``"gpu"``)."""
+    if device is None:
+        return None
+    try:
+        return torch.device(device)
+    except (RuntimeError, TypeError) as error:
+        raise ValueError(f"{name} must name a torch device ('cpu', 'cuda', 'cuda:0', ...), got "
+                         f"{device!r}") from error
+
+
 def check_has_data(value: Tensor, name: str) -> Tensor:
     """Raise ``ValueError`` naming ``name`` if ``value`` lives on the meta device.
 
@@ -155,8 +167,8 @@ def check_batch(value: Tensor, name: str, batch: int, against: str) -> None:
 def check_alike(fields: Sequence[tuple[str, Tensor | None, int | None]]) -> None:
     """Raise naming the argument unless the tensors ``(name, tensor, channels)`` given (a
     ``None`` tensor is left out) are ``(B, channels, ...)`` (any channels for ``None``) on the
-    grid of the first, of its dtype, their batch sizes equal or 1 (they broadcast):
-    ``ValueError`` for a shape, :class:`MismatchError` for a dtype."""
+    grid of the first, of its dtype and device, their batch sizes equal or 1 (they broadcast):
+    ``ValueError`` for a shape, :class:`MismatchError` for a dtype or a device."""
     given = [(name, value, channels) for name, value, channels in fields if value is not None]
     first_name, first, _ = given[0]
     for name, value, channels in given:
@@ -168,6 +180,9 @@ def check_alike(fields: Sequence[tuple[str, Tensor | None, int | None]]) -> None
         if value.dtype != first.dtype:
             raise MismatchError(f"{name} is {value.dtype} but {first_name} is {first.dtype}: they "
                             "must match")
+        if value.device != first.device:
+            raise MismatchError(f"{name} is on {value.device} but {first_name} is on "
+                                f"{first.device}: they must be on one device")
     batches = {value.shape[0] for _, value, _ in given} - {1}
     if len(batches) > 1:
         names = ", ".join(name for name, _, _ in given)

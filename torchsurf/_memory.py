@@ -21,6 +21,8 @@ import os
 
 import torch
 
+from ._checks import check_device
+
 ENVIRONMENT_SWITCH = "TORCHSURF_MEMORY_CHECK"
 
 STENCIL_TAPS = 64
@@ -30,11 +32,7 @@ STENCIL_TAPS = 64
 def as_device(device: torch.device | str | int) -> torch.device:
     """``torch.device(device)``; raises ``ValueError`` naming ``device`` where torch cannot
     read it (``"gpu"``)."""
-    try:
-        return torch.device(device)
-    except (RuntimeError, TypeError) as error:
-        raise ValueError(f"device must name a torch device ('cpu', 'cuda', 'cuda:0', ...), got "
-                         f"{device!r}") from error
+    return check_device(device)
 
 
 def available_bytes(device: torch.device | str | None = None) -> int | None:

@@ -11,6 +11,7 @@ from torch import Tensor
 
 from ._checks import (
     check_count,
+    check_device,
     check_dtype,
     check_positive,
     check_real,
@@ -130,6 +131,7 @@ class Grid:
             ``(D, H, W, 3)`` tensor of ``(x, y, z)``.
         """
         dtype = check_dtype(dtype)
+        device = check_device(device)
         if relative_to is None:
             relative_to = (0.0, 0.0, 0.0)
         if len(relative_to) != 3:

@@ -19,6 +19,7 @@ from torch import Tensor, nn
 from . import _isosurface, _memory, _mesh_sdf, _vertex_decode, sdf
 from ._checks import (
     check_count,
+    check_device,
     check_dtype,
     check_module_dtype,
     check_nonnegative,
@@ -231,6 +232,7 @@ class MeshAdapter(nn.Module):
     ) -> None:
         super().__init__()
         dtype = check_dtype(dtype)
+        device = check_device(device)
         self.order = check_decode_order(order)
         mesh = as_trimesh(mesh, "mesh")
         grid = fit_grid(mesh, resolution) if grid is None else grid

@@ -18,6 +18,7 @@ from . import _isosurface, _memory, _mesh_sdf
 from ._checks import (
     check_choice,
     check_count,
+    check_device,
     check_dtype,
     check_finite,
     check_positive,
@@ -58,6 +59,7 @@ def _sampled(grid: Grid, function: Callable[[Tensor], Tensor], dtype: torch.dtyp
     if not isinstance(grid, Grid):
         raise TypeError(f"grid must be a torchsurf.Grid, got {type(grid).__name__}")
     dtype = check_dtype(dtype)
+    device = check_device(device)
     if center is not None:
         center = check_triple(center, "center", check_real)
     _memory.check_fits(_memory.sampled_bytes(grid.shape, dtype),
@@ -306,6 +308,7 @@ def from_mesh(
     width = _band(grid, band_width)
     check_choice(sign, "sign", _mesh_sdf.SIGN_METHODS)
     dtype = check_dtype(dtype)
+    device = check_device(device)
     mesh = as_trimesh(mesh, "mesh")
     _memory.check_fits(
         _memory.mesh_sdf_bytes(grid.shape, grid.spacing, width, float(mesh.area), dtype),

@@ -24,6 +24,7 @@ from torch import Tensor, nn
 from . import sdf
 from ._checks import (
     check_count,
+    check_device,
     check_dtype,
     check_like_first,
     check_module_dtype,
@@ -201,6 +202,7 @@ class MeshBatchAdapter(nn.Module):
         margin = (default_margin(resolution, 0.15) if margin is None
                   else check_nonnegative(margin, "margin"))
         dtype = check_dtype(dtype)
+        device = check_device(device)
         order = check_decode_order(order)
         self.grid = Grid.cube(resolution, bound=0.5 * size * (1.0 + 2.0 * margin))
         if band_width is not None:
@@ -302,6 +304,11 @@ class MeshBatchAdapter(nn.Module):
             )
         return [adapter.decode(volume[b:b + 1])[0].T
                 for b, adapter in enumerate(self.adapters)]
+
+    def forward(self, values: Sequence[Tensor]) -> Tensor:
+        """:meth:`encode`: ``B`` tensors ``(V_b, C)`` -> the batch volume ``(B, C, D, H, W)``,
+        as :class:`MeshAdapter` is called."""
+        return self.encode(values)
 
     def shape_time(self, time: float) -> Tensor:
         """A diffusion time on the common grid in every shape's own units, ``(B,)`` float64:

@@ -492,6 +492,12 @@ class ImplicitSurface(nn.Module):
         check_spatial_shape(self.phi, "the loaded phi", grid.shape, "its grid")
         self.grid = grid
 
+    def forward(self, *args: object, **kwargs: object) -> Tensor:
+        """Not called: a surface is the geometry operators, flows and layers are given
+        (``flow(u, surface)``); calling it raises ``TypeError``."""
+        raise TypeError(f"a {type(self).__name__} is not called: pass it to an operator, flow or "
+                        "layer, e.g. torchsurf.laplace_beltrami(u, surface) or flow(u, surface)")
+
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)
         if self.phi.requires_grad:

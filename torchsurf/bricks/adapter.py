@@ -10,6 +10,7 @@ from torch import Tensor, nn
 
 from .. import _mesh_sdf, _vertex_decode, sdf
 from .._checks import (
+    check_device,
     check_dtype,
     check_like_first,
     check_module_dtype,
@@ -93,6 +94,7 @@ class BrickMeshAdapter(nn.Module):
                  order: int = 2) -> None:
         super().__init__()
         dtype = check_dtype(dtype)
+        device = check_device(device)
         self.order = check_decode_order(order)
         meshes, grids = mesh_list(meshes, grids)
         spacing = grids[0].spacing

@@ -10,7 +10,7 @@ import torch
 from torch import Tensor
 
 from .. import _mesh_sdf
-from .._checks import MismatchError, check_choice, check_dtype, check_positive
+from .._checks import MismatchError, check_choice, check_device, check_dtype, check_positive
 from .._mesh_input import MeshLike, as_trimesh, triangle_arrays
 from ..grid import Grid
 from ..surface import ImplicitSurface
@@ -144,6 +144,7 @@ def signed_bricks(meshes: list[MeshLike], grids: list[Grid], band_width: float, 
     on ``device``, returning each mesh's arrays and signed band too (its nodes' closest points
     on the mesh)."""
     dtype = check_dtype(dtype)
+    device = check_device(device)
     numpy_dtype = torch.empty(0, dtype=dtype).numpy().dtype
     coords, batch, values, bands = [], [], [], []
     for b, (mesh, grid) in enumerate(zip(meshes, grids, strict=True)):

@@ -75,6 +75,8 @@ class DiffusionBlock(nn.Module):
         nn.init.zeros_(self.mlp[-1].bias)
 
     def forward(self, u: Tensor, surface: ImplicitSurface) -> Tensor:
+        """``u + MLP([d, features(d)])`` on the band, ``u`` beyond: ``(B, C, D, H, W)`` (or
+        packed ``(N, C, 8, 8, 8)``) -> the same shape (the class's docstring)."""
         check_surface(surface)
         check_data(u, "u", surface, channels=self.channels)
         weight = self.mlp[0].weight

@@ -71,6 +71,8 @@ def _check_inputs(u: Tensor, normal: Tensor, spacing: float, weight: Tensor | No
                             f"supports), got dtype {value.dtype}")
     if u.dim() != 5:
         raise ValueError(f"{data} must be a (B, C, D, H, W) tensor, got shape {tuple(u.shape)}")
+    if u.shape[1] == 0:
+        raise ValueError(f"{data} must have at least one channel, got shape {tuple(u.shape)}")
     if vector and u.shape[1] % 3:
         raise ValueError(f"v must hold 3 components a channel, (B, 3C, D, H, W), got "
                          f"{u.shape[1]} channels (shape {tuple(u.shape)})")
