@@ -447,6 +447,23 @@ def test_second_derivatives_are_refused_not_silently_wrong(make):
     assert torch.isfinite(first).all()
 
 
+@pytest.mark.parametrize("method", ["euler", "rkc"])
+def test_a_gradient_penalty_taken_to_the_parameters_is_refused_too(method):
+    """Unrolled without checkpoints on a fixed phi, the steps re-extend the packed band by C
+    kernels: a penalty's derivative to the learned time, taken by autograd.grad(loss, params),
+    left the penalty's part out (-0.077 for a central difference of -2.10) without a word."""
+    surface, u = _small_sphere(12)
+    u = u.double()
+    surface = surface.double()
+    flow = ts.HeatFlow(2 * surface.spacing**2, method=method, learn_time=True,
+                       checkpoint=False).double()
+    x = u.clone().requires_grad_(True)
+    fit = (flow(x, surface) * torch.rand_like(u)).sum()
+    with pytest.raises(RuntimeError, match="no second derivative"):
+        (gradient,) = torch.autograd.grad(fit, x, create_graph=True)
+        torch.autograd.grad(fit + gradient.square().sum(), list(flow.parameters()))
+
+
 def test_nan_beyond_the_band_and_ring_leaves_gradients_finite():
     """Those nodes are not read; a rate or feature computed on the whole volume and masked after
     still took their derivatives (0 * NaN): NaN parameter gradients with a finite loss."""

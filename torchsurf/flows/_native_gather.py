@@ -31,6 +31,7 @@ from torch import Tensor
 
 from .._inference import outside_inference
 from .._native import NativeLibrary, in_parts, in_threads
+from ._recompute import refuse_second_derivatives
 
 
 class RowMatrix(Protocol):
@@ -1026,8 +1027,11 @@ class _Limited(torch.autograd.Function):
         return out
 
     @staticmethod
-    @torch.autograd.function.once_differentiable
     def backward(ctx, g):  # noqa: ANN001, ANN205
+        # once_differentiable's refusal is not reached by autograd.grad(loss, parameters) after
+        # create_graph=True (its node hangs off a detached copy): the penalty's part would be
+        # left out silently
+        refuse_second_derivatives("the packed band's limited re-extension (its C kernels)")
         codes, extremes = ctx.saved_tensors
         matrix = ctx.matrix
         grad = _clamped_back(g, ctx.taps, ctx.corners, ctx.rows, codes, extremes,
