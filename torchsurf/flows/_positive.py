@@ -187,6 +187,16 @@ class Positive(nn.Module):
             )
         return largest
 
+    def share_of_bound(self) -> float:
+        """For a learnable value with ``bound``: its largest entry over the bound, in
+        ``(0, 1]``, read on the host (the steps are planned for the bound; what they span in
+        time is this share of it). 1 for other values, for a value that is not finite (other
+        checks name it), and while ``torch.compile`` traces (no host read)."""
+        if not self.learnable or self.bound is None or torch.compiler.is_compiling():
+            return 1.0
+        largest = float(self.value().detach().max())
+        return largest / self.bound if math.isfinite(largest) and largest > 0 else 1.0
+
     def volume(self, like: Tensor) -> float | Tensor:
         """The value shaped to broadcast over a volume ``(B, C, D, H, W)`` like ``like``."""
         value = self.value()

@@ -234,6 +234,11 @@ class HeatFlow(Flow):
                          params=tensors(d), linear_stage=fused)
         return packed, packing
 
+    def _share_of_planned_rate(self) -> float:
+        """:meth:`Flow._share_of_planned_rate`, times the share of ``max_diffusivity`` a
+        learned diffusivity takes (the steps are planned for the bound's ``rho``)."""
+        return super()._share_of_planned_rate() * self.diffusivity.share_of_bound()
+
     def forward(
         self, u0: Tensor, surface: ImplicitSurface,
         times: Sequence[float] | Tensor | np.ndarray | None = None, **inputs: Tensor,
@@ -269,7 +274,10 @@ class HeatFlow(Flow):
         largest = end * self.diffusivity.maximum()
         bound = float(operator.bound)
         check_before_equilibrium(largest, bound, _diagonal_cells(surface))
-        piece = CHEBYSHEV_PIECE * (width / surface.spacing) ** 2 / bound
+        # re-extended once a piece of the diffusion's own time, not of the bounds' (a learned
+        # time or diffusivity below its bound: :meth:`_share_of_planned_rate`)
+        piece = (CHEBYSHEV_PIECE * (width / surface.spacing) ** 2 / bound
+                 / self._share_of_planned_rate())
         outer = max(1, math.ceil(largest / piece * (1 - 1e-9)))
         inner = chebyshev.pieces_for(largest / outer, bound)
         terms = chebyshev.count_terms("exp", largest / outer / inner, bound, u0.dtype)
