@@ -762,8 +762,12 @@ def test_a_phi_that_flattens_away_from_s_is_warned_about():
     points = grid.points(dtype=torch.float64)
     d = sdf.sphere(grid, 0.9, center=(0.03, -0.02, 0.01), dtype=torch.float64)
     r = (points - torch.tensor([0.03, -0.02, 0.01], dtype=torch.float64)).norm(dim=-1)
+    h = grid.spacing
     cases = {"tanh(d / 0.02)": (torch.tanh(d / 0.02), True),
              "tanh(d / 0.05)": (torch.tanh(d / 0.05), True),
+             "tanh(d / 1.2 h)": (torch.tanh(d / (1.2 * h)), True),  # 13 times the error
+             "atan(d / h)": (torch.atan(d / h), True),
+             "a torus 1.5 cells thick": (sdf.torus(grid, 0.8, 1.5 * h, dtype=torch.float64), False),
              "d": (d, False), "1e6 d": (1e6 * d, False),
              "r^2 - R^2": ((r**2 - 0.81)[None, None], False),
              "d exp(3x)": (d * torch.exp(3 * points[..., 0]), False),
