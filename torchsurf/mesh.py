@@ -63,7 +63,9 @@ def fit_grid(mesh: MeshLike, resolution: int = 64, margin: float | None = None) 
         margin: free space on each side, as a fraction of the box's longest side; keep it
             larger than the band you will ask for. ``None``: 10%, and at least
             :data:`~torchsurf.grid.MIN_MARGIN_CELLS` cells (:func:`~torchsurf.grid.default_margin`;
-            wider than 10% below 37 nodes).
+            wider than 10% below 37 nodes). Bricks keep their band two nodes more off the
+            faces, which 10% leaves only from about 56 nodes: fit their grids with
+            :func:`torchsurf.bricks.fit_grids`.
 
     Returns:
         A grid centred on the box, spacing ``longest side * (1 + 2 margin) / (resolution - 1)``.
