@@ -239,6 +239,24 @@ def test_extension_arguments_are_checked_by_name():
     meta = torch.ones(1, 1, *grid.shape, dtype=torch.bool, device="meta")
     with pytest.raises(ValueError, match="mask is on meta but u is on cpu"):
         ts.flows.closest_point_extension(u, surface, mask=meta)
+    with pytest.raises(ValueError, match="limited=True clamps tricubic values"):
+        Extension(limited=True)
+    with pytest.raises(TypeError, match="limited"):
+        Extension(interpolation="cubic", limited="yes")
+
+
+def test_limited_cubic_extension_is_differentiable_in_data_and_phi():
+    grid = ts.Grid.cube(10, 1.5)
+    phi = ts.sdf.sphere(grid, 0.9, center=(0.05, -0.03, 0.02), dtype=torch.float64)
+    u = torch.rand(1, 1, *grid.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    extension = Extension(interpolation="cubic", limited=True)
+    surface = ts.ImplicitSurface(phi, grid)
+    assert torch.autograd.gradcheck(lambda x: extension(x, surface), (u.requires_grad_(),),
+                                    fast_mode=True)
+    phi = phi.requires_grad_()
+    assert torch.autograd.gradcheck(
+        lambda p: extension(u.detach(), ts.ImplicitSurface(p, grid)), (phi,), atol=1e-6,
+        fast_mode=True)
 
 
 @pytest.mark.parametrize("storage", ["dense", "bricks"])

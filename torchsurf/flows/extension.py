@@ -921,6 +921,13 @@ class Extension(nn.Module):
         max_steps: ``"pde"`` only: upper bound on the steps.
         interpolation: ``"closest_point"`` only: ``"linear"`` (default) or ``"cubic"`` (see
             :func:`closest_point_extension`).
+        limited: ``"cubic"`` only: clamp each value to the range of the cell its closest
+            point lies in (the flows' limiter, :mod:`torchsurf.flows._limiter`), so that an
+            extension repeated on its own result (a "step, then extend" loop of one's own) stays
+            within the data's range. Unlimited, cubic extension is exact for cubics but, where
+            the surface's sheets come within a few cells (a mesh's thin parts at a coarse grid),
+            repeating it can grow without bound: on a 40^3 bunny ``from_mesh``, 6.4 after 50
+            repetitions and 8e5 after 200 (data of range 2); limited, it stays in range.
 
     Shapes: ``(B, C, D, H, W) -> (B, C, D, H, W)``; on a
     :class:`~torchsurf.bricks.BrickSurface`, packed ``(N, C, 8, 8, 8) -> (N, C, 8, 8, 8)``.
@@ -933,10 +940,15 @@ class Extension(nn.Module):
         tolerance: float = 1e-6,
         max_steps: int | None = None,
         interpolation: str = "linear",
+        limited: bool = False,
     ) -> None:
         super().__init__()
         self.method = check_choice(method, "method", METHODS)
         self.interpolation = check_choice(interpolation, "interpolation", INTERPOLATIONS)
+        self.limited = check_flag(limited, "limited")
+        if self.limited and (method != "closest_point" or interpolation != "cubic"):
+            raise ValueError("limited=True clamps tricubic values: it needs method='closest_point' "
+                             f"and interpolation='cubic', got {method!r} and {interpolation!r}")
         self.width = None if width is None else check_positive(width, "width")
         self.tolerance = check_positive(tolerance, "tolerance")
         self.max_steps = None if max_steps is None else check_count(max_steps, "max_steps")
@@ -957,7 +969,7 @@ class Extension(nn.Module):
         check_data(u, "u", surface)
         band = _band_to_extend(surface, self.width)
         if self.method == "closest_point" and self.interpolation == "cubic":
-            stencil = cubic_stencil(surface, band)
+            stencil = cubic_stencil(surface, band, limited=self.limited)
             check_finite(torch.where(band | _read_by(stencil, band), u.detach(), 0.0),
                          "u (in the band and the nodes its cubic interpolation reads)")
             return stencil.apply(u)
@@ -969,4 +981,5 @@ class Extension(nn.Module):
         return pde_extension(u, surface, self.width, self.tolerance, self.max_steps)
 
     def extra_repr(self) -> str:
-        return f"method={self.method!r}, width={self.width}, interpolation={self.interpolation!r}"
+        return (f"method={self.method!r}, width={self.width}, interpolation={self.interpolation!r}"
+                + (", limited=True" if self.limited else ""))
