@@ -27,6 +27,21 @@ def test_colours_modes():
         render.colours(values, "hsv")
 
 
+def test_a_constant_with_rounding_is_one_colour_and_huge_values_do_not_overflow():
+    """The default limits stretched a constant's float32 rounding (6e-8 of 0.7) over the whole
+    map, while the exact constant took its bottom; +-1e308 overflowed the span to NaN, drawn
+    black, and collapsed every other value onto one colour."""
+    exact = np.full((50, 1), 0.7)
+    rounded = exact + np.random.default_rng(0).uniform(-6e-8, 6e-8, size=exact.shape)
+    middle = render.colours(np.array([[0.5]]), limits=(0.0, 1.0))
+    for values in (exact, rounded):
+        drawn = render.colours(values)
+        assert np.allclose(drawn, middle), np.unique(drawn.round(3), axis=0)
+    huge = render.colours(np.array([[1e308], [-1e308], [0.0], [np.nan]]))
+    assert np.isfinite(huge).all() and (huge[0] != huge[1]).any()
+    assert np.allclose(huge[3], 0.5) and not np.allclose(huge[:3], 0.0)
+
+
 def test_equalized_colours_use_the_whole_map():
     values = np.sort(np.random.default_rng(0).normal(size=1000))[:, None]
     middle = slice(250, 750)
@@ -198,3 +213,12 @@ def test_vertex_values_outside_the_box_are_named_in_world_coordinates():
     with pytest.raises(ValueError, match=r"1 of 3 vertices lie outside the grid's box "
                                          r"\(3.0, -2.0, 7.0\).*vertex 0 at \[10.0, 0.0, 0.0\]"):
         render.vertex_values(torch.zeros(1, 1, 10, 10, 10), mesh, grid)
+
+
+def test_vertex_values_name_the_volume_when_its_shape_is_wrong():
+    grid = ts.Grid.cube(12, bound=1.0)
+    mesh = trimesh.Trimesh([[0.1, 0.2, 0.3], [-0.5, 0.0, 0.0], [0.0, 0.5, 0.0]], [[0, 1, 2]])
+    with pytest.raises(ValueError, match=r"volume has spatial shape \(8, 8, 8\) but grid has"):
+        render.vertex_values(torch.zeros(1, 1, 8, 8, 8), mesh, grid)
+    with pytest.raises(ValueError, match="volume"):
+        render.vertex_values(torch.zeros(8, 8, 8), mesh, grid)

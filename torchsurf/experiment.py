@@ -427,6 +427,16 @@ def _rms(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.sqrt(np.mean((a - b) ** 2)))
 
 
+def _sign_free_rms(field: Tensor, clean: Tensor, near: Tensor) -> float:
+    """RMS over the nodes of ``near`` (``(B, 1, ...)`` bool) of ``min(|T - T0|, |T + T0|)``
+    per component, ``T`` ``field`` and ``T0`` ``clean`` ``(B, 3, ...)`` (line fields: ``T``
+    and ``-T`` are one direction)."""
+    apart = (field - clean).square().sum(dim=1, keepdim=True)
+    opposite = (field + clean).square().sum(dim=1, keepdim=True)
+    squared = torch.minimum(apart, opposite)[near.expand_as(apart)]
+    return float((squared.mean() / field.shape[1]).sqrt())
+
+
 def run(prepared: Prepared, out: str | os.PathLike, progress: bool = False,
         log: Callable[[str], None] = print, command: Sequence[str] | None = None) -> Result:
     """Run a prepared experiment and write its picture and record into ``out``; ``command``,
@@ -493,7 +503,8 @@ def run(prepared: Prepared, out: str | os.PathLike, progress: bool = False,
         ran = flow_as_run(experiment, module)
         stage("flow")
         volumes = {"clean": clean, "input": start, "output": output}
-        if experiment.signal.kind is SignalKind.field:
+        field_signal = experiment.signal.kind is SignalKind.field
+        if field_signal:
             # Shown sign-free, |T| per component at the nodes: sampling T itself would
             # average opposite signs of a line field to nothing.
             volumes = {name: volume.abs() for name, volume in volumes.items()}
@@ -502,9 +513,16 @@ def run(prepared: Prepared, out: str | os.PathLike, progress: bool = False,
         metrics: dict[str, float] = {}
         if experiment.signal.noise > 0 and kind not in (FlowKind.reaction_diffusion,
                                                         FlowKind.visualization):
-            metrics = {"rms_input": _rms(values["input"], values["clean"]),
-                       "rms_output": _rms(values["output"], values["clean"])}
-            log(f"RMS error against the clean signal at the vertices: input "
+            if field_signal:  # the directions themselves, not |T|'s components
+                near = surface.distance() <= spacing
+                metrics = {"rms_input": _sign_free_rms(start, clean, near),
+                           "rms_output": _sign_free_rms(output, clean, near)}
+                where = "at the nodes within a cell of S, sign-free"
+            else:
+                metrics = {"rms_input": _rms(values["input"], values["clean"]),
+                           "rms_output": _rms(values["output"], values["clean"])}
+                where = "at the vertices"
+            log(f"RMS error against the clean signal {where}: input "
                 f"{metrics['rms_input']:.4f}, output {metrics['rms_output']:.4f}")
         colours = _panel_colours(experiment, values)
         titles = {"clean": "clean", "input": "input" if experiment.signal.noise == 0 else "noisy",

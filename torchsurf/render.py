@@ -27,6 +27,7 @@ import torch
 import trimesh
 from torch import Tensor
 
+from ._checks import check_spatial_shape, check_volume
 from .grid import Grid
 from .sampling import sample
 from .surface import ImplicitSurface
@@ -68,6 +69,10 @@ def vertex_values(volume: Tensor, mesh: trimesh.Trimesh, grid: Grid | ImplicitSu
             shape ``entry``); ``None`` when there is only one.
     """
     packed = isinstance(grid, ImplicitSurface) and grid.layout is not None
+    if packed:
+        grid.check_field(volume, "volume")
+    else:
+        check_volume(volume, "volume")
     count = grid.batch_size if packed else volume.shape[0]
     if entry is None:
         if count != 1:
@@ -80,6 +85,8 @@ def vertex_values(volume: Tensor, mesh: trimesh.Trimesh, grid: Grid | ImplicitSu
         raise ValueError(f"entry must be an integer in [0, {count}), got {entry!r}")
     entry = int(entry)
     box = (grid.grids[entry] if packed else grid if isinstance(grid, Grid) else grid.grid)
+    if not packed:
+        check_spatial_shape(volume, "volume", box.shape, "grid")
     # world to node indices in float64, then the volume's dtype: a grid far from the origin
     # keeps the precision of its cells (1e5 away, float32 world points are off 0.06 cell)
     vertices = torch.as_tensor(np.asarray(mesh.vertices), dtype=torch.float64)
@@ -100,6 +107,11 @@ def vertex_values(volume: Tensor, mesh: trimesh.Trimesh, grid: Grid | ImplicitSu
     return values.T.to("cpu", torch.float64).numpy()
 
 
+FLAT_SPAN = 1e-6
+"""Default limits closer than this, relative to their magnitude, are taken for a constant
+(float32 rounding spreads a constant by about 1e-7 of it) and drawn in one colour."""
+
+
 def colours(values: np.ndarray, mode: str = "scalar", colormap: str = "viridis",
             limits: tuple[float, float] | None = None, equalize: bool = False) -> np.ndarray:
     """Per-vertex RGB ``(V, 3)`` in ``[0, 1]`` from values ``(V, C)``.
@@ -110,7 +122,9 @@ def colours(values: np.ndarray, mode: str = "scalar", colormap: str = "viridis",
     visualisation whose values cluster near their mean); ``"rgb"`` (C = 3): clipped to
     ``[0, 1]``; ``"field"`` (C = 3, unit vectors up to sign): ``|T_x|, |T_y|, |T_z|``. In the
     scalar modes, NaN or infinite values are grey and do not set the limits; equal values
-    share a colour. ``limits``: ``(low, high)``, finite, ``low < high``.
+    share a colour, and values whose default limits lie within :data:`FLAT_SPAN` of their
+    magnitude (a constant carrying rounding) all take the map's middle colour.
+    ``limits``: ``(low, high)``, finite, ``low < high``.
     """
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
@@ -147,7 +161,15 @@ def colours(values: np.ndarray, mode: str = "scalar", colormap: str = "viridis",
     else:
         low, high = (limits if limits is not None else
                      np.percentile(finite, [1.0, 99.0]) if len(finite) else (0.0, 1.0))
-        scaled = (values[:, 0] - low) / max(high - low, 1e-12)
+        # in units of the limits' magnitude, so that values near the float's range do not
+        # overflow the span
+        magnitude = max(abs(float(low)), abs(float(high)), np.finfo(np.float64).tiny)
+        span = high / magnitude - low / magnitude
+        with np.errstate(invalid="ignore", over="ignore"):
+            scaled = (values[:, 0] / magnitude - low / magnitude) / max(span, 1e-300)
+        if limits is None and span <= FLAT_SPAN:  # a constant, up to rounding
+            scaled = np.full(len(values), 0.5)
+        missing |= ~np.isfinite(scaled)
     rgb = colormaps[colormap](np.clip(np.where(missing, 0.0, scaled), 0.0, 1.0))[:, :3]
     rgb[missing] = 0.5
     return rgb
