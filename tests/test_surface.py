@@ -768,11 +768,17 @@ def test_a_phi_that_flattens_away_from_s_is_warned_about():
              "tanh(d / 1.2 h)": (torch.tanh(d / (1.2 * h)), True),  # 13 times the error
              "atan(d / h)": (torch.atan(d / h), True),
              "a torus 1.5 cells thick": (sdf.torus(grid, 0.8, 1.5 * h, dtype=torch.float64), False),
+             "a torus 1 cell thick": (sdf.torus(grid, 0.8, h, dtype=torch.float64), False),
+             # less growth on one side of S, more on the other: pooled, the median took one
+             "a plane's distance times exp(0.8 x)": (
+                 ((points[..., 0] - 0.1) * torch.exp(0.8 * points[..., 0]))[None, None], False),
              "d": (d, False), "1e6 d": (1e6 * d, False),
              "r^2 - R^2": ((r**2 - 0.81)[None, None], False),
              "d exp(3x)": (d * torch.exp(3 * points[..., 0]), False),
              "d^3": (d**3, False)}  # flat at S, a warning of its own
     _check_warned(cases, grid, "flattens away from S")
+    with pytest.warns(RuntimeWarning, match=r"phi \(batch entries \[1\]\): \|phi\| grows"):
+        ImplicitSurface(torch.cat([d, torch.tanh(d / (0.7 * h))]), grid)  # pooled, not warned
 
 
 def _check_warned(cases: dict, grid: Grid, phrase: str) -> None:

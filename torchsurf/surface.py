@@ -139,13 +139,15 @@ share of the nodes' spacing along the normal (1 for a distance; 1/3 for ``d^3``,
 
 SATURATION_RATIO = 0.9
 """``phi`` whose ``|phi|`` grows, over the cell beyond the nodes next to S, by less than this
-share of what a distance's would (``|grad phi| h |n_a|``) is warned about
-(:func:`_warn_flat_at_surface`). Measured medians: 1.00 for a distance (spheres and tori down to
-a radius of 1.5 cells, the shared meshes' ``sdf.from_mesh`` at 32^3-96^3), 0.99-1.02 for
-``d exp(3x)``, 1.02-1.08 for ``r^2 - R^2``; 0.91, 0.87, 0.80 and 0.57 for ``tanh(d / eps)`` with
-``eps`` 2, 1.5, 1.2 and 0.7 cells, 0.78 for ``atan(d / h)``. On a sphere at 33^3 the heat
-flow's error was 2e-2 and 0.25 for ``eps`` 0.6 and 0.2 cells, 1.3e-2 for 1.1 cells, and 7-16
-times the distance's at 2 cells, against 1e-3 on the distance."""
+share of what a distance's would (``|grad phi| h |n_a|``; :func:`_saturation_share`) is warned
+about, per batch entry (:func:`_warn_flat_at_surface`). Measured: 1.00 for a distance
+(spheres down to a radius of 1.5 cells, tori down to 1 cell thick: 0.95-1.00, the shared
+meshes' ``sdf.from_mesh`` at 32^3 and 64^3: 0.98-1.00), 1.00 for ``d exp(3x)`` on a sphere and
+0.93-1.00 for a plane's distance times ``exp(0.8 x)`` at 9^3-65^3, 0.97-1.00 for ``r^2 - R^2``;
+0.91-0.92, 0.86-0.87, 0.80-0.81 and 0.56-0.58 for ``tanh(d / eps)`` with ``eps`` 2, 1.5, 1.2
+and 0.7 cells, 0.78-0.79 for ``atan(d / h)``. On a sphere at 33^3 the heat flow's error was
+2e-2 and 0.25 for ``eps`` 0.6 and 0.2 cells, 1.3e-2 for 1.1 cells, and 7-16 times the
+distance's at 2 cells, against 1e-3 on the distance."""
 
 FLAT_SAMPLES = 4096
 """At most this many node pairs across S are read for :func:`_warn_flat_at_surface`."""
@@ -207,29 +209,59 @@ def _warn_flat_at_surface(phi: Tensor, crossing: Tensor, grad_norm: Tensor, floo
 
 def _warn_saturated(phi: Tensor, b: Tensor, nodes: Tensor, across: Tensor, along: Tensor,
                     grad_norm: Tensor, spacing: float) -> None:
-    """The second check of :func:`_warn_flat_at_surface`: ``nodes`` ``(M, 4)`` next to S,
-    ``across`` ``(M, 3)`` their neighbours towards S along the normal's axis (``along``, its
-    component there); their neighbours on the other side are read."""
-    outer = 2 * nodes[:, 1:] - across
+    """The second check of :func:`_warn_flat_at_surface`, per batch entry: ``nodes`` ``(M, 4)``
+    next to S, ``across`` ``(M, 3)`` their neighbours towards S along the normal's axis
+    (``along``, its component there); the neighbours beyond each node of a pair that S
+    separates, away from S, are read, on both sides of S."""
     shape = torch.tensor(phi.shape[2:], device=phi.device)
-    kept = ((outer >= 0) & (outer < shape)).all(dim=1)
-    if int(kept.sum()) < 8:
+    sign = phi[b, 0, nodes[:, 1], nodes[:, 2], nodes[:, 3]] < 0
+    separated = sign != (phi[b, 0, across[:, 0], across[:, 1], across[:, 2]] < 0)
+    growths, entries, insides = [], [], []
+    for near, toward, kept in ((nodes[:, 1:], across, torch.ones_like(sign)),
+                               (across, nodes[:, 1:], separated)):
+        outer = 2 * near - toward
+        kept = kept & ((outer >= 0) & (outer < shape)).all(dim=1)
+        k, j, i = near[kept].unbind(1)
+        beyond, entry = outer[kept], b[kept]
+        values = phi[entry, 0, k, j, i]
+        far = phi[entry, 0, beyond[:, 0], beyond[:, 1], beyond[:, 2]].abs()
+        growths.append((far - values.abs()) / (grad_norm[entry, 0, k, j, i] * spacing
+                                               * along[kept].abs()))
+        entries.append(entry)
+        insides.append(values < 0)
+    growth, entry, inside = torch.cat(growths), torch.cat(entries), torch.cat(insides)
+    flattened = []
+    for index in range(phi.shape[0]):
+        share = _saturation_share(growth[entry == index], inside[entry == index])
+        if share is not None and share < SATURATION_RATIO:
+            flattened.append((index, share))
+    if not flattened:
         return
-    b, nodes, outer, along = b[kept], nodes[kept], outer[kept], along[kept]
-    k, j, i = nodes[:, 1:].unbind(1)
-    near = phi[b, 0, k, j, i].abs()
-    far = phi[b, 0, outer[:, 0], outer[:, 1], outer[:, 2]].abs()
-    growth = (far - near) / (grad_norm[b, 0, k, j, i] * spacing * along.abs())
-    share = float(growth.median())
-    if share < SATURATION_RATIO:
-        warnings.warn(
-            f"phi: |phi| grows over the cell beyond the nodes next to S by {share:.2f} of what "
-            "a distance's would: phi flattens away from S (as tanh(d / eps) does with eps "
-            "below a cell or two), so the band's outer normals and weights are those of a "
-            "nearly constant phi and the flows lose accuracy; make phi a distance near S "
-            "first (torchsurf.sdf.redistance)",
-            RuntimeWarning, stacklevel=caller_stacklevel(),
-        )
+    shares = ", ".join(f"{share:.2f}" for _, share in flattened)
+    which = ("" if phi.shape[0] == 1 else
+             f" (batch entries {[index for index, _ in flattened]})")
+    warnings.warn(
+        f"phi{which}: |phi| grows over the cell beyond the nodes next to S by {shares} of what "
+        "a distance's would: phi flattens away from S (as tanh(d / eps) does with eps "
+        "below a cell or two), so the band's outer normals and weights are those of a "
+        "nearly constant phi and the flows lose accuracy; make phi a distance near S "
+        "first (torchsurf.sdf.redistance)",
+        RuntimeWarning, stacklevel=caller_stacklevel(),
+    )
+
+
+def _saturation_share(growth: Tensor, inside: Tensor) -> float | None:
+    """One entry's share for :func:`_warn_saturated` (``None`` below 8 samples): the median of
+    all, or the geometric mean of each side's median where larger. phi scaled along the normal
+    (``d exp(s x)`` across a plane) grows less on one side of S by what it grows more on the
+    other, and a distance inside a thin tube grows less on its inner side (the axis comes
+    near) and more on its outer; a phi that saturates flattens on both."""
+    if len(growth) < 8:
+        return None
+    medians = [max(float(growth[side].median()), 0.0) for side in (inside, ~inside)
+               if int(side.sum()) >= 8]
+    balanced = math.prod(medians) ** (1 / len(medians)) if medians else 0.0
+    return max(float(growth.median()), balanced)
 
 
 FACE_LAYERS = 2
