@@ -779,9 +779,10 @@ class ImplicitSurface(nn.Module):
 
         The sum of the principal curvatures (sphere of radius R: ``2 / R``), second order in the
         spacing, first order at the nodes of the box's faces (``phi``'s quadratic extrapolation
-        there: a sphere crossing a face, 0.9% of ``2 / R`` at 97^3). Computed once and kept (except when computed without autograd from a ``phi``
-        that requires grad, so that a later call still carries the graph; and computed again
-        if the tensor returned was modified in place).
+        there: a sphere crossing a face, 0.9% of ``2 / R`` at 97^3). Computed once and kept
+        (except when computed without autograd from a ``phi`` that requires grad, so that a
+        later call still carries the graph; and computed again if the tensor returned was
+        modified in place).
         """
         kept = self._mean_curvature
         self._current_phi()  # the kept value belongs to phi as the surface was built
