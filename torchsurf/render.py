@@ -108,8 +108,9 @@ def vertex_values(volume: Tensor, mesh: trimesh.Trimesh, grid: Grid | ImplicitSu
 
 
 FLAT_SPAN = 1e-6
-"""Default limits closer than this, relative to their magnitude, are taken for a constant
-(float32 rounding spreads a constant by about 1e-7 of it) and drawn in one colour."""
+"""Default limits closer than this, relative to their magnitude, are widened to it about their
+middle: float32 rounding spreads a constant by about 1e-7 of it, which the map would otherwise
+stretch over all its colours."""
 
 
 def colours(values: np.ndarray, mode: str = "scalar", colormap: str = "viridis",
@@ -122,8 +123,9 @@ def colours(values: np.ndarray, mode: str = "scalar", colormap: str = "viridis",
     visualisation whose values cluster near their mean); ``"rgb"`` (C = 3): clipped to
     ``[0, 1]``; ``"field"`` (C = 3, unit vectors up to sign): ``|T_x|, |T_y|, |T_z|``. In the
     scalar modes, NaN or infinite values are grey and do not set the limits; equal values
-    share a colour, and values whose default limits lie within :data:`FLAT_SPAN` of their
-    magnitude (a constant carrying rounding) all take the map's middle colour.
+    share a colour, and default limits closer than :data:`FLAT_SPAN` of their magnitude are
+    widened to it about their middle (a constant, or one carrying float32 rounding, takes the
+    map's middle colour; a few vertices off it, the map's ends).
     ``limits``: ``(low, high)``, finite, ``low < high``.
     """
     if mode not in MODES:
@@ -162,13 +164,16 @@ def colours(values: np.ndarray, mode: str = "scalar", colormap: str = "viridis",
         low, high = (limits if limits is not None else
                      np.percentile(finite, [1.0, 99.0]) if len(finite) else (0.0, 1.0))
         # in units of the limits' magnitude, so that values near the float's range do not
-        # overflow the span
+        # overflow the span; default limits closer than FLAT_SPAN of it are widened to that
+        # about their middle (a constant carrying rounding takes the middle colour, a few
+        # vertices off it the ends)
         magnitude = max(abs(float(low)), abs(float(high)), np.finfo(np.float64).tiny)
-        span = high / magnitude - low / magnitude
+        low, high = low / magnitude, high / magnitude
+        middle, span = low / 2 + high / 2, high - low
+        if limits is None:
+            span = max(span, FLAT_SPAN)
         with np.errstate(invalid="ignore", over="ignore"):
-            scaled = (values[:, 0] / magnitude - low / magnitude) / max(span, 1e-300)
-        if limits is None and span <= FLAT_SPAN:  # a constant, up to rounding
-            scaled = np.full(len(values), 0.5)
+            scaled = 0.5 + (values[:, 0] / magnitude - middle) / span
         missing |= ~np.isfinite(scaled)
     rgb = colormaps[colormap](np.clip(np.where(missing, 0.0, scaled), 0.0, 1.0))[:, :3]
     rgb[missing] = 0.5
