@@ -174,7 +174,7 @@ def colours(values: np.ndarray, mode: str = "scalar", colormap: str = "viridis",
             span = max(span, FLAT_SPAN)
         with np.errstate(invalid="ignore", over="ignore"):
             scaled = 0.5 + (values[:, 0] / magnitude - middle) / span
-        missing |= ~np.isfinite(scaled)
+        missing |= np.isnan(scaled)  # an overflow beyond the limits is their end's colour
     rgb = colormaps[colormap](np.clip(np.where(missing, 0.0, scaled), 0.0, 1.0))[:, :3]
     rgb[missing] = 0.5
     return rgb
