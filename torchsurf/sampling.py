@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from ._checks import MismatchError, check_batch, check_choice, check_finite, check_tensor, check_volume
@@ -14,6 +15,11 @@ INTERPOLATIONS = ("linear", "cubic")
 SAMPLE_CHUNK = 2**15
 """Points whose ``4^3`` taps are gathered at once by the tricubic sampler (about 1.5 kB of
 temporaries a point and channel)."""
+
+FACE_CELLS = 1e-3
+"""Linear reads of points within this many cells of a face of the box (or beyond) go through
+their cell's polynomial; the others through ``torch.nn.functional.grid_sample``, which is
+faster but clamps points on a face into the box with no gradient across it."""
 
 # Points this many cells outside the grid's box are still accepted (their boundary cell's
 # polynomial extended to them), so that points on the boundary survive floating-point rounding.
@@ -35,8 +41,10 @@ def cubic_lagrange_weights(t: Tensor) -> list[Tensor]:
 def sample(field: Tensor, points: Tensor, grid: Grid, interpolation: str = "linear") -> Tensor:
     """Trilinear (default) or tricubic interpolation of ``field`` at world ``points``.
 
-    ``"linear"``: exact for fields linear in ``(x, y, z)``, error ``O(h^2)`` (the first and
-    last nodes sit exactly at the grid's box). ``"cubic"``: tensor-product Lagrange interpolation on
+    ``"linear"``: exact for fields linear in ``(x, y, z)``, error ``O(h^2)``
+    (``torch.nn.functional.grid_sample`` with ``align_corners=True``, so the first and last
+    nodes sit exactly at the grid's box; within :data:`FACE_CELLS` of a face, the cell's own
+    polynomial). ``"cubic"``: tensor-product Lagrange interpolation on
     the ``4^3`` nodes around each point (the stencil of the flows' closest-point
     re-extension), exact for polynomials of degree 3 in each coordinate, error ``O(h^4)``,
     up to the box's faces (in the first and last cell of an axis the four nodes are the
@@ -93,8 +101,21 @@ def sample(field: Tensor, points: Tensor, grid: Grid, interpolation: str = "line
         points = points[None]
     check_batch(points, "points", field.shape[0], "field")
     batch = max(field.shape[0], points.shape[0])
+    field = field.expand(batch, -1, -1, -1, -1)
     index = grid.world_to_index(points).expand(batch, -1, -1)
-    return _interpolate(field.expand(batch, -1, -1, -1, -1), index, cubic=interpolation == "cubic")
+    if interpolation == "cubic":
+        return _interpolate(field, index, cubic=True)
+    normalized = grid.world_to_normalized(points).expand(batch, -1, -1)
+    values = F.grid_sample(field, normalized[:, :, None, None, :], mode="bilinear",
+                           padding_mode="border", align_corners=True)[:, :, :, 0, 0]
+    # grid_sample clamps a point on a face (or rounded onto it) into the box, with no gradient
+    # across the face: those points are read through their cell's own polynomial instead
+    sizes = torch.tensor(field.shape[:1:-1], device=index.device, dtype=index.dtype)
+    near_face = ((index.detach() <= FACE_CELLS) | (index.detach() >= sizes - 1 - FACE_CELLS))
+    columns = near_face.any(dim=-1).any(dim=0).nonzero()[:, 0]
+    if len(columns) == 0:
+        return values
+    return values.index_copy(2, columns, _interpolate(field, index[:, columns], cubic=False))
 
 
 def _interpolate(field: Tensor, index: Tensor, cubic: bool) -> Tensor:
