@@ -535,6 +535,7 @@ class ImplicitSurface(nn.Module):
 
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)
+        state["_phi_source"] = None  # the caller's view: a copy has its own phi
         if self.phi.requires_grad:
             # the geometry is in phi's graph: a copy derives its own from the copied phi (a
             # copied normal would be a leaf cut off from the copy's phi, and deepcopy refuses
@@ -587,11 +588,17 @@ class ImplicitSurface(nn.Module):
         """:meth:`_assemble`, outside ``torch.inference_mode`` (:func:`outside_inference`);
         a ``phi`` made under it is copied (an inference tensor has no version counter for
         :meth:`_current_phi`), and so is a ``phi`` that does not require grad and views part
-        of a larger tensor (writing the rest, e.g. the next entry of a batch being filled,
-        counts as a change of the view too). A ``phi`` that requires grad gets its geometry in its graph
-        even under ``torch.no_grad`` or ``inference_mode``: a later training call's gradient
-        to ``phi`` would otherwise miss the normals' and weight's part, silently."""
+        of a larger tensor: writing the rest of its base (the next entry of a batch being
+        filled) bumps the view's version counter too, so a changed version is then told from
+        a change of the view by comparing the view with the copy. A ``phi`` that requires
+        grad gets its geometry in its graph even under ``torch.no_grad`` or
+        ``inference_mode``: a later training call's gradient to ``phi`` would otherwise miss
+        the normals' and weight's part, silently."""
+        self._phi_source: tuple[Tensor, int] | None = None
         with outside_inference(), torch.enable_grad() if phi.requires_grad else nullcontext():
+            if not torch.compiler.is_compiling() and _part_of_larger(phi):
+                # the caller's view, to tell its own changes from its base's elsewhere
+                self._phi_source = (phi, phi._version)
             if not torch.compiler.is_compiling() and (phi.is_inference() or _part_of_larger(phi)):
                 phi = phi.clone()
             self._assemble(phi)
@@ -747,7 +754,13 @@ class ImplicitSurface(nn.Module):
         them (they would then be outside its graph, and its gradient would miss their part)."""
         if torch.compiler.is_compiling():
             return self.phi
-        if self.phi._version != self._phi_version:
+        source = self.__dict__.get("_phi_source")
+        changed = self.phi._version != self._phi_version
+        if not changed and source is not None and source[0]._version != source[1]:
+            changed = not torch.equal(source[0], self.phi)  # or the rest of its base was
+            if not changed:
+                self._phi_source = (source[0], source[0]._version)
+        if changed:
             raise RuntimeError(
                 "phi was modified in place after this surface was built: its normals and "
                 "weight belong to the former values; build a new surface from the new phi "
