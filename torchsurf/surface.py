@@ -530,7 +530,7 @@ class ImplicitSurface(nn.Module):
     def forward(self, *args: object, **kwargs: object) -> Tensor:
         """Not called: a surface is the geometry operators, flows and layers are given
         (``flow(u, surface)``); calling it raises ``TypeError``."""
-        raise TypeError(f"a {type(self).__name__} is not called: pass it to an operator, flow or "
+        raise TypeError(f"{type(self).__name__} is not called: pass it to an operator, flow or "
                         "layer, e.g. torchsurf.laplace_beltrami(u, surface) or flow(u, surface)")
 
     def __getstate__(self) -> dict:
@@ -541,7 +541,15 @@ class ImplicitSurface(nn.Module):
             # copied normal would be a leaf cut off from the copy's phi, and deepcopy refuses
             # tensors with a graph); a phi computed from others (bricks.from_dense of a phi
             # that requires grad) is copied as a leaf, as pickle copies it
-            phi = self.phi if self.phi.is_leaf else self.phi.detach().requires_grad_()
+            phi = self.phi
+            if not phi.is_leaf:
+                warnings.warn(
+                    f"copying a {type(self).__name__} whose phi is computed from other tensors "
+                    "(it has a graph): the copy's phi is a leaf of its own, and gradients "
+                    "through the copy stop there, not at what phi was computed from (copied "
+                    "parameters included); build the surface from them in forward instead",
+                    RuntimeWarning, stacklevel=caller_stacklevel())
+                phi = phi.detach().requires_grad_()
             state["_buffers"] = {name: phi if name == "phi" else None for name in self._buffers}
             state["_kept"] = {}
             state[_DERIVE_ON_LOAD] = True
