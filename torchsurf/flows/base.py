@@ -399,7 +399,9 @@ class Flow(nn.Module):
             is re-extended by the time the diffusion takes, read on the host (the fixed
             flow's schedule); while ``torch.compile`` traces, by ``max_time``'s, more often the
             farther the time lies below it (each re-extension errs a little on thin parts of
-            a mesh: keep ``max_time`` within a few times the time there). ``None``
+            a mesh: keep ``max_time`` within a few times the time there). Eager, the result
+            is then piecewise smooth in the time, as without ``max_time``: it jumps where a
+            re-extension moves to another step (docs/learning.md). ``None``
             (default): the steps follow the current time, read on the host at each call (a
             graph break). ``times=`` needs ``max_time``: the requested times are fractions
             of ``max_time``, applied to the learned time.
