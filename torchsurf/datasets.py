@@ -77,7 +77,10 @@ def smooth_signal(surface: ImplicitSurface, channels: int = 1, frequency: float 
         channels: ``C``.
         frequency: the highest wave number, periods per unit length of the grid.
         modes: waves per channel.
-        seed: the same seed gives the same signal.
+        seed: the same seed gives the same signal for the same surfaces and channels; the
+            draws are laid out by batch entry and channel, so an entry of a batch is not the
+            signal the same seed gives its surface alone (:class:`SignalDataset` draws each
+            item on its own surface).
 
     Returns:
         ``(B, C, D, H, W)`` (packed ``(N, C, 8, 8, 8)`` on bricks) in ``[0, 1]``, the
@@ -124,7 +127,10 @@ def piecewise_constant_signal(surface: ImplicitSurface, channels: int = 1, cells
         channels: ``C``; the channels share the regions and differ in their values.
         cells: regions per surface, at most the nodes within one spacing of S (their centres
             are drawn among those nodes' closest points, without repeats).
-        seed: the same seed gives the same signal.
+        seed: the same seed gives the same signal for the same surfaces and channels; the
+            draws are laid out by batch entry and channel, so an entry of a batch is not the
+            signal the same seed gives its surface alone (:class:`SignalDataset` draws each
+            item on its own surface).
 
     Returns:
         ``(B, C, D, H, W)`` (packed ``(N, C, 8, 8, 8)`` on bricks), values uniform in

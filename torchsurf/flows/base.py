@@ -387,7 +387,9 @@ class Flow(nn.Module):
             the fastest diffusion takes to cross the band (:func:`plan_steps`); for
             ``"euler"`` and ``"heun"``, ``1.8 / rho``, 0.9 of the stable step ``2 / rho``,
             rounded so that the steps end exactly at ``time``); for adaptive torchdiffeq
-            methods, unused. With
+            methods, unused (their step control takes one error norm over the whole state:
+            entries of data on one surface, and channels, choose each other's steps, so an
+            entry is its run alone only to the solver's tolerance). With
             ``times``, each interval between requested times takes its share of ``steps``
             rounded up, so that no step is longer than ``time / steps``. A run of more
             than ``10**6`` steps or evaluations of the rate (RKC's stages counted) is refused
