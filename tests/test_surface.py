@@ -757,6 +757,8 @@ def test_a_phi_that_flattens_at_s_is_warned_about():
     cases = {"d^3": (d**3, True), "d|d|": (d * d.abs(), True), "1e-3 d": (1e-3 * d, False),
              "tanh(d / 0.05)": (torch.tanh(d / 0.05), False), "d + 4 d^3": (d + 4 * d**3, False)}
     _check_warned(cases, grid, "flattens at S")
+    with pytest.warns(RuntimeWarning, match=r"phi \(batch entries \[1\]\): its distances"):
+        ImplicitSurface(torch.cat([d, d**3]), grid)  # pooled with a distance, not warned
 
 
 def test_a_phi_that_flattens_away_from_s_is_warned_about():

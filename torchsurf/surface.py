@@ -195,14 +195,21 @@ def _warn_flat_at_surface(phi: Tensor, crossing: Tensor, grad_norm: Tensor, floo
         return values.abs() / torch.maximum(norm, floor[b, 0, 0, 0, 0])
 
     total = (distance(near, nodes[:, 1:].unbind(1)) + distance(far, other.unbind(1)))
-    share = float((total / (spacing * along.abs()))[kept].median())
-    if share < FLAT_RATIO:
+    ratio = total / (spacing * along.abs())
+    flat = []  # per batch entry: a flat entry beside distances is not averaged away
+    for index in range(phi.shape[0]):
+        mine = ratio[kept & (b == index)]
+        if len(mine) >= 8 and float(mine.median()) < FLAT_RATIO:
+            flat.append((index, float(mine.median())))
+    if flat:
+        share = min(share for _, share in flat)
+        which = "" if phi.shape[0] == 1 else f" (batch entries {[index for index, _ in flat]})"
         warnings.warn(
-            f"phi: its distances next to S (|phi| / |grad phi|) add up, across S, to "
-            f"{share:.2f} of the nodes' spacing along the normal (1 for a distance): phi "
-            f"flattens at S (as d^3 does), so the band, the closest points and the flows read "
-            f"distances {1 / share:.1f} times too short; make phi a distance near S first "
-            "(torchsurf.sdf.redistance)",
+            f"phi{which}: its distances next to S (|phi| / |grad phi|) add up, across S, to "
+            f"{', '.join(f'{s:.2f}' for _, s in flat)} of the nodes' spacing along the normal "
+            f"(1 for a distance): phi flattens at S (as d^3 does), so the band, the closest "
+            f"points and the flows read distances up to {1 / share:.1f} times too short; make "
+            "phi a distance near S first (torchsurf.sdf.redistance)",
             RuntimeWarning, stacklevel=caller_stacklevel(),
         )
 
