@@ -139,15 +139,15 @@ share of the nodes' spacing along the normal (1 for a distance; 1/3 for ``d^3``,
 
 SATURATION_RATIO = 0.9
 """``phi`` whose ``|phi|`` grows, over the cell beyond the nodes next to S, by less than this
-share of what a distance's would (``|grad phi| h |n_a|``; :func:`_saturation_share`) is warned
-about, per batch entry (:func:`_warn_flat_at_surface`). Measured: 1.00 for a distance
-(spheres down to a radius of 1.5 cells, tori down to 1 cell thick: 0.95-1.00, the shared
-meshes' ``sdf.from_mesh`` at 32^3 and 64^3: 0.98-1.00), 1.00 for ``d exp(3x)`` on a sphere and
-0.93-1.00 for a plane's distance times ``exp(0.8 x)`` at 9^3-65^3, 0.97-1.00 for ``r^2 - R^2``;
-0.91-0.92, 0.86-0.87, 0.80-0.81 and 0.56-0.58 for ``tanh(d / eps)`` with ``eps`` 2, 1.5, 1.2
-and 0.7 cells, 0.78-0.79 for ``atan(d / h)``. On a sphere at 33^3 the heat flow's error was
-2e-2 and 0.25 for ``eps`` 0.6 and 0.2 cells, 1.3e-2 for 1.1 cells, and 7-16 times the
-distance's at 2 cells, against 1e-3 on the distance."""
+share of what a distance's would (``|grad phi| h |n_a|``), on both sides of S
+(:func:`_saturation_share`), is warned about, per batch entry (:func:`_warn_flat_at_surface`).
+Measured at 17^3-65^3: 1.00-1.06 for distances (spheres down to a radius of 1.5 cells, tori
+down to 1 cell thick, the shared meshes' ``sdf.from_mesh`` at 32^3 and 64^3), 1.01-1.02 for
+``d exp(3x)`` on a sphere, 1.04-1.7 for a plane's distance times ``exp(s x)``, 1.03-1.12 for
+``r^2 - R^2``; 0.94-0.99, 0.89-0.93, 0.82-0.85 and 0.58-0.60 for ``tanh(d / eps)`` with
+``eps`` 2, 1.5, 1.2 and 0.7 cells, 0.80-0.83 for ``atan(d / h)``. On a sphere at 33^3 the
+heat flow's error was 2e-2 and 0.25 for ``eps`` 0.6 and 0.2 cells, 1.3e-2 for 1.1 cells, and
+7-16 times the distance's at 2 cells, against 1e-3 on the distance."""
 
 FLAT_SAMPLES = 4096
 """At most this many node pairs across S are read for :func:`_warn_flat_at_surface`."""
@@ -258,17 +258,17 @@ def _warn_saturated(phi: Tensor, b: Tensor, nodes: Tensor, across: Tensor, along
 
 
 def _saturation_share(growth: Tensor, inside: Tensor) -> float | None:
-    """One entry's share for :func:`_warn_saturated` (``None`` below 8 samples): the median of
-    all, or the geometric mean of each side's median where larger. phi scaled along the normal
-    (``d exp(s x)`` across a plane) grows less on one side of S by what it grows more on the
-    other, and a distance inside a thin tube grows less on its inner side (the axis comes
-    near) and more on its outer; a phi that saturates flattens on both."""
-    if len(growth) < 8:
-        return None
-    medians = [max(float(growth[side].median()), 0.0) for side in (inside, ~inside)
+    """One entry's share for :func:`_warn_saturated` (``None`` below 8 samples): the larger of
+    the two sides' medians (a side of fewer than 8 samples left out). A phi that saturates
+    flattens on both sides of S; a distance grows less only on one, towards a thin part's axis
+    (a tube a cell thick: inside 0 to 0.9, outside 1.05 to 1.16), and so does a phi scaled
+    along the normal (a plane's distance times ``exp(s x)``: less on one side by what it
+    grows more on the other)."""
+    medians = [float(growth[side].median()) for side in (inside, ~inside)
                if int(side.sum()) >= 8]
-    balanced = math.prod(medians) ** (1 / len(medians)) if medians else 0.0
-    return max(float(growth.median()), balanced)
+    if not medians:
+        return None if len(growth) < 8 else float(growth.median())
+    return max(medians)
 
 
 FACE_LAYERS = 2
