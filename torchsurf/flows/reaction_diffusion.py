@@ -145,9 +145,11 @@ class ReactionDiffusion(Flow):
         ``a = b = 16`` beside Turk's shortened its steps: 6.3e-4 off at ``t = 3000``). Each
         entry's noise is what the batch drew for it (one generator, drawn in order)."""
         apart = super()._entries_apart(u0, surface, times, inputs)
-        if apart is not None or surface.layout is not None or u0.shape[0] == 1:
-            return apart
         count = u0.shape[0]
+        direction = inputs.get("direction")
+        if (apart is not None or surface.layout is not None or count == 1
+                or isinstance(direction, Tensor) and direction.shape[:1] not in ((1,), (count,))):
+            return apart  # (a direction of another batch is refused by the batch's call)
         entries = ((torch.tensor([b], device=u0.device), surface) for b in range(count))
         return self._each_entry(u0, entries, count, times, inputs)
 
