@@ -806,11 +806,12 @@ class ImplicitSurface(nn.Module):
         """Mean curvature ``H = div n`` of the level set through each node; ``(B, 1, D, H, W)``.
 
         The sum of the principal curvatures (sphere of radius R: ``2 / R``), second order in the
-        spacing, first order at the nodes of the box's faces (``phi``'s quadratic extrapolation
-        there: a sphere crossing a face, 0.9% of ``2 / R`` at 97^3). Computed once and kept
-        (except when computed without autograd from a ``phi`` that requires grad, so that a
-        later call still carries the graph; and computed again if the tensor returned was
-        modified in place).
+        spacing; at the nodes of the box's faces (``phi``'s quadratic extrapolation there),
+        first order where S leaves the face obliquely (a sphere 11 degrees from the face's
+        normal: 0.9% of ``2 / R`` at 97^3), second order where it meets it at right angles.
+        Computed once and kept (except when computed without autograd from a ``phi`` that
+        requires grad, so that a later call still carries the graph; and computed again if the
+        tensor returned was modified in place).
         """
         kept = self._mean_curvature
         self._current_phi()  # the kept value belongs to phi as the surface was built
