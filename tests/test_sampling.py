@@ -222,3 +222,8 @@ def test_cubic_chunks_agree(monkeypatch) -> None:
 def test_unknown_interpolation_is_refused() -> None:
     with pytest.raises(ValueError, match="interpolation"):
         sample(torch.zeros(1, 1, *GRID.shape), torch.zeros(1, 3), GRID, interpolation="spline")
+
+
+def test_a_packed_field_is_pointed_to_its_surface_s_sampler() -> None:
+    with pytest.raises(ValueError, match=r"packed field of bricks\? sample it with its BrickSurface"):
+        sample(torch.zeros(5, 1, 8, 8, 8), torch.zeros(1, 3), GRID)

@@ -82,9 +82,11 @@ def sample(field: Tensor, points: Tensor, grid: Grid, interpolation: str = "line
     check_volume(field, "field")
     check_tensor(points, "points")
     if tuple(field.shape[-3:]) != grid.shape:
+        packed = (" (a packed field of bricks? sample it with its BrickSurface's .sample)"
+                  if tuple(field.shape[-3:]) == (8, 8, 8) else "")
         raise ValueError(
             f"field has spatial shape {tuple(field.shape[-3:])} but grid has {grid.shape}; "
-            "they must agree"
+            f"they must agree{packed}"
         )
     if points.dim() not in (2, 3) or points.shape[-1] != 3:
         raise ValueError(
