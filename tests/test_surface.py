@@ -759,6 +759,10 @@ def test_a_phi_that_flattens_at_s_is_warned_about():
     _check_warned(cases, grid, "flattens at S")
     with pytest.warns(RuntimeWarning, match=r"phi \(batch entries \[1\]\): its distances"):
         ImplicitSurface(torch.cat([d, d**3]), grid)  # pooled with a distance, not warned
+    # a small entry beside large ones keeps its own samples (a stride over the batch left it 6)
+    big, small = sdf.sphere(grid, 1.3, dtype=torch.float64), sdf.sphere(grid, 0.35, dtype=torch.float64)
+    with pytest.warns(RuntimeWarning, match=r"phi \(batch entries \[12\]\): its distances"):
+        ImplicitSurface(torch.cat([big] * 12 + [small**3]), grid)
 
 
 def test_a_phi_that_flattens_away_from_s_is_warned_about():
@@ -787,6 +791,11 @@ def test_a_phi_that_flattens_away_from_s_is_warned_about():
     _check_warned(cases, grid, "flattens away from S")
     with pytest.warns(RuntimeWarning, match=r"phi \(batch entries \[1\]\): \|phi\| grows"):
         ImplicitSurface(torch.cat([d, torch.tanh(d / (0.7 * h))]), grid)  # pooled, not warned
+    # a plate a cell thick whose midplane lies on nodes: a normal with no component on its
+    # axis there gave a NaN sample, and a NaN median never warned
+    plate = sdf.box(grid, (0.8, 0.8, 0.5 * h), dtype=torch.float64)
+    with pytest.warns(RuntimeWarning, match=r"\|phi\| grows over the cell"):
+        ImplicitSurface(torch.tanh(plate / (0.7 * h)), grid)
 
 
 def _check_warned(cases: dict, grid: Grid, phrase: str) -> None:

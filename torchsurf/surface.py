@@ -140,14 +140,17 @@ share of the nodes' spacing along the normal (1 for a distance; 1/3 for ``d^3``,
 SATURATION_RATIO = 0.9
 """``phi`` whose ``|phi|`` grows, over the cell beyond the nodes next to S, by less than this
 share of what a distance's would (``|grad phi| h |n_a|``), on both sides of S
-(:func:`_saturation_share`), is warned about, per batch entry (:func:`_warn_flat_at_surface`).
-Measured at 17^3-65^3: 1.00-1.06 for distances (spheres down to a radius of 1.5 cells, tori
-down to 1 cell thick, the shared meshes' ``sdf.from_mesh`` at 32^3 and 64^3), 1.01-1.02 for
-``d exp(3x)`` on a sphere, 1.04-1.7 for a plane's distance times ``exp(s x)``, 1.03-1.12 for
-``r^2 - R^2``; 0.94-0.99, 0.89-0.93, 0.82-0.85 and 0.58-0.60 for ``tanh(d / eps)`` with
-``eps`` 2, 1.5, 1.2 and 0.7 cells, 0.80-0.83 for ``atan(d / h)``. On a sphere at 33^3 the
-heat flow's error was 2e-2 and 0.25 for ``eps`` 0.6 and 0.2 cells, 1.3e-2 for 1.1 cells, and
-7-16 times the distance's at 2 cells, against 1e-3 on the distance."""
+(:func:`_saturation_share`: the larger side's median), is warned about, per batch entry
+(:func:`_warn_flat_at_surface`). Measured at 17^3-65^3: 1.00-1.15 for distances (spheres down
+to a radius of 1.5 cells, tori down to 0.75 cell thick, the shared meshes' ``sdf.from_mesh``
+at 24^3-64^3, a thin trimesh torus), 1.01-1.02 for ``d exp(3x)`` on a sphere, 1.04-1.46 for a
+plane's distance times ``exp(s x)``, 1.03-1.12 for ``r^2 - R^2``; 0.94-0.99, 0.88-0.93,
+0.82-0.85 and 0.56-0.60 for ``tanh(d / eps)`` with ``eps`` 2, 1.5, 1.2 and 0.7 cells,
+0.80-0.83 for ``atan(d / h)``. On a sphere at 33^3 the heat flow's error was 2e-2 and 0.25
+for ``eps`` 0.6 and 0.2 cells, 1.3e-2 for 1.1 cells, and 7-16 times the distance's at 2
+cells, against 1e-3 on the distance. Not warned: a phi that saturates on one side of S only
+(0.96-1.14; heat 1e-2 to 3.4e-2 off), since a distance also grows less on one side, towards a
+thin part's axis; nor a distance truncated beyond the cell next to S."""
 
 FLAT_SAMPLES = 4096
 """At most this many node pairs across S are read for :func:`_warn_flat_at_surface`."""
@@ -168,10 +171,15 @@ def _warn_flat_at_surface(phi: Tensor, crossing: Tensor, grad_norm: Tensor, floo
     ``|grad phi| h |n_a|`` for a distance (warned when the median share is below
     :data:`SATURATION_RATIO`). ``floor``: ``(B, 1, 1, 1, 1)``, the least ``|grad phi|`` the
     distances divide by."""
-    nodes = crossing[:, 0].nonzero()  # (M, 4): b, k, j, i
+    nodes = crossing[:, 0].nonzero()  # (M, 4): b, k, j, i, sorted by b
     if len(nodes) == 0:
         return
-    nodes = nodes[:: max(1, len(nodes) // FLAT_SAMPLES)]
+    # up to FLAT_SAMPLES of each entry's (a stride over the batch left a small entry beside
+    # large ones too few to judge)
+    counts = torch.bincount(nodes[:, 0], minlength=phi.shape[0])
+    first = torch.cumsum(counts, 0) - counts
+    rank = torch.arange(len(nodes), device=nodes.device) - first[nodes[:, 0]]
+    nodes = nodes[rank % (counts // FLAT_SAMPLES).clamp_min(1)[nodes[:, 0]] == 0]
     b, k, j, i = nodes.unbind(1)
     n = normal[b, :, k, j, i]  # (M, 3): x, y, z
     axis = n.abs().argmax(dim=1)
@@ -196,6 +204,7 @@ def _warn_flat_at_surface(phi: Tensor, crossing: Tensor, grad_norm: Tensor, floo
 
     total = (distance(near, nodes[:, 1:].unbind(1)) + distance(far, other.unbind(1)))
     ratio = total / (spacing * along.abs())
+    kept = kept & torch.isfinite(ratio)  # a normal with no component on its axis: 0 / 0
     flat = []  # per batch entry: a flat entry beside distances is not averaged away
     for index in range(phi.shape[0]):
         mine = ratio[kept & (b == index)]
@@ -232,10 +241,12 @@ def _warn_saturated(phi: Tensor, b: Tensor, nodes: Tensor, across: Tensor, along
         beyond, entry = outer[kept], b[kept]
         values = phi[entry, 0, k, j, i]
         far = phi[entry, 0, beyond[:, 0], beyond[:, 1], beyond[:, 2]].abs()
-        growths.append((far - values.abs()) / (grad_norm[entry, 0, k, j, i] * spacing
-                                               * along[kept].abs()))
-        entries.append(entry)
-        insides.append(values < 0)
+        growth = (far - values.abs()) / (grad_norm[entry, 0, k, j, i] * spacing
+                                         * along[kept].abs())
+        finite = torch.isfinite(growth)  # a normal with no component on its axis: 0 / 0
+        growths.append(growth[finite])
+        entries.append(entry[finite])
+        insides.append((values < 0)[finite])
     growth, entry, inside = torch.cat(growths), torch.cat(entries), torch.cat(insides)
     flattened = []
     for index in range(phi.shape[0]):
