@@ -248,6 +248,11 @@ def test_a_phi_viewing_part_of_a_batch_being_filled_is_not_taken_for_changed():
     for _ in range(2):
         with pytest.raises(RuntimeError, match="modified in place"):
             laplace_beltrami(u, surface)
+    # and so after the surface moved (.to() derives its geometry again)
+    moved = ImplicitSurface(phis[1:2], grid).double()
+    phis[1:2] = sdf.sphere(grid, 0.7)
+    with pytest.raises(RuntimeError, match="modified in place"):
+        moved.hessian()
 
 
 def test_plane_exact_at_every_node():

@@ -798,5 +798,6 @@ def resolve_mesh(mesh: str, folder: Path) -> Path:
             return candidate
     where = ", ".join(str(c) for c in candidates)
     unset = "" if directory else f" (${MESH_DIR_VARIABLE} is not set)"
-    raise ConfigError("surface.mesh", f"{mesh!r} not found; looked at {where}{unset} (given "
-                      f"with --set, first in the current folder, {Path.cwd()})")
+    first = ("" if path.is_absolute() else
+             f"; a path given with --set is looked for first in the current folder, {Path.cwd()}")
+    raise ConfigError("surface.mesh", f"{mesh!r} not found; looked at {where}{unset}{first}")

@@ -608,7 +608,9 @@ class ImplicitSurface(nn.Module):
         return result
 
     def _reassemble(self) -> None:
+        source = self.__dict__.get("_phi_source")
         self._assemble_kept(self.phi)
+        self._phi_source = source  # moved (.to()), still the caller's view's values
 
     def _assemble_kept(self, phi: Tensor) -> None:
         """:meth:`_assemble`, outside ``torch.inference_mode`` (:func:`outside_inference`);
@@ -783,7 +785,8 @@ class ImplicitSurface(nn.Module):
         source = self.__dict__.get("_phi_source")
         changed = self.phi._version != self._phi_version
         if not changed and source is not None and source[0]._version != source[1]:
-            changed = not torch.equal(source[0], self.phi)  # or the rest of its base was
+            view = source[0].to(dtype=self.phi.dtype, device=self.phi.device)
+            changed = not torch.equal(view, self.phi)  # or the rest of its base was
             if not changed:
                 self._phi_source = (source[0], source[0]._version)
         if changed:
