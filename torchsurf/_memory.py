@@ -29,18 +29,12 @@ STENCIL_TAPS = 64
 """Source nodes per node of the flows' tricubic closest-point stencil (4^3)."""
 
 
-def as_device(device: torch.device | str | int) -> torch.device:
-    """``torch.device(device)``; raises ``ValueError`` naming ``device`` where torch cannot
-    read it (``"gpu"``)."""
-    return check_device(device)
-
-
 def available_bytes(device: torch.device | str | None = None) -> int | None:
     """Memory that ``device`` can still allocate, in bytes, or ``None`` when unknown.
 
     CPU on Linux: ``MemAvailable`` of ``/proc/meminfo``. Anything else: ``None`` (no check).
     """
-    if device is not None and as_device(device).type != "cpu":
+    if device is not None and check_device(device).type != "cpu":
         return None
     try:
         with open("/proc/meminfo", encoding="ascii") as meminfo:

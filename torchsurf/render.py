@@ -163,10 +163,7 @@ def colours(values: np.ndarray, mode: str = "scalar", colormap: str = "viridis",
     else:
         low, high = (limits if limits is not None else
                      np.percentile(finite, [1.0, 99.0]) if len(finite) else (0.0, 1.0))
-        # in units of the limits' magnitude, so that values near the float's range do not
-        # overflow the span; default limits closer than FLAT_SPAN of it are widened to that
-        # about their middle (a constant carrying rounding takes the middle colour, a few
-        # vertices off it the ends)
+        # in units of the limits' magnitude: values near the float's range do not overflow
         magnitude = max(abs(float(low)), abs(float(high)), np.finfo(np.float64).tiny)
         low, high = low / magnitude, high / magnitude
         middle, span = low / 2 + high / 2, high - low

@@ -212,7 +212,7 @@ def _warn_flat_at_surface(phi: Tensor, crossing: Tensor, grad_norm: Tensor, floo
             flat.append((index, float(mine.median())))
     if flat:
         share = min(share for _, share in flat)
-        which = "" if phi.shape[0] == 1 else f" (batch entries {[index for index, _ in flat]})"
+        which = _entries_named(flat, phi.shape[0])
         warnings.warn(
             f"phi{which}: its distances next to S (|phi| / |grad phi|) add up, across S, to "
             f"{', '.join(f'{s:.2f}' for _, s in flat)} of the nodes' spacing along the normal "
@@ -256,8 +256,7 @@ def _warn_saturated(phi: Tensor, b: Tensor, nodes: Tensor, across: Tensor, along
     if not flattened:
         return
     shares = ", ".join(f"{share:.2f}" for _, share in flattened)
-    which = ("" if phi.shape[0] == 1 else
-             f" (batch entries {[index for index, _ in flattened]})")
+    which = _entries_named(flattened, phi.shape[0])
     warnings.warn(
         f"phi{which}: |phi| grows over the cell beyond the nodes next to S by {shares} of what "
         "a distance's would: phi flattens away from S (as tanh(d / eps) does with eps "
@@ -266,6 +265,12 @@ def _warn_saturated(phi: Tensor, b: Tensor, nodes: Tensor, across: Tensor, along
         "first (torchsurf.sdf.redistance)",
         RuntimeWarning, stacklevel=caller_stacklevel(),
     )
+
+
+def _entries_named(flagged: list[tuple[int, float]], batch: int) -> str:
+    """`` (batch entries [...])`` naming the entries of ``flagged`` ``(index, share)`` in a
+    batch of several, else nothing."""
+    return "" if batch == 1 else f" (batch entries {[index for index, _ in flagged]})"
 
 
 def _saturation_share(growth: Tensor, inside: Tensor) -> float | None:
@@ -622,12 +627,12 @@ class ImplicitSurface(nn.Module):
         grad gets its geometry in its graph even under ``torch.no_grad`` or
         ``inference_mode``: a later training call's gradient to ``phi`` would otherwise miss
         the normals' and weight's part, silently."""
-        self._phi_source: tuple[Tensor, int] | None = None
+        tracing = torch.compiler.is_compiling()
+        view = not tracing and _part_of_larger(phi)
+        # the caller's view, to tell its own changes from its base's elsewhere
+        self._phi_source: tuple[Tensor, int] | None = (phi, phi._version) if view else None
         with outside_inference(), torch.enable_grad() if phi.requires_grad else nullcontext():
-            if not torch.compiler.is_compiling() and _part_of_larger(phi):
-                # the caller's view, to tell its own changes from its base's elsewhere
-                self._phi_source = (phi, phi._version)
-            if not torch.compiler.is_compiling() and (phi.is_inference() or _part_of_larger(phi)):
+            if view or not tracing and phi.is_inference():
                 phi = phi.clone()
             self._assemble(phi)
 
