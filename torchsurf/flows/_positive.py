@@ -218,3 +218,39 @@ class Positive(nn.Module):
                  else "[" + ", ".join(f"{float(v):g}" for v in values[:4])
                  + (", ...]" if values.numel() > 4 else "]"))
         return f"{self.name}={shown}, learnable={self.learnable}{bound}"
+
+
+class ChannelOf(Positive):
+    """Entry ``index`` of a learnable per-channel :class:`Positive` ``whole``, a single value in
+    the graph of ``whole``'s parameter: what a flow that runs that channel alone reads, so that
+    its steps and re-extensions follow that channel's value (and the gradient reaches the
+    parameter through it). Holds no parameter of its own; ``bound`` is ``whole``'s."""
+
+    def __init__(self, whole: Positive, index: int) -> None:
+        nn.Module.__init__(self)
+        if not whole.learnable or whole.channels is None:
+            raise ValueError(f"ChannelOf takes a learnable per-channel value, got {whole!r}")
+        self.whole = whole
+        self.index = index
+        self.name = whole.name
+        self.learnable = True
+        self.bound = whole.bound
+        self.fixed = None
+        self.floor = whole.floor
+
+    @property
+    def channels(self) -> int | None:
+        """``None``: a single value."""
+        return None
+
+    def value(self) -> Tensor:
+        """The entry, a 0-d tensor in the graph of ``whole``'s parameter."""
+        return self.whole.value()[self.index]
+
+    def maximum(self) -> float:
+        """The bound, or the entry read on the host (``whole`` names its parameter in the error
+        if an entry is no longer finite)."""
+        if self.bound is not None:
+            return self.bound
+        self.whole.maximum()
+        return float(self.value().detach())
