@@ -117,6 +117,29 @@ class PackedRegion:
                                 count)
         self._band_mask: Tensor | None = None
         self._stencils: dict[int, tuple[Stencil, PackedStencil]] = {}
+        shapes = self.entries if surface.layout is None else len(surface.layout.grids)
+        self._entry_firsts = self._firsts_of_entries(shapes) if shapes > 1 else None
+
+    def _firsts_of_entries(self, shapes: int) -> Tensor:
+        """For each region node, the packed position of the first band node of its surface's
+        entry (of ``shapes``; 0 for an entry without band nodes, which has no ring nodes)."""
+        entry = self.storage.coordinates(self.nodes)[0].long()
+        count = len(self.nodes)
+        positions = torch.arange(count, device=entry.device)
+        firsts = torch.full((shapes,), count, dtype=torch.long, device=entry.device)
+        firsts = firsts.scatter_reduce(0, entry[:self.band_count], positions[:self.band_count],
+                                       "amin")
+        return torch.where(firsts < count, firsts, 0)[entry]
+
+    def entry_offsets(self, values: Tensor, nodes: int | None = None) -> Tensor:
+        """Each node's offset: the values ``(band nodes or more, ...)`` at its entry's first band
+        node, for the first ``nodes`` region nodes (all of them by default). Shifting by it
+        keeps each entry's rounding its own: one offset for a batch cost an entry of values
+        in ``[0, 1]`` beside one near ``1e4`` 4e-3 in float32."""
+        if self._entry_firsts is None:
+            return values[:1]
+        firsts = self._entry_firsts if nodes is None else self._entry_firsts[:nodes]
+        return values.index_select(0, firsts)
 
     # --- packing -------------------------------------------------------------------------
 
@@ -175,11 +198,12 @@ class PackedRegion:
     def weighted_apply(self, z: Tensor) -> Tensor:
         """``W^-1 A z`` on the band's rows for region values ``z`` ``(nodes, F)``.
 
-        ``A`` annihilates constants, so it is applied to ``z`` minus its first node's values:
-        the products then carry the rounding of the data's variation, not of its offset (the
-        volume stencils difference neighbours first; without the shift, float32 noise on an
-        offset of 1e3 kept errors of 1e-3 that the volume path smooths away)."""
-        return self.weighted.apply(z - z[:1])
+        ``A`` annihilates constants, so it is applied to ``z`` minus each entry's first node's
+        values (:meth:`entry_offsets`): the products then carry the rounding of the data's
+        variation, not of its offset (the volume stencils difference neighbours first; without
+        the shift, float32 noise on an offset of 1e3 kept errors of 1e-3 that the volume path
+        smooths away)."""
+        return self.weighted.apply(z - self.entry_offsets(z))
 
     def laplacian(self, z: Tensor) -> Tensor:
         """``W^-1 A z`` on the band's rows, zero on the ring's, for region values ``z``

@@ -48,7 +48,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .. import _memory
+from .. import _memory, backend
 from .._stack import caller_stacklevel
 from ..operators import functional
 from ..operators.spectrum import laplace_beltrami_bound
@@ -334,24 +334,34 @@ class _Extend(torch.autograd.Function):
     keep 64 values per node)."""
 
     @staticmethod
+    @backend.part_of_recorded
     def forward(ctx, stencil, x, path="auto"):  # noqa: ANN001, ANN205
         ctx.stencil, ctx.batch = stencil, x.shape[0]
         return stencil.apply(x, path)
 
     @staticmethod
+    @backend.part_of_recorded
     def backward(ctx, grad_output):  # noqa: ANN001, ANN205
         grad = ctx.stencil.transpose(grad_output)
         return None, grad if grad.shape[0] == ctx.batch else grad.sum(dim=0, keepdim=True), None
 
 
-def _first_band_values(u: Tensor, band: Tensor) -> Tensor:
-    """``u``'s values ``(1, C, 1, ...)`` at the first node of ``band`` (bool, broadcastable to
-    ``u``'s first channel; node 0 where it is empty), read without a host sync."""
-    mask = band.expand(u.shape[0], 1, *u.shape[2:]).reshape(-1)
-    first = mask.to(torch.uint8).argmax().view(1)
-    channels = u.shape[1]
-    values = u.transpose(0, 1).reshape(channels, -1).index_select(1, first)
-    return values.view(1, channels, *([1] * (u.dim() - 2)))
+def _first_band_values(u: Tensor, band: Tensor, entries: Tensor | None = None) -> Tensor:
+    """``u``'s values ``(B, C, 1, ...)`` at the first node of ``band`` (bool, broadcastable to
+    ``u``'s first channel) of each row's entry, read without a host sync: ``entries`` ``(B,)``
+    names the entry of each row (a brick's shape), ``None`` makes each row its own. Node 0 of
+    an entry with no band node."""
+    rows, channels = u.shape[:2]
+    mask = band.expand(rows, 1, *u.shape[2:]).reshape(rows, -1)
+    first = mask.to(torch.uint8).argmax(dim=1).view(rows, 1, 1).expand(rows, channels, 1)
+    values = u.reshape(rows, channels, -1).gather(2, first)
+    if entries is not None:  # each row takes its entry's first row holding band nodes
+        index = torch.arange(rows, device=u.device)
+        held = torch.where(mask.any(dim=1), index, rows)
+        firsts = torch.full((int(entries.max()) + 1,), rows, dtype=torch.long, device=u.device)
+        firsts = firsts.scatter_reduce(0, entries, held, "amin")
+        values = values.index_select(0, torch.where(firsts < rows, firsts, 0)[entries])
+    return values.view(rows, channels, *([1] * (u.dim() - 2)))
 
 
 def heat_semigroup(u0: Tensor, operator: BandLaplacian, times: Tensor,
@@ -380,24 +390,26 @@ def heat_semigroup(u0: Tensor, operator: BandLaplacian, times: Tensor,
     """
     packed = operator.packed()
     if packed is not None:
-        # expanded and filled about the first band node's values, which both keep (L
-        # annihilates constants, the ring's weights sum to 1): a constant stays one to the
+        # expanded and filled about each entry's first band node's values, which both keep
+        # (L annihilates constants, the ring's weights sum to 1): a constant stays one to the
         # last bit, where the float32 sums of the coefficients and weights are 1 only to a
         # few ulps; large offsets lose less
         values = packed.pack(u0)
-        offset = values[:1]
+        region = packed.packing
         result = chebyshev.expansion(
-            packed.apply, values - offset, times, operator.bound, adjoint=packed.transpose,
-            largest=largest,
+            packed.apply, values - region.entry_offsets(values, len(values)), times,
+            operator.bound, adjoint=packed.transpose, largest=largest,
         )
         # the final re-extension on packed values too: the region's limited stencil as a
         # PackedStencil (half the layer's training iteration when it gathered volumes)
-        filled = Fill.apply(packed, result) + offset
+        filled = Fill.apply(packed, result) + region.entry_offsets(values)
         extended = packed.unpack(packed.packing.stencil(operator.extension).apply(filled), u0)
         return torch.where(operator.region, extended, u0)
     # data of batch 1 on a surface of batch B: B entries, as on packed values
     u0 = u0.expand(max(u0.shape[0], operator.band.shape[0]), *u0.shape[1:])
-    offset = _first_band_values(u0, operator.band)  # as on packed values, above
+    layout = operator.surface.layout
+    offset = _first_band_values(  # per entry, as on packed values
+        u0, operator.band, None if layout is None else layout.batch.to(u0.device))
     inside = torch.where(operator.band, u0 - offset, u0.new_zeros(()))
     result = chebyshev.expansion(
         operator.apply, inside, times, operator.bound, adjoint=operator.transpose,
