@@ -423,6 +423,32 @@ def step_taken() -> None:
         plan.done += 1
 
 
+_RECORDED: contextvars.ContextVar[bool] = contextvars.ContextVar(
+    "torchsurf_backend_recorded", default=False
+)
+
+
+def part_of_recorded(function: Callable) -> Callable:
+    """Decorates a custom ``autograd.Function``'s ``forward`` and ``backward``, inside which
+    autograd records nothing: their calls are taken for part of a recorded computation, and
+    ``"auto"`` keeps volumes below :data:`COMPILE_MIN_VOXELS` eager there too, so that a
+    gradcheck's Jacobians never change kernel halfway (its two backward passes must agree
+    exactly: a compile in between failed it as "not reentrant"). Nothing while
+    ``torch.compile`` traces (every kernel then runs its eager form)."""
+
+    @functools.wraps(function)
+    def recorded(*args: object, **kwargs: object) -> object:
+        if torch.compiler.is_compiling():
+            return function(*args, **kwargs)
+        token = _RECORDED.set(True)
+        try:
+            return function(*args, **kwargs)
+        finally:
+            _RECORDED.reset(token)
+
+    return recorded
+
+
 _PICKS: contextvars.ContextVar[list[str] | None] = contextvars.ContextVar(
     "torchsurf_backend_picks", default=None
 )
@@ -485,7 +511,7 @@ def _choose(volume: Tensor, kernel: Kernel | None, recording: bool, variant: tup
     if torch.compiler.is_compiling() or kernel is None or kernel.fused is None:
         return eager
     large = volume.numel() >= COMPILE_MIN_VOXELS
-    if recording and not large:
+    if (recording or _RECORDED.get()) and not large:
         return eager
     at_once = _AT_ONCE.get() or COMPILE == "always"
     if COMPILE == "never" and not _AT_ONCE.get():

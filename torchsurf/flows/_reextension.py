@@ -19,6 +19,7 @@ from collections.abc import Iterator
 import torch
 from torch import Tensor
 
+from .. import backend
 from ..surface import ImplicitSurface
 from . import _limiter
 from .extension import BrickCubicStencil, CubicStencil, _corner_base, cubic_stencil
@@ -83,6 +84,7 @@ def reextend(stencil: Stencil, u: Tensor, path: str = "auto") -> Tensor:
 
 class _Reextend(torch.autograd.Function):
     @staticmethod
+    @backend.part_of_recorded
     def forward(ctx, stencil, u, path="auto"):  # noqa: ANN001, ANN205
         ctx.stencil = stencil
         with torch.no_grad():
@@ -92,6 +94,7 @@ class _Reextend(torch.autograd.Function):
         return result
 
     @staticmethod
+    @backend.part_of_recorded
     def backward(ctx, grad_output):  # noqa: ANN001, ANN205
         u, *written = ctx.saved_tensors
         return None, _vector_jacobian(ctx.stencil, u.detach(), grad_output, written or None), None

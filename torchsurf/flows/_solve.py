@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from .. import backend
 from .._stack import caller_stacklevel
 from ._recompute import refuse_second_derivatives
 
@@ -156,6 +157,7 @@ class _SymmetricSolve(torch.autograd.Function):
     """``x = K^-1 b`` with ``K`` symmetric; backward by a second solve (implicit differentiation)."""
 
     @staticmethod
+    @backend.part_of_recorded
     def forward(ctx, operator, options, groups, initial, rhs, *params):  # noqa: ANN001, ANN205
         def apply(x: Tensor) -> Tensor:
             return operator(x, *params)
@@ -166,6 +168,7 @@ class _SymmetricSolve(torch.autograd.Function):
         return solution
 
     @staticmethod
+    @backend.part_of_recorded
     def backward(ctx, grad_solution):  # noqa: ANN001, ANN205
         refuse_second_derivatives("the implicit steps' conjugate-gradient solve")
         solution, *params = ctx.saved_tensors

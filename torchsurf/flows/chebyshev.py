@@ -40,6 +40,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .. import backend
 from ._recompute import declared, recomputed, refuse_second_derivatives
 
 KINDS = ("exp", "phi1")
@@ -251,6 +252,7 @@ class _Expansion(torch.autograd.Function):
     nothing stored but ``x``, ``t`` and ``W``."""
 
     @staticmethod
+    @backend.part_of_recorded
     def forward(ctx, operator, adjoint, kind, bound, terms, pieces, x, weight, times):  # noqa: ANN001, ANN205
         c = coefficients(kind, times.detach() / pieces, bound, terms)
         with torch.no_grad():
@@ -263,6 +265,7 @@ class _Expansion(torch.autograd.Function):
         return total
 
     @staticmethod
+    @backend.part_of_recorded
     def backward(ctx, grad_output):  # noqa: ANN001, ANN205
         refuse_second_derivatives("the Chebyshev expansion (LearnedDiffusion, "
                                   "HeatFlow(method='chebyshev'))")

@@ -187,6 +187,7 @@ class _SelfAdjoint(torch.autograd.Function):
     (``M L u``), ``L^T M g``."""
 
     @staticmethod
+    @backend.part_of_recorded
     def forward(ctx, u, normal, weight, spacing, scheme, weighted, haloed, path, pad, mask):  # noqa: ANN001, ANN205
         ctx.geometry = (normal, weight, spacing, scheme, weighted, haloed, path, pad, mask,
                         u.shape[0])
@@ -194,6 +195,7 @@ class _SelfAdjoint(torch.autograd.Function):
                              mask)
 
     @staticmethod
+    @backend.part_of_recorded
     def backward(ctx, grad_output):  # noqa: ANN001, ANN205
         normal, weight, spacing, scheme, weighted, haloed, path, pad, mask, batch = ctx.geometry
         source = masked(grad_output, mask)
