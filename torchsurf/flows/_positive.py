@@ -52,15 +52,27 @@ class HostMaximum:
         it was changed to hold a value that is not finite and positive, or to another shape."""
         if torch.compiler.is_compiling():
             return self._value
+        self._value = self.check(tensor)
+        return self._value
+
+    def check(self, tensor: Tensor) -> float:
+        """The largest entry of ``tensor``, which must hold finite positive values (of
+        ``shape``); raises ``ValueError`` naming it otherwise. Keeps nothing."""
         if self.shape is not None and tuple(tensor.shape) != self.shape:
             raise ValueError(f"{self.name} must have shape {self.shape}, got "
                              f"{tuple(tensor.shape)}")
-        largest = float(tensor.max())
+        largest = float(tensor.max()) if tensor.numel() else math.nan
         if not (math.isfinite(largest) and float(tensor.min()) > 0):
             raise ValueError(f"{self.name} must hold finite positive values, got "
                              f"{tensor.tolist()!r}")
-        self._value = largest
-        return self._value
+        return largest
+
+    def check_loaded(self, state_dict: dict, key: str) -> None:
+        """Refuse ``state_dict[key]``, if present, before ``load_state_dict`` writes anything:
+        a failed load would otherwise leave the module holding the refused values."""
+        value = state_dict.get(key)
+        if isinstance(value, Tensor):
+            self.check(value)
 
 
 def _reread_largest(module: Positive, _: object) -> None:
@@ -209,6 +221,12 @@ class Positive(nn.Module):
             )
         value = value.to(dtype=like.dtype, device=like.device)
         return value.view(1, -1, 1, 1, 1) if value.dim() == 1 else value
+
+    def _load_from_state_dict(self, state_dict: dict, prefix: str, *args: object,
+                              **kwargs: object) -> None:
+        if not self.learnable and self.fixed is None:
+            self._largest.check_loaded(state_dict, prefix + "values")
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def extra_repr(self) -> str:
         bound = "" if self.bound is None else f", bound={self.bound:g}"

@@ -189,6 +189,12 @@ class LearnedDiffusion(nn.Module):
                 "layer's times are in units of h^2"
             ) from error
 
+    def _load_from_state_dict(self, state_dict: dict, prefix: str, *args: object,
+                              **kwargs: object) -> None:
+        if not self.learn_time:
+            self._largest.check_loaded(state_dict, prefix + "fixed_time")
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
     def extra_repr(self) -> str:
         bound = "" if self.max_time is None else f", max_time={self.max_time:g}"
         return (f"channels={self.channels}, scheme={self.scheme!r}, learn_time={self.learn_time}"
