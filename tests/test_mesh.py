@@ -532,6 +532,20 @@ def test_a_band_too_narrow_for_the_decoding_is_refused() -> None:
     assert float((adapter.decode(adapter.encode(ones)) - 1).abs().max()) < 1e-5
 
 
+def test_decoding_on_a_grid_that_cuts_the_mesh_names_the_mesh() -> None:
+    """order=1's decode named ``points``, an argument the caller never passed; it names the mesh
+    as order=2 does when built (order=1 still encodes there: to_band on part of a mesh)."""
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    grid = ts.Grid.cube(21, bound=0.9)
+    message = r"mesh: 42 of 162 vertices lie outside the grid's box.*decode reads the grid"
+    with pytest.raises(ValueError, match=message):
+        tsm.MeshAdapter(mesh, grid, order=2)
+    adapter = tsm.MeshAdapter(mesh, grid, order=1)
+    volume = adapter.encode(torch.ones(1, 1, len(mesh.vertices)))
+    with pytest.raises(ValueError, match=message):
+        adapter.decode(volume)
+
+
 def test_a_vertex_no_face_uses_is_named_when_it_leaves_the_box() -> None:
     mesh = trimesh.creation.icosphere(subdivisions=2)
     stray = trimesh.Trimesh(np.vstack([mesh.vertices, [[5.0, 0.0, 0.0]]]), mesh.faces,

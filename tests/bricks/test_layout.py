@@ -162,6 +162,15 @@ def test_bricks_of_mask_and_entries_of_different_boxes():
     assert not layout.present[:, :13].any() and not layout.present[:, 14:].any()
 
 
+def test_a_mask_not_of_its_grids_shape_is_named():
+    """A (5, 5, 5) mask for a (29, 35, 45) grid gave a layout of one brick without a word."""
+    grid = Grid(shape=(29, 35, 45), spacing=0.1)
+    for mask in (torch.ones(5, 5, 5, dtype=torch.bool), torch.ones(45, 35, 29, dtype=torch.bool)):
+        with pytest.raises(ValueError, match=r"masks\[0\] must be a tensor of its grid's shape "
+                                             r"\(29, 35, 45\), got \(" + str(mask.shape[0])):
+            bricks_of_mask([mask], [grid])
+
+
 @pytest.mark.parametrize("coords, batch, grids, message", [
     ([[0, 0, 0]], [0], [Grid((8, 8, 8), 0.1), Grid((8, 8, 8), 0.2)], "one spacing"),
     ([[0, 0, 0], [0, 0, 0]], [0, 0], [Grid((8, 8, 8), 0.1)], "repeat"),

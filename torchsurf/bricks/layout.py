@@ -476,11 +476,16 @@ def _pad_to_bricks(volume: Tensor, fill: str) -> Tensor:
 
 
 def bricks_of_mask(masks: Sequence[Tensor], grids: Sequence[Grid]) -> BrickLayout:
-    """The layout of the bricks that hold a node of each ``(D_b, H_b, W_b)`` bool mask."""
+    """The layout of the bricks that hold a node of each ``(D_b, H_b, W_b)`` bool mask, the
+    shape of ``grids[b]``."""
     coords, batch = [], []
     if len(masks) != len(grids):
         raise ValueError(f"masks and grids must pair up, got {len(masks)} and {len(grids)}")
-    for b, mask in enumerate(masks):
+    for b, (mask, grid) in enumerate(zip(masks, grids, strict=True)):
+        if not isinstance(mask, Tensor) or tuple(mask.shape) != tuple(grid.shape):
+            shape = tuple(mask.shape) if isinstance(mask, Tensor) else type(mask).__name__
+            raise ValueError(f"masks[{b}] must be a tensor of its grid's shape "
+                             f"{tuple(grid.shape)}, got {shape}")
         padded = F.pad(mask.to(torch.uint8), _far_padding(mask.shape))
         nz, ny, nx = (n // BRICK for n in padded.shape)
         occupied = padded.view(nz, BRICK, ny, BRICK, nx, BRICK).amax(dim=(1, 3, 5)) > 0

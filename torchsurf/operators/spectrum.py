@@ -17,12 +17,14 @@ its band a fraction of that.
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable
 
 import torch
 from torch import Tensor
 
 from .._checks import check_choice, check_count, check_dtype
+from .._stack import caller_stacklevel
 from ..stencils import NEIGHBOURHOOD, neighbour_in_box
 from ..surface import ImplicitSurface
 from ._flux_form import flux_form_rows
@@ -181,7 +183,30 @@ def laplace_beltrami_bound(
     """
     width = surface.band_width if width is None else float(width)
     return surface.kept(("laplace_beltrami_bound", scheme, width),
-                        lambda: _band_bound(surface, scheme, width))
+                        lambda: _warned_if_wild(_band_bound(surface, scheme, width), surface))
+
+
+WILD_BOUND_CELLS = 1000.0
+"""A Laplace–Beltrami bound above this many ``1 / h^2`` is warned about: 10-25 ``/ h^2`` were
+measured on distance functions, ``phi`` scaled or not a distance (``r^2 - 1``, ``(r - 1)^3``),
+thin tori and every shared mesh at 24^3-48^3; one sentinel value of ``-1e9`` 2.7 cells inside
+a sphere raised it to 6.7e9."""
+
+
+def _warned_if_wild(bound: float, surface: ImplicitSurface) -> float:
+    """``bound``, warned about when it exceeds :data:`WILD_BOUND_CELLS` ``/ h^2``: the flows'
+    steps follow it, and their refusals would otherwise blame the time's units."""
+    cells = bound * surface.spacing**2
+    if cells > WILD_BOUND_CELLS:
+        warnings.warn(
+            f"phi: the Laplace–Beltrami operator's bound over the band is {cells:.3g} / h^2, "
+            "against 10-25 / h^2 on distance functions and meshes: |grad phi| jumps near S "
+            "(a sentinel or singular value of phi beside the band?), and flows on this surface "
+            f"take about {cells / 15:.3g} times their usual steps, or are refused. "
+            "torchsurf.sdf.redistance(phi, grid) makes phi a distance",
+            RuntimeWarning, stacklevel=caller_stacklevel(),
+        )
+    return bound
 
 
 def directional_bound(
