@@ -297,6 +297,43 @@ def test_data_of_batch_one_on_a_surface_of_batch_two_gives_two_entries(phi_grad)
         torch.testing.assert_close(out, expected, rtol=0, atol=1e-14)
 
 
+@pytest.mark.parametrize("storage", ["dense", "phi_grad", "bricks"])
+def test_an_entry_keeps_its_digits_beside_an_entry_of_large_values(storage):
+    """The expansion runs about an offset, once for the whole batch: an entry of values in
+    [0, 1] beside one near 1e4 lost 4.4e-3 in float32 (the first entry's offset); each entry now
+    has its own and equals its surface alone to rounding."""
+    grid = ts.Grid.cube(25, bound=2.2)
+    phis = [ts.sdf.sphere(grid, radius=1.0), ts.sdf.torus(grid, 1.0, 0.4)]
+    generator = torch.Generator().manual_seed(5)
+    u = [torch.rand(1, 2, *grid.shape, generator=generator) for _ in phis]
+    u[0] = u[0] + 1e4
+    if storage == "bricks":
+        alone = [ts.bricks.from_dense(phi, grid) for phi in phis]
+        pair = ts.bricks.cat(alone)
+        data = [surface.from_dense(v) for surface, v in zip(alone, u, strict=True)]
+    else:
+        grad = storage == "phi_grad"
+        alone = [ts.ImplicitSurface(phi.clone().requires_grad_(grad), grid) for phi in phis]
+        pair = ts.ImplicitSurface(torch.cat(phis).requires_grad_(grad), grid)
+        data = u
+    layer = LearnedDiffusion(2, time=[1.0, 8.0], learn_time=False)
+    out = layer(torch.cat(data), pair).detach()[len(data[0]):]
+    expected = layer(data[1], alone[1]).detach()
+    assert float((out - expected).abs().max()) < 2e-6
+
+
+def test_a_refused_state_dict_leaves_the_fixed_values_as_they_were():
+    """``load_state_dict`` of a negative fixed time raised only after writing it: the layer (and
+    a flow's fixed per-channel diffusivity) kept the refused values and every call raised."""
+    layer = LearnedDiffusion(2, time=[0.5, 2.0], learn_time=False)
+    flow = ts.HeatFlow(0.01, diffusivity=[1.0, 2.0])
+    for module, key in ((layer, "fixed_time"), (flow, "diffusivity.values")):
+        before = module.state_dict()[key].clone()
+        with pytest.raises(ValueError, match="must hold finite positive values"):
+            module.load_state_dict({key: torch.tensor([1.0, -1.0])})
+        assert torch.equal(module.state_dict()[key], before)
+
+
 def test_bad_arguments_are_named(sphere33):
     u0, surface = sphere33
     with pytest.raises(ValueError, match="time"):

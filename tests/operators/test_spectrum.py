@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import pytest
 import torch
 
@@ -68,6 +70,25 @@ def test_floored_weight_bounds_the_operator_at_thin_features():
     surface = ts.ImplicitSurface(ts.sdf.trefoil(grid, tube_radius=0.2), grid)
     assert float(surface.grad_norm[surface.band_mask()].min()) < 0.3
     assert laplace_beltrami_bound(surface) * grid.spacing**2 < 1.55 * 10.0
+
+
+def test_a_wild_bound_names_phi():
+    """One sentinel value of -1e9 inside a sphere raised the bound to about 6e9 / h^2, and the
+    flows' refusals blamed the time's units; the bound warns naming phi, once per surface."""
+    grid = ts.Grid.cube(17, bound=1.5)
+    phi = ts.sdf.sphere(grid, radius=0.5)
+    surface = ts.ImplicitSurface(phi, grid)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        laplace_beltrami_bound(surface)
+    wild = phi.clone()
+    wild[0, 0, 8, 8, 8] = -1e9
+    surface = ts.ImplicitSurface(wild, grid)
+    with pytest.warns(RuntimeWarning, match=r"phi: the Laplace–Beltrami operator's bound .*e\+09"):
+        laplace_beltrami_bound(surface)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        laplace_beltrami_bound(surface)  # kept: said once
 
 
 def test_directional_bound_is_the_largest_row_sum_of_the_directional_operator():
