@@ -343,6 +343,9 @@ def redistance(phi: Tensor, grid: Grid, band_width: float | None = None) -> Tens
             entry must change sign.
         grid: the grid ``phi`` is sampled on.
         band_width: half-width of the band, world units (default ``5 * grid.spacing``).
+            Flows evolve a 5-cell band where ``phi`` is a distance out to it and the ring
+            beyond (:meth:`~torchsurf.ImplicitSurface.evolving_widths`): give ``7 *
+            grid.spacing`` for that; the default gets the 3-cell band.
 
     Returns:
         ``(B, 1, D, H, W)`` signed distance, world units, ``phi``'s dtype and device.

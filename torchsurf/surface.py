@@ -735,8 +735,9 @@ class ImplicitSurface(nn.Module):
 
         :data:`WIDE_BAND_CELLS` cells for an entry whose ``phi`` is a distance
         (``|grad phi|`` within :data:`DISTANCE_TOLERANCE` of ``gradient_scale``) at every node
-        within that width of S and the ring of nodes beyond it (an analytic distance, a
-        ``redistance``d phi, ``1000 * sdf``); ``band_width`` elsewhere (``sdf.from_mesh``'s
+        within that width of S and the ring of nodes beyond it (an analytic distance,
+        ``1000 * sdf``, a phi ``redistance``d with ``band_width=7 * h``: its default 5 cells
+        stop short of the ring); ``band_width`` elsewhere (``sdf.from_mesh``'s
         5-cell distances, thin features, phi that is not a distance). Kept on the surface while
         ``phi`` needs no gradient.
         """
@@ -826,8 +827,9 @@ class ImplicitSurface(nn.Module):
 
         The sum of the principal curvatures (sphere of radius R: ``2 / R``), second order in the
         spacing; at the nodes of the box's faces (``phi``'s quadratic extrapolation there),
-        first order where S leaves the face obliquely (a sphere 11 degrees from the face's
-        normal: 0.9% of ``2 / R`` at 97^3), second order where it meets it at right angles.
+        first order where S leaves the face obliquely (a sphere whose normal there is 11
+        degrees from the face's plane: 0.9% of ``2 / R`` at 97^3), second order where it meets
+        it at right angles (and where its normal is 11 degrees from the face's normal).
         Computed once and kept (except when computed without autograd from a ``phi`` that
         requires grad, so that a later call still carries the graph; and computed again if the
         tensor returned was modified in place).

@@ -33,7 +33,7 @@ def laplace_beltrami(
       ``dt <= h^2 / 6``. Evaluated in one pass; as fast as ``"symmetric"`` when compiled.
     - ``"symmetric"``: ``(1/2W) [D- . (W P D+ u) + D+ . (W P D- u)]``, two of the eight;
       symmetric negative semi-definite; second order (2.0), but its biased cross terms leave an
-      error 2.4-3.2x larger on that torus (3.8e-3 to 9.5e-3); ``dt <= h^2 / 6``.
+      error 2.7-4.0x larger on that torus's three functions (3.8e-3 to 9.5e-3); ``dt <= h^2 / 6``.
     - ``"conservative"``: ``(1/W) D- . (W P D+ u)``, the paper's Appendix B exactly; symmetric
       negative semi-definite; first order (1.0) on curved surfaces; ``dt <= h^2 / 6``.
     - ``"central"``: ``Lap u - n^T (Hess u) n - H dn u`` with central differences; second order
