@@ -884,6 +884,14 @@ class Flow(nn.Module):
                    for b in range(surface.batch_size))
         return self._each_entry(u0, entries, surface.batch_size, times, inputs)
 
+    def _each_data_entry(self, u0: Tensor, surface: ImplicitSurface, times: object,
+                         inputs: dict[str, Tensor]) -> Tensor:
+        """Data of several entries on one dense surface, each integrated alone: for flows whose
+        plan reads the data (each entry's steps then follow its own data)."""
+        count = u0.shape[0]
+        entries = ((torch.tensor([b], device=u0.device), surface) for b in range(count))
+        return self._each_entry(u0, entries, count, times, inputs)
+
     def _each_entry(self, u0: Tensor, entries: Iterator[tuple[Tensor, ImplicitSurface]],
                     count: int, times: object, inputs: dict[str, Tensor]) -> Tensor:
         """A batch's entries ``(rows of u0 along its first dimension of size count, surface)``

@@ -151,8 +151,7 @@ class ReactionDiffusion(Flow):
         if (apart is not None or surface.layout is not None or count == 1
                 or isinstance(direction, Tensor) and direction.shape[:1] not in ((1,), (count,))):
             return apart  # (a direction of another batch is refused by the batch's call)
-        entries = ((torch.tensor([b], device=u0.device), surface) for b in range(count))
-        return self._each_entry(u0, entries, count, times, inputs)
+        return self._each_data_entry(u0, surface, times, inputs)
 
     def extra_repr(self) -> str:
         return (f"{super().extra_repr()}, rate={self.rate:g}, beta={self.beta:g}, "
