@@ -346,11 +346,12 @@ class _Extend(torch.autograd.Function):
         return None, grad if grad.shape[0] == ctx.batch else grad.sum(dim=0, keepdim=True), None
 
 
-def _first_band_values(u: Tensor, band: Tensor, entries: Tensor | None = None) -> Tensor:
+def _first_band_values(u: Tensor, band: Tensor, entries: Tensor | None = None,
+                       count: int = 0) -> Tensor:
     """``u``'s values ``(B, C, 1, ...)`` at the first node of ``band`` (bool, broadcastable to
     ``u``'s first channel) of each row's entry, read without a host sync: ``entries`` ``(B,)``
-    names the entry of each row (a brick's shape), ``None`` makes each row its own. Node 0 of
-    an entry with no band node."""
+    names the entry, of ``count``, of each row (a brick's shape); ``None`` makes each row its
+    own. Node 0 of an entry with no band node."""
     rows, channels = u.shape[:2]
     mask = band.expand(rows, 1, *u.shape[2:]).reshape(rows, -1)
     first = mask.to(torch.uint8).argmax(dim=1).view(rows, 1, 1).expand(rows, channels, 1)
@@ -358,7 +359,7 @@ def _first_band_values(u: Tensor, band: Tensor, entries: Tensor | None = None) -
     if entries is not None:  # each row takes its entry's first row holding band nodes
         index = torch.arange(rows, device=u.device)
         held = torch.where(mask.any(dim=1), index, rows)
-        firsts = torch.full((int(entries.max()) + 1,), rows, dtype=torch.long, device=u.device)
+        firsts = torch.full((count,), rows, dtype=torch.long, device=u.device)
         firsts = firsts.scatter_reduce(0, entries, held, "amin")
         values = values.index_select(0, torch.where(firsts < rows, firsts, 0)[entries])
     return values.view(rows, channels, *([1] * (u.dim() - 2)))
@@ -408,8 +409,9 @@ def heat_semigroup(u0: Tensor, operator: BandLaplacian, times: Tensor,
     # data of batch 1 on a surface of batch B: B entries, as on packed values
     u0 = u0.expand(max(u0.shape[0], operator.band.shape[0]), *u0.shape[1:])
     layout = operator.surface.layout
-    offset = _first_band_values(  # per entry, as on packed values
-        u0, operator.band, None if layout is None else layout.batch.to(u0.device))
+    offset = (_first_band_values(u0, operator.band) if layout is None  # per entry, as packed
+              else _first_band_values(u0, operator.band, layout.batch.to(u0.device),
+                                      len(layout.grids)))
     inside = torch.where(operator.band, u0 - offset, u0.new_zeros(()))
     result = chebyshev.expansion(
         operator.apply, inside, times, operator.bound, adjoint=operator.transpose,
