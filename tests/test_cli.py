@@ -208,6 +208,7 @@ def test_mesh_path_resolves_against_the_config_folder_then_the_mesh_dir(tmp_path
         (["grid.layout=sparse"], "grid.layout"),
         (["grid.layout=bricks", "grid.size=24"], "grid.margin"),
         (["flow.method=bogus"], "flow.method"),
+        (["flow.method=scipy_solver"], "flow.method"),  # ran 500 s at 24^3, no cap
         (["flow.kind=total_variation", "flow.method=chebyshev"], "flow.method"),
         (["surface.params.radius=-1"], "surface.params"),
         (["name=../escaped"], "name"),

@@ -272,6 +272,9 @@ FLOW_SETTINGS: dict[FlowKind, tuple[str, ...]] = {
 }
 """The optional settings each flow reads; the others must stay ``null``."""
 
+UNCAPPED_METHODS = ("scipy_solver",)
+"""torchdiffeq methods a config refuses: their work has no cap (docs/cli.md, ``flow.method``)."""
+
 LINEAR_FLOWS = (FlowKind.heat, FlowKind.visualization)
 """The flows whose rate is linear and symmetric: the implicit methods solve only those."""
 
@@ -673,6 +676,10 @@ def check(experiment: Experiment) -> None:
             check_method(flow.method, extra)
         except (TypeError, ValueError) as error:
             raise ConfigError("flow.method", str(error)) from None
+        if flow.method in UNCAPPED_METHODS:
+            raise ConfigError("flow.method", f"{flow.method} runs scipy's integrators on the "
+                              "host with no cap on their work (500 s for a 24^3 sphere that "
+                              "rk4 takes in 0.1 s); use rkc, euler, heun or dopri5")
         if flow.method in IMPLICIT and flow.kind not in LINEAR_FLOWS:
             raise ConfigError("flow.method", f"{flow.method} solves a linear system each step: "
                               f"only for flow.kind {' or '.join(k.name for k in LINEAR_FLOWS)}, "
