@@ -121,11 +121,11 @@ class Layout(Enum):
 BRICKS_FROM = 128
 """Grid size from which ``layout: auto`` stores bricks."""
 
-DENSE_MARGIN_CELLS = 1.0
-"""Free cells dense volumes need around the shape's box: S at least a cell inside the box, so
-that the central differences of ``phi`` and the closest points around it read a node on each
-side of S (at a margin of 0 the sphere's poles touched the faces and the pictures showed it
-flattened there)."""
+DENSE_MARGIN_CELLS = 2.0
+"""Free cells dense volumes need around the shape's box: S two cells inside the box, where
+:class:`~torchsurf.ImplicitSurface` stops warning that the operators are wrong near the faces
+(grid sizes 10-18 at the default margin had passed the former one cell and then warned; at a
+margin of 0 the sphere's poles touched the faces and the pictures showed it flattened)."""
 
 BRICK_MARGIN_CELLS = 5.0
 """Free cells the bricks layout needs around the shape's box: the 3-cell band and the 2 nodes
@@ -354,8 +354,8 @@ def _check_margin(grid: GridConfig, where: str) -> None:
         advice = (f"use grid.margin >= {math.ceil(needed * 1000) / 1000:g}"
                   if 0 < needed <= 1 else "use a larger grid.size")
         what = ("the bricks layout needs {:g} (the band and the nodes its stencils read)"
-                if bricks else "dense volumes need {:g} (S a cell inside the box, so that the "
-                "stencils read a node on each side of it; closer, the shape is cut flat)")
+                if bricks else "dense volumes need {:g} (S two cells inside the box; closer, "
+                "the operators are wrong near the faces, and at 0 the shape is cut flat)")
         raise ConfigError("grid.margin", f"{margin:g} leaves {cells:.1f} cells around the "
                           f"shape {where}; {what.format(least)}: {advice}"
                           + (", or grid.layout=dense" if bricks else ""))
