@@ -242,6 +242,8 @@ def test_mesh_path_resolves_against_the_config_folder_then_the_mesh_dir(tmp_path
         # the sphere's poles touched the faces and the picture showed it cut flat (exit 0)
         (["grid.size=32", "grid.margin=0"], "grid.margin"),
         (["grid.size=32", "grid.margin=0.02"], "grid.margin"),
+        # passed with a cell to spare, then the surface warned its operators wrong at the faces
+        (["grid.size=16"], "grid.margin"),
         (["signal.gray=1"], "signal.gray"),  # taken as true
     ],
 )
