@@ -806,5 +806,7 @@ def resolve_mesh(mesh: str, folder: Path) -> Path:
     where = ", ".join(str(c) for c in candidates)
     unset = "" if directory else f" (${MESH_DIR_VARIABLE} is not set)"
     first = ("" if path.is_absolute() else
-             f"; a path given with --set is looked for first in the current folder, {Path.cwd()}")
+             f"; a relative path is looked for in the folder of the config that names it, "
+             f"then in ${MESH_DIR_VARIABLE}; one given with --set first in the current folder, "
+             f"{Path.cwd()}")
     raise ConfigError("surface.mesh", f"{mesh!r} not found; looked at {where}{unset}{first}")
