@@ -725,7 +725,12 @@ class Flow(nn.Module):
                 take, so an early time is as accurate as such a call (it was reached in the
                 few long steps planned for ``time``: 0/1 data at 2 h^2 of 10 h^2, 9.7e-2
                 against 8.5e-3 alone; now 2.8e-3). Evenly spaced times add a few steps early
-                on (20 times: at most 3 steps a time).
+                on (20 times: at most 3 steps a time). torchdiffeq's methods integrate
+                pieces between the band's re-extensions, and a requested time splits one: its
+                result differs from a call to that time alone by the re-extensions' placement,
+                which more steps do not remove (``rk4``, 60 / 120 / 240 steps, sphere harmonic
+                of degree 2 at 33^3, ``u(0.37 T)``: 1.16e-4 / 1.13e-4 / 1.12e-4, against errors
+                of 1.0e-3 from the exact decay).
             inputs: flow-specific inputs (e.g. ``direction`` for tangent-field flows).
 
         Returns:
