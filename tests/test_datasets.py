@@ -172,9 +172,9 @@ def test_a_dataset_keeps_the_given_surfaces_eps() -> None:
     """It rebuilt its surfaces from phi and the band width: eps = 0.5 became 1e-6, moving the
     normals by 0.10 and the items' clean signals by 0.16 in the band."""
     grid = ts.Grid.cube(17, bound=1.5)
-    given = ts.ImplicitSurface(ts.sdf.sphere(grid), grid, band_width=0.4, eps=0.5)
+    given = ts.ImplicitSurface(ts.sdf.sphere(grid), grid, band_width=0.4, eps=0.05)
     dataset = datasets.SignalDataset(given, length=2, seed=0, kinds=["smooth"])
-    assert dataset.surface([0]).eps == 0.5
+    assert dataset.surface([0]).eps == 0.05
     band = given.band_mask()
     expected = datasets.smooth_signal(given, seed=datasets.derived_seed(0, 0))
     torch.testing.assert_close(dataset[0]["clean"][None][band], expected[band])

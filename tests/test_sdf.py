@@ -279,3 +279,18 @@ def test_points_relative_to_a_point() -> None:
     assert (relative.double() - exact).abs().max() < 1e-6
     with pytest.raises(ValueError, match="relative_to"):
         grid.points(relative_to=(1.0, 2.0))
+
+
+def test_a_torus_whose_tube_reaches_its_axis_is_refused():
+    """minor_radius >= major_radius (horn, spindle) gave -0.300 where the distance is -0.458."""
+    grid = Grid.cube(9, 1.0)
+    with pytest.raises(ValueError, match="minor_radius=0.5 must be below major_radius=0.2"):
+        sdf.torus(grid, major_radius=0.2, minor_radius=0.5)
+    with pytest.raises(ValueError, match="minor_radius=1 must be below major_radius=1"):
+        sdf.torus(grid, major_radius=1.0, minor_radius=1.0)
+
+
+def test_a_trefoil_of_too_few_samples_is_refused():
+    """With 16 samples four band nodes were 1.2 cells off at 33^3."""
+    with pytest.raises(ValueError, match="samples"):
+        sdf.trefoil(Grid.cube(9, 1.5), samples=16)

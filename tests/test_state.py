@@ -166,11 +166,18 @@ def test_a_new_eps_derives_the_geometry_again():
     grid = ts.Grid.cube(20, 1.5)
     phi = ts.sdf.sphere(grid)
     surface = ts.ImplicitSurface(phi, grid)
-    surface.eps = 0.5
-    fresh = ts.ImplicitSurface(phi, grid, eps=0.5)
+    surface.eps = 0.05
+    fresh = ts.ImplicitSurface(phi, grid, eps=0.05)
     assert torch.equal(surface.grad_norm, fresh.grad_norm)
     with pytest.raises(ValueError, match="eps"):
         surface.eps = -1.0
+    # eps = 1 shrank the normals to 0.70 without a word, 1e30 made the weight infinite
+    for eps in (1.0, 1e30):
+        with pytest.raises(ValueError, match=r"eps must be at most 0.1 .*got"):
+            surface.eps = eps
+        with pytest.raises(ValueError, match=r"eps must be at most 0.1"):
+            ts.ImplicitSurface(phi, grid, eps=eps)
+    assert surface.eps == 0.05
 
 
 def test_a_tensor_contrast_is_module_state_and_must_match_the_datas_dtype():

@@ -343,6 +343,23 @@ _DERIVE_ON_LOAD = "_derive_geometry_on_load"
 """Key of a copied surface's state whose geometry is derived again from its ``phi``."""
 
 
+MAX_EPS = 0.1
+"""The largest ``eps`` of :class:`ImplicitSurface`, relative to ``phi``'s typical slope on S:
+larger values shrink the normals where ``phi`` is a distance (to 0.70 of unit length at 1, 0.1
+at 10, and NaN from the infinite weight at 1e30) and widen the band (the whole box at 10)."""
+
+
+def check_eps(eps: object) -> float:
+    """``eps`` if it is a positive number of at most :data:`MAX_EPS`; raises naming it."""
+    value = check_positive(eps, "eps")
+    if value > MAX_EPS:
+        raise ValueError(
+            f"eps must be at most {MAX_EPS:g} (relative to phi's typical |grad phi| on S; it "
+            f"only keeps the normals finite where grad phi vanishes), got {eps!r}: larger "
+            "values shrink the normals where phi is a distance and widen the band")
+    return value
+
+
 class ImplicitSurface(nn.Module):
     """The zero level set of ``phi`` on ``grid``, with its normals, band and curvatures.
 
@@ -382,7 +399,8 @@ class ImplicitSurface(nn.Module):
         eps: regularisation of ``|grad phi|`` as ``sqrt(|grad phi|^2 + (eps s)^2)``, relative
             to ``s = gradient_scale`` (the typical ``|grad phi|`` on S, 1 for a distance
             function), so that it means the same for ``phi`` and ``c * phi``; keeps normals
-            and their gradients finite where ``grad phi`` vanishes (the medial axis).
+            and their gradients finite where ``grad phi`` vanishes (the medial axis). At most
+            :data:`MAX_EPS`.
 
     Attributes:
         phi: ``(B, 1, D, H, W)``.
@@ -434,7 +452,7 @@ class ImplicitSurface(nn.Module):
         self.band_width = check_positive(
             3.0 * grid.spacing if band_width is None else band_width, "band_width"
         )
-        self.eps = check_positive(eps, "eps")
+        self.eps = check_eps(eps)
         self._assemble_kept(phi)
 
     layout = None
@@ -506,7 +524,7 @@ class ImplicitSurface(nn.Module):
 
     @eps.setter
     def eps(self, value: float) -> None:
-        self._eps = check_positive(value, "eps")
+        self._eps = check_eps(value)
         if "phi" in self._buffers:
             self._reassemble()
 
@@ -539,7 +557,7 @@ class ImplicitSurface(nn.Module):
                 f"{type(self).__name__}: the loaded phi has shape {shape} but this surface's phi "
                 f"has {tuple(self.phi.shape)}: build a surface of the loaded phi instead")
         band_width = check_positive(state["band_width"], "band_width")
-        eps = check_positive(state["eps"], "eps")
+        eps = check_eps(state["eps"])
         self._place(state)
         self._band_width, self._eps = band_width, eps
         self._assemble_kept(phi.detach().to(dtype=self.phi.dtype, device=self.phi.device,
