@@ -11,7 +11,7 @@ from torch import Tensor
 from .._checks import MismatchError, check_finite, check_positive, check_tensor
 from .._inference import outside_inference
 from ..grid import Grid
-from ..surface import CROSSING_CELLS, ImplicitSurface
+from ..surface import CROSSING_CELLS, ImplicitSurface, check_eps
 from .layout import BRICK, BrickLayout
 
 STENCIL_REACH = 2
@@ -73,7 +73,7 @@ class BrickSurface(ImplicitSurface):
         self.band_width = check_positive(
             3.0 * layout.spacing if band_width is None else band_width, "band_width"
         )
-        self.eps = check_positive(eps, "eps")
+        self.eps = check_eps(eps)
         self._evolving = self._checked_widths(evolving_widths, layout.batch_size)
         self._assemble_kept(phi)
 
