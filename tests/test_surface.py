@@ -1005,3 +1005,19 @@ def test_curvature_and_normals_at_a_face_the_surface_meets_at_right_angles():
     assert max(coarse) < 0.1 and max(fine) < 0.02, errors
     for a, b in zip(coarse, fine, strict=True):
         assert math.log2(a / b) > 1.5, errors
+
+
+def test_the_faces_and_floored_warnings_name_their_batch_entries():
+    """In a batch they named no entry (and the floored one counted every entry's nodes), where
+    the flatness warnings name theirs."""
+    grid = ts.Grid.cube(33, 1.5)
+    x = grid.points()[..., 0]
+    good = ts.sdf.sphere(grid, 1.0)
+    near_face = ts.sdf.sphere(grid, 1.5 - grid.spacing)
+    floored = good * torch.exp(3 * x)[None, None]  # |grad phi| varies 400x along S
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        ts.ImplicitSurface(torch.cat([good, near_face, good, floored]), grid)
+    messages = [str(w.message) for w in caught]
+    assert any("faces (batch entries [1])" in m for m in messages), messages
+    assert any("nodes (batch entries [3])" in m for m in messages), messages

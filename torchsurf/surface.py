@@ -122,12 +122,17 @@ def _warn_floored_on_surface(crossing: Tensor, grad_norm: Tensor, scale: Tensor)
     ratio = grad_norm / scale
     floored = crossing & (ratio < MINIMUM_WEIGHT)
     if bool(floored.any()):
+        batch = floored.shape[0]
+        entries = floored.flatten(1).any(dim=1).nonzero().flatten().tolist()
+        near = crossing[entries] if batch > 1 else crossing
+        which = _entries_named([(index, 0.0) for index in entries], batch)
         warnings.warn(
             f"phi: |grad phi| next to S falls to {float(ratio[crossing].min()):.3g} of its "
-            f"median there at {int(floored.sum())} of {int(crossing.sum())} nodes (below "
+            f"median there at {int(floored.sum())} of {int(near.sum())} nodes{which} (below "
             f"MINIMUM_WEIGHT = {MINIMUM_WEIGHT}): the operators' weight W is floored at those "
             "nodes and they are no longer intrinsic; make phi a distance near S first "
-            "(torchsurf.sdf.redistance)",
+            "(torchsurf.sdf.redistance), or, if it is one, resolve the features thinner than "
+            "a few cells with a finer grid",
             RuntimeWarning, stacklevel=caller_stacklevel(),
         )
 
@@ -304,18 +309,20 @@ def _warn_oblique_at_faces(crossing: Tensor, normal: Tensor) -> None:
     the faces was 44% and 94% wrong over the 3-cell band at 25^3 and 49^3 (21% and 48% at two
     cells, 1.4% and 0.2% at three; remeasured 2026-12-06, relative max). Read from
     the zero set, not from ``|phi| / W``, which is no distance where ``phi`` is none."""
-    hits = 0
+    hits = torch.zeros(crossing.shape[0], dtype=torch.long, device=crossing.device)
     for axis in range(3):
         dim = 4 - axis  # normal channel x, y, z <-> dims W, H, D
         oblique = crossing & (normal[:, axis: axis + 1].abs() > 0.5)
         layers = min(FACE_LAYERS, oblique.shape[dim])
-        hits += int(oblique.narrow(dim, 0, layers).sum())
-        hits += int(oblique.narrow(dim, oblique.shape[dim] - layers, layers).sum())
-    if hits:
+        hits += oblique.narrow(dim, 0, layers).flatten(1).sum(dim=1)
+        hits += oblique.narrow(dim, oblique.shape[dim] - layers, layers).flatten(1).sum(dim=1)
+    if bool(hits.any()):
+        which = _entries_named([(index, 0.0) for index in hits.nonzero().flatten().tolist()],
+                               crossing.shape[0])
         warnings.warn(
-            f"phi: S comes within about {FACE_LAYERS} cells of the grid's faces, where its "
-            f"level sets leave the box obliquely ({hits} nodes next to S in the outer "
-            f"{FACE_LAYERS} layers): the stencils assume no flux through the faces, so "
+            f"phi: S comes within about {FACE_LAYERS} cells of the grid's faces{which}, where "
+            f"its level sets leave the box obliquely ({int(hits.sum())} nodes next to S in the "
+            f"outer {FACE_LAYERS} layers): the stencils assume no flux through the faces, so "
             "operators and flows are wrong near there; give the grid a margin of a few cells "
             "(Grid.cube's bound, mesh.fit_grid's margin)",
             RuntimeWarning, stacklevel=caller_stacklevel(),
