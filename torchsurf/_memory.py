@@ -134,11 +134,28 @@ def flow_bytes(
     return working + masks + first_call
 
 
+DECODE_SOLVE_BYTES = 40_000
+"""Bytes a vertex of a chunk of ``order=2`` decoding weights solved at once holds
+(:data:`torchsurf._vertex_decode.DECODE_CHUNK` of them; about 50 kB measured)."""
+
+DECODE_KEPT_BYTES = 8_000
+"""Bytes an ``order=2`` adapter holds per vertex while it builds its decoding weights: 8.2 kB
+measured (live peak of spot, its subdivision, the armadillo and bunny, 2.9k-35k vertices, at
+32^3: about 89 MB plus this a vertex, whatever the grid)."""
+
+
 def mesh_adapter_bytes(shape: tuple[int, int, int], spacing: float, band: float, area: float,
-                       dtype: torch.dtype | None) -> int:
+                       dtype: torch.dtype | None, vertices: int = 0, order: int = 1) -> int:
     """:class:`~torchsurf.MeshAdapter`: the mesh distance (:func:`mesh_sdf_bytes`), then its
     float64 result, its copy in ``dtype`` and the surface built on it
-    (:func:`surface_bytes`) at once."""
+    (:func:`surface_bytes`) at once; with ``order=2``, the decoding weights of its
+    ``vertices`` (:data:`DECODE_SOLVE_BYTES`, :data:`DECODE_KEPT_BYTES`: what dominates on
+    meshes of many vertices, 36-200x the rest on bunny at 32^3-64^3)."""
+    from ._vertex_decode import DECODE_CHUNK
+
     nodes = math.prod(shape)
     surface = (8 + _itemsize(dtype)) * nodes + surface_bytes(1, shape, dtype)
-    return max(mesh_sdf_bytes(shape, spacing, band, area, dtype), surface)
+    decoding = 0
+    if order == 2:
+        decoding = DECODE_SOLVE_BYTES * min(vertices, DECODE_CHUNK) + DECODE_KEPT_BYTES * vertices
+    return max(mesh_sdf_bytes(shape, spacing, band, area, dtype), surface) + decoding

@@ -252,7 +252,8 @@ class MeshAdapter(nn.Module):
         width = check_adapter_band(sdf._band(grid, band_width), grid.spacing)
         reach = max(width, sdf.BAND_NODES * grid.spacing)
         _memory.check_fits(
-            _memory.mesh_adapter_bytes(grid.shape, grid.spacing, reach, float(mesh.area), dtype),
+            _memory.mesh_adapter_bytes(grid.shape, grid.spacing, reach, float(mesh.area), dtype,
+                                       len(mesh.vertices), self.order),
             f"MeshAdapter on a {grid.shape} grid",
         )
         vertices, faces = triangle_arrays(mesh)
