@@ -429,12 +429,15 @@ _RECORDED: contextvars.ContextVar[bool] = contextvars.ContextVar(
 
 
 def part_of_recorded(function: Callable) -> Callable:
-    """Decorates a custom ``autograd.Function``'s ``forward`` and ``backward``, inside which
-    autograd records nothing: their calls are taken for part of a recorded computation, and
-    ``"auto"`` keeps volumes below :data:`COMPILE_MIN_VOXELS` eager there too, so that a
-    gradcheck's Jacobians never change kernel halfway (its two backward passes must agree
-    exactly: a compile in between failed it as "not reentrant"). Nothing while
-    ``torch.compile`` traces (every kernel then runs its eager form)."""
+    """Decorates a custom ``autograd.Function``'s ``backward``, inside which autograd records
+    nothing: its calls are taken for part of a recorded computation, and ``"auto"`` keeps
+    volumes below :data:`COMPILE_MIN_VOXELS` eager there too, so that a gradcheck's analytical
+    Jacobian never changes kernel halfway (its two backward passes must agree exactly: a
+    compile in between failed it as "not reentrant"). Not for ``forward``, which also runs
+    where nothing is recorded (``no_grad`` flows, whose small volumes must still compile once
+    they pay: an implicit flow at 48^3 ran 3.7 times as long), and whose rounding a
+    gradcheck's finite differences tolerate. Nothing while ``torch.compile`` traces (every
+    kernel then runs its eager form)."""
 
     @functools.wraps(function)
     def recorded(*args: object, **kwargs: object) -> object:

@@ -84,7 +84,6 @@ def reextend(stencil: Stencil, u: Tensor, path: str = "auto") -> Tensor:
 
 class _Reextend(torch.autograd.Function):
     @staticmethod
-    @backend.part_of_recorded
     def forward(ctx, stencil, u, path="auto"):  # noqa: ANN001, ANN205
         ctx.stencil = stencil
         with torch.no_grad():

@@ -157,7 +157,6 @@ class _SymmetricSolve(torch.autograd.Function):
     """``x = K^-1 b`` with ``K`` symmetric; backward by a second solve (implicit differentiation)."""
 
     @staticmethod
-    @backend.part_of_recorded
     def forward(ctx, operator, options, groups, initial, rhs, *params):  # noqa: ANN001, ANN205
         def apply(x: Tensor) -> Tensor:
             return operator(x, *params)

@@ -252,7 +252,6 @@ class _Expansion(torch.autograd.Function):
     nothing stored but ``x``, ``t`` and ``W``."""
 
     @staticmethod
-    @backend.part_of_recorded
     def forward(ctx, operator, adjoint, kind, bound, terms, pieces, x, weight, times):  # noqa: ANN001, ANN205
         c = coefficients(kind, times.detach() / pieces, bound, terms)
         with torch.no_grad():

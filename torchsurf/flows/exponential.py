@@ -334,7 +334,6 @@ class _Extend(torch.autograd.Function):
     keep 64 values per node)."""
 
     @staticmethod
-    @backend.part_of_recorded
     def forward(ctx, stencil, x, path="auto"):  # noqa: ANN001, ANN205
         ctx.stencil, ctx.batch = stencil, x.shape[0]
         return stencil.apply(x, path)

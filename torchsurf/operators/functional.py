@@ -187,7 +187,6 @@ class _SelfAdjoint(torch.autograd.Function):
     (``M L u``), ``L^T M g``."""
 
     @staticmethod
-    @backend.part_of_recorded
     def forward(ctx, u, normal, weight, spacing, scheme, weighted, haloed, path, pad, mask):  # noqa: ANN001, ANN205
         ctx.geometry = (normal, weight, spacing, scheme, weighted, haloed, path, pad, mask,
                         u.shape[0])
