@@ -409,3 +409,29 @@ def test_limited_cubic_extension_repeated_on_its_result_stays_in_range():
     for _ in range(49):
         repeated = limited(repeated, surface)
     assert float(repeated[band].abs().max()) <= 1.0 + 1e-6
+
+
+def test_learned_per_channel_diffusivities_of_equal_values_run_together():
+    """A learned vector that starts equal (a common initialisation) ran each channel alone, at
+    C runs' cost; channels of one current value run as one flow, each entry of the parameter
+    still given its own channel's gradient."""
+    grid = ts.Grid.cube(21, bound=1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, dtype=torch.float64), grid)
+    u = torch.rand(1, 3, *grid.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(3))
+    time = 4 * grid.spacing**2
+    flow = ts.HeatFlow(time, diffusivity=[2.0, 1.0, 2.0], learn_diffusivity=True).double()
+    runs = []
+    original = ts.HeatFlow._channels_apart
+
+    def counted(self, u0, *args):
+        runs.append([channels for _, channels in args[2]])
+        return original(self, u0, *args)
+
+    ts.HeatFlow._channels_apart = counted
+    try:
+        out = flow(u, surface)
+    finally:
+        ts.HeatFlow._channels_apart = original
+    assert runs == [[[0, 2], [1]]]
+    grads = torch.autograd.grad(out[:, 0].sum() + 2 * out[:, 2].sum(), flow.diffusivity.raw)[0]
+    assert grads[1] == 0 and grads[0] != 0 and grads[2] != 0 and grads[0] != grads[2]

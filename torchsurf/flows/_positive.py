@@ -239,17 +239,18 @@ class Positive(nn.Module):
 
 
 class ChannelOf(Positive):
-    """Entry ``index`` of a learnable per-channel :class:`Positive` ``whole``, a single value in
-    the graph of ``whole``'s parameter: what a flow that runs that channel alone reads, so that
-    its steps and re-extensions follow that channel's value (and the gradient reaches the
-    parameter through it). Holds no parameter of its own; ``bound`` is ``whole``'s."""
+    """Entries ``indices`` of a learnable per-channel :class:`Positive` ``whole``, a vector
+    ``(len(indices),)`` in the graph of ``whole``'s parameter: what a flow that runs those
+    channels apart from the others reads, so that its steps and re-extensions follow their
+    values (and the gradient reaches each entry of the parameter through its own channel).
+    Holds no parameter of its own; ``bound`` is ``whole``'s."""
 
-    def __init__(self, whole: Positive, index: int) -> None:
+    def __init__(self, whole: Positive, indices: list[int]) -> None:
         nn.Module.__init__(self)
         if not whole.learnable or whole.channels is None:
             raise ValueError(f"ChannelOf takes a learnable per-channel value, got {whole!r}")
         self.whole = whole
-        self.index = index
+        self.indices = list(indices)
         self.name = whole.name
         self.learnable = True
         self.bound = whole.bound
@@ -258,17 +259,19 @@ class ChannelOf(Positive):
 
     @property
     def channels(self) -> int | None:
-        """``None``: a single value."""
-        return None
+        """The number of channels taken."""
+        return len(self.indices)
 
     def value(self) -> Tensor:
-        """The entry, a 0-d tensor in the graph of ``whole``'s parameter."""
-        return self.whole.value()[self.index]
+        """The entries ``(len(indices),)``, in the graph of ``whole``'s parameter."""
+        value = self.whole.value()
+        return value[self.indices[0]:self.indices[0] + 1] if len(self.indices) == 1 \
+            else value[self.indices]
 
     def maximum(self) -> float:
-        """The bound, or the entry read on the host (``whole`` names its parameter in the error
-        if an entry is no longer finite)."""
+        """The bound, or the largest entry read on the host (``whole`` names its parameter in
+        the error if an entry is no longer finite)."""
         if self.bound is not None:
             return self.bound
         self.whole.maximum()
-        return float(self.value().detach())
+        return float(self.value().detach().max())
