@@ -29,6 +29,7 @@ import io
 import math
 import os
 import signal
+import sys
 import tempfile
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -430,10 +431,20 @@ def parse(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--quick", action="store_true",
                         help="a tiny smoke run (seconds): small grid, network and data")
     args = parser.parse_args(argv)
-    if args.quick:
-        args.resolution, args.channels, args.blocks, args.hidden = 24, 2, 1, 8
-        args.iterations, args.train_rounds, args.test_rounds, args.picture_size = 2, 1, 1, 120
+    if args.quick:  # the options given beside --quick stand
+        given = {word.split("=")[0] for word in (sys.argv[1:] if argv is None else argv)}
+        quick = {"resolution": 24, "channels": 2, "blocks": 1, "hidden": 8, "iterations": 2,
+                 "train_rounds": 1, "test_rounds": 1, "picture_size": 120}
+        for name, value in quick.items():
+            if "--" + name.replace("_", "-") not in given:
+                setattr(args, name, value)
         args.eager = True
+    if args.threads is not None and args.threads < 1:
+        parser.error(f"--threads must be an integer of at least 1, got {args.threads}")
+    if args.heldout_mesh is not None and any(
+            Path(args.heldout_mesh).name == Path(mesh).name for mesh in args.meshes):
+        parser.error(f"--heldout-mesh {args.heldout_mesh} is also among --meshes: the held-out "
+                     "shape must not be trained on")
     for name, least in (("resolution", 16), ("channels", 2), ("blocks", 0), ("hidden", 1),
                         ("iterations", 1), ("train_rounds", 1), ("test_rounds", 1), ("cells", 1),
                         ("picture_size", 16)):

@@ -77,6 +77,9 @@ def test_outputs_are_staged_and_a_failure_leaves_the_former_ones(example, tmp_pa
     (["--resolution", "8"], "--resolution"),
     (["--iterations", "0"], "--iterations"),
     (["--noise", "-1"], "--noise"),
+    (["--threads", "0"], "--threads"),  # torch's own error, naming no option
+    (["--quick", "--iterations", "0"], "--iterations"),  # --quick made it 2 without a word
+    (["--meshes", "spot.obj", "--heldout-mesh", "spot.obj"], "--heldout-mesh"),
 ])
 def test_bad_arguments_are_named(example, capsys, argv, named):
     with pytest.raises(SystemExit):
@@ -87,3 +90,8 @@ def test_bad_arguments_are_named(example, capsys, argv, named):
 def test_relative_mesh_without_folder_is_refused(example):
     with pytest.raises(FileNotFoundError, match="--meshes 'spot.obj'"):
         example.mesh_paths(["spot.obj"], None)
+
+
+def test_options_given_beside_quick_stand(example):
+    args = example.parse(["--quick", "--resolution", "32", "--channels=3"])
+    assert (args.resolution, args.channels, args.iterations) == (32, 3, 2)
