@@ -393,23 +393,26 @@ def heat_semigroup(u0: Tensor, operator: BandLaplacian, times: Tensor,
         # expanded and filled about each entry's first band node's values, which both keep
         # (L annihilates constants, the ring's weights sum to 1): a constant stays one to the
         # last bit, where the float32 sums of the coefficients and weights are 1 only to a
-        # few ulps; large offsets lose less
+        # few ulps; large offsets lose less. The offsets are detached: the map keeps
+        # constants, so their gradient is zero, which float32 sums left at 1e-3 at each first
+        # node
         values = packed.pack(u0)
         region = packed.packing
+        offsets = values.detach()
         result = chebyshev.expansion(
-            packed.apply, values - region.entry_offsets(values, len(values)), times,
+            packed.apply, values - region.entry_offsets(offsets, len(values)), times,
             operator.bound, adjoint=packed.transpose, largest=largest,
         )
         # the final re-extension on packed values too: the region's limited stencil as a
         # PackedStencil (half the layer's training iteration when it gathered volumes)
-        filled = Fill.apply(packed, result) + region.entry_offsets(values)
+        filled = Fill.apply(packed, result) + region.entry_offsets(offsets)
         extended = packed.unpack(packed.packing.stencil(operator.extension).apply(filled), u0)
         return torch.where(operator.region, extended, u0)
     # data of batch 1 on a surface of batch B: B entries, as on packed values
     u0 = u0.expand(max(u0.shape[0], operator.band.shape[0]), *u0.shape[1:])
     layout = operator.surface.layout
-    offset = (_first_band_values(u0, operator.band) if layout is None  # per entry, as packed
-              else _first_band_values(u0, operator.band, layout.batch.to(u0.device),
+    offset = (_first_band_values(u0.detach(), operator.band) if layout is None  # as packed
+              else _first_band_values(u0.detach(), operator.band, layout.batch.to(u0.device),
                                       len(layout.grids)))
     inside = torch.where(operator.band, u0 - offset, u0.new_zeros(()))
     result = chebyshev.expansion(
