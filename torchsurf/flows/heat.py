@@ -109,7 +109,7 @@ class HeatFlow(Flow):
     Args:
         time: physical end time, world units squared (with ``D = 1``).
         diffusivity: ``D``, a positive number or one per channel ``(C,)``. Per-channel
-            values run each distinct fixed value's channels, and each learned channel, with
+            values run each distinct value's channels (a learned vector's current values) with
             their own steps and re-extensions: each channel's result is its own flow's (under
             ``torch.compile`` the channels run together, planned for the largest value or
             ``max_diffusivity``).
