@@ -319,3 +319,22 @@ def check_count(value: object, name: str, minimum: int = 1) -> int:
     if number < minimum:
         raise ValueError(f"{name} must be {expected}, got {value!r}")
     return number
+
+
+def check_loaded_shapes(module: torch.nn.Module, state_dict: dict, prefix: str) -> None:
+    """Raise ``ValueError`` naming the first tensor of ``module``'s state (its own, its
+    children's, their extra states') whose entry in ``state_dict`` has another shape, before
+    ``load_state_dict`` writes anything: an adapter whose tables index its surface's nodes would
+    otherwise be left half-loaded, the surface another mesh's and the tables its own."""
+    for key, current in module.state_dict().items():
+        loaded = state_dict.get(prefix + key)
+        pairs = ([(key, current, loaded)] if isinstance(current, Tensor) else
+                 [(f"{key}[{name!r}]", value, loaded.get(name)) for name, value in current.items()]
+                 if isinstance(current, dict) and isinstance(loaded, dict) else [])
+        for name, mine, theirs in pairs:
+            if (isinstance(mine, Tensor) and isinstance(theirs, Tensor)
+                    and mine.shape != theirs.shape):
+                raise ValueError(
+                    f"{type(module).__name__}: the loaded {name} has shape {tuple(theirs.shape)} "
+                    f"where this one's has {tuple(mine.shape)}: the state of another mesh or "
+                    "grid (nothing was loaded); build the module of that mesh or grid instead")

@@ -21,6 +21,7 @@ from ._checks import (
     check_count,
     check_device,
     check_dtype,
+    check_loaded_shapes,
     check_module_dtype,
     check_nonnegative,
     check_positive,
@@ -338,6 +339,11 @@ class MeshAdapter(nn.Module):
         """:meth:`encode`: vertex values ``(B, C, V)`` -> volume ``(B, C, D, H, W)`` on
         :attr:`grid`, constant along normals in the band."""
         return self.encode(values)
+
+    def _load_from_state_dict(self, state_dict: dict, prefix: str, *args: object,
+                              **kwargs: object) -> None:
+        check_loaded_shapes(self, state_dict, prefix)  # before the surface takes another mesh
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def extra_repr(self) -> str:
         return (

@@ -27,6 +27,7 @@ from ._checks import (
     check_device,
     check_dtype,
     check_like_first,
+    check_loaded_shapes,
     check_module_dtype,
     check_nonnegative,
     check_positive,
@@ -314,6 +315,11 @@ class MeshBatchAdapter(nn.Module):
         """A diffusion time on the common grid in every shape's own units, ``(B,)`` float64:
         ``time / scale_b^2`` (times are lengths squared)."""
         return check_nonnegative(time, "time") / self.scale**2
+
+    def _load_from_state_dict(self, state_dict: dict, prefix: str, *args: object,
+                              **kwargs: object) -> None:
+        check_loaded_shapes(self, state_dict, prefix)  # before the surface takes another mesh
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def extra_repr(self) -> str:
         return f"shapes={len(self)}, grid={self.grid.shape}, spacing={self.grid.spacing:g}"

@@ -13,6 +13,7 @@ from .._checks import (
     check_device,
     check_dtype,
     check_like_first,
+    check_loaded_shapes,
     check_module_dtype,
     check_positive,
     check_tensor,
@@ -255,6 +256,11 @@ class BrickMeshAdapter(nn.Module):
     def forward(self, values: Sequence[Tensor]) -> Tensor:
         """:meth:`encode`."""
         return self.encode(values)
+
+    def _load_from_state_dict(self, state_dict: dict, prefix: str, *args: object,
+                              **kwargs: object) -> None:
+        check_loaded_shapes(self, state_dict, prefix)  # before the surface takes another mesh
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def extra_repr(self) -> str:
         return (f"meshes={len(self)}, vertices={self._counts}, bricks={len(self.surface.layout)}, "
