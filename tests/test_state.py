@@ -223,3 +223,13 @@ def test_a_refused_adapter_state_leaves_the_adapter_as_it_was(kind):
     after = adapter.state_dict()
     assert all(torch.equal(after[key], value) for key, value in before.items())
     assert torch.equal(adapter.surface.phi, build(small).surface.phi)
+
+
+def test_a_contrast_computed_from_a_parameter_is_refused_by_the_module_form():
+    """Held as a plain attribute, it failed the second training step with torch's "backward
+    through the graph a second time", deepcopy, and .double()."""
+    log_contrast = torch.nn.Parameter(torch.tensor([0.0, 0.3]))
+    with pytest.raises(ValueError, match="contrast is computed from a parameter"):
+        ts.AnisotropicDiffusion("perona_malik", contrast=log_contrast.exp())
+    module = ts.AnisotropicDiffusion("perona_malik", contrast=log_contrast)
+    assert any(p is log_contrast for p in module.parameters())

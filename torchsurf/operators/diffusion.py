@@ -220,9 +220,11 @@ class AnisotropicDiffusion(nn.Module):
     """Module form of :func:`anisotropic_diffusion`: ``(B, C, D, H, W) -> (B, C, D, H, W)``.
 
     ``contrast`` may be an ``nn.Parameter`` (shape ``()`` or ``(C,)``); it is registered with
-    the module so that an optimiser sees it. Keep it positive, e.g. by passing
-    ``log_contrast.exp()`` through a wrapper module. Another tensor that records no gradient
-    is copied into a buffer: it follows ``.to()`` and ``state_dict``.
+    the module so that an optimiser sees it. A contrast computed from a parameter (such as
+    ``log_contrast.exp()``, to keep it positive) belongs in the call of the functional form,
+    :func:`anisotropic_diffusion`, made at every step by a module of one's own: given here it
+    would be computed once, and refused. Another tensor that records no gradient is copied
+    into a buffer: it follows ``.to()`` and ``state_dict``.
     """
 
     def __init__(
@@ -238,7 +240,14 @@ class AnisotropicDiffusion(nn.Module):
         self.diffusivity = stored_diffusivity(diffusivity)
         contrast = _initial_contrast(contrast)
         if (isinstance(contrast, Tensor) and not isinstance(contrast, nn.Parameter)
-                and not contrast.requires_grad):
+                and contrast.requires_grad):
+            raise ValueError(
+                "contrast is computed from a parameter (it requires grad and is no "
+                "nn.Parameter): computed once here, its graph would be backpropagated through "
+                "twice at the second step; pass the nn.Parameter itself, or call "
+                "torchsurf.anisotropic_diffusion(u, surface, ..., contrast=log_contrast.exp()) "
+                "in your module's forward")
+        if isinstance(contrast, Tensor) and not isinstance(contrast, nn.Parameter):
             self.register_buffer("contrast", contrast.clone())
         else:
             self.contrast = contrast
