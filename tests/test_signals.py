@@ -247,7 +247,8 @@ def test_signals_on_bricks_equal_the_dense_ones_in_the_band():
     for make in (signals.node_points, signals.closest_points,
                  lambda s: signals.surface_noise(s, 2, seed=5, grain=1.5),
                  lambda s: signals.swirl_field(s, "z", (0.1, 0.0, 0.0)),
-                 lambda s: signals.gaussian_noise(signals.node_points(s), 0.3, 2, s)):
+                 lambda s: signals.gaussian_noise(signals.node_points(s), 0.3, 2, s),
+                 lambda s: signals.uniform_noise(s, 2, 4)):  # was dense on bricks
         expected = packed.from_dense(make(dense))
         got = make(packed)
         assert got.shape == expected.shape

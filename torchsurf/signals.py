@@ -246,8 +246,15 @@ def gaussian_noise(like: Tensor, std: float, seed: int, surface: ImplicitSurface
 
 
 def uniform_noise(surface: ImplicitSurface, channels: int, seed: int) -> Tensor:
-    """Uniform noise in ``[0, 1)`` at every node, ``(1, channels, D, H, W)``, seeded."""
+    """Uniform noise in ``[0, 1)`` at every node, ``(1, channels, D, H, W)``, seeded (packed
+    ``(N, channels, 8, 8, 8)`` on bricks: the numbers the dense grid of each entry gets, node
+    for node, as :func:`gaussian_noise`'s)."""
     channels = check_count(channels, "channels")
+    if surface.layout is not None:
+        draw = generator(seed)
+        volumes = [torch.rand((1, channels, *grid.shape), generator=draw, dtype=surface.phi.dtype)
+                   for grid in surface.grids]
+        return surface.layout.from_dense(volumes).to(surface.phi.device)
     values = torch.rand((1, channels, *surface.grid.shape), generator=generator(seed),
                         dtype=surface.phi.dtype)
     return values.to(surface.phi.device)

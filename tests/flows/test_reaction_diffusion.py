@@ -129,8 +129,7 @@ def test_pattern_scale_follows_the_rate(sphere41):
     at ``s = 1/128``, 12.6 at 1/64, 8.9 at 1/32; log-log slope -1/2.
 
     Runs end at ``s t = 4``: the variance of ``b`` has grown ~40-fold since ``s t = 1/4`` and
-    the pattern is still near the linear regime (the flow, which does not clamp ``b >= 0`` as
-    Turk's code does, blows up near ``s t = 8``). Measured on 41^3, seeds 0-7, cells at
+    the pattern is still near the linear regime. Measured on 41^3, seeds 0-7, cells at
     s = 1/128, 1/64, 1/32: 17.4-18.6, 12.8-13.3, 9.7-10.0; slope -0.42 to -0.46 (the
     central-difference gradient lengthens 9-cell waves by 8%, so about -0.45 is expected).
     With ``s`` ignored (fixed at 1/128 or 1/32 inside the flow) the slope was -0.23 or -0.05.

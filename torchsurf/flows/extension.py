@@ -5,7 +5,14 @@ Two ways:
 - ``"closest_point"``: ``u(x) <- u(x - phi(x) grad phi(x) / |grad phi(x)|^2)``, the value at
   the (first-order) closest point of S, read by trilinear interpolation (Ruuth & Merriman 2008)
   or, with ``interpolation="cubic"``, tricubic. One pass; nodes on S keep their values up to
-  the interpolation error, ``O(h^2)`` or ``O(h^4)``.
+  the interpolation error, ``O(h^2)`` or ``O(h^4)``. Across the band the closest points add
+  theirs: on an exact distance the central-difference normal's ``O(h^2)`` error moves them
+  by ``|phi| O(h^2)``, so tricubic extension is third order there (sphere R = 0.8, data
+  constant along the normals, 24^3 / 48^3 / 96^3: 5.2e-3, 4.0e-4, 3.8e-5; fourth order on
+  ``r^2 - R^2``, whose differences are exact); and where ``phi`` is not a distance the
+  first-order closest point misses S by ``O(phi^2)``, a fraction of a cell too small for the
+  refinement to act, so data that varies along the normals is extended at second order,
+  tricubic no better than trilinear (``r^2 - R^2``: 1.0e-2 for both at 96^3).
 - ``"pde"``: ``u_t + sign(phi) n . grad u = 0`` with first-order upwind differences, stepped at
   CFL number 1/2 until the largest change per step falls below ``tolerance`` (the paper's §2).
   Information flows outwards from S, so nodes where ``phi = 0`` are not changed at all.
@@ -59,7 +66,8 @@ def closest_point_extension(
         interpolation: ``"linear"`` (trilinear, error ``O(h^2)``: repeated every few steps
             of a flow, it smooths the data and costs second-order flows their accuracy) or
             ``"cubic"`` (tricubic Lagrange on the 4^3 nodes around each point, error
-            ``O(h^4)``, evaluated at band nodes only; it reads nodes up to ``2 sqrt(3)``
+            ``O(h^4)`` at the point, third order across the band (module docstring),
+            evaluated at band nodes only; it reads nodes up to ``2 sqrt(3)``
             cells from S, beyond a narrower band).
         mask: bool ``(B or 1, 1, D, H, W)`` (packed ``(N, 1, 8, 8, 8)`` on bricks): the nodes
             to extend to, instead of the band of ``width``.
