@@ -981,7 +981,27 @@ def check_direction(direction: object, u0: Tensor, surface: ImplicitSurface,
     check_direction_batch(field, u0, "u0", surface)
     if not torch.compiler.is_compiling():
         check_finite(torch.where(region, field, 0.0), "direction (in the band and its ring)")
+        _check_tangential(field.detach(), surface.normal.detach(), region)
     return field
+
+
+def _check_tangential(field: Tensor, normal: Tensor, region: Tensor) -> None:
+    """Raise naming ``direction`` where most of an entry's ``region`` holds no tangential part
+    (a zero field, or one along the normals): :func:`tangent_unit` sends it to 0 there and the
+    flows would not diffuse along it, without a word. Isolated zeros (a sphere's tangent field
+    has some) are fine."""
+    squared = (field**2).sum(dim=1, keepdim=True)
+    tangent = field - (field * normal).sum(dim=1, keepdim=True) * normal
+    none = (tangent**2).sum(dim=1, keepdim=True) <= TANGENT_FLOOR**2 * squared
+    region = region.expand_as(none)
+    share = (none & region).flatten(1).sum(1) / region.flatten(1).sum(1).clamp_min(1)
+    if bool((share > 0.5).any()):
+        worst = float(share.max())
+        raise ValueError(
+            f"direction has no part tangent to the level sets at {worst:.0%} of the band's "
+            "nodes (it is zero, or along the normals, there): the flow would not diffuse "
+            "along it; give a tangent field (e.g. torchsurf.signals.principal_direction, "
+            "swirl_field)")
 
 
 def tangent_unit(field: Tensor, surface: ImplicitSurface) -> Tensor:

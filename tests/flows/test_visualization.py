@@ -67,3 +67,16 @@ def test_the_direction_field_is_scale_free():
                           generator=torch.Generator().manual_seed(1))
     (flow(noise, surface, direction=leaf) * weights * surface.band_mask()).sum().backward()
     assert float(leaf.grad.abs().max()) < 1e3
+
+
+@pytest.mark.parametrize("make", [lambda s: torch.zeros_like(s.normal), lambda s: s.normal.clone()])
+def test_a_field_with_no_tangent_part_is_refused(make):
+    """A zero field, or the normals, were sent to 0 by tangent_unit: flow visualisation then
+    diffused nothing, reaction–diffusion's a not at all, without a word."""
+    grid = ts.Grid.cube(21, bound=1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid), grid)
+    u0 = torch.rand(1, 1, *grid.shape, generator=torch.Generator().manual_seed(0))
+    for flow, data in ((ts.flows.FlowVisualization(0.01), u0),
+                       (ts.flows.ReactionDiffusion(1.0), ts.flows.ReactionDiffusion.initial(surface))):
+        with pytest.raises(ValueError, match="direction has no part tangent"):
+            flow(data, surface, direction=make(surface))
