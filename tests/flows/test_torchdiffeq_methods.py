@@ -68,6 +68,18 @@ def test_options_are_checked_by_name(options, error, match):
         HeatFlow(TIME, method="rk4", options=options)
 
 
+def test_tolerances_a_method_ignores_or_cannot_meet_and_a_named_norm_are_refused():
+    """rtol on rk4 was ignored without a word (rtol=1e3 gave the run of no options), rtol and
+    atol of 0 ended in "steps shrank" naming neither, norm="max" in a bare TypeError."""
+    with pytest.raises(ValueError, match=r"options\['rtol'\] is for .* own steps"):
+        HeatFlow(TIME, method="rk4", options={"rtol": 1e3})
+    with pytest.raises(ValueError, match="both 0"):
+        HeatFlow(TIME, method="dopri5", options={"rtol": 0, "atol": 0})
+    with pytest.raises(TypeError, match=r"options\['norm'\] must be a function"):
+        HeatFlow(TIME, method="dopri5", options={"norm": "max"})
+    HeatFlow(TIME, method="dopri5", options={"rtol": 0, "atol": 1e-8})
+
+
 def test_a_step_size_is_refused_for_a_method_that_chooses_its_steps():
     HeatFlow(TIME, method="rk4", options={"step_size": 1e-3})
     with pytest.raises(ValueError, match="fixed-step methods"):

@@ -823,6 +823,18 @@ def check_options(options: object, method: str) -> dict:
         raise ValueError(f"options['step_size'] is for torchdiffeq's fixed-step methods "
                          f"{list(FIXED_STEP)}; method={method!r} chooses its own steps (rtol, "
                          "atol)")
+    tolerances = [key for key in ("rtol", "atol") if key in checked]
+    if tolerances and method in FIXED_STEP:
+        raise ValueError(f"options[{tolerances[0]!r}] is for torchdiffeq's methods that choose "
+                         f"their own steps; method={method!r} takes fixed steps, which it "
+                         "ignores (give steps= or options['step_size'])")
+    if tolerances and not any(checked[key] > 0 for key in tolerances) and (
+            len(tolerances) == 2):
+        raise ValueError("options['rtol'] and options['atol'] are both 0: no step can meet "
+                         "them (the steps would shrink until refused)")
+    if "norm" in checked and not callable(checked["norm"]):
+        raise TypeError(f"options['norm'] must be a function of a tensor (torchdiffeq's error "
+                        f"norm), got {type(checked['norm']).__name__}")
     return checked
 
 
