@@ -345,6 +345,13 @@ def test_channels_and_entries_apart_warn_once():
     assert [w.filename for w in _range_warnings(caught)] == [__file__]
 
 
+def _sine_across(surface: ts.ImplicitSurface) -> torch.Tensor:
+    """``sin(x / 6h)`` about the box's middle, extended along the normals: ``(1, 1, D, H, W)``."""
+    x = surface.grid.points()[..., 0]
+    wave = torch.sin((x - float(x.mean())) / (6 * surface.spacing))[None, None]
+    return ts.Extension(interpolation="cubic")(wave, surface)
+
+
 @pytest.mark.parametrize("make", [
     lambda t: ts.HeatFlow(t, learn_time=True, max_time=10 * t),
     lambda t: ts.HeatFlow(t, learn_diffusivity=True, max_diffusivity=10.0),
@@ -356,11 +363,8 @@ def test_a_bound_far_above_a_learned_value_does_not_change_the_flow(make):
     diffusion takes, as the fixed flow's do: scheduled by the bound's time, ten times as many
     moved u(T) by 0.39 (a range of 2) on this bunny, where RKC and Euler differ by 3e-3."""
     surface = mesh_surface("bunny.obj", 40)
-    h = surface.spacing
-    x = surface.grid.points()[..., 0]
-    u0 = ts.Extension(interpolation="cubic")(torch.sin((x - float(x.mean())) / (6 * h))[None, None],
-                                             surface)
-    time = 5 * h * h
+    u0 = _sine_across(surface)
+    time = 5 * surface.spacing**2
     flow = make(time)
     fixed = ts.HeatFlow(time, method=flow.method)
     band = fixed.band_mask(surface)
@@ -376,11 +380,8 @@ def test_learned_per_channel_diffusivities_run_apart(bound):
     0.39 off its own flow on this bunny (data of range 2). The gradient reaches each entry as
     it reaches a single learned diffusivity."""
     surface = mesh_surface("bunny.obj", 40)
-    h = surface.spacing
-    x = surface.grid.points()[..., 0]
-    u1 = ts.Extension(interpolation="cubic")(torch.sin((x - float(x.mean())) / (6 * h))[None, None],
-                                             surface)
-    time = 5 * h * h
+    u1 = _sine_across(surface)
+    time = 5 * surface.spacing**2
     flow = ts.HeatFlow(time, diffusivity=[1.0, 10.0], learn_diffusivity=True, max_diffusivity=bound)
     out = flow(torch.cat([u1, u1], 1), surface)
     band = flow.band_mask(surface)
