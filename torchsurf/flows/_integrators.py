@@ -828,8 +828,7 @@ def check_options(options: object, method: str) -> dict:
         raise ValueError(f"options[{tolerances[0]!r}] is for torchdiffeq's methods that choose "
                          f"their own steps; method={method!r} takes fixed steps, which it "
                          "ignores (give steps= or options['step_size'])")
-    if tolerances and not any(checked[key] > 0 for key in tolerances) and (
-            len(tolerances) == 2):
+    if len(tolerances) == 2 and checked["rtol"] == 0 and checked["atol"] == 0:
         raise ValueError("options['rtol'] and options['atol'] are both 0: no step can meet "
                          "them (the steps would shrink until refused)")
     if "norm" in checked and not callable(checked["norm"]):
