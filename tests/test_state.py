@@ -234,3 +234,5 @@ def test_a_contrast_computed_from_a_parameter_is_refused_by_the_module_form():
     contrast = torch.nn.Parameter(torch.tensor([1.0, 1.3]))
     module = ts.AnisotropicDiffusion("perona_malik", contrast=contrast)
     assert any(p is contrast for p in module.parameters())
+    leaf = torch.tensor([0.5, 0.8], requires_grad=True)  # no graph to backpropagate twice
+    assert ts.AnisotropicDiffusion("perona_malik", contrast=leaf).contrast is leaf

@@ -1021,3 +1021,21 @@ def test_the_faces_and_floored_warnings_name_their_batch_entries():
     messages = [str(w.message) for w in caught]
     assert any("faces (batch entries [1])" in m for m in messages), messages
     assert any("nodes (batch entries [3])" in m for m in messages), messages
+
+
+def test_the_floored_warning_counts_a_brick_surfaces_entries_not_its_bricks():
+    """On bricks it named brick indices as batch entries and counted their nodes only."""
+    from torchsurf import bricks
+
+    grid = ts.Grid.cube(40, bound=1.6)
+    z = torch.linspace(-1.6, 1.6, 40).view(1, 1, 40, 1, 1)
+    phi = ts.sdf.sphere(grid, radius=1.0) * torch.where(z > 0.7, 1e-3, 1.0)
+    messages = {}
+    for name, make in (("dense", lambda: ts.ImplicitSurface(phi, grid)),
+                       ("bricks", lambda: bricks.from_dense(phi, grid))):
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            make()
+        messages[name] = [str(w.message) for w in caught if "MINIMUM_WEIGHT" in str(w.message)]
+    assert messages["bricks"] and all(m == messages["dense"][0] for m in messages["bricks"])
+    assert "batch entries" not in messages["dense"][0]

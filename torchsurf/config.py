@@ -356,7 +356,7 @@ def _check_margin(grid: GridConfig, where: str) -> None:
         what = ("the bricks layout needs {:g} (the band and the nodes its stencils read)"
                 if bricks else "dense volumes need {:g} (S two cells inside the box; closer, "
                 "the operators are wrong near the faces, and at 0 the shape is cut flat)")
-        raise ConfigError("grid.margin", f"{margin:g} leaves {cells:.1f} cells around the "
+        raise ConfigError("grid.margin", f"{margin:g} leaves {cells:.2f} cells around the "
                           f"shape {where}; {what.format(least)}: {advice}"
                           + (", or grid.layout=dense" if bricks else ""))
 

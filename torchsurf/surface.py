@@ -6,7 +6,7 @@ import math
 import warnings
 from collections.abc import Callable
 from contextlib import nullcontext
-from typing import TypeVar
+from typing import TYPE_CHECKING, TypeVar
 
 import numpy as np
 import torch
@@ -26,6 +26,9 @@ from ._checks import (
 from ._inference import outside_inference
 from ._stack import caller_stacklevel
 from .grid import Grid
+
+if TYPE_CHECKING:
+    from .bricks.layout import BrickLayout
 
 T = TypeVar("T")
 
@@ -115,20 +118,31 @@ def power_of_two_below(value: Tensor) -> Tensor:
     return torch.exp2(torch.floor(torch.log2(value.clamp_min(torch.finfo(value.dtype).tiny))))
 
 
-def _warn_floored_on_surface(crossing: Tensor, grad_norm: Tensor, scale: Tensor) -> None:
+def _per_entry(mask: Tensor, layout: BrickLayout | None) -> Tensor:
+    """The true nodes of ``mask`` ``(B, 1, D, H, W)`` (packed ``(N, 1, 8, 8, 8)`` on bricks)
+    counted per batch entry: ``(B,)`` long."""
+    counts = mask.flatten(1).sum(dim=1)
+    if layout is None:
+        return counts
+    batch = layout.batch.to(counts.device)
+    return counts.new_zeros(layout.batch_size).index_add_(0, batch, counts)
+
+
+def _warn_floored_on_surface(crossing: Tensor, grad_norm: Tensor, scale: Tensor,
+                             layout: BrickLayout | None = None) -> None:
     """Warn where ``|grad phi|`` next to S falls below :data:`MINIMUM_WEIGHT` of its median
     ``scale``: the weight is floored there, so the operators are not intrinsic (a ``phi`` with
     the same zero set but a gentler gradient would give other values)."""
     ratio = grad_norm / scale
     floored = crossing & (ratio < MINIMUM_WEIGHT)
     if bool(floored.any()):
-        batch = floored.shape[0]
-        entries = floored.flatten(1).any(dim=1).nonzero().flatten().tolist()
-        near = crossing[entries] if batch > 1 else crossing
-        which = _entries_named([(index, 0.0) for index in entries], batch)
+        flagged = _per_entry(floored, layout) > 0
+        entries = flagged.nonzero().flatten().tolist()
+        near = int(_per_entry(crossing, layout)[flagged].sum())
+        which = _entries_named([(index, 0.0) for index in entries], len(flagged))
         warnings.warn(
             f"phi: |grad phi| next to S falls to {float(ratio[crossing].min()):.3g} of its "
-            f"median there at {int(floored.sum())} of {int(near.sum())} nodes{which} (below "
+            f"median there at {int(floored.sum())} of {near} nodes{which} (below "
             f"MINIMUM_WEIGHT = {MINIMUM_WEIGHT}): the operators' weight W is floored at those "
             "nodes and they are no longer intrinsic; make phi a distance near S first "
             "(torchsurf.sdf.redistance), or, if it is one, resolve the features thinner than "
@@ -499,7 +513,7 @@ class ImplicitSurface(nn.Module):
         weight = torch.maximum(weight, MINIMUM_WEIGHT * scale) * magnitude
         self.register_buffer("weight", weight, persistent=False)
         if not torch.compiler.is_compiling():
-            _warn_floored_on_surface(crossing, unit_norm.detach(), scale.detach())
+            _warn_floored_on_surface(crossing, unit_norm.detach(), scale.detach(), self.layout)
             if self.layout is None:  # bricks keep their band off the box's faces
                 _warn_oblique_at_faces(crossing, self.normal.detach())
                 _warn_flat_at_surface(phi.detach(), crossing, grad_norm.detach(),
@@ -981,11 +995,12 @@ def check_direction(direction: object, u0: Tensor, surface: ImplicitSurface,
     check_direction_batch(field, u0, "u0", surface)
     if not torch.compiler.is_compiling():
         check_finite(torch.where(region, field, 0.0), "direction (in the band and its ring)")
-        _check_tangential(field.detach(), surface.normal.detach(), region)
+        _check_tangential(field.detach(), surface.normal.detach(), region, surface.layout)
     return field
 
 
-def _check_tangential(field: Tensor, normal: Tensor, region: Tensor) -> None:
+def _check_tangential(field: Tensor, normal: Tensor, region: Tensor,
+                      layout: BrickLayout | None = None) -> None:
     """Raise naming ``direction`` where most of an entry's ``region`` holds no tangential part
     (a zero field, or one along the normals): :func:`tangent_unit` sends it to 0 there and the
     flows would not diffuse along it, without a word. Isolated zeros (a sphere's tangent field
@@ -994,7 +1009,7 @@ def _check_tangential(field: Tensor, normal: Tensor, region: Tensor) -> None:
     tangent = field - (field * normal).sum(dim=1, keepdim=True) * normal
     none = (tangent**2).sum(dim=1, keepdim=True) <= TANGENT_FLOOR**2 * squared
     region = region.expand_as(none)
-    share = (none & region).flatten(1).sum(1) / region.flatten(1).sum(1).clamp_min(1)
+    share = _per_entry(none & region, layout) / _per_entry(region, layout).clamp_min(1)
     if bool((share > 0.5).any()):
         worst = float(share.max())
         raise ValueError(

@@ -78,6 +78,9 @@ def test_tolerances_a_method_ignores_or_cannot_meet_and_a_named_norm_are_refused
     with pytest.raises(TypeError, match=r"options\['norm'\] must be a function"):
         HeatFlow(TIME, method="dopri5", options={"norm": "max"})
     HeatFlow(TIME, method="dopri5", options={"rtol": 0, "atol": 1e-8})
+    # the Adams-Moulton corrector of these two iterates to them (a review)
+    HeatFlow(TIME, method="implicit_adams", options={"rtol": 1e-6, "atol": 1e-8})
+    HeatFlow(TIME, method="fixed_adams", options={"rtol": 1e-6})
 
 
 def test_a_step_size_is_refused_for_a_method_that_chooses_its_steps():

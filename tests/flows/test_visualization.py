@@ -80,3 +80,19 @@ def test_a_field_with_no_tangent_part_is_refused(make):
                        (ts.flows.ReactionDiffusion(1.0), ts.flows.ReactionDiffusion.initial(surface))):
         with pytest.raises(ValueError, match="direction has no part tangent"):
             flow(data, surface, direction=make(surface))
+
+
+def test_a_field_zero_on_part_of_the_surface_is_taken_on_bricks_as_on_the_dense_grid():
+    """The share of nodes with no tangent part was taken per brick on bricks: a swirl zero below
+    z = -0.5 (a quarter of the sphere) was refused there, and taken on the dense grid."""
+    from torchsurf import bricks, signals
+
+    grid = ts.Grid.cube(40, bound=1.6)
+    dense = ts.ImplicitSurface(ts.sdf.sphere(grid, radius=1.0), grid)
+    packed = bricks.from_dense(dense)
+    flow = FlowVisualization(grid.spacing**2)
+    u = torch.rand(1, 1, *grid.shape, generator=torch.Generator().manual_seed(0))
+    for surface, data in ((dense, u), (packed, packed.from_dense(u))):
+        field = signals.swirl_field(surface, "z")
+        field = field * (signals.node_points(surface)[:, 2:3] > -0.5).to(field.dtype)
+        assert torch.isfinite(flow(data, surface, direction=field)).all()

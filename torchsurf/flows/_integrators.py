@@ -780,6 +780,10 @@ _EVALUATIONS = {"midpoint": 2, "heun2": 2, "heun3": 3, "rk4": 4, "fixed_adams": 
 """Evaluations of the rate per step of torchdiffeq's fixed-step methods (1 if not listed;
 ``implicit_adams``: its corrector's most iterations)."""
 
+CORRECTED = ("fixed_adams", "implicit_adams")
+"""torchdiffeq's fixed-step methods whose Adams–Moulton corrector iterates to ``rtol`` and
+``atol`` (the others ignore them)."""
+
 ADAPTIVE_STEPS = ("adaptive_heun", "bosh3", "dopri5", "dopri8", "fehlberg2")
 """torchdiffeq's adaptive Runge–Kutta methods: given ``max_num_steps`` = :data:`MAX_STEPS`
 unless the options say otherwise, so that a run that would take longer stops with an error."""
@@ -824,7 +828,7 @@ def check_options(options: object, method: str) -> dict:
                          f"{list(FIXED_STEP)}; method={method!r} chooses its own steps (rtol, "
                          "atol)")
     tolerances = [key for key in ("rtol", "atol") if key in checked]
-    if tolerances and method in FIXED_STEP:
+    if tolerances and method in FIXED_STEP and method not in CORRECTED:
         raise ValueError(f"options[{tolerances[0]!r}] is for torchdiffeq's methods that choose "
                          f"their own steps; method={method!r} takes fixed steps, which it "
                          "ignores (give steps= or options['step_size'])")

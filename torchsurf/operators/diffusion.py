@@ -240,14 +240,15 @@ class AnisotropicDiffusion(nn.Module):
         self.diffusivity = stored_diffusivity(diffusivity)
         contrast = _initial_contrast(contrast)
         if (isinstance(contrast, Tensor) and not isinstance(contrast, nn.Parameter)
-                and contrast.requires_grad):
+                and contrast.grad_fn is not None):
             raise ValueError(
                 "contrast is computed from a parameter (it requires grad and is no "
                 "nn.Parameter): computed once here, its graph would be backpropagated through "
                 "twice at the second step; pass the nn.Parameter itself, or call "
                 "torchsurf.anisotropic_diffusion(u, surface, ..., contrast=log_contrast.exp()) "
                 "in your module's forward")
-        if isinstance(contrast, Tensor) and not isinstance(contrast, nn.Parameter):
+        if (isinstance(contrast, Tensor) and not isinstance(contrast, nn.Parameter)
+                and not contrast.requires_grad):
             self.register_buffer("contrast", contrast.clone())
         else:
             self.contrast = contrast
