@@ -342,7 +342,7 @@ def test_the_coarse_grid_of_a_field_smoothing_needs_the_bricks_margin_too(tmp_pa
                      "--out", str(tmp_path / "out")])
     assert code == cli.EXIT_USAGE
     error = capsys.readouterr().err
-    assert "config error: grid.margin: 0.12 leaves 1.48 cells around the shape on the 16^3 grid" \
+    assert "config error: grid.margin: 0.12 leaves 1.45 cells around the shape on the 16^3 grid" \
         in error
     assert not (tmp_path / "out").exists()
 
