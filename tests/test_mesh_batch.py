@@ -178,3 +178,15 @@ def test_mesh_files_and_shapes_mix() -> None:
     assert batch.phi.shape == (2, 1, 33, 33, 33)
     assert len(batch.vertices[0]) == 2930
     assert math.isfinite(float(batch.surface.mean_curvature().abs().max()))
+
+
+def test_a_dtype_conversion_keeps_the_scales_float64_values() -> None:
+    """.half() converted scale and centre and back to float64: off by 2.4e-4."""
+    shapes = [trimesh.creation.icosphere(subdivisions=2, radius=0.7),
+              AnalyticShape("torus", {"major_radius": 1.3, "minor_radius": 0.37})]
+    batch = MeshBatchAdapter(shapes, resolution=17)
+    scale, centre = batch.scale.clone(), batch.centre.clone()
+    for convert in (batch.half, batch.float, batch.double):
+        convert()
+        assert batch.scale.dtype == torch.float64 and torch.equal(batch.scale, scale)
+        assert torch.equal(batch.centre, centre)

@@ -254,9 +254,12 @@ class MeshBatchAdapter(nn.Module):
         self.register_load_state_dict_post_hook(_surface_of_loaded_phi)
 
     def _apply(self, fn, recurse=True):  # noqa: ANN001, ANN202
-        # .float() / .half() convert floating buffers: the conversions stay float64 (documented)
+        # .float() / .half() convert floating buffers: the conversions stay float64 (documented),
+        # their values too (converted and back, .half() moved them by 2.4e-4), on the new device
+        scale, centre = self.scale, self.centre
         result = super()._apply(fn, recurse)
-        self.scale, self.centre = self.scale.double(), self.centre.double()
+        device = self.scale.device
+        self.scale, self.centre = scale.to(device), centre.to(device)
         return result
 
     def __len__(self) -> int:
