@@ -74,8 +74,13 @@ def level_set(volume: np.ndarray, grid: Grid, level: float = 0.0,
         raise never()
     if low == level or high == level:  # |x|: two sheets on the nodes where it touches
         raise never(", it only touches it at nodes")
+    # scikit-image picks the crossed edges in float32: about the level and scaled to 1 in
+    # float64 first (phi + 1e7 at level 1e7 gave half the sphere's radius off, phi * 1e100 an
+    # IndexError, phi * 1e-46 no crossing); the crossings are solved again in float64 below
+    shifted = volume.astype(np.float64) - level
+    reach = np.abs(shifted if mask is None else shifted[mask]).max()
     try:
-        index, faces, _, _ = measure.marching_cubes(volume, level=level,
+        index, faces, _, _ = measure.marching_cubes(shifted / reach, level=0.0,
                                                     gradient_direction="ascent", mask=mask)
     except RuntimeError as error:  # no cell crosses: the level only touched, or masked out
         raise never(" in any cell") from error
