@@ -226,3 +226,13 @@ def test_vertex_values_name_the_volume_when_its_shape_is_wrong():
         render.vertex_values(torch.zeros(1, 1, 8, 8, 8), mesh, grid)
     with pytest.raises(ValueError, match="volume"):
         render.vertex_values(torch.zeros(8, 8, 8), mesh, grid)
+
+
+@pytest.mark.parametrize("mode", ["rgb", "field"])
+def test_a_nan_vector_is_grey_as_a_nan_scalar_is(mode):
+    """A field undefined on an axis came out NaN, against colours' own contract, and the
+    panels then refused colours' output."""
+    values = np.array([[0.2, -0.9, 0.4], [np.nan, 0.1, 0.2], [1.5, 0.3, -0.2]])
+    rgb = render.colours(values, mode)
+    assert np.isfinite(rgb).all() and (rgb >= 0).all() and (rgb <= 1).all()
+    assert rgb[1].tolist() == [0.5, 0.5, 0.5]

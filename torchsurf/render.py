@@ -121,7 +121,8 @@ def colours(values: np.ndarray, mode: str = "scalar", colormap: str = "viridis",
     or, with ``equalize``, over each value's rank among the vertices (histogram equalisation:
     every colour of the map is used equally often, which shows the streaks of a flow
     visualisation whose values cluster near their mean); ``"rgb"`` (C = 3): clipped to
-    ``[0, 1]``; ``"field"`` (C = 3, unit vectors up to sign): ``|T_x|, |T_y|, |T_z|``. In the
+    ``[0, 1]``; ``"field"`` (C = 3, unit vectors up to sign): ``|T_x|, |T_y|, |T_z|``; a vertex
+    with a NaN component is grey in both (a field undefined on an axis). In the
     scalar modes, NaN or infinite values are grey and do not set the limits; equal values
     share a colour, and default limits closer than :data:`FLAT_SPAN` of their magnitude are
     widened to it about their middle (a constant, or one carrying float32 rounding, takes the
@@ -135,10 +136,10 @@ def colours(values: np.ndarray, mode: str = "scalar", colormap: str = "viridis",
     if values.ndim != 2 or values.shape[1] != channels:
         raise ValueError(f"mode={mode!r} needs values of shape (V, {channels}), got "
                          f"{values.shape}")
-    if mode == "rgb":
-        return np.clip(values, 0.0, 1.0)
-    if mode == "field":
-        return np.clip(np.abs(values), 0.0, 1.0)
+    if mode in ("rgb", "field"):  # a vertex with a NaN component is grey, as in the scalar modes
+        rgb = np.clip(np.abs(values) if mode == "field" else values, 0.0, 1.0)
+        rgb[np.isnan(values).any(axis=1)] = 0.5
+        return rgb
     Figure, _, _ = _matplotlib()
     from matplotlib import colormaps
 
