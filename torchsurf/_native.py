@@ -15,6 +15,7 @@ from __future__ import annotations
 import ctypes
 import hashlib
 import os
+import shlex
 import subprocess
 import tempfile
 import threading
@@ -88,7 +89,8 @@ class NativeLibrary:
                 try:
                     if native_mode() == "never":
                         raise RuntimeError("TORCHSURF_NATIVE=never")
-                    self._state["library"] = self._compile(os.environ.get("CC") or "cc")
+                    self._state["library"] = self._compile(
+                        shlex.split(os.environ.get("CC") or "cc") or ["cc"])
                     self._state["reason"] = None
                 except (OSError, RuntimeError, subprocess.SubprocessError) as error:
                     detail = getattr(error, "stderr", None) or error
@@ -107,8 +109,10 @@ class NativeLibrary:
         with self._lock:
             self._state = {}
 
-    def _compile(self, compiler: str) -> ctypes.CDLL:
-        version = subprocess.run([compiler, "--version"], capture_output=True, text=True,
+    def _compile(self, compiler: list[str]) -> ctypes.CDLL:
+        """The library built by ``compiler`` (a command and its arguments, as make's ``$CC``:
+        ``"ccache gcc"``, ``"gcc -std=c11"``)."""
+        version = subprocess.run([*compiler, "--version"], capture_output=True, text=True,
                                  check=True, timeout=60).stdout
         source = self._source()
         for rebuild in (False, True):
@@ -137,7 +141,7 @@ class NativeLibrary:
             function.argtypes = list(argtypes)
         return loaded
 
-    def _built(self, source: str, compiler: str, version: str, flags: tuple[str, ...],
+    def _built(self, source: str, compiler: list[str], version: str, flags: tuple[str, ...],
                rebuild: bool = False) -> Path:
         """The shared library for these flags, compiled unless the cache holds it (or
         ``rebuild``)."""
@@ -150,7 +154,7 @@ class NativeLibrary:
                 c_file = Path(work) / f"{self.name}.c"
                 c_file.write_text(source)
                 built = Path(work) / library.name
-                subprocess.run([compiler, *flags, "-o", str(built), str(c_file)],
+                subprocess.run([*compiler, *flags, "-o", str(built), str(c_file)],
                                capture_output=True, text=True, check=True, timeout=120)
                 os.replace(built, library)  # whole or not at all, also for a concurrent process
         return library

@@ -138,6 +138,15 @@ def test_a_compiler_that_refuses_the_vector_flags_builds_it_plainly(monkeypatch,
     assert len(list((tmp_path / "cache").iterdir())) == 1
 
 
+def test_a_compiler_given_with_its_arguments_builds_it(monkeypatch, tmp_path, native_available):
+    """``CC="ccache gcc"`` / ``"gcc -std=c11"`` (make's convention) was run as one file name,
+    not found, and every C kernel was off without a word."""
+    monkeypatch.setattr(_native.LIBRARY, "_state", {})
+    monkeypatch.setenv("TORCHSURF_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.setenv("CC", "env cc")
+    assert _native.library() is not None, _native.unavailable_reason()
+
+
 def test_a_bad_native_mode_is_named(monkeypatch):
     monkeypatch.setattr(_native.LIBRARY, "_state", {})
     monkeypatch.setenv("TORCHSURF_NATIVE", "sometimes")
