@@ -62,6 +62,16 @@ def _machine_key() -> str:
     return platform.processor() or platform.machine()
 
 
+def _compiler_command() -> list[str]:
+    """``$CC`` (else ``cc``) as a command and its arguments, as make reads it; a ``$CC`` that
+    does not parse raises ``RuntimeError`` (the library's reason for not loading)."""
+    text = os.environ.get("CC") or "cc"
+    try:
+        return shlex.split(text) or ["cc"]
+    except ValueError as error:
+        raise RuntimeError(f"$CC={text!r} does not parse as a command: {error}") from error
+
+
 class NativeLibrary:
     """C functions compiled on first use and kept for the process.
 
@@ -89,8 +99,7 @@ class NativeLibrary:
                 try:
                     if native_mode() == "never":
                         raise RuntimeError("TORCHSURF_NATIVE=never")
-                    self._state["library"] = self._compile(
-                        shlex.split(os.environ.get("CC") or "cc") or ["cc"])
+                    self._state["library"] = self._compile(_compiler_command())
                     self._state["reason"] = None
                 except (OSError, RuntimeError, subprocess.SubprocessError) as error:
                     detail = getattr(error, "stderr", None) or error
