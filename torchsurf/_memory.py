@@ -22,6 +22,7 @@ import os
 import torch
 
 from ._checks import check_device
+from ._vertex_decode import DECODE_CHUNK
 
 ENVIRONMENT_SWITCH = "TORCHSURF_MEMORY_CHECK"
 
@@ -151,8 +152,6 @@ def mesh_adapter_bytes(shape: tuple[int, int, int], spacing: float, band: float,
     (:func:`surface_bytes`) at once; with ``order=2``, the decoding weights of its
     ``vertices`` (:data:`DECODE_SOLVE_BYTES`, :data:`DECODE_KEPT_BYTES`: what dominates on
     meshes of many vertices, 36-200x the rest on bunny at 32^3-64^3)."""
-    from ._vertex_decode import DECODE_CHUNK
-
     nodes = math.prod(shape)
     surface = (8 + _itemsize(dtype)) * nodes + surface_bytes(1, shape, dtype)
     decoding = 0

@@ -139,7 +139,7 @@ def _warn_floored_on_surface(crossing: Tensor, grad_norm: Tensor, scale: Tensor,
         flagged = _per_entry(floored, layout) > 0
         entries = flagged.nonzero().flatten().tolist()
         near = int(_per_entry(crossing, layout)[flagged].sum())
-        which = _entries_named([(index, 0.0) for index in entries], len(flagged))
+        which = _entries_named(entries, len(flagged))
         warnings.warn(
             f"phi: |grad phi| next to S falls to {float(ratio[crossing].min()):.3g} of its "
             f"median there at {int(floored.sum())} of {near} nodes{which} (below "
@@ -231,7 +231,7 @@ def _warn_flat_at_surface(phi: Tensor, crossing: Tensor, grad_norm: Tensor, floo
             flat.append((index, float(mine.median())))
     if flat:
         share = min(share for _, share in flat)
-        which = _entries_named(flat, phi.shape[0])
+        which = _entries_named([index for index, _ in flat], phi.shape[0])
         warnings.warn(
             f"phi{which}: its distances next to S (|phi| / |grad phi|) add up, across S, to "
             f"{', '.join(f'{s:.2f}' for _, s in flat)} of the nodes' spacing along the normal "
@@ -275,7 +275,7 @@ def _warn_saturated(phi: Tensor, b: Tensor, nodes: Tensor, across: Tensor, along
     if not flattened:
         return
     shares = ", ".join(f"{share:.2f}" for _, share in flattened)
-    which = _entries_named(flattened, phi.shape[0])
+    which = _entries_named([index for index, _ in flattened], phi.shape[0])
     warnings.warn(
         f"phi{which}: |phi| grows over the cell beyond the nodes next to S by {shares} of what "
         "a distance's would: phi flattens away from S (as tanh(d / eps) does with eps "
@@ -286,10 +286,9 @@ def _warn_saturated(phi: Tensor, b: Tensor, nodes: Tensor, across: Tensor, along
     )
 
 
-def _entries_named(flagged: list[tuple[int, float]], batch: int) -> str:
-    """`` (batch entries [...])`` naming the entries of ``flagged`` ``(index, share)`` in a
-    batch of several, else nothing."""
-    return "" if batch == 1 else f" (batch entries {[index for index, _ in flagged]})"
+def _entries_named(entries: list[int], batch: int) -> str:
+    """`` (batch entries [...])`` naming ``entries`` in a batch of several, else nothing."""
+    return "" if batch == 1 else f" (batch entries {entries})"
 
 
 def _saturation_share(growth: Tensor, inside: Tensor) -> float | None:
@@ -331,8 +330,7 @@ def _warn_oblique_at_faces(crossing: Tensor, normal: Tensor) -> None:
         hits += oblique.narrow(dim, 0, layers).flatten(1).sum(dim=1)
         hits += oblique.narrow(dim, oblique.shape[dim] - layers, layers).flatten(1).sum(dim=1)
     if bool(hits.any()):
-        which = _entries_named([(index, 0.0) for index in hits.nonzero().flatten().tolist()],
-                               crossing.shape[0])
+        which = _entries_named(hits.nonzero().flatten().tolist(), crossing.shape[0])
         warnings.warn(
             f"phi: S comes within about {FACE_LAYERS} cells of the grid's faces{which}, where "
             f"its level sets leave the box obliquely ({int(hits.sum())} nodes next to S in the "
@@ -1005,8 +1003,7 @@ def _check_tangential(field: Tensor, normal: Tensor, region: Tensor,
     (a zero field, or one along the normals): :func:`tangent_unit` sends it to 0 there and the
     flows would not diffuse along it, without a word. Isolated zeros (a sphere's tangent field
     has some) are fine."""
-    squared = (field**2).sum(dim=1, keepdim=True)
-    tangent = field - (field * normal).sum(dim=1, keepdim=True) * normal
+    tangent, squared = _tangential_part(field, normal)
     none = (tangent**2).sum(dim=1, keepdim=True) <= TANGENT_FLOOR**2 * squared
     region = region.expand_as(none)
     share = _per_entry(none & region, layout) / _per_entry(region, layout).clamp_min(1)
@@ -1017,6 +1014,12 @@ def _check_tangential(field: Tensor, normal: Tensor, region: Tensor,
             "nodes (it is zero, or along the normals, there): the flow would not diffuse "
             "along it; give a tangent field (e.g. torchsurf.signals.principal_direction, "
             "swirl_field)")
+
+
+def _tangential_part(field: Tensor, normal: Tensor) -> tuple[Tensor, Tensor]:
+    """``P T`` of ``field`` ``(B, 3, ...)`` and ``|T|^2`` ``(B, 1, ...)``."""
+    squared = (field**2).sum(dim=1, keepdim=True)
+    return field - (field * normal).sum(dim=1, keepdim=True) * normal, squared
 
 
 def tangent_unit(field: Tensor, surface: ImplicitSurface) -> Tensor:
@@ -1032,9 +1035,7 @@ def tangent_unit(field: Tensor, surface: ImplicitSurface) -> Tensor:
             (:class:`MismatchError` for another dtype or device).
     """
     field = check_data(field, "field", surface, channels=3)
-    normal = surface.normal
-    squared = (field**2).sum(dim=1, keepdim=True)
-    tangent = field - (field * normal).sum(dim=1, keepdim=True) * normal
+    tangent, squared = _tangential_part(field, surface.normal)
     floor = TANGENT_FLOOR**2 * squared + torch.finfo(field.dtype).tiny
     return tangent / torch.sqrt((tangent**2).sum(dim=1, keepdim=True) + floor)
 

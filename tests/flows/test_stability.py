@@ -412,7 +412,7 @@ def test_limited_cubic_extension_repeated_on_its_result_stays_in_range():
     assert float(repeated[band].abs().max()) <= 1.0 + 1e-6
 
 
-def test_learned_per_channel_diffusivities_of_equal_values_run_together():
+def test_learned_per_channel_diffusivities_of_equal_values_run_together(monkeypatch):
     """A learned vector that starts equal (a common initialisation) ran each channel alone, at
     C runs' cost; channels of one current value run as one flow, each entry of the parameter
     still given its own channel's gradient."""
@@ -428,11 +428,8 @@ def test_learned_per_channel_diffusivities_of_equal_values_run_together():
         runs.append([channels for _, channels in args[2]])
         return original(self, u0, *args)
 
-    ts.HeatFlow._channels_apart = counted
-    try:
-        out = flow(u, surface)
-    finally:
-        ts.HeatFlow._channels_apart = original
+    monkeypatch.setattr(ts.HeatFlow, "_channels_apart", counted)
+    out = flow(u, surface)
     assert runs == [[[0, 2], [1]]]
     grads = torch.autograd.grad(out[:, 0].sum() + 2 * out[:, 2].sum(), flow.diffusivity.raw)[0]
     assert grads[1] == 0 and grads[0] != 0 and grads[2] != 0 and grads[0] != grads[2]

@@ -410,10 +410,10 @@ def heat_semigroup(u0: Tensor, operator: BandLaplacian, times: Tensor,
         return torch.where(operator.region, extended, u0)
     # data of batch 1 on a surface of batch B: B entries, as on packed values
     u0 = u0.expand(max(u0.shape[0], operator.band.shape[0]), *u0.shape[1:])
-    layout = operator.surface.layout
-    offset = (_first_band_values(u0.detach(), operator.band) if layout is None  # as packed
-              else _first_band_values(u0.detach(), operator.band, layout.batch.to(u0.device),
-                                      len(layout.grids)))
+    layout = operator.surface.layout  # a brick's entry is its shape's, as on packed values
+    entries = None if layout is None else layout.batch.to(u0.device)
+    offset = _first_band_values(u0.detach(), operator.band, entries,
+                                0 if layout is None else len(layout.grids))
     inside = torch.where(operator.band, u0 - offset, u0.new_zeros(()))
     result = chebyshev.expansion(
         operator.apply, inside, times, operator.bound, adjoint=operator.transpose,
