@@ -202,3 +202,20 @@ def test_signal_options_and_shape_indices_are_checked_when_given(shapes: MeshBat
         datasets.smooth_signal("s")
     with pytest.raises(TypeError, match="surface must be a torchsurf.ImplicitSurface"):
         datasets.piecewise_constant_signal(None)
+    # more regions than a shape has candidate centres failed at the first item only
+    with pytest.raises(ValueError, match=r"piecewise_constant\['cells'\] = 1000000 is more .* "
+                                         r"surface 0"):
+        datasets.SignalDataset(shapes, length=2, piecewise_constant={"cells": 10**6})
+    datasets.SignalDataset(shapes, length=2, kinds=["smooth"], piecewise_constant={"cells": 10**6})
+    with pytest.raises(TypeError, match="index must be an integer, got True"):  # was item 1
+        data[True]
+
+
+def test_seeds_beyond_32_bits_are_refused() -> None:
+    """numpy's SeedSequence splits a seed into 32-bit words: derived_seed(2**32 + 5, 0) was
+    derived_seed(5, 1), so a dataset seeded 2**32 + 5 repeated another's items."""
+    assert datasets.derived_seed(2**32 - 1, 0) != datasets.derived_seed(2**32 - 1, 1)
+    with pytest.raises(ValueError, match=r"seed must be a whole number in \[0, 2\*\*32\)"):
+        datasets.derived_seed(2**32 + 5, 0)
+    with pytest.raises(ValueError, match=r"keys\[1\] must be a whole number in \[0, 2\*\*32\)"):
+        datasets.derived_seed(5, 0, 2**32)

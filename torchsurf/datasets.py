@@ -25,9 +25,21 @@ from .surface import ImplicitSurface, check_surface
 KINDS = ("smooth", "piecewise_constant")
 
 
+DERIVED_SEED_LIMIT = 2**32
+"""The seed and keys of :func:`derived_seed` lie in ``[0, 2^32)``: numpy's ``SeedSequence``
+splits larger numbers into 32-bit words, so ``(2^32 + 5, 0)`` would be ``(5, 1)``."""
+
+
 def derived_seed(seed: int, *keys: int) -> int:
-    """A seed for item ``keys`` of a run seeded ``seed`` (numpy's ``SeedSequence``): distinct
-    keys give independent streams, and ``(seed, i)`` never collides with ``(seed + 1, i - 1)``."""
+    """A seed for item ``keys`` of a run seeded ``seed`` (numpy's ``SeedSequence``; ``seed``
+    and ``keys`` whole numbers in ``[0, 2^32)``): ``(seed, i)`` never collides with
+    ``(seed + 1, i - 1)``, and distinct keys give independent streams unless their 32-bit
+    seeds coincide, which among ``n`` items has odds of about ``n^2 / 2^33`` (a coincident pair
+    is likely from about 90 000 items on)."""
+    for name, value in (("seed", seed), *((f"keys[{k}]", key) for k, key in enumerate(keys))):
+        value = check_count(value, name, minimum=0)
+        if value >= DERIVED_SEED_LIMIT:
+            raise ValueError(f"{name} must be a whole number in [0, 2**32), got {value}")
     return int(np.random.SeedSequence([int(seed), *map(int, keys)]).generate_state(1)[0])
 
 
@@ -152,10 +164,7 @@ def piecewise_constant_signal(surface: ImplicitSurface, channels: int = 1, cells
         candidates = near[mine].flatten().nonzero().squeeze(1)
         if order is not None:  # the dense grid's order, so that the same nodes are drawn
             candidates = candidates[order[mine].flatten()[candidates].argsort()]
-        # nodes on one normal line can share their closest point to the last bit (float32):
-        # such centres would make one region, so they count as one candidate
-        _, same_point = torch.unique(entry_points[:, candidates].T.cpu(), dim=0,
-                                     return_inverse=True)
+        same_point = _point_classes(entry_points[:, candidates])
         pick = _distinct_draws(same_point, cells, random, f"surface {b}")
         centres = entry_points[:, candidates[pick.to(points.device)]]  # (3, cells)
         # in float64 about the centres' mean, by differences: cdist's matrix-product form
@@ -167,6 +176,32 @@ def piecewise_constant_signal(surface: ImplicitSurface, channels: int = 1, cells
         values = values.to(dtype=points.dtype, device=points.device)
         result[mine] = values[:, nearest].view(channels, len(mine), -1).transpose(0, 1)
     return result.view(_field_shape(surface, channels))
+
+
+def _point_classes(points: Tensor) -> Tensor:
+    """The class of each of ``points`` ``(3, n)``, int64 ``(n,)``, equal for equal points: nodes
+    on one normal line can share their closest point to the last bit (float32), and such
+    centres would make one region, so they count as one candidate."""
+    return torch.unique(points.T.cpu(), dim=0, return_inverse=True)[1]
+
+
+def _check_cells(surface: ImplicitSurface, cells: int, name: str = "cells") -> None:
+    """Refuse ``cells`` regions of :func:`piecewise_constant_signal` on ``surface`` where an
+    entry has fewer distinct closest points within one spacing of S (the candidate centres)."""
+    points = closest_points(surface).flatten(2)
+    near = (surface.distance() <= surface.spacing).flatten(2)[:, 0]
+    rows = _rows_of_entries(surface)
+    for b in range(surface.batch_size):
+        mine = (rows == b).nonzero().squeeze(1)
+        candidates = near[mine].flatten().nonzero().squeeze(1)
+        entry_points = points[mine].transpose(0, 1).flatten(1)[:, candidates]
+        distinct = int(_point_classes(entry_points).max()) + 1 if candidates.numel() else 0
+        if cells > distinct:
+            raise ValueError(
+                f"{name} = {cells} is more than the {distinct} distinct closest points of the "
+                f"nodes within one spacing of S on surface {b}, among which the regions' "
+                f"centres are drawn: ask for at most {distinct}"
+            )
 
 
 def _distinct_draws(classes: Tensor, wanted: int, random: torch.Generator, name: str) -> Tensor:
@@ -250,7 +285,7 @@ class SignalDataset(Dataset):
         kinds: signal kinds to cycle through, from :data:`KINDS`.
         channels: ``C``.
         noise: standard deviation of the noise (signals lie in ``[0, 1]``).
-        seed: the run's seed.
+        seed: the run's seed, a whole number in ``[0, 2^32)``.
         smooth, piecewise_constant: options of :func:`smooth_signal` and
             :func:`piecewise_constant_signal` (``frequency``, ``modes``; ``cells``).
 
@@ -295,7 +330,8 @@ class SignalDataset(Dataset):
         self.length = check_count(length, "length")
         self.channels = check_count(channels, "channels")
         self.noise = check_nonnegative(noise, "noise")
-        self.seed = check_count(seed, "seed", minimum=0)  # numpy SeedSequence: no negatives
+        self.seed = check_count(seed, "seed", minimum=0)
+        derived_seed(self.seed, 0)  # refuses a seed outside [0, 2^32) by name
         self.options = {"smooth": _signal_options(smooth, "smooth", smooth_signal),
                         "piecewise_constant": _signal_options(
                             piecewise_constant, "piecewise_constant", piecewise_constant_signal)}
@@ -306,6 +342,10 @@ class SignalDataset(Dataset):
         self._surfaces = [ImplicitSurface(self.phi[b:b + 1], self.grid, self._band_width,
                                           self._eps) for b in range(surface.batch_size)]
         self._batch_surfaces: dict[tuple[int, ...], ImplicitSurface] = {}
+        if "piecewise_constant" in self.kinds:
+            cells = self.options["piecewise_constant"].get(
+                "cells", inspect.signature(piecewise_constant_signal).parameters["cells"].default)
+            _check_cells(surface, cells, "piecewise_constant['cells']")
 
     def __getstate__(self) -> dict:
         # a DataLoader's worker draws items; the batch surfaces stay with the training loop
@@ -316,6 +356,8 @@ class SignalDataset(Dataset):
 
     def __getitem__(self, index: int) -> dict[str, Tensor | int | str]:
         try:
+            if isinstance(index, bool):
+                raise TypeError
             index = operator.index(index)
         except TypeError:
             raise TypeError(f"index must be an integer, got {index!r}") from None

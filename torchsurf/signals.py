@@ -217,6 +217,13 @@ SEED_LIMIT = 2**64
 """Seeds lie in ``[0, 2^64)``, the range of ``torch.Generator.manual_seed``."""
 
 
+def _drawn_as(dtype: torch.dtype) -> torch.dtype:
+    """The dtype noise of ``dtype`` is drawn in: float64's as float32, so that float32 and
+    float64 runs of one seed get the same numbers; narrower dtypes their own (float32 numbers
+    below 1 can round to 1 in them)."""
+    return torch.float32 if dtype == torch.float64 else dtype
+
+
 def generator(seed: int) -> torch.Generator:
     """A CPU ``torch.Generator`` seeded with ``seed`` (a whole number in ``[0, 2^64)``): the
     same seed gives the same noise."""
@@ -230,34 +237,46 @@ def gaussian_noise(like: Tensor, std: float, seed: int, surface: ImplicitSurface
                    ) -> Tensor:
     """Gaussian noise of standard deviation ``std``, shaped and typed like ``like``, seeded.
 
-    With a :class:`~torchsurf.bricks.BrickSurface` ``surface`` (``like`` packed
-    ``(N, C, 8, 8, 8)``), the numbers the dense grid of each entry gets, node for node (drawn
-    densely, one entry at a time, then packed).
+    The numbers are drawn in float32 for float64 too, so that float32 and float64 runs of one
+    seed get the same noise (to float32's digits). Entry ``b`` of a batch gets the
+    ``b``-th part of one stream, laid out as ``like``. With a
+    :class:`~torchsurf.bricks.BrickSurface` ``surface`` (``like`` packed ``(N, C, 8, 8, 8)``),
+    the stream is laid out over the entries' dense grids one after the other and packed: on
+    bricks of one box, the numbers the dense batch gets, node for node.
     """
     check_tensor(like, "like")
     check_nonnegative(std, "std")
+    draw = generator(seed)
     if surface is not None and surface.layout is not None:
-        draw = generator(seed)
-        volumes = [torch.randn((1, like.shape[1], *grid.shape), generator=draw, dtype=like.dtype)
-                   for grid in surface.grids]
+        sizes = [like.shape[1] * math.prod(grid.shape) for grid in surface.grids]
+        stream = torch.randn(sum(sizes), generator=draw, dtype=_drawn_as(like.dtype))
+        stream = stream.to(like.dtype)
+        volumes = [part.view(1, like.shape[1], *grid.shape)
+                   for part, grid in zip(stream.split(sizes), surface.grids, strict=True)]
         return std * surface.layout.from_dense(volumes).to(like.device)
-    noise = torch.randn(like.shape, generator=generator(seed), dtype=like.dtype)
-    return std * noise.to(like.device)
+    noise = torch.randn(like.shape, generator=draw, dtype=_drawn_as(like.dtype))
+    return std * noise.to(like.device, like.dtype)
 
 
 def uniform_noise(surface: ImplicitSurface, channels: int, seed: int) -> Tensor:
-    """Uniform noise in ``[0, 1)`` at every node, ``(1, channels, D, H, W)``, seeded (packed
-    ``(N, channels, 8, 8, 8)`` on bricks: the numbers the dense grid of each entry gets, node
-    for node, as :func:`gaussian_noise`'s)."""
+    """Uniform noise in ``[0, 1)`` at every node, ``(1, channels, D, H, W)``, seeded, drawn in
+    float32 for float64 too, as :func:`gaussian_noise`'s. Every entry of a batch shares it; packed
+    ``(N, channels, 8, 8, 8)`` on bricks, each entry gets what its dense grid gets alone, node
+    for node (the same numbers on entries of one box)."""
     channels = check_count(channels, "channels")
     if surface.layout is not None:
-        draw = generator(seed)
-        volumes = [torch.rand((1, channels, *grid.shape), generator=draw, dtype=surface.phi.dtype)
+        volumes = [_uniform_volume(channels, grid, seed, surface.phi.dtype)
                    for grid in surface.grids]
         return surface.layout.from_dense(volumes).to(surface.phi.device)
-    values = torch.rand((1, channels, *surface.grid.shape), generator=generator(seed),
-                        dtype=surface.phi.dtype)
+    values = _uniform_volume(channels, surface.grid, seed, surface.phi.dtype)
     return values.to(surface.phi.device)
+
+
+def _uniform_volume(channels: int, grid: Grid, seed: int, dtype: torch.dtype) -> Tensor:
+    """``(1, channels, *grid.shape)`` uniform numbers in ``[0, 1)`` of ``seed``, as ``dtype``."""
+    values = torch.rand((1, channels, *grid.shape), generator=generator(seed),
+                        dtype=_drawn_as(dtype))
+    return values.to(dtype)
 
 
 def surface_noise(surface: ImplicitSurface, channels: int, seed: int, grain: float = 1.0
@@ -283,8 +302,7 @@ def surface_noise(surface: ImplicitSurface, channels: int, seed: int, grain: flo
         raise ValueError(f"surface must hold one shape, got a batch of {surface.batch_size}")
     lattice = Grid(tuple(math.ceil((n - 1) / grain) + 1 for n in grid.shape),
                    grain * grid.spacing, grid.origin)
-    values = torch.rand((1, channels, *lattice.shape), generator=generator(seed),
-                        dtype=surface.phi.dtype).to(surface.phi.device)
+    values = _uniform_volume(channels, lattice, seed, surface.phi.dtype).to(surface.phi.device)
     low = torch.tensor(grid.origin, dtype=values.dtype, device=values.device)
     high = low + torch.tensor(grid.size, dtype=values.dtype, device=values.device)
     # nodes far from S can have closest points outside the box: their values are never read
