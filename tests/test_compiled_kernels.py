@@ -142,6 +142,25 @@ def test_an_eager_flow_path_compiles_nothing_even_its_reextension(monkeypatch, s
     assert _graphs() == before
 
 
+def test_an_eager_layer_compiles_nothing_even_its_ring_fill(monkeypatch, sphere13):
+    """A learned diffusion given ``path="slicing"`` assembled its ring's re-extension (once per
+    surface) with ``"auto"``, which compiles the tricubic gather under ``always``."""
+    monkeypatch.setattr(backend, "COMPILE", "always")
+    u, surface = sphere13
+    fresh = ts.ImplicitSurface(surface.phi.clone(), surface.grid)  # nothing kept on it yet
+    before = _graphs()
+    ts.nn.LearnedDiffusion(1, time=[0.5], path="slicing")(u, fresh)
+    assert _graphs() == before
+
+
+def test_an_assigned_compile_setting_is_checked(monkeypatch, sphere13):
+    """A mistyped ``backend.COMPILE = "Never"`` ran as ``"auto"`` without a word."""
+    monkeypatch.setattr(backend, "COMPILE", "Never")
+    u, surface = sphere13
+    with pytest.raises(ValueError, match=r"torchsurf.backend.COMPILE must be one of .* 'Never'"):
+        ts.laplace_beltrami(u, surface)
+
+
 def test_a_compiled_flow_compiles_once_for_every_unrecorded_call(monkeypatch, sphere13):
     """A heat flow with re-extension compiled from its first call (``always``): its kernels
     (the octant Laplace–Beltrami, the limited tricubic gather) compile on the first call and

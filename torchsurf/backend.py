@@ -510,6 +510,9 @@ def _resolve(path: str, volume: Tensor, kernel: Kernel | None, recording: bool, 
 
 def _choose(volume: Tensor, kernel: Kernel | None, recording: bool, variant: tuple | None
             ) -> str:
+    if COMPILE not in COMPILE_MODES:  # assigned in the program, not read from the environment
+        raise ValueError(f"torchsurf.backend.COMPILE must be one of {COMPILE_MODES}, got "
+                         f"{COMPILE!r}")
     eager = eager_path(volume)
     if torch.compiler.is_compiling() or kernel is None or kernel.fused is None:
         return eager
@@ -696,6 +699,9 @@ def run_haloed(kernel: Kernel, path: str, volume: Tensor, *haloed_args: object) 
     """
     if kernel.fused is None:
         raise ValueError(f"{kernel.name} has no one-pass form to run on haloed inputs")
+    if torch.compiler.is_compiling():  # traced by an outer torch.compile, as in run_on_path
+        check_choice(path, "path", PATHS)
+        return (kernel.fused_eagerly if kernel.breaks_graph else kernel.fused)(*haloed_args)
     recording = _recording(haloed_args)
     concrete, variant = _resolve(path, volume, kernel, recording, haloed_args)
     if concrete == "compiled":

@@ -867,6 +867,9 @@ class ImplicitSurface(nn.Module):
         first order where S leaves the face obliquely (a sphere whose normal there is 11
         degrees from the face's plane: 0.9% of ``2 / R`` at 97^3), second order where it meets
         it at right angles (and where its normal is 11 degrees from the face's normal).
+        Second order where ``phi`` is smooth on the grid's scale (a distance, ``r^2 - R^2``);
+        a ``phi`` that bends within a few cells of S keeps a fixed error (``tanh(d / 2h)``: 8%
+        of ``H`` on a sphere at every resolution; README.md, "Curvature").
         Computed once and kept (except when computed without autograd from a ``phi`` that
         requires grad, so that a later call still carries the graph; and computed again if the
         tensor returned was modified in place).

@@ -208,3 +208,30 @@ def test_the_compiled_path_traces_in_an_outer_compile_for_a_batch(sphere):
         assert torch.allclose(traced(batch), expected, atol=1e-6)
     finally:
         torch._dynamo.reset()
+
+
+def test_flows_on_bricks_trace_without_graph_break():
+    """On bricks the heat flow read the size of its band on the host (a break, and
+    fullgraph=True failed) and the haloed kernels read the backend's context variable while
+    traced (7-8 breaks in the Perona-Malik and harmonic map flows)."""
+    grid = ts.Grid.cube(17, 2.0)
+    packed = ts.bricks.from_dense(ts.ImplicitSurface(ts.sdf.sphere(grid, 0.9), grid))
+    u = packed.from_dense(torch.rand(1, 3, *grid.shape, generator=torch.Generator().manual_seed(1)))
+    unit = u / u.norm(dim=1, keepdim=True)
+    h2 = packed.spacing**2
+    for flow, data in ((HeatFlow(h2 / 40, method="euler", steps=1), u),
+                       (AnisotropicFlow(h2 / 100, "perona_malik", contrast=2.0, method="euler",
+                                        steps=1), u),
+                       (HarmonicMapFlow(h2 / 400, method="euler", steps=1), unit)):
+        assert _break_reasons(flow, data, packed) == [], flow
+
+
+def test_the_compiled_path_is_kept_by_the_heat_semigroup(sphere):
+    """path='compiled' was ignored by the Chebyshev semigroup on a fixed phi: it ran the packed
+    band matrices (bit for bit path='slicing'), where the docs promise the compiled volume
+    stencils."""
+    from torchsurf.flows.exponential import BandLaplacian
+
+    _, surface = sphere
+    assert BandLaplacian(surface, path="compiled").packed() is None
+    assert BandLaplacian(surface, path="slicing").packed() is not None

@@ -83,16 +83,16 @@ SETTLED = 1e-6
 without a warning (:func:`_sweeps_to_settle`)."""
 
 
-def _chained_nodes(first: Stencil, ring: Tensor, dtype: torch.dtype) -> Tensor:
+def _chained_nodes(first: Stencil, ring: Tensor, dtype: torch.dtype, path: str) -> Tensor:
     """The ring nodes whose taps read a ring node, a mask like ``ring``: after one pass of
     ``first`` over data that is NaN on the ring and zero elsewhere, the ring nodes still NaN."""
     with torch.no_grad():
         probe = torch.where(ring, torch.nan, 0.0).to(dtype)
-        return ring & torch.isnan(first.apply(probe))
+        return ring & torch.isnan(first.apply(probe, path))
 
 
-def _sweeps_to_settle(start: Callable[[Tensor], Tensor], chained: Stencil, band: Tensor,
-                      dtype: torch.dtype) -> int:
+def _sweeps_to_settle(start: Callable[[Tensor, str], Tensor], chained: Stencil, band: Tensor,
+                      dtype: torch.dtype, path: str) -> int:
     """Sweeps of ``chained`` after ``start`` (the band's values to the ring's first values)
     until the ring values of a constant change by at
     most four rounding units, or stop shrinking (a node whose closest point is itself, on a
@@ -100,10 +100,10 @@ def _sweeps_to_settle(start: Callable[[Tensor], Tensor], chained: Stencil, band:
     than :data:`SETTLED` is left."""
     with torch.no_grad():
         ones = torch.ones(band.shape, dtype=dtype, device=band.device)
-        values = start(ones)
+        values = start(ones, path)
         change = torch.inf
         for sweep in range(1, MAX_RING_SWEEPS + 1):
-            settled = chained.apply(values)
+            settled = chained.apply(values, path)
             change, last = float((settled - values).abs().max()), change
             values = settled
             if change <= 4.0 * torch.finfo(dtype).eps or (change > 0.5 * last
@@ -136,6 +136,8 @@ class RingFill:
         surface: the implicit surface (batch 1 or B), or a brick surface.
         width: the band's half-width, world units.
         band, region: the band and the band with its ring, bool masks of the surface's storage.
+        path: how the stencils run while the fill is assembled (:mod:`torchsurf.backend`; once
+            per surface and width, by the first caller's path).
 
     Attributes:
         first: the stencil of every ring node.
@@ -147,7 +149,7 @@ class RingFill:
     """
 
     def __init__(self, surface: ImplicitSurface, width: float, band: Tensor,
-                 region: Tensor) -> None:
+                 region: Tensor, path: str = "auto") -> None:
         self.band, self.layout = band, surface.layout
         ring = region & ~band
         self.first = kept_stencil(surface, width, "ring", ring, region, limited=False)
@@ -157,17 +159,17 @@ class RingFill:
             """Host reads: computed once per surface and kept (``torch.compile`` then traces
             :meth:`apply` without a break)."""
             with torch.no_grad():  # a ring node the stencil drops keeps its input, 0
-                from_band = self.first.apply(band.to(dtype))
+                from_band = self.first.apply(band.to(dtype), path)
             orphans = ring & (from_band < BAND_SHARE)
             self.orphans = orphans if bool(orphans.any()) else None
             self.neighbours = None if self.orphans is None else self._box_sum(
                 band.to(dtype)).clamp(min=1.0)
-            chained = _chained_nodes(self.first, ring, dtype) & ~orphans
+            chained = _chained_nodes(self.first, ring, dtype, path) & ~orphans
             if not bool(chained.any()):
                 return self.orphans, self.neighbours, None, 0
             stencil = cubic_stencil(surface, chained, limited=False, readable=region)
             return (self.orphans, self.neighbours, stencil,
-                    _sweeps_to_settle(self._start, stencil, band, dtype))
+                    _sweeps_to_settle(self._start, stencil, band, dtype, path))
 
         parts = (assemble() if surface.phi.requires_grad
                  else surface.kept(("ring fill", width), assemble))
@@ -264,7 +266,7 @@ class BandLaplacian:
         self.surface, self.scheme, self.path, self.width = surface, scheme, path, width
         self.band = surface.band_mask(width)
         self.region = with_ring(self.band, surface.layout)
-        self.ring = RingFill(surface, width, self.band, self.region)
+        self.ring = RingFill(surface, width, self.band, self.region, path)
         self.extension = kept_stencil(surface, width, "region", self.region, self.region,
                                       limited=True)
         self.bound = BOUND_MARGIN * laplace_beltrami_bound(surface, scheme, width)
@@ -272,9 +274,10 @@ class BandLaplacian:
     def packed(self) -> PackedBand | None:
         """The operator on packed band values (:class:`~torchsurf.flows._packed_band.PackedBand`),
         assembled once and kept on the surface; ``None`` when ``phi`` requires grad (the
-        operator's weights are then in its graph), or when its matrices would not fit in a
-        quarter of the memory available (:data:`PACKED_NODE_BYTES`)."""
-        if self.differentiable:
+        operator's weights are then in its graph), where compiled volume stencils are asked
+        for (``path="compiled"``, ``TORCHSURF_COMPILE=always``), or when its matrices would not
+        fit in a quarter of the memory available (:data:`PACKED_NODE_BYTES`)."""
+        if self.differentiable or self.path == "compiled" or backend.COMPILE == "always":
             return None
         return self.surface.kept(("packed band laplacian", self.scheme, self.width),
                                  self._assemble_packed)

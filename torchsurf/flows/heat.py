@@ -221,10 +221,12 @@ class HeatFlow(Flow):
                 or type(self).system is not HeatFlow.system  # a subclass's own equation
                 or self.path == "compiled" or backend.COMPILE == "always"):
             return None
-        if surface.layout is not None and int(system.region.sum()) > PACKED_BRICK_NODES:
+        width = self.evolving_width(surface)
+        if surface.layout is not None and not surface.kept(  # a host read, once per surface
+                ("packed brick region fits", width),
+                lambda: int(system.region.sum()) <= PACKED_BRICK_NODES):
             return None
-        packing = kept_packing(surface, self.scheme, self.evolving_width(surface), system.band,
-                               system.region)
+        packing = kept_packing(surface, self.scheme, width, system.band, system.region)
         if packing is None:
             return None
         d = self.diffusivity.volume(u0)
