@@ -174,12 +174,12 @@ def laplace_beltrami_bound(
     floored weight of :class:`ImplicitSurface` keeps it within a small factor of that.
 
     Args:
-        surface: the implicit surface.
+        surface: the implicit surface, dense or bricks, batch ``B``.
         scheme: as in :func:`laplace_beltrami`.
         width: the band's half-width, world units (default ``surface.band_width``).
 
     Returns:
-        The bound, ``1 / world length^2``.
+        The bound, ``1 / world length^2``: one float, the largest over the batch's entries.
     """
     width = surface.band_width if width is None else float(width)
     return surface.kept(("laplace_beltrami_bound", scheme, width),
@@ -222,13 +222,14 @@ def directional_bound(
     Not kept: it depends on ``direction``.
 
     Args:
-        surface: the implicit surface.
-        direction: ``T``, as in :func:`directional_diffusion`.
+        surface: the implicit surface, dense or bricks, batch ``B``.
+        direction: ``T``, ``(B or 1, 3, D, H, W)`` (packed ``(N, 3, 8, 8, 8)`` on bricks),
+            a tangent direction field, as in :func:`directional_diffusion`.
         scheme: as in :func:`directional_diffusion`.
         width: the band's half-width, world units (default ``surface.band_width``).
 
     Returns:
-        The bound, ``1 / world length^2``.
+        The bound, ``1 / world length^2``: one float, the largest over the batch's entries.
     """
     width = surface.band_width if width is None else float(width)
     return _bound_on_band(
