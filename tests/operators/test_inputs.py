@@ -199,3 +199,40 @@ def test_functional_layer_names_a_missing_tensor():
         for call in group:
             with pytest.raises(TypeError, match=rf"^{name} must be a torch.Tensor, got None"):
                 call()
+
+
+def test_functional_layer_checks_masks_halos_flags_and_contrast():
+    """A mask of three channels broadcast the result to three (u has one), a float mask or one
+    of another grid and a haloed geometry without its halo failed deep in a kernel,
+    weighted="no" was read as true, a diffusivity's name was called, and a contrast of the
+    wrong shape failed broadcasting inside the flux."""
+    from torchsurf.operators.diffusivity import total_variation
+
+    functional = ts.operators.functional
+    u, normal, weight, h = CASE.u, SURFACE.normal, SURFACE.weight, SURFACE.spacing
+    band = SURFACE.band_mask()
+    for call, error, match in (
+        (lambda: functional.divergence_form(u, normal, weight, h, mask=band.expand(-1, 3, -1, -1, -1)),
+         ValueError, r"mask must have shape \(B or 1, 1, \*\(13, 13, 13\)\) .* got \(1, 3,"),
+        (lambda: functional.divergence_form(u, normal, weight, h, mask=band.double()),
+         TypeError, "mask must be a bool tensor, got torch.float64"),
+        (lambda: functional.divergence_form(u, normal, weight, h, mask=band[..., :12]),
+         ValueError, "mask must have shape"),
+        (lambda: functional.divergence_form(u, normal, weight, h, haloed=(normal, weight)),
+         ValueError, r"haloed\[0\] \(normal\) must have shape \(B or 1, 3, \*\(15, 15, 15\)\)"),
+        (lambda: functional.divergence_form(u, normal, weight, h, weighted="no"),
+         TypeError, "weighted must be True or False"),
+        (lambda: functional.edge_stopping_form(u, normal, weight, h, "perona_malik", 1.0, 1e-3),
+         TypeError, "diffusivity must be a function"),
+        (lambda: functional.edge_stopping_form(u, normal, weight, h, total_variation,
+                                               torch.ones(5, dtype=u.dtype), 1e-3),
+         ValueError, r"contrast must broadcast to u's shape \(1, 1, 13, 13, 13\)"),
+        (lambda: functional.tangential_gradient(u[..., :0], normal[..., :0], h),
+         ValueError, "u must have nodes along every axis"),
+    ):
+        with pytest.raises(error, match=match):
+            call()
+    masked = functional.divergence_form(u, normal, weight, h, mask=band, haloed=SURFACE.haloed(),
+                                        weighted=torch.tensor(False))
+    assert torch.equal(masked, torch.where(band, functional.divergence_form(u, normal, weight, h),
+                                           0.0))

@@ -222,9 +222,9 @@ class HeatFlow(Flow):
                 or self.path == "compiled" or backend.COMPILE == "always"):
             return None
         width = self.evolving_width(surface)
-        if surface.layout is not None and not surface.kept(  # a host read, once per surface
-                ("packed brick region fits", width),
-                lambda: int(system.region.sum()) <= PACKED_BRICK_NODES):
+        if surface.layout is not None and surface.kept(  # a host read, once per surface
+                ("band and ring nodes", width), lambda: int(system.region.sum())
+        ) > PACKED_BRICK_NODES:
             return None
         packing = kept_packing(surface, self.scheme, width, system.band, system.region)
         if packing is None:

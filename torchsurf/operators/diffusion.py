@@ -185,8 +185,9 @@ def directional_diffusion(
             ``(N, C, 8, 8, 8)``.
         surface: the implicit surface (batch 1 or B).
         direction: ``T``, ``(B or 1, 3, D, H, W)`` in ``(x, y, z)`` order (packed
-            ``(N, 3, 8, 8, 8)`` on bricks), tangent to the level sets and usually of unit
-            length (e.g. a principal direction).
+            ``(N, 3, 8, 8, 8)`` on bricks), usually of unit length (e.g. a principal
+            direction); its part along the normals is dropped (``P T`` is used, so that the
+            result is intrinsic: ``T`` and ``P T`` give the same, and the normals nothing).
         scheme: ``"symmetric"`` (default), ``"conservative"`` or ``"octant"``.
         path: how stencils are applied.
 
@@ -198,6 +199,8 @@ def directional_diffusion(
     check_direction_batch(direction, u, "u", surface)
     check_choice(scheme, "scheme", FLUX_SCHEMES)
     check_choice(path, "path", backend.PATHS)
+    normal = surface.normal
+    direction = direction - (direction * normal).sum(dim=1, keepdim=True) * normal
     return functional.directional_form(
         u, surface.normal, surface.weight, surface.spacing, direction, scheme, path,
         haloed=surface.haloed(), pad=None if surface.layout is None else surface.layout.halo,

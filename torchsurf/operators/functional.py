@@ -14,7 +14,8 @@ autograd reaches every one of them and a flow can hand them to its integrator:
 Data ``u`` is ``(B, C, D, H, W)``. Every function takes ``path`` (:mod:`torchsurf.backend`):
 ``"auto"`` (default), ``"slicing"``, ``"conv3d"`` or ``"compiled"``, all giving the same numbers
 to rounding. Each checks its arguments' shapes (channel counts, batch sizes that broadcast,
-equal grids), dtypes, spacing and scheme, not their values; the surface-level functions
+equal grids, masks, haloed geometry, contrast), dtypes, flags, spacing and scheme, not their
+values; the surface-level functions
 (:func:`torchsurf.laplace_beltrami`, ...) check everything.
 
 The divergence forms ``L u = (1/W) div(W f(P grad u))`` come in three schemes (see
@@ -32,7 +33,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from .. import backend, stencils
-from .._checks import SUPPORTED_DTYPES, check_alike, check_positive
+from .._checks import SUPPORTED_DTYPES, check_alike, check_flag, check_positive
 from ..stencils import masked
 from ._coupled import eager_coupled_rate, fused_coupled_rate
 from ._flux_form import (
@@ -73,6 +74,8 @@ def _check_inputs(u: Tensor, normal: Tensor, spacing: float, weight: Tensor | No
         raise ValueError(f"{data} must be a (B, C, D, H, W) tensor, got shape {tuple(u.shape)}")
     if u.shape[1] == 0:
         raise ValueError(f"{data} must have at least one channel, got shape {tuple(u.shape)}")
+    if 0 in u.shape[2:]:
+        raise ValueError(f"{data} must have nodes along every axis, got shape {tuple(u.shape)}")
     if vector and u.shape[1] % 3:
         raise ValueError(f"v must hold 3 components a channel, (B, 3C, D, H, W), got "
                          f"{u.shape[1]} channels (shape {tuple(u.shape)})")
@@ -82,6 +85,47 @@ def _check_inputs(u: Tensor, normal: Tensor, spacing: float, weight: Tensor | No
     if scheme is not None and scheme not in schemes:
         raise ValueError(f"scheme must be one of {tuple(schemes)}, got {scheme!r}")
     return spacing
+
+
+def _check_extras(u: Tensor, mask: Tensor | None = None, haloed: object = None,
+                  weighted: object = False, diffusivity: object = None,
+                  contrast: object = None) -> None:
+    """The cheap checks of the optional arguments (shapes and types, no values): a mask of
+    another shape broadcast the result to it, a haloed geometry without its halo failed deep
+    in a kernel, and ``weighted="no"`` was read as true."""
+    spatial = tuple(u.shape[2:])
+    if mask is not None:
+        if not isinstance(mask, Tensor) or mask.dtype != torch.bool:
+            raise TypeError(f"mask must be a bool tensor, got "
+                            f"{mask.dtype if isinstance(mask, Tensor) else type(mask).__name__}")
+        if (mask.dim() != 5 or mask.shape[1] != 1 or mask.shape[0] not in (1, u.shape[0])
+                or tuple(mask.shape[2:]) != spatial):
+            raise ValueError(f"mask must have shape (B or 1, 1, *{spatial}) for u of shape "
+                             f"{tuple(u.shape)}, got {tuple(mask.shape)}")
+    if haloed is not None:
+        halo = tuple(n + 2 for n in spatial)
+        if (not isinstance(haloed, (tuple, list)) or len(haloed) != 2
+                or not all(isinstance(t, Tensor) and t.dim() == 5 for t in haloed)):
+            raise TypeError("haloed must be a pair (normal, weight) of 5-D tensors with a halo "
+                            "of one node, or None")
+        for name, tensor, channels in (("haloed[0] (normal)", haloed[0], 3),
+                                       ("haloed[1] (weight)", haloed[1], 1)):
+            if tensor.shape[1] != channels or tuple(tensor.shape[2:]) != halo:
+                raise ValueError(f"{name} must have shape (B or 1, {channels}, *{halo}) (one "
+                                 f"node of halo around u's {spatial}), got {tuple(tensor.shape)}")
+    check_flag(weighted, "weighted")
+    if diffusivity is not None and not callable(diffusivity):
+        raise TypeError(f"diffusivity must be a function g(magnitude, contrast) (see "
+                        f"torchsurf.operators.diffusivity; the surface-level "
+                        f"anisotropic_diffusion takes names), got {diffusivity!r}")
+    if isinstance(contrast, Tensor):
+        try:
+            shape = torch.broadcast_shapes(contrast.shape, u.shape)
+        except RuntimeError:
+            shape = None
+        if shape != u.shape:
+            raise ValueError(f"contrast must broadcast to u's shape {tuple(u.shape)} (e.g. "
+                             f"(1, C, 1, 1, 1)), got shape {tuple(contrast.shape)}")
 
 
 Haloed = tuple[Tensor, Tensor] | None
@@ -227,6 +271,7 @@ def divergence_form(
         ``u``'s shape, units of ``u`` per world length squared (times ``W`` if weighted).
     """
     spacing = _check_inputs(u, normal, spacing, weight, scheme)
+    _check_extras(u, mask, haloed, weighted)
     if normal.requires_grad or weight.requires_grad or not (
             torch.is_grad_enabled() and u.requires_grad):
         # no autograd node needed where autograd records nothing (a custom Function's call
@@ -347,6 +392,8 @@ def edge_stopping_form(
         ``u``'s shape.
     """
     spacing = _check_inputs(u, normal, spacing, weight, scheme, FLUX_SCHEMES)
+    _check_extras(u, mask, haloed, diffusivity=diffusivity, contrast=contrast)
+    check_flag(coupled, "coupled")
     if coupled and u.shape[1] > 1:
         return harmonic_map_rate(u, normal, weight, spacing, diffusivity, contrast, eps, None,
                                  scheme, path, mask, haloed, pad)
@@ -435,6 +482,7 @@ def harmonic_map_rate(
         ``u``'s shape.
     """
     spacing = _check_inputs(u, normal, spacing, weight, scheme, FLUX_SCHEMES)
+    _check_extras(u, mask, haloed, diffusivity=diffusivity, contrast=contrast)
     if pad is not None:
         haloed_normal, haloed_weight = _require_haloed(haloed)
         return backend.run_haloed(_COUPLED_OPEN, path, u, pad(u, 2), haloed_normal,
@@ -498,6 +546,7 @@ def directional_form(
     """
     spacing = _check_inputs(u, normal, spacing, weight, scheme, FLUX_SCHEMES, direction,
                            required=("weight", "direction"))
+    _check_extras(u, haloed=haloed, weighted=weighted)
     if pad is not None:
         haloed_normal, haloed_weight = _require_haloed(haloed)
         if haloed_direction is None:
