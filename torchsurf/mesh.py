@@ -171,8 +171,9 @@ class MeshAdapter(nn.Module):
       mesh's own interpolation error being below the grid's, and likewise where reproducing
       the hats would take weights of 1-norm above 4 (many small coplanar facets: the
       fandisk's flat parts reached 47 and amplified data 1.8x);
-    - every affine function of the grid's closest points ``g_n = x_n - phi grad phi /
-      |grad phi|^2`` (what the flows' re-extension writes, :mod:`torchsurf.flows.extension`),
+    - every affine function of the grid's closest points ``g_n = x_n - d_n n_n``,
+      ``d = surface.signed_distance()`` (what the flows' re-extension reads from,
+      :mod:`torchsurf.flows.extension`),
       so that a smooth field left by a flow comes back with an error ``O(h^2 |u''|)``.
 
     Measured relative max error of the round trip of ``sin(2 pi a . x)``, ``|a| = 2``, on

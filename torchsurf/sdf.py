@@ -339,6 +339,12 @@ def redistance(phi: Tensor, grid: Grid, band_width: float | None = None) -> Tens
     curvature of a sphere 47 % off at every resolution, now second order
     (``tests/test_redistance.py``); where ``phi`` is its own interpolant (a quadratic) the
     result is exact to 1e-5 cells across the band, also around features a few cells wide.
+    The zero set is known inside the box only: next to a face that S crosses, a node gets its
+    distance to the part of S inside, which is too long where S leaves the face obliquely (a
+    sphere's ``r^2 - R^2``, ``R = 0.7``, centre 0.4 inside a face: up to 1.4 cells off at the
+    face nodes at 33^3 to 65^3, no finer grid helps, normals 22 degrees off) and up to 0.025
+    cells where it meets the face at right angles (33^3; first order): keep S a few cells
+    inside the box, as :class:`~torchsurf.ImplicitSurface` warns.
     Where the iteration does not settle (near the medial axis, at creases of ``phi``) a node
     keeps its distance to the triangles.
     ``|grad phi| = 1`` in the band, except at the medial axis. Not differentiable: the result

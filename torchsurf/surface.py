@@ -996,27 +996,31 @@ def check_direction(direction: object, u0: Tensor, surface: ImplicitSurface,
     check_direction_batch(field, u0, "u0", surface)
     if not torch.compiler.is_compiling():
         check_finite(torch.where(region, field, 0.0), "direction (in the band and its ring)")
-        _check_tangential(field.detach(), surface.normal.detach(), region, surface.layout)
+        check_tangential(field, surface, region, "direction")
     return field
 
 
-def _check_tangential(field: Tensor, normal: Tensor, region: Tensor,
-                      layout: BrickLayout | None = None) -> None:
-    """Raise naming ``direction`` where most of an entry's ``region`` holds no tangential part
-    (a zero field, or one along the normals): :func:`tangent_unit` sends it to 0 there and the
-    flows would not diffuse along it, without a word. Isolated zeros (a sphere's tangent field
-    has some) are fine."""
-    tangent, squared = _tangential_part(field, normal)
+def check_tangential(field: Tensor, surface: ImplicitSurface, region: Tensor,
+                     name: str) -> None:
+    """Raise naming ``name`` where most of a batch entry's ``region`` (bool) holds no part of
+    ``field`` ``(B, 3, ...)`` tangent to the level sets (a zero field, or one along the
+    normals): :func:`tangent_unit` sends it to 0 there, and a flow would not diffuse along it
+    (or would follow rounding), without a word. Isolated zeros (a sphere's tangent field has
+    some) are fine. Not checked while ``torch.compile`` traces (a host read)."""
+    if torch.compiler.is_compiling():
+        return
+    tangent, squared = _tangential_part(field.detach(), surface.normal.detach())
     none = (tangent**2).sum(dim=1, keepdim=True) <= TANGENT_FLOOR**2 * squared
     region = region.expand_as(none)
+    layout = surface.layout
     share = _per_entry(none & region, layout) / _per_entry(region, layout).clamp_min(1)
     if bool((share > 0.5).any()):
         worst = float(share.max())
         raise ValueError(
-            f"direction has no part tangent to the level sets at {worst:.0%} of the band's "
-            "nodes (it is zero, or along the normals, there): the flow would not diffuse "
-            "along it; give a tangent field (e.g. torchsurf.signals.principal_direction, "
-            "swirl_field)")
+            f"{name} has no part tangent to the level sets at {worst:.0%} of the band's "
+            "nodes (it is zero, or along the normals, there), where the flow would follow "
+            "nothing but rounding; give a field with a tangent part (e.g. "
+            "torchsurf.signals.principal_direction, swirl_field)")
 
 
 def _tangential_part(field: Tensor, normal: Tensor) -> tuple[Tensor, Tensor]:

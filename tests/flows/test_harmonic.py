@@ -64,6 +64,18 @@ def test_tangent_constraint_keeps_fields_tangent():
     assert along[band].abs().max() < 1e-9  # rounding: the normals are unit to eps^2 / |grad phi|^2
 
 
+def test_a_tangent_flow_refuses_data_along_the_normals():
+    """u0 = the normals with tangent=True ran: P u / |P u| made unit vectors of rounding, which
+    pointed opposite ways in float32 and float64."""
+    identity, surface = sphere(13)
+    across = torch.zeros_like(identity)
+    across[:, 0] = 1.0
+    normal = torch.where(surface.normal.norm(dim=1, keepdim=True) > 0.5, surface.normal, across)
+    with pytest.raises(ValueError, match=r"u0 \(tangent=True\) has no part tangent .* at (100|9\d)%"):
+        HarmonicMapFlow(0.002, tangent=True)(normal, surface)
+    HarmonicMapFlow(0.002)(normal, surface)  # without the constraint: a map like any other
+
+
 @pytest.mark.parametrize("method", ["rk4", "midpoint", "dopri5"])
 def test_tangent_fields_from_noise_under_torchdiffeq(method):
     """torchdiffeq's methods project only between their pieces: a raw noise field ran a whole

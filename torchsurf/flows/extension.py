@@ -2,9 +2,11 @@
 
 Two ways:
 
-- ``"closest_point"``: ``u(x) <- u(x - phi(x) grad phi(x) / |grad phi(x)|^2)``, the value at
-  the (first-order) closest point of S, read by trilinear interpolation (Ruuth & Merriman 2008)
-  or, with ``interpolation="cubic"``, tricubic. One pass; nodes on S keep their values up to
+- ``"closest_point"``: ``u(x) <- u(x - d(x) n(x))``, ``d = surface.signed_distance()``
+  (``phi / max(|grad phi|, 0.5 s)``, ``s = surface.gradient_scale``), the value at the
+  (first-order) closest point of S, read by trilinear interpolation (Ruuth & Merriman 2008)
+  or, with ``interpolation="cubic"``, tricubic at the closest point refined on the
+  interpolated phi (:mod:`._closest`). One pass; nodes on S keep their values up to
   the interpolation error, ``O(h^2)`` or ``O(h^4)``. Across the band the closest points add
   theirs: on an exact distance the central-difference normal's ``O(h^2)`` error moves them
   by ``|phi| O(h^2)``, so tricubic extension is third order there (sphere R = 0.8, data
@@ -56,7 +58,8 @@ def closest_point_extension(
     u: Tensor, surface: ImplicitSurface, width: float | None = None,
     interpolation: str = "linear", mask: Tensor | None = None,
 ) -> Tensor:
-    """``u(x - phi grad phi / |grad phi|^2)`` inside the band, interpolated from the grid.
+    """``u(x - d n)`` inside the band, ``d = surface.signed_distance()``, interpolated from the
+    grid (module docstring).
 
     Args:
         u: ``(B, C, D, H, W)``; ``surface`` has batch 1 or B. On a
@@ -64,7 +67,8 @@ def closest_point_extension(
         surface: the implicit surface.
         width: half-width of the band to extend in, world units (default the surface's).
         interpolation: ``"linear"`` (trilinear, error ``O(h^2)``: repeated every few steps
-            of a flow, it smooths the data and costs second-order flows their accuracy) or
+            of a flow, it smooths the data and costs second-order flows their accuracy; it
+            reads the nodes of the cell around each point, up to ``sqrt(3)`` cells from S) or
             ``"cubic"`` (tricubic Lagrange on the 4^3 nodes around each point, error
             ``O(h^4)`` at the point, third order across the band (module docstring),
             evaluated at band nodes only; it reads nodes up to ``2 sqrt(3)``
@@ -929,10 +933,14 @@ class Extension(nn.Module):
         max_steps: ``"pde"`` only: upper bound on the steps.
         interpolation: ``"closest_point"`` only: ``"linear"`` (default) or ``"cubic"`` (see
             :func:`closest_point_extension`).
-        limited: ``"cubic"`` only: clamp each value to the range of the cell its closest
-            point lies in (the flows' limiter, :mod:`torchsurf.flows._limiter`), so that an
+        limited: ``"cubic"`` only: clamp each value to bounds at least as wide as the range
+            of the cell its closest point lies in, within the range of its ``4^3`` taps and
+            continuous in the point (each corner's 27 neighbours' extremes, weighted
+            trilinearly: the flows' limiter, :mod:`torchsurf.flows._limiter`), so that an
             extension repeated on its own result (a "step, then extend" loop of one's own) stays
-            within the data's range. Unlimited, cubic extension is exact for cubics but, where
+            within the data's range. Unlimited, cubic extension is exact for cubics (where the
+            taps lie in the box: closest points within 1.5 cells of a box face read clamped
+            taps, 7.6e-3 off a cubic of range 1.5 with S 0.3 cells from the faces) but, where
             the surface's sheets come within a few cells (a mesh's thin parts at a coarse grid),
             repeating it can grow without bound: on a 40^3 bunny ``from_mesh``, 6.4 after 50
             repetitions and 8e5 after 200 (data of range 2); limited, it stays in range.
@@ -965,10 +973,11 @@ class Extension(nn.Module):
         """``u`` ``(B, C, D, H, W)`` (packed ``(N, C, 8, 8, 8)`` on bricks) extended inside the
         band of :attr:`width`; nodes beyond it are returned as they are.
 
-        What is read: trilinear interpolation reads the band only; tricubic interpolation reads
-        the ``4^3`` nodes around each closest point, up to ``2 sqrt(3)`` cells from S, beyond a
-        band narrower than that; ``"pde"`` reads the band and the nodes next to it. ``u`` may
-        hold anything (NaN too) where nothing is read.
+        What is read: trilinear interpolation reads the ``2^3`` nodes of the cell around each
+        closest point, up to ``sqrt(3)`` cells from S, beyond a band narrower than that (with
+        the default band, the band only); tricubic interpolation reads the ``4^3`` nodes around
+        each closest point, up to ``2 sqrt(3)`` cells from S; ``"pde"`` reads the band and the
+        nodes next to it. ``u`` may hold anything (NaN too) where nothing is read.
 
         Raises:
             ValueError: ``u`` holds NaN or infinity where it is read (the flows refuse it too:
@@ -983,7 +992,12 @@ class Extension(nn.Module):
             return stencil.apply(u)
         if self.method == "closest_point":
             check_finite(torch.where(band, u.detach(), 0.0), "u (in the band)")
-            return closest_point_extension(u, surface, mask=band)
+            extended = closest_point_extension(u, surface, mask=band)
+            # a value read beyond a band narrower than sqrt(3) cells makes its nodes' result NaN
+            check_finite(torch.where(band, extended.detach(), 0.0),
+                         "u (at the nodes its trilinear interpolation reads, up to sqrt(3) cells "
+                         "from S)")
+            return extended
         check_finite(torch.where(with_ring(band, surface.layout), u.detach(), 0.0),
                      "u (in the band and next to it)")
         return pde_extension(u, surface, self.width, self.tolerance, self.max_steps)

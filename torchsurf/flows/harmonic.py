@@ -9,7 +9,7 @@ from .._checks import check_choice, check_flag, check_positive, check_real
 from ..backend import PATHS
 from ..operators import functional
 from ..operators.functional import FLUX_SCHEMES
-from ..surface import ImplicitSurface
+from ..surface import ImplicitSurface, check_tangential
 from ._integrators import INTEGRATORS, System, tensors, with_ring
 from .base import Flow
 
@@ -55,7 +55,8 @@ class HarmonicMapFlow(Flow):
         time: physical end time.
         p: exponent, ``1 <= p <= 2`` (1: the paper's figure 3; 2: harmonic maps).
         eps: regularisation of ``|P grad u|``, units of ``u`` per world length.
-        tangent: constrain ``u`` (3 channels) to the tangent plane of the level sets.
+        tangent: constrain ``u`` (3 channels) to the tangent plane of the level sets; a
+            ``u0`` with no tangent part over most of the band (the normals) is refused.
         scheme: ``"symmetric"`` (default), ``"conservative"`` or ``"octant"``.
         path: how stencils are applied.
         **kwargs: integration settings of :class:`Flow` (explicit or torchdiffeq).
@@ -63,7 +64,8 @@ class HarmonicMapFlow(Flow):
     Runs on a :class:`~torchsurf.bricks.BrickSurface` too (``u0`` packed ``(N, m, 8, 8, 8)``),
     equal to the dense flow on the band (docs/bricks.md).
 
-    Shapes: ``u0`` ``(B, m, D, H, W)`` with ``|u0| = 1`` -> ``(B, m, D, H, W)``.
+    Shapes: ``u0`` ``(B, m, D, H, W)`` with ``|u0| = 1`` (other lengths are made 1 at the
+    start, zero vectors in the band and its ring refused) -> ``(B, m, D, H, W)``.
     """
 
     supports_bricks = True
@@ -102,6 +104,8 @@ class HarmonicMapFlow(Flow):
             if bool((length <= torch.finfo(u0.dtype).tiny ** 0.5).any()):
                 raise ValueError("u0 must be unit vectors in the band and its ring; it has zero "
                                  "vectors there, which no renormalisation can make unit")
+            if self.tangent:  # P u / |P u| would follow rounding: the directions are noise
+                check_tangential(u0, surface, region, "u0 (tangent=True)")
         zero = u0.new_zeros(())
         exponent = self.p - 2.0
         normal, weight, haloed = surface.normal, surface.weight, surface.haloed()
