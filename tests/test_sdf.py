@@ -197,6 +197,30 @@ def test_from_function_rejects_wrong_shape(function):
         sdf.from_function(Grid((3, 4, 5), spacing=0.5), function)
 
 
+def test_from_function_names_a_function_that_is_none_or_gives_nan():
+    """A number raised "'float' object is not callable", and NaN values came back as phi."""
+    grid = Grid((3, 4, 5), spacing=0.5)
+    with pytest.raises(TypeError, match="function must map world points .* got float"):
+        sdf.from_function(grid, 3.0)
+    with pytest.raises(ValueError, match="function returned NaN or infinity at 60 of 60 nodes"):
+        sdf.from_function(grid, lambda p: p[..., 0] * float("nan"))
+
+
+def test_an_analytic_shape_keeps_its_parameters_as_given():
+    """The parameters were copied shallowly: a centre list or a radius tensor changed in place
+    afterwards moved the checked shape (phi by 0.6), or turned its bounds inside out."""
+    from torchsurf.shape_batch import AnalyticShape
+
+    centre, radius = [0.1, 0.0, 0.0], torch.tensor(0.5)
+    shape = AnalyticShape("sphere", {"center": centre, "radius": radius})
+    grid = Grid.cube(9, 1.0)
+    before, bounds = shape.phi(grid), shape.bounds()
+    centre[0] = 0.4
+    radius.fill_(-2.0)
+    assert torch.equal(shape.phi(grid), before)
+    assert all((a == b).all() for a, b in zip(shape.bounds(), bounds, strict=True))
+
+
 @pytest.mark.parametrize(
     ("call", "name"),
     [

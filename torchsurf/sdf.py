@@ -60,6 +60,9 @@ def _sampled(grid: Grid, function: Callable[[Tensor], Tensor], dtype: torch.dtyp
         raise TypeError(f"grid must be a torchsurf.Grid, got {type(grid).__name__}")
     dtype = check_dtype(dtype)
     device = check_device(device)
+    if not callable(function):
+        raise TypeError(f"function must map world points (D, H, W, 3) to values (D, H, W), got "
+                        f"{type(function).__name__}")
     if center is not None:
         center = check_triple(center, "center", check_real)
     _memory.check_fits(_memory.sampled_bytes(grid.shape, dtype),
@@ -74,6 +77,9 @@ def _sampled(grid: Grid, function: Callable[[Tensor], Tensor], dtype: torch.dtyp
         )
     if not values.is_floating_point():
         raise TypeError(f"function must return real floating-point values, got {values.dtype}")
+    if not bool(torch.isfinite(values).all()):
+        bad = int((~torch.isfinite(values)).sum())
+        raise ValueError(f"function returned NaN or infinity at {bad} of {values.numel()} nodes")
     return values.to(dtype)[None, None]
 
 

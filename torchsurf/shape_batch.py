@@ -11,6 +11,7 @@ own units (:meth:`MeshBatchAdapter.shape_time`).
 
 from __future__ import annotations
 
+import copy
 import inspect
 import math
 from collections.abc import Mapping, Sequence
@@ -72,8 +73,9 @@ class AnalyticShape:
         if not isinstance(self.parameters, Mapping):
             raise TypeError(f"parameters must be a mapping of keyword arguments, got "
                             f"{type(self.parameters).__name__}")
-        # a copy: the caller's dict changed later does not change a checked shape
-        object.__setattr__(self, "parameters", dict(self.parameters))
+        # a deep copy: the caller's dict, lists or tensors changed later do not change a
+        # checked shape
+        object.__setattr__(self, "parameters", copy.deepcopy(dict(self.parameters)))
         if self.name not in ANALYTIC:
             raise ValueError(f"name must be one of {ANALYTIC}, got {self.name!r}")
         for key in ("grid", "dtype", "device"):
