@@ -596,6 +596,27 @@ def test_perona_malik_denoises_a_torus_a_thousand_units_across_as_one_of_size_on
     assert errors[1] == pytest.approx(errors[0], rel=1e-4)
 
 
+def test_a_shape_far_from_the_origin_runs_as_at_the_origin(tmp_path):
+    """The grid lay at the shape in world coordinates: float32 points 5e5 from the origin are
+    0.03 apart, more than the cells of a sphere of radius 1e-3, whose checkerboard came out
+    as stripes (rms 0.1565 against 0.1807); the run now computes about the shape's centre."""
+    import json
+
+    from torchsurf import experiment
+
+    metrics = []
+    for centre in ("[0, 0, 0]", "[5e5, 0, 0]"):
+        prepared = experiment.prepare("tv_torus", [
+            "grid.size=20", "surface.shape=sphere", "surface.params={radius: 1e-3}",
+            f"surface.params.center={centre}", "render.width=16", "render.height=16"])
+        folder = tmp_path / centre[1]
+        record = experiment.run(prepared, folder, log=lambda message: None)
+        metrics.append(record.metrics)
+    assert metrics[1] == pytest.approx(metrics[0], rel=1e-6)
+    origin = json.loads((folder / "tv_torus.json").read_text())["grid"]["origin"]
+    assert origin[0] == pytest.approx(5e5 - 1.3e-3, abs=1e-6)  # the record stays in world units
+
+
 def test_layout_auto_takes_bricks_on_large_grids():
     experiment, _ = config.load("heat_sphere")
     assert experiment.grid.layout is config.Layout.auto

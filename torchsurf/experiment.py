@@ -187,25 +187,53 @@ def _builtin_box(shape: Shape, p: dict[str, Any]) -> tuple[np.ndarray, np.ndarra
     return centre - half, centre + half
 
 
+def frame_centre(prepared: Prepared) -> np.ndarray:
+    """The world point ``(3,)`` float64 the run computes about: the centre of the shape's
+    bounding box (a built-in's from its parameters, a mesh's from its vertices). The surface is
+    built in a frame centred there, so that float32 grids keep their cells wherever the shape
+    lies (a sphere of radius 1e-3 at x = 5e5 lost its checkerboard in float32 world points)."""
+    if prepared.mesh_path is not None:
+        mesh = prepared.mesh if prepared.mesh is not None else meshes.load(str(prepared.mesh_path))
+        low, high = np.asarray(mesh.bounds, dtype=np.float64)
+    else:
+        low, high = _builtin_box(prepared.experiment.surface.shape, prepared.params)
+    return 0.5 * (low + high)
+
+
+def _moved(shape: Shape, params: dict[str, Any], offset: np.ndarray) -> dict[str, Any]:
+    """A built-in shape's parameters with its position moved by ``offset`` ``(3,)``."""
+    moved = dict(params)
+    for key in ("center", "start", "end"):
+        if key in moved:
+            moved[key] = tuple(float(x) for x in np.asarray(moved[key], dtype=np.float64) + offset)
+    return moved
+
+
 def build_surface(prepared: Prepared) -> ImplicitSurface:
     """The grid and signed distance the config names, as an :class:`ImplicitSurface`, or a
     :class:`~torchsurf.bricks.BrickSurface` when the config's layout is bricks (a mesh then
-    goes straight into bricks, without a dense volume)."""
+    goes straight into bricks, without a dense volume); in the frame centred at
+    :func:`frame_centre` (world coordinates minus it)."""
     experiment = prepared.experiment
     size, margin = experiment.grid.size, experiment.grid.margin
     packed = cfg.layout(experiment.grid) is Layout.bricks
+    centre = frame_centre(prepared)
     if prepared.mesh_path is not None:
         mesh = prepared.mesh if prepared.mesh is not None else meshes.load(str(prepared.mesh_path))
+        mesh = mesh.copy()
+        mesh.apply_translation(-centre)
         grid = meshes.fit_grid(mesh, size, margin)
         if packed:
             return bricks.from_mesh(mesh, grid)
         phi = sdf.from_mesh(mesh, grid)
     else:
-        low, high = _builtin_box(experiment.surface.shape, prepared.params)
+        shape = experiment.surface.shape
+        params = _moved(shape, prepared.params, -centre)
+        low, high = _builtin_box(shape, params)
         side = float((high - low).max()) * (1.0 + 2.0 * margin)
         origin = tuple(float(x) for x in 0.5 * (low + high) - 0.5 * side)
         grid = Grid((size,) * 3, side / (size - 1), origin)
-        phi = SHAPES[experiment.surface.shape](grid, **prepared.params)
+        phi = SHAPES[shape](grid, **params)
         if packed:
             return bricks.from_dense(phi, grid)
     return ImplicitSurface(phi, grid)
@@ -583,7 +611,9 @@ def _write_record(prepared: Prepared, surface: ImplicitSurface, n: int, spacing:
     return _staged_json({
         "config": cfg.to_dict(experiment),
         "mesh": None if prepared.mesh_path is None else str(prepared.mesh_path),
-        "grid": {"size": n, "spacing": spacing, "origin": list(surface.grid.origin),
+        "grid": {"size": n, "spacing": spacing,
+                 "origin": [float(o + c) for o, c in zip(surface.grid.origin,
+                                                         frame_centre(prepared), strict=True)],
                  "layout": layout.name,
                  "bricks": None if surface.layout is None else len(surface.layout)},
         "diagonal": diagonal,
