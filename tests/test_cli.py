@@ -245,6 +245,15 @@ def test_mesh_path_resolves_against_the_config_folder_then_the_mesh_dir(tmp_path
         # passed with a cell to spare, then the surface warned its operators wrong at the faces
         (["grid.size=16"], "grid.margin"),
         (["signal.gray=1"], "signal.gray"),  # taken as true
+        # YAML 1.1 numbers in other bases or forms ran another number (032 as 26 nodes)
+        (["grid.size=032"], "grid.size"),
+        (["render.height=0x40"], "render.height"),
+        (["render.width=1_00"], "render.width"),
+        (["flow.time=1_000.5"], "flow.time"),
+        (["surface.params={radius: 01}"], "surface.params.radius"),
+        # a physical time float32 cannot hold failed after the surface was built (exit 1)
+        (["flow.time=1e-300"], "flow.time"),
+        (["flow.time=1e300"], "flow.time"),
     ],
 )
 def test_bad_settings_are_refused_with_their_key(overrides, key, tmp_path, capsys):
@@ -384,6 +393,19 @@ def test_text_that_yaml_reads_as_a_number_or_a_boolean_is_refused_in_a_file(text
     assert cli.main(["run", str(path), "--out", str(tmp_path / "out")]) == cli.EXIT_USAGE
     key = text.splitlines()[-1].split(":")[0]
     assert f"config error: {key}: must be text" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("text, key", [("grid: {size: 032}", "grid.size"),
+                                       ("signal: {gray: 'yes'}", "signal.gray"),
+                                       ("grid: {size: 24}\nsignal: {seed: 0x10}", "signal.seed")])
+def test_numbers_and_booleans_in_a_file_are_taken_as_written_or_refused(text, key, tmp_path,
+                                                                         capsys):
+    """``size: 032`` ran 26 nodes, ``gray: 'yes'`` ran as true."""
+    path = tmp_path / "typed.yaml"
+    path.write_text(f"name: typed\nsurface: {{shape: sphere}}\n{text}\n")
+    assert cli.main(["run", str(path), "--out", str(tmp_path / "out")]) == cli.EXIT_USAGE
+    assert f"config error: {key}:" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
 
 

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 from dataclasses import dataclass
 from dataclasses import field as _field
 from enum import Enum
@@ -26,6 +27,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
+import yaml
 from omegaconf import MISSING, DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
@@ -477,12 +479,43 @@ TEXT_KEYS = ("name", "description", "surface.mesh", "signal.image", "flow.method
 ``name=yes`` as ``True`` and ``name=010`` as ``8``), but for ``null``."""
 
 
+DECIMAL_INTEGER = re.compile(r"[-+]?(0|[1-9][0-9]*)")
+"""How an integer setting is written; YAML 1.1, which omegaconf reads, takes ``032`` as the
+octal 26, ``0x40`` as 64, ``1_00`` as 100 and ``1:30`` as 90."""
+
+
+def _refuse_unusual_numbers(node: yaml.Node, path: str = "") -> None:
+    """Raise naming the key of a plain (unquoted) number in ``node`` (composed YAML) that is
+    not written in decimal digits (:data:`DECIMAL_INTEGER`; floats without ``_`` or ``:``):
+    it would run with another number than the one written. :data:`TEXT_KEYS` are left to
+    :func:`_refuse_quoted_numbers`."""
+    if path in TEXT_KEYS:
+        return
+    if isinstance(node, yaml.MappingNode):
+        for key, value in node.value:
+            _refuse_unusual_numbers(value, f"{path}.{key.value}" if path else str(key.value))
+    elif isinstance(node, yaml.SequenceNode):
+        for index, item in enumerate(node.value):
+            _refuse_unusual_numbers(item, f"{path}[{index}]")
+    elif isinstance(node, yaml.ScalarNode) and node.style is None:
+        text = node.value
+        if ((node.tag.endswith(":int") and not DECIMAL_INTEGER.fullmatch(text))
+                or (node.tag.endswith(":float") and ("_" in text or ":" in text))):
+            raise ConfigError(path, f"{text} is not written in decimal digits: YAML would read "
+                              f"it as {yaml.safe_load(text)!r} (a leading 0 as octal, 0x as "
+                              "hexadecimal, _ dropped, 1:30 as 90); write the number plainly")
+
+
 def _dotlist(overrides: list[str]) -> DictConfig:
     """``overrides`` as a config, values read as YAML, the :data:`TEXT_KEYS`' as written."""
     parsed = OmegaConf.from_dotlist(overrides)
     for item in overrides:
         key, _, text = item.partition("=")
         key, text = key.strip(), text.strip()
+        try:
+            _refuse_unusual_numbers(yaml.compose(text, Loader=yaml.SafeLoader), key)
+        except yaml.YAMLError:
+            pass  # from_dotlist has read it: omegaconf's own reading is the one reported
         quoted = len(text) >= 2 and text[0] == text[-1] and text[0] in "'\""
         if key in TEXT_KEYS and text not in ("null", "~", "") and not quoted:
             OmegaConf.update(parsed, key, text, merge=False)
@@ -517,6 +550,9 @@ def _refuse_quoted_numbers(given: object, merged: DictConfig, path: str = "") ->
         return
     read = OmegaConf.select(merged, path, default=None)
     if isinstance(given, str):
+        if isinstance(read, bool):
+            raise ConfigError(path, f"must be true or false, got the string {given!r} (remove "
+                              "the quotes)")
         if isinstance(read, (int, float)) and not isinstance(read, bool):
             if _is_non_finite(given):  # `--set flow.time=nan`: YAML reads nan, inf as strings
                 raise ConfigError(path, f"must be a finite number, got {given}")
@@ -552,6 +588,7 @@ def load(config: str | os.PathLike, overrides: list[str] | None = None) -> tuple
         raise ConfigError("", f"{path} is not valid YAML: {error}") from error
     if not isinstance(raw, DictConfig):
         raise ConfigError("", f"{path} must hold a mapping of settings, got a list")
+    _refuse_unusual_numbers(yaml.compose(path.read_text(encoding="utf-8"), Loader=yaml.SafeLoader))
     overrides = parse_overrides(overrides or [])
     try:
         given = _dotlist(overrides)
@@ -618,7 +655,9 @@ def _check_field_settings_read(field_config: FieldConfig) -> None:
         if getattr(field_config, name) != getattr(defaults, name):
             reads = ("smoothing, orient, smoothing_grid" if directions else "axis")
             raise ConfigError(f"field.{name}", f"not read by field.kind="
-                              f"{field_config.kind.name} (it reads {reads}); remove it")
+                              f"{field_config.kind.name} (it reads {reads}); remove it, or, "
+                              "where a config file sets it, give the section whole: --set "
+                              f"\"field={{kind: {field_config.kind.name}}}\"")
 
 
 def check(experiment: Experiment) -> None:

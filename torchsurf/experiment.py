@@ -123,7 +123,7 @@ def prepare(config: str | os.PathLike, overrides: list[str] | None = None) -> Pr
     else:
         params = _shape_params(surface.shape, dict(surface.params))
         try:  # the shape's own checks, on a grid of 27 nodes: before any real work
-            SHAPES[surface.shape](Grid((3, 3, 3), 1.0), **params)
+            SHAPES[surface.shape](Grid((3, 3, 3), 1.0), dtype=torch.float64, **params)
         except (TypeError, ValueError) as error:
             raise ConfigError("surface.params", str(error)) from None
         _check_extent(surface.shape, params)
@@ -147,7 +147,37 @@ def prepare(config: str | os.PathLike, overrides: list[str] | None = None) -> Pr
             render.resolve_renderer("pyvista")
         except ImportError as error:
             raise ConfigError("render.renderer", str(error)) from error
-    return Prepared(experiment, folder, params, mesh_path, mesh)
+    prepared = Prepared(experiment, folder, params, mesh_path, mesh)
+    _check_physical_time(prepared)
+    return prepared
+
+
+TIME_MARGIN = 1e3
+"""How far inside float32's range (its smallest normal number to its largest) a flow's
+physical time must lie when estimated from the shape's bounding box before any work (the
+diagonal and spacing measured later differ from the estimate by less than this)."""
+
+
+def _check_physical_time(prepared: Prepared) -> None:
+    """Raise :class:`ConfigError` naming ``flow.time`` when its physical value, estimated from
+    the shape's bounding box, would round to 0 or overflow in float32 (the flow refused it
+    only after the surface was built, naming the physical value)."""
+    experiment = prepared.experiment
+    if prepared.mesh_path is not None:
+        low, high = np.asarray(prepared.mesh.bounds, dtype=np.float64)
+    else:
+        low, high = _builtin_box(experiment.surface.shape, prepared.params)
+    extent = high - low
+    spacing = (float(extent.max()) * (1.0 + 2.0 * experiment.grid.margin)
+               / (experiment.grid.size - 1))
+    physical = physical_settings(experiment, float(np.linalg.norm(extent)), spacing)["time"]
+    limits = torch.finfo(torch.float32)
+    if not TIME_MARGIN * limits.tiny <= physical <= limits.max / TIME_MARGIN:
+        unit = cfg.time_unit(experiment.flow).name
+        raise ConfigError("flow.time", f"{experiment.flow.time:g} ({unit}) is about "
+                          f"{physical:.3g} in world units on this shape, outside what float32 "
+                          f"grids hold ({TIME_MARGIN * limits.tiny:.0e} to "
+                          f"{limits.max / TIME_MARGIN:.0e})")
 
 
 SHAPE_EXTENT = (1e-6, 1e6)
