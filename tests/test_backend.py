@@ -231,8 +231,9 @@ def test_tensor_level_operators_are_what_the_surface_level_functions_compute():
         functional.edge_stopping_form(u, n, w, h, ts.operators.perona_malik, 2.0, 1e-2, True),
         ts.anisotropic_diffusion(u, surface, "perona_malik", 2.0, 1e-2, coupled=True),
     )
+    tangent = direction - (direction * n).sum(1, keepdim=True) * n  # the surface function's P T
     torch.testing.assert_close(
-        functional.directional_form(u, n, w, h, direction, weighted=True),
+        functional.directional_form(u, n, w, h, tangent, weighted=True),
         w * ts.directional_diffusion(u, surface, direction),
     )
     gradient = functional.tangential_gradient(u, n, h)

@@ -250,6 +250,7 @@ def test_mesh_path_resolves_against_the_config_folder_then_the_mesh_dir(tmp_path
         (["render.height=0x40"], "render.height"),
         (["render.width=1_00"], "render.width"),
         (["flow.time=1_000.5"], "flow.time"),
+        (["flow.time=5_0e-5"], "flow.time"),  # text to PyYAML, a number to omegaconf
         (["surface.params={radius: 01}"], "surface.params.radius"),
         # a physical time float32 cannot hold failed after the surface was built (exit 1)
         (["flow.time=1e-300"], "flow.time"),

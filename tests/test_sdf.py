@@ -204,6 +204,10 @@ def test_from_function_names_a_function_that_is_none_or_gives_nan():
         sdf.from_function(grid, 3.0)
     with pytest.raises(ValueError, match="function returned NaN or infinity at 60 of 60 nodes"):
         sdf.from_function(grid, lambda p: p[..., 0] * float("nan"))
+    with pytest.raises(ValueError, match="function returned NaN or infinity at 48 of 60"):
+        sdf.from_function(grid, lambda p: p[..., 0].double() * 1e300)  # beyond float32 once cast
+    with pytest.raises(ValueError, match="the distance is NaN or infinite .* beyond its range"):
+        sdf.sphere(Grid.cube(5, bound=1e25), radius=1e24)
 
 
 def test_an_analytic_shape_keeps_its_parameters_as_given():
@@ -219,6 +223,10 @@ def test_an_analytic_shape_keeps_its_parameters_as_given():
     radius.fill_(-2.0)
     assert torch.equal(shape.phi(grid), before)
     assert all((a == b).all() for a, b in zip(shape.bounds(), bounds, strict=True))
+    learned = torch.tensor(0.7, requires_grad=True)  # the copy stays in its graph
+    AnalyticShape("sphere", {"radius": learned}).phi(grid).sum().backward()
+    assert learned.grad is not None and float(learned.grad) == -grid.shape[0] ** 3
+    AnalyticShape("sphere", {"radius": learned * 1.0})  # not a leaf: was refused by deepcopy
 
 
 @pytest.mark.parametrize(

@@ -500,7 +500,8 @@ def _refuse_unusual_numbers(node: yaml.Node, path: str = "") -> None:
     elif isinstance(node, yaml.ScalarNode) and node.style is None:
         text = node.value
         if ((node.tag.endswith(":int") and not DECIMAL_INTEGER.fullmatch(text))
-                or (node.tag.endswith(":float") and ("_" in text or ":" in text))):
+                or (node.tag.endswith(":float") and ("_" in text or ":" in text))
+                or (node.tag.endswith(":str") and "_" in text and _is_number(text))):
             raise ConfigError(path, f"{text} is not written in decimal digits: YAML would read "
                               f"it as {yaml.safe_load(text)!r} (a leading 0 as octal, 0x as "
                               "hexadecimal, _ dropped, 1:30 as 90); write the number plainly")
@@ -563,6 +564,16 @@ def _refuse_quoted_numbers(given: object, merged: DictConfig, path: str = "") ->
                           "and yes as true): write the text in quotes")
     elif isinstance(given, (int, float)) and not isinstance(given, bool) and isinstance(read, bool):
         raise ConfigError(path, f"must be true or false, got {given!r}")
+
+
+def _is_number(text: str) -> bool:
+    """Whether Python reads ``text`` as a number, as omegaconf does ``5_0e-5`` (which PyYAML's
+    resolver leaves as text)."""
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
 
 
 def _is_non_finite(text: str) -> bool:

@@ -49,13 +49,15 @@ def from_function(
     Returns:
         ``phi`` ``(1, 1, D, H, W)``.
     """
-    return _sampled(grid, function, dtype, device, None)
+    return _sampled(grid, function, dtype, device, None, "function")
 
 
 def _sampled(grid: Grid, function: Callable[[Tensor], Tensor], dtype: torch.dtype | None,
-             device: torch.device | str | None, center: Point | None) -> Tensor:
+             device: torch.device | str | None, center: Point | None,
+             source: str | None = None) -> Tensor:
     """:func:`from_function`, ``function`` given the points relative to ``center`` (computed
-    in float64 before the cast: :meth:`Grid.points`'s ``relative_to``)."""
+    in float64 before the cast: :meth:`Grid.points`'s ``relative_to``); ``source``: what the
+    errors name (``"function"``, a user's; ``None``, a shape of this module's)."""
     if not isinstance(grid, Grid):
         raise TypeError(f"grid must be a torchsurf.Grid, got {type(grid).__name__}")
     dtype = check_dtype(dtype)
@@ -77,10 +79,15 @@ def _sampled(grid: Grid, function: Callable[[Tensor], Tensor], dtype: torch.dtyp
         )
     if not values.is_floating_point():
         raise TypeError(f"function must return real floating-point values, got {values.dtype}")
+    values = values.to(dtype)
     if not bool(torch.isfinite(values).all()):
-        bad = int((~torch.isfinite(values)).sum())
-        raise ValueError(f"function returned NaN or infinity at {bad} of {values.numel()} nodes")
-    return values.to(dtype)[None, None]
+        bad, count = int((~torch.isfinite(values)).sum()), values.numel()
+        if source is not None:
+            raise ValueError(f"{source} returned NaN or infinity at {bad} of {count} nodes (in "
+                             f"{values.dtype})")
+        raise ValueError(f"the distance is NaN or infinite at {bad} of {count} nodes in "
+                         f"{values.dtype}: the grid or the shape's sizes lie beyond its range")
+    return values[None, None]
 
 
 def sphere(

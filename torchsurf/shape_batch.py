@@ -11,7 +11,6 @@ own units (:meth:`MeshBatchAdapter.shape_time`).
 
 from __future__ import annotations
 
-import copy
 import inspect
 import math
 from collections.abc import Mapping, Sequence
@@ -41,6 +40,21 @@ from .mesh import MeshAdapter, check_adapter_band, check_decode_order, extract
 from .surface import ImplicitSurface
 
 ANALYTIC = ("sphere", "torus", "box", "capsule", "trefoil")
+
+
+def _copied(value: object) -> object:
+    """``value`` with its containers and tensors copied, so that the caller's lists or tensors
+    changed later do not change a checked shape: a tensor is cloned in its graph (a radius
+    requiring grad still gets its gradient)."""
+    if isinstance(value, Tensor):
+        return value.clone()
+    if isinstance(value, dict):
+        return {key: _copied(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return type(value)(_copied(item) for item in value)
+    if isinstance(value, np.ndarray):
+        return value.copy()
+    return value
 
 
 def _trefoil_reach(parameters: Mapping[str, object]) -> np.ndarray:
@@ -73,9 +87,7 @@ class AnalyticShape:
         if not isinstance(self.parameters, Mapping):
             raise TypeError(f"parameters must be a mapping of keyword arguments, got "
                             f"{type(self.parameters).__name__}")
-        # a deep copy: the caller's dict, lists or tensors changed later do not change a
-        # checked shape
-        object.__setattr__(self, "parameters", copy.deepcopy(dict(self.parameters)))
+        object.__setattr__(self, "parameters", _copied(dict(self.parameters)))
         if self.name not in ANALYTIC:
             raise ValueError(f"name must be one of {ANALYTIC}, got {self.name!r}")
         for key in ("grid", "dtype", "device"):

@@ -102,6 +102,13 @@ def test_dense_round_trip_and_shapes():
     assert int(layout.to_dense(integers, fill=-1)[0].min()) == -1
     with pytest.raises(ValueError, match=r"fill=0.5 cannot be held by field's dtype torch.int64"):
         layout.to_dense(integers, fill=0.5)  # it had truncated to 0, like the stored zeros
+    # -1 in uint8 wrapped to 255, 5 in bool was True, 300 in int8 and NaN in int32 raised
+    # torch's own errors naming no argument
+    for dtype, fill in ((torch.uint8, -1), (torch.bool, 5), (torch.int8, 300),
+                        (torch.int32, float("nan"))):
+        with pytest.raises(ValueError, match=rf"fill={fill!r} cannot be held by field's dtype"):
+            layout.to_dense(integers.to(dtype), fill=fill)
+    assert bool(layout.to_dense(integers.bool(), fill=False)[0].any())
 
 
 def test_linear_fill_extends_affine_data_exactly_beyond_the_box():

@@ -226,7 +226,7 @@ def test_flows_on_bricks_trace_without_graph_break():
         assert _break_reasons(flow, data, packed) == [], flow
 
 
-def test_the_compiled_path_is_kept_by_the_heat_semigroup(sphere):
+def test_the_compiled_path_is_kept_by_the_heat_semigroup(sphere, monkeypatch):
     """path='compiled' was ignored by the Chebyshev semigroup on a fixed phi: it ran the packed
     band matrices (bit for bit path='slicing'), where the docs promise the compiled volume
     stencils."""
@@ -234,4 +234,7 @@ def test_the_compiled_path_is_kept_by_the_heat_semigroup(sphere):
 
     _, surface = sphere
     assert BandLaplacian(surface, path="compiled").packed() is None
+    assert BandLaplacian(surface, path="slicing").packed() is not None
+    monkeypatch.setattr(ts.backend, "COMPILE", "always")  # compiles "auto", not an eager path
+    assert BandLaplacian(surface, path="auto").packed() is None
     assert BandLaplacian(surface, path="slicing").packed() is not None

@@ -213,7 +213,7 @@ def test_functional_layer_checks_masks_halos_flags_and_contrast():
     band = SURFACE.band_mask()
     for call, error, match in (
         (lambda: functional.divergence_form(u, normal, weight, h, mask=band.expand(-1, 3, -1, -1, -1)),
-         ValueError, r"mask must have shape \(B or 1, 1, \*\(13, 13, 13\)\) .* got \(1, 3,"),
+         ValueError, r"mask must have shape \(1 or 1, 1, \*\(13, 13, 13\)\) .* got \(1, 3,"),
         (lambda: functional.divergence_form(u, normal, weight, h, mask=band.double()),
          TypeError, "mask must be a bool tensor, got torch.float64"),
         (lambda: functional.divergence_form(u, normal, weight, h, mask=band[..., :12]),
@@ -226,7 +226,7 @@ def test_functional_layer_checks_masks_halos_flags_and_contrast():
          TypeError, "diffusivity must be a function"),
         (lambda: functional.edge_stopping_form(u, normal, weight, h, total_variation,
                                                torch.ones(5, dtype=u.dtype), 1e-3),
-         ValueError, r"contrast must broadcast to u's shape \(1, 1, 13, 13, 13\)"),
+         ValueError, r"contrast must broadcast to the result's shape \(1, 1, 13, 13, 13\)"),
         (lambda: functional.tangential_gradient(u[..., :0], normal[..., :0], h),
          ValueError, "u must have nodes along every axis"),
     ):
@@ -234,5 +234,8 @@ def test_functional_layer_checks_masks_halos_flags_and_contrast():
             call()
     masked = functional.divergence_form(u, normal, weight, h, mask=band, haloed=SURFACE.haloed(),
                                         weighted=torch.tensor(False))
+    pair = ts.ImplicitSurface(torch.cat([CASE.phi, 1.2 * CASE.phi]), CASE.grid)  # u broadcast
+    both = functional.divergence_form(u, pair.normal, pair.weight, h, mask=pair.band_mask())
+    assert both.shape[0] == 2 and torch.equal(both[:1], masked)
     assert torch.equal(masked, torch.where(band, functional.divergence_form(u, normal, weight, h),
                                            0.0))

@@ -19,6 +19,7 @@ the dense operator with that geometry.
 from __future__ import annotations
 
 import itertools
+import math
 from collections.abc import Sequence
 
 import torch
@@ -59,6 +60,22 @@ def _halo_gather_fused(rows: Tensor, sources: Tensor, missing: Tensor) -> Tensor
 
 _HALO_GATHER = backend.Kernel("brick_halo", _halo_gather_eager, _halo_gather_fused,
                               lambda *args: args, dynamic=True, trusted_indices=True)
+
+
+def _check_fill(fill: float, dtype: torch.dtype) -> None:
+    """Refuse, naming ``fill``, a value that ``dtype`` cannot hold: a fraction, NaN or infinity
+    in an integer dtype, one beyond its range (-1 in uint8 wrapped to 255), or anything but 0
+    or 1 in bool (5 was taken as True)."""
+    if dtype.is_floating_point or dtype.is_complex:
+        return
+    if dtype == torch.bool:
+        holds = fill in (0, 1)
+    else:
+        limits = torch.iinfo(dtype)
+        holds = math.isfinite(fill) and fill == int(fill) and limits.min <= fill <= limits.max
+    if not holds:
+        raise ValueError(f"fill={fill!r} cannot be held by field's dtype {dtype}: give a value "
+                         "it holds, or a floating-point field")
 
 
 class BrickLayout:
@@ -392,9 +409,7 @@ class BrickLayout:
         """Dense volumes of a packed field: one ``(1, C, D_b, H_b, W_b)`` per entry, ``fill``
         outside the stored bricks; differentiable."""
         self.check_field(field, "field")
-        if not (field.is_floating_point() or field.is_complex()) and fill != int(fill):
-            raise ValueError(f"fill={fill!r} cannot be held by field's dtype {field.dtype}: "
-                             "give an integer fill, or a floating-point field")
+        _check_fill(fill, field.dtype)
         channels = field.shape[1]
         volumes = []
         for b, grid in enumerate(self.grids):

@@ -216,10 +216,11 @@ class HeatFlow(Flow):
         matrices, about 2 kB a node at their assembly, would strain the 4 GB the 512^3 bunny's
         flow keeps to; there the C kernel applies the octant rate on the band's bricks); and
         where compiled volume stencils are asked for (``path="compiled"``,
-        ``TORCHSURF_COMPILE=always``)."""
+        or ``"auto"`` under ``TORCHSURF_COMPILE=always``)."""
         if (self.scheme not in functional.SCHEMES or surface.phi.requires_grad
                 or type(self).system is not HeatFlow.system  # a subclass's own equation
-                or self.path == "compiled" or backend.COMPILE == "always"):
+                or self.path == "compiled"
+                or (self.path == "auto" and backend.COMPILE == "always")):
             return None
         width = self.evolving_width(surface)
         if surface.layout is not None and surface.kept(  # a host read, once per surface

@@ -87,7 +87,7 @@ def _check_inputs(u: Tensor, normal: Tensor, spacing: float, weight: Tensor | No
     return spacing
 
 
-def _check_extras(u: Tensor, mask: Tensor | None = None, haloed: object = None,
+def _check_extras(u: Tensor, normal: Tensor, mask: Tensor | None = None, haloed: object = None,
                   weighted: object = False, diffusivity: object = None,
                   contrast: object = None) -> None:
     """The cheap checks of the optional arguments (shapes and types, no values): a mask of
@@ -98,10 +98,12 @@ def _check_extras(u: Tensor, mask: Tensor | None = None, haloed: object = None,
         if not isinstance(mask, Tensor) or mask.dtype != torch.bool:
             raise TypeError(f"mask must be a bool tensor, got "
                             f"{mask.dtype if isinstance(mask, Tensor) else type(mask).__name__}")
-        if (mask.dim() != 5 or mask.shape[1] != 1 or mask.shape[0] not in (1, u.shape[0])
+        batch = max(u.shape[0], normal.shape[0])  # the result's: u and the geometry broadcast
+        if (mask.dim() != 5 or mask.shape[1] != 1 or mask.shape[0] not in (1, batch)
                 or tuple(mask.shape[2:]) != spatial):
-            raise ValueError(f"mask must have shape (B or 1, 1, *{spatial}) for u of shape "
-                             f"{tuple(u.shape)}, got {tuple(mask.shape)}")
+            raise ValueError(f"mask must have shape ({batch} or 1, 1, *{spatial}) for u of shape "
+                             f"{tuple(u.shape)} and normal of shape {tuple(normal.shape)}, got "
+                             f"{tuple(mask.shape)}")
     if haloed is not None:
         halo = tuple(n + 2 for n in spatial)
         if (not isinstance(haloed, (tuple, list)) or len(haloed) != 2
@@ -119,12 +121,13 @@ def _check_extras(u: Tensor, mask: Tensor | None = None, haloed: object = None,
                         f"torchsurf.operators.diffusivity; the surface-level "
                         f"anisotropic_diffusion takes names), got {diffusivity!r}")
     if isinstance(contrast, Tensor):
+        result = (max(u.shape[0], normal.shape[0]), *u.shape[1:])
         try:
-            shape = torch.broadcast_shapes(contrast.shape, u.shape)
+            shape = tuple(torch.broadcast_shapes(contrast.shape, result))
         except RuntimeError:
             shape = None
-        if shape != u.shape:
-            raise ValueError(f"contrast must broadcast to u's shape {tuple(u.shape)} (e.g. "
+        if shape != result:
+            raise ValueError(f"contrast must broadcast to the result's shape {result} (e.g. "
                              f"(1, C, 1, 1, 1)), got shape {tuple(contrast.shape)}")
 
 
@@ -271,7 +274,7 @@ def divergence_form(
         ``u``'s shape, units of ``u`` per world length squared (times ``W`` if weighted).
     """
     spacing = _check_inputs(u, normal, spacing, weight, scheme)
-    _check_extras(u, mask, haloed, weighted)
+    _check_extras(u, normal, mask, haloed, weighted)
     if normal.requires_grad or weight.requires_grad or not (
             torch.is_grad_enabled() and u.requires_grad):
         # no autograd node needed where autograd records nothing (a custom Function's call
@@ -392,7 +395,7 @@ def edge_stopping_form(
         ``u``'s shape.
     """
     spacing = _check_inputs(u, normal, spacing, weight, scheme, FLUX_SCHEMES)
-    _check_extras(u, mask, haloed, diffusivity=diffusivity, contrast=contrast)
+    _check_extras(u, normal, mask, haloed, diffusivity=diffusivity, contrast=contrast)
     check_flag(coupled, "coupled")
     if coupled and u.shape[1] > 1:
         return harmonic_map_rate(u, normal, weight, spacing, diffusivity, contrast, eps, None,
@@ -482,7 +485,7 @@ def harmonic_map_rate(
         ``u``'s shape.
     """
     spacing = _check_inputs(u, normal, spacing, weight, scheme, FLUX_SCHEMES)
-    _check_extras(u, mask, haloed, diffusivity=diffusivity, contrast=contrast)
+    _check_extras(u, normal, mask, haloed, diffusivity=diffusivity, contrast=contrast)
     if pad is not None:
         haloed_normal, haloed_weight = _require_haloed(haloed)
         return backend.run_haloed(_COUPLED_OPEN, path, u, pad(u, 2), haloed_normal,
@@ -546,7 +549,7 @@ def directional_form(
     """
     spacing = _check_inputs(u, normal, spacing, weight, scheme, FLUX_SCHEMES, direction,
                            required=("weight", "direction"))
-    _check_extras(u, haloed=haloed, weighted=weighted)
+    _check_extras(u, normal, haloed=haloed, weighted=weighted)
     if pad is not None:
         haloed_normal, haloed_weight = _require_haloed(haloed)
         if haloed_direction is None:
