@@ -248,8 +248,8 @@ RKC_REFRESHED_STEPS = 16
 """Fewest RKC steps whose stages re-extend the ring (steps too long for the band to hold it,
 :func:`ring_held`; a 3-cell band always), unless forward Euler would need fewer. Their time
 error, still second order, is several times that of steps holding the ring: sphere, l = 2 and
-4, t = 0.05, 3-cell band at 65^3, float64: 8 steps 6.1e-4 and 6.3e-3, 16 steps 4.6e-4 and
-5.0e-3, 128 steps 4.2e-4 and 4.6e-3 (docs/band.md)."""
+4, t = 0.05, 3-cell band at 65^3, float64: 8 steps 3.8e-4 and 3.7e-3, 16 steps 3.1e-4 and
+3.1e-3, 32 steps 2.9e-4 and 2.9e-3 (rerun 2026-12-06; docs/band.md)."""
 
 RKC_REFRESHED_STEP = 12.0
 """Longest ``dt * rho`` of an RKC step whose stages re-extend the ring: the time the fastest
