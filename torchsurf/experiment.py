@@ -163,10 +163,7 @@ def _check_physical_time(prepared: Prepared) -> None:
     the shape's bounding box, would round to 0 or overflow in float32 (the flow refused it
     only after the surface was built, naming the physical value)."""
     experiment = prepared.experiment
-    if prepared.mesh_path is not None:
-        low, high = np.asarray(prepared.mesh.bounds, dtype=np.float64)
-    else:
-        low, high = _builtin_box(experiment.surface.shape, prepared.params)
+    low, high = _shape_box(prepared)
     extent = high - low
     spacing = (float(extent.max()) * (1.0 + 2.0 * experiment.grid.margin)
                / (experiment.grid.size - 1))
@@ -222,12 +219,18 @@ def frame_centre(prepared: Prepared) -> np.ndarray:
     bounding box (a built-in's from its parameters, a mesh's from its vertices). The surface is
     built in a frame centred there, so that float32 grids keep their cells wherever the shape
     lies (a sphere of radius 1e-3 at x = 5e5 lost its checkerboard in float32 world points)."""
+    low, high = _shape_box(prepared)
+    return 0.5 * (low + high)
+
+
+def _shape_box(prepared: Prepared) -> tuple[np.ndarray, np.ndarray]:
+    """The bounding box ``(low, high)`` of the config's shape in world coordinates, float64
+    ``(3,)`` each: a built-in's from its parameters, a mesh's from its vertices."""
     if prepared.mesh_path is not None:
         mesh = prepared.mesh if prepared.mesh is not None else meshes.load(str(prepared.mesh_path))
         low, high = np.asarray(mesh.bounds, dtype=np.float64)
-    else:
-        low, high = _builtin_box(prepared.experiment.surface.shape, prepared.params)
-    return 0.5 * (low + high)
+        return low, high
+    return _builtin_box(prepared.experiment.surface.shape, prepared.params)
 
 
 def _moved(shape: Shape, params: dict[str, Any], offset: np.ndarray) -> dict[str, Any]:
