@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import inspect
 import operator
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 
 import numpy as np
 import torch
@@ -152,28 +152,18 @@ def piecewise_constant_signal(surface: ImplicitSurface, channels: int = 1, cells
     channels = check_count(channels, "channels")
     cells = check_count(cells, "cells")
     random = generator(seed)
-    points = closest_points(surface).flatten(2)  # (B, 3, n), or (N, 3, 512) on bricks
-    near = (surface.distance() <= surface.spacing).flatten(2)[:, 0]  # (B, n)
-    rows = _rows_of_entries(surface)
-    order = None if surface.layout is None else _dense_order(surface)
-    result = torch.empty(_field_shape(surface, channels), dtype=points.dtype,
-                         device=points.device).flatten(2)
-    for b in range(surface.batch_size):
-        mine = (rows == b).nonzero().squeeze(1)
-        entry_points = points[mine].transpose(0, 1).flatten(1)  # (3, n)
-        candidates = near[mine].flatten().nonzero().squeeze(1)
-        if order is not None:  # the dense grid's order, so that the same nodes are drawn
-            candidates = candidates[order[mine].flatten()[candidates].argsort()]
-        same_point = _point_classes(entry_points[:, candidates])
+    dtype, device = surface.phi.dtype, surface.phi.device
+    result = torch.empty(_field_shape(surface, channels), dtype=dtype, device=device).flatten(2)
+    for b, mine, entry_points, candidates, same_point in _entry_candidates(surface):
         pick = _distinct_draws(same_point, cells, random, f"surface {b}")
-        centres = entry_points[:, candidates[pick.to(points.device)]]  # (3, cells)
+        centres = entry_points[:, candidates[pick.to(device)]]  # (3, cells)
         # in float64 about the centres' mean, by differences: cdist's matrix-product form
         # (|x|^2 + |c|^2 - 2 x.c) in float32 swapped a third of the regions of a shape at 1e3
         middle = centres.double().mean(dim=1, keepdim=True)
         nearest = torch.cdist((entry_points.double() - middle).T, (centres.double() - middle).T,
                               compute_mode="donot_use_mm_for_euclid_dist").argmin(dim=1)  # (n,)
         values = torch.rand(channels, cells, generator=random, dtype=torch.float64)
-        values = values.to(dtype=points.dtype, device=points.device)
+        values = values.to(dtype=dtype, device=device)
         result[mine] = values[:, nearest].view(channels, len(mine), -1).transpose(0, 1)
     return result.view(_field_shape(surface, channels))
 
@@ -185,36 +175,51 @@ def _point_classes(points: Tensor) -> Tensor:
     return torch.unique(points.T.cpu(), dim=0, return_inverse=True)[1]
 
 
-def _check_cells(surface: ImplicitSurface, cells: int, name: str = "cells") -> None:
-    """Refuse ``cells`` regions of :func:`piecewise_constant_signal` on ``surface`` where an
-    entry has fewer distinct closest points within one spacing of S (the candidate centres)."""
-    points = closest_points(surface).flatten(2)
-    near = (surface.distance() <= surface.spacing).flatten(2)[:, 0]
+def _entry_candidates(surface: ImplicitSurface) -> Iterator[tuple[int, Tensor, Tensor, Tensor,
+                                                                  Tensor]]:
+    """Per batch entry ``b``, where :func:`piecewise_constant_signal` draws its centres:
+    ``(b, rows, points, candidates, classes)``: the entry's rows of the storage, the closest
+    points of its nodes ``(3, n)``, the indices of the nodes within one spacing of S (in the
+    dense grid's order on bricks, so that the same nodes are drawn) and each one's class
+    (:func:`_point_classes`)."""
+    points = closest_points(surface).flatten(2)  # (B, 3, n), or (N, 3, 512) on bricks
+    near = (surface.distance() <= surface.spacing).flatten(2)[:, 0]  # (B, n)
     rows = _rows_of_entries(surface)
+    order = None if surface.layout is None else _dense_order(surface)
     for b in range(surface.batch_size):
         mine = (rows == b).nonzero().squeeze(1)
+        entry_points = points[mine].transpose(0, 1).flatten(1)  # (3, n)
         candidates = near[mine].flatten().nonzero().squeeze(1)
-        entry_points = points[mine].transpose(0, 1).flatten(1)[:, candidates]
-        distinct = int(_point_classes(entry_points).max()) + 1 if candidates.numel() else 0
-        if cells > distinct:
-            raise ValueError(
-                f"{name} = {cells} is more than the {distinct} distinct closest points of the "
-                f"nodes within one spacing of S on surface {b}, among which the regions' "
-                f"centres are drawn: ask for at most {distinct}"
-            )
+        if order is not None:
+            candidates = candidates[order[mine].flatten()[candidates].argsort()]
+        yield b, mine, entry_points, candidates, _point_classes(entry_points[:, candidates])
+
+
+def _refuse_more_cells(classes: Tensor, wanted: int, name: str, key: str = "cells") -> int:
+    """The number of distinct classes among ``classes``; raises naming ``key`` if ``wanted``
+    regions are more than that on ``name``."""
+    distinct = int(classes.max()) + 1 if len(classes) else 0
+    if wanted > distinct:
+        raise ValueError(
+            f"{key} = {wanted} is more than the {distinct} distinct closest points of the nodes "
+            f"within one spacing of S on {name}, among which the regions' centres are drawn: "
+            f"ask for at most {distinct}"
+        )
+    return distinct
+
+
+def _check_cells(surface: ImplicitSurface, cells: int, key: str) -> None:
+    """Refuse ``cells`` regions of :func:`piecewise_constant_signal` on ``surface`` where an
+    entry has fewer candidate centres, naming ``key``."""
+    for b, _, _, _, classes in _entry_candidates(surface):
+        _refuse_more_cells(classes, cells, f"surface {b}", key)
 
 
 def _distinct_draws(classes: Tensor, wanted: int, random: torch.Generator, name: str) -> Tensor:
     """``wanted`` indices into ``classes`` ``(count,)`` (the int64 class of each candidate), no
     two of one class: uniform draws, each repeat of a class drawn again (the draws are those
     of ``torch.randint`` wherever none repeats)."""
-    count, distinct = len(classes), int(classes.max()) + 1 if len(classes) else 0
-    if wanted > distinct:
-        raise ValueError(
-            f"cells = {wanted} is more than the {distinct} distinct closest points of the nodes "
-            f"within one spacing of S on {name}, among which the regions' centres are drawn: "
-            f"ask for at most {distinct}"
-        )
+    count, distinct = len(classes), _refuse_more_cells(classes, wanted, name)
     pick = torch.randint(count, (wanted,), generator=random)
     while True:
         seen = torch.zeros(distinct, dtype=torch.bool)

@@ -259,6 +259,18 @@ def test_limited_cubic_extension_is_differentiable_in_data_and_phi():
         fast_mode=True)
 
 
+def _off_centre_sphere(storage: str, seed: int):
+    """A 24^3 grid, a sphere off the nodes on it (dense or bricks), and uniform data on it."""
+    grid = ts.Grid.cube(24, 1.5)
+    phi = ts.sdf.sphere(grid, 0.9, center=(0.03, -0.02, 0.01), dtype=torch.float64)
+    surface = ts.ImplicitSurface(phi, grid) if storage == "dense" else ts.bricks.from_dense(phi, grid)
+    u = torch.rand(1, 1, *grid.shape, dtype=torch.float64,
+                   generator=torch.Generator().manual_seed(seed))
+    if surface.layout is not None:
+        u = surface.layout.from_dense(u)
+    return grid, surface, u
+
+
 @pytest.mark.parametrize("storage", ["dense", "bricks"])
 @pytest.mark.parametrize("kind", ["linear", "cubic", "pde"])
 def test_non_finite_data_where_read_is_refused_and_beyond_it_left_alone(kind, storage):
@@ -267,12 +279,7 @@ def test_non_finite_data_where_read_is_refused_and_beyond_it_left_alone(kind, st
     515 band nodes (cubic; 5150 of 5370 at a 2-cell band) and stopped the PDE's march after
     one step, and 1e3 there moved band values by 0.07 (cubic) and 23 (PDE), silently. What is
     read must be finite; what is not read changes nothing."""
-    grid = ts.Grid.cube(24, 1.5)
-    phi = ts.sdf.sphere(grid, 0.9, center=(0.03, -0.02, 0.01), dtype=torch.float64)
-    surface = ts.ImplicitSurface(phi, grid) if storage == "dense" else ts.bricks.from_dense(phi, grid)
-    u = torch.rand(1, 1, *grid.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
-    if surface.layout is not None:
-        u = surface.layout.from_dense(u)
+    grid, surface, u = _off_centre_sphere(storage, seed=0)
     extension = (Extension("pde") if kind == "pde"
                  else Extension(interpolation=kind))
     band = surface.band_mask()
@@ -304,12 +311,7 @@ def test_linear_extension_of_a_narrow_band_refuses_what_it_reads_beyond_it(stora
     """Trilinear interpolation reads the cell around each closest point, up to sqrt(3) cells
     from S: with a band of half a cell, NaN beyond it came back at every band node (1309 of
     1309 at 33^3), with no error."""
-    grid = ts.Grid.cube(24, 1.5)
-    phi = ts.sdf.sphere(grid, 0.9, center=(0.03, -0.02, 0.01), dtype=torch.float64)
-    surface = ts.ImplicitSurface(phi, grid) if storage == "dense" else ts.bricks.from_dense(phi, grid)
-    u = torch.rand(1, 1, *grid.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
-    if surface.layout is not None:
-        u = surface.layout.from_dense(u)
+    grid, surface, u = _off_centre_sphere(storage, seed=1)
     narrow = 0.5 * grid.spacing
     band = surface.band_mask(narrow)
     with pytest.raises(ValueError, match=r"u \(at the nodes its trilinear interpolation reads, "
