@@ -296,6 +296,15 @@ def check_flag(value: object, name: str) -> bool:
     raise TypeError(f"{name} must be True or False, got {value!r}")
 
 
+def check_generator(value: object, name: str = "generator") -> torch.Generator | None:
+    """``value`` if it is a ``torch.Generator`` or ``None``; raises ``TypeError`` naming ``name``
+    otherwise (a seed given as a number is the usual mistake)."""
+    if value is None or isinstance(value, torch.Generator):
+        return value
+    raise TypeError(f"{name} must be a torch.Generator or None, got {type(value).__name__} "
+                    "(seed one: torch.Generator().manual_seed(seed))")
+
+
 def check_count(value: object, name: str, minimum: int = 1) -> int:
     """A whole number ``>= minimum`` as an ``int``.
 

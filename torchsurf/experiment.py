@@ -401,7 +401,7 @@ def build_flow(experiment: Experiment, physical: dict[str, float], progress: boo
     if kind is FlowKind.color:
         chroma = flows.HarmonicMapFlow(t, p=physical["p"], eps=physical["eps"], **options)
         brightness = flows.AnisotropicFlow(t, eps=physical["eps"], **options)
-        return flows.ColorDenoise(t, chroma=chroma, brightness=brightness)
+        return flows.ColorDenoise(chroma=chroma, brightness=brightness)
     if kind is FlowKind.reaction_diffusion:
         return flows.ReactionDiffusion(t, rate=physical["rate"], **options)
     return flows.FlowVisualization(t, isotropic=physical["isotropic"], **options)

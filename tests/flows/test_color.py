@@ -73,3 +73,36 @@ def test_brightness_keeps_its_range_and_chroma_its_length_but_channels_may_leave
     assert float(brightness_out.min()) >= float(brightness_in.min()) * (1 - 1e-9)
     assert float(out[0][:, band].min()) >= 0.0
     assert float(out[0, 1][band].max()) > 1.05  # green left [0, 1]: clamp if it must not
+
+
+def test_settings_the_given_flows_would_ignore_are_refused():
+    """``time``, ``p`` and integration settings set only the default flows: with both flows
+    given they were ignored without a word (``time=123, method="euler"`` ran the flows' own)."""
+    from torchsurf.flows import HarmonicMapFlow
+
+    chroma, brightness = HarmonicMapFlow(0.01), HeatFlow(0.01)
+    with pytest.raises(ValueError, match="time: not used"):
+        ColorDenoise(123.0, chroma=chroma, brightness=brightness)
+    with pytest.raises(ValueError, match="p: not used"):
+        ColorDenoise(0.01, p=2.0, chroma=chroma)
+    with pytest.raises(ValueError, match="method, steps: not used"):
+        ColorDenoise(chroma=chroma, brightness=brightness, method="euler", steps=3)
+    with pytest.raises(TypeError, match="time is needed"):
+        ColorDenoise(chroma=chroma)
+    flow = ColorDenoise(chroma=chroma, brightness=brightness)
+    assert flow.chroma is chroma and flow.brightness is brightness
+    # one flow given: time and settings go to the other
+    flow = ColorDenoise(0.02, brightness=brightness, method="euler")
+    assert flow.chroma.method == "euler" and float(flow.chroma.time) == pytest.approx(0.02)
+    assert ColorDenoise(0.02, p=2.0).chroma.p == 2.0
+
+
+def test_flows_of_the_wrong_kind_are_refused():
+    """A scalar flow as ``chroma`` left the chroma off the unit sphere; a harmonic map as
+    ``brightness`` failed inside it speaking of ``u0``."""
+    from torchsurf.flows import AnisotropicFlow, HarmonicMapFlow
+
+    with pytest.raises(TypeError, match="chroma must be a HarmonicMapFlow.*AnisotropicFlow"):
+        ColorDenoise(0.01, chroma=AnisotropicFlow(0.01))
+    with pytest.raises(TypeError, match="brightness must be a scalar flow"):
+        ColorDenoise(0.01, brightness=HarmonicMapFlow(0.01))

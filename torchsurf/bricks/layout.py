@@ -27,7 +27,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from .. import backend
-from .._checks import MismatchError, check_choice, check_tensor
+from .._checks import MismatchError, check_choice, check_generator, check_tensor
 from ..grid import Grid
 from . import _native
 
@@ -352,6 +352,7 @@ class BrickLayout:
         consecutive draws continue the dense volume's stream (tests/bricks check it). Every
         number of the boxes is drawn, so the time grows with their volume.
         """
+        check_generator(generator)
         dtype = dtype or torch.get_default_dtype()
         coords, batch = self.coords.cpu(), self.batch.cpu()
         packed = torch.empty((len(self), channels, BRICK, BRICK, BRICK), dtype=dtype)

@@ -235,6 +235,8 @@ def _check_times(times: object, end: float) -> list[float]:
                 "times must be a sequence or a 1-D real tensor of times, got a tensor of shape "
                 f"{tuple(times.shape)} and dtype {times.dtype}"
                 + ("; for one time use times=[t]" if times.dim() == 0 else "")
+                + ("; a field such as a direction is a keyword argument, "
+                   "flow(u0, surface, direction=T)" if times.dim() >= 4 else "")
             )
         if times.requires_grad:
             raise ValueError(

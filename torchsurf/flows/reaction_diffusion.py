@@ -14,7 +14,7 @@ import torch
 from torch import Tensor
 
 from .. import backend
-from .._checks import check_nonnegative, check_positive, check_real
+from .._checks import check_generator, check_nonnegative, check_positive, check_real
 from ..operators import directional_bound, functional, laplace_beltrami
 from ..surface import ImplicitSurface, check_direction, tangent_unit
 from ._integrators import System, tensors, with_ring
@@ -93,10 +93,7 @@ class ReactionDiffusion(Flow):
                generator: torch.Generator | None = None) -> System:
         if u0.shape[1] != 2:
             raise ValueError(f"u0 must have 2 channels (a, b), got shape {tuple(u0.shape)}")
-        if generator is not None and not isinstance(generator, torch.Generator):
-            raise TypeError(f"generator must be a torch.Generator or None, got "
-                            f"{type(generator).__name__} (seed one: "
-                            "torch.Generator().manual_seed(seed))")
+        check_generator(generator)
         band = self.band_mask(surface)
         d_a, d_b = self._diffusivities(surface)
         # drawn in float64 whatever u0's dtype: a seed gives one pattern in float32 and float64

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .._checks import check_positive
+from .._checks import check_generator, check_positive
 from ..operators import functional
 from ..surface import ImplicitSurface, check_direction, tangent_unit
 from ._integrators import Linear, System, tensors, with_ring, zero_outside
@@ -58,6 +58,7 @@ class FlowVisualization(Flow):
         (:meth:`~torchsurf.bricks.BrickLayout.rand`).
         """
         shape = data_shape(surface, batch, 1)
+        check_generator(generator)
         if surface.layout is not None:
             return surface.layout.rand(1, generator, torch.float64).to(surface.phi.dtype)
         values = torch.rand(shape, generator=generator, dtype=torch.float64)
