@@ -43,7 +43,7 @@ from torch import Tensor, nn
 
 import torchsurf as ts
 from torchsurf import render
-from torchsurf.datasets import KINDS, SignalDataset, derived_seed
+from torchsurf.datasets import DERIVED_SEED_LIMIT, KINDS, SignalDataset, derived_seed
 
 SWEEP_CHUNKS = 4
 """Chunks of training signals the baselines' times are picked on (16 signals per kind with
@@ -398,7 +398,8 @@ def pictures(data: SignalSet, grid: ts.Grid, methods: dict[str, dict[str, Method
 
 
 def parse(argv: Sequence[str] | None = None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    # no abbreviations: --quick keeps the options given beside it by their full names
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], allow_abbrev=False)
     parser.add_argument("--output", type=Path, default=Path("outputs/train_denoise"),
                         help="folder for results.md, results.csv, the pictures and the weights")
     parser.add_argument("--resolution", type=int, default=32,
@@ -441,8 +442,11 @@ def parse(argv: Sequence[str] | None = None) -> argparse.Namespace:
         args.eager = True
     if args.threads is not None and args.threads < 1:
         parser.error(f"--threads must be an integer of at least 1, got {args.threads}")
+    def resolved(name: str) -> Path:
+        return (Path(args.mesh_dir or ".") / name).resolve()
+
     if args.heldout_mesh is not None and any(
-            Path(args.heldout_mesh).name == Path(mesh).name for mesh in args.meshes):
+            resolved(args.heldout_mesh) == resolved(mesh) for mesh in args.meshes):
         parser.error(f"--heldout-mesh {args.heldout_mesh} is also among --meshes: the held-out "
                      "shape must not be trained on")
     for name, least in (("resolution", 16), ("channels", 2), ("blocks", 0), ("hidden", 1),
@@ -452,8 +456,11 @@ def parse(argv: Sequence[str] | None = None) -> argparse.Namespace:
             parser.error(f"--{name.replace('_', '-')} must be an integer of at least {least}, "
                          f"got {getattr(args, name)}")
     for name in ("lr", "noise", "frequency"):
-        if not getattr(args, name) > 0:
-            parser.error(f"--{name} must be positive, got {getattr(args, name)}")
+        if not 0 < getattr(args, name) <= torch.finfo(torch.float32).max:
+            parser.error(f"--{name} must be a positive number float32 holds, got "
+                         f"{getattr(args, name)}")
+    if not 0 <= args.seed < DERIVED_SEED_LIMIT:
+        parser.error(f"--seed must be an integer in [0, 2**32), got {args.seed}")
     return args
 
 
@@ -481,12 +488,18 @@ def run(args: argparse.Namespace) -> dict[tuple[str, str, str], float]:
     grid, spacing = batch.grid, batch.grid.spacing
     train_phi, held_phi = batch.phi[:-1], batch.phi[-1:]
     options = {"noise": args.noise, "cells": args.cells, "frequency": args.frequency}
-    training = SignalSet.draw(train_phi, grid, args.train_rounds, 1,
-                              seed=derived_seed(args.seed, 0), **options)
-    held_signals = SignalSet.draw(train_phi, grid, args.test_rounds, 1,
-                                  seed=derived_seed(args.seed, 1), **options)
-    held_shape = SignalSet.draw(held_phi, grid, args.test_rounds * len(shapes), len(shapes),
-                                seed=derived_seed(args.seed, 2), **options)
+    try:
+        training = SignalSet.draw(train_phi, grid, args.train_rounds, 1,
+                                  seed=derived_seed(args.seed, 0), **options)
+        held_signals = SignalSet.draw(train_phi, grid, args.test_rounds, 1,
+                                      seed=derived_seed(args.seed, 1), **options)
+        held_shape = SignalSet.draw(held_phi, grid, args.test_rounds * len(shapes), len(shapes),
+                                    seed=derived_seed(args.seed, 2), **options)
+    except ValueError as error:
+        if "['cells']" not in str(error):
+            raise
+        raise SystemExit(f"error: --cells {args.cells} is too many at --resolution "
+                         f"{args.resolution}: {error}") from None
     print(f"signals: {len(training.kinds)} training, {len(held_signals.kinds)} held out on the "
           f"training shapes, {len(held_shape.kinds)} on the held-out shape "
           f"({time.perf_counter() - begin:.0f} s)", flush=True)

@@ -80,6 +80,16 @@ def test_outputs_are_staged_and_a_failure_leaves_the_former_ones(example, tmp_pa
     (["--threads", "0"], "--threads"),  # torch's own error, naming no option
     (["--quick", "--iterations", "0"], "--iterations"),  # --quick made it 2 without a word
     (["--meshes", "spot.obj", "--heldout-mesh", "spot.obj"], "--heldout-mesh"),
+    (["--mesh-dir", "a", "--meshes", "../b/x.obj", "--heldout-mesh", "../b/x.obj"],
+     "--heldout-mesh"),
+    # these ran, failing later in the library without naming the option
+    (["--lr", "inf"], "--lr"),
+    (["--noise", "1e300"], "--noise"),
+    (["--frequency", "nan"], "--frequency"),
+    (["--seed", "-5"], "--seed"),
+    (["--seed", str(2**32)], "--seed"),
+    # an abbreviation was taken by argparse, then overridden by --quick
+    (["--quick", "--res", "32"], "--res"),
 ])
 def test_bad_arguments_are_named(example, capsys, argv, named):
     with pytest.raises(SystemExit):
@@ -90,6 +100,21 @@ def test_bad_arguments_are_named(example, capsys, argv, named):
 def test_relative_mesh_without_folder_is_refused(example):
     with pytest.raises(FileNotFoundError, match="--meshes 'spot.obj'"):
         example.mesh_paths(["spot.obj"], None)
+
+
+def test_the_same_mesh_by_another_name_is_refused_and_another_file_taken(example, capsys):
+    """The held-out mesh was compared with --meshes by file name only: a spot.obj of
+    another folder was refused, the same file reached by another path was not."""
+    assert example.parse(["--meshes", "a/spot.obj", "--heldout-mesh", "b/spot.obj"])
+    with pytest.raises(SystemExit):
+        example.parse(["--mesh-dir", "m", "--meshes", "spot.obj", "--heldout-mesh",
+                       "./sub/../spot.obj"])
+    assert "--heldout-mesh" in capsys.readouterr().err
+
+
+def test_too_many_cells_name_the_option(example, tmp_path):
+    with pytest.raises(SystemExit, match="--cells 100000 is too many at --resolution 24"):
+        example.main(["--quick", "--cells", "100000", "--output", str(tmp_path)])
 
 
 def test_options_given_beside_quick_stand(example):

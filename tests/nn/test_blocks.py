@@ -120,6 +120,23 @@ def test_band_mse_and_psnr(sphere):
         psnr(target, target, surface, width=1e-9)
 
 
+def test_an_exact_entry_of_psnr_passes_a_zero_gradient(sphere):
+    """An exact entry's PSNR is inf; its gradient was NaN (``inf * 0``) and, through a mean
+    over the batch, turned every parameter's gradient to NaN."""
+    grid, surface = sphere
+    generator = torch.Generator().manual_seed(5)
+    target = torch.rand((2, 1, *grid.shape), generator=generator, dtype=torch.float64)
+    prediction = target.clone()
+    prediction[1] += 0.1 * torch.randn(target[1].shape, generator=generator, dtype=target.dtype)
+    prediction.requires_grad_()
+    db = psnr(prediction, target, surface)
+    assert math.isinf(float(db[0])) and math.isfinite(float(db[1]))
+    (gradient,) = torch.autograd.grad(db.mean(), prediction)
+    assert torch.isfinite(gradient).all() and float(gradient[0].abs().max()) == 0.0
+    (alone,) = torch.autograd.grad(psnr(prediction[1:], target[1:], surface).mean(), prediction)
+    torch.testing.assert_close(gradient[1], alone[1] / 2)
+
+
 def test_arguments_are_checked_and_named():
     """Read by their truth, ``pairs=1`` passed and ``pairs="no"`` counted as true; a keyword
     that LearnedDiffusion does not take was reported as LearnedDiffusion's."""

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
@@ -84,8 +86,12 @@ def psnr(prediction: Tensor, target: Tensor, surface: ImplicitSurface, peak: flo
 
     Returns:
         ``(B,)`` (one per batch entry of a brick surface), decibels (``inf`` where the
-        prediction is exact).
+        prediction is exact; such an entry passes a zero gradient, so a mean over a batch
+        holding one still trains on the others).
     """
     check_positive(peak, "peak")
     total, counts = _squared_errors(prediction, target, surface, width)
-    return 10.0 * torch.log10(peak**2 / (total / counts))
+    mse = total / counts
+    exact = mse == 0
+    ratio = 10.0 * torch.log10(peak**2 / torch.where(exact, torch.ones_like(mse), mse))
+    return torch.where(exact, torch.full_like(ratio, math.inf), ratio)
