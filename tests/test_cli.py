@@ -255,6 +255,9 @@ def test_mesh_path_resolves_against_the_config_folder_then_the_mesh_dir(tmp_path
         # a physical time float32 cannot hold failed after the surface was built (exit 1)
         (["flow.time=1e-300"], "flow.time"),
         (["flow.time=1e300"], "flow.time"),
+        # a picture wider than off-screen VTK draws was written black (exit 0)
+        (["render.panels=[input,output,output,output,output]", "render.width=3300"],
+         "render.width"),
     ],
 )
 def test_bad_settings_are_refused_with_their_key(overrides, key, tmp_path, capsys):
@@ -702,12 +705,18 @@ def test_an_output_folder_that_cannot_be_written_is_refused_before_any_work(tmp_
     assert "heat_sphere:" not in captured.out  # refused before the run logged anything
 
 
-def test_a_failed_record_leaves_no_new_picture(tmp_path, capsys):
+@pytest.mark.parametrize("blocked", ["heat_sphere.json", "heat_sphere.png"])
+def test_a_folder_where_a_file_goes_is_refused_before_any_work(tmp_path, capsys, blocked):
+    """It was found only after the surface, the flow and the picture (exit 1, minutes into a
+    long run)."""
     out = tmp_path / "out"
-    (out / "heat_sphere.json").mkdir(parents=True)  # the record cannot be written
-    code = cli.main(["run", "heat_sphere", "--set", *TINY, "--out", str(out), "--quiet"])
-    assert code == cli.EXIT_FAILED
-    assert sorted(p.name for p in out.iterdir()) == ["heat_sphere.json"]
+    (out / blocked).mkdir(parents=True)
+    code = cli.main(["run", "heat_sphere", "--set", *TINY, "--out", str(out)])
+    assert code == cli.EXIT_USAGE
+    captured = capsys.readouterr()
+    assert "a folder stands where the run writes its file" in captured.err
+    assert blocked in captured.err and "heat_sphere:" not in captured.out
+    assert sorted(p.name for p in out.iterdir()) == [blocked]
 
 
 def test_a_failed_run_leaves_no_folder_and_no_traceback(tmp_path, capsys):
@@ -788,3 +797,34 @@ def test_an_interrupt_during_the_renderer_probe_waits_for_the_probe(monkeypatch,
         signal.signal(signal.SIGTERM, previous)
     assert finished == [True]
     assert not (tmp_path / "out").exists()
+
+
+def test_an_interrupt_while_the_libraries_load_stops_the_run(tmp_path):
+    """trimesh guards its optional imports with ``except BaseException``: a Ctrl-C given while
+    it loaded was swallowed, and the run went on and replaced the outputs (exit 0). The
+    command now loads them with interrupts held, then takes the interrupt: exit 130, one line,
+    nothing written. Run in a fresh process, which has not loaded trimesh yet."""
+    script = f"""
+import signal, sys
+class CtrlC:
+    def find_spec(self, name, path=None, target=None):
+        if name == "trimesh.path":
+            sys.meta_path.remove(self)
+            signal.raise_signal(signal.SIGINT)  # the keypress, while trimesh loads
+        return None
+sys.meta_path.insert(0, CtrlC())
+sys.argv = ["torchsurf", "run", "heat_sphere", "--set", "grid.size=20", "--out", {str(tmp_path / "out")!r}]
+from torchsurf.cli import entry_point
+entry_point()
+"""
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          timeout=300, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert done.returncode == 130, (done.returncode, done.stderr[-2000:])
+    assert done.stderr.strip().splitlines()[-1] == "torchsurf: interrupted"
+    assert not (tmp_path / "out").exists()
+
+
+def test_the_config_and_the_renderer_agree_on_the_widest_picture():
+    from torchsurf import config, render
+
+    assert config.PICTURE_WIDTH_MAX == render.PICTURE_WIDTH_MAX

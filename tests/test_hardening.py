@@ -406,6 +406,11 @@ def _bad_calls() -> list:
          "index must be an integer"),
         (lambda: exact.sphere_harmonic(5, 16), ValueError, "degree must be"),
         (lambda: ColorDenoise(1.0, chroma=3), TypeError, "chroma must be a flow"),
+        # torch's reduction error and an indexing error, naming no mask
+        (lambda: exact.max_error(dense.phi, dense.phi, dense.phi < -10), ValueError,
+         "mask selects no node"),
+        (lambda: exact.max_error(dense.phi, dense.phi, (dense.phi < 0).float()), TypeError,
+         "mask must be a bool tensor, got torch.float32"),
         (lambda: ts.FlowVisualization.noise(dense, generator=1), TypeError,
          "generator must be a torch.Generator or None, got int"),
         (lambda: sphere.layout.rand(1, generator=7), TypeError, "generator must be"),

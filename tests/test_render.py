@@ -57,6 +57,30 @@ def test_equalized_colours_use_the_whole_map():
     assert equalized[0, 0] == pytest.approx(0.0) and equalized[-1, 0] == pytest.approx(1.0)
     with pytest.raises(ValueError, match="not both"):
         render.colours(values, "scalar", "gray", (0.0, 1.0), equalize=True)
+    # one finite value is a constant: the map's middle, as two equal values (it took the bottom)
+    middle = render.colours(np.array([[5.0], [5.0]]), equalize=True)[0]
+    for single in (np.array([[5.0]]), np.array([[5.0], [np.nan], [np.nan]])):
+        assert np.allclose(render.colours(single, equalize=True)[0], middle)
+    assert np.allclose(middle, render.colours(np.array([[0.5]]), limits=(0.0, 1.0)))
+
+
+def test_pictures_too_wide_to_draw_and_empty_meshes_are_refused(tmp_path):
+    """Off-screen VTK drew a picture over 16384 pixels wide black without a word; an empty
+    mesh failed in numpy's reduction."""
+    import trimesh
+
+    mesh = trimesh.creation.icosphere(1)
+    grey = np.full((len(mesh.vertices), 3), 0.5)
+    with pytest.raises(ValueError, match="beyond 16384 pixels a side"):
+        render.render_panels(mesh, [("a", grey)] * 5, tmp_path / "wide.png", width=3300,
+                             height=64, renderer="matplotlib")
+    empty = trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), dtype=int))
+    with pytest.raises(ValueError, match="mesh has no vertices"):
+        render.render_panels(empty, [("a", np.zeros((0, 3)))], tmp_path / "empty.png",
+                             renderer="matplotlib")
+    with pytest.raises(ValueError, match=r"vertices must have shape \(V, 3\)"):
+        render.fit_camera(np.zeros((0, 3)))
+    assert not list(tmp_path.iterdir())
 
 
 @pytest.mark.parametrize("up", ["x", "y", "z"])

@@ -2,53 +2,51 @@
 
 Bertalmío, Cheng, Osher & Sapiro (2001): data on the zero level set of ``phi`` is extended
 to a band around it and every intrinsic operator is computed on the Cartesian grid.
+
+The package's names are loaded on first use (``torchsurf.HeatFlow`` imports
+``torchsurf.flows`` then), so that ``import torchsurf`` and the ``torchsurf`` command start
+without importing torch, trimesh and the rest: an interrupt during those imports could be
+swallowed by a library's optional-import guard, and the command holds interrupts across them.
 """
 
-from . import backend, bricks, datasets, exact, flows, mesh, nn, operators, sdf, shape_batch, stencils
-from ._checks import MismatchError
-from .flows import (
-    AnisotropicFlow,
-    ColorDenoise,
-    Extension,
-    Flow,
-    FlowVisualization,
-    HarmonicMapFlow,
-    HeatFlow,
-    ReactionDiffusion,
-)
-from .grid import Grid
-from .mesh import MeshAdapter
-from .operators import (
-    AnisotropicDiffusion,
-    DirectionalDiffusion,
-    IntrinsicDivergence,
-    IntrinsicGradient,
-    LaplaceBeltrami,
-    anisotropic_diffusion,
-    directional_diffusion,
-    intrinsic_divergence,
-    intrinsic_gradient,
-    laplace_beltrami,
-)
-from .sampling import sample
-from .shape_batch import AnalyticShape, MeshBatchAdapter
-from .surface import ImplicitSurface
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING
 
 __version__ = "0.1.0"
+
+_SUBMODULES = ("backend", "bricks", "datasets", "exact", "flows", "mesh", "nn", "operators",
+               "sdf", "shape_batch", "stencils")
+
+_NAMES = {
+    "MismatchError": "_checks",
+    **dict.fromkeys(("AnisotropicFlow", "ColorDenoise", "Extension", "Flow", "FlowVisualization",
+                     "HarmonicMapFlow", "HeatFlow", "ReactionDiffusion"), "flows"),
+    "Grid": "grid",
+    "MeshAdapter": "mesh",
+    **dict.fromkeys(("AnisotropicDiffusion", "DirectionalDiffusion", "IntrinsicDivergence",
+                     "IntrinsicGradient", "LaplaceBeltrami", "anisotropic_diffusion",
+                     "directional_diffusion", "intrinsic_divergence", "intrinsic_gradient",
+                     "laplace_beltrami"), "operators"),
+    "sample": "sampling",
+    "AnalyticShape": "shape_batch",
+    "MeshBatchAdapter": "shape_batch",
+    "ImplicitSurface": "surface",
+}
 
 __all__ = [
     "AnalyticShape",
     "AnisotropicDiffusion",
     "AnisotropicFlow",
     "ColorDenoise",
+    "DirectionalDiffusion",
     "Extension",
     "Flow",
     "FlowVisualization",
+    "Grid",
     "HarmonicMapFlow",
     "HeatFlow",
-    "ReactionDiffusion",
-    "DirectionalDiffusion",
-    "Grid",
     "ImplicitSurface",
     "IntrinsicDivergence",
     "IntrinsicGradient",
@@ -56,6 +54,7 @@ __all__ = [
     "MeshAdapter",
     "MeshBatchAdapter",
     "MismatchError",
+    "ReactionDiffusion",
     "anisotropic_diffusion",
     "backend",
     "bricks",
@@ -74,3 +73,50 @@ __all__ = [
     "shape_batch",
     "stencils",
 ]
+
+
+def __getattr__(name: str) -> object:
+    if name in _SUBMODULES:
+        value = importlib.import_module(f"{__name__}.{name}")
+    elif name in _NAMES:
+        value = getattr(importlib.import_module(f"{__name__}.{_NAMES[name]}"), name)
+    else:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *__all__})
+
+
+if TYPE_CHECKING:
+    from . import backend, bricks, datasets, exact, flows, mesh, nn, operators, sdf, shape_batch, stencils
+    from ._checks import MismatchError
+    from .flows import (
+        AnisotropicFlow,
+        ColorDenoise,
+        Extension,
+        Flow,
+        FlowVisualization,
+        HarmonicMapFlow,
+        HeatFlow,
+        ReactionDiffusion,
+    )
+    from .grid import Grid
+    from .mesh import MeshAdapter
+    from .operators import (
+        AnisotropicDiffusion,
+        DirectionalDiffusion,
+        IntrinsicDivergence,
+        IntrinsicGradient,
+        LaplaceBeltrami,
+        anisotropic_diffusion,
+        directional_diffusion,
+        intrinsic_divergence,
+        intrinsic_gradient,
+        laplace_beltrami,
+    )
+    from .sampling import sample
+    from .shape_batch import AnalyticShape, MeshBatchAdapter
+    from .surface import ImplicitSurface

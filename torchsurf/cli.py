@@ -7,6 +7,7 @@ Exit codes: 0 done, 2 usage or config error (nothing computed), 1 the run itself
 from __future__ import annotations
 
 import argparse
+import errno
 import os
 import signal
 import sys
@@ -65,15 +66,20 @@ def _progress_wanted(disabled: bool) -> bool:
     return True
 
 
-def _check_writable(folder: Path) -> list[Path]:
-    """Create ``folder`` if needed and write and remove a file in it, before any computation.
+def _check_writable(folder: Path, files: Sequence[Path] = ()) -> list[Path]:
+    """Create ``folder`` if needed and write and remove a file in it, before any computation;
+    the ``files`` the run will write there must not be folders.
 
     Returns:
         The folders this created, deepest first (:func:`_remove_if_empty` takes them back).
 
     Raises:
-        OSError: the folder cannot be created or written.
+        OSError: the folder cannot be created or written, or one of ``files`` is a folder.
     """
+    for path in files:
+        if path.is_dir():
+            raise IsADirectoryError(errno.EISDIR, "a folder stands where the run writes its "
+                                    "file", str(path))
     created = [parent for parent in (folder, *folder.parents) if not parent.exists()]
     try:
         folder.mkdir(parents=True, exist_ok=True)
@@ -132,7 +138,10 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def _run(args: argparse.Namespace, argv: Sequence[str] | None) -> int:
     """``torchsurf run`` with the parsed ``args``; returns the exit code."""
-    from . import experiment
+    # trimesh guards its optional imports with `except BaseException`, which swallowed a
+    # Ctrl-C given meanwhile (the run went on and replaced the outputs): taken once loaded
+    with signals_held():
+        from . import experiment
 
     if args.out is not None and not args.out.strip():
         print("torchsurf: --out must name a folder, got an empty string", file=sys.stderr)
@@ -152,7 +161,7 @@ def _run(args: argparse.Namespace, argv: Sequence[str] | None) -> int:
         return EXIT_FAILED
     out = Path(args.out) if args.out else Path("outputs") / prepared.experiment.name
     try:
-        created = _check_writable(out)
+        created = _check_writable(out, experiment.output_paths(prepared.experiment.name, out))
     except OSError as error:
         print(f"torchsurf: cannot write to {str(out)!r} (--out): {error}", file=sys.stderr)
         return EXIT_USAGE

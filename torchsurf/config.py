@@ -314,6 +314,10 @@ FLOW_SIGNALS: dict[FlowKind, tuple[SignalKind, ...]] = {
 PANELS = ("clean", "input", "output")
 
 THREADS_MAX = 1024
+
+PICTURE_WIDTH_MAX = 16384
+"""The widest picture, all panels side by side: :data:`torchsurf.render.PICTURE_WIDTH_MAX`
+(not imported from there, which would load matplotlib and trimesh with the config)."""
 """The most threads a config may ask for (torch itself crashes on some 10^5)."""
 
 SEED_MAX = 2**63 - 1
@@ -800,6 +804,10 @@ def check(experiment: Experiment) -> None:
                               f"{getattr(render, key)}")
     if not render.panels:
         raise ConfigError("render.panels", f"name at least one of {', '.join(PANELS)}")
+    if len(render.panels) * render.width > PICTURE_WIDTH_MAX:
+        raise ConfigError("render.width", f"{len(render.panels)} panels of {render.width} pixels "
+                          f"make a picture wider than {PICTURE_WIDTH_MAX} pixels, which off-screen "
+                          "rendering draws black")
     if not -90.0 <= render.elevation <= 90.0:
         raise ConfigError("render.elevation", f"must be in [-90, 90] degrees, got "
                           f"{render.elevation}")

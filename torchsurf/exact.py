@@ -112,4 +112,10 @@ def near(case: Case, cells: float = 1.0) -> Tensor:
 def max_error(value: Tensor, exact: Tensor, mask: Tensor) -> float:
     """Largest ``|value - exact|`` over the nodes of ``mask``: ``value`` and ``exact``
     ``(B, C, D, H, W)``, ``mask`` bool ``(B or 1, 1, D, H, W)``; in ``value``'s units."""
+    if not isinstance(mask, Tensor) or mask.dtype != torch.bool:
+        raise TypeError(f"mask must be a bool tensor, got "
+                        f"{getattr(mask, 'dtype', type(mask).__name__)}")
+    if not mask.any():
+        raise ValueError(f"mask selects no node (shape {tuple(mask.shape)}): no error to take "
+                         "the largest of")
     return float((value - exact).abs()[mask.expand_as(value)].max())

@@ -425,6 +425,13 @@ def flow_as_run(experiment: Experiment, module: torch.nn.Module) -> dict[str, An
     }
 
 
+def output_paths(name: str, out: str | Path) -> tuple[Path, Path]:
+    """The picture and the record a run of the config ``name`` writes into ``out``:
+    ``<out>/<name>.png`` and ``<out>/<name>.json``."""
+    out = Path(out)
+    return out / f"{name}.png", out / f"{name}.json"
+
+
 def _steps_taken(flow: flows.Flow) -> int | None:
     """The steps ``flow`` took in its last call (:attr:`torchsurf.flows.Flow.last_plan`),
     ``None`` for a method without a step count (adaptive torchdiffeq, ``chebyshev``)."""
@@ -601,9 +608,8 @@ def run(prepared: Prepared, out: str | os.PathLike, progress: bool = False,
         render_config = experiment.render
         renderer, why = render.resolve_renderer(render_config.renderer.name)
         log(f"render: {renderer} ({why})")
+        picture, record = output_paths(experiment.name, out)
         out = Path(out)
-        picture = out / f"{experiment.name}.png"
-        record = out / f"{experiment.name}.json"
         # picture and record are both written aside, then renamed into place, the picture
         # first: a failure (or a stop) at any point before leaves neither new, nor the aside
         drawn = out / f".{experiment.name}.{os.getpid()}.png"

@@ -40,6 +40,10 @@ FILE_MODE = 0o666 & ~_UMASK
 """Permissions of the files written (those of ``open``): ``mkstemp``'s own 0600 would hide
 the pictures from everyone else."""
 RENDERERS = ("auto", "pyvista", "matplotlib")
+
+PICTURE_WIDTH_MAX = 16384
+"""Pixels a side of the largest picture :func:`render_panels` draws: off-screen VTK drew
+wider ones black (16500 pixels wide), so both renderers refuse them."""
 """Values of ``renderer``: ``"auto"`` is pyvista when it can draw off screen, else matplotlib."""
 
 
@@ -160,7 +164,8 @@ def colours(values: np.ndarray, mode: str = "scalar", colormap: str = "viridis",
         _, inverse, counts = np.unique(finite, return_inverse=True, return_counts=True)
         mean_rank = np.cumsum(counts) - 0.5 * (counts + 1)
         scaled = np.zeros(len(values))
-        scaled[~missing] = mean_rank[inverse] / max(len(finite) - 1, 1)
+        # one finite value is a constant: the map's middle colour, as for default limits
+        scaled[~missing] = mean_rank[inverse] / (len(finite) - 1) if len(finite) > 1 else 0.5
     else:
         low, high = (limits if limits is not None else
                      np.percentile(finite, [1.0, 99.0]) if len(finite) else (0.0, 1.0))
@@ -204,6 +209,8 @@ def fit_camera(vertices: np.ndarray, elevation: float = 25.0, azimuth: float = -
         raise ValueError(f"elevation must be in [-90, 90] degrees, got {elevation!r}")
     if not math.isfinite(azimuth):
         raise ValueError(f"azimuth must be a finite number of degrees, got {azimuth!r}")
+    if np.shape(vertices)[-1:] != (3,) or np.size(vertices) == 0:
+        raise ValueError(f"vertices must have shape (V, 3) with V >= 1, got {np.shape(vertices)}")
     k = AXES.index(up)
     axis_up = np.eye(3)[k]
     front = np.eye(3)[(k + 1) % 3]
@@ -361,10 +368,16 @@ def render_panels(mesh: trimesh.Trimesh, panels: list[tuple[str, np.ndarray]], p
     for name, pixels in (("width", width), ("height", height)):
         if isinstance(pixels, bool) or not isinstance(pixels, (int, np.integer)) or pixels < 1:
             raise ValueError(f"{name} must be a positive whole number of pixels, got {pixels!r}")
-    used, _ = resolve_renderer(renderer)
-    Figure, FigureCanvasAgg, PolyCollection = _matplotlib()
     if not panels:
         raise ValueError("panels: give at least one (title, colours) pair")
+    if len(panels) * int(width) > PICTURE_WIDTH_MAX or int(height) > PICTURE_WIDTH_MAX:
+        raise ValueError(f"width, height: {len(panels)} panels of {width} x {height} pixels make "
+                         f"a picture beyond {PICTURE_WIDTH_MAX} pixels a side, which off-screen "
+                         "rendering draws black")
+    if len(mesh.vertices) == 0:
+        raise ValueError("mesh has no vertices: nothing to draw")
+    used, _ = resolve_renderer(renderer)
+    Figure, FigureCanvasAgg, PolyCollection = _matplotlib()
     for index, (_, vertex_colours) in enumerate(panels):
         if np.shape(vertex_colours) != (len(mesh.vertices), 3):
             raise ValueError(f"panels[{index}]: colours must have shape (V, 3) = "
