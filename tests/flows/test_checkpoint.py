@@ -203,3 +203,48 @@ def test_checkpointed_results_at_several_times_keep_their_gradients():
         results[checkpoint] = (value.detach(), start.grad, flow.time_value.raw.grad)
     for kept, plain in zip(results[True], results[False], strict=True):
         torch.testing.assert_close(kept, plain, rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("name", ["visualization", "reaction_diffusion"])
+def test_a_direction_field_keeps_its_gradient_when_phi_needs_one_too(name):
+    """The tangent field, made from the given one and phi's normals, was the only direction
+    the flows declared: with phi needing gradients too it was left out as computed from
+    another, so checkpointed segments raised in backward and ``adjoint=True`` returned no
+    gradient for the given field."""
+    pytest.importorskip("torchdiffeq")
+    grid = ts.Grid.cube(12, 1.5)
+    generator = torch.Generator().manual_seed(3)
+    base = ts.sdf.sphere(grid, radius=0.8, center=(0.05, -0.03, 0.02), dtype=torch.float64)
+    field = torch.randn((1, 3, *grid.shape), dtype=torch.float64, generator=generator)
+    u = torch.rand((1, 1, *grid.shape), dtype=torch.float64, generator=generator)
+    h2 = grid.spacing**2
+    if name == "visualization":
+        u0, call = u, {}
+
+        def make(**options):
+            return ts.FlowVisualization(2 * h2, **options)
+    else:
+        u0, call = torch.cat([4 + u, 4 - u], dim=1), {"generator": None}
+
+        def make(**options):
+            return ts.ReactionDiffusion(20.0, **options)
+
+    def gradients(flow):
+        phi = base.clone().requires_grad_(True)
+        direction = field.clone().requires_grad_(True)
+        options = dict(call)
+        if "generator" in options:
+            options["generator"] = torch.Generator().manual_seed(1)
+        value = flow(u0, ts.ImplicitSurface(phi, grid), direction=direction, **options)
+        return torch.autograd.grad(value.square().sum(), (direction, phi), allow_unused=True)
+
+    plain = gradients(make(method="euler", checkpoint=False))
+    kept = gradients(make(method="euler", checkpoint=True))
+    for a, b in zip(kept, plain, strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-12)
+    # the adjoint gives the continuous gradient, rk4 the discrete one: 0.6% and 1.4% apart here
+    direct = gradients(make(method="rk4"))
+    adjoint = gradients(make(method="rk4", adjoint=True))
+    assert adjoint[0] is not None
+    for a, b in zip(adjoint, direct, strict=True):
+        assert float((a - b).norm() / b.norm()) < 0.03

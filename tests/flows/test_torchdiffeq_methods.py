@@ -136,3 +136,35 @@ def test_options_given_to_a_built_in_method_are_refused_as_torchdiffeq_settings(
     """A step_size for RKC was refused as 'chooses its own steps (rtol, atol)'."""
     with pytest.raises(ValueError, match="options and adjoint are torchdiffeq settings"):
         HeatFlow(TIME, method="rkc", options={"step_size": 1e-3})
+
+
+def test_steps_and_a_step_size_together_are_refused():
+    """``steps=`` overrode ``options['step_size']`` without a word, and the stability warning
+    then asked for the step size already given."""
+    with pytest.raises(ValueError, match=r"steps=3 and options\['step_size'\] both"):
+        HeatFlow(TIME, method="rk4", steps=3, options={"step_size": TIME / 10})
+
+
+def test_adaptive_steps_meet_their_tolerance_on_the_band_whatever_the_box():
+    """torchdiffeq's default error norm is over the whole state: the nodes beyond the band,
+    which never change, diluted the error, so a box with more room around the same surface took
+    longer steps (Perona–Malik at rtol 1e-5: 2.2e-6 off in a 24^3 box, 1.0e-4 in a 47^3 one).
+    The flows' norm is over the band: the same surface, spacing and data in a box twice as wide
+    give the same result to the tolerance (here 7e-6 apart at rtol 1e-4, 1.3e-2 before)."""
+    spacing = 0.125
+    results = []
+    for half in (1.5, 3.0):
+        grid = ts.Grid.cube(int(round(2 * half / spacing)) + 1, bound=half)
+        phi = ts.sdf.sphere(grid, radius=1.0, center=(0.03, -0.05, 0.02), dtype=torch.float64)
+        surface = ts.ImplicitSurface(phi, grid)
+        x, y, z = grid.points(dtype=torch.float64).unbind(-1)
+        u0 = torch.sin(2 * x + y) * torch.cos(3 * z)
+        flow = ts.AnisotropicFlow(4 * spacing**2, "perona_malik", contrast=0.5,
+                                  method="dopri5", options={"rtol": 1e-4, "atol": 1e-6})
+        out = flow(u0[None, None], surface)[0, 0]
+        near = surface.distance()[0, 0] <= spacing
+        inner = [slice(None)] * 3 if half == 1.5 else [slice(12, -12)] * 3
+        results.append((out[inner], near[inner]))
+    (small, near), (large, _) = results
+    assert small.shape == large.shape
+    assert float((small - large)[near].abs().max()) < 1e-4

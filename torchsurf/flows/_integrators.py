@@ -659,6 +659,24 @@ def _entry_power_of_two(weight: Tensor, band: Tensor, layout: BrickLayout | None
     return power_of_two_below(largest)
 
 
+def band_norm(band: Tensor) -> Callable[[Tensor], Tensor]:
+    """The root mean square over the nodes of ``band`` (``(B or 1, 1, ...)`` bool, broadcast
+    over the data's batch and channels): the error norm of torchdiffeq's adaptive steps.
+
+    Its default, over the whole state, counts the nodes beyond the band, whose error is 0, so
+    that a box with more room around the surface took longer steps and missed the tolerance on
+    the surface: Perona–Malik at ``rtol`` 1e-5 on one sphere and spacing was 2.2e-6 off in a
+    24^3 box and 1.0e-4 in a 47^3 one.
+    """
+    mask = band.to(torch.float64)
+
+    def norm(error: Tensor) -> Tensor:
+        weights = mask.to(error.dtype).expand_as(error)
+        return (error.square() * weights).sum().div(weights.sum().clamp_min(1)).sqrt()
+
+    return norm
+
+
 def _torchdiffeq(method: str) -> Callable[[System, Tensor, Schedule], list[Tensor]]:
     def integrate(system: System, u0: Tensor, schedule: Schedule) -> list[Tensor]:
         try:
@@ -681,6 +699,7 @@ def _torchdiffeq(method: str) -> Callable[[System, Tensor, Schedule], list[Tenso
             _warn_unstable_step(method, options["step_size"], system.spectral_radius)
         elif method in ADAPTIVE_STEPS:
             options.setdefault("max_num_steps", MAX_STEPS)
+            options.setdefault("norm", band_norm(system.band))
         kwargs = {key: options.pop(key) for key in ("rtol", "atol") if key in options}
 
         def func(t: Tensor, u: Tensor) -> Tensor:

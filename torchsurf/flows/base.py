@@ -510,6 +510,9 @@ class Flow(nn.Module):
                 "and takes neither"
             )
         self.options = check_options(options, method)
+        if self.steps is not None and "step_size" in self.options:
+            raise ValueError(f"steps={self.steps} and options['step_size'] both set the steps "
+                             "(steps= took precedence without a word); give one of them")
         self.progress = check_flag(progress, "progress")
         if reextend_every is not None and reextend_every not in REEXTEND_CHOICES:
             reextend_every = check_count(reextend_every, "reextend_every")

@@ -105,7 +105,8 @@ class ReactionDiffusion(Flow):
         beta = self.beta + self.noise * (2.0 * noise - 1.0)
         if direction is not None:
             region = with_ring(band, surface.layout)
-            direction = tangent_unit(check_direction(direction, u0, surface, region), surface)
+            given = check_direction(direction, u0, surface, region)
+            direction = tangent_unit(given, surface)
         s = self.rate
         pad = None if surface.layout is None else surface.layout.halo
         # on bricks the field's halo is gathered once per flow, not at every evaluation
@@ -130,8 +131,10 @@ class ReactionDiffusion(Flow):
             surface, direction, width=self.evolving_width(surface))
         rho = max(d_a * bound_a, d_b * bound_b) + s * max(reaction, 1.0)
         return System(rate, band, rho, project=_nonnegative_b,
+                      # the given field too: the tangent one, computed from it and from
+                      # phi, is not declared where phi needs gradients (_recompute.independent)
                       params=tensors(surface.normal, surface.weight, direction,
-                                     haloed_direction),
+                                     haloed_direction, given if direction is not None else None),
                       growth=s * max(reaction, TURK_SUPPLY))
 
     def _entries_apart(self, u0: Tensor, surface: ImplicitSurface, times: object,

@@ -71,7 +71,8 @@ class FlowVisualization(Flow):
                             "flow(u0, surface, direction=T)")
         band = self.band_mask(surface)
         region = with_ring(band, surface.layout)
-        direction = tangent_unit(check_direction(direction, u0, surface, region), surface)
+        given = check_direction(direction, u0, surface, region)
+        direction = tangent_unit(given, surface)
         outside = ~band
         spacing, isotropic = surface.spacing, self.isotropic
         pad = None if surface.layout is None else surface.layout.halo
@@ -110,8 +111,10 @@ class FlowVisualization(Flow):
             return zero_outside(laplacian(u, *geometry[:3], haloed, haloed_direction), outside)
 
         rho = (1.0 + self.isotropic) * self.operator_bound(surface, "symmetric")
+        # the given field too: the tangent one, computed from it and from phi, is not
+        # declared where phi needs gradients (_recompute.independent)
         return System(rate, band, rho, linear=Linear(operator, geometry),
-                      params=tensors(*geometry))
+                      params=tensors(*geometry, given))
 
     def extra_repr(self) -> str:
         return f"{super().extra_repr()}, isotropic={self.isotropic:g}"
