@@ -422,7 +422,11 @@ class Flow(nn.Module):
             ``2 / rho``, or of its own where shorter (torchdiffeq's Adams methods: 0.003 / rho
             for ``"explicit_adams"``, 0.06 / rho for ``"fixed_adams"`` and ``"implicit_adams"``).
             Adaptive methods stop with an error after ``max_num_steps`` steps in one piece
-            (default :data:`~torchsurf.flows._integrators.MAX_STEPS`).
+            (default :data:`~torchsurf.flows._integrators.MAX_STEPS`), and measure their error
+            by its root mean square over the band (``norm``, default
+            :func:`~torchsurf.flows._integrators.band_norm`; torchdiffeq's own, over the whole
+            box, counted the nodes that never change, so that the tolerance was missed more
+            the more room the box had). ``steps=`` and a ``step_size`` together are refused.
         adjoint: integrate with ``torchdiffeq.odeint_adjoint``.
         progress: show a tqdm progress bar over the steps (tqdm is optional).
         reextend_every: re-extend the band and its ring along normals (closest point,
