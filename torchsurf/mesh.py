@@ -168,7 +168,11 @@ class MeshAdapter(nn.Module):
       64^3 / 128^3, none of bunny_closed's 35k, and off by up to 0.6-0.85 of its range at the
       others, where the constraints below, which noise does not obey, apply); where they read
       more (small facets), every affine function of the mesh closest points instead, the
-      mesh's own interpolation error being below the grid's, and likewise where reproducing
+      mesh's own interpolation error being below the grid's, and the hats of the vertices read
+      more than 4.5 cells away (the far corners of long facets, where the data bends and
+      affine functions do not follow: trimesh's capsule, its side one strip of triangles,
+      came back 2.8e-2 / 9.8e-3 / 5.8e-3 off at 32^3 / 48^3 / 64^3, against 8.8e-2 / 4.7e-2
+      / 1.0e-2 with affine functions alone); and affine functions alone where reproducing
       the hats would take weights of 1-norm above 4 (many small coplanar facets: the
       fandisk's flat parts reached 47 and amplified data 1.8x);
     - every affine function of the grid's closest points ``g_n = x_n - d_n n_n``,
@@ -178,21 +182,22 @@ class MeshAdapter(nn.Module):
 
     Measured relative max error of the round trip of ``sin(2 pi a . x)``, ``|a| = 2``, on
     meshes scaled to a box diagonal of 1, at 64^3 / 96^3 / 128^3: spot (2.9k vertices, facets
-    of several cells) 9.3e-3 / 3.9e-3 / 2.6e-3, median 6e-4 / 2e-6 / 1e-6; armadillo 1.3e-2 /
-    6.8e-3 / 3.7e-3; bunny_closed 1.7e-2 / 8.2e-3 / 4.7e-3 (``order=1``: 3.3e-2 / 1.8e-2 /
+    of several cells) 9.3e-3 / 4.1e-3 / 2.6e-3, median 6e-4 / 8e-7 / 4e-7; armadillo 1.3e-2 /
+    6.8e-3 / 3.7e-3; bunny_closed 1.7e-2 / 8.1e-3 / 4.6e-3 (``order=1``: 3.3e-2 / 1.8e-2 /
     1.2e-2, 4.7e-2 / 2.7e-2 / 2.0e-2, 3.4e-2 / 2.5e-2 / 1.9e-2). On a mesh with sharp creases
-    the worst vertex need not improve with the grid: teapot_closed's max error was 3.9e-2 /
-    1.5e-2 / 2.0e-2 at 48^3 / 72^3 / 96^3 while its median fell from 3.5e-3 to 6.9e-4, the
+    the worst vertex need not improve with the grid: teapot_closed's max error was 3.5e-2 /
+    1.3e-2 / 1.4e-2 at 48^3 / 72^3 / 96^3 while its median fell from 3.1e-3 to 6.7e-4, the
     worst vertices on creases of dihedral angle near 120 degrees, where the closest-point map
     is not smooth; on the fandisk the max error of ``sin(3x) cos(2y) + z^2`` (longest side 2)
-    fell only at first order, 7.0e-3 / 5.7e-3 / 3.4e-3 at 48^3 / 64^3 / 96^3, at a vertex on a
+    fell only at first order, 5.5e-3 / 4.5e-3 / 2.7e-3 at 48^3 / 64^3 / 96^3, at a vertex on a
     flat part within two cells of a crease, while its median fell at second order. Building the
     weights adds 25-50% to the adapter's setup.
 
     Second order is what the grid's own error does once the mesh is finer than the cells: for a
     fixed mesh whose facets are about a cell wide, the worst vertex converges at order 1-1.5
-    (``sin`` above, icosphere(5): 4.3e-3 / 2.3e-3 / 1.6e-3 / 9.6e-4 at 32^3 / 48^3 / 64^3 /
-    96^3; bunny_closed 1.9e-2 at both 48^3 and 64^3, its median at second order), second order
+    (``sin`` above, icosphere(5) scaled like the meshes above: 4.3e-3 / 2.5e-3 / 1.6e-3 /
+    1.0e-3 at 32^3 / 48^3 / 64^3 / 96^3; bunny_closed 1.9e-2 / 1.7e-2 at 48^3 / 64^3, its
+    median at second order), second order
     where the facets are well below a cell (icosphere(6): orders 2.1, 2.0) and exact where they
     are far above it (the hats). ``order=2`` reads the ``4^3`` nodes around a vertex, so parts
     of the mesh (or sheets of one surface) closer than 3 cells mix: two spheres 1 / 2 / 2.5
@@ -445,8 +450,8 @@ def _decode_stencil(grid: Grid, vertices: Tensor, band_index: Tensor, references
         corners, barycentric = triangles
         # vertices at one position (a triangle soup, as STL stores it) are one hat function:
         # counted apart, a soup's vertices read past HAT_LIMIT and lost their exact decode
-        _, same = torch.unique(vertices, dim=0, return_inverse=True)
-        hats = _vertex_decode.Hats(same[corners[row]], barycentric[row], same)
+        positions, same = torch.unique(vertices, dim=0, return_inverse=True)
+        hats = _vertex_decode.Hats(same[corners[row]], barycentric[row], same, positions)
     weights = _vertex_decode.weights(found, usable, vertices,
                                      [points[row] for points in references], grid.spacing, hats)
     return _vertex_decode.onto_weighted_taps(index, weights), weights

@@ -164,7 +164,7 @@ class BrickMeshAdapter(nn.Module):
         corners = self._corners.to("cpu").long()
         triangle_weights = torch.as_tensor(np.concatenate(barycentric))
         # vertices at one position in one mesh are one hat function (MeshAdapter's decode)
-        _, same = torch.unique(torch.cat([
+        unique, same = torch.unique(torch.cat([
             torch.cat([torch.full((len(vertices), 1), float(b), dtype=torch.float64),
                        torch.from_numpy(vertices)], dim=1)
             for b, (vertices, _, _) in enumerate(bands)]), dim=0, return_inverse=True)
@@ -187,7 +187,7 @@ class BrickMeshAdapter(nn.Module):
             usable = cells.inside & (tap_row >= 0)
             tap_row = tap_row.clamp(min=0)
             hats = _vertex_decode.Hats(same[corners[tap_row]], triangle_weights[tap_row],
-                                       same[offset + torch.arange(len(vertices))])
+                                       same[offset + torch.arange(len(vertices))], unique[:, 1:])
             vertex_weights = _vertex_decode.weights(
                 cells, usable, points, [points_set[tap_row] for points_set in references],
                 grid.spacing, hats)
