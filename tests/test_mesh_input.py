@@ -134,3 +134,29 @@ def test_two_meshes_for_one_are_named():
         ts.MeshAdapter([mesh, mesh.copy()], resolution=9)
     with pytest.raises(TypeError, match="mesh must be one mesh"):
         ts.sdf.from_mesh([mesh, mesh.copy()], GRID)
+
+
+def test_misfits_of_mesh_and_grid_and_of_arguments_are_named():
+    """Found by an audit: bricks built on a grid inside the mesh failed later, naming no mesh
+    (the bricks' fill passed for the outside); one pair (vertices, faces) given as
+    MeshBatchAdapter's shapes was read as two shapes and refused as not being a pair; a
+    CUDA device on a CPU build failed late in torch; vertices requiring grad were detached."""
+    import warnings
+
+    from torchsurf import bricks
+
+    sphere = trimesh.creation.icosphere(subdivisions=2)
+    inside = ts.Grid.cube(24, bound=0.45)
+    with pytest.raises(ValueError, match=r"meshes\[0\]: every node of the grid lies inside it"):
+        bricks.from_mesh([sphere], [inside])
+    pair = (np.asarray(sphere.vertices), np.asarray(sphere.faces))
+    with pytest.raises(TypeError, match=r"one pair \(vertices, faces\).*\[\(vertices, faces\)\]"):
+        ts.MeshBatchAdapter(pair, resolution=16)
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match="device='cuda': this torch has no CUDA device"):
+            ts.MeshAdapter(sphere, resolution=16, device="cuda")
+    vertices = torch.as_tensor(sphere.vertices).requires_grad_()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        ts.sdf.from_mesh((vertices, torch.as_tensor(sphere.faces)), ts.Grid.cube(16, 1.4))
+    assert any("not differentiable in the vertex positions" in str(w.message) for w in caught)

@@ -45,14 +45,18 @@ def check_dtype(dtype: object, name: str = "dtype") -> torch.dtype:
 
 def check_device(device: object, name: str = "device") -> torch.device | None:
     """``None``, or ``torch.device(device)``; raise ``ValueError`` naming ``name`` where torch
-    cannot read it (``"gpu"``)."""
+    cannot read it (``"gpu"``) or has no such device (``"cuda"`` on a CPU build)."""
     if device is None:
         return None
     try:
-        return torch.device(device)
+        parsed = torch.device(device)
     except (RuntimeError, TypeError) as error:
         raise ValueError(f"{name} must name a torch device ('cpu', 'cuda', 'cuda:0', ...), got "
                          f"{device!r}") from error
+    if parsed.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"{name}={device!r}: this torch has no CUDA device "
+                         "(torch.cuda.is_available() is False); use 'cpu'")
+    return parsed
 
 
 def check_has_data(value: Tensor, name: str) -> Tensor:

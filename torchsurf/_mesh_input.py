@@ -75,6 +75,10 @@ def as_trimesh(mesh: MeshLike, name: str = "mesh") -> trimesh.Trimesh:
                 "(vertices, faces)): for several meshes use torchsurf.MeshBatchAdapter or one "
                 "call per mesh"
             )
+        if isinstance(mesh[0], torch.Tensor) and mesh[0].requires_grad:
+            warnings.warn(f"{name}: its vertices require grad, but a mesh is taken as data: "
+                          "phi and the adapters are not differentiable in the vertex positions "
+                          "(no gradient reaches them)", UserWarning, stacklevel=caller_stacklevel())
         vertices = _as_array(mesh[0])
         faces = _as_array(mesh[1])
         _check_arrays(vertices, faces, name)

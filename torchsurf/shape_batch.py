@@ -143,6 +143,15 @@ def _surface_of_loaded_phi(adapter: MeshBatchAdapter, incompatible: object) -> N
     adapter.surface = ImplicitSurface(adapter.phi, adapter.grid)
 
 
+def _is_array_pair(value: Sequence[object]) -> bool:
+    """Whether ``value`` is one mesh as arrays, ``(vertices (V, 3), faces (F, 3))``."""
+    if len(value) != 2:
+        return False
+    shapes = [np.shape(part) if isinstance(part, (np.ndarray, torch.Tensor)) else None
+              for part in value]
+    return all(shape is not None and len(shape) == 2 and shape[1] == 3 for shape in shapes)
+
+
 class MeshBatchAdapter(nn.Module):
     """Several meshes and analytic shapes on one grid, normalised, with their vertex data.
 
@@ -212,6 +221,9 @@ class MeshBatchAdapter(nn.Module):
             )
         if len(shapes) == 0:
             raise ValueError("shapes must hold at least one shape, got an empty sequence")
+        if _is_array_pair(shapes):
+            raise TypeError("shapes is one pair (vertices, faces), read as two shapes: give a "
+                            "sequence of shapes, [(vertices, faces)] for one mesh")
         resolution = check_count(resolution, "resolution", minimum=3)
         size = check_positive(size, "size")
         margin = (default_margin(resolution, 0.15) if margin is None

@@ -155,7 +155,11 @@ def signed_bricks(meshes: list[MeshLike], grids: list[Grid], band_width: float, 
         in_band = np.abs(signed.near) <= band_width
         check_clear_of_faces(torch.from_numpy(signed.band.nodes[in_band][:, ::-1].copy()), grid, b)
         entry_coords, entry_values = _brick_values(signed, grid, reach, numpy_dtype)
-        _mesh_sdf.check_sides(entry_values, vertices, faces, grid, f"meshes[{b}]")
+        # the nodes' own signs, not the bricks' fill (+reach beyond it): a grid inside the
+        # mesh passed on the fill and failed later, naming no mesh
+        signs = np.concatenate([signed.near, *(np.where(inside, -1.0, 1.0)
+                                               for inside in signed.far_inside)])
+        _mesh_sdf.check_sides(signs, vertices, faces, grid, f"meshes[{b}]")
         coords.append(entry_coords)
         batch.append(np.full(len(entry_coords), b))
         values.append(entry_values)
