@@ -1,9 +1,10 @@
 """Accuracy of ``MeshAdapter``'s transfer: vertex values -> band -> vertex values.
 
 For each mesh (normalised to a bounding-box diagonal of 1), resolution and decoding order, the
-script encodes ``u = sin(2 pi a . x)`` (``|a| = 2``, the signal of ``bench_mesh_heat.py``) given
-at the vertices and decodes it again, directly ("round trip") and after one tricubic
-closest-point re-extension of the whole band ("re-extended"), which is what every flow does to
+script encodes ``u = sin(2 pi a . x)`` (``a = 2 (0.48, 0.6, 0.64)``, the signal of
+``bench_mesh_heat.py``) given at the vertices and decodes it again, directly ("round trip")
+and after one tricubic closest-point re-extension of the whole band ("re-extended"), which is
+what every flow does to
 its data before it returns it. Errors are over the vertices, relative to ``max |u|``: the
 maximum, and the median (which shows the order where a few thin parts hold the maximum).
 
@@ -60,7 +61,7 @@ def main(argv: list[str] | None = None) -> None:
         "",
         f"Command: `PYTHONPATH=. python benchmarks/bench_mesh_transfer.py {' '.join(argv)}`",
         "",
-        "Meshes normalised to a box diagonal of 1; signal `sin(2π a·x)`, `|a| = 2`, at the "
+        "Meshes normalised to a box diagonal of 1; signal `sin(2π a·x)`, `a = 2 (0.48, 0.6, 0.64)`, at the "
         "vertices. Errors over the vertices relative to max |u|, as max / median. `order 1`: "
         "trilinear sampling at the vertices (before issue 11); `order 2`: the closest-point "
         "weights (the default). `re-extended`: decoded after one tricubic closest-point "

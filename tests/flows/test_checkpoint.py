@@ -248,3 +248,20 @@ def test_a_direction_field_keeps_its_gradient_when_phi_needs_one_too(name):
     assert adjoint[0] is not None
     for a, b in zip(adjoint, direct, strict=True):
         assert float((a - b).norm() / b.norm()) < 0.03
+
+
+def test_checkpointed_flows_run_under_inference_mode():
+    """``enable_grad`` does not leave inference mode: finding the declared reads walked a graph
+    that is not there ('NoneType' object has no attribute 'next_functions') when phi, or a
+    diffusivity module's parameters, needed gradients."""
+    grid = ts.Grid.cube(14, 1.5)
+    phi = ts.sdf.sphere(grid, radius=0.9).requires_grad_(True)
+    u = torch.rand((1, 1, *grid.shape), generator=torch.Generator().manual_seed(2))
+    for make in (lambda: ts.HeatFlow(0.01, checkpoint=True),
+                 lambda: ts.AnisotropicFlow(0.01, "perona_malik", learn_contrast=True,
+                                            checkpoint=True)):
+        with torch.no_grad():
+            expected = make()(u, ts.ImplicitSurface(phi, grid))
+        with torch.inference_mode():
+            value = make()(u, ts.ImplicitSurface(phi, grid))
+        torch.testing.assert_close(value, expected, rtol=0, atol=0)

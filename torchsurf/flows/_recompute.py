@@ -128,7 +128,10 @@ def independent(values: Sequence[object]) -> tuple[Tensor, ...]:
     Differentiating a result with respect to ``phi`` and to ``normal``, computed from ``phi``,
     gives ``phi``'s total gradient (through ``normal`` too) and ``normal``'s; delivering both
     would count the path through ``normal`` twice. Keeping the ancestors alone counts it once.
+    With grad disabled (``no_grad``, ``inference_mode``) nothing is differentiated: none.
     """
+    if not torch.is_grad_enabled():  # inference_mode's tensors have no graph to walk
+        return ()
     tensors, ids = [], set()
     for value in values:
         if isinstance(value, Tensor) and value.requires_grad and id(value) not in ids:
