@@ -28,7 +28,7 @@ from ._integrators import (
 )
 from ._packed_band import FusedStage, PackedRegion
 from ._positive import ChannelOf, Positive
-from ._recompute import recomputed
+from ._recompute import declared, recomputed
 from .base import (
     RANGE_SLACK,
     Flow,
@@ -303,15 +303,16 @@ class HeatFlow(Flow):
                                        largest * fraction / pieces)
                 return u
 
-            if operator.differentiable:  # phi's graph: each piece recomputes its expansion
-                return run(u0, pieces)
             # sqrt(pieces) pieces at a time recomputed in backward: autograd kept every
-            # piece's input (a learned time at 64^3, batch 4, 1 -> 100 h^2: 58 -> 197 MB)
+            # piece's input (a learned time at 64^3, batch 4, 1 -> 100 h^2: 58 -> 197 MB),
+            # and with phi's graph every piece's re-extensions too (21 MB a piece at 20^3)
+            reads = (declared((horizon, operator.surface.phi)) if operator.differentiable
+                     else tensors(horizon))
             group = math.ceil(math.sqrt(pieces))
             u = u0
             for start in range(0, pieces, group):
                 u = recomputed(functools.partial(run, count=min(group, pieces - start)), u,
-                               tensors(horizon))
+                               reads)
             return u
 
         if times is None:
