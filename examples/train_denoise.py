@@ -456,7 +456,8 @@ def parse(argv: Sequence[str] | None = None) -> argparse.Namespace:
             parser.error(f"--{name.replace('_', '-')} must be an integer of at least {least}, "
                          f"got {getattr(args, name)}")
     for name in ("lr", "noise", "frequency"):
-        if not 0 < getattr(args, name) <= torch.finfo(torch.float32).max:
+        finfo = torch.finfo(torch.float32)
+        if not finfo.tiny <= getattr(args, name) <= finfo.max:
             parser.error(f"--{name} must be a positive number float32 holds, got "
                          f"{getattr(args, name)}")
     if not 0 <= args.seed < DERIVED_SEED_LIMIT:

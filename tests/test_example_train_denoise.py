@@ -85,6 +85,7 @@ def test_outputs_are_staged_and_a_failure_leaves_the_former_ones(example, tmp_pa
     # these ran, failing later in the library without naming the option
     (["--lr", "inf"], "--lr"),
     (["--noise", "1e300"], "--noise"),
+    (["--noise", "1e-50"], "--noise"),  # 0 in float32: the noisy set was the clean one
     (["--frequency", "nan"], "--frequency"),
     (["--seed", "-5"], "--seed"),
     (["--seed", str(2**32)], "--seed"),

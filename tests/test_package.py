@@ -25,7 +25,24 @@ def test_importing_the_package_and_the_command_loads_no_heavy_library():
 def test_every_public_name_resolves(name):
     value = getattr(ts, name)
     assert value is getattr(ts, name)
-    assert name in dir(ts)
+
+
+def test_every_public_submodule_is_an_attribute_after_import_alone():
+    """``ts.signals``, ``ts.render``, ``ts.grid`` ... (documented as the package's modules)
+    were attributes only once another import had loaded them: loaded on first use now. In a
+    fresh process, where nothing else has loaded them."""
+    from pathlib import Path
+
+    folder = Path(ts.__file__).parent
+    names = sorted(path.stem for path in folder.iterdir()
+                   if not path.name.startswith("_") and (path.suffix == ".py" or (
+                       path.is_dir() and (path / "__init__.py").exists())))
+    assert {"signals", "render", "grid", "sampling", "surface", "curvature"} <= set(names)
+    script = ("import importlib, torchsurf; names = " + repr(names) + "; "
+              "print([n for n in names if not hasattr(torchsurf, n)])")
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          timeout=300, env={**os.environ, "OMP_NUM_THREADS": "1"}, check=True)
+    assert done.stdout.strip() == "[]", done.stdout
 
 
 def test_an_unknown_name_is_an_attribute_error():

@@ -314,11 +314,11 @@ FLOW_SIGNALS: dict[FlowKind, tuple[SignalKind, ...]] = {
 PANELS = ("clean", "input", "output")
 
 THREADS_MAX = 1024
+"""The most threads a config may ask for (torch itself crashes on some 10^5)."""
 
 PICTURE_WIDTH_MAX = 16384
 """The widest picture, all panels side by side: :data:`torchsurf.render.PICTURE_WIDTH_MAX`
 (not imported from there, which would load matplotlib and trimesh with the config)."""
-"""The most threads a config may ask for (torch itself crashes on some 10^5)."""
 
 SEED_MAX = 2**63 - 1
 """The largest seed (torch's generators take 64-bit signed seeds)."""

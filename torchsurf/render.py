@@ -40,11 +40,11 @@ FILE_MODE = 0o666 & ~_UMASK
 """Permissions of the files written (those of ``open``): ``mkstemp``'s own 0600 would hide
 the pictures from everyone else."""
 RENDERERS = ("auto", "pyvista", "matplotlib")
+"""Values of ``renderer``: ``"auto"`` is pyvista when it can draw off screen, else matplotlib."""
 
 PICTURE_WIDTH_MAX = 16384
 """Pixels a side of the largest picture :func:`render_panels` draws: off-screen VTK drew
 wider ones black (16500 pixels wide), so both renderers refuse them."""
-"""Values of ``renderer``: ``"auto"`` is pyvista when it can draw off screen, else matplotlib."""
 
 
 def _matplotlib():  # noqa: ANN202

@@ -100,9 +100,21 @@ def test_settings_the_given_flows_would_ignore_are_refused():
 def test_flows_of_the_wrong_kind_are_refused():
     """A scalar flow as ``chroma`` left the chroma off the unit sphere; a harmonic map as
     ``brightness`` failed inside it speaking of ``u0``."""
-    from torchsurf.flows import AnisotropicFlow, HarmonicMapFlow
+    from torchsurf.flows import AnisotropicFlow, FlowVisualization, HarmonicMapFlow, ReactionDiffusion
 
-    with pytest.raises(TypeError, match="chroma must be a HarmonicMapFlow.*AnisotropicFlow"):
+    with pytest.raises(TypeError, match="chroma must keep unit vectors.*AnisotropicFlow"):
         ColorDenoise(0.01, chroma=AnisotropicFlow(0.01))
-    with pytest.raises(TypeError, match="brightness must be a scalar flow"):
-        ColorDenoise(0.01, brightness=HarmonicMapFlow(0.01))
+    for flow in (HarmonicMapFlow(0.01), ReactionDiffusion(1.0), FlowVisualization(0.01)):
+        with pytest.raises(TypeError, match=f"brightness must flow one scalar.*{type(flow).__name__}"):
+            ColorDenoise(0.01, brightness=flow)
+
+
+def test_a_chroma_flow_of_ones_own_is_taken():
+    """A Flow subclass of the user's that keeps unit vectors was refused as 'a scalar flow'."""
+    from torchsurf.flows import Flow
+
+    class Projected(Flow):  # its system (unit vectors kept) is the user's business
+        pass
+
+    chroma = Projected(0.01)
+    assert ColorDenoise(0.01, chroma=chroma).chroma is chroma

@@ -135,6 +135,14 @@ def test_an_exact_entry_of_psnr_passes_a_zero_gradient(sphere):
     assert torch.isfinite(gradient).all() and float(gradient[0].abs().max()) == 0.0
     (alone,) = torch.autograd.grad(psnr(prediction[1:], target[1:], surface).mean(), prediction)
     torch.testing.assert_close(gradient[1], alone[1] / 2)
+    # float32 off by 1e-20: MSE 1e-40 is not 0, but peak^2 / MSE overflows (a review found NaN)
+    single = ts.ImplicitSurface(surface.phi.float(), grid)
+    near = torch.zeros((2, 1, *grid.shape))
+    off = (near + torch.tensor([1e-20, 0.1]).view(2, 1, 1, 1, 1)).requires_grad_()
+    db = psnr(off, near, single)
+    assert math.isinf(float(db[0])) and math.isfinite(float(db[1]))
+    (gradient,) = torch.autograd.grad(db.mean(), off)
+    assert torch.isfinite(gradient).all() and float(gradient[0].abs().max()) == 0.0
 
 
 def test_arguments_are_checked_and_named():

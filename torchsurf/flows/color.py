@@ -10,6 +10,9 @@ from ..surface import ImplicitSurface, check_data, check_surface
 from .anisotropic import AnisotropicFlow
 from .base import Flow
 from .harmonic import HarmonicMapFlow
+from .heat import HeatFlow
+from .reaction_diffusion import ReactionDiffusion
+from .visualization import FlowVisualization
 
 
 class ColorDenoise(nn.Module):
@@ -67,12 +70,15 @@ class ColorDenoise(nn.Module):
             if flow is not None and not isinstance(flow, torch.nn.Module):
                 raise TypeError(f"{name} must be a flow (an nn.Module called as flow(u, "
                                 f"surface)) or None, got {type(flow).__name__}")
-        if isinstance(chroma, Flow) and not isinstance(chroma, HarmonicMapFlow):
-            raise TypeError(f"chroma must be a HarmonicMapFlow (the chroma is a unit vector), "
-                            f"got {type(chroma).__name__}, a scalar flow")
-        if isinstance(brightness, HarmonicMapFlow):
-            raise TypeError("brightness must be a scalar flow (the brightness |I| is one "
-                            "channel), got a HarmonicMapFlow")
+        if isinstance(chroma, (HeatFlow, AnisotropicFlow, ReactionDiffusion,
+                               FlowVisualization, ColorDenoise)):
+            raise TypeError(f"chroma must keep unit vectors (a HarmonicMapFlow, or a flow of "
+                            f"your own), got {type(chroma).__name__}, which does not")
+        if isinstance(brightness, (HarmonicMapFlow, ReactionDiffusion, FlowVisualization,
+                                   ColorDenoise)):
+            raise TypeError(f"brightness must flow one scalar channel, |I| (a HeatFlow, an "
+                            f"AnisotropicFlow, or a flow of your own), got "
+                            f"{type(brightness).__name__}")
         unused = [name for name, given, used in (
             ("time", time is not None, chroma is None or brightness is None),
             ("p", p is not None, chroma is None),
