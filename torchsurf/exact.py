@@ -26,7 +26,15 @@ TORUS_RADII = (1.0, 0.4)
 
 @dataclass
 class Case:
-    """One exact case: ``exact`` is ``Lap_S u`` on the level set through each node."""
+    """One exact case: ``exact`` is ``Lap_S u`` on the level set through each node.
+
+    Attributes:
+        grid: the grid.
+        phi: ``(1, 1, D, H, W)`` the surface's signed distance, world units.
+        u: ``(1, 1, D, H, W)`` the data, constant along the normals.
+        exact: ``(1, 1, D, H, W)`` its Laplace–Beltrami value, units of ``u`` per world
+            length squared.
+    """
 
     grid: Grid
     phi: Tensor
@@ -42,7 +50,14 @@ def _sphere_frame(points: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def sphere_harmonic(degree: int, n: int, dtype: torch.dtype = torch.float64) -> Case:
-    """Spherical harmonic of ``degree`` 1..4: ``Lap_S u = -l(l+1) u / r^2``."""
+    """Spherical harmonic of ``degree`` 1..4: ``Lap_S u = -l(l+1) u / r^2``.
+
+    The sphere of radius :data:`SPHERE_RADIUS` about :data:`SPHERE_CENTER` (off the nodes'
+    symmetry), on ``Grid.cube(n, bound=1.4)``; ``u`` is the harmonic of the direction from the
+    centre, so constant along the normals, and ``exact`` holds ``-l(l+1) u / r^2`` with ``r``
+    each node's own distance from the centre (the Laplace–Beltrami operator of the level set
+    through it). Tensors ``(1, 1, n, n, n)`` in ``dtype``.
+    """
     if isinstance(degree, bool) or degree not in (1, 2, 3, 4):
         raise ValueError(f"degree must be 1, 2, 3 or 4, got {degree!r}")
     grid = Grid.cube(n, bound=1.4)
@@ -69,7 +84,9 @@ TORUS_MARGIN_CELLS = 3
 
 
 def torus_function(n: int, dtype: torch.dtype = torch.float64) -> Case:
-    """``u = cos v + sin(2 theta) sin v`` on the torus ``R = 1, r = 0.4``.
+    """``u = cos v + sin(2 theta) sin v`` on the torus ``R = 1, r = 0.4`` (:data:`TORUS_RADII`),
+    ``theta`` about the z axis and ``v`` about the tube; tensors ``(1, 1, n, n, n)`` in
+    ``dtype``, ``exact`` on the level set through each node.
 
     On a torus ``Lap f = f_tt / ring^2 + f_vv / rho^2 - sin v f_v / (rho ring)``. The box is
     ``[-1.6, 1.6]^3``, or wider where that leaves fewer than :data:`TORUS_MARGIN_CELLS` cells

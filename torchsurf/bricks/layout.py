@@ -183,6 +183,7 @@ class BrickLayout:
 
     @property
     def device(self) -> torch.device:
+        """The device of the brick tables (and of the fields packed on them)."""
         return self.coords.device
 
     def to(self, device: torch.device | str) -> BrickLayout:

@@ -171,10 +171,12 @@ class BrickSurface(ImplicitSurface):
 
     @property
     def batch_size(self) -> int:
+        """Number of batch entries ``B`` (shapes), whatever the number of bricks."""
         return self.layout.batch_size
 
     @property
     def spacing(self) -> float:
+        """The spacing ``h`` every entry shares, world units."""
         return self.layout.spacing
 
     def _pad(self, volume: Tensor, mode: str) -> Tensor:
