@@ -49,3 +49,18 @@ def test_an_unknown_name_is_an_attribute_error():
     with pytest.raises(AttributeError, match="has no attribute 'HeatFlowz'"):
         ts.HeatFlowz  # noqa: B018
     assert not hasattr(ts, "_private")
+
+
+@pytest.mark.parametrize("name", ["sdf", "mesh", "signals", "datasets", "render", "exact",
+                                  "sampling", "surface", "grid", "shape_batch", "stencils",
+                                  "backend", "curvature", "flows", "operators", "nn", "bricks"])
+def test_every_public_module_states_its_names(name):
+    """Without ``__all__`` a star import and an IDE offered the modules' imports as their own
+    (``torchsurf.sdf.check_positive``, ``torchsurf.signals.HeatFlow``)."""
+    import importlib
+
+    module = importlib.import_module(f"torchsurf.{name}")
+    assert module.__all__ and all(hasattr(module, item) for item in module.__all__)
+    namespace: dict = {}
+    exec(f"from torchsurf.{name} import *", namespace)  # noqa: S102
+    assert "check_positive" not in namespace and "HeatFlow" not in namespace or name == "flows"

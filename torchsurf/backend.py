@@ -63,6 +63,30 @@ from torch import Tensor
 
 from ._checks import check_choice
 
+__all__ = [
+    "COMPARED_CALLS",
+    "COMPILE",
+    "COMPILE_AT_ONCE_VOXELS",
+    "COMPILE_MIN_VOXELS",
+    "COMPILE_MODES",
+    "COMPILE_PAYBACK_SECONDS",
+    "EAGER_PATHS",
+    "Kernel",
+    "PATHS",
+    "RECOMPILE_LIMIT",
+    "compiled",
+    "eager_path",
+    "part_of_recorded",
+    "planned",
+    "recorded_paths",
+    "resolve",
+    "run",
+    "run_haloed",
+    "run_on_path",
+    "step_taken",
+    "warm_up",
+]
+
 PATHS = ("auto", "slicing", "conv3d", "compiled")
 """Values of every operator's ``path`` argument."""
 

@@ -13,6 +13,13 @@ from torch import Tensor
 
 from ._checks import check_alike, check_positive, check_tensor
 
+__all__ = [
+    "gaussian_curvature",
+    "mean_curvature",
+    "principal",
+    "tangent_basis",
+]
+
 
 def _check_fields(**fields: tuple[Tensor, int]) -> None:
     """Raise naming the argument unless each ``name=(tensor, channels)`` is a float32 or float64

@@ -22,6 +22,17 @@ from .shape_batch import MeshBatchAdapter
 from .signals import closest_points, gaussian_noise, generator
 from .surface import ImplicitSurface, check_surface
 
+__all__ = [
+    "DERIVED_SEED_LIMIT",
+    "KEPT_SURFACES",
+    "KINDS",
+    "SignalDataset",
+    "derived_seed",
+    "piecewise_constant_signal",
+    "signal",
+    "smooth_signal",
+]
+
 KINDS = ("smooth", "piecewise_constant")
 
 

@@ -19,6 +19,20 @@ from torch import Tensor
 from . import sdf
 from .grid import Grid
 
+__all__ = [
+    "Case",
+    "SPHERE_CENTER",
+    "SPHERE_RADIUS",
+    "TORUS_MARGIN_CELLS",
+    "TORUS_RADII",
+    "max_error",
+    "near",
+    "polar_angle_frame",
+    "sphere_harmonic",
+    "torus_coordinates",
+    "torus_function",
+]
+
 SPHERE_CENTER = (0.04, -0.03, 0.02)
 SPHERE_RADIUS = 0.9
 TORUS_RADII = (1.0, 0.4)

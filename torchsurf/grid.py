@@ -19,6 +19,12 @@ from ._checks import (
     check_triple,
 )
 
+__all__ = [
+    "Grid",
+    "MIN_MARGIN_CELLS",
+    "default_margin",
+]
+
 
 def _check_points(points: object, name: str) -> Tensor:
     points = check_tensor(points, name)

@@ -34,6 +34,18 @@ from .grid import Grid, default_margin
 from .sampling import sample
 from .surface import ImplicitSurface
 
+__all__ = [
+    "DECODE_ORDERS",
+    "MIN_BAND_CELLS",
+    "MeshAdapter",
+    "check_adapter_band",
+    "check_decode_order",
+    "extract",
+    "fit_grid",
+    "load",
+    "to_band",
+]
+
 
 def load(mesh: MeshLike) -> trimesh.Trimesh:
     """A checked ``trimesh.Trimesh`` from a mesh, a file path or ``(vertices, faces)``.

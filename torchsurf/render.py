@@ -32,6 +32,22 @@ from .grid import Grid
 from .sampling import sample
 from .surface import ImplicitSurface
 
+__all__ = [
+    "AXES",
+    "Camera",
+    "FILE_MODE",
+    "FLAT_SPAN",
+    "MODES",
+    "PICTURE_WIDTH_MAX",
+    "RENDERERS",
+    "colours",
+    "fit_camera",
+    "render_panels",
+    "resolve_renderer",
+    "vertex_values",
+    "write_png",
+]
+
 AXES = ("x", "y", "z")
 MODES = ("scalar", "rgb", "field")
 _UMASK = os.umask(0)

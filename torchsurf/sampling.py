@@ -9,6 +9,14 @@ from torch import Tensor
 from ._checks import MismatchError, check_batch, check_choice, check_finite, check_tensor, check_volume
 from .grid import Grid
 
+__all__ = [
+    "FACE_CELLS",
+    "INTERPOLATIONS",
+    "SAMPLE_CHUNK",
+    "cubic_lagrange_weights",
+    "sample",
+]
+
 INTERPOLATIONS = ("linear", "cubic")
 """Values of :func:`sample`'s ``interpolation``."""
 

@@ -30,6 +30,18 @@ from ._checks import (
 from ._mesh_input import MeshLike, as_trimesh, triangle_arrays
 from .grid import Grid
 
+__all__ = [
+    "BAND_NODES",
+    "box",
+    "capsule",
+    "from_function",
+    "from_mesh",
+    "redistance",
+    "sphere",
+    "torus",
+    "trefoil",
+]
+
 Point = Sequence[float]
 
 

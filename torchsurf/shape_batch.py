@@ -39,6 +39,12 @@ from .grid import Grid, default_margin
 from .mesh import MeshAdapter, check_adapter_band, check_decode_order, extract
 from .surface import ImplicitSurface
 
+__all__ = [
+    "ANALYTIC",
+    "AnalyticShape",
+    "MeshBatchAdapter",
+]
+
 ANALYTIC = ("sphere", "torus", "box", "capsule", "trefoil")
 
 

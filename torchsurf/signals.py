@@ -37,6 +37,36 @@ from .operators import laplace_beltrami_bound
 from .sampling import sample
 from .surface import ImplicitSurface, check_data, tangent_unit
 
+__all__ = [
+    "AXES",
+    "COLOUR_SPACES",
+    "EULER_SMOOTHING_STEPS",
+    "IMAGES",
+    "PROJECTIONS",
+    "SEED_LIMIT",
+    "SMOOTHING_STEP",
+    "SMOOTHING_STEPS",
+    "axis_field",
+    "builtin_image",
+    "checkerboard",
+    "chroma_brightness",
+    "closest_points",
+    "gaussian_noise",
+    "generator",
+    "gray",
+    "load_image",
+    "node_points",
+    "orient",
+    "perturb_field",
+    "principal_direction",
+    "project_image",
+    "rgb_from",
+    "rgb_to",
+    "surface_noise",
+    "swirl_field",
+    "uniform_noise",
+]
+
 PROJECTIONS = ("spherical", "cylindrical", "planar", "triplanar")
 AXES = ("x", "y", "z")
 IMAGES = ("colour_wheel", "colour_checker", "checker")

@@ -24,6 +24,34 @@ from torch import Tensor
 from . import backend
 from ._checks import check_choice
 
+__all__ = [
+    "BACKWARD",
+    "CENTRAL",
+    "CENTRE",
+    "FORWARD",
+    "HESSIAN",
+    "MIXED",
+    "NEIGHBOURHOOD",
+    "PAD_MODES",
+    "PATHS",
+    "SECOND",
+    "Stencil",
+    "add",
+    "apply",
+    "contract",
+    "masked",
+    "neighbour_in_box",
+    "neighbourhood_column",
+    "one_sided",
+    "opposite",
+    "pad",
+    "pad_flux",
+    "pad_mirrored",
+    "per_axis",
+    "shifted",
+    "unit",
+]
+
 Offset = tuple[int, int, int]
 
 PATHS = ("auto", "slicing", "conv3d")

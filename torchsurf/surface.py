@@ -27,6 +27,32 @@ from ._inference import outside_inference
 from ._stack import caller_stacklevel
 from .grid import Grid
 
+__all__ = [
+    "BAND_EDGE_SLACK",
+    "CROSSING_CELLS",
+    "DIRECTION_FLOOR",
+    "DISTANCE_FLOOR",
+    "DISTANCE_TOLERANCE",
+    "FACE_LAYERS",
+    "FLAT_RATIO",
+    "FLAT_SAMPLES",
+    "ImplicitSurface",
+    "MAX_EPS",
+    "MINIMUM_WEIGHT",
+    "SATURATION_RATIO",
+    "TANGENT_FLOOR",
+    "WEIGHT_FLOOR",
+    "WIDE_BAND_CELLS",
+    "check_data",
+    "check_direction",
+    "check_direction_batch",
+    "check_eps",
+    "check_surface",
+    "check_tangential",
+    "power_of_two_below",
+    "tangent_unit",
+]
+
 if TYPE_CHECKING:
     from .bricks.layout import BrickLayout
 
