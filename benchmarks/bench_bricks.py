@@ -65,7 +65,8 @@ SECTION = "bench_bricks"
 BYTES_PER_VOXEL = 24
 """Traffic of one Laplace–Beltrami application per voxel: ``u`` read, result written, and
 normals and weight read (float32), as in ``bench_laplace_beltrami.py``."""
-MESHES = Path(__file__).resolve().parents[2] / "shared" / "data" / "meshes"
+MESHES = Path(os.environ.get("TORCHSURF_MESH_DIR",
+                             Path(__file__).resolve().parents[2] / "shared" / "data" / "meshes"))
 
 
 def _load_sibling(name: str):

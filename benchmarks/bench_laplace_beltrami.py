@@ -1,8 +1,8 @@
 """Benchmark of ``ts.laplace_beltrami`` against a plain numpy Appendix-B reference.
 
 For each size ``n`` (unit sphere, ``Grid.cube(n, 1.5)``, float32, ``u`` of shape
-``(1, 1, n, n, n)``) the script times, per scheme (symmetric, conservative, central) and per
-path (slicing, conv3d, compiled):
+``(1, 1, n, n, n)``) the script times, per scheme (octant, the default, symmetric,
+conservative, central) and per path (slicing, conv3d, compiled):
 
 - the forward ``ts.laplace_beltrami(u, surface, scheme, path)`` with ``u`` not requiring grad;
 - the forward that records the graph (``u.requires_grad_(True)``) and the backward alone

@@ -5,9 +5,10 @@ Run from the repository root:
     PYTHONPATH=. python benchmarks/bench_mesh_sdf.py [--resolution 128] [--large 256]
 
 Uses the test meshes in ``$TORCHSURF_MESH_DIR`` (default ``../shared/data/meshes``); without
-them it falls back to icospheres of similar size. Prints a Markdown table: wall-clock time,
-process CPU time (all threads), band nodes, and the largest difference from libigl's
-full-grid signed distance (clamped to the band) where that is computed.
+them it falls back to icospheres of similar size. Prints a Markdown table: the mesh, its faces,
+the grid, the band's half-width, the sign method, wall-clock time, process CPU time (all
+threads), and a note with the largest difference from libigl's full-grid signed distance
+(clamped to the band) where that is computed.
 """
 
 from __future__ import annotations

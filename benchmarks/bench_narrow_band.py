@@ -162,7 +162,9 @@ def phis(cells: int) -> list[str]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cells", type=int, nargs="+", default=[16, 24, 32],
-                        help="cells per radius")
+                        help="cells per radius, at least 12 (the box of 1.4 radii leaves "
+                             "bricks too few cells below, and --phis's data is NaN at the "
+                             "centre the 5-cell band reaches)")
     parser.add_argument("--layouts", nargs="+", default=["dense", "bricks"],
                         choices=["dense", "bricks"])
     parser.add_argument("--sweep", action="store_true",
@@ -172,6 +174,8 @@ def main() -> None:
     parser.add_argument("--output", type=Path, default=None,
                         help="also write the table into this markdown file")
     args = parser.parse_args()
+    if min(args.cells) < 12:
+        parser.error(f"--cells must be at least 12 cells per radius, got {min(args.cells)}")
     warnings.simplefilter("ignore", RuntimeWarning)  # the former bound's steps warn of nothing
     if args.sweep or args.phis:
         if args.sweep:

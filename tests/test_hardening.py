@@ -405,6 +405,8 @@ def _bad_calls() -> list:
         (lambda: datasets.SignalDataset(dense, length=2)[np.float64(1.0)], TypeError,
          "index must be an integer"),
         (lambda: exact.sphere_harmonic(5, 16), ValueError, "degree must be"),
+        # a case whose torus fell between the nodes: ImplicitSurface failed on it later
+        (lambda: exact.torus_function(9), ValueError, "no node lies inside the torus"),
         (lambda: ColorDenoise(1.0, chroma=3), TypeError, "chroma must be a flow"),
         # torch's reduction error and an indexing error, naming no mask
         (lambda: exact.max_error(dense.phi, dense.phi, dense.phi < -10), ValueError,

@@ -119,6 +119,10 @@ def torus_function(n: int, dtype: torch.dtype = torch.float64) -> Case:
     u_vv = -u
     exact = u_tt / ring**2 + u_vv / rho**2 - torch.sin(v) * u_v / (rho * ring)
     phi = sdf.torus(grid, *TORUS_RADII, dtype=dtype)
+    if not bool((phi < 0).any()):
+        raise ValueError(f"n={n}: at spacing {grid.spacing:.3g} no node lies inside the torus's "
+                         f"tube (radius {TORUS_RADII[1]}), so it has no surface on the grid; "
+                         "use n >= 11")
     return Case(grid, phi, u[None, None], exact[None, None])
 
 
