@@ -407,7 +407,9 @@ class Flow(nn.Module):
             is re-extended by the time the diffusion takes, read on the host (the fixed
             flow's schedule); while ``torch.compile`` traces, by ``max_time``'s, more often the
             farther the time lies below it (each re-extension errs a little on thin parts of
-            a mesh: keep ``max_time`` within a few times the time there). Eager, the result
+            a mesh: keep ``max_time`` within a few times the time there), so compiled and eager
+            results differ (6.2e-3 / 9.0e-3 near S at half the bound on noise, unit sphere at
+            16^3 / 32^3; 4e-7 at the bound or with ``reextend_every=1``). Eager, the result
             is then piecewise smooth in the time, as without ``max_time``: it jumps where a
             re-extension moves to another step (docs/learning.md). ``None``
             (default): the steps follow the current time, read on the host at each call (a
