@@ -64,3 +64,11 @@ def test_every_public_module_states_its_names(name):
     namespace: dict = {}
     exec(f"from torchsurf.{name} import *", namespace)  # noqa: S102
     assert "check_positive" not in namespace and "HeatFlow" not in namespace or name == "flows"
+
+
+def test_names_that_are_no_module_are_attribute_errors():
+    """A dotted name raised ModuleNotFoundError (``hasattr`` raised), ``flows.heat`` was taken
+    and kept under a dotted name, and the configs' data folder loaded as a namespace package."""
+    for name in ("nothing.here", "flows.heat", "configs", "__main__"):
+        assert not hasattr(ts, name), name
+    assert {"signals", "render", "grid", "curvature"} <= set(dir(ts))

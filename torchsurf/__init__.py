@@ -12,7 +12,7 @@ swallowed by a library's optional-import guard, and the command holds interrupts
 from __future__ import annotations
 
 import importlib
-import importlib.util
+import pkgutil
 from typing import TYPE_CHECKING
 
 __version__ = "0.1.0"
@@ -79,20 +79,34 @@ __all__ = [
 def __getattr__(name: str) -> object:
     if name in _NAMES:
         value = getattr(importlib.import_module(f"{__name__}.{_NAMES[name]}"), name)
-    elif not name.startswith("_") and importlib.util.find_spec(f"{__name__}.{name}") is not None:
-        value = importlib.import_module(f"{__name__}.{name}")  # any public submodule
+    elif name in _public_submodules():
+        value = importlib.import_module(f"{__name__}.{name}")
     else:
         raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
     globals()[name] = value
     return value
 
 
+def _public_submodules() -> set[str]:
+    """The package's modules and subpackages whose names do not start with ``_``."""
+    return {info.name for info in pkgutil.iter_modules(__path__) if not info.name.startswith("_")}
+
+
 def __dir__() -> list[str]:
-    return sorted({*globals(), *__all__})
+    return sorted({*globals(), *__all__, *_public_submodules()})
 
 
 if TYPE_CHECKING:
     from . import backend, bricks, datasets, exact, flows, mesh, nn, operators, sdf, shape_batch, stencils
+    from . import cli as cli
+    from . import config as config
+    from . import curvature as curvature
+    from . import experiment as experiment
+    from . import grid as grid
+    from . import render as render
+    from . import sampling as sampling
+    from . import signals as signals
+    from . import surface as surface
     from ._checks import MismatchError
     from .flows import (
         AnisotropicFlow,

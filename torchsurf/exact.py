@@ -104,7 +104,7 @@ def torus_function(n: int, dtype: torch.dtype = torch.float64) -> Case:
 
     On a torus ``Lap f = f_tt / ring^2 + f_vv / rho^2 - sin v f_v / (rho ring)``. The box is
     ``[-1.6, 1.6]^3``, or wider where that leaves fewer than :data:`TORUS_MARGIN_CELLS` cells
-    between the torus and the faces (below 57 nodes a side): the stencils assume no flux
+    between the torus and the faces (below 49 nodes a side): the stencils assume no flux
     through the faces, and the surface warns closer.
     """
     if n < 2 * TORUS_MARGIN_CELLS + 3:

@@ -104,6 +104,8 @@ def test_flows_of_the_wrong_kind_are_refused():
 
     with pytest.raises(TypeError, match="chroma must keep unit vectors.*AnisotropicFlow"):
         ColorDenoise(0.01, chroma=AnisotropicFlow(0.01))
+    with pytest.raises(TypeError, match="chroma must keep unit vectors.*LearnedDiffusion"):
+        ColorDenoise(0.01, chroma=ts.nn.LearnedDiffusion(3, time=8.0))
     for flow in (HarmonicMapFlow(0.01), ReactionDiffusion(1.0), FlowVisualization(0.01)):
         with pytest.raises(TypeError, match=f"brightness must flow one scalar.*{type(flow).__name__}"):
             ColorDenoise(0.01, brightness=flow)

@@ -143,6 +143,13 @@ def test_an_exact_entry_of_psnr_passes_a_zero_gradient(sphere):
     assert math.isinf(float(db[0])) and math.isfinite(float(db[1]))
     (gradient,) = torch.autograd.grad(db.mean(), off)
     assert torch.isfinite(gradient).all() and float(gradient[0].abs().max()) == 0.0
+    # MSE 1e-30 to 1e-20: finite decibels, and a finite gradient (it was inf, the division's
+    # derivative overflowing)
+    for offset in (1e-15, 1e-12, 1e-10):
+        off = (near + torch.tensor([offset, 0.1]).view(2, 1, 1, 1, 1)).requires_grad_()
+        db = psnr(off, near, single)
+        (gradient,) = torch.autograd.grad(db.mean(), off)
+        assert math.isfinite(float(db[0])) and torch.isfinite(gradient).all(), offset
 
 
 def test_arguments_are_checked_and_named():

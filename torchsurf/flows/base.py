@@ -739,10 +739,11 @@ class Flow(nn.Module):
                 on (20 times: at most 3 steps a time). torchdiffeq's methods integrate
                 pieces between the band's re-extensions, and a requested time splits one: its
                 result differs from a call to that time alone by the re-extensions' placement,
-                which more steps do not remove, though it is small (``rk4``, 60 / 120 / 240
-                steps, ``exact.sphere_harmonic(2, 33)``, ``T = 0.05``, ``u(0.37 T)`` against a
-                call to ``0.37 T`` with 0.37 times the steps: 3.3e-6 / 2.7e-6 / 2.4e-6 of the
-                data's largest value near S, against 7.8e-4 from the exact decay).
+                which more steps hardly reduce, though it is small (``rk4``, 60 / 120 / 240
+                steps, ``exact.sphere_harmonic(2, 33)``, ``T = 0.05``, ``u(0.37 T)`` of
+                ``times=[0.37 T, T]`` against a call to ``0.37 T`` with 0.37 times the steps:
+                3.3e-6 / 2.7e-6 / 2.4e-6 of the data's largest value near S, against 7.8e-4
+                from the exact decay; ``times=[0.37 T]`` alone: 7.5e-10 to 7.3e-12).
             inputs: flow-specific inputs (e.g. ``direction`` for tangent-field flows).
 
         Returns:

@@ -70,8 +70,10 @@ class ColorDenoise(nn.Module):
             if flow is not None and not isinstance(flow, torch.nn.Module):
                 raise TypeError(f"{name} must be a flow (an nn.Module called as flow(u, "
                                 f"surface)) or None, got {type(flow).__name__}")
-        if isinstance(chroma, (HeatFlow, AnisotropicFlow, ReactionDiffusion,
-                               FlowVisualization, ColorDenoise)):
+        from ..nn import DiffusionBlock, LearnedDiffusion  # nn builds on the flows
+
+        if isinstance(chroma, (HeatFlow, AnisotropicFlow, ReactionDiffusion, FlowVisualization,
+                               ColorDenoise, LearnedDiffusion, DiffusionBlock)):
             raise TypeError(f"chroma must keep unit vectors (a HarmonicMapFlow, or a flow of "
                             f"your own), got {type(chroma).__name__}, which does not")
         if isinstance(brightness, (HarmonicMapFlow, ReactionDiffusion, FlowVisualization,

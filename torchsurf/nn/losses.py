@@ -86,14 +86,16 @@ def psnr(prediction: Tensor, target: Tensor, surface: ImplicitSurface, peak: flo
 
     Returns:
         ``(B,)`` (one per batch entry of a brick surface), decibels (``inf`` where the
-        prediction is exact, or so near that ``peak^2 / MSE`` overflows the dtype; such an
+        prediction is exact, or its MSE below the dtype's smallest normal number; such an
         entry passes a zero gradient, so a mean over a batch
         holding one still trains on the others).
     """
     check_positive(peak, "peak")
     total, counts = _squared_errors(prediction, target, surface, width)
     mse = total / counts
-    # exact, or so near that peak^2 / mse overflows (its gradient would be 0 * inf)
-    exact = mse <= peak**2 / torch.finfo(mse.dtype).max
-    ratio = 10.0 * torch.log10(peak**2 / torch.where(exact, torch.ones_like(mse), mse))
+    # exact, or below the dtype's normal numbers, where log10's derivative 1 / (mse ln 10)
+    # overflows (its gradient would be 0 * inf, or inf)
+    exact = mse < torch.finfo(mse.dtype).tiny
+    ratio = 20.0 * math.log10(peak) - 10.0 * torch.log10(
+        torch.where(exact, torch.ones_like(mse), mse))
     return torch.where(exact, torch.full_like(ratio, math.inf), ratio)
