@@ -109,7 +109,11 @@ def sphere(
     dtype: torch.dtype | None = None,
     device: torch.device | str | None = None,
 ) -> Tensor:
-    """Signed distance to the sphere ``|x - center| = radius``; ``(1, 1, D, H, W)``."""
+    """Signed distance to the sphere ``|x - center| = radius``; ``(1, 1, D, H, W)``.
+
+    Sampled at ``grid``'s nodes, lengths in world units, in ``dtype`` (default: torch's
+    default dtype) on ``device`` (default: the CPU).
+    """
     check_positive(radius, "radius")
     return _sampled(grid, lambda local: local.norm(dim=-1) - radius, dtype, device, center)
 
@@ -126,6 +130,9 @@ def torus(
 
     The tube of radius ``minor_radius`` follows the circle of radius ``major_radius`` in the
     plane ``z = center z``.
+
+    Sampled at ``grid``'s nodes, lengths in world units, in ``dtype`` (default: torch's
+    default dtype) on ``device`` (default: the CPU).
     """
     check_positive(major_radius, "major_radius")
     check_positive(minor_radius, "minor_radius")
@@ -150,8 +157,12 @@ def box(
     dtype: torch.dtype | None = None,
     device: torch.device | str | None = None,
 ) -> Tensor:
-    """Signed distance to the axis-aligned box of half extents ``half_size`` ``(x, y, z)``;
-    ``(1, 1, D, H, W)``."""
+    """Signed distance to the axis-aligned box of half extents ``half_size`` ``(x, y, z)``
+    about ``center``; ``(1, 1, D, H, W)``.
+
+    Sampled at ``grid``'s nodes, lengths in world units, in ``dtype`` (default: torch's
+    default dtype) on ``device`` (default: the CPU).
+    """
     half_size = check_triple(half_size, "half_size", check_real)
     for length in half_size:
         check_positive(length, "half_size")
@@ -174,7 +185,11 @@ def capsule(
     device: torch.device | str | None = None,
 ) -> Tensor:
     """Signed distance to the capsule of ``radius`` around the segment ``start``–``end``;
-    ``(1, 1, D, H, W)``."""
+    ``(1, 1, D, H, W)``.
+
+    Sampled at ``grid``'s nodes, lengths in world units, in ``dtype`` (default: torch's
+    default dtype) on ``device`` (default: the CPU).
+    """
     check_positive(radius, "radius")
     start = check_triple(start, "start", check_real)
     end = check_triple(end, "end", check_real)
@@ -232,6 +247,11 @@ def trefoil(
     points of the curve and refined by Newton's method on
     ``(c(t) - x) . c'(t) = 0``, so the distance is that to the smooth curve (to rounding), not
     to a polyline. A genus-1 surface that is always available, unlike the mesh files.
+
+    Sampled at ``grid``'s nodes, lengths in world units, in ``dtype`` (default: torch's
+    default dtype) on ``device`` (default: the CPU).
+    ``chunk`` nodes are compared with the ``samples`` curve points at once (a ``(chunk,
+    samples)`` distance table).
     """
     check_positive(tube_radius, "tube_radius")
     check_positive(scale, "scale")
