@@ -81,15 +81,14 @@ class ColorDenoise(nn.Module):
             raise TypeError(f"brightness must flow one scalar channel, |I| (a HeatFlow, an "
                             f"AnisotropicFlow, or a flow of your own), got "
                             f"{type(brightness).__name__}")
-        unused = [name for name, given, used in (
-            ("time", time is not None, chroma is None or brightness is None),
-            ("p", p is not None, chroma is None),
-            (", ".join(kwargs), bool(kwargs), chroma is None or brightness is None),
-        ) if given and not used]
+        both_given = chroma is not None and brightness is not None
+        unused = [name for name, ignored in (("time", both_given and time is not None),
+                                             ("p", chroma is not None and p is not None))
+                  if ignored] + (list(kwargs) if both_given else [])
         if unused:
             raise ValueError(f"{', '.join(unused)}: not used, since the flows they set are given "
                              "(chroma and brightness keep their own settings)")
-        if time is None and (chroma is None or brightness is None):
+        if time is None and not both_given:
             raise TypeError("time is needed for the default flows (chroma or brightness not "
                             "given)")
         self.chroma = chroma if chroma is not None else HarmonicMapFlow(

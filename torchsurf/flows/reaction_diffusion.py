@@ -103,6 +103,7 @@ class ReactionDiffusion(Flow):
         else:
             noise = surface.layout.rand(1, generator, torch.float64).to(u0.dtype)
         beta = self.beta + self.noise * (2.0 * noise - 1.0)
+        given = None
         if direction is not None:
             region = with_ring(band, surface.layout)
             given = check_direction(direction, u0, surface, region)
@@ -134,7 +135,7 @@ class ReactionDiffusion(Flow):
                       # the given field too: the tangent one, computed from it and from
                       # phi, is not declared where phi needs gradients (_recompute.independent)
                       params=tensors(surface.normal, surface.weight, direction,
-                                     haloed_direction, given if direction is not None else None),
+                                     haloed_direction, given),
                       growth=s * max(reaction, TURK_SUPPLY))
 
     def _entries_apart(self, u0: Tensor, surface: ImplicitSurface, times: object,

@@ -87,8 +87,8 @@ def psnr(prediction: Tensor, target: Tensor, surface: ImplicitSurface, peak: flo
     Returns:
         ``(B,)`` (one per batch entry of a brick surface), decibels (``inf`` where the
         prediction is exact, or its MSE below the dtype's smallest normal number; such an
-        entry passes a zero gradient, so a mean over a batch
-        holding one still trains on the others).
+        entry passes a zero gradient, so a mean over a batch holding one still trains on the
+        others).
     """
     check_positive(peak, "peak")
     total, counts = _squared_errors(prediction, target, surface, width)
