@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import warnings
 
 import pytest
 import torch
@@ -144,6 +145,75 @@ def test_auto_goes_back_to_eager_for_good_when_compiled_is_measured_slower(monke
     assert backend.resolve("auto", volume, kernel) == "slicing"
     with backend.warm_up():
         assert backend.resolve("auto", volume, kernel) == "slicing"
+
+
+def _failing_compiler(attempts: list[object]):
+    """A ``backend.compiled`` whose kernels fail as inductor does without a C++ compiler."""
+    def compile_(function, *options):
+        def call(*args):
+            attempts.append(function)
+            raise RuntimeError("InvalidCxxCompiler: No working C++ compiler found")
+        return call
+    return compile_
+
+
+def test_auto_runs_eagerly_for_good_with_one_warning_when_compiling_fails(monkeypatch):
+    """No C++ compiler (or an inductor error): the default path gave the error to the user,
+    and tried again, seconds each, at every later call."""
+    calls: list[str] = []
+    attempts: list[object] = []
+    kernel, other = _kernel("test_fails", calls), _kernel("test_fails_too", calls)
+    volume = torch.zeros(1, 1, 4, 4, 4)
+    monkeypatch.setattr(backend, "compiled", _failing_compiler(attempts))
+    monkeypatch.setattr(backend, "_COMPILE_FAILURE", [])
+    with backend.warm_up(), pytest.warns(RuntimeWarning, match=r"test_fails failed.*C\+\+"):
+        out = backend.run(kernel, "auto", volume, volume)
+    assert torch.equal(out, volume + 1) and calls == ["fused"] and len(attempts) == 1
+    with backend.warm_up(), warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for chosen in (kernel, other):
+            assert backend.resolve("auto", volume, chosen) == "slicing"
+            assert torch.equal(backend.run(chosen, "auto", volume, volume), volume + 1)
+    assert calls == ["fused", "slicing", "slicing"] and len(attempts) == 1
+    with pytest.raises(RuntimeError, match="InvalidCxxCompiler"):  # asked for: the error
+        backend.run(kernel, "compiled", volume, volume)
+
+
+def test_an_error_of_the_callers_own_is_raised_as_eager_raises_it(monkeypatch):
+    attempts: list[object] = []
+
+    def eager(x, *, path):
+        raise ValueError("the caller's own mistake")
+
+    kernel = backend.Kernel("test_own_error", eager, lambda x: eager(x, path="fused"),
+                            lambda x: (x,))
+    monkeypatch.setattr(backend, "compiled", _failing_compiler(attempts))
+    monkeypatch.setattr(backend, "_COMPILE_FAILURE", [])
+    with backend.warm_up(), pytest.raises(ValueError, match="own mistake"):
+        backend.run(kernel, "auto", torch.zeros(1, 1, 4, 4, 4), torch.zeros(1, 1, 4, 4, 4))
+
+
+def test_a_flow_falls_back_to_what_the_compiled_form_returns(monkeypatch):
+    """The closest-point gather's compiled form returns the value with its cell's range, which
+    the caller of a "compiled" path reads; the fallback must return the same (the eager form's
+    value alone failed as ``clamp_outside_range() missing 2 required positional arguments``)."""
+    from torchsurf.bricks import _native as brick_native
+    from torchsurf.flows import _native_gather
+
+    monkeypatch.setenv("TORCHSURF_NATIVE", "never")  # as without a C compiler
+    for library in (_native_gather.LIBRARY, brick_native.LIBRARY):
+        monkeypatch.setattr(library, "_state", {})
+    grid = ts.Grid.cube(17, bound=1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, 0.9), grid)
+    u = torch.rand(1, 1, 17, 17, 17, generator=torch.Generator().manual_seed(0))
+    extension = ts.Extension(interpolation="cubic", limited=True)  # a flow's re-extension
+    expected = extension(u, surface)
+    attempts: list[object] = []
+    monkeypatch.setattr(backend, "compiled", _failing_compiler(attempts))
+    monkeypatch.setattr(backend, "_COMPILE_FAILURE", [])
+    with backend.warm_up(), pytest.warns(RuntimeWarning, match="failed"):
+        out = extension(u, surface)
+    assert attempts and torch.allclose(out, expected, rtol=0, atol=1e-6)
 
 
 class _Costly(torch.autograd.Function):

@@ -27,7 +27,9 @@ device (by shifted slices or by conv3d), and optionally a one-pass form over hal
   backward on small grids). Volumes of :data:`COMPILE_AT_ONCE_VOXELS` voxels are compiled on
   their first call, and off the CPU (where nothing is timed) those of
   :data:`COMPILE_MIN_VOXELS`. A kernel compiled for one batch size of two or more serves the
-  others (a dynamic batch size). :func:`warm_up` compiles at once, for a warm-up call.
+  others (a dynamic batch size). :func:`warm_up` compiles at once, for a warm-up call. If a
+  compile fails (inductor needs a working C++ compiler), ``"auto"`` runs that call's one-pass
+  form eagerly, warns once, and stays eager for every kernel in the process.
 
 What ``"auto"`` measures and compiles is per *variant*: what one compiled graph is specialised
 on (the kernel, its arguments' shapes unless the kernel is dynamic, dtype, device, its flags
@@ -55,6 +57,7 @@ import functools
 import math
 import os
 import time
+import warnings
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 
@@ -62,6 +65,7 @@ import torch
 from torch import Tensor
 
 from ._checks import check_choice
+from ._stack import caller_stacklevel
 
 __all__ = [
     "COMPARED_CALLS",
@@ -344,6 +348,31 @@ class _Timings:
 _TIMINGS: dict[tuple, _Timings] = {}
 """What :func:`run` measured per compiled variant (:func:`_variant`) in this process."""
 
+_COMPILE_FAILURE: list[str] = []
+"""Why a compile chosen by ``"auto"`` failed in this process (empty while none has):
+``"auto"`` then stays eager for every kernel (:func:`_compiled_or_eager`)."""
+
+
+def _compiled_or_eager(kernel: Kernel, volume: Tensor, haloed_args: tuple, recording: bool,
+                       eager: Callable[[], Tensor]) -> Tensor:
+    """The compiled kernel, chosen by ``"auto"``; if compiling it fails (no working C++
+    compiler, an inductor error), ``eager()`` instead, and ``"auto"`` stays eager from then
+    on in this process, with one ``RuntimeWarning``. An error that ``eager()`` raises too is the
+    caller's own, and is raised as eager raises it."""
+    try:
+        return _run_compiled(kernel, volume, haloed_args, recording)
+    except Exception as error:  # eager() raises the caller's own errors again
+        result = eager()
+        reason = f"{type(error).__name__}: {str(error).strip().splitlines()[0][:300]}"
+        if not _COMPILE_FAILURE:
+            warnings.warn(
+                f"torchsurf: compiling {kernel.name} failed ({reason}); path='auto' runs every "
+                "operator eagerly from now on in this process (the same numbers, slower). Set "
+                "TORCHSURF_COMPILE=never to skip the attempt, or give inductor a working C++ "
+                "compiler", RuntimeWarning, stacklevel=caller_stacklevel())
+        _COMPILE_FAILURE.append(reason)
+        return result
+
 
 def _run_compiled(kernel: Kernel, volume: Tensor, args: tuple, recording: bool) -> Tensor:
     """``kernel.fused(*args)`` compiled.
@@ -544,7 +573,7 @@ def _choose(volume: Tensor, kernel: Kernel | None, recording: bool, variant: tup
     if (recording or _RECORDED.get()) and not large:
         return eager
     at_once = _AT_ONCE.get() or COMPILE == "always"
-    if COMPILE == "never" and not _AT_ONCE.get():
+    if (COMPILE == "never" and not _AT_ONCE.get()) or _COMPILE_FAILURE:
         return eager
     if volume.device.type != "cpu":
         return "compiled" if large or at_once else eager
@@ -602,6 +631,12 @@ def run_on_path(kernel: Kernel, path: str, volume: Tensor, *args: object
         raise ValueError(f"path='compiled': {kernel.name} has no compiled form")
 
     def evaluate(args: tuple) -> Tensor:
+        if concrete == "compiled" and path == "auto":
+            # the one-pass form uncompiled if compiling fails: what the caller of a
+            # "compiled" path expects (some kernels' forms return different things)
+            haloed = kernel.halo(*args)
+            return _compiled_or_eager(kernel, volume, haloed, recording,
+                                      lambda: kernel.fused_eagerly(*haloed))
         if concrete == "compiled":
             return _run_compiled(kernel, volume, kernel.halo(*args), recording)
         if concrete == "slicing" and kernel.fused_when_eager:
@@ -728,6 +763,10 @@ def run_haloed(kernel: Kernel, path: str, volume: Tensor, *haloed_args: object) 
         return (kernel.fused_eagerly if kernel.breaks_graph else kernel.fused)(*haloed_args)
     recording = _recording(haloed_args)
     concrete, variant = _resolve(path, volume, kernel, recording, haloed_args)
+    if concrete == "compiled" and path == "auto":
+        return _timed(variant, concrete, volume, recording, haloed_args,
+                      lambda args: _compiled_or_eager(kernel, volume, args, recording,
+                                                      lambda: kernel.fused_eagerly(*args)))
     if concrete == "compiled":
         return _timed(variant, concrete, volume, recording, haloed_args,
                       lambda args: _run_compiled(kernel, volume, args, recording))

@@ -20,7 +20,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .._checks import as_real_tensor, check_flag, check_positive
+from .._checks import MismatchError, as_real_tensor, check_flag, check_positive
 
 FLOOR = 1e-12
 """The smallest value a learnable parameter can take, relative to its smallest initial entry."""
@@ -208,6 +208,18 @@ class Positive(nn.Module):
             return 1.0
         largest = float(self.value().detach().max())
         return largest / self.bound if math.isfinite(largest) and largest > 0 else 1.0
+
+    def check_learned_like(self, data: Tensor, data_name: str, owner: str) -> None:
+        """Raise :class:`~torchsurf.MismatchError` naming ``data_name`` if this value is learnable
+        and its parameter's dtype or device is not ``data``'s: a learned parameter follows the
+        module (``owner.to(...)``) as PyTorch's layers' weights do, rather than being cast at
+        every call (fixed values are settings, cast to the data's dtype)."""
+        raw = getattr(self, "raw", None) if self.learnable else None
+        if isinstance(raw, Tensor) and (raw.dtype, raw.device) != (data.dtype, data.device):
+            raise MismatchError(
+                f"{data_name} is {data.dtype} on {data.device} but the {owner}'s learned "
+                f"{self.name} is {raw.dtype} on {raw.device}: they must match (move the module, "
+                f"e.g. flow.to({data.dtype}), or the data)")
 
     def volume(self, like: Tensor) -> float | Tensor:
         """The value shaped to broadcast over a volume ``(B, C, D, H, W)`` like ``like``."""

@@ -767,6 +767,9 @@ class Flow(nn.Module):
                 "(docs/bricks.md)"
             )
         check_data(u0, "u0", surface)
+        for value in self.modules():
+            if isinstance(value, Positive):
+                value.check_learned_like(u0, "u0", type(self).__name__)
         check_times_of_learned_time(self.time_value, times)
         separately = self._entries_apart(u0, surface, times, inputs)
         if separately is not None:

@@ -226,8 +226,10 @@ class AnisotropicDiffusion(nn.Module):
     the module so that an optimiser sees it. A contrast computed from a parameter (such as
     ``log_contrast.exp()``, to keep it positive) belongs in the call of the functional form,
     :func:`anisotropic_diffusion`, made at every step by a module of one's own: given here it
-    would be computed once, and refused. Another tensor that records no gradient is copied
-    into a buffer: it follows ``.to()`` and ``state_dict``.
+    would be computed once, and refused; the parameter must have the data's dtype and device
+    (:class:`~torchsurf.MismatchError`). Another tensor that records no gradient is copied into
+    a buffer: it follows ``.to()`` and ``state_dict``, and is read in the data's dtype, as the
+    flows' fixed values are.
     """
 
     def __init__(
@@ -263,8 +265,11 @@ class AnisotropicDiffusion(nn.Module):
     def forward(self, u: Tensor, surface: ImplicitSurface) -> Tensor:
         """``(1/W) div(W g(|P grad u|) P grad u)``: ``(B, C, D, H, W) -> (B, C, D, H, W)``, units
         of ``u`` per world length squared (:func:`anisotropic_diffusion`)."""
+        contrast = self.contrast
+        if isinstance(contrast, Tensor) and not isinstance(contrast, nn.Parameter):
+            contrast = contrast.to(u.dtype)  # a fixed setting, as the flows' fixed values
         return anisotropic_diffusion(
-            u, surface, self.diffusivity, self.contrast, self.eps, self.coupled, self.scheme,
+            u, surface, self.diffusivity, contrast, self.eps, self.coupled, self.scheme,
             self.path,
         )
 
