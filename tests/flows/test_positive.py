@@ -146,3 +146,30 @@ def test_compiled_flows_see_fixed_values_loaded_from_a_checkpoint():
     fresh = HeatFlow(time=0.02, diffusivity=torch.tensor([10.0]))(u, surface)
     band = surface.band_mask()
     assert float(((compiled(u, surface) - fresh) * band).abs().max()) < 1e-5
+
+
+@pytest.mark.parametrize("make", [
+    lambda h2: HeatFlow(3 * h2, learn_time=True),
+    lambda h2: HeatFlow(3 * h2, diffusivity=[1.0, 2.0], learn_diffusivity=True),
+    lambda h2: AnisotropicFlow(3 * h2, "perona_malik", contrast=[0.5, 0.7], learn_contrast=True),
+], ids=["time", "diffusivity", "contrast"])
+def test_learned_parameters_must_have_the_datas_dtype_fixed_ones_follow_it(make):
+    """A flow moved to float64 ran float32 data silently (its learned values cast at every
+    call) while ``nn.LearnedDiffusion`` refused it: learned values are weights, as a PyTorch
+    layer's; fixed tensors are settings, read in the data's dtype."""
+    grid = ts.Grid.cube(12, bound=1.4)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, 0.9), grid)
+    u = torch.rand(1, 2, 12, 12, 12, generator=torch.Generator().manual_seed(0))
+    flow = make(grid.spacing**2).double()
+    with pytest.raises(ts.MismatchError, match=r"u0 is torch.float32 .* learned \w+ is "
+                                               r"torch.float64"):
+        flow(u, surface)
+    assert flow.float()(u, surface).dtype == torch.float32
+    fixed = HeatFlow(3 * grid.spacing**2, diffusivity=torch.tensor([1.0, 2.0],
+                                                                   dtype=torch.float64))
+    assert fixed(u, surface).dtype == torch.float32
+    module = ts.AnisotropicDiffusion("perona_malik",
+                                     contrast=torch.tensor([0.5, 0.7], dtype=torch.float64))
+    torch.testing.assert_close(module(u, surface),
+                               ts.AnisotropicDiffusion("perona_malik",
+                                                       contrast=torch.tensor([0.5, 0.7]))(u, surface))
