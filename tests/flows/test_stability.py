@@ -160,6 +160,37 @@ def test_chebyshev_heat_semigroup_keeps_constants_and_the_maximum_principle(name
     assert_maximum_principle(flow, surface)
 
 
+@pytest.mark.parametrize("storage", ["packed", "volume", "bricks"])
+def test_the_semigroup_brings_no_extremum_from_its_ring_at_short_times(storage):
+    """The ring's unlimited fill overshoots rough data (up to 1.066 from noise in [0, 1) on
+    fandisk at 48^3), and the limited re-extension of the result took its bounds from it:
+    1.0167 at 1e-6 h^2, and -1.5e-4 from data >= 0 at 32^3. Packed values (phi fixed), the
+    volume operators (phi requiring grad) and bricks."""
+    path = MESH_DIR / "fandisk.obj"
+    if not path.is_file():
+        pytest.skip(f"test mesh fandisk.obj not found in {MESH_DIR} (set TORCHSURF_MESH_DIR)")
+    mesh = trimesh.load(path, force="mesh")
+    grid = ts.mesh.fit_grid(mesh, 48)
+    u0 = torch.rand((1, 1, *grid.shape), generator=torch.Generator().manual_seed(0),
+                    dtype=torch.float64).float()
+    if storage == "bricks":  # the same nodes in a box 3 cells wider a side (bricks need room)
+        grid = ts.Grid(tuple(n + 6 for n in grid.shape), grid.spacing,
+                       tuple(o - 3 * grid.spacing for o in grid.origin))
+        surface = ts.bricks.from_dense(ts.sdf.from_mesh(mesh, grid), grid)
+        u0 = surface.layout.from_dense([torch.nn.functional.pad(u0, (3,) * 6)])
+    else:
+        surface = ts.ImplicitSurface(ts.sdf.from_mesh(mesh, grid).requires_grad_(
+            storage == "volume"), grid)
+    band = surface.band_mask()
+    for layer in (ts.nn.LearnedDiffusion(1, time=1e-6, learn_time=False, path="slicing"),
+                  ts.HeatFlow(1e-6 * surface.spacing**2, method="chebyshev", path="slicing")):
+        with torch.no_grad():
+            u = layer(u0, surface)
+        inside = band.expand_as(u)
+        assert float(u0.min()) <= float(u[inside].min())
+        assert float(u[inside].max()) <= float(u0.max())
+
+
 @pytest.mark.parametrize("name", ["bunny.obj", "fandisk.obj"])
 @pytest.mark.parametrize("time", [0.01, 16.0])
 def test_learned_diffusion_keeps_the_maximum_principle_on_meshes(name, time):

@@ -117,13 +117,15 @@ class PackedRegion:
                                 count)
         self._band_mask: Tensor | None = None
         self._stencils: dict[int, tuple[Stencil, PackedStencil]] = {}
-        shapes = self.entries if surface.layout is None else len(surface.layout.grids)
-        self._entry_firsts = self._firsts_of_entries(shapes) if shapes > 1 else None
+        self.shapes = self.entries if surface.layout is None else len(surface.layout.grids)
+        self._entry_of_nodes = (self.storage.coordinates(self.nodes)[0].long()
+                                if self.shapes > 1 else None)
+        self._entry_firsts = self._firsts_of_entries(self.shapes) if self.shapes > 1 else None
 
     def _firsts_of_entries(self, shapes: int) -> Tensor:
         """For each region node, the packed position of the first band node of its surface's
         entry (of ``shapes``; 0 for an entry without band nodes, which has no ring nodes)."""
-        entry = self.storage.coordinates(self.nodes)[0].long()
+        entry = self._entry_of_nodes
         count = len(self.nodes)
         positions = torch.arange(count, device=entry.device)
         firsts = torch.full((shapes,), count, dtype=torch.long, device=entry.device)
@@ -140,6 +142,24 @@ class PackedRegion:
             return values[:1]
         firsts = self._entry_firsts if nodes is None else self._entry_firsts[:nodes]
         return values.index_select(0, firsts)
+
+    def ring_within_band_range(self, values: Tensor) -> Tensor:
+        """``values`` ``(nodes, C, K)`` with each ring node's clamped to the range of its
+        entry's band values (per channel and column): an unlimited fill of the ring then
+        brings no new extremum into a limited re-extension that reads it."""
+        band, ring = values[:self.band_count], values[self.band_count:]
+        if self._entry_of_nodes is None:
+            low, high = band.amin(0, keepdim=True), band.amax(0, keepdim=True)
+        else:
+            entry = self._entry_of_nodes.view(-1, 1, 1)
+            extremes = []
+            for reduce, start in (("amin", math.inf), ("amax", -math.inf)):
+                table = band.new_full((self.shapes, *band.shape[1:]), start)
+                table = table.scatter_reduce(0, entry[:self.band_count].expand_as(band), band,
+                                             reduce)
+                extremes.append(table.index_select(0, entry[self.band_count:, 0, 0]))
+            low, high = extremes
+        return torch.cat([band, torch.minimum(torch.maximum(ring, low), high)])
 
     # --- packing -------------------------------------------------------------------------
 
