@@ -167,14 +167,17 @@ def _check_physical_time(prepared: Prepared) -> None:
     extent = high - low
     spacing = (float(extent.max()) * (1.0 + 2.0 * experiment.grid.margin)
                / (experiment.grid.size - 1))
-    physical = physical_settings(experiment, float(np.linalg.norm(extent)), spacing)["time"]
+    settings = physical_settings(experiment, float(np.linalg.norm(extent)), spacing)
     limits = torch.finfo(torch.float32)
-    if not TIME_MARGIN * limits.tiny <= physical <= limits.max / TIME_MARGIN:
-        unit = cfg.time_unit(experiment.flow).name
-        raise ConfigError("flow.time", f"{experiment.flow.time:g} ({unit}) is about "
-                          f"{physical:.3g} in world units on this shape, outside what float32 "
-                          f"grids hold ({TIME_MARGIN * limits.tiny:.0e} to "
-                          f"{limits.max / TIME_MARGIN:.0e})")
+    for name in ("time", "chroma_time"):
+        physical = settings.get(name, 1.0)
+        if not TIME_MARGIN * limits.tiny <= physical <= limits.max / TIME_MARGIN:
+            unit = cfg.time_unit(experiment.flow).name
+            what = "" if name == "time" else " for the chroma (in L^p)"
+            raise ConfigError("flow.time", f"{experiment.flow.time:g} ({unit}) is about "
+                              f"{physical:.3g} in world units{what} on this shape, outside "
+                              f"what float32 grids hold ({TIME_MARGIN * limits.tiny:.0e} to "
+                              f"{limits.max / TIME_MARGIN:.0e})")
 
 
 SHAPE_EXTENT = (1e-6, 1e6)
@@ -361,6 +364,9 @@ def physical_settings(experiment: Experiment, diagonal: float, spacing: float
         order = FLOW_ORDER.get(flow.kind, 0.0)
     length = {TimeUnit.diagonal: diagonal, TimeUnit.cells: spacing}.get(unit)
     result["time"] = flow.time * (length**order if length is not None else 1.0)
+    if flow.kind is FlowKind.color:  # its chroma is a p-harmonic map flow: time in L^p
+        p = cfg.flow_setting(flow, "p")
+        result["chroma_time"] = flow.time * (length**p if length is not None else 1.0)
     for name in cfg.FLOW_SETTINGS[flow.kind]:
         value = cfg.flow_setting(flow, name)
         result[name] = value / spacing if name in ("eps", "contrast") else value
@@ -399,7 +405,8 @@ def build_flow(experiment: Experiment, physical: dict[str, float], progress: boo
         return flows.HarmonicMapFlow(t, p=physical["p"], eps=physical["eps"], tangent=tangent,
                                      **options)
     if kind is FlowKind.color:
-        chroma = flows.HarmonicMapFlow(t, p=physical["p"], eps=physical["eps"], **options)
+        chroma = flows.HarmonicMapFlow(physical["chroma_time"], p=physical["p"],
+                                       eps=physical["eps"], **options)
         brightness = flows.AnisotropicFlow(t, eps=physical["eps"], **options)
         return flows.ColorDenoise(chroma=chroma, brightness=brightness)
     if kind is FlowKind.reaction_diffusion:
