@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+import torchsurf as ts
 from torchsurf.flows._solve import SolverOptions, conjugate_gradient
 
 
@@ -108,3 +109,18 @@ def test_implicit_flows_are_equivariant_in_the_data_scale(method, dtype, factors
     both = flow(torch.cat([factors[0] * u0, factors[-1] * u0]), surface)
     for entry, k in enumerate((factors[0], factors[-1])):
         assert (both[entry:entry + 1] / k - reference)[band].abs().max() < rounding, k
+
+
+@pytest.mark.parametrize("make", [
+    lambda method: ts.AnisotropicFlow(0.01, method=method),
+    lambda method: ts.HarmonicMapFlow(0.01, method=method),
+    lambda method: ts.ReactionDiffusion(1.0, method=method),
+], ids=["anisotropic", "harmonic", "reaction_diffusion"])
+@pytest.mark.parametrize("method", ["implicit", "crank_nicolson"])
+def test_nonlinear_flows_refuse_implicit_methods_when_built(make, method):
+    """They were built, and refused at the first call, inside a training loop, as an error of
+    "batch entry 0"."""
+    with pytest.raises(ValueError, match=rf"method='{method}'.* is not linear"):
+        make(method)
+    for linear in (ts.HeatFlow(0.01, method=method), ts.FlowVisualization(0.01, method=method)):
+        assert linear.method == method

@@ -72,6 +72,7 @@ class AnisotropicFlow(Flow):
     """
 
     supports_bricks = True
+    linear = False
     keeps_range = True
 
     def __init__(

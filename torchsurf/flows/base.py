@@ -465,6 +465,12 @@ class Flow(nn.Module):
     supports_bricks = False
     """Whether the flow runs on a :class:`~torchsurf.bricks.BrickSurface` (packed fields)."""
 
+    linear: bool | None = None
+    """Whether the flow's rate is linear and symmetric in ``u``, as the implicit methods
+    (:data:`~torchsurf.flows.IMPLICIT`) need: ``False`` refuses them at construction, ``True``
+    takes them, ``None`` (a flow of one's own) leaves it to the system the flow builds (its
+    ``linear`` operator), checked at the call."""
+
     keeps_range = False
     """Whether the flow's equation keeps ``u`` within the range of ``u0`` (a maximum
     principle: heat, flow visualisation, total variation and edge-stopping diffusion). Where it
@@ -501,6 +507,11 @@ class Flow(nn.Module):
     ) -> None:
         super().__init__()
         method = check_method(method, self.extra_methods)
+        if method in IMPLICIT and self.linear is False:
+            raise ValueError(
+                f"method={method!r} solves a linear symmetric system each step; "
+                f"{type(self).__name__} is not linear: use 'rkc' (default), 'euler', 'heun' or "
+                "a torchdiffeq method")
         self.time_value = Positive(time, "time", learnable=learn_time, bound=max_time,
                                    bound_name="max_time", vector=False)
         self.method = method

@@ -69,6 +69,7 @@ class HarmonicMapFlow(Flow):
     """
 
     supports_bricks = True
+    linear = False
 
     def __init__(
         self,

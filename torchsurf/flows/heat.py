@@ -135,6 +135,7 @@ class HeatFlow(Flow):
     """
 
     supports_bricks = True
+    linear = True
     keeps_range = True
     extra_methods = ("chebyshev",)
 

@@ -57,6 +57,7 @@ class ReactionDiffusion(Flow):
     """
 
     supports_bricks = True
+    linear = False
 
     def __init__(
         self,

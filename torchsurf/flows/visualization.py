@@ -39,6 +39,7 @@ class FlowVisualization(Flow):
     """
 
     supports_bricks = True
+    linear = True
     keeps_range = True
 
     def __init__(self, time: float, isotropic: float = 0.0, **kwargs: object) -> None:
