@@ -236,3 +236,22 @@ def test_a_contrast_computed_from_a_parameter_is_refused_by_the_module_form():
     assert any(p is contrast for p in module.parameters())
     leaf = torch.tensor([0.5, 0.8], requires_grad=True)  # no graph to backpropagate twice
     assert ts.AnisotropicDiffusion("perona_malik", contrast=leaf).contrast is leaf
+
+
+def test_a_pickled_surface_leaves_what_flows_derived_from_it_behind():
+    """A DataLoader's spawned workers receive the dataset's surfaces pickled: after a few flows
+    a 24^3 trefoil's pickle was 25 MB (its kept stencils and packed bands) against 0.45 MB
+    fresh (0.73 MB now, with the halos formed on first use). The copy derives them again, to the same numbers."""
+    import pickle
+
+    grid = ts.Grid.cube(24, bound=1.0)
+    surface = ts.ImplicitSurface(ts.sdf.trefoil(grid, center=(0.01, 0.0, 0.0)), grid)
+    fresh = len(pickle.dumps(surface))
+    u = torch.rand(2, 1, 24, 24, 24, generator=torch.Generator().manual_seed(0))
+    flows = [ts.HeatFlow(4 * grid.spacing**2), ts.HeatFlow(4 * grid.spacing**2, method="chebyshev")]
+    before = [flow(u, surface) for flow in flows]
+    blob = pickle.dumps(surface)
+    assert len(blob) <= 2 * fresh  # lazily formed halos; not the kept 25 MB
+    copy = pickle.loads(blob)
+    for flow, expected in zip(flows, before, strict=True):
+        assert torch.equal(flow(u, copy), expected)
