@@ -274,8 +274,14 @@ def check_positive(value: object, name: str) -> float:
 
 
 def check_positive_tensor(value: object, name: str) -> Tensor:
-    """Raise naming ``name`` unless ``value`` is a float tensor of finite values ``> 0``."""
+    """Raise naming ``name`` unless ``value`` is a float tensor of finite values ``> 0``.
+
+    The values are not read while ``torch.compile`` traces the caller (a host read would break
+    its graph: a per-channel contrast broke a flow's at every step); the eager calls check
+    them."""
     tensor = check_tensor(value, name)
+    if torch.compiler.is_compiling():
+        return tensor
     finite = torch.isfinite(tensor)
     if not bool((finite & (tensor > 0)).all()):
         bad = "NaN or infinity" if not bool(finite.all()) else (

@@ -44,6 +44,14 @@ def _flows(h2: float) -> dict[str, torch.nn.Module]:
             diffusivity=[1.0, 2.0], learn_diffusivity=True, max_diffusivity=3.0,
         ),
         "total variation": AnisotropicFlow(step / 100, method="euler", steps=1),
+        # the contrast's check read a per-channel tensor on the host at every rate (3 breaks)
+        "Perona-Malik, per-channel contrast": AnisotropicFlow(
+            step / 100, "perona_malik", contrast=[1.0, 2.0], method="euler", steps=1),
+        "Perona-Malik, learned contrast": AnisotropicFlow(
+            step / 100, "perona_malik", contrast=[1.0, 2.0], learn_contrast=True,
+            method="euler", steps=1),
+        "AnisotropicDiffusion, per-channel contrast": ts.AnisotropicDiffusion(
+            "perona_malik", contrast=torch.tensor([1.0, 2.0])),
     }
 
 
