@@ -190,3 +190,12 @@ def test_a_dtype_conversion_keeps_the_scales_float64_values() -> None:
         convert()
         assert batch.scale.dtype == torch.float64 and torch.equal(batch.scale, scale)
         assert torch.equal(batch.centre, centre)
+
+
+def test_a_moved_adapter_keeps_one_phi_with_its_surface():
+    """``.double()`` / ``.to()`` moved the adapter's ``phi`` buffer and its surface's apart, so
+    an in-place edit of ``adapter.phi`` no longer reached the surface (1.08 apart after x2)."""
+    adapter = MeshBatchAdapter([AnalyticShape("sphere"), AnalyticShape("capsule")], resolution=16)
+    for move in (lambda m: m.double(), lambda m: m.to(torch.float32), lambda m: m.to("cpu")):
+        move(adapter)
+        assert adapter.surface.phi is adapter.phi

@@ -241,7 +241,8 @@ def test_a_contrast_computed_from_a_parameter_is_refused_by_the_module_form():
 def test_a_pickled_surface_leaves_what_flows_derived_from_it_behind():
     """A DataLoader's spawned workers receive the dataset's surfaces pickled: after a few flows
     a 24^3 trefoil's pickle was 25 MB (its kept stencils and packed bands) against 0.45 MB
-    fresh (0.73 MB now, with the halos formed on first use). The copy derives them again, to the same numbers."""
+    fresh (0.73 MB now, with the halos formed on first use). The copy derives them again,
+    to the same numbers."""
     import pickle
 
     grid = ts.Grid.cube(24, bound=1.0)

@@ -292,6 +292,8 @@ class MeshBatchAdapter(nn.Module):
         result = super()._apply(fn, recurse)
         device = self.scale.device
         self.scale, self.centre = scale.to(device), centre.to(device)
+        if self.surface.phi.dtype == self.phi.dtype:  # each moved its own copy: one phi again
+            self.phi = self.surface.phi  # (.half() leaves the surface float32, warning)
         return result
 
     def __len__(self) -> int:
