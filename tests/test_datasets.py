@@ -219,3 +219,11 @@ def test_seeds_beyond_32_bits_are_refused() -> None:
         datasets.derived_seed(2**32 + 5, 0)
     with pytest.raises(ValueError, match=r"keys\[1\] must be a whole number in \[0, 2\*\*32\)"):
         datasets.derived_seed(5, 0, 2**32)
+
+
+def test_derived_seeds_tell_keys_apart_but_trailing_zeros_as_documented():
+    from torchsurf.datasets import derived_seed
+
+    assert derived_seed(5, 3) == derived_seed(5, 3, 0) == derived_seed(5, 3, 0, 0)
+    assert len({derived_seed(5, 3), derived_seed(5, 3, 1), derived_seed(5, 4),
+                derived_seed(6, 3)}) == 4

@@ -1,7 +1,12 @@
 """Synthetic training data: random signals on a batch of surfaces, clean and with seeded noise.
 
 Signals are evaluated at the closest point on S of every node (:func:`torchsurf.signals.closest_points`),
-so they are constant along the normals, as the flows expect. Lengths are in the units of the
+so they are constant along the normals, as the flows expect, where ``phi`` is a distance near S
+(the analytic shapes, :func:`torchsurf.sdf.from_mesh`, :class:`SignalDataset`'s own surfaces).
+Those first-order points miss S where ``phi`` is not a distance: on an ellipsoid's
+``x^2/a^2 + y^2/b^2 + z^2/c^2 - 1`` (40^3) a smooth signal varied across the band by up to 0.10
+of its range (0.04 within a cell of S) against the same signal on the ``redistance``d ``phi``;
+call :func:`torchsurf.sdf.redistance` first for such a ``phi``. Lengths are in the units of the
 grid: on a :class:`~torchsurf.shape_batch.MeshBatchAdapter` every shape has size 1 there, so a
 frequency of 2 is two periods across any shape. Everything is deterministic under ``seed``.
 """
@@ -46,7 +51,10 @@ def derived_seed(seed: int, *keys: int) -> int:
     and ``keys`` whole numbers in ``[0, 2^32)``): ``(seed, i)`` never collides with
     ``(seed + 1, i - 1)``, and distinct keys give independent streams unless their 32-bit
     seeds coincide, which among ``n`` items has odds of about ``n^2 / 2^33`` (a coincident pair
-    is likely from about 90 000 items on)."""
+    is likely from about 90 000 items on). Trailing zero keys are not told apart (numpy pads
+    short entropy with zeros): ``(seed, i)``, ``(seed, i, 0)`` and ``(seed, i, 0, 0)`` give one
+    stream, so end keys that must differ with a nonzero number (:class:`SignalDataset` draws an
+    item's signal from ``(seed, i)`` and its noise from ``(seed, i, 1)``)."""
     for name, value in (("seed", seed), *((f"keys[{k}]", key) for k, key in enumerate(keys))):
         value = check_count(value, name, minimum=0)
         if value >= DERIVED_SEED_LIMIT:
