@@ -320,3 +320,30 @@ def test_linear_extension_of_a_narrow_band_refuses_what_it_reads_beyond_it(stora
     wide = surface.band_mask(2.0 * grid.spacing)
     result = Extension(width=narrow)(torch.where(wide, u, float("nan")), surface)
     assert bool(result[band.expand_as(result)].isfinite().all())
+
+
+def test_extension_takes_a_path_and_slicing_never_compiles(monkeypatch):
+    """``Extension`` had no ``path=``: its tricubic gathers could only be kept eager by
+    ``TORCHSURF_COMPILE=never`` (docs/learning.md says a layer given ``"slicing"`` never
+    compiles)."""
+    from torchsurf import backend
+    from torchsurf.bricks import _native as brick_native
+    from torchsurf.flows import _native_gather
+
+    monkeypatch.setenv("TORCHSURF_NATIVE", "never")  # the gathers then run through backend
+    for library in (_native_gather.LIBRARY, brick_native.LIBRARY):
+        monkeypatch.setattr(library, "_state", {})
+    compiled: list[object] = []
+    monkeypatch.setattr(backend, "compiled", lambda f, *options: compiled.append(f) or f)
+    grid = ts.Grid.cube(15, bound=1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, 0.9), grid)
+    u = torch.rand(1, 1, 15, 15, 15, generator=torch.Generator().manual_seed(0))
+    results = {}
+    for path in ("slicing", "auto"):
+        with backend.warm_up():
+            results[path] = ts.Extension(interpolation="cubic", limited=True, path=path)(u, surface)
+        assert bool(compiled) == (path == "auto")
+    torch.testing.assert_close(results["slicing"], results["auto"])
+    assert "path='slicing'" in repr(ts.Extension(path="slicing"))
+    with pytest.raises(ValueError, match="path"):
+        ts.Extension(path="fast")

@@ -56,7 +56,7 @@ INTERPOLATIONS = ("linear", "cubic")
 
 def closest_point_extension(
     u: Tensor, surface: ImplicitSurface, width: float | None = None,
-    interpolation: str = "linear", mask: Tensor | None = None,
+    interpolation: str = "linear", mask: Tensor | None = None, path: str = "auto",
 ) -> Tensor:
     """``u(x - d n)`` inside the band, ``d = surface.signed_distance()``, interpolated from the
     grid (module docstring).
@@ -75,15 +75,18 @@ def closest_point_extension(
             cells from S, beyond a narrower band).
         mask: bool ``(B or 1, 1, D, H, W)`` (packed ``(N, 1, 8, 8, 8)`` on bricks): the nodes
             to extend to, instead of the band of ``width``.
+        path: how the tricubic gather runs (:data:`torchsurf.backend.PATHS`: ``"slicing"``
+            never compiles it); the trilinear extension is one ``grid_sample`` on every path.
 
     Returns:
         ``(B, C, D, H, W)`` (packed ``(N, C, 8, 8, 8)`` on bricks: the dense result's values).
     """
     check_data(u, "u", surface)
     check_choice(interpolation, "interpolation", INTERPOLATIONS)
+    check_choice(path, "path", backend.PATHS)
     band = _band_to_extend(surface, width) if mask is None else _check_mask(mask, u, surface)
     if interpolation == "cubic":
-        return cubic_stencil(surface, band).apply(u)
+        return cubic_stencil(surface, band).apply(u, path)
     if surface.layout is not None:
         return _brick_linear_extension(u, surface, band)
     closest = _closest_indices(surface, u.dtype)
@@ -944,6 +947,8 @@ class Extension(nn.Module):
             the surface's sheets come within a few cells (a mesh's thin parts at a coarse grid),
             repeating it can grow without bound: on a 40^3 bunny ``from_mesh``, 6.4 after 50
             repetitions and 8e5 after 200 (data of range 2); limited, it stays in range.
+        path: how the tricubic gathers run (:data:`torchsurf.backend.PATHS`; ``"slicing"``
+            never compiles them, as a flow given it).
 
     Shapes: ``(B, C, D, H, W) -> (B, C, D, H, W)``; on a
     :class:`~torchsurf.bricks.BrickSurface`, packed ``(N, C, 8, 8, 8) -> (N, C, 8, 8, 8)``.
@@ -957,9 +962,11 @@ class Extension(nn.Module):
         max_steps: int | None = None,
         interpolation: str = "linear",
         limited: bool = False,
+        path: str = "auto",
     ) -> None:
         super().__init__()
         self.method = check_choice(method, "method", METHODS)
+        self.path = check_choice(path, "path", backend.PATHS)
         self.interpolation = check_choice(interpolation, "interpolation", INTERPOLATIONS)
         self.limited = check_flag(limited, "limited")
         if self.limited and (method != "closest_point" or interpolation != "cubic"):
@@ -989,10 +996,10 @@ class Extension(nn.Module):
             stencil = cubic_stencil(surface, band, limited=self.limited)
             check_finite(torch.where(band | _read_by(stencil, band), u.detach(), 0.0),
                          "u (in the band and the nodes its cubic interpolation reads)")
-            return stencil.apply(u)
+            return stencil.apply(u, self.path)
         if self.method == "closest_point":
             check_finite(torch.where(band, u.detach(), 0.0), "u (in the band)")
-            extended = closest_point_extension(u, surface, mask=band)
+            extended = closest_point_extension(u, surface, mask=band, path=self.path)
             # a value read beyond a band narrower than sqrt(3) cells makes its nodes' result NaN
             check_finite(torch.where(band, extended.detach(), 0.0),
                          "u (at the nodes its trilinear interpolation reads, up to sqrt(3) cells "
@@ -1004,4 +1011,5 @@ class Extension(nn.Module):
 
     def extra_repr(self) -> str:
         return (f"method={self.method!r}, width={self.width}, interpolation={self.interpolation!r}"
-                + (", limited=True" if self.limited else ""))
+                + (", limited=True" if self.limited else "")
+                + (f", path={self.path!r}" if self.path != "auto" else ""))
