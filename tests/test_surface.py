@@ -1039,3 +1039,16 @@ def test_the_floored_warning_counts_a_brick_surfaces_entries_not_its_bricks():
         messages[name] = [str(w.message) for w in caught if "MINIMUM_WEIGHT" in str(w.message)]
     assert messages["bricks"] and all(m == messages["dense"][0] for m in messages["bricks"])
     assert "batch entries" not in messages["dense"][0]
+
+
+@pytest.mark.parametrize("radius", [1.0, 0.6])
+def test_a_sphere_around_one_node_is_not_called_saturated(radius):
+    """Its centre's slope collapses (the weight check says so); read as a node next to S it
+    made the saturation check report |phi| growing by -1e6 of a distance's."""
+    grid = ts.Grid.cube(25, 1.2)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        ts.ImplicitSurface(ts.sdf.sphere(grid, radius * grid.spacing).double(), grid)
+    messages = [str(warning.message) for warning in caught]
+    assert any("falls to" in message for message in messages)
+    assert not any("grows over the cell" in message for message in messages), messages
