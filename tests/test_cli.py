@@ -625,6 +625,17 @@ def test_colour_denoising_runs_the_same_on_a_sphere_a_hundred_times_smaller(tmp_
     assert errors[1] == pytest.approx(errors[0], rel=1e-3)
 
 
+def test_a_time_far_beyond_equilibrium_is_a_config_error_in_the_configs_unit(tmp_path, capsys):
+    """It failed with exit 1 after the surface was built, naming world units squared while the
+    config gave diagonal units."""
+    out = tmp_path / "out"
+    code = cli.main(["run", "heat_sphere", "--set", "grid.size=20", "flow.time=100",
+                     "render.width=16", "render.height=16", "--out", str(out), "--quiet"])
+    error = capsys.readouterr().err
+    assert code == 2 and "config error: flow.time: 100 (diagonal)" in error
+    assert "times the time the diffusion takes to cross" in error and not out.exists()
+
+
 def test_perona_malik_denoises_a_torus_a_thousand_units_across_as_one_of_size_one(tmp_path):
     """Its eps was the flows' default, 1e-2 data per world length: on shapes hundreds of units
     across it outweighed the gradients and the flow left the noise (48^3, scaled by 1e4: 0.200

@@ -175,6 +175,10 @@ def _run(args: argparse.Namespace, argv: Sequence[str] | None) -> int:
         _remove_if_empty(created)
         print(f"torchsurf: {error}", file=sys.stderr)
         return EXIT_FAILED
+    except ConfigError as error:  # found once the surface is built (flow.time's equilibrium)
+        _remove_if_empty(created)
+        print(f"torchsurf: config error: {error}", file=sys.stderr)
+        return EXIT_USAGE
     except (ValueError, FloatingPointError, RuntimeError, OSError, MemoryError) as error:
         _remove_if_empty(created)
         print(f"torchsurf: run failed: {type(error).__name__}: {error}", file=sys.stderr)

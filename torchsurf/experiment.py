@@ -17,7 +17,7 @@ import platform
 import sys
 import tempfile
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -382,6 +382,22 @@ of units across (``perona_malik_torus`` scaled by 1e3 at 48^3 removed 12% of the
 removes at size 1, by 1e5 none); 0.77% of the contrast at size 1 there."""
 
 
+@contextmanager
+def _time_named(experiment: Experiment, physical: dict[str, float]) -> Iterator[None]:
+    """A flow's refusal of a time far beyond its equilibrium as a :class:`ConfigError` naming
+    ``flow.time`` in the config's unit (the flow names the world value, once the surface is
+    built: the equilibrium depends on its operator)."""
+    try:
+        yield
+    except flows.BeyondEquilibrium as error:
+        unit = cfg.time_unit(experiment.flow).name
+        raise ConfigError("flow.time", (
+            f"{experiment.flow.time:g} ({unit}) is {physical['time']:.3g} in world units on "
+            f"this shape, {error.crossings:.3g} times the time the diffusion takes to cross "
+            f"the whole grid: the flow reaches its equilibrium long before, and more than "
+            f"{flows.EQUILIBRIUM_CROSSINGS} times is refused as a likely unit error")) from error
+
+
 def build_flow(experiment: Experiment, physical: dict[str, float], progress: bool
                ) -> torch.nn.Module:
     """The flow module of the config, with its physical settings."""
@@ -567,7 +583,7 @@ def run(prepared: Prepared, out: str | os.PathLike, progress: bool = False,
             f"physical {settings}")
         module = build_flow(experiment, physical, progress)
         kind = experiment.flow.kind
-        with torch.no_grad():
+        with torch.no_grad(), _time_named(experiment, physical):
             if kind is FlowKind.reaction_diffusion:
                 inputs = {"generator": signals.generator(experiment.signal.seed)}
                 if field is not None:

@@ -2,7 +2,15 @@
 reaction–diffusion, flow visualisation and data extension, with explicit, implicit
 (conjugate gradients) and torchdiffeq integration."""
 
-from ._integrators import IMPLICIT, INTEGRATORS, MAX_STEPS, Plan, check_method
+from ._integrators import (
+    EQUILIBRIUM_CROSSINGS,
+    IMPLICIT,
+    INTEGRATORS,
+    MAX_STEPS,
+    BeyondEquilibrium,
+    Plan,
+    check_method,
+)
 from .anisotropic import AnisotropicFlow
 from .base import Flow
 from .color import ColorDenoise
@@ -13,10 +21,12 @@ from .reaction_diffusion import ReactionDiffusion
 from .visualization import FlowVisualization
 
 __all__ = [
+    "EQUILIBRIUM_CROSSINGS",
     "IMPLICIT",
     "INTEGRATORS",
     "MAX_STEPS",
     "AnisotropicFlow",
+    "BeyondEquilibrium",
     "ColorDenoise",
     "Extension",
     "Flow",

@@ -340,18 +340,28 @@ decayed by more than ``e^-100`` on any surface the grid resolves, and a longer t
 error that would run for hours."""
 
 
+class BeyondEquilibrium(ValueError):
+    """A linear flow's time of more than :data:`EQUILIBRIUM_CROSSINGS` grid crossings
+    (:func:`check_before_equilibrium`); ``crossings`` is how many."""
+
+    def __init__(self, message: str, crossings: float) -> None:
+        super().__init__(message)
+        self.crossings = crossings
+
+
 def check_before_equilibrium(end: float, rho: float, diagonal_cells: float) -> None:
     """Refuse a linear flow's time ``end`` above :data:`EQUILIBRIUM_CROSSINGS` times the time
-    its diffusion takes to cross ``diagonal_cells`` cells, ``12 diagonal_cells^2 / rho``."""
+    its diffusion takes to cross ``diagonal_cells`` cells, ``12 diagonal_cells^2 / rho``
+    (:class:`BeyondEquilibrium`, a ``ValueError``)."""
     crossing = 12.0 * diagonal_cells**2 / rho
     if end > EQUILIBRIUM_CROSSINGS * crossing:
-        raise ValueError(
+        raise BeyondEquilibrium(
             f"time={end:g} is {end / crossing:.3g} times the time the diffusion takes to "
             f"cross the whole grid ({crossing:.3g}: its diagonal of {diagonal_cells:.0f} "
             f"cells, from the operator's bound rho = {rho:.3g}); the flow reaches its "
             f"equilibrium long before, and more than {EQUILIBRIUM_CROSSINGS} times is "
             f"refused as a likely unit error (forward Euler would take {end * rho / 2:.3g} "
-            "steps): the time is in world units squared"
+            "steps): the time is in world units squared", end / crossing
         )
 
 
