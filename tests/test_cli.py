@@ -636,6 +636,18 @@ def test_a_time_far_beyond_equilibrium_is_a_config_error_in_the_configs_unit(tmp
     assert "times the time the diffusion takes to cross" in error and not out.exists()
 
 
+def test_a_mesh_that_puts_no_surface_on_the_grid_is_a_config_error(tmp_path, capsys):
+    """A single triangle read as a mesh, and failed mid-run with exit 1 naming no setting."""
+    flat = tmp_path / "flat.obj"
+    flat.write_text("v -0.5 -0.5 0\nv 0.5 -0.5 0\nv 0 0.5 0\nf 1 2 3\n")
+    out = tmp_path / "out"
+    code = cli.main(["run", "heat_sphere", "--set", "surface.shape=mesh",
+                     f"surface.mesh={flat}", "grid.size=20", "--out", str(out), "--quiet"])
+    error = capsys.readouterr().err
+    assert code == 2 and "config error: surface.mesh:" in error and "no node" in error
+    assert not out.exists()
+
+
 def test_perona_malik_denoises_a_torus_a_thousand_units_across_as_one_of_size_one(tmp_path):
     """Its eps was the flows' default, 1e-2 data per world length: on shapes hundreds of units
     across it outweighed the gradients and the flow left the noise (48^3, scaled by 1e4: 0.200

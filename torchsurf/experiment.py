@@ -259,9 +259,12 @@ def build_surface(prepared: Prepared) -> ImplicitSurface:
         mesh = mesh.copy()
         mesh.apply_translation(-centre)
         grid = meshes.fit_grid(mesh, size, margin)
-        if packed:
-            return bricks.from_mesh(mesh, grid)
-        phi = sdf.from_mesh(mesh, grid)
+        try:  # the mesh read, but no surface on the grid (one triangle, an open sheet)
+            if packed:
+                return bricks.from_mesh(mesh, grid)
+            phi = sdf.from_mesh(mesh, grid)
+        except ValueError as error:
+            raise ConfigError("surface.mesh", f"{prepared.mesh_path}: {error}") from error
     else:
         shape = experiment.surface.shape
         params = _moved(shape, prepared.params, -centre)
