@@ -25,9 +25,11 @@ class FlowVisualization(Flow):
     ``(N, C, 8, 8, 8)``), equal to the dense flow on the band (docs/bricks.md).
 
     The operator damps nothing across ``T``: on surfaces thinner than the band or folded within
-    it, keep the default method (RKC), where Euler's, Heun's and backward Euler's many more
-    re-extensions grew without bound (a trefoil mesh at 32^3 and 48^3, docs/band.md §5; a call
-    that leaves the range of ``u0`` warns, :attr:`~torchsurf.flows.Flow.keeps_range`).
+    it, or where ``phi`` is far from a distance, keep the default method (RKC), where Euler's,
+    Heun's and backward Euler's many more re-extensions grew without bound (a trefoil mesh at
+    32^3 and 48^3, docs/band.md §5; ``phi = d^3`` of a 24^3 sphere at 100 h^2: Euler
+    [-1.1e4, 1.1e4], Heun [-7e3, 6.5e3], RKC in range; a call that leaves the range of ``u0``
+    warns, :attr:`~torchsurf.flows.Flow.keeps_range`).
 
     Args:
         time: physical end time, world units squared (streak length about ``sqrt(time)``).
