@@ -179,6 +179,21 @@ def test_auto_runs_eagerly_for_good_with_one_warning_when_compiling_fails(monkey
         backend.run(kernel, "compiled", volume, volume)
 
 
+def test_a_compile_error_without_a_message_falls_back_too(monkeypatch):
+    """The warning's reason took the message's first line: an empty one raised IndexError."""
+    def compile_(function, *options):
+        def call(*args):
+            raise AssertionError()
+        return call
+
+    monkeypatch.setattr(backend, "compiled", compile_)
+    monkeypatch.setattr(backend, "_COMPILE_FAILURE", [])
+    volume = torch.zeros(1, 1, 4, 4, 4)
+    with backend.warm_up(), pytest.warns(RuntimeWarning, match="AssertionError"):
+        out = backend.run(_kernel("test_silent", []), "auto", volume, volume)
+    assert torch.equal(out, volume + 1)
+
+
 def test_an_error_of_the_callers_own_is_raised_as_eager_raises_it(monkeypatch):
     attempts: list[object] = []
 

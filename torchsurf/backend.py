@@ -363,7 +363,8 @@ def _compiled_or_eager(kernel: Kernel, volume: Tensor, haloed_args: tuple, recor
         return _run_compiled(kernel, volume, haloed_args, recording)
     except Exception as error:  # eager() raises the caller's own errors again
         result = eager()
-        reason = f"{type(error).__name__}: {str(error).strip().splitlines()[0][:300]}"
+        first_line = (str(error).strip().splitlines() or [""])[0]
+        reason = f"{type(error).__name__}: {first_line[:300]}"
         if not _COMPILE_FAILURE:
             warnings.warn(
                 f"torchsurf: compiling {kernel.name} failed ({reason}); path='auto' runs every "

@@ -10,9 +10,10 @@ Scale-free units (docs/cli.md): a surface's size is the diagonal ``L`` of its bo
 ``h`` the grid spacing; ``flow.time`` is in units of ``L^q`` (``time_unit: diagonal``), ``h^q``
 (``cells``) or physical (``world``), ``q`` the order of the flow in space (2 for heat,
 Perona–Malik, flow visualisation and harmonic maps with ``p = 2``; ``p`` for harmonic maps,
-1 for total variation and colour), so that one config works on a sphere of radius 1 and on a
-0.15-wide bunny. Reaction–diffusion time is in Turk's iterations (``turk``). Gradient settings
-(``eps``, ``contrast``) are in units of the data's range per cell.
+1 for total variation and colour denoising's brightness, ``p`` for its chroma), so that one
+config works on a sphere of radius 1 and on a 0.15-wide bunny. Reaction–diffusion time is in
+Turk's iterations (``turk``). Gradient settings (``eps``, ``contrast``) are in units of the
+data's range per cell.
 """
 
 from __future__ import annotations

@@ -170,6 +170,11 @@ def test_learned_parameters_must_have_the_datas_dtype_fixed_ones_follow_it(make)
     assert fixed(u, surface).dtype == torch.float32
     module = ts.AnisotropicDiffusion("perona_malik",
                                      contrast=torch.tensor([0.5, 0.7], dtype=torch.float64))
+    colour = ts.ColorDenoise(chroma=ts.HarmonicMapFlow(grid.spacing**2),
+                             brightness=make(grid.spacing**2)).double()  # named as given
+    with pytest.raises(ts.MismatchError, match=r"image is torch.float32 .* ColorDenoise's "
+                                               r"brightness flow's learned"):
+        colour(torch.rand(1, 3, 12, 12, 12), surface)
     torch.testing.assert_close(module(u, surface),
                                ts.AnisotropicDiffusion("perona_malik",
                                                        contrast=torch.tensor([0.5, 0.7]))(u, surface))

@@ -266,7 +266,7 @@ class AnisotropicDiffusion(nn.Module):
         """``(1/W) div(W g(|P grad u|) P grad u)``: ``(B, C, D, H, W) -> (B, C, D, H, W)``, units
         of ``u`` per world length squared (:func:`anisotropic_diffusion`)."""
         contrast = self.contrast
-        if isinstance(contrast, Tensor) and not isinstance(contrast, nn.Parameter):
+        if isinstance(contrast, Tensor) and not contrast.requires_grad:
             contrast = contrast.to(u.dtype)  # a fixed setting, as the flows' fixed values
         return anisotropic_diffusion(
             u, surface, self.diffusivity, contrast, self.eps, self.coupled, self.scheme,
