@@ -116,7 +116,10 @@ def extract(phi: Tensor, grid: Grid, level: float = 0.0, mask: Tensor | None = N
         larger ``phi`` (outward); watertight wherever the level set stays inside the grid and
         does not touch itself (two sheets through a node where ``phi == level`` share its
         vertex, and an edge there can join four faces); no two vertices coincide and no face
-        has zero area, also where ``phi == level`` at nodes.
+        has zero area, also where ``phi == level`` at nodes. A node within 1e-12 of ``phi``'s
+        largest difference from the level is taken to lie on it, and below it while the cells
+        are triangulated (``_isosurface.LEVEL_SNAP``): a box whose faces lie on node planes
+        keeps its edges in float64 as in float32, and a level through nodes closes.
 
     Raises:
         ValueError: ``phi`` never crosses ``level`` (also where it only touches it at nodes).
