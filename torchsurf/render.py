@@ -120,17 +120,22 @@ def vertex_values(volume: Tensor, mesh: trimesh.Trimesh, grid: Grid | ImplicitSu
         )
     index = box.world_to_index(vertices).to(volume.dtype).to(volume.device)
     if packed:
-        values = grid.sample_at_index(volume.detach(), index, entry)
+        try:
+            values = grid.sample_at_index(volume.detach(), index, entry)
+        except ValueError as error:  # the sampler names its points, not the mesh
+            raise ValueError(f"mesh: its vertices are read on the bricks of entry {entry}, and "
+                             f"{error}") from error
     else:
         at_zero = Grid(box.shape, 1.0, (0.0, 0.0, 0.0))  # node indices as world points
         values = sample(volume[entry:entry + 1].detach(), index, at_zero)[0]
     return values.T.to("cpu", torch.float64).numpy()
 
 
-FLAT_SPAN = 1e-6
+FLAT_SPAN = 1e-4
 """Default limits closer than this, relative to their magnitude, are widened to it about their
-middle: float32 rounding spreads a constant by about 1e-7 of it, which the map would otherwise
-stretch over all its colours."""
+middle: float32 rounding spreads a constant by about 1e-7 of it (a float32 constant read at a
+torus's vertices: 1.7e-7), which the map would otherwise stretch over all its colours; widened
+to 1e-6, such vertices still took 0.46 and 0.63 of a grey map (a few thousandths now)."""
 
 
 def colours(values: np.ndarray, mode: str = "scalar", colormap: str = "viridis",
@@ -146,7 +151,7 @@ def colours(values: np.ndarray, mode: str = "scalar", colormap: str = "viridis",
     scalar modes, NaN or infinite values are grey and do not set the limits; equal values
     share a colour, and default limits closer than :data:`FLAT_SPAN` of their magnitude are
     widened to it about their middle (a constant, or one carrying float32 rounding, takes the
-    map's middle colour; a few vertices off it, the map's ends).
+    map's middle colour, equalized or not; a few vertices off it, the map's ends).
     ``limits``: ``(low, high)``, finite, ``low < high``.
     """
     if mode not in MODES:
@@ -169,6 +174,8 @@ def colours(values: np.ndarray, mode: str = "scalar", colormap: str = "viridis",
     if equalize and limits is not None:
         raise ValueError("give limits or equalize=True, not both")
     if limits is not None:
+        if isinstance(limits, torch.Tensor):
+            limits = limits.detach().cpu().numpy()
         bounds = np.asarray(limits, dtype=np.float64)
         if bounds.shape != (2,) or not np.isfinite(bounds).all() or not bounds[0] < bounds[1]:
             raise ValueError(f"limits must be two finite numbers (low, high) with low < high, "
@@ -180,10 +187,13 @@ def colours(values: np.ndarray, mode: str = "scalar", colormap: str = "viridis",
         _, inverse, counts = np.unique(finite, return_inverse=True, return_counts=True)
         mean_rank = np.cumsum(counts) - 0.5 * (counts + 1)
         scaled = np.zeros(len(values))
-        # one finite value is a constant: the map's middle colour, as for default limits
-        scaled[~missing] = mean_rank[inverse] / (len(finite) - 1) if len(finite) > 1 else 0.5
+        # a constant (to FLAT_SPAN of its magnitude: float32 rounding): the map's middle
+        # colour, as for default limits
+        spread = float(np.ptp(finite)) if len(finite) else 0.0
+        flat = spread <= FLAT_SPAN * float(np.abs(finite).max(initial=0.0))
+        scaled[~missing] = 0.5 if flat else mean_rank[inverse] / (len(finite) - 1)
     else:
-        low, high = (limits if limits is not None else
+        low, high = (bounds if limits is not None else
                      np.percentile(finite, [1.0, 99.0]) if len(finite) else (0.0, 1.0))
         # in units of the limits' magnitude: values near the float's range do not overflow
         magnitude = max(abs(float(low)), abs(float(high)), np.finfo(np.float64).tiny)
