@@ -149,3 +149,16 @@ def test_an_adapter_counts_its_decoding_weights(monkeypatch):
     ts.MeshAdapter(mesh, grid, order=1)
     with pytest.raises(MemoryError, match="MeshAdapter"):
         ts.MeshAdapter(mesh, grid, order=2)
+
+
+def test_bricks_from_a_mesh_far_larger_than_the_cells_are_refused_before_any_work(monkeypatch):
+    """A trefoil mesh 300 units across at h = 0.035 ran for six minutes, then failed
+    allocating 30 GiB in the distances' refinement: its band alone needs 111 GiB."""
+    monkeypatch.setattr(_memory, "available_bytes", lambda device=None: 2**30)
+    monkeypatch.delenv(_memory.ENVIRONMENT_SWITCH, raising=False)
+    mesh = trimesh.creation.icosphere(subdivisions=2, radius=40.0)
+    grid = ts.Grid.cube(24, bound=80.0)
+    fine = ts.Grid((8000,) * 3, 0.02, (-80.0,) * 3)
+    assert ts.bricks.from_mesh(mesh, grid).batch_size == 1
+    with pytest.raises(MemoryError, match=r"bricks of 1 mesh\(es\) of total area .* needs at least"):
+        ts.bricks.from_mesh(mesh, fine)

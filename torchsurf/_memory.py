@@ -107,6 +107,13 @@ def mesh_sdf_bytes(shape: tuple[int, int, int], spacing: float, band: float, are
     return int(max(16, 8 + _itemsize(dtype)) * nodes + MESH_BAND_NODE_BYTES * band_nodes)
 
 
+def mesh_band_bytes(spacing: float, reach: float, area: float) -> int:
+    """The band nodes' part of :func:`mesh_sdf_bytes` alone, what building bricks from a mesh
+    of triangle ``area`` holds at least (no dense volume): about ``area * 2 reach / spacing^3``
+    nodes within ``reach`` of it, :data:`MESH_BAND_NODE_BYTES` each."""
+    return int(MESH_BAND_NODE_BYTES * area * 2.0 * reach / spacing**3)
+
+
 def flow_bytes(
     data: tuple[int, ...], surface_batch: int, dtype: torch.dtype, implicit: bool,
     band_nodes: int | None, snapshots: int = 0,

@@ -9,7 +9,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .. import _mesh_sdf
+from .. import _memory, _mesh_sdf
 from .._checks import MismatchError, check_choice, check_device, check_dtype, check_positive
 from .._mesh_input import MeshLike, as_trimesh, triangle_arrays
 from ..grid import Grid
@@ -148,9 +148,15 @@ def signed_bricks(meshes: list[MeshLike], grids: list[Grid], band_width: float, 
     dtype = check_dtype(dtype)
     device = check_device(device)
     numpy_dtype = torch.empty(0, dtype=dtype).numpy().dtype
+    arrays = [triangle_arrays(as_trimesh(mesh, f"meshes[{b}]")) for b, mesh in enumerate(meshes)]
+    # before the distances: a mesh far larger than the grid's cells ran for minutes, then
+    # failed allocating 30 GiB
+    area = sum(_triangle_area(vertices, faces) for vertices, faces in arrays)
+    _memory.check_fits(_memory.mesh_band_bytes(grids[0].spacing, reach, area),
+                       f"bricks of {len(arrays)} mesh(es) of total area {area:.4g} at spacing "
+                       f"{grids[0].spacing:.4g}")
     coords, batch, values, bands = [], [], [], []
-    for b, (mesh, grid) in enumerate(zip(meshes, grids, strict=True)):
-        vertices, faces = triangle_arrays(as_trimesh(mesh, f"meshes[{b}]"))
+    for b, ((vertices, faces), grid) in enumerate(zip(arrays, grids, strict=True)):
         signed = _mesh_sdf.signed_near(vertices, faces, grid, reach, sign)
         in_band = np.abs(signed.near) <= band_width
         check_clear_of_faces(torch.from_numpy(signed.band.nodes[in_band][:, ::-1].copy()), grid, b)
@@ -170,6 +176,13 @@ def signed_bricks(meshes: list[MeshLike], grids: list[Grid], band_width: float, 
     surface = BrickSurface(phi, layout, band_width)
     _check_formed_band_clear_of_faces(surface)
     return surface, bands
+
+
+def _triangle_area(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """The total area of the triangles ``faces`` ``(F, 3)`` of ``vertices`` ``(V, 3)``."""
+    corners = vertices[faces]
+    return float(0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0],
+                                               corners[:, 2] - corners[:, 0]), axis=1).sum())
 
 
 def _check_formed_band_clear_of_faces(surface: BrickSurface) -> None:
