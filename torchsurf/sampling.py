@@ -59,10 +59,10 @@ def sample(field: Tensor, points: Tensor, grid: Grid, interpolation: str = "line
     first or last four: one-sided; along an axis of three nodes, linear, exact for degree 1
     there).
     Reading a second-order solution trilinearly adds an ``O(h^2)`` error of the read-out's
-    own, often larger than the solution's (heat flow on a sphere at 65^3: 1.2e-3 read
-    trilinearly, 2.4e-4 tricubically; docs/benchmarks.md). Both are differentiable with
-    respect to ``field`` and ``points``, also at points on the box's faces and corners (the
-    gradient of the cell inside).
+    own, often larger than the solution's (heat flow on a sphere at 65^3, RKC's default
+    steps: 1.2e-3 read trilinearly, 2.6e-4 tricubically; docs/benchmarks.md). Both are
+    differentiable with respect to ``field`` and ``points``, also at points on the box's faces
+    and corners (the gradient of the cell inside).
 
     Args:
         field: ``(B, C, D, H, W)`` values at the nodes of ``grid``.
