@@ -222,6 +222,8 @@ def test_mesh_path_resolves_against_the_config_folder_then_the_mesh_dir(tmp_path
          "signal.grain"),
         (["signal.tiles=1e300", "signal.kind=checkerboard", "signal.image=null",
           "signal.projection=null"], "signal.tiles"),
+        (["signal.tiles=1e-300", "signal.kind=checkerboard", "signal.image=null",
+          "signal.projection=null"], "signal.tiles"),
         (["threads=100000"], "threads"),
         (["signal.kind=noise", "signal.image=null", "signal.projection=null", "signal.noise=0.2"],
          "signal.noise"),

@@ -701,6 +701,9 @@ def check(experiment: Experiment) -> None:
     _check_signal_settings(signal)
     tiles, grain = signal_setting(signal, "tiles"), signal_setting(signal, "grain")
     _positive(tiles, "signal.tiles")
+    if tiles < 1:  # 1e-300 passed: a constant signal, nothing for the flow to show
+        raise ConfigError("signal.tiles", f"must be at least 1 (a tile longer than the box's "
+                          f"diagonal paints the shape in one or two colours), got {tiles!r}")
     if tiles > 4 * size:
         raise ConfigError("signal.tiles", f"must be at most 4 x grid.size = {4 * size} (finer "
                           f"tiles than the grid resolves), got {tiles!r}")
