@@ -626,15 +626,27 @@ def test_extract_is_watertight_where_the_level_passes_through_nodes() -> None:
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_extract_keeps_a_box_whose_faces_lie_on_node_planes(dtype) -> None:
+@pytest.mark.parametrize("sign, offset", [(1.0, 0.0), (-1.0, 0.0), (1.0, 0.3), (-1.0, -0.3)])
+def test_extract_keeps_a_box_whose_faces_lie_on_node_planes(dtype, sign, offset) -> None:
     """In float64 the faces' nodes held +-1e-16, and cells with three such corners were cut
-    across: 8% of the area lost (float32 rounded them to 0 and was exact)."""
+    across: 8% of the area lost (float32 rounded them to 0 and was exact). Put always below
+    the level, -phi's box lost 12% (its inside above); float32's rounding of phi + 0.3 at
+    level 0.3, the same."""
     grid = ts.Grid.cube(25, 1.2)
     h = grid.spacing
-    phi = ts.sdf.box(grid, half_size=(6 * h, 4 * h, 5 * h), dtype=dtype)
-    mesh = tsm.extract(phi, grid)
+    phi = sign * ts.sdf.box(grid, half_size=(6 * h, 4 * h, 5 * h), dtype=dtype) + offset
+    mesh = tsm.extract(phi, grid, level=offset)
     sides = 2 * torch.tensor([6 * h, 4 * h, 5 * h], dtype=torch.float64)
     area = 2 * float(sides[0] * sides[1] + sides[1] * sides[2] + sides[0] * sides[2])
     assert mesh.is_watertight
     assert mesh.area == pytest.approx(area, rel=1e-9)
-    assert mesh.volume == pytest.approx(float(sides.prod()), rel=1e-9)
+    assert sign * mesh.volume == pytest.approx(float(sides.prod()), rel=1e-9)  # outward: +
+
+
+def test_extract_names_a_level_crossed_only_within_rounding() -> None:
+    """Every node snapped to one side: scikit-image's 'Surface level must be within volume
+    data range' reached the user."""
+    phi = -torch.ones(1, 1, 5, 5, 5, dtype=torch.float64)
+    phi[0, 0, 2, 2, 2] = 1e-13
+    with pytest.raises(ValueError, match="phi never crosses the level 0"):
+        tsm.extract(phi, ts.Grid((5, 5, 5), 1.0))

@@ -39,6 +39,9 @@ def test_a_constant_with_rounding_is_one_colour_and_huge_values_do_not_overflow(
     # equalized too (its ranks spread it over the whole map)
     for drawn in (render.colours(rounded), render.colours(rounded, equalize=True)):
         assert np.allclose(drawn, middle, atol=0.01), np.unique(drawn.round(3), axis=0)
+    # a pattern of a few hundred float32 ulps (heat near equilibrium) is still equalized
+    ramp = (0.5 + 1e-5 * np.linspace(-1.0, 1.0, 200)).astype(np.float32)[:, None]
+    assert len(np.unique(render.colours(ramp, equalize=True).round(3), axis=0)) > 50
     # limits given as a tensor, as values may be
     assert np.allclose(render.colours(np.array([[0.5]]), limits=torch.tensor([0.0, 1.0])),
                        middle)

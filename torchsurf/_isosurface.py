@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+from scipy import ndimage
 from skimage import measure
 
 from . import _mesh_sdf
@@ -17,17 +18,20 @@ the crossings around it fell 1e-16 apart and left triangles of no area."""
 
 LEVEL_SNAP = 1e-12
 """A node whose value differs from the level by less than this share of the volume's largest
-difference from it is taken to lie on the level: a box's faces on node planes held ``+-1e-16``
+difference from it (or than four units of the volume's rounding of the level) is taken to lie
+on the level: a box's faces on node planes held ``+-1e-16``
 in float64, and cells with three such corners were cut diagonally (8% of the box's area lost;
 float32 rounded them to 0 and was exact)."""
 
-BELOW_LEVEL = 1e-20
-"""How far below the level a node on it is put, relative to the largest difference, when
+OFF_LEVEL = 1e-20
+"""How far off the level a node on it is put, relative to the largest difference, when
 marching cubes runs: every corner then lies strictly on one side and the cells close (the
 crossings at that node are put on it afterwards, :data:`NODE_SNAP`); read as on the level,
-marching cubes left one-triangle holes where the level passed through a node. Below, not
-above: a box whose faces hold the level keeps its edges (above, the cells one layer in
-were cut across, 12% of a 25^3 box's area lost)."""
+marching cubes left one-triangle holes where the level passed through a node. The node joins
+the side fewer of its 26 neighbours lie strictly on (below on a tie): the region whose convex
+edge or corner it holds, so that a box whose faces hold the level keeps its edges whichever
+side is its inside (put always below, ``-phi``'s box lost 12% of its area; always above,
+``phi``'s)."""
 
 NEWTON_ITERATIONS = 40
 """Most iterations of the closest-point refinement. Its tangential move is scaled by the local
@@ -57,7 +61,8 @@ trusted (medial axis, creases of ``phi``): that node keeps the marching-cubes di
 
 
 def level_set(volume: np.ndarray, grid: Grid, level: float = 0.0,
-              mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+              mask: np.ndarray | None = None, epsilon: float | None = None
+              ) -> tuple[np.ndarray, np.ndarray]:
     """Marching cubes (scikit-image, Lewiner) of ``volume == level``.
 
     Args:
@@ -66,6 +71,8 @@ def level_set(volume: np.ndarray, grid: Grid, level: float = 0.0,
         level: the iso-value.
         mask: ``(D, H, W)`` bool, the nodes that hold samples (cells with a node outside it
             are skipped), or ``None`` for all.
+        epsilon: the machine epsilon of the dtype the samples were computed in (default
+            ``volume``'s): values within four of its units of ``level`` lie on it.
 
     Returns:
         vertices ``(V, 3)`` float64 world ``(x, y, z)`` and faces ``(F, 3)`` int64, wound so
@@ -94,12 +101,18 @@ def level_set(volume: np.ndarray, grid: Grid, level: float = 0.0,
     shifted = volume.astype(np.float64) - level
     reach = np.abs(shifted if mask is None else shifted[mask]).max()
     scaled = shifted / reach
-    on_level = np.abs(scaled) < LEVEL_SNAP
-    scaled[on_level] = -BELOW_LEVEL
+    # and within the volume's own rounding of the level (float32 -phi - 0.3 at level -0.3)
+    if epsilon is None:
+        epsilon = float(np.finfo(volume.dtype).eps) if volume.dtype.kind == "f" else 0.0
+    rounding = 4 * epsilon * abs(level)
+    on_level = np.abs(shifted) < LEVEL_SNAP * reach + rounding
+    if on_level.any():
+        scaled[on_level] = np.where(_fewer_above(scaled, on_level), OFF_LEVEL, -OFF_LEVEL)
     try:
         index, faces, _, _ = measure.marching_cubes(scaled, level=0.0,
                                                     gradient_direction="ascent", mask=mask)
-    except RuntimeError as error:  # no cell crosses: the level only touched, or masked out
+    except (RuntimeError, ValueError) as error:  # no cell crosses: the level only touched
+        # (also to within LEVEL_SNAP, where every node then lies on one side), or masked out
         raise never(" in any cell") from error
     snapped = np.where(on_level, level, volume)  # what marching cubes saw, in float64
     index, faces = _merge_coincident(_crossings_in_float64(snapped, index, level), faces)
@@ -108,6 +121,15 @@ def level_set(volume: np.ndarray, grid: Grid, level: float = 0.0,
     # scikit-image orders vertex coordinates like the array axes, (z, y, x).
     vertices = grid.spacing * index[:, ::-1] + np.asarray(grid.origin)
     return np.ascontiguousarray(vertices), np.ascontiguousarray(faces, dtype=np.int64)
+
+
+def _fewer_above(scaled: np.ndarray, on_level: np.ndarray) -> np.ndarray:
+    """For each node of ``on_level``: fewer of its 26 neighbours lie strictly above the level
+    (``scaled > 0`` off ``on_level``) than strictly below it."""
+    box = np.ones((3, 3, 3))
+    above = ndimage.convolve((~on_level & (scaled > 0)).astype(np.int32), box, mode="constant")
+    below = ndimage.convolve((~on_level & (scaled < 0)).astype(np.int32), box, mode="constant")
+    return (above < below)[on_level]
 
 
 def _crossings_in_float64(volume: np.ndarray, index: np.ndarray, level: float) -> np.ndarray:

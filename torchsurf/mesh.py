@@ -117,9 +117,10 @@ def extract(phi: Tensor, grid: Grid, level: float = 0.0, mask: Tensor | None = N
         does not touch itself (two sheets through a node where ``phi == level`` share its
         vertex, and an edge there can join four faces); no two vertices coincide and no face
         has zero area, also where ``phi == level`` at nodes. A node within 1e-12 of ``phi``'s
-        largest difference from the level is taken to lie on it, and below it while the cells
-        are triangulated (``_isosurface.LEVEL_SNAP``): a box whose faces lie on node planes
-        keeps its edges in float64 as in float32, and a level through nodes closes.
+        largest difference from the level is taken to lie on it, and on the side fewer of its
+        neighbours lie on while the cells are triangulated (``_isosurface.LEVEL_SNAP``,
+        ``OFF_LEVEL``): a box whose faces lie on node planes keeps its edges, in float64 as in
+        float32 and whichever side is its inside, and a level through nodes closes.
 
     Raises:
         ValueError: ``phi`` never crosses ``level`` (also where it only touches it at nodes).
@@ -145,7 +146,8 @@ def extract(phi: Tensor, grid: Grid, level: float = 0.0, mask: Tensor | None = N
         known = (F.max_pool3d(unknown, 3, stride=1, padding=1) == 0).numpy()[0, 0]
     if not np.isfinite(volume if known is None else volume[known]).all():
         raise ValueError("phi must hold finite values only, found NaN or infinity")
-    vertices, faces = _isosurface.level_set(volume, grid, float(level), known)
+    vertices, faces = _isosurface.level_set(volume, grid, float(level), known,
+                                            torch.finfo(phi.dtype).eps)
     return trimesh.Trimesh(vertices, faces, process=False)
 
 

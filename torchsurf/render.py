@@ -40,6 +40,7 @@ __all__ = [
     "MODES",
     "PICTURE_WIDTH_MAX",
     "RENDERERS",
+    "ROUNDING_SPAN",
     "colours",
     "fit_camera",
     "render_panels",
@@ -131,6 +132,11 @@ def vertex_values(volume: Tensor, mesh: trimesh.Trimesh, grid: Grid | ImplicitSu
     return values.T.to("cpu", torch.float64).numpy()
 
 
+ROUNDING_SPAN = 1e-6
+"""Values spread by at most this, relative to their magnitude, are one constant carrying float32
+rounding (a few units of 1.2e-7): equalized, they take the map's middle colour (their ranks
+spread one ulp over the whole map); a wider spread is a pattern, and equalized."""
+
 FLAT_SPAN = 1e-4
 """Default limits closer than this, relative to their magnitude, are widened to it about their
 middle: float32 rounding spreads a constant by about 1e-7 of it (a float32 constant read at a
@@ -151,7 +157,8 @@ def colours(values: np.ndarray, mode: str = "scalar", colormap: str = "viridis",
     scalar modes, NaN or infinite values are grey and do not set the limits; equal values
     share a colour, and default limits closer than :data:`FLAT_SPAN` of their magnitude are
     widened to it about their middle (a constant, or one carrying float32 rounding, takes the
-    map's middle colour, equalized or not; a few vertices off it, the map's ends).
+    map's middle colour; equalized, a spread within :data:`ROUNDING_SPAN` does; a few
+    vertices off it, the map's ends).
     ``limits``: ``(low, high)``, finite, ``low < high``.
     """
     if mode not in MODES:
@@ -187,10 +194,10 @@ def colours(values: np.ndarray, mode: str = "scalar", colormap: str = "viridis",
         _, inverse, counts = np.unique(finite, return_inverse=True, return_counts=True)
         mean_rank = np.cumsum(counts) - 0.5 * (counts + 1)
         scaled = np.zeros(len(values))
-        # a constant (to FLAT_SPAN of its magnitude: float32 rounding): the map's middle
+        # a constant (to ROUNDING_SPAN of its magnitude: float32 rounding): the map's middle
         # colour, as for default limits
         spread = float(np.ptp(finite)) if len(finite) else 0.0
-        flat = spread <= FLAT_SPAN * float(np.abs(finite).max(initial=0.0))
+        flat = spread <= ROUNDING_SPAN * float(np.abs(finite).max(initial=0.0))
         scaled[~missing] = 0.5 if flat else mean_rank[inverse] / (len(finite) - 1)
     else:
         low, high = (bounds if limits is not None else
