@@ -207,8 +207,29 @@ def test_contains_index_checks_its_arguments():
         grid.contains_index(np.zeros((2, 3)))
     with pytest.raises(ValueError, match=r"index must have shape \(\.\.\., 3\)"):
         grid.contains_index(torch.zeros(2, 2))
-    for tolerance in (float("nan"), float("inf"), True):
-        with pytest.raises(ValueError, match="tolerance must be a finite number"):
+    for tolerance, error in ((float("nan"), ValueError), (float("inf"), ValueError),
+                             (True, TypeError)):  # a bool is a type's error, as elsewhere
+        with pytest.raises(error, match="tolerance must be a finite number"):
             grid.contains_index(torch.zeros(2, 3), tolerance)
-        with pytest.raises(ValueError, match="tolerance must be a finite number"):
+        with pytest.raises(error, match="tolerance must be a finite number"):
             grid.contains(torch.zeros(2, 3), tolerance)
+
+
+def test_contains_takes_numpy_and_0d_tensor_tolerances_and_names_others():
+    grid = Grid.cube(5, bound=1.0)
+    point = torch.tensor([[1.2, 0.0, 0.0]])  # 0.4 cells outside
+    for tolerance in (np.float32(0.5), torch.tensor(0.5), 0.5):
+        assert bool(grid.contains(point, tolerance=tolerance))
+    with pytest.raises(TypeError, match="tolerance must be a finite number of cells"):
+        grid.contains(point, tolerance="0.5")
+    with pytest.raises(ValueError, match="tolerance must be a finite number of cells"):
+        grid.contains(point, tolerance=float("inf"))
+
+
+def test_world_rounding_is_the_float32_rounding_far_from_the_origin_not_ten_times_it():
+    """8 units of rounding at the farthest coordinate: 9.5 cells at 1e5 and spacing 0.01, where
+    float32 places a point to 0.39 cells, so points 9 cells outside were taken as inside."""
+    grid = Grid((17, 17, 17), 0.01, (1e5, 1e5, 1e5))
+    assert 0.39 < grid.world_rounding(torch.float32) < 2.5
+    outside = torch.tensor([[1e5 + 0.16 + 0.05, 1e5 + 0.08, 1e5 + 0.08]], dtype=torch.float32)
+    assert not bool(grid.contains(outside))

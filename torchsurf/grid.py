@@ -10,6 +10,7 @@ import torch
 from torch import Tensor
 
 from ._checks import (
+    as_float,
     check_count,
     check_device,
     check_dtype,
@@ -36,10 +37,10 @@ def _check_points(points: object, name: str) -> Tensor:
 def _check_tolerance(tolerance: object) -> float:
     """``tolerance`` of :meth:`Grid.contains`: a finite number of cells (negative: a box
     shrunk by that many cells)."""
-    if (isinstance(tolerance, bool) or not isinstance(tolerance, (int, float))
-            or not math.isfinite(tolerance)):
+    number = as_float(tolerance, "tolerance", "a finite number of cells")  # numpy, 0-d too
+    if not math.isfinite(number):
         raise ValueError(f"tolerance must be a finite number of cells, got {tolerance!r}")
-    return float(tolerance)
+    return number
 
 
 def _size(value: object, name: str) -> int:
@@ -195,11 +196,13 @@ class Grid:
 
     def world_rounding(self, dtype: torch.dtype) -> float:
         """Cells by which the index of a world point in ``dtype`` may be off through rounding
-        at its world coordinate's scale: far from the origin in float32 (1000.5 at spacing
-        0.13) that is several 1e-4 cells."""
+        at its world coordinate's scale: the point's and the origin's rounding, half a unit
+        in the last place each, taken twice. Far from the origin in float32 that is 1.8e-3
+        cells at 1000.5 and spacing 0.13 (2.4e-4 measured), 2.4 cells at 1e5 and spacing 0.01
+        (0.39 measured: float32 cannot place a point there more finely)."""
         farthest = max(abs(x) for x in (*self.origin, *(o + s for o, s in
                                                            zip(self.origin, self.size, strict=True))))
-        return 8 * torch.finfo(dtype).eps * farthest / self.spacing
+        return 2 * torch.finfo(dtype).eps * farthest / self.spacing
 
     def contains_index(self, index: Tensor, tolerance: float = 0.0) -> Tensor:
         """:meth:`contains` for continuous node indices ``(..., 3)`` ``(i, j, k)`` (integer

@@ -75,7 +75,9 @@ def sample(field: Tensor, points: Tensor, grid: Grid, interpolation: str = "line
         ``(B, C, V)``.
 
     Raises:
-        ValueError: a point lies outside the grid's box (by more than 1e-4 of a cell).
+        ValueError: a point lies outside the grid's box by more than 1e-4 of a cell and the
+            rounding of world points in their dtype (:meth:`~torchsurf.Grid.world_rounding`:
+            cells in float32 far from the origin).
 
     Example:
         >>> import torch

@@ -383,7 +383,11 @@ def redistance(phi: Tensor, grid: Grid, band_width: float | None = None) -> Tens
     is smooth enough for curvatures: distances to the flat triangles alone left the mean
     curvature of a sphere 47 % off at every resolution, now second order
     (``tests/test_redistance.py``); where ``phi`` is its own interpolant (a quadratic) the
-    result is exact to 1e-5 cells across the band, also around features a few cells wide.
+    result is exact to 1e-5 cells across the band, also around features 4 cells thick or more
+    (a flattened ellipsoid 3 cells thick: 0.26 cells too long at nodes 4 cells out beside its
+    rim, 33^3). Sharp edges and corners of S are rounded about a cell deep: a box's exact
+    distance moves by up to 0.65 cells outside beside its corners (0.56 beside its edges, 0.07
+    inside), and a second pass moves it again (an audit, 2026-12-06).
     The zero set is known inside the box only: next to a face that S crosses, a node gets its
     distance to the part of S inside, which is too long where S leaves the face obliquely (a
     sphere's ``r^2 - R^2``, ``R = 0.7``, centre 0.4 inside a face: up to 1.4 cells off at the
