@@ -650,3 +650,22 @@ def test_extract_names_a_level_crossed_only_within_rounding() -> None:
     phi[0, 0, 2, 2, 2] = 1e-13
     with pytest.raises(ValueError, match="phi never crosses the level 0"):
         tsm.extract(phi, ts.Grid((5, 5, 5), 1.0))
+
+
+@pytest.mark.parametrize("sign", [1.0, -1.0])
+def test_extract_closes_a_cross_of_bars_on_node_planes(sign) -> None:
+    """Concave edges where the bars meet: nodes on the level deciding their side one by one
+    took different sides there, and 31 edges joined four faces."""
+    grid = ts.Grid.cube(25, 1.2)
+    h = grid.spacing
+    points = grid.points(dtype=torch.float64)
+
+    def bar(half_size):
+        q = points.abs() - torch.tensor(half_size, dtype=torch.float64)
+        return q.clamp(min=0).norm(dim=-1) + q.max(dim=-1).values.clamp(max=0)
+
+    cross = torch.minimum(torch.minimum(bar((8 * h, 2 * h, 2 * h)), bar((2 * h, 8 * h, 2 * h))),
+                          bar((2 * h, 2 * h, 8 * h)))
+    mesh = tsm.extract(sign * cross[None, None], grid)
+    assert mesh.is_watertight
+    assert mesh.area == pytest.approx(672 * h**2, rel=0.05)  # its convex edges kept

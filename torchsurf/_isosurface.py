@@ -27,11 +27,11 @@ OFF_LEVEL = 1e-20
 """How far off the level a node on it is put, relative to the largest difference, when
 marching cubes runs: every corner then lies strictly on one side and the cells close (the
 crossings at that node are put on it afterwards, :data:`NODE_SNAP`); read as on the level,
-marching cubes left one-triangle holes where the level passed through a node. The node joins
-the side fewer of its 26 neighbours lie strictly on (below on a tie): the region whose convex
-edge or corner it holds, so that a box whose faces hold the level keeps its edges whichever
-side is its inside (put always below, ``-phi``'s box lost 12% of its area; always above,
-``phi``'s)."""
+marching cubes left one-triangle holes where the level passed through a node. Each connected
+part of such nodes joins the side fewer of its neighbours lie strictly on (below on a tie):
+the region whose faces it holds, so that a box whose faces hold the level keeps its edges
+whichever side is its inside (put always below, ``-phi``'s box lost 12% of its area; always
+above, ``phi``'s); a shape with concave edges too keeps one of the two kinds of edge."""
 
 NEWTON_ITERATIONS = 40
 """Most iterations of the closest-point refinement. Its tangential move is scaled by the local
@@ -124,12 +124,20 @@ def level_set(volume: np.ndarray, grid: Grid, level: float = 0.0,
 
 
 def _fewer_above(scaled: np.ndarray, on_level: np.ndarray) -> np.ndarray:
-    """For each node of ``on_level``: fewer of its 26 neighbours lie strictly above the level
-    (``scaled > 0`` off ``on_level``) than strictly below it."""
+    """For each node of ``on_level``: whether its connected part of ``on_level`` (26
+    neighbours) has fewer neighbours strictly above the level (``scaled > 0`` off
+    ``on_level``) than strictly below it, summed over the part. One side for a whole part:
+    decided node by node, neighbouring nodes on the level took different sides where a
+    concave edge met a face, and the crossings between them, on their nodes, joined four
+    faces at an edge (a cross of three bars: 31 such edges)."""
     box = np.ones((3, 3, 3))
-    above = ndimage.convolve((~on_level & (scaled > 0)).astype(np.int32), box, mode="constant")
-    below = ndimage.convolve((~on_level & (scaled < 0)).astype(np.int32), box, mode="constant")
-    return (above < below)[on_level]
+    above = ndimage.convolve((~on_level & (scaled > 0)).astype(np.int64), box, mode="constant")
+    below = ndimage.convolve((~on_level & (scaled < 0)).astype(np.int64), box, mode="constant")
+    parts, count = ndimage.label(on_level, structure=box)
+    labels = parts[on_level]
+    above_sum = np.bincount(labels, weights=above[on_level], minlength=count + 1)
+    below_sum = np.bincount(labels, weights=below[on_level], minlength=count + 1)
+    return (above_sum < below_sum)[labels]
 
 
 def _crossings_in_float64(volume: np.ndarray, index: np.ndarray, level: float) -> np.ndarray:

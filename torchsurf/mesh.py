@@ -117,8 +117,9 @@ def extract(phi: Tensor, grid: Grid, level: float = 0.0, mask: Tensor | None = N
         does not touch itself (two sheets through a node where ``phi == level`` share its
         vertex, and an edge there can join four faces); no two vertices coincide and no face
         has zero area, also where ``phi == level`` at nodes. A node within 1e-12 of ``phi``'s
-        largest difference from the level is taken to lie on it, and on the side fewer of its
-        neighbours lie on while the cells are triangulated (``_isosurface.LEVEL_SNAP``,
+        largest difference from the level is taken to lie on it, and, with the nodes on the
+        level connected to it, on the side fewer of their neighbours lie on while the cells
+        are triangulated (``_isosurface.LEVEL_SNAP``,
         ``OFF_LEVEL``): a box whose faces lie on node planes keeps its edges, in float64 as in
         float32 and whichever side is its inside, and a level through nodes closes.
 
