@@ -144,8 +144,8 @@ class PackedRegion:
         return values.index_select(0, firsts)
 
     def ring_within_band_range(self, values: Tensor) -> Tensor:
-        """``values`` ``(nodes, C, K)`` with each ring node's clamped to the range of its
-        entry's band values (per channel and column): an unlimited fill of the ring then
+        """``values`` ``(nodes, C, K)`` with each ring node's value clamped to the range of its
+        entry's band values (per channel and column), so that an unlimited fill of the ring
         brings no new extremum into a limited re-extension that reads it."""
         band, ring = values[:self.band_count], values[self.band_count:]
         if self._entry_of_nodes is None:
