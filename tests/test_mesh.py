@@ -668,4 +668,5 @@ def test_extract_closes_a_cross_of_bars_on_node_planes(sign) -> None:
                           bar((2 * h, 2 * h, 8 * h)))
     mesh = tsm.extract(sign * cross[None, None], grid)
     assert mesh.is_watertight
-    assert mesh.area == pytest.approx(672 * h**2, rel=0.05)  # its convex edges kept
+    # its convex edges kept, its concave ones cut across a cell: 3.2% short, either sign
+    assert 0.96 * 672 * h**2 < mesh.area < 0.975 * 672 * h**2

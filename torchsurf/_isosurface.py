@@ -19,9 +19,9 @@ the crossings around it fell 1e-16 apart and left triangles of no area."""
 LEVEL_SNAP = 1e-12
 """A node whose value differs from the level by less than this share of the volume's largest
 difference from it (or than four units of the volume's rounding of the level) is taken to lie
-on the level: a box's faces on node planes held ``+-1e-16``
-in float64, and cells with three such corners were cut diagonally (8% of the box's area lost;
-float32 rounded them to 0 and was exact)."""
+on the level: a box's faces on node planes held ``+-1e-16`` in float64, and cells with three
+such corners were cut diagonally (8% of the box's area lost; float32 rounded them to 0 and was
+exact)."""
 
 OFF_LEVEL = 1e-20
 """How far off the level a node on it is put, relative to the largest difference, when

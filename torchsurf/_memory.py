@@ -103,8 +103,8 @@ def mesh_sdf_bytes(shape: tuple[int, int, int], spacing: float, band: float, are
     conversion to ``dtype``; the band's nodes, about ``area * 2 band / spacing^3`` of them
     (at most every node), :data:`MESH_BAND_NODE_BYTES` each."""
     nodes = math.prod(shape)
-    band_nodes = min(nodes, area * 2.0 * band / spacing**3)
-    return int(max(16, 8 + _itemsize(dtype)) * nodes + MESH_BAND_NODE_BYTES * band_nodes)
+    band_part = min(MESH_BAND_NODE_BYTES * nodes, mesh_band_bytes(spacing, band, area))
+    return int(max(16, 8 + _itemsize(dtype)) * nodes + band_part)
 
 
 def mesh_band_bytes(spacing: float, reach: float, area: float) -> int:

@@ -169,8 +169,8 @@ def _check_physical_time(prepared: Prepared) -> None:
                / (experiment.grid.size - 1))
     settings = physical_settings(experiment, float(np.linalg.norm(extent)), spacing)
     limits = torch.finfo(torch.float32)
-    for name in ("time", "chroma_time"):
-        physical = settings.get(name, 1.0)
+    for name in [name for name in ("time", "chroma_time") if name in settings]:
+        physical = settings[name]
         if not TIME_MARGIN * limits.tiny <= physical <= limits.max / TIME_MARGIN:
             unit = cfg.time_unit(experiment.flow).name
             what = "" if name == "time" else " for the chroma (in L^p)"

@@ -148,10 +148,11 @@ def signed_bricks(meshes: list[MeshLike], grids: list[Grid], band_width: float, 
     dtype = check_dtype(dtype)
     device = check_device(device)
     numpy_dtype = torch.empty(0, dtype=dtype).numpy().dtype
-    arrays = [triangle_arrays(as_trimesh(mesh, f"meshes[{b}]")) for b, mesh in enumerate(meshes)]
+    loaded = [as_trimesh(mesh, f"meshes[{b}]") for b, mesh in enumerate(meshes)]
+    arrays = [triangle_arrays(mesh) for mesh in loaded]
     # before the distances: a mesh far larger than the grid's cells ran for minutes, then
     # failed allocating 30 GiB
-    area = sum(_triangle_area(vertices, faces) for vertices, faces in arrays)
+    area = sum(float(mesh.area) for mesh in loaded)
     _memory.check_fits(_memory.mesh_band_bytes(grids[0].spacing, reach, area),
                        f"bricks of {len(arrays)} mesh(es) of total area {area:.4g} at spacing "
                        f"{grids[0].spacing:.4g}")
@@ -176,13 +177,6 @@ def signed_bricks(meshes: list[MeshLike], grids: list[Grid], band_width: float, 
     surface = BrickSurface(phi, layout, band_width)
     _check_formed_band_clear_of_faces(surface)
     return surface, bands
-
-
-def _triangle_area(vertices: np.ndarray, faces: np.ndarray) -> float:
-    """The total area of the triangles ``faces`` ``(F, 3)`` of ``vertices`` ``(V, 3)``."""
-    corners = vertices[faces]
-    return float(0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0],
-                                               corners[:, 2] - corners[:, 0]), axis=1).sum())
 
 
 def _check_formed_band_clear_of_faces(surface: BrickSurface) -> None:

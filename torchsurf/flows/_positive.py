@@ -75,6 +75,13 @@ class HostMaximum:
             self.check(value)
 
 
+def check_learned_values(module: nn.Module, data: Tensor, data_name: str, owner: str) -> None:
+    """:meth:`Positive.check_learned_like` for every :class:`Positive` value in ``module``."""
+    for value in module.modules():
+        if isinstance(value, Positive):
+            value.check_learned_like(data, data_name, owner)
+
+
 def _reread_largest(module: Positive, _: object) -> None:
     """After ``load_state_dict``: the loaded values' maximum (see :class:`HostMaximum`)."""
     module._largest.of(module.values)

@@ -87,7 +87,7 @@ from ._integrators import (
     with_ring,
 )
 from ._packed_band import PackedRegion
-from ._positive import Positive
+from ._positive import Positive, check_learned_values
 from ._reextension import (
     MIN_BAND_CELLS,
     check_reextension_width,
@@ -778,9 +778,7 @@ class Flow(nn.Module):
                 "(docs/bricks.md)"
             )
         check_data(u0, "u0", surface)
-        for value in self.modules():
-            if isinstance(value, Positive):
-                value.check_learned_like(u0, "u0", type(self).__name__)
+        check_learned_values(self, u0, "u0", type(self).__name__)
         check_times_of_learned_time(self.time_value, times)
         separately = self._entries_apart(u0, surface, times, inputs)
         if separately is not None:

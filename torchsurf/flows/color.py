@@ -7,7 +7,7 @@ from torch import Tensor, nn
 
 from .._checks import check_finite, check_positive
 from ..surface import ImplicitSurface, check_data, check_surface
-from ._positive import Positive
+from ._positive import check_learned_values
 from .anisotropic import AnisotropicFlow
 from .base import Flow
 from .harmonic import HarmonicMapFlow
@@ -118,9 +118,8 @@ class ColorDenoise(nn.Module):
             )
         check_data(image, "image", surface)
         for name in ("brightness", "chroma"):  # named here rather than as the flow's own u0
-            for value in getattr(self, name).modules():
-                if isinstance(value, Positive):
-                    value.check_learned_like(image, "image", f"ColorDenoise's {name} flow")
+            check_learned_values(getattr(self, name), image, "image",
+                                 f"ColorDenoise's {name} flow")
         if image.shape[1] < 2:
             raise ValueError(f"image must have at least 2 colour channels (a chroma of one "
                              f"channel is constant), got shape {tuple(image.shape)}")
