@@ -46,7 +46,13 @@ def mean_curvature(gradient: Tensor, hessian: Tensor, grad_norm: Tensor) -> Tens
 
     Formed as ``tr(S) - n^T S n`` with ``S = Hess / |g|`` and ``n = g / |g|``: no power of
     ``phi``'s scale above one, so ``c * phi`` gives the same numbers for any ``c`` float32 holds
-    (``|g|^3`` overflowed float32 from ``c = 1e13``)."""
+    (``|g|^3`` overflowed float32 from ``c = 1e13``).
+
+    Args:
+        gradient: ``grad phi`` ``(B, 3, ...)`` in ``(x, y, z)`` order.
+        hessian: ``Hess phi`` ``(B, 6, ...)`` in the order ``xx, yy, zz, xy, xz, yz``.
+        grad_norm: the regularised ``|grad phi|`` ``(B, 1, ...)`` (positive: it divides).
+    """
     _check_fields(gradient=(gradient, 3), hessian=(hessian, 6), grad_norm=(grad_norm, 1))
     scaled = hessian / grad_norm
     normal = gradient / grad_norm
@@ -57,7 +63,13 @@ def mean_curvature(gradient: Tensor, hessian: Tensor, grad_norm: Tensor) -> Tens
 def gaussian_curvature(gradient: Tensor, hessian: Tensor, grad_norm: Tensor) -> Tensor:
     """``K = g^T adj(Hess) g / |g|^4``; ``(B, 1, ...)``, formed as ``n^T adj(Hess / |g|) n``
     (the adjugate is quadratic in its matrix) so that no power of ``phi``'s scale above one
-    appears (``|g|^4`` overflowed float32 from ``c = 1e10``)."""
+    appears (``|g|^4`` overflowed float32 from ``c = 1e10``).
+
+    Args:
+        gradient: ``grad phi`` ``(B, 3, ...)`` in ``(x, y, z)`` order.
+        hessian: ``Hess phi`` ``(B, 6, ...)`` in the order ``xx, yy, zz, xy, xz, yz``.
+        grad_norm: the regularised ``|grad phi|`` ``(B, 1, ...)`` (positive: it divides).
+    """
     _check_fields(gradient=(gradient, 3), hessian=(hessian, 6), grad_norm=(grad_norm, 1))
     gradient = gradient / grad_norm
     xx, yy, zz, xy, xz, yz = (hessian / grad_norm).unbind(dim=1)
@@ -112,6 +124,12 @@ def principal(
     At an umbilic (``m11 = m22``, ``m12 = 0``; every point of a sphere) the directions are not
     defined: the first direction returned is ``t1`` and the curvatures are ``mean ± eps / 2``,
     all finite with finite gradients.
+
+    Args:
+        hessian: ``Hess phi`` ``(B, 6, ...)`` in the order ``xx, yy, zz, xy, xz, yz``.
+        normal: the unit normal ``grad phi / |grad phi|`` ``(B, 3, ...)``.
+        grad_norm: the regularised ``|grad phi|`` ``(B, 1, ...)`` (positive: it divides).
+        eps: regularisation of the eigenvalue gap, inverse world units, > 0.
 
     Returns:
         ``k1, k2`` ``(B, 1, ...)`` with ``k1 >= k2``, and unit directions ``e1, e2``

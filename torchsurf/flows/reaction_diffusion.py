@@ -43,7 +43,8 @@ class ReactionDiffusion(Flow):
         time: end time (Turk's iterations).
         rate: reaction rate ``s`` (Turk: 1/128).
         diffusivity_a, diffusivity_b: ``D_a``, ``D_b``, world units squared (default Turk's).
-        beta: mean of ``beta``, a finite number; noise: half-width of its uniform noise, >= 0.
+        beta: mean of Turk's ``beta``, a finite number.
+        noise: half-width of ``beta``'s uniform noise about its mean, >= 0.
         **kwargs: integration settings of :class:`Flow` (explicit or torchdiffeq); the default
             method is ``"euler"``, as Turk's: the pattern grows from the reaction's unstable
             modes, which Runge–Kutta–Chebyshev's long steps do not resolve.

@@ -65,6 +65,9 @@ class GradientFeatures(nn.Module):
     """Module form of :func:`gradient_features`.
 
     Shapes: ``(B, C, D, H, W)`` -> ``(B, feature_count(C, pairs), D, H, W)``.
+
+    Args:
+        pairs, eps, path: as :func:`gradient_features`'s.
     """
 
     def __init__(self, pairs: bool = True, eps: float = 1e-6, path: str = "auto") -> None:
@@ -74,8 +77,8 @@ class GradientFeatures(nn.Module):
         self.path = check_choice(path, "path", PATHS)
 
     def forward(self, u: Tensor, surface: ImplicitSurface) -> Tensor:
-        """:func:`gradient_features`: ``(B, C, D, H, W) -> (B, C + C(C-1)/2, D, H, W)`` (``C``
-        without pairs)."""
+        """:func:`gradient_features` of ``u`` ``(B, C, D, H, W)`` on ``surface``: ``(B, C +
+        C(C-1)/2, D, H, W)`` (``C`` without pairs)."""
         return gradient_features(u, surface, self.pairs, self.eps, self.path)
 
     def extra_repr(self) -> str:

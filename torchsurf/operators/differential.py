@@ -57,15 +57,20 @@ def intrinsic_divergence(v: Tensor, surface: ImplicitSurface, path: str = "auto"
 
 
 class IntrinsicGradient(nn.Module):
-    """Module form of :func:`intrinsic_gradient`: ``(B, C, D, H, W) -> (B, 3C, D, H, W)``."""
+    """Module form of :func:`intrinsic_gradient`: ``(B, C, D, H, W) -> (B, 3C, D, H, W)``.
+
+    Args:
+        path: how stencils are applied, one of :data:`torchsurf.backend.PATHS` (``"auto"``
+            chooses by measurement; see :func:`intrinsic_gradient`).
+    """
 
     def __init__(self, path: str = "auto") -> None:
         super().__init__()
         self.path = check_choice(path, "path", backend.PATHS)
 
     def forward(self, u: Tensor, surface: ImplicitSurface) -> Tensor:
-        """``P grad u`` per channel: ``(B, C, D, H, W) -> (B, 3C, D, H, W)``, units of ``u`` per
-        world length (:func:`intrinsic_gradient`)."""
+        """``P grad u`` per channel of ``u`` on ``surface``: ``(B, C, D, H, W) -> (B, 3C, D, H,
+        W)``, units of ``u`` per world length (:func:`intrinsic_gradient`)."""
         return intrinsic_gradient(u, surface, path=self.path)
 
     def extra_repr(self) -> str:
@@ -73,14 +78,20 @@ class IntrinsicGradient(nn.Module):
 
 
 class IntrinsicDivergence(nn.Module):
-    """Module form of :func:`intrinsic_divergence`: ``(B, 3C, D, H, W) -> (B, C, D, H, W)``."""
+    """Module form of :func:`intrinsic_divergence`: ``(B, 3C, D, H, W) -> (B, C, D, H, W)``.
+
+    Args:
+        path: how stencils are applied, one of :data:`torchsurf.backend.PATHS` (``"auto"``
+            chooses by measurement; see :func:`intrinsic_divergence`).
+    """
 
     def __init__(self, path: str = "auto") -> None:
         super().__init__()
         self.path = check_choice(path, "path", backend.PATHS)
 
     def forward(self, v: Tensor, surface: ImplicitSurface) -> Tensor:
-        """The intrinsic divergence of tangent fields: ``(B, 3C, D, H, W) -> (B, C, D, H, W)``
+        """The intrinsic divergence of tangent fields ``v`` ``(B, 3C, D, H, W)`` (x, y, z per
+        field) on ``surface``: ``(B, C, D, H, W)``, units of ``v`` per world length
         (:func:`intrinsic_divergence`)."""
         return intrinsic_divergence(v, surface, path=self.path)
 

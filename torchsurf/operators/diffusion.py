@@ -230,6 +230,11 @@ class AnisotropicDiffusion(nn.Module):
     (:class:`~torchsurf.MismatchError`). Another tensor that records no gradient is copied into
     a buffer: it follows ``.to()`` and ``state_dict``, and is read in the data's dtype, as the
     flows' fixed values are.
+
+    Args:
+        diffusivity, contrast, eps, coupled, scheme, path: as :func:`anisotropic_diffusion`'s
+            (``diffusivity`` a name or a callable ``g(magnitude, contrast)``; ``contrast`` and
+            ``eps`` in units of ``u`` per world length).
     """
 
     def __init__(
@@ -283,7 +288,11 @@ class AnisotropicDiffusion(nn.Module):
 
 
 class DirectionalDiffusion(nn.Module):
-    """Module form of :func:`directional_diffusion`: ``(B, C, D, H, W) -> (B, C, D, H, W)``."""
+    """Module form of :func:`directional_diffusion`: ``(B, C, D, H, W) -> (B, C, D, H, W)``.
+
+    Args:
+        scheme, path: as :func:`directional_diffusion`'s.
+    """
 
     def __init__(self, scheme: str = "symmetric", path: str = "auto") -> None:
         super().__init__()
@@ -291,8 +300,8 @@ class DirectionalDiffusion(nn.Module):
         self.path = check_choice(path, "path", backend.PATHS)
 
     def forward(self, u: Tensor, surface: ImplicitSurface, direction: Tensor) -> Tensor:
-        """Diffusion along ``direction`` ``(B or 1, 3, D, H, W)``: ``(B, C, D, H, W) ->
-        (B, C, D, H, W)`` (:func:`directional_diffusion`)."""
+        """Diffusion of ``u`` ``(B, C, D, H, W)`` on ``surface`` along ``direction`` ``(B or 1,
+        3, D, H, W)``: ``(B, C, D, H, W)`` (:func:`directional_diffusion`)."""
         return directional_diffusion(u, surface, direction, self.scheme, self.path)
 
     def extra_repr(self) -> str:
