@@ -128,7 +128,7 @@ def _leaves(data: object) -> list[object]:
 ])
 def test_record_holds_the_flow_settings_the_run_used(overrides, method, tmp_path, monkeypatch):
     """``flow`` records what ran: the defaults a config leaves null, and the steps the flow
-    planned (heat plans each of the image's channels alike); ``config`` keeps the request."""
+    planned (once: heat runs the image's channels together); ``config`` keeps the request."""
     from torchsurf.flows import base
 
     planned = []
@@ -144,7 +144,7 @@ def test_record_holds_the_flow_settings_the_run_used(overrides, method, tmp_path
     assert code == cli.EXIT_OK
     record = json.loads((tmp_path / "heat_sphere.json").read_text())
     steps = planned[-1].count
-    assert {plan.count for plan in planned} == {steps} and len(planned) == 3
+    assert len(planned) == 1
     assert record["flow"] == {"kind": "heat", "time": 0.0005, "time_unit": "diagonal",
                               "method": method, "steps": steps}
     requested = record["config"]["flow"]
@@ -478,6 +478,19 @@ def test_quiet_also_silences_warnings_and_an_empty_out_is_refused(tmp_path, caps
     # --out "" fell back to outputs/<name> without a word
     assert cli.main(["run", "heat_sphere", "--out", ""]) == cli.EXIT_USAGE
     assert "--out must name a folder" in capsys.readouterr().err
+
+
+def test_an_unstable_step_is_warned_of_once_for_all_channels(tmp_path):
+    """The heat flow ran the image's three channels one at a time and warned of its unstable
+    step once per channel."""
+    import warnings
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert cli.main(["run", "heat_sphere", "--set", *TINY, "flow.method=euler",
+                         "flow.steps=1", "--out", str(tmp_path)]) == cli.EXIT_OK
+    unstable = [w for w in caught if "exceeds the stable explicit step" in str(w.message)]
+    assert len(unstable) == 1
 
 
 def test_the_renderer_is_loaded_before_any_folder_is_made(tmp_path, monkeypatch):
