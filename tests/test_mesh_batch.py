@@ -172,6 +172,26 @@ def test_an_analytic_shape_keeps_its_own_parameters() -> None:
     assert shape == AnalyticShape("sphere", {"radius": 0.5})
 
 
+def test_parameters_requiring_grad_are_refused_by_the_batch_and_read_by_bounds() -> None:
+    """The batch normalises each shape, so its phi is no function of a radius; autograd gave
+    -0.625 for a sphere's (finite differences: 0). A tensor centre requiring grad failed in
+    ``bounds`` with numpy's error, and the checks warned of a scalar read from a graph."""
+    import warnings
+
+    radius = torch.tensor(0.8, dtype=torch.float64, requires_grad=True)
+    centre = torch.zeros(3, dtype=torch.float64, requires_grad=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        shape = AnalyticShape("sphere", {"radius": radius, "center": centre})
+        low, high = shape.bounds()
+    assert np.allclose(low, -0.8) and np.allclose(high, 0.8)
+    shape.phi(ts.Grid.cube(6, bound=1.0), dtype=torch.float64).sum().backward()
+    assert radius.grad is not None and float(radius.grad) != 0.0  # its own phi stays differentiable
+    with pytest.raises(ValueError, match=r"^shapes\[1\]: parameters \['radius', 'center'\] require "
+                                         r"grad"):
+        MeshBatchAdapter([AnalyticShape("torus"), shape], resolution=16)
+
+
 @pytest.mark.skipif(not SPOT.exists(), reason="shared meshes not present")
 def test_mesh_files_and_shapes_mix() -> None:
     batch = MeshBatchAdapter([SPOT, AnalyticShape("trefoil")], resolution=33)

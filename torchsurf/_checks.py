@@ -208,7 +208,7 @@ def as_float(value: object, name: str, expected: str) -> float:
     """
     if isinstance(value, Tensor):
         if value.dim() == 0 and value.dtype != torch.bool and not value.is_complex():
-            return float(check_has_data(value, name))
+            return float(check_has_data(value, name).detach())  # the number, read to check it
     elif isinstance(value, numbers.Real) and not isinstance(value, bool):
         return float(value)
     kind = f"a tensor of shape {tuple(value.shape)} and dtype {value.dtype}" if isinstance(

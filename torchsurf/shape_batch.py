@@ -63,6 +63,25 @@ def _copied(value: object) -> object:
     return value
 
 
+def _values(value: object) -> object:
+    """``value`` with its tensors as numpy arrays, out of any graph: the numbers of a shape's
+    parameters (its bounds are numbers, not part of a gradient)."""
+    if isinstance(value, Tensor):
+        return value.detach().cpu().numpy()
+    if isinstance(value, (list, tuple)):
+        return type(value)(_values(item) for item in value)
+    return value
+
+
+def _requiring_grad(parameters: Mapping[str, object]) -> list[str]:
+    """The names of ``parameters`` that hold a tensor requiring grad."""
+    def requires(value: object) -> bool:
+        if isinstance(value, Tensor):
+            return value.requires_grad
+        return isinstance(value, (list, tuple)) and any(requires(item) for item in value)
+    return [key for key, value in parameters.items() if requires(value)]
+
+
 def _trefoil_reach(parameters: Mapping[str, object]) -> np.ndarray:
     """``(2, 3)`` box of the trefoil's core curve (:func:`torchsurf.sdf.trefoil`)."""
     scale = float(parameters.get("scale", 0.4))
@@ -117,7 +136,7 @@ class AnalyticShape:
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """The bounding box ``(low, high)``, world ``(x, y, z)`` arrays ``(3,)``."""
-        p = self.parameters
+        p = {key: _values(value) for key, value in self.parameters.items()}
         centre = np.asarray(p.get("center", (0.0, 0.0, 0.0)), dtype=np.float64)
         if self.name == "sphere":
             reach = np.full(3, float(p.get("radius", 1.0)))
@@ -244,6 +263,14 @@ class MeshBatchAdapter(nn.Module):
         for index, shape in enumerate(shapes):
             name = f"shapes[{index}]"
             if isinstance(shape, AnalyticShape):
+                learned = _requiring_grad(shape.parameters)
+                if learned:
+                    raise ValueError(
+                        f"{name}: parameters {learned} require grad, but the batch normalises "
+                        f"each shape to its size (a sphere of any radius becomes the same "
+                        f"sphere), so its phi is no function of them; pass detached values, "
+                        f"or call torchsurf.sdf.{shape.name}(grid, ...) for a phi "
+                        f"differentiable in them")
                 low, high = shape.bounds()
             else:
                 mesh = as_trimesh(shape, name)
