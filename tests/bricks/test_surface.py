@@ -36,6 +36,27 @@ def test_geometry_equals_the_dense_surface_on_the_band(torus):
     assert torch.allclose(k2 * band, d2 * band, atol=1e-10)
 
 
+def test_geometry_equals_the_dense_surface_one_node_beyond_the_band():
+    """docs/bricks.md: the same numbers within one node of the band, on phi that is no distance
+    too (an ellipsoid's algebraic phi, off the grid's centre); two nodes out, a node beside an
+    unstored brick reads zeros there (normals flipped, H off by 17 on this ellipsoid)."""
+    grid = Grid.cube(33, bound=1.5)
+    p = grid.points(dtype=torch.float64, relative_to=(0.03, -0.02, 0.01))
+    phi = (p[..., 0] ** 2 + (p[..., 1] / 0.7) ** 2 + (p[..., 2] / 0.5) ** 2 - 1)[None, None]
+    dense, surface = ts.ImplicitSurface(phi, grid), bricks.from_dense(phi, grid)
+    band = dense.band_mask().double()
+    (stored,) = surface.to_dense(surface.layout.inside.double())
+    near = (torch.nn.functional.max_pool3d(band, 3, stride=1, padding=1) > 0) & (stored > 0)
+    assert int(near.sum()) > int((band > 0).sum())
+    fields = {"normal": (surface.normal, dense.normal),
+              "mean_curvature": (surface.mean_curvature(), dense.mean_curvature()),
+              "gaussian_curvature": (surface.gaussian_curvature(), dense.gaussian_curvature()),
+              "k1": (surface.principal_curvatures()[0], dense.principal_curvatures()[0])}
+    for name, (packed, expected) in fields.items():
+        (volume,) = surface.to_dense(packed)
+        assert torch.equal(volume * near, expected * near), name
+
+
 def test_band_is_the_dense_band_and_scale_free(torus):
     dense, surface = torus
     (band,) = surface.to_dense(surface.band_mask().double())
