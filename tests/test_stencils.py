@@ -252,3 +252,35 @@ def test_pad_mirrored_negates_the_component_normal_to_each_face(generator):
             sign[axis] = -1.0
             expected = sign.view(1, 3, 1, 1) * field[tuple(inside)]
             torch.testing.assert_close(padded[tuple(index)], expected)
+
+
+def test_the_padding_and_application_steps_refuse_other_layouts_naming_the_argument():
+    """pad_mirrored kept 3 of two vector fields' 6 channels and pad_flux 3 of 5 components,
+    silently; the others failed inside torch, naming nothing (an audit)."""
+    volume = torch.rand(1, 6, 5, 5, 5, dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"^field must be \(B, 3, D, H, W\), got shape "
+                                         r"\(1, 6, 5, 5, 5\)"):
+        stencils.pad_mirrored(volume)
+    with pytest.raises(ValueError, match=r"^field must be \(B, 3, D, H, W\), got shape "
+                                         r"\(3, 5, 5, 5\)"):
+        stencils.pad_mirrored(volume[0, :3])
+    with pytest.raises(ValueError, match=r"^flux must be \(B, C, 3, D, H, W\), got shape "
+                                         r"\(1, 1, 5, 5, 5, 5\)"):
+        stencils.pad_flux(volume[:, None, :5], 1)
+    with pytest.raises(ValueError, match=r"^flux must be .* got shape \(1, 3, 6, 6, 6\)"):
+        stencils.pad_flux(torch.rand(1, 3, 6, 6, 6), 1)
+    with pytest.raises(ValueError, match=r"^volume must be \(B, C, D, H, W\) with at least 2 "
+                                         r"nodes a side, got shape \(1, 1, 1, 4, 4\)"):
+        stencils.pad(torch.rand(1, 1, 1, 4, 4), "linear")
+    with pytest.raises(ValueError, match=r"^volume must be \(B, C, D, H, W\), got shape "
+                                         r"\(4, 4, 4\)"):
+        stencils.pad(torch.rand(4, 4, 4))
+    with pytest.raises(TypeError, match=r"^padded must be a floating-point tensor .* got dtype "
+                                        r"torch.int64"):
+        stencils.apply(torch.ones(1, 1, 5, 5, 5, dtype=torch.long), stencils.CENTRAL, "conv3d")
+    with pytest.raises(ValueError, match=r"^padded must be \(B, C, 3, D \+ 2, H \+ 2, W \+ 2\) "
+                                         r"for a bank of 3 stencils"):
+        stencils.contract(torch.rand(1, 1, 2, 5, 5, 5), stencils.CENTRAL)
+    # the layouts they document still run
+    assert stencils.pad_mirrored(volume[:, :3]).shape == (1, 3, 7, 7, 7)
+    assert stencils.contract(torch.rand(1, 2, 3, 5, 5, 5), stencils.CENTRAL).shape == (1, 2, 3, 3, 3)

@@ -187,6 +187,24 @@ def one_sided(side: Side) -> tuple[Stencil, ...]:
     return tuple((FORWARD if s == 1 else BACKWARD)[a] for a, s in enumerate(per_axis(side)))
 
 
+def _check_layout(value: object, name: str, layout: str, ndim: int,
+                  components: int | None = None, minimum: int = 1) -> Tensor:
+    """Raise naming ``name`` unless ``value`` is a floating tensor of ``ndim`` dimensions
+    (``layout`` its description), dimension ``ndim - 4`` holding ``components`` if given, and
+    at least ``minimum`` nodes along each of the last three axes."""
+    if not isinstance(value, Tensor):
+        raise TypeError(f"{name} must be a tensor {layout}, got {type(value).__name__}")
+    shape = tuple(value.shape)
+    if (value.dim() != ndim or (components is not None and shape[ndim - 4] != components)
+            or min(shape[-3:]) < minimum):
+        nodes = f" with at least {minimum} nodes a side" if minimum > 1 else ""
+        raise ValueError(f"{name} must be {layout}{nodes}, got shape {shape}")
+    if not value.is_floating_point():
+        raise TypeError(f"{name} must be a floating-point tensor {layout}, got dtype "
+                        f"{value.dtype}")
+    return value
+
+
 def pad(volume: Tensor, mode: str = "replicate") -> Tensor:
     """Add a halo of one node on every side of the last three axes.
 
@@ -204,6 +222,7 @@ def pad(volume: Tensor, mode: str = "replicate") -> Tensor:
         ``(B, C, D + 2, H + 2, W + 2)``.
     """
     check_choice(mode, "mode", PAD_MODES)
+    _check_layout(volume, "volume", "(B, C, D, H, W)", 5, minimum=2 if mode == "linear" else 1)
     halo = (1, 1, 1, 1, 1, 1)
     if mode == "zeros":
         return F.pad(volume, halo)
@@ -245,6 +264,7 @@ def pad_mirrored(field: Tensor) -> Tensor:
     Returns:
         ``(B, 3, D + 2, H + 2, W + 2)``.
     """
+    _check_layout(field, "field", "(B, 3, D, H, W)", 5, components=3)
     replicated = F.pad(field, (1, 1, 1, 1, 1, 1), mode="replicate")
     components = []
     for axis in range(3):
@@ -277,6 +297,7 @@ def pad_flux(flux: Tensor, side: Side) -> Tensor:
     Returns:
         ``(B, C, 3, D + 2, H + 2, W + 2)``.
     """
+    _check_layout(flux, "flux", "(B, C, 3, D, H, W)", 6, components=3)
     sides = per_axis(side)
     components = []
     for axis in range(3):
@@ -338,6 +359,7 @@ def apply(padded: Tensor, bank: Sequence[Stencil], path: str = "auto") -> Tensor
     Returns:
         ``(B, C, K, D, H, W)`` in index units.
     """
+    _check_layout(padded, "padded", "(B, C, D + 2, H + 2, W + 2)", 5, minimum=3)
     path = _concrete(path, padded)
     if path == "slicing":
         return torch.stack([_sliced(padded, stencil) for stencil in bank], dim=2)
@@ -358,6 +380,8 @@ def contract(padded: Tensor, bank: Sequence[Stencil], path: str = "auto") -> Ten
     Returns:
         ``(B, C, D, H, W)`` in index units.
     """
+    _check_layout(padded, "padded", f"(B, C, {len(bank)}, D + 2, H + 2, W + 2) for a bank of "
+                  f"{len(bank)} stencils", 6, components=len(bank), minimum=3)
     path = _concrete(path, padded)
     if path == "slicing":
         result = _sliced(padded[:, :, 0], bank[0])

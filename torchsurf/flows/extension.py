@@ -80,6 +80,10 @@ def closest_point_extension(
 
     Returns:
         ``(B, C, D, H, W)`` (packed ``(N, C, 8, 8, 8)`` on bricks: the dense result's values).
+
+    Like a PyTorch function, it reads no values to check them: NaN or infinity where it reads
+    ``u`` reaches every node whose interpolation reads it (one node of a tricubic extension:
+    about a hundred). :class:`Extension` and the flows refuse such ``u``, naming it.
     """
     check_data(u, "u", surface)
     check_choice(interpolation, "interpolation", INTERPOLATIONS)

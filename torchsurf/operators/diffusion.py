@@ -188,6 +188,8 @@ def directional_diffusion(
             ``(N, 3, 8, 8, 8)`` on bricks), usually of unit length (e.g. a principal
             direction); its part along the normals is dropped (``P T`` is used, so that the
             result is intrinsic: ``T`` and ``P T`` give the same, and the normals nothing).
+            Nothing checks that it has a tangent part: a field along the normals (or zero)
+            gives zero, where :class:`~torchsurf.FlowVisualization` refuses it.
         scheme: ``"symmetric"`` (default), ``"conservative"`` or ``"octant"``.
         path: how stencils are applied.
 
