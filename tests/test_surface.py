@@ -909,11 +909,15 @@ def test_the_curvature_functions_check_their_fields_by_name():
 
     field = torch.rand(1, 3, 5, 5, 5, dtype=torch.float64)
     hessian, norm = torch.rand(1, 6, 5, 5, 5, dtype=torch.float64), torch.ones(1, 1, 5, 5, 5).double()
-    with pytest.raises(ValueError, match=r"hessian must be \(B or 1, 6, \.\.\.\) on the grid of gradient"):
+    with pytest.raises(ValueError, match=r"hessian must be \(B or 1, 6, \*grid\) .* on the grid of "
+                                         r"gradient"):
         curvature.mean_curvature(field, field, norm)
-    with pytest.raises(ValueError, match=r"normal must be \(B or 1, 3, \.\.\.\), got shape "
+    with pytest.raises(ValueError, match=r"normal must be \(B or 1, 3, \*grid\) .*, got shape "
                                          r"\(1, 2, 5, 5, 5\)"):
         curvature.tangent_basis(field[:, :2])
+    with pytest.raises(ValueError, match=r"normal must be \(B or 1, 3, \*grid\) with at least one "
+                                         r"grid axis, got shape \(1, 3\)"):
+        curvature.tangent_basis(field[:, :, 0, 0, 0])  # read as fitting "(B, 3, ...)" before
     with pytest.raises(ValueError, match=r"grad_norm must be .* got shape \(1, 1, 5, 5, 6\)"):
         curvature.gaussian_curvature(field, hessian, torch.ones(1, 1, 5, 5, 6).double())
     with pytest.raises(TypeError, match="grad_norm is torch.float32 but hessian is torch.float64"):

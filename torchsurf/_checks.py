@@ -178,7 +178,8 @@ def check_alike(fields: Sequence[tuple[str, Tensor | None, int | None]]) -> None
     for name, value, channels in given:
         if (value.dim() != first.dim() or value.dim() < 3 or value.shape[2:] != first.shape[2:]
                 or channels is not None and value.shape[1] != channels):
-            wanted = f"(B or 1, {'C' if channels is None else channels}, ...)"
+            wanted = (f"(B or 1, {'C' if channels is None else channels}, *grid) with at least "
+                      f"one grid axis")
             grid = "" if name == first_name else f" on the grid of {first_name} {tuple(first.shape)}"
             raise ValueError(f"{name} must be {wanted}{grid}, got shape {tuple(value.shape)}")
         if value.dtype != first.dtype:
