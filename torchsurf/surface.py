@@ -417,7 +417,10 @@ class ImplicitSurface(nn.Module):
     ``|grad phi|`` and the unit normals are computed once, by central differences with
     ``phi`` extrapolated quadratically beyond the grid (second-order one-sided differences at
     the box's faces), and reused by every operator. When ``phi`` requires grad they stay in its
-    graph (build the surface again after each optimiser step).
+    graph, which one ``backward`` frees: build the surface again for every backward (each
+    optimiser step, and each mini-batch of a gradient accumulation; a second backward through
+    one surface raises PyTorch's "backward through the graph a second time"), or pass
+    ``retain_graph=True`` to all but the last.
     ``surface.to(...)`` (``.double()``, a device) moves ``phi`` and derives the rest again from
     it: the same numbers as a surface built from the moved ``phi``. Changing ``phi`` in place
     afterwards (``phi.copy_``, ``phi.mul_``) makes every method raise ``RuntimeError``; changes

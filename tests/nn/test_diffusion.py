@@ -537,6 +537,11 @@ def test_nan_beyond_the_band_and_ring_leaves_gradients_finite():
         assert torch.isfinite(loss)
         assert all(torch.isfinite(p.grad).all() for p in layer.parameters()), type(layer)
         assert torch.isfinite(x.grad[surface.band_mask().expand_as(x)]).all()
+    # the features alone: NaN gradients at 20 nodes from one NaN in a corner (an audit)
+    x = u.clone().requires_grad_(True)
+    features = ts.nn.gradient_features(x, surface)
+    ts.nn.band_mse(features, torch.zeros_like(features), surface).backward()
+    assert torch.isfinite(x.grad).all()
 
 
 def _noise_on_sphere(dtype):

@@ -10,7 +10,6 @@ import torch
 from torch import Tensor, nn
 
 from .._checks import MismatchError, check_count, check_flag
-from ..flows._integrators import with_ring
 from ..surface import ImplicitSurface, check_data, check_surface
 from .diffusion import LearnedDiffusion
 from .features import feature_count, gradient_features
@@ -22,12 +21,6 @@ def _band_nodes(surface: ImplicitSurface) -> Tensor:
     known size instead of selecting by a mask (a size known only from the data: a graph
     break)."""
     return surface.kept(("band nodes",), lambda: surface.band_mask().flatten().nonzero()[:, 0])
-
-
-def _band_and_ring(surface: ImplicitSurface) -> Tensor:
-    """``surface.band_mask()`` and the ring its stencils read, found once per surface."""
-    return surface.kept(("band and ring",),
-                        lambda: with_ring(surface.band_mask(), surface.layout))
 
 
 _DIFFUSION_ARGUMENTS = set(inspect.signature(LearnedDiffusion).parameters) - {"channels", "time"}
@@ -86,11 +79,8 @@ class DiffusionBlock(nn.Module):
         if surface.layout is None and u.shape[0] == 1 and surface.batch_size > 1:
             u = u.expand(surface.batch_size, *u.shape[1:])  # one datum on every surface
         diffused = self.diffusion(u, surface)
-        # the band's features read the ring, nothing beyond: zeros there keep a NaN of u out of
-        # the features' derivatives (0 * NaN in a backward)
-        read = torch.where(_band_and_ring(surface).to(u.device), diffused, 0.0)
         features = torch.cat([
-            diffused, gradient_features(read, surface, self.pairs, path=self.diffusion.path)
+            diffused, gradient_features(diffused, surface, self.pairs, path=self.diffusion.path)
         ], dim=1)
         batch, size = u.shape[0], math.prod(u.shape[2:])
         index = _band_nodes(surface).to(u.device)

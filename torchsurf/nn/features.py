@@ -16,8 +16,16 @@ from torch import Tensor, nn
 
 from .._checks import check_choice, check_count, check_flag, check_positive
 from ..backend import PATHS
+from ..flows._integrators import with_ring
 from ..operators import functional
 from ..surface import ImplicitSurface, check_data, check_surface
+
+
+def _band_and_ring(surface: ImplicitSurface) -> Tensor:
+    """``surface.band_mask()`` and the ring its stencils read, bool ``(B, 1, D, H, W)`` (packed
+    on bricks), found once per surface."""
+    return surface.kept(("band and ring",),
+                        lambda: with_ring(surface.band_mask(), surface.layout))
 
 
 def feature_count(channels: int, pairs: bool = True) -> int:
@@ -44,6 +52,10 @@ def gradient_features(u: Tensor, surface: ImplicitSurface, pairs: bool = True,
     Returns:
         ``(B, feature_count(C, pairs), D, H, W)``: norms (units of ``u``) in channel order,
         then products (units of ``u^2``) in the order ``(0, 1), (0, 2), ..., (C - 2, C - 1)``.
+        ``u`` is read on the band and the ring its stencils read, taken as 0 beyond, so that
+        anything there (NaN too) reaches neither the band's features nor their gradients;
+        features beyond the band are of that data. NaN or infinity in the band itself
+        propagates, as through any PyTorch function (:class:`LearnedDiffusion` refuses it).
     """
     check_surface(surface)
     check_data(u, "u", surface)
@@ -52,6 +64,8 @@ def gradient_features(u: Tensor, surface: ImplicitSurface, pairs: bool = True,
     check_choice(path, "path", PATHS)
     channels = u.shape[1]
     pad = None if surface.layout is None else surface.layout.halo
+    # zeros beyond the ring keep a NaN there out of the derivatives (0 * NaN in a backward)
+    u = torch.where(_band_and_ring(surface).to(u.device), u, 0.0)
     gradient = functional.tangential_gradient(u, surface.normal, surface.spacing, path, pad)
     gradient = (gradient * surface.spacing).unflatten(1, (channels, 3))
     features = [torch.sqrt((gradient * gradient).sum(dim=2) + eps * eps)]

@@ -67,7 +67,8 @@ def band_mse(prediction: Tensor, target: Tensor, surface: ImplicitSurface,
         width: the band's half-width, world units (default ``surface.band_width``).
 
     Returns:
-        A 0-d tensor, units of the data squared.
+        A 0-d tensor, units of the data squared. Values beyond the band are not read; NaN or
+        infinity in the band gives NaN or infinity, as any PyTorch loss would.
     """
     total, counts = _squared_errors(prediction, target, surface, width)
     return total.sum() / counts.sum()
@@ -88,7 +89,8 @@ def psnr(prediction: Tensor, target: Tensor, surface: ImplicitSurface, peak: flo
         ``(B,)`` (one per batch entry of a brick surface), decibels (``inf`` where the
         prediction is exact, or its MSE below the dtype's smallest normal number; such an
         entry passes a zero gradient, so a mean over a batch holding one still trains on the
-        others).
+        others). NaN in an entry's band makes that entry NaN, infinity ``-inf``; the other
+        entries keep their values.
     """
     check_positive(peak, "peak")
     total, counts = _squared_errors(prediction, target, surface, width)
