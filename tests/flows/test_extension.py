@@ -63,6 +63,21 @@ def test_extension_is_differentiable_and_rejects_bad_input():
         Extension()(u[0], surface)
 
 
+def test_settings_the_method_would_ignore_are_refused():
+    """They were accepted and ignored: the pde extension with interpolation='cubic', the
+    closest-point one with a tolerance or max_steps, a width beside a mask (an audit)."""
+    u, _, surface = case(9)
+    with pytest.raises(ValueError, match=r"^interpolation='cubic' .* method='pde' interpolates"):
+        Extension("pde", interpolation="cubic")
+    for settings in ({"tolerance": 0.5}, {"max_steps": 1}):
+        with pytest.raises(ValueError, match=r"^tolerance and max_steps bound the pde"):
+            Extension(**settings)
+    with pytest.raises(ValueError, match=r"^give width or mask, not both"):
+        ts.flows.closest_point_extension(u, surface, width=0.5 * surface.spacing,
+                                         mask=surface.band_mask())
+    assert Extension("pde", tolerance=1e-3, max_steps=4).max_steps == 4
+
+
 def test_cubic_closest_point_reproduces_cubic_polynomials():
     """Tricubic Lagrange interpolation is exact for cubics: the extension equals the cubic at
     each band node's closest point (nodes whose stencil stays inside the box)."""
