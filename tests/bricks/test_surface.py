@@ -352,6 +352,12 @@ def test_a_wider_band_width_is_refused_where_the_bricks_do_not_hold_it():
     flow = ts.HeatFlow(0.01)
     together = flow(torch.cat([u, u]), both)
     assert torch.equal(together[: len(u)], flow(u, fresh))
+    # judged per entry: beside the wide entry, the narrow one was let through (an audit)
+    mixed = bricks.cat([bricks.from_dense(quadric, grid), wide])
+    with pytest.raises(ValueError, match=r"^width=.* reaches (\d+) nodes within it of S "
+                                         r"\(\1 of entry 0\)"):
+        ts.flows.closest_point_extension(mixed.from_dense(torch.rand(2, 1, *grid.shape).double()),
+                                         mixed, width=5 * h)
 
 
 def test_a_brick_batch_evaluated_under_inference_mode_then_trains():

@@ -359,19 +359,24 @@ class BrickSurface(ImplicitSurface):
         ``width`` beyond the band the bricks were built for, whose outer nodes would keep
         their values in an extension. (Nodes whose direct neighbours are not stored either
         have no distance to test; a wider band always leaves out some of the former.)"""
-        if width <= max(self.band_width, *self.evolving_widths()):  # stored by the builder
+        if width <= min(self.evolving_widths()):  # stored by the builder for every entry
             return
 
-        def count() -> int:
+        def count() -> list[int]:
             measurable = ImplicitSurface.band_mask(self, width) & self._stencilled(1)
-            return int((measurable & ~self.band_mask(width)).sum())
+            per_brick = (measurable & ~self.band_mask(width)).flatten(1).sum(dim=1)
+            return torch.zeros(self.batch_size, dtype=torch.long).index_add_(
+                0, self.layout.batch.cpu(), per_brick.cpu()).tolist()
 
         left_out = count() if self.phi.requires_grad else self.kept(("left out", width), count)
-        if left_out:
+        if any(left_out):
+            entries = ", ".join(f"{n} of entry {b}" for b, n in enumerate(left_out) if n)
+            where = "" if self.batch_size == 1 else f" ({entries})"
             raise ValueError(
-                f"{name}={width:g} reaches {left_out} nodes within it of S whose neighbours "
-                f"this BrickSurface does not store (its bricks hold a narrower band): build it "
-                f"with torchsurf.bricks.from_dense or from_mesh at band_width >= {width:g}"
+                f"{name}={width:g} reaches {sum(left_out)} nodes within it of S{where} whose "
+                f"neighbours this BrickSurface does not store (its bricks hold a narrower band): "
+                f"build it with torchsurf.bricks.from_dense or from_mesh at band_width >= "
+                f"{width:g}"
             )
 
     def _check_points(self, points: Tensor, entry: int, name: str = "points") -> int:
