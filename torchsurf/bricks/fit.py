@@ -74,7 +74,9 @@ class FittedMeshes:
 
     def shape_time(self, time: float) -> Tensor:
         """A diffusion time in batch units, in every shape's own units: ``time / scale_b^2``,
-        ``(B,)`` float64 (times are lengths squared)."""
+        ``(B,)`` float64 (a heat or Perona–Malik time is a length squared; a total-variation
+        time is a length, ``time / scale_b``, and a contrast or ``eps`` converts as ``u`` per
+        length: docs/bricks.md)."""
         return check_nonnegative(time, "time") / self.scale**2
 
 
