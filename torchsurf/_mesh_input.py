@@ -100,6 +100,16 @@ def as_trimesh(mesh: MeshLike, name: str = "mesh") -> trimesh.Trimesh:
     return mesh
 
 
+def is_array_pair(value: object) -> bool:
+    """Whether ``value`` is one mesh as arrays, ``(vertices (V, 3), faces (F, 3))`` (numpy or
+    tensors), not a sequence of two meshes."""
+    if not isinstance(value, (list, tuple)) or len(value) != 2:
+        return False
+    shapes = [np.shape(part) if isinstance(part, (np.ndarray, torch.Tensor)) else None
+              for part in value]
+    return all(shape is not None and len(shape) == 2 and shape[1] == 3 for shape in shapes)
+
+
 def _check_arrays(vertices: np.ndarray, faces: np.ndarray, name: str) -> None:
     """Check raw vertices ``(V, 3)`` and faces ``(F, 3)``; raise ``ValueError`` naming ``name``."""
     if vertices.size == 0 or faces.size == 0:

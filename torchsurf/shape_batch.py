@@ -34,7 +34,7 @@ from ._checks import (
     check_tensor,
     check_volume,
 )
-from ._mesh_input import MeshLike, as_trimesh, triangle_arrays
+from ._mesh_input import MeshLike, as_trimesh, is_array_pair, triangle_arrays
 from .grid import Grid, default_margin
 from .mesh import MeshAdapter, check_adapter_band, check_decode_order, extract
 from .surface import ImplicitSurface
@@ -168,15 +168,6 @@ def _surface_of_loaded_phi(adapter: MeshBatchAdapter, incompatible: object) -> N
     adapter.surface = ImplicitSurface(adapter.phi, adapter.grid)
 
 
-def _is_array_pair(value: Sequence[object]) -> bool:
-    """Whether ``value`` is one mesh as arrays, ``(vertices (V, 3), faces (F, 3))``."""
-    if len(value) != 2:
-        return False
-    shapes = [np.shape(part) if isinstance(part, (np.ndarray, torch.Tensor)) else None
-              for part in value]
-    return all(shape is not None and len(shape) == 2 and shape[1] == 3 for shape in shapes)
-
-
 class MeshBatchAdapter(nn.Module):
     """Several meshes and analytic shapes on one grid, normalised, with their vertex data.
 
@@ -246,7 +237,7 @@ class MeshBatchAdapter(nn.Module):
             )
         if len(shapes) == 0:
             raise ValueError("shapes must hold at least one shape, got an empty sequence")
-        if _is_array_pair(shapes):
+        if is_array_pair(shapes):
             raise TypeError("shapes is one pair (vertices, faces), read as two shapes: give a "
                             "sequence of shapes, [(vertices, faces)] for one mesh")
         resolution = check_count(resolution, "resolution", minimum=3)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 import trimesh
@@ -86,8 +87,20 @@ def test_fit_grids_refuses_bad_input_by_name():
         bricks.fit_grids([sphere], 12, margin=6)
     with pytest.raises(TypeError, match="meshes must be a sequence"):
         bricks.fit_grids(sphere, 32)
-    with pytest.raises(ValueError, match="entry must be in"):
+    with pytest.raises(ValueError, match="entry must be an integer in"):
         bricks.fit_grids([sphere], 32).own_grid(1)
+    # an audit's: a pair was split into two meshes, an array of resolutions refused, a float or
+    # bool entry failed inside torch
+    with pytest.raises(TypeError, match=r"^meshes is one pair \(vertices, faces\)"):
+        bricks.fit_grids((np.asarray(sphere.vertices), np.asarray(sphere.faces)), 32)
+    fitted = bricks.fit_grids([sphere, sphere], np.array([32, 24]))
+    assert [g.shape[0] for g in fitted.grids] == [32, 24]
+    for entry in (0.5, True):
+        with pytest.raises(ValueError, match=r"^entry must be an integer in \[0, 2\), got"):
+            fitted.to_shape(torch.zeros(1, 3), entry)
+        with pytest.raises(ValueError, match=r"^entry must be an integer in \[0, 2\), got"):
+            fitted.own_grid(entry)
+    assert fitted.own_grid(np.int64(1)) == fitted.own_grid(1)
 
 
 def test_heat_flow_on_shapes_of_very_different_sizes_equals_each_shape_alone():

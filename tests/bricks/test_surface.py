@@ -14,6 +14,11 @@ from torchsurf import Grid, bricks
 MESHES = Path(__file__).resolve().parents[3] / "shared" / "data" / "meshes"
 
 
+def _dense_of(surface):
+    """``(phi, grid)`` of entry 0 of a brick surface as a dense volume."""
+    return surface.to_dense(surface.phi)[0], surface.grids[0]
+
+
 def _on_band(dense_surface, brick_surface, packed):
     """The packed field as a dense volume, and the dense band mask."""
     (volume,) = brick_surface.to_dense(packed)
@@ -149,6 +154,20 @@ def test_cat_refuses_mixed_dtypes_and_spacings_naming_the_entry(two_boxes):
     coarse = bricks.from_dense(ts.sdf.sphere(coarse_grid, 0.9).double(), coarse_grid)
     with pytest.raises(ValueError, match=r"surfaces\[2\] has grid spacing 0.15"):
         bricks.cat([sphere, torus, coarse])
+    # an audit's: which entry differed, and what was given, went unsaid
+    other = bricks.from_dense(*_dense_of(sphere), eps=10 * sphere.eps)
+    with pytest.raises(ValueError, match=r"^surfaces\[2\] has eps .* one batch has one eps"):
+        bricks.cat([sphere, torus, other])
+    with pytest.raises(TypeError, match=r"^surfaces\[1\] must be a BrickSurface, got "
+                                        r"ImplicitSurface"):
+        bricks.cat([sphere, ts.ImplicitSurface(*_dense_of(sphere))])
+    with pytest.raises(ValueError, match=r"^surfaces must be a non-empty sequence"):
+        bricks.cat([])
+    with pytest.raises(ValueError, match=r"^fill=1e\+39 cannot be held by field's dtype "
+                                         r"torch.float32"):
+        sphere.layout.to_dense(torch.zeros(len(sphere.layout), 1, 8, 8, 8), fill=1e39)
+    with pytest.raises(ValueError, match=r"^index: some lie outside the box of entry 0"):
+        sphere.sample_at_index(sphere.phi, torch.tensor([[400.0, 1.0, 1.0]]).double())
 
 
 @pytest.mark.skipif(not (MESHES / "spot.obj").exists(), reason="shared meshes not present")

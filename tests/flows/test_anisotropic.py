@@ -64,6 +64,12 @@ def test_edge_stopping_flows_run_and_learn_contrast(diffusivity):
     assert flow.contrast.raw.grad is not None
 
 
+def test_total_variation_refuses_a_contrast_to_learn():
+    """Its g reads no contrast: the parameter never got a gradient (an audit)."""
+    with pytest.raises(ValueError, match=r"^learn_contrast=True: total variation's g"):
+        AnisotropicFlow(0.01, learn_contrast=True)
+
+
 def test_nonlinear_flow_refuses_implicit_and_callable_needs_bound():
     u0, surface = step_case(9)
     with pytest.raises(ValueError, match="method"):

@@ -11,7 +11,7 @@ from torch import Tensor
 
 from .. import _memory, _mesh_sdf
 from .._checks import MismatchError, check_choice, check_device, check_dtype, check_positive
-from .._mesh_input import MeshLike, as_trimesh, triangle_arrays
+from .._mesh_input import MeshLike, as_trimesh, is_array_pair, triangle_arrays
 from ..grid import Grid
 from ..surface import ImplicitSurface
 from .layout import BRICK, BrickLayout, bricks_of_mask
@@ -122,7 +122,7 @@ def from_mesh(meshes: MeshLike | Sequence[MeshLike], grids: Grid | Sequence[Grid
 def mesh_list(meshes: MeshLike | Sequence[MeshLike], grids: Grid | Sequence[Grid]
               ) -> tuple[list[MeshLike], list[Grid]]:
     """``meshes`` and ``grids`` as two lists of one entry per mesh; raises unless they pair up."""
-    if not isinstance(meshes, (list, tuple)) or _is_array_pair(meshes):
+    if not isinstance(meshes, (list, tuple)) or is_array_pair(meshes):
         meshes = [meshes]
     if isinstance(grids, Grid):
         grids = [grids]
@@ -237,8 +237,13 @@ def cat(surfaces: Sequence[BrickSurface]) -> BrickSurface:
     Packed fields of the parts join the same way: ``torch.cat(fields)`` along dim 0.
     """
     surfaces = list(surfaces)
-    if not surfaces or not all(isinstance(s, BrickSurface) for s in surfaces):
-        raise TypeError("surfaces must be a non-empty sequence of BrickSurface")
+    if not surfaces:
+        raise ValueError("surfaces must be a non-empty sequence of BrickSurface, got none")
+    for index, surface in enumerate(surfaces):
+        if not isinstance(surface, BrickSurface):
+            raise TypeError(f"surfaces[{index}] must be a BrickSurface, got "
+                            f"{type(surface).__name__} (torchsurf.bricks.from_dense stores a "
+                            f"dense surface's phi as bricks)")
     first = surfaces[0]
     for index, surface in enumerate(surfaces[1:], start=1):
         if (surface.phi.dtype, surface.phi.device) != (first.phi.dtype, first.phi.device):
@@ -253,12 +258,11 @@ def cat(surfaces: Sequence[BrickSurface]) -> BrickSurface:
                 f"{first.grids[0].spacing!r}: bricks of one batch share one spacing "
                 "(torchsurf.bricks.fit_grids gives several meshes one)"
             )
-    widths = {s.band_width for s in surfaces}
-    if len(widths) > 1:
-        raise ValueError(f"surfaces must share one band_width, got {sorted(widths)}")
-    epsilons = {s.eps for s in surfaces}
-    if len(epsilons) > 1:
-        raise ValueError(f"surfaces must share one eps, got {sorted(epsilons)}")
+        for setting in ("band_width", "eps"):
+            if getattr(surface, setting) != getattr(first, setting):
+                raise ValueError(
+                    f"surfaces[{index}] has {setting} {getattr(surface, setting)!r}, "
+                    f"surfaces[0] {getattr(first, setting)!r}: one batch has one {setting}")
     offsets = np.cumsum([0] + [s.batch_size for s in surfaces[:-1]])
     layout = BrickLayout(
         torch.cat([s.layout.coords.cpu() for s in surfaces]),
@@ -268,11 +272,6 @@ def cat(surfaces: Sequence[BrickSurface]) -> BrickSurface:
     phi = torch.cat([s.phi for s in surfaces])
     return BrickSurface(phi, layout, surfaces[0].band_width, surfaces[0].eps,
                         [w for s in surfaces for w in s.evolving_widths()])
-
-
-def _is_array_pair(value: object) -> bool:
-    return (isinstance(value, (list, tuple)) and len(value) == 2
-            and all(hasattr(v, "shape") for v in value))
 
 
 def _brick_values(signed: _mesh_sdf.SignedBand, grid: Grid, reach: float, dtype: np.dtype

@@ -13,6 +13,7 @@ the same nodes in the shape's units), and distances scale by ``scale_b``: a diff
 
 from __future__ import annotations
 
+import operator
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -22,7 +23,7 @@ import trimesh
 from torch import Tensor
 
 from .._checks import check_count, check_nonnegative, check_positive
-from .._mesh_input import MeshLike, as_trimesh, triangle_arrays
+from .._mesh_input import MeshLike, as_trimesh, is_array_pair, triangle_arrays
 from ..grid import Grid
 
 MARGIN_CELLS = 6.0
@@ -55,10 +56,19 @@ class FittedMeshes:
         """The common spacing ``h``, batch units."""
         return self.grids[0].spacing
 
+    def _entry(self, entry: object) -> int:
+        """``entry`` as an ``int`` in ``[0, B)`` (numpy and 0-d integer tensors too)."""
+        try:
+            index = None if isinstance(entry, bool) else operator.index(entry)
+        except TypeError:
+            index = None
+        if index is None or not 0 <= index < len(self):
+            raise ValueError(f"entry must be an integer in [0, {len(self)}), got {entry!r}")
+        return index
+
     def own_grid(self, entry: int) -> Grid:
         """The grid of shape ``entry`` in its own units: the same nodes as ``grids[entry]``."""
-        if not 0 <= entry < len(self):
-            raise ValueError(f"entry must be in [0, {len(self)}), got {entry}")
+        entry = self._entry(entry)
         scale = float(self.scale[entry])
         grid = self.grids[entry]
         origin = tuple(float(c) + o / scale for c, o in zip(self.centre[entry], grid.origin,
@@ -67,8 +77,7 @@ class FittedMeshes:
 
     def to_shape(self, points: Tensor, entry: int) -> Tensor:
         """Batch coordinates ``(..., 3)`` of shape ``entry`` in its own units ``(..., 3)``."""
-        if not 0 <= entry < len(self):
-            raise ValueError(f"entry must be in [0, {len(self)}), got {entry}")
+        entry = self._entry(entry)
         centre = self.centre[entry].to(dtype=points.dtype, device=points.device)
         return points / float(self.scale[entry]) + centre
 
@@ -105,6 +114,11 @@ def fit_grids(meshes: Sequence[MeshLike], resolutions: int | Sequence[int],
     """
     if isinstance(meshes, (str, trimesh.Trimesh)) or not isinstance(meshes, Sequence):
         raise TypeError(f"meshes must be a sequence of meshes, got {type(meshes).__name__}")
+    if is_array_pair(meshes):
+        raise TypeError("meshes is one pair (vertices, faces), read as two meshes: give a "
+                        "sequence of meshes, [(vertices, faces)] for one mesh")
+    if isinstance(resolutions, (np.ndarray, torch.Tensor)) and resolutions.ndim == 1:
+        resolutions = resolutions.tolist()
     if len(meshes) == 0:
         raise ValueError("meshes must hold at least one mesh, got an empty sequence")
     if isinstance(resolutions, Sequence):

@@ -66,7 +66,13 @@ def _check_fill(fill: float, dtype: torch.dtype) -> None:
     """Refuse, naming ``fill``, a value that ``dtype`` cannot hold: a fraction, NaN or infinity
     in an integer dtype, one beyond its range (-1 in uint8 wrapped to 255), or anything but 0
     or 1 in bool (5 was taken as True)."""
-    if dtype.is_floating_point or dtype.is_complex:
+    if dtype.is_floating_point:
+        largest = torch.finfo(dtype).max
+        if math.isfinite(fill) and abs(fill) > largest:  # inf and NaN fill as they are
+            raise ValueError(f"fill={fill!r} cannot be held by field's dtype {dtype} (largest "
+                             f"{largest:.4g}): give a value it holds")
+        return
+    if dtype.is_complex:
         return
     if dtype == torch.bool:
         holds = fill in (0, 1)

@@ -312,13 +312,15 @@ class BrickSurface(ImplicitSurface):
         self.check_field(field, "field")
         entry = self._check_points(index, entry, "index")
         _check_like_field(index, "index", field)
-        return self._sample(field, index, entry)
+        return self._sample(field, index, entry, name="index")
 
-    def _sample(self, field: Tensor, index: Tensor, entry: int, slack: float = 0.0) -> Tensor:
-        """:meth:`sample_at_index` of checked arguments, the box widened by ``slack`` cells."""
+    def _sample(self, field: Tensor, index: Tensor, entry: int, slack: float = 0.0,
+                name: str = "points") -> Tensor:
+        """:meth:`sample_at_index` of checked arguments, the box widened by ``slack`` cells;
+        ``name`` is what the caller called the points."""
         inside, fraction, corners = self._cell_corners(index, entry, slack)
         if not bool(inside.all()):
-            raise ValueError(f"points: some lie outside the box of entry {entry} "
+            raise ValueError(f"{name}: some lie outside the box of entry {entry} "
                              f"({self.grids[entry]})")
         flat = field.transpose(0, 1).reshape(field.shape[1], -1)
         value = None

@@ -61,7 +61,8 @@ class AnisotropicFlow(Flow):
             a callable ``g(magnitude, contrast)``.
         contrast: edge threshold ``K``, units of ``u`` per world length; a positive number or
             one per channel ``(C,)``.
-        learn_contrast: make ``K`` an ``nn.Parameter`` (kept positive by softplus).
+        learn_contrast: make ``K`` an ``nn.Parameter`` (kept positive by softplus); refused
+            for ``"total_variation"``, which reads no ``K``.
         eps: regularisation of ``|P grad u|``, units of ``u`` per world length.
         max_diffusivity: upper bound of ``g`` for a callable ``diffusivity``.
         scheme: ``"symmetric"`` (default), ``"conservative"`` or ``"octant"``.
@@ -93,6 +94,10 @@ class AnisotropicFlow(Flow):
         name = next((key for key, g in DIFFUSIVITIES.items() if self.diffusivity is g), None)
         # a user's own g may be negative somewhere: no maximum principle to check then
         self.keeps_range = name is not None
+        if name == "total_variation" and learn_contrast:
+            raise ValueError("learn_contrast=True: total variation's g(s) = 1 / s reads no "
+                             "contrast, so its parameter would never get a gradient; learn "
+                             "the time, or choose 'perona_malik' or 'charbonnier'")
         self.contrast = Positive(contrast, "contrast", learnable=learn_contrast)
         self.eps = check_positive(eps, "eps")
         if max_diffusivity is None:
