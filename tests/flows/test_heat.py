@@ -534,6 +534,26 @@ def test_explicit_steps_beyond_the_stable_step_warn():
         HeatFlow(0.3, method="euler", steps=2)(u0, surface)
 
 
+def test_implicit_steps_holding_a_three_cell_bands_ring_too_long_warn():
+    """On a band that never holds its ring, Crank-Nicolson's error at 30 steps grew with the
+    grid, silently (1.8e-3 / 4.2e-3 / 1.1e-2 at 33^3 / 49^3 / 65^3, an audit): steps longer
+    than a cell's crossing time warn; on the exact distance's 5-cell band they do not."""
+    grid = ts.Grid.cube(33, bound=1.2)
+    r = grid.points(dtype=torch.float64, relative_to=(0.04, -0.02, 0.03)).norm(dim=-1)
+    u0 = torch.rand(1, 1, *grid.shape, dtype=torch.float64,
+                    generator=torch.Generator().manual_seed(0))
+    time = 0.3 * 0.7**2
+    quadric = ts.ImplicitSurface((r * r - 0.49)[None, None], grid)  # not a distance: 3 cells
+    with pytest.warns(RuntimeWarning, match=r"crank_nicolson step holds the ring of this 3.0-cell "
+                                            r"band.* Use steps >= \d+"):
+        HeatFlow(time, method="crank_nicolson", steps=10)(u0, quadric)
+    distance = ts.ImplicitSurface((r - 0.7)[None, None], grid)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        HeatFlow(time, method="crank_nicolson", steps=10)(u0, distance)
+        HeatFlow(time, method="implicit")(u0, quadric)  # its own steps hold it short enough
+
+
 def test_counts_accept_numpy_and_refuse_bools():
     import numpy as np
 

@@ -435,6 +435,18 @@ def plan_steps(method: str, system: System, end: float, steps: int | None,
             f"{math.ceil(end * rho / (12.0 * band_cells**2))} or a wider band_width",
             RuntimeWarning, stacklevel=caller_stacklevel(),
         )
+    elif (steps is not None and method in IMPLICIT and end / steps * rho > RKC_REFRESHED_STEP
+          and band_cells <= HELD_RING_CELLS):  # a band that never holds its ring
+        warnings.warn(
+            f"steps={steps}: each {method} step holds the ring of this {band_cells:.1f}-cell "
+            f"band, re-extended before it, for {end / steps * rho:.3g} / rho, longer than the "
+            f"{RKC_REFRESHED_STEP:g} / rho the diffusion takes to cross a cell; its staleness "
+            f"reaches S and the error grows with the step, whatever the grid (a sphere's l = 1 "
+            f"flow: 1.1e-2 at 30 steps of 35 / rho, 9.5e-4 at 8.7 / rho). Use steps >= "
+            f"{math.ceil(end * rho / RKC_REFRESHED_STEP)} (or the default) or a band of more "
+            f"than {HELD_RING_CELLS:.2f} cells on an exact distance",
+            RuntimeWarning, stacklevel=caller_stacklevel(),
+        )
     evaluations = None
     if count is not None:
         per_step = ({"rkc": stages_for(end / count * rho), "heun": 2}.get(method, 1)

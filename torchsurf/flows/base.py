@@ -392,7 +392,10 @@ class Flow(nn.Module):
             ``"crank_nicolson"``, Euler's stable step ``2 / rho``, as many steps as explicit
             Euler, each a CG solve: give fewer for longer steps, which they take stably, at
             their time error (backward Euler's 2.4x the others' at its default steps on a
-            sphere harmonic of degree 3, 33^3)); for adaptive torchdiffeq
+            sphere harmonic of degree 3, 33^3), and on a 3-cell band (``from_mesh``, phi
+            not a distance) at the error of a ring held stale through each step, which grows
+            with ``dt rho`` whatever the grid: steps above ``12 / rho`` there warn); for
+            adaptive torchdiffeq
             methods, unused (their step control takes one error norm over the whole state:
             entries of data on one surface, and channels, choose each other's steps, so an
             entry is its run alone only to the solver's tolerance). With
