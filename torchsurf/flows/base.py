@@ -10,7 +10,8 @@ a constructor choice:
   cross the band, not by stability (about 4x fewer operator applications than Euler on a
   3-cell band);
 - ``"euler"`` (forward Euler) or ``"heun"`` (second order): the step ``1.8 / rho`` from the same
-  bound (0.9 of the stability limit ``2 / rho``, so that the fastest mode is damped), or
+  bound (0.9 of the stability limit ``2 / rho`` it guarantees, so that the fastest mode is
+  damped; the true limit is wider where the bound is loose: about 2x on meshes' phi), or
   ``time / steps`` when ``steps`` is given;
 - ``"implicit"`` (backward Euler) or ``"crank_nicolson"``: for the linear symmetric flows, each
   step a matrix-free conjugate-gradient solve, differentiated implicitly (a second solve);

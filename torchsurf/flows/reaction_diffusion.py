@@ -34,10 +34,10 @@ class ReactionDiffusion(Flow):
 
     Spectral bound: ``max(D_a rho_a, D_b rho) + s (max a + max b + 1)``, the diffusion's
     (``rho`` the Gershgorin bound of the band's Laplace–Beltrami operator, about ``10 / h^2``
-    on a distance, 14-15 on meshes' phi;
+    on a distance, 14-16 on meshes' phi;
     ``rho_a`` that of the directional operator along ``direction`` if one is given, or ``rho``)
     and the reaction's (its Jacobian has entries ``s a``, ``s b``, ``s``); Euler steps ``1.8 /``
-    that (0.9 of the stability limit).
+    that (0.9 of the stability limit the bound guarantees).
 
     Args:
         time: end time (Turk's iterations).

@@ -187,10 +187,10 @@ def laplace_beltrami_bound(
 
 
 WILD_BOUND_CELLS = 1000.0
-"""A Laplace–Beltrami bound above this many ``1 / h^2`` is warned about: 10-25 ``/ h^2`` were
-measured on distance functions, ``phi`` scaled or not a distance (``r^2 - 1``, ``(r - 1)^3``),
-thin tori and every shared mesh at 24^3-48^3; one sentinel value of ``-1e9`` 2.7 cells inside
-a sphere raised it to 6.7e9."""
+"""A Laplace–Beltrami bound above this many ``1 / h^2`` is warned about: 10-33 ``/ h^2`` were
+measured on distance functions, ``phi`` scaled or not a distance (``r^2 - 1``, ``(r - 1)^3``:
+28-32 at 40^3), thin tori and every shared mesh at 24^3-48^3 (the central scheme on meshes:
+30-33); one sentinel value of ``-1e9`` 2.7 cells inside a sphere raised it to 6.7e9."""
 
 
 def _warned_if_wild(bound: float, surface: ImplicitSurface) -> float:
@@ -200,7 +200,7 @@ def _warned_if_wild(bound: float, surface: ImplicitSurface) -> float:
     if cells > WILD_BOUND_CELLS:
         warnings.warn(
             f"phi: the Laplace–Beltrami operator's bound over the band is {cells:.3g} / h^2, "
-            "against 10-25 / h^2 on distance functions and meshes: |grad phi| jumps near S "
+            "against 10-33 / h^2 on distance functions and meshes: |grad phi| jumps near S "
             "(a sentinel or singular value of phi beside the band?), and flows on this surface "
             f"take about {cells / 15:.3g} times their usual steps, or are refused. "
             "torchsurf.sdf.redistance(phi, grid) makes phi a distance",
@@ -216,9 +216,10 @@ def directional_bound(
     """Gershgorin bound of :func:`directional_diffusion` along ``direction``, restricted to the
     band.
 
-    Diffusion along one tangent direction has about half the coefficients of
-    Laplace–Beltrami's (``T T^T`` against ``P``): on the teapot's smoothed principal direction
-    at 64^3, 12.2 against 15.4 for the symmetric Laplace–Beltrami scheme (units ``1 / h^2``).
+    Diffusion along one tangent direction (``T T^T`` against ``P``) has a smaller bound than
+    Laplace–Beltrami's, by how much depends on the scheme: on the teapot's smoothed principal
+    direction at 64^3, 12.2 against 15.4 for the symmetric schemes (0.79); a swirl on a sphere,
+    11.4 against 12.7 (0.90), and about half with the octant scheme (units ``1 / h^2``).
     Not kept: it depends on ``direction``.
 
     Args:
