@@ -281,6 +281,7 @@ def test_the_padding_and_application_steps_refuse_other_layouts_naming_the_argum
     with pytest.raises(ValueError, match=r"^padded must be \(B, C, 3, D \+ 2, H \+ 2, W \+ 2\) "
                                          r"for a bank of 3 stencils"):
         stencils.contract(torch.rand(1, 1, 2, 5, 5, 5), stencils.CENTRAL)
-    # the layouts they document still run
+    # the layouts they document still run, and a mask pads as before (a review)
+    assert stencils.pad(torch.ones(1, 1, 3, 3, 3, dtype=torch.bool), "zeros").shape == (1, 1, 5, 5, 5)
     assert stencils.pad_mirrored(volume[:, :3]).shape == (1, 3, 7, 7, 7)
     assert stencils.contract(torch.rand(1, 2, 3, 5, 5, 5), stencils.CENTRAL).shape == (1, 2, 3, 3, 3)

@@ -258,8 +258,9 @@ class MeshBatchAdapter(nn.Module):
                 if learned:
                     raise ValueError(
                         f"{name}: parameters {learned} require grad, but the batch normalises "
-                        f"each shape to its size (a sphere of any radius becomes the same "
-                        f"sphere), so its phi is no function of them; pass detached values, "
+                        f"each shape (its scale and centre) from their values outside autograd, "
+                        f"so gradients to them would be wrong (a sphere's radius: -0.625 where "
+                        f"the normalised sphere does not depend on it); pass detached values, "
                         f"or call torchsurf.sdf.{shape.name}(grid, ...) for a phi "
                         f"differentiable in them")
                 low, high = shape.bounds()

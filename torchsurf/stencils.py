@@ -188,10 +188,11 @@ def one_sided(side: Side) -> tuple[Stencil, ...]:
 
 
 def _check_layout(value: object, name: str, layout: str, ndim: int,
-                  components: int | None = None, minimum: int = 1) -> Tensor:
-    """Raise naming ``name`` unless ``value`` is a floating tensor of ``ndim`` dimensions
-    (``layout`` its description), dimension ``ndim - 4`` holding ``components`` if given, and
-    at least ``minimum`` nodes along each of the last three axes."""
+                  components: int | None = None, minimum: int = 1, floating: bool = True
+                  ) -> Tensor:
+    """Raise naming ``name`` unless ``value`` is a tensor (floating, if ``floating``) of
+    ``ndim`` dimensions (``layout`` its description), dimension ``ndim - 4`` holding
+    ``components`` if given, and at least ``minimum`` nodes along each of the last three axes."""
     if not isinstance(value, Tensor):
         raise TypeError(f"{name} must be a tensor {layout}, got {type(value).__name__}")
     shape = tuple(value.shape)
@@ -199,7 +200,7 @@ def _check_layout(value: object, name: str, layout: str, ndim: int,
             or min(shape[-3:]) < minimum):
         nodes = f" with at least {minimum} nodes a side" if minimum > 1 else ""
         raise ValueError(f"{name} must be {layout}{nodes}, got shape {shape}")
-    if not value.is_floating_point():
+    if floating and not value.is_floating_point():
         raise TypeError(f"{name} must be a floating-point tensor {layout}, got dtype "
                         f"{value.dtype}")
     return value
@@ -222,7 +223,8 @@ def pad(volume: Tensor, mode: str = "replicate") -> Tensor:
         ``(B, C, D + 2, H + 2, W + 2)``.
     """
     check_choice(mode, "mode", PAD_MODES)
-    _check_layout(volume, "volume", "(B, C, D, H, W)", 5, minimum=2 if mode == "linear" else 1)
+    _check_layout(volume, "volume", "(B, C, D, H, W)", 5, minimum=2 if mode == "linear" else 1,
+                  floating=False)  # a mask pads too
     halo = (1, 1, 1, 1, 1, 1)
     if mode == "zeros":
         return F.pad(volume, halo)
@@ -264,7 +266,7 @@ def pad_mirrored(field: Tensor) -> Tensor:
     Returns:
         ``(B, 3, D + 2, H + 2, W + 2)``.
     """
-    _check_layout(field, "field", "(B, 3, D, H, W)", 5, components=3)
+    _check_layout(field, "field", "(B, 3, D, H, W)", 5, components=3, floating=False)
     replicated = F.pad(field, (1, 1, 1, 1, 1, 1), mode="replicate")
     components = []
     for axis in range(3):
@@ -297,7 +299,7 @@ def pad_flux(flux: Tensor, side: Side) -> Tensor:
     Returns:
         ``(B, C, 3, D + 2, H + 2, W + 2)``.
     """
-    _check_layout(flux, "flux", "(B, C, 3, D, H, W)", 6, components=3)
+    _check_layout(flux, "flux", "(B, C, 3, D, H, W)", 6, components=3, floating=False)
     sides = per_axis(side)
     components = []
     for axis in range(3):

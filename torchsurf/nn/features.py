@@ -52,10 +52,10 @@ def gradient_features(u: Tensor, surface: ImplicitSurface, pairs: bool = True,
     Returns:
         ``(B, feature_count(C, pairs), D, H, W)``: norms (units of ``u``) in channel order,
         then products (units of ``u^2``) in the order ``(0, 1), (0, 2), ..., (C - 2, C - 1)``.
-        ``u`` is read on the band and the ring its stencils read, taken as 0 beyond, so that
-        anything there (NaN too) reaches neither the band's features nor their gradients;
-        features beyond the band are of that data. NaN or infinity in the band itself
-        propagates, as through any PyTorch function (:class:`LearnedDiffusion` refuses it).
+        The band's features read ``u`` on the band and its ring only; NaN or infinity beyond
+        the ring is read as 0, so that it reaches neither them nor their gradients (a band
+        loss's backward multiplies it by 0). NaN or infinity in the band or ring propagates,
+        as through any PyTorch function (:class:`LearnedDiffusion` refuses it).
     """
     check_surface(surface)
     check_data(u, "u", surface)
@@ -64,8 +64,8 @@ def gradient_features(u: Tensor, surface: ImplicitSurface, pairs: bool = True,
     check_choice(path, "path", PATHS)
     channels = u.shape[1]
     pad = None if surface.layout is None else surface.layout.halo
-    # zeros beyond the ring keep a NaN there out of the derivatives (0 * NaN in a backward)
-    u = torch.where(_band_and_ring(surface).to(u.device), u, 0.0)
+    # non-finite values beyond the ring read as 0: out of the derivatives (0 * NaN in a backward)
+    u = torch.where(_band_and_ring(surface).to(u.device) | torch.isfinite(u), u, 0.0)
     gradient = functional.tangential_gradient(u, surface.normal, surface.spacing, path, pad)
     gradient = (gradient * surface.spacing).unflatten(1, (channels, 3))
     features = [torch.sqrt((gradient * gradient).sum(dim=2) + eps * eps)]
