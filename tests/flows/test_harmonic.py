@@ -7,6 +7,7 @@ import torch
 
 import torchsurf as ts
 from torchsurf.flows import HarmonicMapFlow
+from torchsurf.flows._integrators import with_ring
 from torchsurf.flows.harmonic import normalize
 
 
@@ -33,6 +34,20 @@ def test_unit_length_is_kept(p):
     u = HarmonicMapFlow(0.002, p=p, eps=0.5)(noisy(identity), surface)
     norms = u.norm(dim=1)
     torch.testing.assert_close(norms, torch.ones_like(norms))
+
+
+@pytest.mark.parametrize("settings", [{"method": "euler"}, {"method": "heun", "steps": 20}, {}])
+def test_vectors_of_other_lengths_are_made_unit_before_the_first_step(settings):
+    """The built-in integrators took their first step from the lengths given, not from the unit
+    vectors the docstring says they are made (an audit)."""
+    identity, surface = sphere(13)
+    unit = noisy(identity)
+    lengths = 0.5 + torch.rand(unit[:, :1].shape, generator=torch.Generator().manual_seed(3),
+                               dtype=unit.dtype)
+    flow = HarmonicMapFlow(0.002, p=1.5, eps=0.5, **settings)
+    region = with_ring(flow.band_mask(surface), None).expand_as(unit)  # beyond: as given
+    torch.testing.assert_close(flow(unit * lengths, surface)[region], flow(unit, surface)[region],
+                               rtol=0, atol=1e-12)
 
 
 def test_identity_map_of_the_sphere_is_stationary():

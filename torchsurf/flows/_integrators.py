@@ -108,8 +108,9 @@ class System:
         band: ``(B or 1, 1, D, H, W)`` bool mask of the nodes that evolve.
         spectral_radius: ``rho``, an upper bound of the spectral radius of ``rate``'s Jacobian
             on the band, ``1 / time``.
-        project: applied after every step (e.g. ``u / |u|``; by torchdiffeq's methods to the
-            start, between their pieces and at the requested times), or ``None``.
+        project: applied to the start and after every step (e.g. ``u / |u|``; by
+            torchdiffeq's methods to the start, between their pieces and at the requested
+            times), or ``None``.
         linear: the symmetric linear form, for the implicit integrators; ``None`` if nonlinear.
         params: tensors ``rate`` reads that may need gradients (for ``odeint_adjoint`` and
             the recomputed segments of a checkpointed run, which check that no other is read);
@@ -550,7 +551,9 @@ def _explicit(
         return u
 
     def integrate(system: System, u0: Tensor, schedule: Schedule) -> list[Tensor]:
-        u, out, done = u0, [], 0
+        # projected first, as torchdiffeq's pieces are: unit vectors of other lengths took
+        # their first step as they were
+        u, out, done = _finish(system, u0), [], 0
         if schedule.checkpoint:
             reads = declared((*_tensor_times(schedule), *system.params))
             system = replace(system, rate=_checkpointed_rate(system.rate, reads))

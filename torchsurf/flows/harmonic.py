@@ -140,8 +140,8 @@ class HarmonicMapFlow(Flow):
         growth = 0.0
         if self.method == "rkc" and self.steps is None:  # only RKC's own plan reads it
             with torch.no_grad():
-                energy = functional.tangential_gradient_energy(u0.detach(), normal, spacing,
-                                                               path, pad) + eps**2
+                energy = functional.tangential_gradient_energy(project(u0.detach()), normal,
+                                                               spacing, path, pad) + eps**2
                 growth = float(torch.where(band, energy ** (self.p / 2.0), zero).max())
         return System(rate, band, rho, project=project,
                       params=tensors(surface.normal, surface.weight), growth=growth)
