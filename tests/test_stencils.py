@@ -283,5 +283,14 @@ def test_the_padding_and_application_steps_refuse_other_layouts_naming_the_argum
         stencils.contract(torch.rand(1, 1, 2, 5, 5, 5), stencils.CENTRAL)
     # the layouts they document still run, and a mask pads as before (a review)
     assert stencils.pad(torch.ones(1, 1, 3, 3, 3, dtype=torch.bool), "zeros").shape == (1, 1, 5, 5, 5)
+    assert stencils.pad(torch.ones(1, 1, 3, 3, 3, dtype=torch.long)).dtype == torch.long
+    # what cannot pad is named: a mask replicated, integers extrapolated (they came back float32),
+    # unsigned components mirrored (-1 wrapped to 255)
+    with pytest.raises(TypeError, match=r"^volume is a bool mask, which pads with mode='zeros'"):
+        stencils.pad(torch.ones(1, 1, 3, 3, 3, dtype=torch.bool))
+    with pytest.raises(TypeError, match=r"^volume must be a floating-point tensor"):
+        stencils.pad(torch.ones(1, 1, 3, 3, 3, dtype=torch.long), "linear")
+    with pytest.raises(TypeError, match=r"^field must hold signed numbers"):
+        stencils.pad_mirrored(torch.ones(1, 3, 3, 3, 3, dtype=torch.uint8))
     assert stencils.pad_mirrored(volume[:, :3]).shape == (1, 3, 7, 7, 7)
     assert stencils.contract(torch.rand(1, 2, 3, 5, 5, 5), stencils.CENTRAL).shape == (1, 2, 3, 3, 3)

@@ -224,7 +224,10 @@ def pad(volume: Tensor, mode: str = "replicate") -> Tensor:
     """
     check_choice(mode, "mode", PAD_MODES)
     _check_layout(volume, "volume", "(B, C, D, H, W)", 5, minimum=2 if mode == "linear" else 1,
-                  floating=False)  # a mask pads too
+                  floating=mode in ("linear", "quadratic"))  # extrapolation would promote
+    if volume.dtype == torch.bool and mode != "zeros":
+        raise TypeError(f"volume is a bool mask, which pads with mode='zeros' only, got "
+                        f"mode={mode!r}")
     halo = (1, 1, 1, 1, 1, 1)
     if mode == "zeros":
         return F.pad(volume, halo)
@@ -267,6 +270,9 @@ def pad_mirrored(field: Tensor) -> Tensor:
         ``(B, 3, D + 2, H + 2, W + 2)``.
     """
     _check_layout(field, "field", "(B, 3, D, H, W)", 5, components=3, floating=False)
+    if field.dtype == torch.bool or not (field.is_floating_point() or field.dtype.is_signed):
+        raise TypeError(f"field must hold signed numbers (its halo changes their sign), got dtype "
+                        f"{field.dtype}")
     replicated = F.pad(field, (1, 1, 1, 1, 1, 1), mode="replicate")
     components = []
     for axis in range(3):

@@ -29,8 +29,9 @@ class ReactionDiffusion(Flow):
     ``D_a = h^2 / 4`` and ``D_b = h^2 / 16``, so the pattern scale is a few cells, and it grows
     as ``s`` shrinks.
 
-    After every step ``b`` is clamped at 0 (Turk's rule; with torchdiffeq methods only at
-    the start, between their pieces and at the output times).
+    ``b`` is clamped at 0 at the start and after every step (Turk's rule; with torchdiffeq
+    methods at the start, between their pieces and at the output times): a ``u0`` whose ``b``
+    is negative somewhere starts from 0 there, and its gradient there is 0.
 
     Spectral bound: ``max(D_a rho_a, D_b rho) + s (max a + max b + 1)``, the diffusion's
     (``rho`` the Gershgorin bound of the band's Laplace–Beltrami operator, about ``10 / h^2``
