@@ -96,3 +96,17 @@ def test_a_field_zero_on_part_of_the_surface_is_taken_on_bricks_as_on_the_dense_
         field = signals.swirl_field(surface, "z")
         field = field * (signals.node_points(surface)[:, 2:3] > -0.5).to(field.dtype)
         assert torch.isfinite(flow(data, surface, direction=field)).all()
+
+
+def test_unknown_inputs_and_a_negative_isotropic_weight_are_named():
+    """generator= reached an internal method's TypeError; the isotropic weight's error said
+    'positive' while 0 is its default (an audit)."""
+    with pytest.raises(ValueError, match=r"^isotropic must be a finite number >= 0"):
+        FlowVisualization(0.01, isotropic=-1.0)
+    grid = ts.Grid.cube(9, bound=1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, dtype=torch.float64), grid)
+    u0 = FlowVisualization.noise(surface)
+    with pytest.raises(TypeError, match=r"^FlowVisualization takes direction= only, got "
+                                        r"\['generator'\]"):
+        FlowVisualization(0.01)(u0, surface, direction=ts.signals.swirl_field(surface),
+                                generator=torch.Generator())

@@ -30,7 +30,9 @@ class ColorDenoise(nn.Module):
             With ``p = 1`` both default flows are total-variation flows, whose time is in world
             units (times ``|I|`` for the brightness), not world units squared: a shape scaled
             by ``s`` needs ``s * time`` for about the same result (the bunny at 40³ scaled
-            by 10: 0.009 rms apart, against 0.32 rms of change).
+            by 10: 0.009 rms apart, against 0.32 rms of change; spot at 40³ scaled by 10 or
+            0.1: 0.028-0.031 apart, against 0.18, the brightness's ``eps`` making the
+            difference: with it scaled as well they agree to 1e-15).
         p: exponent of the default chroma flow (1, the paper's figure 3, by default); refused
             with ``chroma``.
         chroma: the flow for the chroma, a :class:`HarmonicMapFlow` (or a module of your own
@@ -38,8 +40,9 @@ class ColorDenoise(nn.Module):
         brightness: the flow for the brightness, a scalar flow (not a
             :class:`HarmonicMapFlow`); default total variation,
             ``AnisotropicFlow(time, eps=0.1, **kwargs)``, its ``eps`` in units of ``|I|`` per
-            world length (negligible against noise's gradients on shapes of unit size; give
-            your own flow for shapes far from it).
+            world length (small against noise's gradients on shapes of unit size, not
+            negligible: above; give your own flow, its ``eps`` scaled with the shape, for
+            shapes far from it).
         eps: regularisation of ``|I|``, units of ``I``.
         **kwargs: integration settings of :class:`Flow` for the default flows; refused when both
             flows are given.

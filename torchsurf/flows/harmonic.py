@@ -53,7 +53,7 @@ class HarmonicMapFlow(Flow):
 
     Args:
         time: physical end time.
-        p: exponent, ``1 <= p <= 2`` (1: the paper's figure 3; 2: harmonic maps).
+        p: exponent, ``1 <= p <= 2`` (1: the paper's figure 2, direction fields; 2: harmonic maps).
         eps: regularisation of ``|P grad u|``, units of ``u`` per world length.
         tangent: constrain ``u`` (3 channels) to the tangent plane of the level sets; a
             ``u0`` with no tangent part over most of the band (the normals) is refused.

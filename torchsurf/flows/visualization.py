@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .._checks import check_generator, check_positive
+from .._checks import check_generator, check_nonnegative
 from ..operators import functional
 from ..surface import ImplicitSurface, check_direction, tangent_unit
 from ._integrators import Linear, System, tensors, with_ring, zero_outside
@@ -46,9 +46,7 @@ class FlowVisualization(Flow):
 
     def __init__(self, time: float, isotropic: float = 0.0, **kwargs: object) -> None:
         super().__init__(time, **kwargs)
-        if isotropic != 0.0:
-            check_positive(isotropic, "isotropic")
-        self.isotropic = float(isotropic)
+        self.isotropic = check_nonnegative(isotropic, "isotropic")
 
     @staticmethod
     def noise(surface: ImplicitSurface, batch: int = 1,
@@ -67,8 +65,12 @@ class FlowVisualization(Flow):
         values = torch.rand(shape, generator=generator, dtype=torch.float64)
         return values.to(surface.phi.device, surface.phi.dtype)
 
-    def system(self, u0: Tensor, surface: ImplicitSurface, direction: Tensor | None = None
-               ) -> System:
+    def system(self, u0: Tensor, surface: ImplicitSurface, direction: Tensor | None = None,
+               **inputs: Tensor) -> System:
+        if inputs:
+            raise TypeError(f"FlowVisualization takes direction= only, got {sorted(inputs)} (its "
+                            f"noise is the u0 given: FlowVisualization.noise(surface, "
+                            f"generator=...) draws one)")
         if direction is None:
             raise TypeError("direction: FlowVisualization needs a tangent field T, "
                             "flow(u0, surface, direction=T)")
