@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import operator
 from collections.abc import Callable, Sequence
 from typing import TypeVar
 
@@ -314,6 +315,18 @@ def check_generator(value: object, name: str = "generator") -> torch.Generator |
         return value
     raise TypeError(f"{name} must be a torch.Generator or None, got {type(value).__name__} "
                     "(seed one: torch.Generator().manual_seed(seed))")
+
+
+def check_entry(entry: object, count: int, name: str = "entry") -> int:
+    """``entry`` as an ``int`` in ``[0, count)``: Python and numpy integers and 0-d integer
+    tensors; ``ValueError`` naming ``name`` for anything else (bools, fractions, out of range)."""
+    try:
+        index = None if isinstance(entry, (bool, np.bool_)) else operator.index(entry)
+    except TypeError:
+        index = None
+    if index is None or not 0 <= index < count:
+        raise ValueError(f"{name} must be an integer in [0, {count}), got {entry}")
+    return index
 
 
 def check_count(value: object, name: str, minimum: int = 1) -> int:

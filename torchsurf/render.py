@@ -27,7 +27,7 @@ import torch
 import trimesh
 from torch import Tensor
 
-from ._checks import check_spatial_shape, check_volume
+from ._checks import check_entry, check_spatial_shape, check_volume
 from .grid import Grid
 from .sampling import sample
 from .surface import ImplicitSurface
@@ -101,10 +101,7 @@ def vertex_values(volume: Tensor, mesh: trimesh.Trimesh, grid: Grid | ImplicitSu
                     f"volume holds {count} volumes, shape {tuple(volume.shape)}")
             raise ValueError(f"{what}: give entry, the one the mesh belongs to")
         entry = 0
-    elif (isinstance(entry, bool) or not isinstance(entry, (int, np.integer))
-          or not 0 <= entry < count):
-        raise ValueError(f"entry must be an integer in [0, {count}), got {entry!r}")
-    entry = int(entry)
+    entry = check_entry(entry, count)
     box = (grid.grids[entry] if packed else grid if isinstance(grid, Grid) else grid.grid)
     if not packed:
         check_spatial_shape(volume, "volume", box.shape, "grid")

@@ -13,7 +13,6 @@ the same nodes in the shape's units), and distances scale by ``scale_b``: a diff
 
 from __future__ import annotations
 
-import operator
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -22,7 +21,7 @@ import torch
 import trimesh
 from torch import Tensor
 
-from .._checks import check_count, check_nonnegative, check_positive
+from .._checks import check_count, check_entry, check_nonnegative, check_positive
 from .._mesh_input import MeshLike, as_trimesh, is_array_pair, triangle_arrays
 from ..grid import Grid
 
@@ -56,19 +55,9 @@ class FittedMeshes:
         """The common spacing ``h``, batch units."""
         return self.grids[0].spacing
 
-    def _entry(self, entry: object) -> int:
-        """``entry`` as an ``int`` in ``[0, B)`` (numpy and 0-d integer tensors too)."""
-        try:
-            index = None if isinstance(entry, bool) else operator.index(entry)
-        except TypeError:
-            index = None
-        if index is None or not 0 <= index < len(self):
-            raise ValueError(f"entry must be an integer in [0, {len(self)}), got {entry!r}")
-        return index
-
     def own_grid(self, entry: int) -> Grid:
         """The grid of shape ``entry`` in its own units: the same nodes as ``grids[entry]``."""
-        entry = self._entry(entry)
+        entry = check_entry(entry, len(self))
         scale = float(self.scale[entry])
         grid = self.grids[entry]
         origin = tuple(float(c) + o / scale for c, o in zip(self.centre[entry], grid.origin,
@@ -77,7 +66,7 @@ class FittedMeshes:
 
     def to_shape(self, points: Tensor, entry: int) -> Tensor:
         """Batch coordinates ``(..., 3)`` of shape ``entry`` in its own units ``(..., 3)``."""
-        entry = self._entry(entry)
+        entry = check_entry(entry, len(self))
         centre = self.centre[entry].to(dtype=points.dtype, device=points.device)
         return points / float(self.scale[entry]) + centre
 

@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import operator
 from collections.abc import Sequence
 
 import torch
 from torch import Tensor
 
-from .._checks import MismatchError, check_finite, check_positive, check_tensor
+from .._checks import MismatchError, check_entry, check_finite, check_positive, check_tensor
 from .._inference import outside_inference
 from ..grid import Grid
 from ..surface import CROSSING_CELLS, ImplicitSurface, check_eps
@@ -388,13 +387,7 @@ class BrickSurface(ImplicitSurface):
         if points.dim() != 2 or points.shape[1] != 3:
             raise ValueError(f"{name} must have shape (V, 3), got {tuple(points.shape)}")
         check_finite(points.detach(), name)
-        try:
-            index = operator.index(entry) if not isinstance(entry, bool) else None
-        except TypeError:
-            index = None
-        if index is None or not 0 <= index < self.batch_size:
-            raise ValueError(f"entry must be an integer in [0, {self.batch_size}), got {entry}")
-        return index
+        return check_entry(entry, self.batch_size)
 
     def _cell_corners(self, index: Tensor, entry: int, slack: float = 0.0
                       ) -> tuple[Tensor, Tensor, list[tuple[Tensor, Tensor, Tensor]]]:
