@@ -73,7 +73,8 @@ def write_atomically(path: Path, text: str) -> None:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    description = __doc__.splitlines()[0].replace(":mod:", "").replace("`", "")
+    parser = argparse.ArgumentParser(description=description)
     parser.add_argument("--sizes", type=int, nargs="+", default=[17, 33, 65],
                         help="grid sizes n (n^3 nodes), coarse to fine (default: 17 33 65)")
     parser.add_argument("--output", type=Path, default=Path("outputs/convergence.md"),

@@ -399,7 +399,9 @@ def pictures(data: SignalSet, grid: ts.Grid, methods: dict[str, dict[str, Method
 
 def parse(argv: Sequence[str] | None = None) -> argparse.Namespace:
     # no abbreviations: --quick keeps the options given beside it by their full names
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0], allow_abbrev=False)
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0].replace("`", ""),
+                                     allow_abbrev=False,
+                                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     parser.add_argument("--output", type=Path, default=Path("outputs/train_denoise"),
                         help="folder for results.md, results.csv, the pictures and the weights")
     parser.add_argument("--resolution", type=int, default=32,
@@ -418,10 +420,11 @@ def parse(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--cells", type=int, default=12, help="regions of a piecewise-constant signal")
     parser.add_argument("--frequency", type=float, default=2.0,
                         help="highest frequency of a smooth signal, periods per shape size")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
+    parser.add_argument("--seed", type=int, default=0,
+                        help="seed of the signals, the noise and the initial weights")
+    parser.add_argument("--threads", type=int, default=None, help="torch threads (None: torch's)")
     parser.add_argument("--mesh-dir", default=os.environ.get("TORCHSURF_MESH_DIR"),
-                        help="folder of --meshes (default $TORCHSURF_MESH_DIR)")
+                        help="folder of --meshes ($TORCHSURF_MESH_DIR if set)")
     parser.add_argument("--meshes", nargs="*", default=[],
                         help="mesh files added to the training shapes")
     parser.add_argument("--heldout-mesh", default=None,
@@ -462,6 +465,12 @@ def parse(argv: Sequence[str] | None = None) -> argparse.Namespace:
                          f"{getattr(args, name)}")
     if not 0 <= args.seed < DERIVED_SEED_LIMIT:
         parser.error(f"--seed must be an integer in [0, 2**32), got {args.seed}")
+    try:
+        mesh_paths(args.meshes, args.mesh_dir)
+        if args.heldout_mesh is not None:
+            mesh_paths([args.heldout_mesh], args.mesh_dir, "--heldout-mesh")
+    except FileNotFoundError as error:
+        parser.error(str(error))
     return args
 
 

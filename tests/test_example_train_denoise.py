@@ -91,6 +91,9 @@ def test_outputs_are_staged_and_a_failure_leaves_the_former_ones(example, tmp_pa
     (["--seed", str(2**32)], "--seed"),
     # an abbreviation was taken by argparse, then overridden by --quick
     (["--quick", "--res", "32"], "--res"),
+    # a traceback at the first mesh's loading, after the options had passed
+    (["--mesh-dir", "/nonexistent", "--meshes", "spot.obj"], "--meshes 'spot.obj'"),
+    (["--heldout-mesh", "/nonexistent/spot.obj"], "--heldout-mesh"),
 ])
 def test_bad_arguments_are_named(example, capsys, argv, named):
     with pytest.raises(SystemExit):
@@ -103,10 +106,15 @@ def test_relative_mesh_without_folder_is_refused(example):
         example.mesh_paths(["spot.obj"], None)
 
 
-def test_the_same_mesh_by_another_name_is_refused_and_another_file_taken(example, capsys):
+def test_the_same_mesh_by_another_name_is_refused_and_another_file_taken(example, capsys,
+                                                                        tmp_path):
     """The held-out mesh was compared with --meshes by file name only: a spot.obj of
     another folder was refused, the same file reached by another path was not."""
-    assert example.parse(["--meshes", "a/spot.obj", "--heldout-mesh", "b/spot.obj"])
+    for folder in ("a", "b"):
+        (tmp_path / folder).mkdir()
+        (tmp_path / folder / "spot.obj").write_text("")
+    assert example.parse(["--mesh-dir", str(tmp_path), "--meshes", "a/spot.obj",
+                          "--heldout-mesh", "b/spot.obj"])
     with pytest.raises(SystemExit):
         example.parse(["--mesh-dir", "m", "--meshes", "spot.obj", "--heldout-mesh",
                        "./sub/../spot.obj"])

@@ -413,6 +413,12 @@ def _bad_calls() -> list:
          "mask selects no node"),
         (lambda: exact.max_error(dense.phi, dense.phi, (dense.phi < 0).float()), TypeError,
          "mask must be a bool tensor, got torch.float32"),
+        # torch's broadcasting error, naming neither
+        (lambda: exact.max_error(dense.phi[..., :4], dense.phi, dense.phi < 0), ValueError,
+         r"exact has shape .*must broadcast to value's shape"),
+        (lambda: exact.max_error(dense.phi, dense.phi, (dense.phi < 0)[..., :4]), ValueError,
+         r"mask has shape .*must broadcast to value's shape"),
+        (lambda: exact.torus_function("20"), TypeError, "n must be a whole number"),
         (lambda: ts.FlowVisualization.noise(dense, generator=1), TypeError,
          "generator must be a torch.Generator or None, got int"),
         (lambda: sphere.layout.rand(1, generator=7), TypeError, "generator must be"),

@@ -17,6 +17,7 @@ import torch
 from torch import Tensor
 
 from . import sdf
+from ._checks import check_count, check_tensor
 from .grid import Grid
 
 __all__ = [
@@ -72,8 +73,9 @@ def sphere_harmonic(degree: int, n: int, dtype: torch.dtype = torch.float64) -> 
     each node's own distance from the centre (the Laplace–Beltrami operator of the level set
     through it). Tensors ``(1, 1, n, n, n)`` in ``dtype``.
     """
-    if isinstance(degree, bool) or degree not in (1, 2, 3, 4):
+    if isinstance(degree, bool) or check_count(degree, "degree") not in (1, 2, 3, 4):
         raise ValueError(f"degree must be 1, 2, 3 or 4, got {degree!r}")
+    degree = check_count(degree, "degree")
     grid = Grid.cube(n, bound=1.4)
     points = grid.points(dtype=dtype)
     direction, r = _sphere_frame(points)
@@ -106,7 +108,12 @@ def torus_function(n: int, dtype: torch.dtype = torch.float64) -> Case:
     ``[-1.6, 1.6]^3``, or wider where that leaves fewer than :data:`TORUS_MARGIN_CELLS` cells
     between the torus and the faces (below 49 nodes a side): the stencils assume no flux
     through the faces, and the surface warns closer.
+
+    ``exact`` is NaN at nodes whose level set is no torus: on the z axis (odd ``n``) and on the
+    core circle, within a cell of S on grids coarser than about 15 nodes a side;
+    :func:`near` leaves them out.
     """
+    n = check_count(n, "n")
     if n < 2 * TORUS_MARGIN_CELLS + 3:
         raise ValueError(f"n must be at least {2 * TORUS_MARGIN_CELLS + 3} (the torus and "
                          f"{TORUS_MARGIN_CELLS} cells on each side), got {n}")
@@ -118,6 +125,7 @@ def torus_function(n: int, dtype: torch.dtype = torch.float64) -> Case:
     u_v = -torch.sin(v) + torch.sin(2 * theta) * torch.cos(v)
     u_vv = -u
     exact = u_tt / ring**2 + u_vv / rho**2 - torch.sin(v) * u_v / (rho * ring)
+    exact = exact.masked_fill((ring == 0) | (rho == 0), float("nan"))
     phi = sdf.torus(grid, *TORUS_RADII, dtype=dtype)
     if not bool((phi < 0).any()):
         raise ValueError(f"n={n}: at spacing {grid.spacing:.3g} no node lies inside the torus's "
@@ -140,8 +148,9 @@ def polar_angle_frame(points: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
 
 
 def near(case: Case, cells: float = 1.0) -> Tensor:
-    """Boolean ``(1, 1, D, H, W)``: nodes within ``cells`` grid spacings of the surface."""
-    return case.phi.abs() <= cells * case.grid.spacing
+    """Boolean ``(1, 1, D, H, W)``: nodes within ``cells`` grid spacings of the surface where
+    ``case.exact`` is defined (finite)."""
+    return (case.phi.abs() <= cells * case.grid.spacing) & case.exact.isfinite()
 
 
 def max_error(value: Tensor, exact: Tensor, mask: Tensor) -> float:
@@ -150,6 +159,12 @@ def max_error(value: Tensor, exact: Tensor, mask: Tensor) -> float:
     if not isinstance(mask, Tensor) or mask.dtype != torch.bool:
         raise TypeError(f"mask must be a bool tensor, got "
                         f"{getattr(mask, 'dtype', type(mask).__name__)}")
+    value, exact = check_tensor(value, "value"), check_tensor(exact, "exact")
+    for name, other in (("exact", exact), ("mask", mask)):
+        if other.dim() != value.dim() or any(
+                o not in (1, v) for o, v in zip(other.shape, value.shape, strict=True)):
+            raise ValueError(f"{name} has shape {tuple(other.shape)}; it must broadcast to "
+                             f"value's shape {tuple(value.shape)} (sizes equal or 1)")
     if not mask.any():
         raise ValueError(f"mask selects no node (shape {tuple(mask.shape)}): no error to take "
                          "the largest of")
