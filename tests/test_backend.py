@@ -475,8 +475,12 @@ def test_only_kernels_that_build_their_indices_skip_inductors_bounds_checks(monk
             backend.compiled(kernel.fused, kernel.dynamic, kernel.trusted_indices)
     finally:
         backend.compiled.cache_clear()
-    assert seen[0]["options"] == {"assert_indirect_indexing": False}
-    assert seen[1]["options"] is None
+    assert seen[0]["options"]["assert_indirect_indexing"] is False
+    assert "assert_indirect_indexing" not in seen[1]["options"]
+    # the numbers' 0-d tensor reads had made inductor write total variation's projected
+    # gradients to memory (1.7x its time at 128^3); every kernel compiles with the raised bound
+    assert all(kwargs["options"]["realize_reads_threshold"] == backend.REALIZE_READS_THRESHOLD
+               for kwargs in seen)
 
 
 def test_a_users_diffusivity_is_one_variant_and_is_not_kept_alive(monkeypatch):

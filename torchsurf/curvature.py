@@ -12,6 +12,7 @@ import torch
 from torch import Tensor
 
 from ._checks import check_alike, check_positive, check_tensor
+from ._vectors import tangential_part
 
 __all__ = [
     "gaussian_curvature",
@@ -105,9 +106,9 @@ def tangent_basis(normal: Tensor) -> tuple[Tensor, Tensor]:
     order = normal.abs().argsort(dim=1)
     first = _unit_vectors(normal, order[:, 0:1])
     second = _unit_vectors(normal, order[:, 1:2])
-    t1 = first - (first * normal).sum(dim=1, keepdim=True) * normal
+    t1 = tangential_part(first, normal)
     t1 = t1 / t1.norm(dim=1, keepdim=True)
-    t2 = second - (second * normal).sum(dim=1, keepdim=True) * normal
+    t2 = tangential_part(second, normal)
     t2 = t2 - (t2 * t1).sum(dim=1, keepdim=True) * t1
     return t1, t2 / t2.norm(dim=1, keepdim=True)
 

@@ -25,6 +25,7 @@ from ._checks import (
 )
 from ._inference import outside_inference
 from ._stack import caller_stacklevel
+from ._vectors import tangential_part
 from .grid import Grid
 
 __all__ = [
@@ -1064,7 +1065,7 @@ def check_tangential(field: Tensor, surface: ImplicitSurface, region: Tensor,
 def _tangential_part(field: Tensor, normal: Tensor) -> tuple[Tensor, Tensor]:
     """``P T`` of ``field`` ``(B, 3, ...)`` and ``|T|^2`` ``(B, 1, ...)``."""
     squared = (field**2).sum(dim=1, keepdim=True)
-    return field - (field * normal).sum(dim=1, keepdim=True) * normal, squared
+    return tangential_part(field, normal), squared
 
 
 def tangent_unit(field: Tensor, surface: ImplicitSurface) -> Tensor:

@@ -6,6 +6,7 @@ import torch
 from torch import Tensor
 
 from .._checks import check_choice, check_flag, check_positive, check_real
+from .._vectors import tangential_part
 from ..backend import PATHS
 from ..operators import functional
 from ..operators.functional import FLUX_SCHEMES
@@ -121,7 +122,7 @@ class HarmonicMapFlow(Flow):
                 self.scheme, path, band, haloed, pad,
             )
             if self.tangent:  # keeps a tangent u tangent between the projections too
-                du = du - (du * normal).sum(dim=1, keepdim=True) * normal
+                du = tangential_part(du, normal)
             if between_pieces:  # |u| kept: the radial part, which grows off the unit sphere
                 length2 = (u * u).sum(dim=1, keepdim=True).clamp_min(torch.finfo(u.dtype).tiny)
                 du = du - (du * u).sum(dim=1, keepdim=True) / length2 * u
