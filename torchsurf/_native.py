@@ -1,13 +1,15 @@
 """Small C kernels compiled once per machine and loaded with ctypes.
 
 A :class:`NativeLibrary` holds the C source of a few functions. On first use it is compiled
-with the C compiler that ``torch.compile`` also needs (``$CC``, else ``cc``), about half a
-second, into a cache folder: ``$TORCHSURF_CACHE_DIR``, else ``$XDG_CACHE_HOME/torchsurf``, else
+with the C compiler that ``torch.compile`` also needs (``$CC``, else ``cc``), half a
+second to 2.3 s a library, into a cache folder: ``$TORCHSURF_CACHE_DIR``, else ``$XDG_CACHE_HOME/torchsurf``, else
 ``~/.cache/torchsurf``. The file's name holds a hash of the source, the flags, the compiler's
-version and the CPU's feature flags (``-march=native``); it is written aside and renamed into
-place, so a concurrent process finds it whole or not at all. Without a compiler, or with
+command and version and the CPU's feature flags (``-march=native``); it is written aside and
+renamed into place, so a concurrent process finds it whole or not at all, and a cached file
+shorter than its headers say is compiled again. Without a compiler, or with
 ``TORCHSURF_NATIVE=never``, :meth:`NativeLibrary.load` returns ``None`` and the callers take
-their other paths; :meth:`NativeLibrary.unavailable_reason` says why.
+their other paths (with one ``RuntimeWarning`` unless ``never``);
+:meth:`NativeLibrary.unavailable_reason` says why.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ import shlex
 import subprocess
 import tempfile
 import threading
+import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -105,12 +108,22 @@ class NativeLibrary:
                     detail = getattr(error, "stderr", None) or error
                     self._state["library"] = None
                     self._state["reason"] = f"{type(error).__name__}: {str(detail).strip()[:500]}"
+                    if native_mode() != "never":
+                        warnings.warn(
+                            f"torchsurf's C kernel {self.name!r} is unavailable, its callers "
+                            f"take their other paths (several times slower on bricks): "
+                            f"{self._state['reason']} (cache folder {cache_dir()}, compiler "
+                            "$CC, else cc; TORCHSURF_NATIVE=never silences this)",
+                            RuntimeWarning, stacklevel=2)
             return self._state["library"]  # type: ignore[return-value]
 
     def unavailable_reason(self) -> str | None:
-        """Why :meth:`load` returns ``None`` (no compiler, ``TORCHSURF_NATIVE=never``), or
-        ``None``."""
-        self.load()
+        """Why :meth:`load` returns ``None`` (no compiler, ``TORCHSURF_NATIVE=never``, a
+        ``TORCHSURF_NATIVE`` that is neither mode), or ``None``."""
+        try:
+            self.load()
+        except ValueError as error:
+            return str(error)
         return self._state["reason"]  # type: ignore[return-value]
 
     def forget(self) -> None:
@@ -154,10 +167,11 @@ class NativeLibrary:
                rebuild: bool = False) -> Path:
         """The shared library for these flags, compiled unless the cache holds it (or
         ``rebuild``)."""
-        key = hashlib.sha256("\0".join((source, *flags, version, _machine_key())).encode())
+        key = hashlib.sha256(
+            "\0".join((source, *compiler, *flags, version, _machine_key())).encode())
         folder = cache_dir()
         library = folder / f"{self.name}_{key.hexdigest()[:20]}.so"
-        if rebuild or not library.exists():
+        if rebuild or not library.exists() or not _whole(library):
             folder.mkdir(parents=True, exist_ok=True)
             with tempfile.TemporaryDirectory(dir=folder) as work:
                 c_file = Path(work) / f"{self.name}.c"
@@ -167,6 +181,25 @@ class NativeLibrary:
                                capture_output=True, text=True, check=True, timeout=120)
                 os.replace(built, library)  # whole or not at all, also for a concurrent process
         return library
+
+
+def _whole(library: Path) -> bool:
+    """Whether an ELF file reaches as far as its headers say: a cached library cut short (an
+    interrupted copy, a full disk) killed the process with SIGBUS when loaded. Files of other
+    formats are taken as they are."""
+    try:
+        with library.open("rb") as file:
+            header = file.read(64)
+            size = os.fstat(file.fileno()).st_size
+    except OSError:
+        return False
+    if len(header) < 64 or header[:4] != b"\x7fELF" or header[4] != 2:  # 64-bit ELF only
+        return True
+    order = "little" if header[5] == 1 else "big"
+    section_table = int.from_bytes(header[0x28:0x30], order)
+    entry_size = int.from_bytes(header[0x3A:0x3C], order)
+    entries = int.from_bytes(header[0x3C:0x3E], order)
+    return section_table + entry_size * entries <= size
 
 
 def in_parts(count: int, least: int) -> int:

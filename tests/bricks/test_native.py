@@ -2,11 +2,16 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+
 import pytest
 import torch
 
 import torchsurf as ts
 from torchsurf import Grid, bricks
+from torchsurf._native import _whole
 from torchsurf.bricks import _native
 from torchsurf.operators import functional
 
@@ -99,7 +104,9 @@ def test_without_a_compiler_the_operators_take_their_other_paths(torus, monkeypa
     monkeypatch.setattr(_native.LIBRARY, "_state", {})
     monkeypatch.setenv("TORCHSURF_CACHE_DIR", str(tmp_path))
     monkeypatch.setenv("CC", str(tmp_path / "no-such-compiler"))
-    assert surface.layout.native_octant(u, *surface.haloed(), surface.spacing, False, None) is None
+    with pytest.warns(RuntimeWarning, match="unavailable.*no-such-compiler"):  # once, not silent
+        assert surface.layout.native_octant(u, *surface.haloed(), surface.spacing, False,
+                                            None) is None
     assert "no-such-compiler" in _native.unavailable_reason()
     assert torch.allclose(ts.laplace_beltrami(u, surface), expected, atol=1e-12)
     assert list(tmp_path.iterdir()) == []
@@ -152,6 +159,37 @@ def test_a_bad_native_mode_is_named(monkeypatch):
     monkeypatch.setenv("TORCHSURF_NATIVE", "sometimes")
     with pytest.raises(ValueError, match="TORCHSURF_NATIVE must be one of"):
         _native.library()
+    # the reason is given, not raised
+    assert "TORCHSURF_NATIVE must be one of" in _native.unavailable_reason()
+
+
+def test_a_cached_library_cut_short_is_compiled_again(monkeypatch, tmp_path, native_available):
+    """Loading a library truncated after it was cached killed the process with SIGBUS."""
+    monkeypatch.setattr(_native.LIBRARY, "_state", {})
+    monkeypatch.setenv("TORCHSURF_CACHE_DIR", str(tmp_path / "cache"))
+    assert _native.library() is not None
+    (built,) = (tmp_path / "cache").iterdir()
+    whole = built.read_bytes()
+    built.write_bytes(whole[: len(whole) // 2])
+    assert not _whole(built)
+    script = ("import torch; from torchsurf.bricks import _native; "
+              "assert _native.library() is not None, _native.unavailable_reason()")
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                            env={**os.environ, "TORCHSURF_CACHE_DIR": str(tmp_path / "cache")},
+                            timeout=300)
+    assert result.returncode == 0, (result.returncode, result.stderr[-2000:])
+    assert built.read_bytes() == whole or _whole(built)
+
+
+def test_the_compilers_arguments_name_their_own_build(monkeypatch, tmp_path, native_available):
+    """``CC="cc -ffast-math"`` and ``CC=cc`` shared one file: a fast-math build, loaded later
+    under plain ``cc``, turned on flush-to-zero for the whole process."""
+    monkeypatch.setenv("TORCHSURF_CACHE_DIR", str(tmp_path / "cache"))
+    for compiler in ("cc", "cc -std=c11"):
+        monkeypatch.setattr(_native.LIBRARY, "_state", {})
+        monkeypatch.setenv("CC", compiler)
+        assert _native.library() is not None, _native.unavailable_reason()
+    assert len(list((tmp_path / "cache").iterdir())) == 2
 
 
 def test_native_octant_runs_in_parts_on_threads(native_available, monkeypatch):

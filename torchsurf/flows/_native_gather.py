@@ -17,7 +17,7 @@ closest-point stencil from its compact form (no matrix assembled), for bands too
 It runs on the CPU in float32 and float64 with 32-bit indices: as ctypes calls, and inside a
 graph ``torch.compile`` traces as custom operators (``torch.ops.torchsurf``, torch 2.4 and
 later) that call the same kernels; elsewhere :func:`applies` is false and the caller gathers by
-``embedding_bag``. Compiled once per machine (:mod:`torchsurf._native`; about a second).
+``embedding_bag``. Compiled once per machine (:mod:`torchsurf._native`; about 2.3 s).
 """
 
 from __future__ import annotations
