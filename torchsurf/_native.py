@@ -1,15 +1,15 @@
 """Small C kernels compiled once per machine and loaded with ctypes.
 
 A :class:`NativeLibrary` holds the C source of a few functions. On first use it is compiled
-with the C compiler that ``torch.compile`` also needs (``$CC``, else ``cc``), half a
-second to 2.3 s a library, into a cache folder: ``$TORCHSURF_CACHE_DIR``, else ``$XDG_CACHE_HOME/torchsurf``, else
-``~/.cache/torchsurf``. The file's name holds a hash of the source, the flags, the compiler's
-command and version and the CPU's feature flags (``-march=native``); it is written aside and
-renamed into place, so a concurrent process finds it whole or not at all, and a cached file
-shorter than its headers say is compiled again. Without a compiler, or with
-``TORCHSURF_NATIVE=never``, :meth:`NativeLibrary.load` returns ``None`` and the callers take
-their other paths (with one ``RuntimeWarning`` unless ``never``);
-:meth:`NativeLibrary.unavailable_reason` says why.
+with the C compiler that ``torch.compile`` also needs (``$CC``, else ``cc``), half a second
+to 2.3 s a library, into a cache folder: ``$TORCHSURF_CACHE_DIR``, else
+``$XDG_CACHE_HOME/torchsurf``, else ``~/.cache/torchsurf``. The file's name holds a hash of
+the source, the flags, the compiler's command and version and the CPU's feature flags
+(``-march=native``); it is written aside and renamed into place, so a concurrent process
+finds it whole or not at all, and a cached file shorter than its headers say is compiled
+again. Without a compiler, or with ``TORCHSURF_NATIVE=never``, :meth:`NativeLibrary.load`
+returns ``None`` and the callers take their other paths (with one ``RuntimeWarning`` unless
+``never``); :meth:`NativeLibrary.unavailable_reason` says why.
 """
 
 from __future__ import annotations
