@@ -13,7 +13,7 @@ S (1500 Fibonacci points, read tricubically), relative to the exact amplitude. S
 ``r^2 - R^2`` on the dense grid, and ``r - R`` on bricks. Rows per surface and size: the default
 RKC; RKC with the former count ``max(16, ceil(t rho / 108))`` (the baseline, same run); Heun
 with its default re-extension; Heun re-extending after every step. Each flow runs once untimed
-first (the surface's kept stencils); times are one call, eager, seconds.
+first (the surface's kept stencils); times are one call on ``path="auto"``, seconds.
 
     OMP_NUM_THREADS=1 PYTHONPATH=. python benchmarks/bench_narrow_band.py --cells 16 24 32
 

@@ -1,7 +1,7 @@
 """The band Laplacian and HeatFlow on packed band values against the volume path, in one process.
 
 For each shape and grid: the band's share of the box, the time to assemble the packed
-operator (``PackedBand``: 27 colour probes of the volume operator and the ring's stencils as
+operator (``PackedBand``: the volume operator's rows in closed form and the ring's stencils as
 gather matrices), the bytes it keeps, and one application of ``L`` (``L x = M W^-1 A E M x``,
 the operator of ``exp(t L)``) forward and transposed, packed against the volume path's
 ``BandLaplacian.apply`` / ``transpose``, their calls alternated (medians; the ratio is the

@@ -173,7 +173,14 @@ def test_mesh_path_resolves_against_the_config_folder_then_the_mesh_dir(tmp_path
     with pytest.raises(config.ConfigError, match="surface.mesh"):
         config.resolve_mesh("ball.obj", elsewhere)
     monkeypatch.setenv(config.MESH_DIR_VARIABLE, str(folder))
-    assert config.resolve_mesh("ball.obj", elsewhere) == folder / "ball.obj"
+    assert config.resolve_mesh("ball.obj", elsewhere) == (folder / "ball.obj").resolve()
+    # a relative mesh folder: the record's path had been relative to where the run started
+    monkeypatch.chdir(elsewhere)
+    monkeypatch.setenv(config.MESH_DIR_VARIABLE, "../meshes")
+    assert config.resolve_mesh("ball.obj", elsewhere) == (folder / "ball.obj").resolve()
+    # a folder was "not found"
+    with pytest.raises(config.ConfigError, match="is a folder"):
+        config.resolve_mesh(".", folder)
 
 
 @pytest.mark.parametrize(

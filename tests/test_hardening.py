@@ -399,6 +399,11 @@ def _bad_calls() -> list:
          "holds 2 volumes.*give entry"),
         (lambda: render.vertex_values(torch.zeros(2, 1, *grid.shape), mesh, grid, entry=2),
          ValueError, r"entry must be an integer in \[0, 2\)"),
+        # AttributeErrors from deep inside, naming neither
+        (lambda: render.vertex_values(torch.zeros(1, 1, *grid.shape), mesh, "grid"), TypeError,
+         "grid must be a torchsurf.Grid"),
+        (lambda: render.vertex_values(torch.zeros(1, 1, *grid.shape), np.zeros((4, 3)), grid),
+         TypeError, "mesh must be a trimesh.Trimesh"),
         (lambda: signals.checkerboard(grid.points().permute(3, 0, 1, 2)[None], 0.5, (0.0, 0.0)),
          ValueError, "origin"),
         (lambda: signals.uniform_noise(dense, -1, 0), ValueError, "channels"),

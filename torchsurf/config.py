@@ -507,9 +507,12 @@ def _refuse_unusual_numbers(node: yaml.Node, path: str = "") -> None:
         if ((node.tag.endswith(":int") and not DECIMAL_INTEGER.fullmatch(text))
                 or (node.tag.endswith(":float") and ("_" in text or ":" in text))
                 or (node.tag.endswith(":str") and "_" in text and _is_number(text))):
-            raise ConfigError(path, f"{text} is not written in decimal digits: YAML would read "
-                              f"it as {yaml.safe_load(text)!r} (a leading 0 as octal, 0x as "
-                              "hexadecimal, _ dropped, 1:30 as 90); write the number plainly")
+            read = yaml.safe_load(text)
+            reading = (f"YAML would read it as the text {read!r}, not a number"
+                       if isinstance(read, str) else f"YAML would read it as {read!r}")
+            raise ConfigError(path, f"{text} is not written in decimal digits: {reading} (a "
+                              "leading 0 as octal, 0x as hexadecimal, _ dropped where it reads "
+                              "a number, 1:30 as 90); write the number plainly")
 
 
 def _dotlist(overrides: list[str]) -> DictConfig:
@@ -864,7 +867,11 @@ def resolve_mesh(mesh: str, folder: Path) -> Path:
         candidates.append(Path(directory) / path)
     for candidate in candidates:
         if candidate.is_file():
-            return candidate
+            return candidate.resolve()  # the record names it wherever it is read from
+    folders = [str(c) for c in candidates if c.is_dir()]
+    if folders:
+        raise ConfigError("surface.mesh", f"{mesh!r} is a folder ({folders[0]}), not a mesh "
+                          "file: name the file in it")
     where = ", ".join(str(c) for c in candidates)
     unset = "" if directory else f" (${MESH_DIR_VARIABLE} is not set)"
     first = ("" if path.is_absolute() else

@@ -89,6 +89,13 @@ def vertex_values(volume: Tensor, mesh: trimesh.Trimesh, grid: Grid | ImplicitSu
         entry: the batch entry the mesh belongs to (``volume[entry]``, or the brick surface's
             shape ``entry``); ``None`` when there is only one.
     """
+    if not isinstance(grid, (Grid, ImplicitSurface)):
+        raise TypeError(f"grid must be a torchsurf.Grid or the surface holding the volume, got "
+                        f"{type(grid).__name__}")
+    vertices = np.asarray(getattr(mesh, "vertices", None))
+    if vertices.ndim != 2 or vertices.shape[1:] != (3,) or vertices.dtype.kind not in "fiu":
+        raise TypeError(f"mesh must be a trimesh.Trimesh (or hold .vertices (V, 3)), got "
+                        f"{type(mesh).__name__}")
     packed = isinstance(grid, ImplicitSurface) and grid.layout is not None
     if packed:
         grid.check_field(volume, "volume")
@@ -107,7 +114,7 @@ def vertex_values(volume: Tensor, mesh: trimesh.Trimesh, grid: Grid | ImplicitSu
         check_spatial_shape(volume, "volume", box.shape, "grid")
     # world to node indices in float64, then the volume's dtype: a grid far from the origin
     # keeps the precision of its cells (1e5 away, float32 world points are off 0.06 cell)
-    vertices = torch.as_tensor(np.asarray(mesh.vertices), dtype=torch.float64)
+    vertices = torch.as_tensor(vertices, dtype=torch.float64)
     outside = ~box.contains(vertices, tolerance=1e-4)
     if bool(outside.any()):
         first = int(outside.nonzero()[0, 0])

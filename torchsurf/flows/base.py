@@ -72,6 +72,7 @@ from ..surface import (  # noqa: F401  (WIDE_BAND_CELLS, DISTANCE_TOLERANCE: doc
 from ._integrators import (
     IMPLICIT,
     INTEGRATORS,
+    TIME_ROUNDING,
     Linear,
     Plan,
     Schedule,
@@ -85,6 +86,7 @@ from ._integrators import (
     shortest_step,
     step_ends,
     steps_taken,
+    whole_steps,
     with_ring,
 )
 from ._packed_band import PackedRegion
@@ -160,7 +162,7 @@ def _fewest_steps(method: str, system: System, band_cells: float, length: float,
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         longest = end / plan_steps(method, system, end, None, band_cells=band_cells).count
-    return max(1, math.ceil(length / longest * (1 - 1e-9)))
+    return whole_steps(length, longest, end)
 
 
 def _marks_by_time(ends: list[float], period: float, longest_held: float) -> set[int]:
@@ -168,10 +170,10 @@ def _marks_by_time(ends: list[float], period: float, longest_held: float) -> set
     ``period``, and any step after which the next would end more than ``longest_held`` after
     the last mark."""
     marks, last, previous = set(), 0.0, 0.0
+    slack = TIME_ROUNDING * ends[-1]  # float32 requested times: a crossing one step early
     for k, end in enumerate(ends, start=1):
-        crossed = (math.floor(end / period * (1 + 1e-12))
-                   > math.floor(previous / period * (1 + 1e-12)))
-        overdue = k < len(ends) and ends[k] - last > longest_held * (1 + 1e-9)
+        crossed = (math.floor((end + slack) / period) > math.floor((previous + slack) / period))
+        overdue = k < len(ends) and ends[k] - last > longest_held + slack
         if crossed or overdue:
             marks.add(k)
             last = end
