@@ -167,6 +167,11 @@ class Kernel:
         compile_weight: what compiling one variant of ``fused`` costs, in units of a typical
             kernel's compile: ``"auto"`` compiles a variant once its eager time reaches
             ``compile_weight * COMPILE_PAYBACK_SECONDS`` (:data:`COMPILE_PAYBACK_SECONDS`).
+        exponents: ``exponents(haloed_args)``, the positions of the numbers ``fused`` raises
+            to a power: they reach the compiled kernel as numbers, not 0-d tensors
+            (:func:`_run_compiled`), so that inductor writes ``s ** -1.0`` as a reciprocal
+            and ``s ** 0.0`` as 1 (as a tensor, a general power: the harmonic-map rate 1.8x
+            slower); a graph per exponent, of which a flow has one or two.
     """
 
     name: str
@@ -179,6 +184,7 @@ class Kernel:
     trusted_indices: bool = False
     breaks_graph: bool = False
     compile_weight: float = 1.0
+    exponents: Callable[[tuple], tuple[int, ...]] | None = None
 
     def __post_init__(self) -> None:
         if not (isinstance(self.compile_weight, (int, float)) and self.compile_weight > 0
@@ -288,8 +294,11 @@ def _variant(kernel: Kernel, volume: Tensor, args: tuple, recording: bool) -> tu
     """The compiled variant a call of ``kernel`` on ``args`` runs (or would run): the key of
     :data:`_TIMINGS`. Calls with the same key share one compiled graph, and so one payback."""
     batch = volume.shape[0]
+    kept = kernel.exponents(args) if kernel.exponents is not None else ()
     return (kernel.name, volume.device.type, recording, batch > 1,
-            tuple(_describe(arg, batch, kernel.dynamic, recording) for arg in args))
+            tuple(arg if i in kept and type(arg) is float
+                  else _describe(arg, batch, kernel.dynamic, recording)
+                  for i, arg in enumerate(args)))
 
 
 def _shapes(args: tuple) -> tuple:
@@ -402,7 +411,9 @@ def _run_compiled(kernel: Kernel, volume: Tensor, args: tuple, recording: bool) 
     # data's dtype, as eager arithmetic reads a number: float64 ones made inductor compute
     # float32 kernels in float64 (total variation 1.7x, directional diffusion 1.4x slower).
     number = volume.dtype if volume.is_floating_point() else torch.float64
-    args = tuple(torch.tensor(arg, dtype=number) if type(arg) is float else arg for arg in args)
+    kept = kernel.exponents(args) if kernel.exponents is not None else ()
+    args = tuple(torch.tensor(arg, dtype=number) if type(arg) is float and i not in kept else arg
+                 for i, arg in enumerate(args))
     batch = volume.shape[0]
     if batch > 1:
         for arg in args:

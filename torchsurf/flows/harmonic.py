@@ -20,6 +20,9 @@ def power_diffusivity(magnitude: Tensor, exponent: float) -> Tensor:
     return magnitude**exponent
 
 
+power_diffusivity.exponent_contrast = True  # type: ignore[attr-defined]  (torchsurf.backend)
+
+
 def normalize(u: Tensor, eps: float = 1e-12) -> Tensor:
     """``u / |u|`` over the channels of ``(B, C, D, H, W)``."""
     return u / torch.sqrt((u**2).sum(dim=1, keepdim=True) + eps**2)

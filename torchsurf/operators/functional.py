@@ -431,9 +431,17 @@ COUPLED_COMPILE_WEIGHT = 3.0
 128^3): :attr:`backend.Kernel.compile_weight` (docs/benchmarks.md, "Compile weights")."""
 
 
+def _coupled_exponents(haloed_args: tuple) -> tuple[int, ...]:
+    """The energy term's power, and the contrast of a diffusivity that raises to it
+    (``exponent_contrast``, the p-harmonic map's ``s^(p-2)``): positions in the haloed
+    arguments of :func:`fused_coupled_rate` and :func:`_coupled_open`."""
+    return (9, 6) if getattr(haloed_args[5], "exponent_contrast", False) else (9,)
+
+
 _COUPLED = backend.Kernel("coupled_flux_form", _coupled_eager, fused_coupled_rate, _coupled_halo,
                           fused_when_eager=True, eager_fused=eager_coupled_rate,
-                          breaks_graph=True, compile_weight=COUPLED_COMPILE_WEIGHT)
+                          breaks_graph=True, compile_weight=COUPLED_COMPILE_WEIGHT,
+                          exponents=_coupled_exponents)
 
 
 def _coupled_open(padded_u, haloed_normal, haloed_weight, weight, spacing, diffusivity, contrast,  # noqa: ANN001, ANN202
@@ -450,7 +458,8 @@ def _coupled_open_eagerly(padded_u, haloed_normal, haloed_weight, weight, spacin
 
 _COUPLED_OPEN = backend.Kernel("coupled_flux_form_open", _coupled_eager, _coupled_open,
                                eager_fused=_coupled_open_eagerly, breaks_graph=True,
-                               compile_weight=COUPLED_COMPILE_WEIGHT)
+                               compile_weight=COUPLED_COMPILE_WEIGHT,
+                               exponents=_coupled_exponents)
 
 
 def harmonic_map_rate(
