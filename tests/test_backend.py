@@ -536,3 +536,17 @@ def test_exponents_reach_compiled_kernels_as_numbers(monkeypatch):
         assert all(type(args[i]) is float for i in expected)
         numbers = [i for i in (4, 6, 7) if i not in expected]
         assert all(isinstance(args[i], torch.Tensor) and args[i].dim() == 0 for i in numbers)
+
+
+def test_channels_last_data_compiles_no_graph_of_its_own():
+    """dynamo guards on the memory format: channels-last data compiled its own kernel (9-22 s
+    on a first call), where permuted or stepped layouts reused the graph."""
+    counters = torch._dynamo.utils.counters["stats"]
+    grid = ts.Grid.cube(12, bound=1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, 0.7), grid)
+    u = torch.rand(1, 2, *grid.shape, generator=torch.Generator().manual_seed(1))
+    expected = ts.laplace_beltrami(u, surface, path="compiled")
+    before = counters["unique_graphs"]
+    last = u.contiguous(memory_format=torch.channels_last_3d)
+    torch.testing.assert_close(ts.laplace_beltrami(last, surface, path="compiled"), expected)
+    assert counters["unique_graphs"] == before

@@ -394,6 +394,12 @@ def _compiled_or_eager(kernel: Kernel, volume: Tensor, haloed_args: tuple, recor
         return result
 
 
+def _channels_last(value: object) -> bool:
+    """A 5-D tensor laid out channels-last (``torch.channels_last_3d``), not contiguous."""
+    return (isinstance(value, Tensor) and value.dim() == 5 and not value.is_contiguous()
+            and value.is_contiguous(memory_format=torch.channels_last_3d))
+
+
 def _run_compiled(kernel: Kernel, volume: Tensor, args: tuple, recording: bool) -> Tensor:
     """``kernel.fused(*args)`` compiled.
 
@@ -406,6 +412,8 @@ def _run_compiled(kernel: Kernel, volume: Tensor, args: tuple, recording: bool) 
     """
     if not recording:  # before marking: a detached tensor is a new object, unmarked
         args = tuple(arg.detach() if isinstance(arg, Tensor) else arg for arg in args)
+    # dynamo guards on the memory format: channels-last data compiled a kernel of its own
+    args = tuple(arg.contiguous() if _channels_last(arg) else arg for arg in args)
     # numbers (a grid's spacing, a contrast) as 0-d tensors: dynamo guards on a float's value,
     # and every mesh of its own spacing, every contrast, had compiled a graph of its own. In the
     # data's dtype, as eager arithmetic reads a number: float64 ones made inductor compute
