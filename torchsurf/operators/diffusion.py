@@ -142,6 +142,11 @@ def anisotropic_diffusion(
     its gradients stay finite where the data is flat. Explicit steps of
     ``u_t = L u`` are stable for ``dt <= h^2 / (6 max g)``; for total variation ``max g = 1/eps``.
 
+    The operator converges at second order once ``g(|P grad u|)`` varies over several cells;
+    where it changes within a cell or two (a contrast ``K`` small against the data's gradients)
+    the grid does not resolve it: on a torus function with Perona–Malik at ``K = 1.5`` the error
+    stayed at 40-75% up to 64^3 (at ``K = 6``: orders 2.1-2.5; an audit, 2026-12-07).
+
     Args:
         u: ``(B, C, D, H, W)``.
         surface: the implicit surface (batch 1 or B).
