@@ -173,11 +173,16 @@ def test_mesh_path_resolves_against_the_config_folder_then_the_mesh_dir(tmp_path
     with pytest.raises(config.ConfigError, match="surface.mesh"):
         config.resolve_mesh("ball.obj", elsewhere)
     monkeypatch.setenv(config.MESH_DIR_VARIABLE, str(folder))
-    assert config.resolve_mesh("ball.obj", elsewhere) == (folder / "ball.obj").resolve()
+    assert config.resolve_mesh("ball.obj", elsewhere) == folder / "ball.obj"
     # a relative mesh folder: the record's path had been relative to where the run started
     monkeypatch.chdir(elsewhere)
     monkeypatch.setenv(config.MESH_DIR_VARIABLE, "../meshes")
-    assert config.resolve_mesh("ball.obj", elsewhere) == (folder / "ball.obj").resolve()
+    assert config.resolve_mesh("ball.obj", elsewhere) == folder / "ball.obj"
+    # a link to a file without an extension (a hub cache's blob) is named by the link
+    blob = tmp_path / "blob"
+    blob.write_bytes((folder / "ball.obj").read_bytes())
+    (tmp_path / "linked.obj").symlink_to(blob)
+    assert config.resolve_mesh(str(tmp_path / "linked.obj"), elsewhere) == tmp_path / "linked.obj"
     # a folder was "not found"
     with pytest.raises(config.ConfigError, match="is a folder"):
         config.resolve_mesh(".", folder)

@@ -8,7 +8,7 @@ the source, the flags, the compiler's command and version and the CPU's feature 
 (``-march=native``); it is written aside and renamed into place, so a concurrent process
 finds it whole or not at all, and a cached file shorter than its headers say is compiled
 again. Without a compiler, or with ``TORCHSURF_NATIVE=never``, :meth:`NativeLibrary.load`
-returns ``None`` and the callers take their other paths (with one ``RuntimeWarning`` unless
+returns ``None`` and the callers take their other paths (with a ``RuntimeWarning`` per library unless
 ``never``); :meth:`NativeLibrary.unavailable_reason` says why.
 """
 
@@ -26,6 +26,8 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import torch
+
+from ._stack import caller_stacklevel
 
 NATIVE_MODES = ("auto", "never")
 """Values of the environment variable ``TORCHSURF_NATIVE``."""
@@ -111,10 +113,10 @@ class NativeLibrary:
                     if native_mode() != "never":
                         warnings.warn(
                             f"torchsurf's C kernel {self.name!r} is unavailable, its callers "
-                            f"take their other paths (several times slower on bricks): "
-                            f"{self._state['reason']} (cache folder {cache_dir()}, compiler "
-                            "$CC, else cc; TORCHSURF_NATIVE=never silences this)",
-                            RuntimeWarning, stacklevel=2)
+                            f"take their other, slower paths: {self._state['reason']} (cache "
+                            f"folder {cache_dir()}, compiler $CC, else cc; "
+                            "TORCHSURF_NATIVE=never silences this)",
+                            RuntimeWarning, stacklevel=caller_stacklevel())
             return self._state["library"]  # type: ignore[return-value]
 
     def unavailable_reason(self) -> str | None:

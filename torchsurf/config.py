@@ -867,7 +867,9 @@ def resolve_mesh(mesh: str, folder: Path) -> Path:
         candidates.append(Path(directory) / path)
     for candidate in candidates:
         if candidate.is_file():
-            return candidate.resolve()  # the record names it wherever it is read from
+            # absolute, so the record names it wherever it is read from; not resolved: a
+            # link's target may have no extension (a hub cache's blobs) to tell the format
+            return Path(os.path.abspath(candidate))
     folders = [str(c) for c in candidates if c.is_dir()]
     if folders:
         raise ConfigError("surface.mesh", f"{mesh!r} is a folder ({folders[0]}), not a mesh "

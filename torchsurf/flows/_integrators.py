@@ -391,25 +391,26 @@ def plan_steps(method: str, system: System, end: float, steps: int | None,
     takes to cross ``diagonal_cells`` cells. Warned: more than :data:`LONG_RUN` evaluations.
     """
     rho = system.spectral_radius
+    per_rho = 1.0 / rho if rho > 0 else math.inf  # a time per unit of dt rho
     if system.linear is not None and diagonal_cells is not None:
         check_before_equilibrium(end, rho, diagonal_cells)
     if steps is None:
-        explicit = max(1, math.ceil(end / system.stable_step * (1 - 1e-9)))
+        explicit = whole_steps(end, system.stable_step, end)
         if method == "rkc":
             longest = min(12.0 * band_cells**2, largest_step_times_rho())
-            count = max(min(RKC_STEPS, explicit), math.ceil(end * rho / longest * (1 - 1e-9)),
+            count = max(min(RKC_STEPS, explicit), whole_steps(end, longest * per_rho, end),
                         math.ceil(end * system.growth / RKC_GROWTH * (1 - 1e-9)))
             if band_cells > HELD_RING_CELLS:
-                holding = math.ceil(end * rho / held_ring_bound(band_cells) * (1 - 1e-9))
+                holding = whole_steps(end, held_ring_bound(band_cells) * per_rho, end)
                 allowed = math.inf if system.linear is not None else HELD_RING_STEPS
                 if count < holding <= allowed * count:
                     count = holding
             if not ring_held("rkc", end / count * rho, band_cells):
                 count = max(count, min(RKC_REFRESHED_STEPS, explicit))
                 if system.isotropic:
-                    count = max(count, math.ceil(end * rho / RKC_REFRESHED_STEP * (1 - 1e-9)))
+                    count = max(count, whole_steps(end, RKC_REFRESHED_STEP * per_rho, end))
         elif method in ("euler", "heun"):
-            count = max(1, math.ceil(end / system.explicit_step * (1 - 1e-9)))
+            count = whole_steps(end, system.explicit_step, end)
         elif method in INTEGRATORS:
             count = explicit
         elif method in FIXED_STEP:
@@ -862,7 +863,7 @@ def fixed_step_count(method: str, system: System, end: float, steps: int | None,
     if step_size is None:
         interval = min(2.0, _STABLE_INTERVAL.get(method, 2.0))
         step_size = EXPLICIT_STEP_FRACTION * system.stable_step * interval / 2.0
-    return max(1, math.ceil(end / step_size * (1 - 1e-9)))
+    return whole_steps(end, step_size, end)
 
 
 def check_options(options: object, method: str) -> dict:

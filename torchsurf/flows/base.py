@@ -660,7 +660,8 @@ class Flow(nn.Module):
         # [1, 2) (a TV flow's result swung by 0.003-0.2 as RKC's steps went from 12 to 64 on a
         # torus), and steps split by requested times shortened it
         ends = step_ends(schedule)
-        crossed = [math.floor(t / crossing * (1 + 1e-12)) for t in [0.0, *ends]]
+        slack = TIME_ROUNDING * ends[-1]  # float32 requested times: a crossing one step early
+        crossed = [math.floor((t + slack) / crossing) for t in [0.0, *ends]]
         marks = {k for k in range(1, len(ends) + 1) if crossed[k] > crossed[k - 1]}
         return marks.__contains__, max(1, math.ceil(crossing / shortest * (1 + 1e-9)))
 
