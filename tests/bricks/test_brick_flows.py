@@ -15,6 +15,7 @@ import torch
 
 import torchsurf as ts
 from torchsurf import Grid, backend, bricks
+from torchsurf._vectors import tangential_part
 from torchsurf.flows import (
     ColorDenoise,
     FlowVisualization,
@@ -78,8 +79,7 @@ def test_directional_diffusion_and_gradient_energy_equal_the_dense_operators(tor
     result = ts.directional_diffusion(packed_u, surface, packed_direction, scheme)
     _assert_equal_on_band(result, expected, surface, dense)
     # the operator diffuses along P T, the functional form along the T it is given
-    tangent = packed_direction - (packed_direction * surface.normal).sum(1, keepdim=True) * (
-        surface.normal)
+    tangent = tangential_part(packed_direction, surface.normal)
     haloed = surface.layout.halo(tangent, 1)
     kept = functional.directional_form(
         packed_u, surface.normal, surface.weight, surface.spacing, tangent, scheme,
