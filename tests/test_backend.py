@@ -533,6 +533,10 @@ def test_exponents_reach_compiled_kernels_as_numbers(monkeypatch):
         torch.testing.assert_close(compiled, eager)
         args = seen[-1]
         assert functional._coupled_exponents(args) == expected
+        # the variant key of path="auto" (un-haloed arguments) keeps the exponents' values too
+        raw = (u, surface.normal, surface.weight, surface.spacing, diffusivity, contrast, 0.01,
+               0.5, "symmetric", None, None)
+        assert [raw[i] for i in functional._coupled_exponents(raw)] == [args[i] for i in expected]
         assert all(type(args[i]) is float for i in expected)
         numbers = [i for i in (4, 6, 7) if i not in expected]
         assert all(isinstance(args[i], torch.Tensor) and args[i].dim() == 0 for i in numbers)

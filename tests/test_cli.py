@@ -183,6 +183,14 @@ def test_mesh_path_resolves_against_the_config_folder_then_the_mesh_dir(tmp_path
     blob.write_bytes((folder / "ball.obj").read_bytes())
     (tmp_path / "linked.obj").symlink_to(blob)
     assert config.resolve_mesh(str(tmp_path / "linked.obj"), elsewhere) == tmp_path / "linked.obj"
+    # ".." after a linked mesh folder: folded as text, it named another file than the one found
+    (tmp_path / "store" / "meshes").mkdir(parents=True)
+    (tmp_path / "store" / "extra").mkdir()
+    (tmp_path / "store" / "extra" / "x.obj").write_bytes((folder / "ball.obj").read_bytes())
+    (tmp_path / "linked").symlink_to(tmp_path / "store" / "meshes")
+    monkeypatch.setenv(config.MESH_DIR_VARIABLE, str(tmp_path / "linked"))
+    found = config.resolve_mesh("../extra/x.obj", elsewhere)
+    assert found.is_file() and found.samefile(tmp_path / "store" / "extra" / "x.obj")
     # a folder was "not found"
     with pytest.raises(config.ConfigError, match="is a folder"):
         config.resolve_mesh(".", folder)

@@ -867,9 +867,10 @@ def resolve_mesh(mesh: str, folder: Path) -> Path:
         candidates.append(Path(directory) / path)
     for candidate in candidates:
         if candidate.is_file():
-            # absolute, so the record names it wherever it is read from; not resolved: a
-            # link's target may have no extension (a hub cache's blobs) to tell the format
-            return Path(os.path.abspath(candidate))
+            # absolute, so the record names it wherever it is read from; the file itself not
+            # resolved: a link's target may have no extension (a hub cache's blobs) to tell
+            # the format, while its folder is (a "..", folded as text, left a linked folder)
+            return candidate.absolute().parent.resolve() / candidate.name
     folders = [str(c) for c in candidates if c.is_dir()]
     if folders:
         raise ConfigError("surface.mesh", f"{mesh!r} is a folder ({folders[0]}), not a mesh "

@@ -391,7 +391,7 @@ class CubicStencil:
             part = min(b, len(self.parts) - 1)
             targets, corners, weights = self.parts[part]
             volume = u[min(b, u.shape[0] - 1)]
-            flat = volume.reshape(volume.shape[0], -1)
+            flat = volume.reshape(volume.shape[0], -1).contiguous()  # channels-last: a view
             height, width = volume.shape[-2:]
             limit = _limit_flag(self.limited)
             if self.anchors[part] is not None:
@@ -434,7 +434,7 @@ class CubicStencil:
             targets, corners, weights = self.parts[min(b, len(self.parts) - 1)]
             volume = v[b]
             height, width = volume.shape[-2:]
-            flat = volume.reshape(volume.shape[0], -1)
+            flat = volume.reshape(volume.shape[0], -1).contiguous()  # channels-last: a view
             x, y, z = corners.long().unbind(0)
             sources = ((z[:, :, None, None] * height + y[:, None, :, None]) * width
                        + x[:, None, None, :]).flatten()
@@ -710,7 +710,7 @@ class BrickCubicStencil:
         """
         check_choice(path, "path", backend.PATHS)
         channels = u.shape[1]
-        flat = u.transpose(0, 1).reshape(channels, -1)
+        flat = u.transpose(0, 1).reshape(channels, -1).contiguous()  # channels-last: a view
         weights = self.weights.to(u.dtype)
         value = self._interpolated(u, flat, weights, path)
         result = flat.index_copy(1, self.targets, value)
@@ -737,7 +737,7 @@ class BrickCubicStencil:
         if self.limited:
             raise ValueError("BrickCubicStencil.transpose: a limited stencil is not linear")
         channels = v.shape[1]
-        flat = v.transpose(0, 1).reshape(channels, -1)
+        flat = v.transpose(0, 1).reshape(channels, -1).contiguous()  # channels-last: a view
         result = flat.index_fill(1, self.targets, 0.0)
         weights = self.weights.to(v.dtype)
         for start in range(0, len(self.targets), STENCIL_CHUNK):

@@ -431,11 +431,18 @@ COUPLED_COMPILE_WEIGHT = 3.0
 128^3): :attr:`backend.Kernel.compile_weight` (docs/benchmarks.md, "Compile weights")."""
 
 
-def _coupled_exponents(haloed_args: tuple) -> tuple[int, ...]:
+def _coupled_exponents(args: tuple) -> tuple[int, ...]:
     """The energy term's power, and the contrast of a diffusivity that raises to it
-    (``exponent_contrast``, the p-harmonic map's ``s^(p-2)``): positions in the haloed
-    arguments of :func:`fused_coupled_rate` and :func:`_coupled_open`."""
-    return (9, 6) if getattr(haloed_args[5], "exponent_contrast", False) else (9,)
+    (``exponent_contrast``, the p-harmonic map's ``s^(p-2)``): their positions in ``args``,
+    the arguments of :func:`harmonic_map_rate`'s kernels as :func:`torchsurf.backend.run`
+    takes them (``..., diffusivity, contrast, eps, power, scheme, ...``) or haloed
+    (``..., diffusivity, contrast, eps, scheme, power, ...``)."""
+    diffusivity = next(i for i, arg in enumerate(args)
+                       if callable(arg) and not isinstance(arg, torch.Tensor))
+    power = diffusivity + (4 if isinstance(args[diffusivity + 3], str) else 3)
+    if getattr(args[diffusivity], "exponent_contrast", False):
+        return (power, diffusivity + 1)
+    return (power,)
 
 
 _COUPLED = backend.Kernel("coupled_flux_form", _coupled_eager, fused_coupled_rate, _coupled_halo,
