@@ -772,7 +772,7 @@ def test_requested_times_in_float32_give_the_float64_times_results(method):
     # times on multiples of the time a cell's crossing takes, 12 / rho (the re-extension
     # marks of Euler and Heun, and the implicit steps' plan, rounded them apart; a review)
     rho = HeatFlow(0.01, method=method).system(case.u, surface).spectral_radius
-    times = [12.0 / rho * k for k in range(1, 31)]
+    times = [12.0 / rho * k for k in range(1, 11)]
     flow = HeatFlow(times[-1], method=method)
     given = flow(case.u, surface, times=times)
     count = flow.last_plan.count
