@@ -73,9 +73,9 @@ def sphere_harmonic(degree: int, n: int, dtype: torch.dtype = torch.float64) -> 
     each node's own distance from the centre (the Laplace–Beltrami operator of the level set
     through it). Tensors ``(1, 1, n, n, n)`` in ``dtype``.
     """
-    if isinstance(degree, bool) or check_count(degree, "degree") not in (1, 2, 3, 4):
+    degree = check_count(degree, "degree")  # refuses bools and fractions by name
+    if degree not in (1, 2, 3, 4):
         raise ValueError(f"degree must be 1, 2, 3 or 4, got {degree!r}")
-    degree = check_count(degree, "degree")
     grid = Grid.cube(n, bound=1.4)
     points = grid.points(dtype=dtype)
     direction, r = _sphere_frame(points)
