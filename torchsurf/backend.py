@@ -172,6 +172,10 @@ class Kernel:
             (:func:`_run_compiled`), so that inductor writes ``s ** -1.0`` as a reciprocal
             and ``s ** 0.0`` as 1 (as a tensor, a general power: the harmonic-map rate 1.8x
             slower); a graph per exponent, of which a flow has one or two.
+        realize_reads_threshold: inductor's ``realize_reads_threshold`` for ``fused``,
+            :data:`REALIZE_READS_THRESHOLD` unless given: how many reads of an intermediate
+            it recomputes before writing it to memory once (a kernel whose fluxes are read
+            at many offsets may gain from a higher one; measure).
     """
 
     name: str
@@ -185,6 +189,7 @@ class Kernel:
     breaks_graph: bool = False
     compile_weight: float = 1.0
     exponents: Callable[[tuple], tuple[int, ...]] | None = None
+    realize_reads_threshold: int | None = None
 
     def __post_init__(self) -> None:
         if not (isinstance(self.compile_weight, (int, float)) and self.compile_weight > 0
@@ -233,11 +238,14 @@ def _keep_buffers() -> None:
 
 @functools.cache
 def compiled(function: Callable[..., Tensor], dynamic: bool = False,
-             trusted_indices: bool = False) -> Callable[..., Tensor]:
+             trusted_indices: bool = False, realize_reads_threshold: int | None = None
+             ) -> Callable[..., Tensor]:
     """``function`` compiled once per process (shapes specialised unless ``dynamic``; without
-    bounds checks on indirect loads when ``trusted_indices``, :attr:`Kernel.trusted_indices`)."""
+    bounds checks on indirect loads when ``trusted_indices``, :attr:`Kernel.trusted_indices`;
+    inductor's ``realize_reads_threshold`` :data:`REALIZE_READS_THRESHOLD` unless given)."""
     _raise_recompile_limit()
-    options: dict[str, object] = {"realize_reads_threshold": REALIZE_READS_THRESHOLD}
+    options: dict[str, object] = {
+        "realize_reads_threshold": realize_reads_threshold or REALIZE_READS_THRESHOLD}
     if trusted_indices:
         options["assert_indirect_indexing"] = False
     return torch.compile(function, dynamic=dynamic, options=options)
@@ -427,7 +435,8 @@ def _run_compiled(kernel: Kernel, volume: Tensor, args: tuple, recording: bool) 
         for arg in args:
             if isinstance(arg, Tensor) and arg.dim() > 0 and arg.shape[0] == batch:
                 torch._dynamo.maybe_mark_dynamic(arg, 0)
-    function = compiled(kernel.fused, kernel.dynamic, kernel.trusted_indices)
+    function = compiled(kernel.fused, kernel.dynamic, kernel.trusted_indices,
+                        kernel.realize_reads_threshold)
     if recording:
         return function(*args)
     with torch.no_grad():

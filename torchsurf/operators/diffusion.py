@@ -20,7 +20,6 @@ from torch import Tensor, nn
 
 from .. import backend
 from .._checks import MismatchError, check_choice, check_flag, check_positive, check_positive_tensor
-from .._vectors import tangential_part
 from ..surface import ImplicitSurface, check_data, check_direction_batch
 from . import functional
 from .diffusivity import DIFFUSIVITIES, Diffusivity
@@ -207,10 +206,10 @@ def directional_diffusion(
     check_direction_batch(direction, u, "u", surface)
     check_choice(scheme, "scheme", FLUX_SCHEMES)
     check_choice(path, "path", backend.PATHS)
-    direction = tangential_part(direction, surface.normal)
     return functional.directional_form(
         u, surface.normal, surface.weight, surface.spacing, direction, scheme, path,
         haloed=surface.haloed(), pad=None if surface.layout is None else surface.layout.halo,
+        tangent=True,
     )
 
 

@@ -34,6 +34,7 @@ from torch import Tensor
 
 from .. import backend, stencils
 from .._checks import SUPPORTED_DTYPES, check_alike, check_flag, check_positive
+from .._vectors import tangential_part
 from ..stencils import masked
 from ._coupled import eager_coupled_rate, fused_coupled_rate
 from ._flux_form import (
@@ -323,6 +324,20 @@ def directional_flux(v: Components, fields: Sequence[Tensor], side: int) -> Comp
     return along * tx, along * ty, along * tz
 
 
+def tangent_directional_flux(v: Components, fields: Sequence[Tensor], side: int) -> Components:
+    """The flux map ``v -> (P T . v) P T`` for ``T = fields[0]`` and the unit normals
+    ``n = fields[1]`` (both ``(B, 3, ...)``), ``P T = T - (T . n) n``: with ``v`` tangent at
+    the node (a projected gradient) ``P T . v = T . v``, so the flux is ``(T . v) P T``, with
+    ``P T`` formed pointwise where it is read (no projected field is stored)."""
+    t, n = fields
+    tx, ty, tz = t[:, 0:1], t[:, 1:2], t[:, 2:3]
+    nx, ny, nz = n[:, 0:1], n[:, 1:2], n[:, 2:3]
+    along = v[0] * tx + v[1] * ty + v[2] * tz
+    normal_part = tx * nx + ty * ny + tz * nz
+    return (along * (tx - normal_part * nx), along * (ty - normal_part * ny),
+            along * (tz - normal_part * nz))
+
+
 def _edge_eager(u, normal, weight, spacing, diffusivity, contrast, eps, coupled, scheme, haloed,  # noqa: ANN001, ANN202
                 mask=None, *, path):
     flux = edge_stopping_flux(diffusivity, contrast, eps, coupled)
@@ -511,39 +526,72 @@ def harmonic_map_rate(
                        power, scheme, mask, haloed)
 
 
-def _directional_eager(u, normal, weight, spacing, direction, scheme, weighted, haloed, *, path):  # noqa: ANN001, ANN202
+def _directional_eager(u, normal, weight, spacing, direction, scheme, weighted, tangent, haloed,  # noqa: ANN001, ANN202
+                       *, path):
+    if tangent:  # eagerly, P T once costs less than within each composition's fluxes
+        direction = tangential_part(direction, normal)
     result = flux_form(u, normal, weight, spacing, directional_flux, (direction,), scheme, path)
     return _weighted(result, weight, weighted)
 
 
+def _directional_projected_eagerly(padded_u, haloed_normal, haloed_weight, weight, spacing,  # noqa: ANN001, ANN202
+                                   haloed_direction, scheme, weighted, tangent, box_faces=True):
+    """:func:`_directional_fused`'s numbers to rounding, evaluated eagerly with ``P T`` formed
+    once (in a box's faces from mirrored normals: the fluxes there cross closed faces)."""
+    if tangent:
+        haloed_direction = tangential_part(haloed_direction, haloed_normal)
+    return _directional_fused(padded_u, haloed_normal, haloed_weight, weight, spacing,
+                              haloed_direction, scheme, weighted, False, box_faces)
+
+
 def _directional_fused(padded_u, haloed_normal, haloed_weight, weight, spacing, haloed_direction,  # noqa: ANN001, ANN202
-                       scheme, weighted, box_faces=True):
-    return fused_flux_form(padded_u, haloed_normal, haloed_weight, weight, spacing,
-                           directional_flux, (haloed_direction,), scheme, weighted,
-                           box_faces=box_faces)
+                       scheme, weighted, tangent, box_faces=True):
+    flux, fields = _directional_flux(haloed_direction, haloed_normal, tangent)
+    return fused_flux_form(padded_u, haloed_normal, haloed_weight, weight, spacing, flux,
+                           fields, scheme, weighted, box_faces=box_faces)
 
 
-def _directional_halo(u, normal, weight, spacing, direction, scheme, weighted, haloed):  # noqa: ANN001, ANN202
+def _directional_flux(direction: Tensor, normal: Tensor, tangent: bool
+                      ) -> tuple[FluxMap, tuple[Tensor, ...]]:
+    if tangent:
+        return tangent_directional_flux, (direction, normal)
+    return directional_flux, (direction,)
+
+
+def _directional_halo(u, normal, weight, spacing, direction, scheme, weighted, tangent, haloed):  # noqa: ANN001, ANN202
     return (_replicated(u, 2), *_geometry_halo(normal, weight, haloed), weight, spacing,
-            _replicated(direction, 1), scheme, weighted)
+            _replicated(direction, 1), scheme, weighted, tangent)
 
 
 _DIRECTIONAL = backend.Kernel("directional", _directional_eager, _directional_fused, _directional_halo)
+TANGENT_REALIZE_READS = 10
+"""Inductor's ``realize_reads_threshold`` for the directional kernels that project ``T``
+(:func:`tangent_directional_flux`): with the default (:data:`torchsurf.backend.REALIZE_READS_THRESHOLD`)
+inductor writes each composition's face fluxes to memory; recomputed, the operator takes about
+the time of one given a tangent ``T`` (docs/benchmarks.md)."""
+_DIRECTIONAL_TANGENT = backend.Kernel("directional_tangent", _directional_eager, _directional_fused,
+                                      _directional_halo,
+                                      eager_fused=_directional_projected_eagerly,
+                                      realize_reads_threshold=TANGENT_REALIZE_READS)
 
 
 def _directional_fused_open(padded_u, haloed_normal, haloed_weight, weight, spacing,  # noqa: ANN001, ANN202
-                            haloed_direction, scheme, weighted):
+                            haloed_direction, scheme, weighted, tangent):
     return _directional_fused(padded_u, haloed_normal, haloed_weight, weight, spacing,
-                              haloed_direction, scheme, weighted, box_faces=False)
+                              haloed_direction, scheme, weighted, tangent, box_faces=False)
 
 
 _DIRECTIONAL_OPEN = backend.Kernel("directional_open", _directional_eager, _directional_fused_open)
+_DIRECTIONAL_TANGENT_OPEN = backend.Kernel(
+    "directional_tangent_open", _directional_eager, _directional_fused_open,
+    eager_fused=lambda *args: _directional_projected_eagerly(*args, box_faces=False),
+    realize_reads_threshold=TANGENT_REALIZE_READS)
 
 
 def directional_form(
     u: Tensor, normal: Tensor, weight: Tensor, spacing: float, direction: Tensor,
     scheme: str = "symmetric", path: str = "auto", weighted: bool = False, haloed: Haloed = None,
-    pad: Pad | None = None, haloed_direction: Tensor | None = None,
+    pad: Pad | None = None, haloed_direction: Tensor | None = None, tangent: bool = False,
 ) -> Tensor:
     """Diffusion along a tangent field ``(1/W) div(W (T . P grad u) T)``.
 
@@ -559,6 +607,11 @@ def directional_form(
         haloed_direction: with ``pad``, ``direction`` with its halo of one node when the caller
             keeps it (a flow applies the operator many times to one field); default
             ``pad(direction, 1)``.
+        tangent: use ``P T = T - (T . n) n`` in place of ``T``: compiled, within the fluxes
+            (:func:`tangent_directional_flux`: projecting ``T`` before the call took as long
+            as the operator), eagerly once before them; what
+            :func:`torchsurf.directional_diffusion` asks. ``False`` for a ``T`` the caller
+            keeps tangent.
 
     Returns:
         ``u``'s shape.
@@ -566,15 +619,16 @@ def directional_form(
     spacing = _check_inputs(u, normal, spacing, weight, scheme, FLUX_SCHEMES, direction,
                            required=("weight", "direction"))
     _check_extras(u, normal, haloed=haloed, weighted=weighted)
+    check_flag(tangent, "tangent")
     if pad is not None:
         haloed_normal, haloed_weight = _require_haloed(haloed)
         if haloed_direction is None:
             haloed_direction = pad(direction, 1)
-        return backend.run_haloed(_DIRECTIONAL_OPEN, path, u, pad(u, 2), haloed_normal,
-                                  haloed_weight, weight, spacing, haloed_direction, scheme,
-                                  weighted)
-    return backend.run(_DIRECTIONAL, path, u, u, normal, weight, spacing, direction, scheme,
-                       weighted, haloed)
+        return backend.run_haloed(_DIRECTIONAL_TANGENT_OPEN if tangent else _DIRECTIONAL_OPEN,
+                                  path, u, pad(u, 2), haloed_normal, haloed_weight, weight,
+                                  spacing, haloed_direction, scheme, weighted, tangent)
+    return backend.run(_DIRECTIONAL_TANGENT if tangent else _DIRECTIONAL, path, u, u, normal,
+                       weight, spacing, direction, scheme, weighted, tangent, haloed)
 
 
 # --- Central differences: gradient, divergence, the non-conservative Laplace–Beltrami --------
