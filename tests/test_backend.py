@@ -481,6 +481,15 @@ def test_only_kernels_that_build_their_indices_skip_inductors_bounds_checks(monk
     # gradients to memory (1.7x its time at 128^3); every kernel compiles with the raised bound
     assert all(kwargs["options"]["realize_reads_threshold"] == backend.REALIZE_READS_THRESHOLD
                for kwargs in seen)
+    # the projecting directional kernel recomputes its face fluxes (with 7 inductor stored
+    # them: the operator 1.8x slower at 96^3)
+    kernel = functional._DIRECTIONAL_TANGENT
+    try:
+        backend.compiled(kernel.fused, kernel.dynamic, kernel.trusted_indices,
+                         kernel.realize_reads_threshold)
+    finally:
+        backend.compiled.cache_clear()
+    assert seen[-1]["options"]["realize_reads_threshold"] == functional.TANGENT_REALIZE_READS > 7
 
 
 def test_a_users_diffusivity_is_one_variant_and_is_not_kept_alive(monkeypatch):
