@@ -62,6 +62,17 @@ def test_flow_forward_traces_without_graph_break(sphere, name):
     assert _break_reasons(flow, u, surface) == []
 
 
+@pytest.mark.parametrize("name", ["learned time and diffusivity, bounded",
+                                  "Perona-Malik, learned contrast"])
+def test_learned_flow_traces_without_graph_break_while_autograd_records(sphere, name):
+    """Training traces the forward with autograd recording: the band's re-extension went
+    through an autograd function whose backward dynamo traced with it, and its host-sized
+    selections broke the graph (three breaks, the steps run eagerly)."""
+    u, surface = sphere
+    flow = _flows(surface.spacing**2)[name]
+    assert _break_reasons(flow, u.requires_grad_(), surface, grad=True) == []
+
+
 def test_unbounded_learned_time_breaks_only_where_it_is_read(sphere):
     """The documented remaining break: the steps follow the learned time, read on the host."""
     u, surface = sphere

@@ -77,7 +77,10 @@ def reextend(stencil: Stencil, u: Tensor, path: str = "auto") -> Tensor:
         The re-extended field, like ``u``; a new tensor.
     """
     weights = stencil.parts[0][2] if isinstance(stencil, CubicStencil) else stencil.weights
-    if torch.is_grad_enabled() and u.requires_grad and not weights.requires_grad:
+    if (torch.is_grad_enabled() and u.requires_grad and not weights.requires_grad
+            and not torch.compiler.is_compiling()):
+        # traced, the gather's own derivative: dynamo traces an autograd function's backward
+        # with its forward, and this one's host-sized selections broke the graph there
         return _Reextend.apply(stencil, u, path)
     return stencil.apply(u, path)
 
