@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 import torch
@@ -95,6 +97,30 @@ def _flipped(faces: np.ndarray, chosen: np.ndarray) -> np.ndarray:
     return faces
 
 
+@pytest.mark.parametrize("size", [1e-8, 1.0, 300.0])
+def test_a_mesh_file_merges_duplicates_at_a_distance_relative_to_its_size(size, tmp_path):
+    """trimesh merges a file's vertices closer than 1e-8 world units: a mesh 1e-7 across, written
+    at full precision, came back with 95 of its 2930 vertices (and phi 2 cells off) without a
+    word (this one, 2e-8 across, with 20 of 162). Now the merge is relative: every vertex of a
+    small mesh is kept, and the duplicates of a triangle soup are merged at any size."""
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    vertices, faces = np.asarray(mesh.vertices) * size + 0.3 * size, np.asarray(mesh.faces)
+
+    def written(name: str, points: np.ndarray, triangles: np.ndarray) -> str:
+        lines = [f"v {x!r} {y!r} {z!r}" for x, y, z in points.tolist()]
+        lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in triangles.tolist()]
+        path = tmp_path / name
+        path.write_text("\n".join(lines) + "\n")
+        return str(path)
+
+    loaded = ts.mesh.load(written("indexed.obj", vertices, faces))
+    assert len(loaded.vertices) == len(vertices)
+    np.testing.assert_array_equal(np.asarray(loaded.vertices), vertices)
+    soup = ts.mesh.load(written("soup.obj", vertices[faces.reshape(-1)],
+                                np.arange(3 * len(faces)).reshape(-1, 3)))
+    assert len(soup.vertices) == len(vertices)
+
+
 @pytest.mark.parametrize("which", ["random quarter", "half x > 0"])
 def test_faces_wound_against_their_neighbours_are_reoriented(which):
     """An icosphere with some faces flipped: the winding number of such a mesh is meaningless
@@ -111,6 +137,27 @@ def test_faces_wound_against_their_neighbours_are_reoriented(which):
     with pytest.warns(RuntimeWarning, match="wound against their neighbours") as caught:
         phi = ts.sdf.from_mesh((vertices, _flipped(faces, chosen)), grid, dtype=torch.float64)
     assert caught[0].filename == __file__
+    torch.testing.assert_close(phi, clean, atol=1e-12, rtol=0)
+
+
+def test_faces_with_a_repeated_vertex_are_neither_clashes_nor_open_edges():
+    """Faces ``[a, a, b]`` (zero area, no winding) added to a well-wound closed mesh had
+    ``from_mesh`` warn that faces were wound against their neighbours and ask the user to fix
+    a winding that was right; the mesh is still closed, signed by pseudonormals, and phi is
+    the clean mesh's."""
+    mesh = trimesh.creation.icosphere(subdivisions=3)
+    vertices, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    chosen = faces[::9]
+    degenerate = np.concatenate([np.stack([chosen[:, 0], chosen[:, 0], chosen[:, 1]], 1),
+                                 np.stack([chosen[:, 2], chosen[:, 1], chosen[:, 1]], 1)])
+    padded = np.concatenate([faces, degenerate])
+    assert _mesh_sdf._wound_against_neighbours(padded, len(vertices)) == 0
+    assert _mesh_sdf._is_closed(padded, len(vertices))
+    grid = ts.Grid.cube(20, 1.5)
+    clean = ts.sdf.from_mesh((vertices, faces), grid, dtype=torch.float64)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        phi = ts.sdf.from_mesh((vertices, padded), grid, dtype=torch.float64)
     torch.testing.assert_close(phi, clean, atol=1e-12, rtol=0)
 
 

@@ -173,9 +173,19 @@ def _edge_keys(starts: np.ndarray, ends: np.ndarray, vertex_count: int) -> np.nd
     return starts * vertex_count + ends
 
 
+def _distinct_corners(faces: np.ndarray) -> np.ndarray:
+    """The faces whose three vertex indices differ: a face ``[a, a, b]`` has no area and no
+    winding, and its edges ``a -> b`` and ``b -> a`` would count as a neighbour wound the same
+    way as ``a -> b``'s other face, or as an edge of three faces."""
+    return faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2])
+                 & (faces[:, 2] != faces[:, 0])]
+
+
 def _wound_against_neighbours(faces: np.ndarray, vertex_count: int) -> int:
     """How many edges shared by exactly two faces both traverse the same way: 0 when every
-    face is wound like its neighbours (edges of three or more faces are not counted)."""
+    face is wound like its neighbours (edges of three or more faces are not counted; faces
+    with a repeated vertex are left out)."""
+    faces = _distinct_corners(faces)
     starts, ends = faces.reshape(-1), faces[:, [1, 2, 0]].reshape(-1)
     undirected = _edge_keys(np.minimum(starts, ends), np.maximum(starts, ends), vertex_count)
     _, first, counts = np.unique(undirected, return_inverse=True, return_counts=True)
@@ -203,7 +213,9 @@ def consistently_wound(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 
 def _is_closed(faces: np.ndarray, vertex_count: int) -> bool:
-    """Every edge shared by exactly two faces that traverse it in opposite directions."""
+    """Every edge shared by exactly two faces that traverse it in opposite directions (faces
+    with a repeated vertex left out)."""
+    faces = _distinct_corners(faces)
     starts, ends = faces.reshape(-1), faces[:, [1, 2, 0]].reshape(-1)
     forward = np.sort(_edge_keys(starts, ends, vertex_count))
     backward = np.sort(_edge_keys(ends, starts, vertex_count))

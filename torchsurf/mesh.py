@@ -52,9 +52,9 @@ def load(mesh: MeshLike) -> trimesh.Trimesh:
 
     Args:
         mesh: a ``trimesh.Trimesh`` (returned as it is); a path to any file trimesh reads
-            (its raw arrays checked, then trimesh's defaults merge duplicate vertices and drop
-            unreferenced ones); or a pair ``(vertices (V, 3), faces (F, 3))`` of arrays or
-            tensors, kept as given.
+            (its raw arrays checked, then trimesh's processing merges vertices closer than
+            1e-8 of the mesh's longest side and drops unreferenced ones); or a pair
+            ``(vertices (V, 3), faces (F, 3))`` of arrays or tensors, kept as given.
 
     Raises:
         FileNotFoundError, ValueError, TypeError: naming ``mesh`` and what is wrong (no file,
