@@ -335,6 +335,8 @@ def test_times_returns_each_time_and_end_matches():
     both = flow(u0, surface, times=[0.005, 0.01])
     assert both.shape == (2, *u0.shape)
     torch.testing.assert_close(both[-1], flow(u0, surface))
+    # a generator is read once (its check used it up: "an empty sequence")
+    torch.testing.assert_close(flow(u0, surface, times=(t for t in [0.005, 0.01])), both)
 
 
 def test_batch_of_signals_and_of_surfaces():

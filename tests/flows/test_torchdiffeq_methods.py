@@ -168,3 +168,19 @@ def test_adaptive_steps_meet_their_tolerance_on_the_band_whatever_the_box():
     (small, near), (large, _) = results
     assert small.shape == large.shape
     assert float((small - large)[near].abs().max()) < 1e-4
+
+
+def test_float32_times_at_a_pieces_end_and_times_that_round_together_are_each_returned():
+    """The pieces between re-extensions end at ``k end / pieces``; a float32 requested time a
+    rounding short of one was a time of the solve equal to that end once in float32 data, and
+    torchdiffeq refused it ("t must be strictly increasing") with an error that blamed a stiff
+    flow. Each time now comes back, equal to the float64 time's result to rounding."""
+    case = ts.exact.sphere_harmonic(2, 21, dtype=torch.float32)
+    surface = ts.ImplicitSurface(case.phi, case.grid)
+    flow = HeatFlow(TIME, method="rk4")
+    third = flow(case.u, surface, times=[TIME / 3, TIME])
+    for times in (torch.tensor([TIME / 3, TIME]), [TIME / 3 * (1 - 1e-9), TIME / 3, TIME]):
+        results = flow(case.u, surface, times=times)
+        assert results.shape[0] == len(times)
+        torch.testing.assert_close(results[-2:], third, rtol=0, atol=1e-6)
+    assert flow(case.u, surface, times=[TIME - 1e-9, TIME]).shape[0] == 2

@@ -778,26 +778,32 @@ def _torchdiffeq(method: str) -> Callable[[System, Tensor, Schedule], list[Tenso
         # projected first: the pieces run many steps before the next projection (a raw noise
         # field made tangent only after the first piece grew to NaN under rk4 and midpoint)
         out, u, start, done = [], _finish(system, u0), 0.0, 0
-        for stop, inner, ends_wanted in _segments(schedule):
-            solution = solve(u, [start, *inner, stop])
-            out.extend(_returned(system, schedule, _finish(system, v), None)
-                       for v in solution[1:len(inner) + 1])
+        for stop, inner, at_stop in _segments(schedule):
+            # requested times that round together (float32 data) are one time of the solve
+            # (torchdiffeq refuses times that do not increase), each given its result
+            distinct, which = _distinct_times(inner, TIME_ROUNDING * _value(schedule.times[-1]))
+            solution = solve(u, [start, *distinct, stop])
+            out.extend(_returned(system, schedule, _finish(system, solution[1 + k]), None)
+                       for k in which)
             u, start, done = solution[-1], stop, done + 1
             if schedule.after_step is not None:
                 u = schedule.after_step(u, done)
             u = _finish(system, u)
-            if ends_wanted:
-                out.append(_returned(system, schedule, u, done))
+            out.extend(_returned(system, schedule, u, done) for _ in range(at_stop))
         return out
 
     return integrate
 
 
-def _segments(schedule: Schedule) -> Iterator[tuple[float | Tensor, list[float | Tensor], bool]]:
+def _segments(schedule: Schedule) -> Iterator[tuple[float | Tensor, list[float | Tensor], int]]:
     """Equal pieces of ``[0, end]`` no longer than ``schedule.segment``, between which the flow
-    re-extends: ``(end of the piece, requested times inside it, whether its end is requested)``."""
+    re-extends: ``(end of the piece, requested times inside it, how many requested times are
+    its end)``. A requested time within :data:`TIME_ROUNDING` ``* end`` of a piece's end is
+    that end (a float32 time, ``end / 3`` rounded, had fallen a rounding short of it: a time
+    of the solve equal to its end once in the data's dtype, which torchdiffeq refused)."""
     end = schedule.times[-1]
     end_value = _value(end)
+    slack = TIME_ROUNDING * end_value
     pieces = 1
     if schedule.segment is not None and schedule.after_step is not None:
         pieces = max(1, math.ceil(end_value / schedule.segment * (1 - 1e-9)))
@@ -806,12 +812,26 @@ def _segments(schedule: Schedule) -> Iterator[tuple[float | Tensor, list[float |
         stop_value = end_value * k / pieces
         stop = end if k == pieces else end * (k / pieces)
         inner = []
-        while wanted and _value(wanted[0]) < stop_value * (1 - 1e-12):
+        while wanted and _value(wanted[0]) < stop_value - slack:
             inner.append(wanted.pop(0))
-        ends_wanted = bool(wanted) and _value(wanted[0]) <= stop_value * (1 + 1e-12)
-        if ends_wanted:
+        at_stop = 0
+        while wanted and (k == pieces or _value(wanted[0]) <= stop_value + slack):
             wanted.pop(0)
-        yield stop, inner, ends_wanted
+            at_stop += 1
+        yield stop, inner, at_stop
+
+
+def _distinct_times(times: list[float | Tensor], slack: float
+                    ) -> tuple[list[float | Tensor], list[int]]:
+    """``times`` (increasing) without those within ``slack`` of the one before, and the index
+    into that list of each time's representative."""
+    distinct: list[float | Tensor] = []
+    which = []
+    for time in times:
+        if not distinct or _value(time) > _value(distinct[-1]) + slack:
+            distinct.append(time)
+        which.append(len(distinct) - 1)
+    return distinct, which
 
 
 class _RateModule(torch.nn.Module):

@@ -253,6 +253,7 @@ def _check_times(times: object, end: float) -> list[float]:
             f"{times!r} ({type(times).__name__})"
             + ("; for one time use times=[t]" if isinstance(times, numbers.Real) else "")
         )
+    times = list(times)  # a generator is read once (it had been used up by the check below)
     for i, t in enumerate(times):
         if isinstance(t, Tensor) and t.requires_grad:
             raise ValueError(
