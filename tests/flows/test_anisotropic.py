@@ -160,3 +160,14 @@ def test_total_variation_does_not_swing_with_the_steps_or_the_requested_times():
     results.append(ts.AnisotropicFlow(time, eps=0.05)(u0, surface, times=[time / 2, time])[-1])
     for other in results[1:]:
         assert float((other - results[0])[near].abs().max()) < 5e-3
+
+
+def test_a_run_too_long_for_total_variations_eps_names_eps():
+    """A small mesh's total variation with the default eps (units of u per world length: a
+    tiny fraction of a cell there) planned tens of thousands of steps, and the warning asked
+    only whether the time was in the flow's units, when eps set the operator's bound."""
+    grid = ts.Grid.cube(13, 1.5e-3)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, radius=1e-3), grid)
+    u0 = torch.rand(1, 1, *grid.shape, generator=torch.Generator().manual_seed(0))
+    with pytest.raises(ValueError, match=r"Or eps: .* per cell of this grid"):
+        AnisotropicFlow(2e-3 * 1e-3, eps=1e-6)(u0, surface)

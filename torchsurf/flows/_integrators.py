@@ -131,6 +131,9 @@ class System:
             (docs/band.md, section 5): RKC steps that refresh the ring are then no longer than
             :data:`RKC_REFRESHED_STEP`. Operators that leave a direction undamped (rank one
             along a field, edge stopping) grew with each re-extension there and keep longer steps.
+        stiffness: what besides the surface's operator sets ``spectral_radius`` (a flow's
+            parameter, such as total variation's ``eps``), named where a run is refused or
+            warned about as long; ``None``: nothing.
     """
 
     rate: Rate
@@ -145,6 +148,7 @@ class System:
     refresh_ring: Callable[[Tensor], Tensor] | None = None
     isotropic: bool = False
     linear_stage: LinearStage | None = None
+    stiffness: str | None = None
     _region: Tensor | None = field(default=None, init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -457,7 +461,8 @@ def plan_steps(method: str, system: System, end: float, steps: int | None,
     if evaluations is not None and max(count, evaluations) > MAX_STEPS:
         advice = (f"steps={steps} is too many: use fewer" if steps is not None else
                   "is the time in this flow's units of this surface "
-                  "(world units squared for diffusion, world units for total variation and p = 1 flows)?")
+                  "(world units squared for diffusion, world units for total variation and p = 1 flows)?"
+                  + (f" Or {system.stiffness}" if system.stiffness else ""))
         raise ValueError(
             f"time={end:g} needs {count} steps of method={method!r}, {evaluations} evaluations "
             f"of the rate (more than {MAX_STEPS}): {advice}; time * rho = {end * rho:.3g} "
@@ -469,7 +474,8 @@ def plan_steps(method: str, system: System, end: float, steps: int | None,
             f"of the rate (more than {LONG_RUN}; time * rho = {end * rho:.3g}); a diffusion "
             "reaches its equilibrium once its length sqrt(time * diffusivity) exceeds the "
             "surface's size: is the time in this flow's units "
-            "(world units squared for diffusion, world units for total variation and p = 1 flows)?",
+            "(world units squared for diffusion, world units for total variation and p = 1 flows)?"
+            + (f" Or {system.stiffness}" if system.stiffness else ""),
             RuntimeWarning, stacklevel=caller_stacklevel(),
         )
     step = end / count if count else end

@@ -136,7 +136,13 @@ class AnisotropicFlow(Flow):
         # a g that is a module learns its parameters through the recomputed steps too
         learned = tuple(self.diffusivity.parameters()) if isinstance(self.diffusivity,
                                                                      nn.Module) else ()
-        return System(rate, band, rho,
+        stiffness = None
+        if self.diffusivity is DIFFUSIVITIES["total_variation"]:
+            stiffness = (f"eps: rho holds total variation's largest diffusivity 1 / eps = "
+                         f"{1 / self.eps:.3g} (eps={self.eps:g} in units of u per world length, "
+                         f"{self.eps * surface.spacing:.3g} per cell of this grid); a larger "
+                         f"eps takes fewer steps?")
+        return System(rate, band, rho, stiffness=stiffness,
                       params=tensors(contrast, surface.normal, surface.weight, *learned))
 
     def extra_repr(self) -> str:
