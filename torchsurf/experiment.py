@@ -245,6 +245,14 @@ def _moved(shape: Shape, params: dict[str, Any], offset: np.ndarray) -> dict[str
     return moved
 
 
+def open_edges(prepared: Prepared) -> int:
+    """How many edges of the config's mesh belong to one face only (0: closed, or no mesh)."""
+    if prepared.mesh_path is None:
+        return 0
+    mesh = prepared.mesh if prepared.mesh is not None else meshes.load(str(prepared.mesh_path))
+    return len(trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1))
+
+
 def build_surface(prepared: Prepared) -> ImplicitSurface:
     """The grid and signed distance the config names, as an :class:`ImplicitSurface`, or a
     :class:`~torchsurf.bricks.BrickSurface` when the config's layout is bricks (a mesh then
@@ -568,6 +576,11 @@ def run(prepared: Prepared, out: str | os.PathLike, progress: bool = False,
         log(f"{experiment.name}: {experiment.surface.shape.name} on {n}^3 nodes ({stored}), "
             f"spacing h = {spacing:.4g}, box diagonal L = {diagonal:.4g} "
             f"({diagonal / spacing:.0f} cells)")
+        edges = open_edges(prepared)
+        if edges:
+            log(f"surface.mesh is open ({edges} edges of one face only): phi's sign (the "
+                "winding number) closes its holes, so the picture and the RMS figures at its "
+                "vertices include a surface across them that the mesh does not have")
         stage("surface")
         centre = tuple(float(c) for c in 0.5 * (low + high))
         field = None
