@@ -207,3 +207,26 @@ def test_misfits_of_mesh_and_grid_and_of_arguments_are_named():
         warnings.simplefilter("always")
         ts.sdf.from_mesh((vertices, torch.as_tensor(sphere.faces)), ts.Grid.cube(16, 1.4))
     assert any("not differentiable in the vertex positions" in str(w.message) for w in caught)
+
+
+def test_a_part_inside_another_and_wound_like_it_is_named():
+    """An eye inside a head, both wound outward: the winding number counts the inner part as
+    solid within solid, phi is negative on both sides of it and its surface is gone, without a
+    word (an inverted part was warned of). Now it is named; a cavity, a union of intersecting
+    parts and one part are not."""
+    outer = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    inner = trimesh.creation.icosphere(subdivisions=2, radius=0.6)
+    cavity = inner.copy()
+    cavity.invert()
+    left, right = (trimesh.creation.icosphere(subdivisions=2, radius=0.5) for _ in range(2))
+    left.apply_translation((-0.3, 0.0, 0.0))
+    right.apply_translation((0.3, 0.0, 0.0))
+    grid = ts.Grid.cube(24, 1.3)
+    with pytest.warns(RuntimeWarning, match="1 closed part.*wholly inside") as caught:
+        ts.sdf.from_mesh(trimesh.util.concatenate([outer, inner]), grid)
+    assert caught[0].filename == __file__
+    for mesh in (trimesh.util.concatenate([outer, cavity]), trimesh.util.concatenate([left, right]),
+                 outer):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            ts.sdf.from_mesh(mesh, grid)

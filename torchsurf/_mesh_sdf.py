@@ -422,6 +422,40 @@ def _warn_inverted(numbers: np.ndarray) -> None:
             RuntimeWarning, stacklevel=caller_stacklevel())
 
 
+NESTED_SAMPLES = 32
+"""Face centres of each connected part at which :func:`_warn_nested` asks the rest's winding
+number."""
+
+
+def _warn_nested(vertices: np.ndarray, faces: np.ndarray) -> None:
+    """Warn of connected parts that lie wholly inside the rest of the mesh and are wound like
+    it (normals out): the winding number counts such a part as solid within solid, so it bounds
+    nothing and is no part of S (an eye modelled inside a head lost its surface, phi negative
+    on both sides of it, without a word). Parts that only intersect are unions, and pass."""
+    labels = trimesh.graph.connected_component_labels(
+        trimesh.Trimesh(vertices, faces, process=False).face_adjacency, node_count=len(faces))
+    parts = np.unique(labels)
+    if len(parts) < 2:
+        return
+    nested = 0
+    for part in parts:
+        own = labels == part
+        if _signed_volume(vertices, faces[own]) <= 0:  # a cavity: _warn_inverted's concern
+            continue
+        chosen = np.flatnonzero(own)[:: max(1, -(-int(own.sum()) // NESTED_SAMPLES))]
+        centres = vertices[faces[chosen]].mean(axis=1)
+        if (_winding_numbers(vertices, faces[~own], centres) > 0.5).all():
+            nested += 1
+    if nested:
+        warnings.warn(
+            f"mesh: {nested} closed part(s) lie wholly inside the rest of the mesh and are wound "
+            "like it (normals out): the winding number counts each as solid within solid, so "
+            "it is no part of S (phi does not change sign across it). For a cavity, wind the "
+            "part inward (trimesh.Trimesh.invert on it); for a surface of its own, build its "
+            "phi apart",
+            RuntimeWarning, stacklevel=caller_stacklevel())
+
+
 @dataclass
 class SignedBand:
     """Signed distances near the mesh and the sides of the bricks beyond.
@@ -484,6 +518,8 @@ def signed_near(vertices: np.ndarray, faces: np.ndarray, grid: Grid, band: float
         queries = np.concatenate(centres + [points])
         numbers = _winding_numbers(vertices, faces, queries)
         _warn_inverted(numbers)
+        if len(numbers) and numbers.max() > 1.5:  # a solid within a solid somewhere
+            _warn_nested(vertices, faces)
         inside_all = numbers > 0.5
         near_inside = inside_all[sum(counts):]
     far_inside = np.split(inside_all[: sum(counts)], np.cumsum(counts)[:-1]) if counts else []

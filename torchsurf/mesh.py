@@ -224,7 +224,11 @@ class MeshAdapter(nn.Module):
     are far above it (the hats). ``order=2`` reads the ``4^3`` nodes around a vertex, so parts
     of the mesh (or sheets of one surface) closer than 3 cells mix: two spheres 1 / 2 / 2.5
     cells apart holding 0 and 1 came back up to 0.083 / 0.045 / 0.028 off at the vertices
-    facing each other (``order=1``: exact; 3 cells apart: exact).
+    facing each other (``order=1``: exact; 3 cells apart: exact). Its weights are not all
+    positive, so data with a sharp edge (what total variation keeps) may decode outside the
+    range of the values it reads: a 0/1 step on the fandisk at 48^3 after total variation, in
+    [0.0005, 0.9985] on the band, decoded in [-0.063, 1.183] (teapot, spot: -0.018, 1.026; an
+    audit); ``order=1`` (trilinear, positive weights) stays within it.
 
     Vertices at one position are one hat function: a mesh storing a seam as two copies of its
     vertices with different values (a texture seam) encodes a blend of the two and decodes

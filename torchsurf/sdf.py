@@ -319,7 +319,9 @@ def from_mesh(
     far from the mesh are skipped whole). Signs come from the generalised winding number
     (inside where it exceeds 1/2; libigl's fast winding number), so meshes with holes or several
     components still get a sensible inside; signs are right everywhere except in a thin shell
-    around holes, where the winding number passes 1/2. Faces wound against their neighbours
+    around holes, where the winding number passes 1/2. A closed part wholly inside another and
+    wound like it (normals out: an eye modelled inside a head) is solid within solid, no part of
+    S, with a ``RuntimeWarning`` (wound inward, it is a cavity). Faces wound against their neighbours
     (an edge of two faces that both traverse it the same way) are re-oriented first
     (``trimesh.repair.fix_winding``, with a ``RuntimeWarning``): both sign methods need a
     consistent winding.
