@@ -331,6 +331,17 @@ def test_a_non_finite_number_is_refused_as_such(override, tmp_path, capsys):
     assert "quotes" not in error
 
 
+@pytest.mark.parametrize(("override", "typed"), [
+    ("grid.size=048", "leading zero"), ("grid.size='48'", "in quotes")])
+def test_a_number_yaml_reads_as_text_is_refused_naming_why(override, typed, tmp_path, capsys):
+    """``grid.size=048`` (no quotes typed) was told to "remove the quotes"."""
+    code = cli.main(["run", "heat_sphere", "--set", override, "--out", str(tmp_path / "out")])
+    assert code == cli.EXIT_USAGE
+    error = capsys.readouterr().err
+    assert f"config error: {override.split('=')[0]}: must be a number, got the string" in error
+    assert typed in error
+
+
 def test_a_mesh_file_that_cannot_be_read_is_refused_before_any_work(tmp_path, capsys):
     """A file that is no mesh failed mid-run (exit 1, "run failed"), naming no setting."""
     for name, text in (("broken.obj", "not a mesh\n"), ("notes.md", "# no mesh\n")):

@@ -565,8 +565,9 @@ def _refuse_quoted_numbers(given: object, merged: DictConfig, path: str = "") ->
         if isinstance(read, (int, float)) and not isinstance(read, bool):
             if _is_non_finite(given):  # `--set flow.time=nan`: YAML reads nan, inf as strings
                 raise ConfigError(path, f"must be a finite number, got {given}")
-            raise ConfigError(path, f"must be a number, got the string {given!r} (remove the "
-                              "quotes)")
+            raise ConfigError(path, f"must be a number, got the string {given!r}: YAML reads "
+                              "a number in quotes as text, and one with a leading zero (048) "
+                              "too; write it unquoted, without the zero")
     elif isinstance(given, (bool, int, float)) and isinstance(read, str):
         raise ConfigError(path, f"must be text, got {given!r} (YAML reads 010 as the number 8 "
                           "and yes as true): write the text in quotes")
