@@ -7,7 +7,11 @@ time on the compiled path). The first no-grad call and the first recorded one ru
 :func:`torchsurf.backend.warm_up`, so that ``"auto"`` runs what it settles on in a long run
 (compiled) rather than the eager calls before its payback. Each figure is divided by the
 channels the operator acts on and by the octant Laplace–Beltrami's time measured in the same
-run, so the ratios hold on a loaded or slower machine. The traffic limit of one
+run, their calls alternated. The forward times are the process's CPU time
+(``time.process_time``), not wall time: on a machine shared with other jobs the wall-time ratio
+of Laplace–Beltrami against itself read 0.46–1.02 over six runs (an audit, load average 5–6),
+the CPU-time one 0.97–1.01; run with one thread (``--threads 1``), where the process's CPU time
+is the kernels' own. The traffic limit of one
 Laplace–Beltrami application (24 bytes per voxel at the measured copy bandwidth) is printed
 beside them.
 
@@ -80,15 +84,17 @@ class Row:
     """Forward time per channel over Laplace–Beltrami's, timed alternately."""
 
 
-def alternated_times(first: Callable[[], object], second: Callable[[], object], repeats: int
+def alternated_times(first: Callable[[], object], second: Callable[[], object], repeats: int,
+                     clock: Callable[[], float] = time.process_time
                      ) -> tuple[list[float], list[float]]:
-    """Wall times in seconds of ``repeats`` calls of each, ``first`` and ``second`` in turn."""
+    """Times in seconds by ``clock`` (default the process's CPU time) of ``repeats`` calls of
+    each, ``first`` and ``second`` in turn."""
     times: tuple[list[float], list[float]] = ([], [])
     for _ in range(repeats):
         for function, samples in zip((first, second), times, strict=True):
-            start = time.perf_counter()
+            start = clock()
             function()
-            samples.append(time.perf_counter() - start)
+            samples.append(clock() - start)
     return times
 
 
@@ -209,6 +215,8 @@ def markdown(results: dict[int, list[Row]], bandwidth: dict[str, float], path: s
         f"Command: `{prefix}PYTHONPATH=. python benchmarks/bench_operators.py {command}`",
         "",
         f"Copy bandwidth {best:.1f} GB/s. Unit sphere on `Grid.cube(n, 1.5)`, float32. "
+        "`fwd ms` is the process's CPU time of a forward (`time.process_time`; wall time "
+        "on a shared machine varied twice as much); `fwd + bwd ms` is wall time. "
         "`per ch / LB` is the forward time per channel over the octant Laplace–Beltrami's, "
         "their calls alternated (medians of each; target "
         f"≤ {MAX_RATIO:g}). `first s` is the first call "

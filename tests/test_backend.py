@@ -482,7 +482,7 @@ def test_only_kernels_that_build_their_indices_skip_inductors_bounds_checks(monk
     assert all(kwargs["options"]["realize_reads_threshold"] == backend.REALIZE_READS_THRESHOLD
                for kwargs in seen)
     # the projecting directional kernel recomputes its face fluxes (with 7 inductor stored
-    # them: the operator 1.8x slower at 96^3)
+    # them: the operator 1.3x slower at 96^3)
     kernel = functional._DIRECTIONAL_TANGENT
     try:
         backend.compiled(kernel.fused, kernel.dynamic, kernel.trusted_indices,
