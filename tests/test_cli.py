@@ -3,6 +3,7 @@ bad configs are refused with the key's path before any work; exit codes 0, 1, 2.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -941,3 +942,12 @@ def test_an_open_mesh_is_said_to_be_open_where_its_rms_is_reported(tmp_path):
         lines[name] = [line for line in logged if "is open" in line]
     assert not lines["closed"]
     assert len(lines["open"]) == 1 and f"({holes} edges of one face only)" in lines["open"][0]
+    # closed by position: a texture seam's second vertex at a point, a face [a, a, b]
+    vertices, faces = np.asarray(ball.vertices), np.asarray(ball.faces).copy()
+    seam = len(vertices)
+    touching = np.flatnonzero((faces == 0).any(axis=1))[:2]  # two of vertex 0's faces
+    faces[touching] = np.where(faces[touching] == 0, seam, faces[touching])
+    faces = np.concatenate([faces, [[1, 1, 2]]])
+    seamed = trimesh.Trimesh(np.concatenate([vertices, vertices[:1]]), faces, process=False)
+    assert len(trimesh.grouping.group_rows(seamed.edges_sorted, require_count=1)) > 0
+    assert experiment.open_edges(dataclasses.replace(prepared, mesh=seamed)) == 0

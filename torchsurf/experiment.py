@@ -246,11 +246,19 @@ def _moved(shape: Shape, params: dict[str, Any], offset: np.ndarray) -> dict[str
 
 
 def open_edges(prepared: Prepared) -> int:
-    """How many edges of the config's mesh belong to one face only (0: closed, or no mesh)."""
+    """How many edges of the config's mesh belong to one face only (0: closed, or no mesh),
+    its vertices taken by position (a texture seam stores two vertices at one point) and faces
+    with a repeated vertex left out (no area, no edge of the surface)."""
     if prepared.mesh_path is None:
         return 0
     mesh = prepared.mesh if prepared.mesh is not None else meshes.load(str(prepared.mesh_path))
-    return len(trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1))
+    _, at = np.unique(np.asarray(mesh.vertices), axis=0, return_inverse=True)
+    faces = at.reshape(-1)[np.asarray(mesh.faces)]
+    faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2])
+                  & (faces[:, 2] != faces[:, 0])]
+    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    return int((counts == 1).sum())
 
 
 def build_surface(prepared: Prepared) -> ImplicitSurface:

@@ -184,3 +184,6 @@ def test_float32_times_at_a_pieces_end_and_times_that_round_together_are_each_re
         assert results.shape[0] == len(times)
         torch.testing.assert_close(results[-2:], third, rtol=0, atol=1e-6)
     assert flow(case.u, surface, times=[TIME - 1e-9, TIME]).shape[0] == 2
+    # a time that is 0 in float32 is the start: one more time of the solve equal to it
+    tiny = flow(case.u, surface, times=[1e-46, 1e-30, TIME])
+    torch.testing.assert_close(tiny[0], tiny[1], rtol=0, atol=1e-6)

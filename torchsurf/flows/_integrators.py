@@ -228,6 +228,14 @@ def _value(time: float | Tensor) -> float:
     return float(time.detach()) if isinstance(time, Tensor) else float(time)
 
 
+def eps_stiffness(eps: float, largest: float, spacing: float) -> str:
+    """:attr:`System.stiffness` of a flow whose diffusivity peaks at ``largest`` because of its
+    regulariser ``eps`` (total variation: ``1 / eps``; a p-harmonic map: ``eps^(p-2)``)."""
+    return (f"eps: rho holds the flow's largest diffusivity {largest:.3g}, set by eps={eps:g} "
+            f"(units of u per world length, {eps * spacing:.3g} per cell of this grid); a "
+            f"larger eps takes fewer steps?")
+
+
 MAX_STEPS = 10**6
 """More steps, or more evaluations of the rate (RKC's stages and Heun's two per step
 counted), than this are refused before any work: a sign of a wrong time or unit."""
@@ -787,9 +795,10 @@ def _torchdiffeq(method: str) -> Callable[[System, Tensor, Schedule], list[Tenso
         for stop, inner, at_stop in _segments(schedule):
             # requested times that round together (float32 data) are one time of the solve
             # (torchdiffeq refuses times that do not increase), each given its result
-            distinct, which = _distinct_times(inner, TIME_ROUNDING * _value(schedule.times[-1]))
-            solution = solve(u, [start, *distinct, stop])
-            out.extend(_returned(system, schedule, _finish(system, solution[1 + k]), None)
+            points, which = _distinct_times(start, inner,
+                                            TIME_ROUNDING * _value(schedule.times[-1]))
+            solution = solve(u, [*points, stop])
+            out.extend(_returned(system, schedule, _finish(system, solution[k]), None)
                        for k in which)
             u, start, done = solution[-1], stop, done + 1
             if schedule.after_step is not None:
@@ -827,17 +836,18 @@ def _segments(schedule: Schedule) -> Iterator[tuple[float | Tensor, list[float |
         yield stop, inner, at_stop
 
 
-def _distinct_times(times: list[float | Tensor], slack: float
+def _distinct_times(start: float | Tensor, times: list[float | Tensor], slack: float
                     ) -> tuple[list[float | Tensor], list[int]]:
-    """``times`` (increasing) without those within ``slack`` of the one before, and the index
-    into that list of each time's representative."""
-    distinct: list[float | Tensor] = []
+    """``start`` and the requested ``times`` after it (increasing) without those within
+    ``slack`` of the one before (a time that rounds to the start, ``1e-46`` in float32, is the
+    start), and the index into that list of each requested time's representative."""
+    points: list[float | Tensor] = [start]
     which = []
     for time in times:
-        if not distinct or _value(time) > _value(distinct[-1]) + slack:
-            distinct.append(time)
-        which.append(len(distinct) - 1)
-    return distinct, which
+        if _value(time) > _value(points[-1]) + slack:
+            points.append(time)
+        which.append(len(points) - 1)
+    return points, which
 
 
 class _RateModule(torch.nn.Module):

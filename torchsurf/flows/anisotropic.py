@@ -15,7 +15,7 @@ from ..operators.diffusion import (
 )
 from ..operators.diffusivity import DIFFUSIVITIES, Diffusivity
 from ..surface import ImplicitSurface
-from ._integrators import System, tensors
+from ._integrators import System, eps_stiffness, tensors
 from ._positive import Positive
 from .base import Flow
 
@@ -136,12 +136,8 @@ class AnisotropicFlow(Flow):
         # a g that is a module learns its parameters through the recomputed steps too
         learned = tuple(self.diffusivity.parameters()) if isinstance(self.diffusivity,
                                                                      nn.Module) else ()
-        stiffness = None
-        if self.diffusivity is DIFFUSIVITIES["total_variation"]:
-            stiffness = (f"eps: rho holds total variation's largest diffusivity 1 / eps = "
-                         f"{1 / self.eps:.3g} (eps={self.eps:g} in units of u per world length, "
-                         f"{self.eps * surface.spacing:.3g} per cell of this grid); a larger "
-                         f"eps takes fewer steps?")
+        stiffness = (eps_stiffness(self.eps, 1.0 / self.eps, surface.spacing)
+                     if self.diffusivity is DIFFUSIVITIES["total_variation"] else None)
         return System(rate, band, rho, stiffness=stiffness,
                       params=tensors(contrast, surface.normal, surface.weight, *learned))
 

@@ -11,7 +11,7 @@ from ..backend import PATHS
 from ..operators import functional
 from ..operators.functional import FLUX_SCHEMES
 from ..surface import ImplicitSurface, check_tangential
-from ._integrators import INTEGRATORS, System, tensors, with_ring
+from ._integrators import INTEGRATORS, System, eps_stiffness, tensors, with_ring
 from .base import Flow
 
 
@@ -147,7 +147,8 @@ class HarmonicMapFlow(Flow):
                 energy = functional.tangential_gradient_energy(project(u0.detach()), normal,
                                                                spacing, path, pad) + eps**2
                 growth = float(torch.where(band, energy ** (self.p / 2.0), zero).max())
-        return System(rate, band, rho, project=project,
+        stiffness = (eps_stiffness(eps, eps**exponent, spacing) if self.p < 2 else None)
+        return System(rate, band, rho, project=project, stiffness=stiffness,
                       params=tensors(surface.normal, surface.weight), growth=growth)
 
     def _entries_apart(self, u0: Tensor, surface: ImplicitSurface, times: object,
