@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+import random
+import time
 import warnings
 
 import pytest
@@ -563,3 +565,37 @@ def test_channels_last_data_compiles_no_graph_of_its_own():
     last = u.contiguous(memory_format=torch.channels_last_3d)
     torch.testing.assert_close(ts.laplace_beltrami(last, surface, path="compiled"), expected)
     assert counters["unique_graphs"] == before
+
+
+_FORKED_KERNEL = None
+
+
+def _compiled_in_a_child(width: int) -> float:
+    return float(_FORKED_KERNEL(torch.ones(3, width)).sum())
+
+
+@pytest.mark.skipif(not hasattr(__import__("os"), "fork"), reason="needs fork")
+def test_a_forked_child_compiles_a_new_shape_instead_of_waiting_forever(monkeypatch):
+    """A child forked after the parent compiled waited forever on its first compile of a new
+    shape (inductor's compile workers do not survive a fork; "auto" compiles by itself, so a
+    user of a fork pool never chose to compile): forked children now compile in-process."""
+    import multiprocessing
+
+    import torch._inductor.config as inductor_config
+
+    # a kernel no earlier run compiled (a new constant: no cached graph nor library), so that
+    # the parent and the child compile
+    monkeypatch.setattr(inductor_config, "fx_graph_cache", False)
+    scale = 1.0 + random.random()
+    global _FORKED_KERNEL
+    _FORKED_KERNEL = torch.compile(lambda x: (x.sin() * scale + x.cos()).sum(-1))
+    _FORKED_KERNEL(torch.ones(3, 5))
+    from torch._inductor.async_compile import AsyncCompile
+    if not hasattr(AsyncCompile, "use_process_pool"):
+        pytest.skip("this torch's inductor has no pool of compile workers to wait on")
+    ready = time.monotonic() + 60  # the parent's workers up, as in a long run
+    while not AsyncCompile.use_process_pool() and time.monotonic() < ready:
+        time.sleep(0.2)
+    with multiprocessing.get_context("fork").Pool(1) as pool:
+        value = pool.apply_async(_compiled_in_a_child, (7,)).get(timeout=60)
+    assert value == pytest.approx(3 * 7 * (scale * math.sin(1.0) + math.cos(1.0)), rel=1e-5)

@@ -236,6 +236,23 @@ def _keep_buffers() -> None:
         functorch_config.donated_buffer = False
 
 
+def _compile_in_process_after_fork() -> None:
+    """In a process forked after torchsurf was imported, inductor compiles in the process
+    itself (``compile_threads = 1``): its pool of compile workers does not survive a fork, and a
+    child's first compile of a kernel at a new shape waited on it forever (an audit: a
+    ``multiprocessing`` pool of fork children after ``"auto"`` compiled in the parent; plain
+    ``torch.compile`` hangs the same way). The kernels the parent compiled run as they were."""
+    try:
+        import torch._inductor.config as inductor_config
+    except ImportError:
+        return
+    inductor_config.compile_threads = 1
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_compile_in_process_after_fork)
+
+
 @functools.cache
 def compiled(function: Callable[..., Tensor], dynamic: bool = False,
              trusted_indices: bool = False, realize_reads_threshold: int | None = None
