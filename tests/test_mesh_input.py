@@ -225,8 +225,12 @@ def test_a_part_inside_another_and_wound_like_it_is_named():
     with pytest.warns(RuntimeWarning, match="1 closed part.*wholly inside") as caught:
         ts.sdf.from_mesh(trimesh.util.concatenate([outer, inner]), grid)
     assert caught[0].filename == __file__
+    # a mesh stored twice is one part (each face was a part of its own: a false warning, and a
+    # winding-number pass per face, which ran for minutes on a bunny)
+    doubled = trimesh.Trimesh(outer.vertices, np.concatenate([outer.faces, outer.faces]),
+                              process=False)
     for mesh in (trimesh.util.concatenate([outer, cavity]), trimesh.util.concatenate([left, right]),
-                 outer):
+                 outer, doubled):
         with warnings.catch_warnings():
             warnings.simplefilter("error")
             ts.sdf.from_mesh(mesh, grid)

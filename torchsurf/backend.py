@@ -262,7 +262,8 @@ def compiled(function: Callable[..., Tensor], dynamic: bool = False,
     inductor's ``realize_reads_threshold`` :data:`REALIZE_READS_THRESHOLD` unless given)."""
     _raise_recompile_limit()
     options: dict[str, object] = {
-        "realize_reads_threshold": realize_reads_threshold or REALIZE_READS_THRESHOLD}
+        "realize_reads_threshold": (REALIZE_READS_THRESHOLD if realize_reads_threshold is None
+                                    else realize_reads_threshold)}
     if trusted_indices:
         options["assert_indirect_indexing"] = False
     return torch.compile(function, dynamic=dynamic, options=options)

@@ -171,6 +171,9 @@ def test_a_run_too_long_for_total_variations_eps_names_eps():
     u0 = torch.rand(1, 1, *grid.shape, generator=torch.Generator().manual_seed(0))
     with pytest.raises(ValueError, match=r"Or eps: .* per cell of this grid"):
         AnisotropicFlow(2e-3 * 1e-3, eps=1e-6)(u0, surface)
+    with pytest.raises(ValueError) as refused:  # a bound of the user's: eps is not the cause
+        AnisotropicFlow(2e-3 * 1e-3, eps=1.0, max_diffusivity=1e6)(u0, surface)
+    assert "Or eps" not in str(refused.value)
     unit = ts.flows.harmonic.normalize(torch.randn(1, 3, *grid.shape, dtype=u0.dtype,
                                                    generator=torch.Generator().manual_seed(1)))
     with pytest.raises(ValueError, match=r"Or eps: .* diffusivity 1e\+06"):

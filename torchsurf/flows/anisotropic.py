@@ -136,8 +136,10 @@ class AnisotropicFlow(Flow):
         # a g that is a module learns its parameters through the recomputed steps too
         learned = tuple(self.diffusivity.parameters()) if isinstance(self.diffusivity,
                                                                      nn.Module) else ()
-        stiffness = (eps_stiffness(self.eps, 1.0 / self.eps, surface.spacing)
-                     if self.diffusivity is DIFFUSIVITIES["total_variation"] else None)
+        set_by_eps = (self.diffusivity is DIFFUSIVITIES["total_variation"]
+                      and self.max_diffusivity == 1.0 / self.eps)  # not a bound of the user's
+        stiffness = (eps_stiffness(self.eps, self.max_diffusivity, surface.spacing)
+                     if set_by_eps else None)
         return System(rate, band, rho, stiffness=stiffness,
                       params=tensors(contrast, surface.normal, surface.weight, *learned))
 
