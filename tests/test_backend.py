@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 import random
 import time
 import warnings
@@ -574,7 +575,7 @@ def _compiled_in_a_child(width: int) -> float:
     return float(_FORKED_KERNEL(torch.ones(3, width)).sum())
 
 
-@pytest.mark.skipif(not hasattr(__import__("os"), "fork"), reason="needs fork")
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="needs fork")
 def test_a_forked_child_compiles_a_new_shape_instead_of_waiting_forever():
     """A child forked after the parent compiled waited forever on its first compile of a new
     shape (inductor's compile workers do not survive a fork; "auto" compiles by itself, so a
