@@ -431,14 +431,30 @@ NESTED_PARTS = 16
 winding-number pass over the rest per part: 500 overlapping spheres took 18 s)."""
 
 
-def _parts(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """``(F,)`` the connected part of each face, vertices taken by position (a texture seam
-    stores two at one point) and faces joined through shared vertices (an edge of three or
-    more faces, a mesh stored twice, joins them too)."""
+def _by_position(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """``faces`` ``(F, 3)`` indexing the distinct vertex positions (a texture seam stores two
+    vertices at one point)."""
     _, at = np.unique(vertices, axis=0, return_inverse=True)
-    corners = at.reshape(-1)[faces]
+    return at.reshape(-1)[faces]
+
+
+def boundary_edges(vertices: np.ndarray, faces: np.ndarray) -> int:
+    """How many edges belong to one face only (0: closed), vertices taken by position and faces
+    with a repeated vertex left out (no area, no edge of the surface)."""
+    corners = _distinct_corners(_by_position(vertices, faces))
+    edges = np.sort(np.concatenate([corners[:, [0, 1]], corners[:, [1, 2]], corners[:, [2, 0]]]),
+                    axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    return int((counts == 1).sum())
+
+
+def _parts(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """``(F,)`` the connected part of each face, vertices taken by position and faces joined
+    through shared vertices (an edge of three or more faces, a mesh stored twice, joins them
+    too)."""
+    corners = _by_position(vertices, faces)
     edges = np.concatenate([corners[:, [0, 1]], corners[:, [1, 2]]])
-    labels = trimesh.graph.connected_component_labels(edges, node_count=int(at.max()) + 1)
+    labels = trimesh.graph.connected_component_labels(edges, node_count=int(corners.max()) + 1)
     return labels[corners[:, 0]]
 
 

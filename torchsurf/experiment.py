@@ -31,6 +31,7 @@ from torch import Tensor
 from . import bricks, flows, render, sdf, signals
 from . import config as cfg
 from . import mesh as meshes
+from ._mesh_sdf import boundary_edges
 from ._signals import signals_held
 from .bricks.layout import bricks_along
 from .config import (
@@ -246,19 +247,12 @@ def _moved(shape: Shape, params: dict[str, Any], offset: np.ndarray) -> dict[str
 
 
 def open_edges(prepared: Prepared) -> int:
-    """How many edges of the config's mesh belong to one face only (0: closed, or no mesh),
-    its vertices taken by position (a texture seam stores two vertices at one point) and faces
-    with a repeated vertex left out (no area, no edge of the surface)."""
+    """How many edges of the config's mesh belong to one face only (0: closed, or no mesh;
+    :func:`torchsurf._mesh_sdf.boundary_edges`)."""
     if prepared.mesh_path is None:
         return 0
     mesh = prepared.mesh if prepared.mesh is not None else meshes.load(str(prepared.mesh_path))
-    _, at = np.unique(np.asarray(mesh.vertices), axis=0, return_inverse=True)
-    faces = at.reshape(-1)[np.asarray(mesh.faces)]
-    faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2])
-                  & (faces[:, 2] != faces[:, 0])]
-    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
-    _, counts = np.unique(edges, axis=0, return_counts=True)
-    return int((counts == 1).sum())
+    return boundary_edges(np.asarray(mesh.vertices), np.asarray(mesh.faces))
 
 
 def build_surface(prepared: Prepared) -> ImplicitSurface:
