@@ -35,6 +35,7 @@ __all__ = [
     "PAD_MODES",
     "PATHS",
     "SECOND",
+    "BoxNeighbours",
     "Stencil",
     "add",
     "apply",
@@ -116,6 +117,51 @@ def neighbour_in_box(at: Sequence[Tensor], offset: Offset, shape: Sequence[int]
     beyond = [(m < 0) | (m >= n) for m, n in zip(moved, shape, strict=True)]
     z, y, x = (m.clamp(0, n - 1) for m, n in zip(moved, shape, strict=True))
     return (z * shape[1] + y) * shape[2] + x, beyond
+
+
+class BoxNeighbours:
+    """Nodes of one ``D x H x W`` box and their neighbours within one node, as
+    :func:`neighbour_in_box` and :func:`neighbourhood_column` give them, formed once for many
+    offsets.
+
+    When no node lies on a face of the box (a band away from the box's faces: the usual case),
+    every neighbour is a fixed flat offset away and none lies beyond a face; the arithmetic then
+    takes one addition per offset instead of a dozen passes.
+
+    Args:
+        at: ``(z, y, x)`` grid indices, ``(R,)`` each, within the box.
+        shape: the box ``(D, H, W)``.
+    """
+
+    def __init__(self, at: Sequence[Tensor], shape: Sequence[int]) -> None:
+        self.at, self.shape = tuple(at), tuple(int(n) for n in shape)
+        z, y, x = self.at
+        self.flat = (z * self.shape[1] + y) * self.shape[2] + x
+        on_face = torch.zeros_like(z, dtype=torch.bool)
+        for a, n in zip(self.at, self.shape, strict=True):
+            on_face |= (a <= 0) | (a >= n - 1)
+        self.on_faces = bool(on_face.any())  # one host read for every offset
+
+    def delta(self, offset: Offset) -> int:
+        """The flat distance of ``offset`` in the box."""
+        dz, dy, dx = offset
+        return (dz * self.shape[1] + dy) * self.shape[2] + dx
+
+    def neighbour(self, offset: Offset) -> tuple[Tensor, list[Tensor] | None]:
+        """:func:`neighbour_in_box` of ``offset``: the clamped flat positions ``(R,)`` and, per
+        index ``(z, y, x)``, whether the node lay beyond the box; ``None`` for the latter when
+        no node is on a face (none lies beyond)."""
+        if self.on_faces:
+            return neighbour_in_box(self.at, offset, self.shape)
+        return self.flat + self.delta(offset), None
+
+    def column(self, offset: Offset) -> int | Tensor:
+        """:func:`neighbourhood_column` of ``offset``: one index into :data:`NEIGHBOURHOOD`
+        when no node is on a face, else ``(R,)``."""
+        if self.on_faces:
+            return neighbourhood_column(offset, neighbour_in_box(self.at, offset, self.shape)[1])
+        dz, dy, dx = offset
+        return ((dz + 1) * 3 + dy + 1) * 3 + dx + 1
 
 
 def neighbourhood_column(offset: Offset, beyond: Sequence[Tensor]) -> Tensor:

@@ -10,7 +10,7 @@ import torchsurf as ts
 from torchsurf.flows import _gather_matrix, _native_gather, _packed_band, exponential
 from torchsurf.flows._gather_matrix import GatherMatrix
 from torchsurf.flows.exponential import BandLaplacian, heat_semigroup
-from torchsurf.operators import functional
+from torchsurf.operators import functional, laplace_beltrami_bound
 
 from .test_stability import MESH_DIR
 
@@ -164,7 +164,10 @@ def test_dense_rows_equal_the_probes(kind, scheme):
     packed = operator.packed().packing
     storage, rows = packed.storage, packed.nodes[:packed.band_count]
     count = len(packed.nodes)
-    formed = _packed_band._formed_rows(surface, scheme, storage, rows, packed.lookup, count)
+    formed, bound = _packed_band._formed_rows(surface, scheme, storage, rows, packed.lookup,
+                                              count, packed.band_count)
+    fresh = ts.ImplicitSurface(surface.phi.clone(), surface.grid)
+    assert bound == laplace_beltrami_bound(fresh, scheme, operator.width)  # the same float
     probed = _packed_band._probed_by_colours(surface, scheme, operator.region, storage, rows,
                                              packed.lookup, count)
     mine, reference = _sparse(formed), _sparse(probed)

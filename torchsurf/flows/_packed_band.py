@@ -37,8 +37,8 @@ from torch import Tensor
 from .._inference import outside_inference
 from ..bricks.layout import BRICK
 from ..operators import functional
-from ..operators.spectrum import laplace_beltrami_rows
-from ..stencils import NEIGHBOURHOOD
+from ..operators.spectrum import ROWS_AT_ONCE, gershgorin_sums, laplace_beltrami_rows
+from ..stencils import NEIGHBOURHOOD, BoxNeighbours
 from ..surface import ImplicitSurface
 from . import _limiter, _native_gather
 from ._gather_matrix import GatherMatrix
@@ -113,8 +113,8 @@ class PackedRegion:
         index = torch.int32 if count < 2**31 else torch.long
         self.lookup = torch.full((band.numel(),), -1, dtype=index, device=band.device)
         self.lookup[self.nodes] = torch.arange(count, dtype=index, device=band.device)
-        self.weighted = _probed(surface, scheme, region, self.storage, band_nodes, self.lookup,
-                                count)
+        self.weighted, self.band_bound = _probed(surface, scheme, region, self.storage,
+                                                 band_nodes, self.lookup, count)
         self._band_mask: Tensor | None = None
         self._stencils: dict[int, tuple[Stencil, PackedStencil]] = {}
         self.shapes = self.entries if surface.layout is None else len(surface.layout.grids)
@@ -451,6 +451,19 @@ class _Storage:
         z, y, x = self.index[:, positions]
         return self.layout.batch[positions // BRICK_NODES], z, y, x
 
+    def neighbourhood(self, positions: Tensor) -> Tensor:
+        """``(R, 27)``: :meth:`neighbour` of ``positions`` ``(R,)`` at each offset of
+        :data:`~torchsurf.stencils.NEIGHBOURHOOD`; on a dense surface whose nodes ``positions``
+        are all off the box's faces, each a fixed flat offset away."""
+        if self.layout is None:
+            _, *at = self.coordinates(positions)
+            box = BoxNeighbours(at, self.volume_shape)
+            if not box.on_faces:
+                deltas = torch.tensor([box.delta(offset) for offset in NEIGHBOURHOOD],
+                                      dtype=positions.dtype, device=positions.device)
+                return positions[:, None] + deltas
+        return torch.stack([self.neighbour(positions, offset) for offset in NEIGHBOURHOOD], 1)
+
     def neighbour(self, positions: Tensor, offset: tuple[int, int, int]) -> Tensor:
         """The positions of the nodes ``offset`` ``(dz, dy, dx)`` away, -1 beyond an entry's
         box or in a brick that is not stored."""
@@ -530,33 +543,43 @@ def _probe_reader(surface: ImplicitSurface, scheme: str, region: Tensor, storage
 
 
 def _formed_rows(surface: ImplicitSurface, scheme: str, storage: _Storage, rows: Tensor,
-                 lookup: Tensor, count: int) -> GatherMatrix:
+                 lookup: Tensor, count: int, band_count: int) -> tuple[GatherMatrix, float]:
     """A dense surface's ``W^-1 A`` on the band's rows, formed at the rows in closed form
     (:func:`torchsurf.operators.spectrum.laplace_beltrami_rows`) instead of probed over the
-    volume: at 200^3, the octant scheme's 27 eager volume passes took 12 of a flow's first
-    24 s."""
-    coefficients = laplace_beltrami_rows(surface, rows, scheme)
-    take = torch.arange(len(rows), device=rows.device)
+    volume (at 200^3, the octant scheme's 27 eager volume passes took 12 of a flow's first
+    24 s), and its Gershgorin bound on the band (its first ``band_count`` columns), the same
+    float :func:`~torchsurf.operators.spectrum.laplace_beltrami_bound` gives. The entries come
+    row after row, so the matrix takes them without sorting."""
     row_parts, column_parts, value_parts = [], [], []
-    for k, offset in enumerate(NEIGHBOURHOOD):
-        neighbour = storage.neighbour(rows, offset)
-        column = torch.where(neighbour >= 0, lookup[neighbour.clamp(min=0)], -1)
-        kept = column >= 0
-        row_parts.append(take[kept])
-        column_parts.append(column[kept])
-        value_parts.append(coefficients[kept, k])
-    return GatherMatrix(torch.cat(row_parts), torch.cat(column_parts), torch.cat(value_parts),
-                        (len(rows), count))
+    largest = 0.0
+    with torch.no_grad():
+        for start in range(0, len(rows), ROWS_AT_ONCE):
+            part = rows[start: start + ROWS_AT_ONCE]
+            coefficients = laplace_beltrami_rows(surface, part, scheme)
+            neighbours = storage.neighbourhood(part)
+            columns = torch.where(neighbours >= 0, lookup[neighbours.clamp(min=0)], -1)
+            evolving = (columns >= 0) & (columns < band_count)
+            sums = gershgorin_sums(coefficients, evolving.unbind(1))
+            largest = max(largest, float(sums.max()) if len(sums) else 0.0)
+            kept = columns >= 0
+            take = torch.arange(start, start + len(part), device=rows.device)
+            row_parts.append(take[:, None].expand_as(kept)[kept])
+            column_parts.append(columns[kept])
+            value_parts.append(coefficients[kept])
+    matrix = GatherMatrix(torch.cat(row_parts), torch.cat(column_parts), torch.cat(value_parts),
+                          (len(rows), count))
+    return matrix, largest
 
 
 def _probed(surface: ImplicitSurface, scheme: str, region: Tensor, storage: _Storage,
-            rows: Tensor, lookup: Tensor, count: int) -> GatherMatrix:
+            rows: Tensor, lookup: Tensor, count: int) -> tuple[GatherMatrix, float | None]:
     """``W^-1 A`` on the band's rows (positions ``rows``) and the region's columns, read off
     the volume operator applied to colour indicators of the region's nodes (module
-    docstring); a dense surface's in closed form (:func:`_formed_rows`)."""
+    docstring); a dense surface's in closed form (:func:`_formed_rows`), with its Gershgorin
+    bound on the band (``None`` on bricks)."""
     if storage.layout is None:
-        return _formed_rows(surface, scheme, storage, rows, lookup, count)
-    return _probed_by_colours(surface, scheme, region, storage, rows, lookup, count)
+        return _formed_rows(surface, scheme, storage, rows, lookup, count, len(rows))
+    return _probed_by_colours(surface, scheme, region, storage, rows, lookup, count), None
 
 
 def _probed_by_colours(surface: ImplicitSurface, scheme: str, region: Tensor,

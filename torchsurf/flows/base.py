@@ -276,6 +276,10 @@ def _check_times(times: object, end: float) -> list[float]:
     return values[:-1] + [end if values[-1] > end * (1 - slack) else values[-1]]
 
 
+PACKED_METHODS = ("rkc", "euler", "heun")
+"""The methods whose steps a flow may take on packed band and ring values
+(:meth:`Flow.packed_system`)."""
+
 REEXTEND_CHOICES = ("auto",)
 
 
@@ -811,7 +815,7 @@ class Flow(nn.Module):
         system.path = getattr(self, "path", "auto")
         band, region = system.band, system.region
         packing = None
-        if self.method in ("rkc", "euler", "heun") and self.reextend_every is not None:
+        if self.method in PACKED_METHODS and self.reextend_every is not None:
             packed = self.packed_system(system, u0, surface)
             if packed is not None:
                 system, packing = packed

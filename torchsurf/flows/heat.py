@@ -30,6 +30,7 @@ from ._packed_band import FusedStage, PackedRegion
 from ._positive import ChannelOf, Positive
 from ._recompute import declared, recomputed
 from .base import (
+    PACKED_METHODS,
     RANGE_SLACK,
     Flow,
     _check_times,
@@ -207,6 +208,7 @@ class HeatFlow(Flow):
             haloed_normal, haloed_weight = surface.haloed()
             geometry = (surface.weight, surface.normal, haloed_weight, haloed_normal)
             linear = Linear(operator, geometry + ((d,) if isinstance(d, Tensor) else ()))
+        self._packing(surface)  # first: its rows give the bound too (kept_packing)
         rho = self.diffusivity.maximum() * self.operator_bound(surface, self.scheme)
         params = tensors(d, surface.normal, surface.weight)
         return System(rate, band, rho, linear=linear, params=params, isotropic=True)
@@ -223,17 +225,7 @@ class HeatFlow(Flow):
         flow keeps to; there the C kernel applies the octant rate on the band's bricks); and
         where compiled volume stencils are asked for (``path="compiled"``,
         or ``"auto"`` under ``TORCHSURF_COMPILE=always``)."""
-        if (self.scheme not in functional.SCHEMES or surface.phi.requires_grad
-                or type(self).system is not HeatFlow.system  # a subclass's own equation
-                or self.path == "compiled"
-                or (self.path == "auto" and backend.COMPILE == "always")):
-            return None
-        width = self.evolving_width(surface)
-        if surface.layout is not None and surface.kept(  # a host read, once per surface
-                ("band and ring nodes", width), lambda: int(system.region.sum())
-        ) > PACKED_BRICK_NODES:
-            return None
-        packing = kept_packing(surface, self.scheme, width, system.band, system.region)
+        packing = self._packing(surface)
         if packing is None:
             return None
         d = self.diffusivity.volume(u0)
@@ -250,6 +242,23 @@ class HeatFlow(Flow):
         packed = replace(system, rate=rate, band=packing.band_mask(), layout=None,
                          params=tensors(d), linear_stage=fused)
         return packed, packing
+
+    def _packing(self, surface: ImplicitSurface) -> PackedRegion | None:
+        """The packed band and ring this flow's explicit steps run on (:meth:`packed_system`),
+        assembled once and kept on the surface, or ``None`` where they run on volumes."""
+        if (self.method not in PACKED_METHODS or self.reextend_every is None
+                or self.scheme not in functional.SCHEMES or surface.phi.requires_grad
+                or type(self).system is not HeatFlow.system  # a subclass's own equation
+                or self.path == "compiled"
+                or (self.path == "auto" and backend.COMPILE == "always")):
+            return None
+        width = self.evolving_width(surface)
+        region = self.region_mask(surface)
+        if surface.layout is not None and surface.kept(  # a host read, once per surface
+                ("band and ring nodes", width), lambda: int(region.sum())
+        ) > PACKED_BRICK_NODES:
+            return None
+        return kept_packing(surface, self.scheme, width, self.band_mask(surface), region)
 
     def _share_of_planned_rate(self) -> float:
         """:meth:`Flow._share_of_planned_rate`, times the share of ``max_diffusivity`` a

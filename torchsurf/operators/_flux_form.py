@@ -224,14 +224,20 @@ def flux_form_rows(normal: Tensor, weight: Tensor, spacing: float, scheme: str, 
     normal = normal.reshape(normal.shape[0], 3, -1)
     weight = weight.reshape(weight.shape[0], -1)
 
-    def clamped(offset: Offset) -> tuple[Tensor, Tensor]:
-        """The flat in-box position of ``p + offset`` and whether it lies in the box."""
-        flat, beyond = stencils.neighbour_in_box(at, offset, shape)
-        return flat, ~(beyond[0] | beyond[1] | beyond[2])
+    box = stencils.BoxNeighbours(at, shape)
 
-    def column(offset: Offset) -> Tensor:
-        return stencils.neighbourhood_column(offset, stencils.neighbour_in_box(at, offset,
-                                                                               shape)[1])
+    def clamped(offset: Offset) -> tuple[Tensor, Tensor | None]:
+        """The flat in-box position of ``p + offset`` and whether it lies in the box (``None``:
+        every node's does)."""
+        flat, beyond = box.neighbour(offset)
+        return flat, None if beyond is None else ~(beyond[0] | beyond[1] | beyond[2])
+
+    def add(offset: Offset, value: Tensor) -> None:
+        column = box.column(offset)
+        if isinstance(column, int):
+            rows[:, column] += value
+        else:
+            rows.scatter_add_(1, column[:, None], value[:, None])
 
     centre_flat, _ = clamped(stencils.CENTRE)
     rows = weight.new_zeros((len(entry), len(stencils.NEIGHBOURHOOD)))
@@ -242,12 +248,12 @@ def flux_form_rows(normal: Tensor, weight: Tensor, spacing: float, scheme: str, 
             for sign, x_offset in ((1.0, stencils.CENTRE), (-1.0, stencils.unit(a, -s_a))):
                 flat, inside = clamped(x_offset)
                 _, ahead = clamped(stencils.add(x_offset, stencils.unit(a, s_a)))
-                open_face = (inside & ahead).to(rows.dtype)
                 w, n = weight[entry, flat], normal[entry, :, flat]
+                if inside is not None:  # a face of the box closes the faces beyond it
+                    w = (inside & ahead).to(rows.dtype) * w
                 for b, s_b in enumerate(side):
                     projector = (1.0 if a == b else 0.0) - n[:, a] * n[:, b]
-                    value = (sign * s_a * s_b) * open_face * w * projector * scale
-                    target = stencils.add(x_offset, stencils.unit(b, s_b))
-                    rows.scatter_add_(1, column(target)[:, None], value[:, None])
-                    rows.scatter_add_(1, column(x_offset)[:, None], -value[:, None])
+                    value = (sign * s_a * s_b) * w * projector * scale
+                    add(stencils.add(x_offset, stencils.unit(b, s_b)), value)
+                    add(x_offset, -value)
     return rows

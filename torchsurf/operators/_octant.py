@@ -172,9 +172,10 @@ def octant_rows(normal: Tensor, weight: Tensor, spacing: float, entry: Tensor,
     dim = (2, 1, 0)  # the index (z, y, x) of world axis a (x, y, z)
     unit = stencils.unit
 
+    box = stencils.BoxNeighbours(at, shape)
     geometry = {}
     for offset in [stencils.CENTRE] + [unit(a, s) for a in range(3) for s in (-1, 1)]:
-        flat, beyond = stencils.neighbour_in_box(at, offset, shape)
+        flat, beyond = box.neighbour(offset)
         geometry[offset] = (weight[entry, flat], normal[entry, :, flat], beyond)
 
     def diagonal_coefficient(axis: int, offset: tuple[int, int, int]) -> Tensor:
@@ -184,6 +185,8 @@ def octant_rows(normal: Tensor, weight: Tensor, spacing: float, entry: Tensor,
     def cross_coefficient(a: int, b: int, offset: tuple[int, int, int]) -> Tensor:
         w, n, beyond = geometry[offset]
         value = w * n[:, a] * n[:, b]
+        if beyond is None:
+            return value
         return torch.where(beyond[dim[a]] ^ beyond[dim[b]], -value, value)
 
     centre = stencils.CENTRE
@@ -207,7 +210,9 @@ def octant_rows(normal: Tensor, weight: Tensor, spacing: float, entry: Tensor,
                     terms.append((offset, -sa * sb * value))
     rows = geometry[centre][0].new_zeros((len(entry), len(stencils.NEIGHBOURHOOD)))
     for offset, value in terms:
-        _, beyond = stencils.neighbour_in_box(at, offset, shape)
-        column = stencils.neighbourhood_column(offset, beyond)
-        rows.scatter_add_(1, column[:, None], value[:, None])
+        column = box.column(offset)
+        if isinstance(column, int):
+            rows[:, column] += value
+        else:
+            rows.scatter_add_(1, column[:, None], value[:, None])
     return rows / (4.0 * spacing * spacing * geometry[centre][0][:, None])

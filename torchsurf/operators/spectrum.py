@@ -17,15 +17,16 @@ its band a fraction of that.
 
 from __future__ import annotations
 
+import math
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import torch
 from torch import Tensor
 
 from .._checks import check_choice, check_count, check_dtype
 from .._stack import caller_stacklevel
-from ..stencils import NEIGHBOURHOOD, neighbour_in_box
+from ..stencils import NEIGHBOURHOOD, BoxNeighbours
 from ..surface import ImplicitSurface
 from ._flux_form import flux_form_rows
 from ._octant import octant_rows
@@ -186,6 +187,26 @@ def laplace_beltrami_bound(
                         lambda: _warned_if_wild(_band_bound(surface, scheme, width), surface))
 
 
+def keep_laplace_beltrami_bound(surface: ImplicitSurface, scheme: str, width: float,
+                                bound: float) -> float:
+    """Keep on ``surface`` the bound :func:`laplace_beltrami_bound` gives for ``scheme`` and
+    ``width``, formed elsewhere from the same rows (the heat flow's packed operator forms them
+    anyway: its assembly and the bound formed each its own, a tenth of a fresh surface's first
+    flow), and warned about like it; a bound already kept is kept as it is.
+
+    Args:
+        surface: a dense implicit surface.
+        scheme, width: as in :func:`laplace_beltrami_bound` (``width`` given, world units).
+        bound: the largest :func:`gershgorin_sums` of :func:`laplace_beltrami_rows` at the
+            band's nodes, ``1 / world length^2``.
+
+    Returns:
+        The bound kept (``bound``, or the one kept before).
+    """
+    return surface.kept(("laplace_beltrami_bound", scheme, float(width)),
+                        lambda: _warned_if_wild(bound, surface))
+
+
 WILD_BOUND_CELLS = 1000.0
 """A Laplace–Beltrami bound above this many ``1 / h^2`` is warned about: 10-33 ``/ h^2`` were
 measured on distance functions, ``phi`` scaled or not a distance (``r^2 - 1``, ``(r - 1)^3``:
@@ -263,22 +284,31 @@ def _bound_on_band(surface: ImplicitSurface, width: float,
 def _bound_from_rows(surface: ImplicitSurface, mask: Tensor, scheme: str) -> float:
     """:func:`gershgorin_bound` of a dense surface's ``Lap_S`` on ``mask`` from its rows
     (:func:`laplace_beltrami_rows`)."""
-    depth, height, width = surface.grid.shape
     flat_mask = mask.reshape(-1)
     nodes = flat_mask.nonzero().squeeze(1)
     largest = 0.0
     with torch.no_grad():
         for start in range(0, len(nodes), ROWS_AT_ONCE):
             part = nodes[start: start + ROWS_AT_ONCE]
-            rows = laplace_beltrami_rows(surface, part, scheme).abs()
+            rows = laplace_beltrami_rows(surface, part, scheme)
             entry, at = _node_coordinates(part, surface.grid.shape)
-            total = torch.zeros_like(rows[:, 0])
-            for k, offset in enumerate(NEIGHBOURHOOD):
-                flat, _ = neighbour_in_box(at, offset, surface.grid.shape)
-                evolving = flat_mask[entry * (depth * height * width) + flat]
-                total += torch.where(evolving, rows[:, k], 0.0)
-            largest = max(largest, float(total.max()))
+            box = BoxNeighbours(at, surface.grid.shape)
+            first = entry * math.prod(surface.grid.shape)
+            evolving = [flat_mask[first + box.neighbour(offset)[0]] for offset in NEIGHBOURHOOD]
+            largest = max(largest, float(gershgorin_sums(rows, evolving).max()))
     return largest
+
+
+def gershgorin_sums(rows: Tensor, evolving: Sequence[Tensor]) -> Tensor:
+    """Each row's sum of ``|entry|`` over its evolving columns: ``rows`` ``(R, 27)`` as
+    :func:`laplace_beltrami_rows` gives them, ``evolving[k]`` ``(R,)`` bool, whether the
+    neighbour at :data:`~torchsurf.stencils.NEIGHBOURHOOD` ``[k]`` evolves (any value where the
+    row's entry is zero). ``(R,)``, summed column after column (the same rounding wherever the
+    rows come from)."""
+    total = rows.new_zeros(rows.shape[0])
+    for k, inside in enumerate(evolving):
+        total += torch.where(inside, rows[:, k].abs(), 0.0)
+    return total
 
 
 def _node_coordinates(nodes: Tensor, shape: tuple[int, int, int]
