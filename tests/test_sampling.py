@@ -219,6 +219,33 @@ def test_cubic_chunks_agree(monkeypatch) -> None:
                                atol=0, rtol=0)
 
 
+@pytest.mark.parametrize("interpolation", ["linear", "cubic"])
+@pytest.mark.parametrize("marker", [math.nan, math.inf])
+def test_values_no_point_reads_stay_out_of_its_value(interpolation, marker) -> None:
+    """A point on a node or a cell's face gives taps beyond it weight 0; NaN or inf marked
+    there (beyond a band) made its value NaN, 0 * NaN: 382 of a torus's 2104 vertices read
+    cubically."""
+    grid = ts.Grid.cube(13, 1.5)  # spacing 0.25: points on nodes and faces exactly
+    field = linear_field(grid, (0.7, -0.4, 1.3, 0.2))
+    lines = torch.zeros(grid.shape, dtype=torch.bool)
+    lines[4, 5, :] = lines[7, 3, :] = True  # two rows of nodes along x
+    marked = torch.where(lines, field, marker)
+    x = grid.origin[0] + grid.spacing * torch.tensor([0.0, 2.0, 3.25, 6.5, 11.9, 12.0],
+                                                     dtype=torch.float64)
+    points = torch.cat([
+        torch.stack([x, torch.full_like(x, grid.origin[1] + j * grid.spacing),
+                     torch.full_like(x, grid.origin[2] + k * grid.spacing)], 1)
+        for k, j in ((4, 5), (7, 3))])  # on the rows
+    expected = sample(field, points, grid, interpolation)
+    assert torch.allclose(sample(marked, points, grid, interpolation), expected, atol=1e-14)
+    inside = points.clone().requires_grad_()  # finite fields keep their gradients exactly
+    sample(field, inside, grid, interpolation).sum().backward()
+    assert torch.allclose(inside.grad, torch.tensor([0.7, -0.4, 1.3], dtype=torch.float64)
+                          .expand_as(inside), atol=1e-12)
+    off_the_lines = points + torch.tensor([0.0, 0.3 * grid.spacing, 0.0], dtype=torch.float64)
+    assert not bool(sample(marked, off_the_lines, grid, interpolation).isfinite().any())
+
+
 def test_unknown_interpolation_is_refused() -> None:
     with pytest.raises(ValueError, match="interpolation"):
         sample(torch.zeros(1, 1, *GRID.shape), torch.zeros(1, 3), GRID, interpolation="spline")

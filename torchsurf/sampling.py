@@ -15,6 +15,7 @@ __all__ = [
     "SAMPLE_CHUNK",
     "cubic_lagrange_weights",
     "sample",
+    "unread_zeroed",
 ]
 
 INTERPOLATIONS = ("linear", "cubic")
@@ -121,10 +122,12 @@ def sample(field: Tensor, points: Tensor, grid: Grid, interpolation: str = "line
     values = F.grid_sample(field, normalized[:, :, None, None, :], mode="bilinear",
                            padding_mode="border", align_corners=True)[:, :, :, 0, 0]
     # grid_sample clamps a point on a face (or rounded onto it) into the box, with no gradient
-    # across the face: those points are read through their cell's own polynomial instead
+    # across the face: those points are read through their cell's own polynomial instead; so
+    # are non-finite values, which grid_sample also takes from taps of weight zero
     sizes = torch.tensor(field.shape[:1:-1], device=index.device, dtype=index.dtype)
     near_face = ((index.detach() <= FACE_CELLS) | (index.detach() >= sizes - 1 - FACE_CELLS))
-    columns = near_face.any(dim=-1).any(dim=0).nonzero()[:, 0]
+    redone = near_face.any(dim=-1).any(dim=0) | ~torch.isfinite(values.detach()).all(1).all(0)
+    columns = redone.nonzero()[:, 0]
     if len(columns) == 0:
         return values
     return values.index_copy(2, columns, _interpolate(field, index[:, columns], cubic=False))
@@ -170,9 +173,18 @@ def _interpolate(field: Tensor, index: Tensor, cubic: bool) -> Tensor:
         tap_weights = (wz[:, part, :, None, None] * wy[:, part, None, :, None]
                        * wx[:, part, None, None, :]).flatten(2)
         gathered = flat.gather(2, taps.flatten(1)[:, None].expand(-1, flat.shape[1], -1))
-        values = gathered.view(*flat.shape[:2], *taps.shape[1:]) * tap_weights[:, None]
+        values = unread_zeroed(gathered.view(*flat.shape[:2], *taps.shape[1:]),
+                               tap_weights[:, None]) * tap_weights[:, None]
         results.append(values.sum(dim=-1))
     return torch.cat(results, dim=-1)
+
+
+def unread_zeroed(values: Tensor, weights: Tensor) -> Tensor:
+    """``values`` with the non-finite ones of taps of weight zero set to zero (a point on a
+    node or a cell's face does not read them; times its zero weight, a NaN or inf beyond the
+    band a field marks would make the point's value NaN); finite values, and their gradients,
+    unchanged. ``weights`` broadcasts to ``values``."""
+    return torch.where(torch.isfinite(values) | (weights != 0), values, values.new_zeros(()))
 
 
 def _check_inside(points: Tensor, grid: Grid) -> None:

@@ -166,8 +166,11 @@ def test_cat_refuses_mixed_dtypes_and_spacings_naming_the_entry(two_boxes):
     with pytest.raises(ValueError, match=r"^fill=1e\+39 cannot be held by field's dtype "
                                          r"torch.float32"):
         sphere.layout.to_dense(torch.zeros(len(sphere.layout), 1, 8, 8, 8), fill=1e39)
-    with pytest.raises(ValueError, match=r"^index: some lie outside the box of entry 0"):
-        sphere.sample_at_index(sphere.phi, torch.tensor([[400.0, 1.0, 1.0]]).double())
+    with pytest.raises(ValueError, match=r"^index: 1 of 2, e\.g\. index\[1\] = \[400, 1, 1\], "
+                                         r"lie outside the box of entry 0"):
+        sphere.sample_at_index(sphere.phi, torch.tensor([[1.0, 1.0, 1.0],
+                                                         [400.0, 1.0, 1.0]]).double())
+
 
 
 @pytest.mark.skipif(not (MESHES / "spot.obj").exists(), reason="shared meshes not present")
@@ -222,8 +225,16 @@ def test_intrinsic_gradient_divergence_and_sampling_equal_the_dense_ones(torus):
         surface.sample(packed, vertices, np.int64(1))
     with pytest.raises(ValueError, match="entry must be an integer"):
         surface.sample(packed, vertices, 0.0)
-    with pytest.raises(ValueError, match="not stored"):
+    with pytest.raises(ValueError, match=r"^points: 1 of 1, e\.g\. points\[0\] = \[0, 0, 2\.05\], "
+                                         "lie next to a brick that is not stored"):
         surface.sample(packed, torch.tensor([[0.0, 0.0, 2.05]], dtype=torch.float64))  # far
+    far = dense.grid.world_to_index(torch.tensor([[0.0, 0.0, 2.05]], dtype=torch.float64))
+    with pytest.raises(ValueError, match=r"^index: 1 of 1, .* lie next to a brick that is not"):
+        surface.sample_at_index(packed, far)  # named "points" before
+    # NaN beyond a band of 1.5 cells: the vertices' trilinear taps of weight 0 read it
+    marked = surface.from_dense(torch.where(dense.band_mask(1.5 * dense.grid.spacing), u,
+                                            torch.nan))
+    assert torch.equal(surface.sample(marked, vertices), sampled)
     with pytest.raises(ValueError, match="outside the box"):
         surface.sample(packed, torch.full((1, 3), 5.0, dtype=torch.float64))
     with pytest.raises(TypeError, match="points .*torch.float32.* must have the dtype"):

@@ -10,6 +10,7 @@ from torch import Tensor
 from .._checks import MismatchError, check_entry, check_finite, check_positive, check_tensor
 from .._inference import outside_inference
 from ..grid import Grid
+from ..sampling import unread_zeroed
 from ..surface import CROSSING_CELLS, ImplicitSurface, check_eps
 from .layout import BRICK, BrickLayout
 
@@ -302,7 +303,7 @@ class BrickSurface(ImplicitSurface):
         _check_like_field(points, "points", field)
         grid = self.grids[entry]
         return self._sample(field, grid.world_to_index(points), entry,
-                            grid.world_rounding(points.dtype))
+                            grid.world_rounding(points.dtype), shown=points)
 
     def sample_at_index(self, field: Tensor, index: Tensor, entry: int = 0) -> Tensor:
         """:meth:`sample` at continuous node indices ``index`` ``(V, 3)`` ``(i, j, k)`` of the
@@ -314,23 +315,26 @@ class BrickSurface(ImplicitSurface):
         return self._sample(field, index, entry, name="index")
 
     def _sample(self, field: Tensor, index: Tensor, entry: int, slack: float = 0.0,
-                name: str = "points") -> Tensor:
+                name: str = "points", shown: Tensor | None = None) -> Tensor:
         """:meth:`sample_at_index` of checked arguments, the box widened by ``slack`` cells;
-        ``name`` is what the caller called the points."""
+        ``name`` is what the caller called the points, ``shown`` what to quote of them in an
+        error (``index`` by default)."""
         inside, fraction, corners = self._cell_corners(index, entry, slack)
+        shown = index if shown is None else shown
         if not bool(inside.all()):
-            raise ValueError(f"{name}: some lie outside the box of entry {entry} "
-                             f"({self.grids[entry]})")
+            raise ValueError(_some_points(name, ~inside, shown) + " lie outside the box of "
+                             f"entry {entry} ({self.grids[entry]})")
+        unstored = torch.zeros_like(inside)
+        for _, brick, _ in corners:
+            unstored |= brick < 0
+        if bool(unstored.any()):
+            raise ValueError(_some_points(name, unstored, shown) + " lie next to a brick that "
+                             "is not stored (farther from S than the band and its reach)")
         flat = field.transpose(0, 1).reshape(field.shape[1], -1)
         value = None
-        for offset, brick, source in corners:
-            if bool((brick < 0).any()):
-                raise ValueError(
-                    "points: some lie next to a brick that is not stored (farther from S than "
-                    "the band and its reach)"
-                )
+        for offset, _, source in corners:
             weight = torch.where(offset.bool(), fraction, 1 - fraction).prod(dim=1)
-            term = flat[:, source] * weight
+            term = unread_zeroed(flat[:, source], weight) * weight
             value = term if value is None else value + term
         return value
 
@@ -431,3 +435,12 @@ def _check_like_field(points: Tensor, name: str, field: Tensor) -> None:
             f"{name} ({points.dtype}, {points.device}) must have the dtype and device of "
             f"field ({field.dtype}, {field.device})"
         )
+
+
+def _some_points(name: str, which: Tensor, shown: Tensor) -> str:
+    """``"points: 3 of 40, e.g. points[7] = [x, y, z],"`` for the points ``which`` ``(V,)``
+    (bool) of ``shown`` ``(V, 3)``, the start of an error that names them."""
+    first = int(which.nonzero()[0, 0])
+    values = ", ".join(f"{float(v):.6g}" for v in shown[first].detach())
+    return (f"{name}: {int(which.sum())} of {len(which)}, e.g. {name}[{first}] = "
+            f"[{values}],")
