@@ -397,6 +397,19 @@ def pictures(data: SignalSet, grid: ts.Grid, methods: dict[str, dict[str, Method
     return written
 
 
+def unwritable_folder(output: Path) -> str | None:
+    """Why the results could not be written into the folder ``output`` (created with its
+    parents if missing), or ``None`` when they can."""
+    for folder in (output, *output.absolute().parents):
+        if folder.exists():
+            if not folder.is_dir():
+                return f"{folder} is not a folder"
+            if not os.access(folder, os.W_OK | os.X_OK):
+                return f"{folder} is not writable"
+            return None
+    return None
+
+
 def parse(argv: Sequence[str] | None = None) -> argparse.Namespace:
     # no abbreviations: --quick keeps the options given beside it by their full names
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0].replace("`", ""),
@@ -414,7 +427,8 @@ def parse(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--train-rounds", type=int, default=16,
                         help="training signals per shape and kind")
     parser.add_argument("--test-rounds", type=int, default=4,
-                        help="held-out signals per shape and kind")
+                        help="held-out signals per training shape and kind (the held-out shape "
+                             "gets as many as all training shapes together)")
     parser.add_argument("--noise", type=float, default=0.1,
                         help="standard deviation of the noise (signals lie in [0, 1])")
     parser.add_argument("--cells", type=int, default=12, help="regions of a piecewise-constant signal")
@@ -424,7 +438,8 @@ def parse(argv: Sequence[str] | None = None) -> argparse.Namespace:
                         help="seed of the signals, the noise and the initial weights")
     parser.add_argument("--threads", type=int, default=None, help="torch threads (None: torch's)")
     parser.add_argument("--mesh-dir", default=os.environ.get("TORCHSURF_MESH_DIR"),
-                        help="folder of --meshes ($TORCHSURF_MESH_DIR if set)")
+                        help="folder of --meshes and --heldout-mesh ($TORCHSURF_MESH_DIR if "
+                             "set)")
     parser.add_argument("--meshes", nargs="*", default=[],
                         help="mesh files added to the training shapes")
     parser.add_argument("--heldout-mesh", default=None,
@@ -445,6 +460,10 @@ def parse(argv: Sequence[str] | None = None) -> argparse.Namespace:
         args.eager = True
     if args.threads is not None and args.threads < 1:
         parser.error(f"--threads must be an integer of at least 1, got {args.threads}")
+    unwritable = unwritable_folder(args.output)
+    if unwritable is not None:  # found now, not after the run's minutes of work
+        parser.error(f"--output {args.output}: {unwritable}")
+
     def resolved(name: str) -> Path:
         return (Path(args.mesh_dir or ".") / name).resolve()
 

@@ -101,6 +101,17 @@ def test_bad_arguments_are_named(example, capsys, argv, named):
     assert named in capsys.readouterr().err
 
 
+def test_an_output_that_cannot_be_a_folder_is_refused_before_the_run(example, capsys,
+                                                                    tmp_path):
+    """A file in --output's path had the run fail at its very end, after minutes of work."""
+    (tmp_path / "results.md").write_text("")
+    for output in ("results.md", "results.md/out"):
+        with pytest.raises(SystemExit):
+            example.parse(["--output", str(tmp_path / output)])
+        assert "is not a folder" in capsys.readouterr().err
+    assert example.parse(["--output", str(tmp_path / "new" / "folder")])  # made at the end
+
+
 def test_relative_mesh_without_folder_is_refused(example):
     with pytest.raises(FileNotFoundError, match="--meshes 'spot.obj'"):
         example.mesh_paths(["spot.obj"], None)
