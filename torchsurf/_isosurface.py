@@ -191,6 +191,39 @@ def _merge_coincident(points: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray
     return points[first[order]], faces[distinct]
 
 
+MISSED_DEPTH = 0.1
+"""How far, in cells, :func:`missed_crossings` wants the interpolant past zero between two
+nodes of one sign before it counts the pair: a surface grazing a grid line dips by rounding."""
+
+
+def missed_crossings(volume: np.ndarray) -> int:
+    """Pairs of neighbouring nodes of one sign (along any axis) between which ``volume``'s
+    tricubic interpolant (:func:`torchsurf.sampling.sample`, ``"cubic"``) crosses zero and goes
+    more than :data:`MISSED_DEPTH` cells past it: parts of its zero set thinner than a cell,
+    which the nodes' signs, and so marching cubes, do not see. Cells are measured by the
+    volume's median difference across the edges S crosses."""
+    steps, missed = [], []
+    for axis in range(3):
+        def along(start: int, stop: int | None, axis: int = axis) -> np.ndarray:
+            index = [slice(None)] * 3
+            index[axis] = slice(start, stop)
+            return volume[tuple(index)]
+
+        if volume.shape[axis] < 4:
+            continue
+        before, low, high, after = along(0, -3), along(1, -2), along(2, -1), along(3, None)
+        middle = (9.0 * (low + high) - before - after) / 16.0  # the interpolant at mid-edge
+        same = np.sign(low) == np.sign(high)
+        steps.append(np.abs(high - low)[np.sign(low) * np.sign(high) < 0])
+        missed.append((same, middle, np.sign(low)))
+    crossing_steps = np.concatenate(steps) if steps else np.zeros(0)
+    if len(crossing_steps) == 0:
+        return 0
+    depth = MISSED_DEPTH * float(np.median(crossing_steps))
+    return int(sum(np.count_nonzero(same & (middle * side < -depth))
+                   for same, middle, side in missed))
+
+
 def redistance(volume: np.ndarray, grid: Grid, band: float) -> np.ndarray:
     """Signed distance ``(D, H, W)`` to the zero set of ``volume``, exact within ``band``.
 

@@ -8,6 +8,7 @@ and the redistancing of any implicit function.
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable, Sequence
 
 import numpy as np
@@ -28,6 +29,7 @@ from ._checks import (
     check_volume,
 )
 from ._mesh_input import MeshLike, as_trimesh, triangle_arrays
+from ._stack import caller_stacklevel
 from .grid import Grid
 
 __all__ = [
@@ -401,7 +403,10 @@ def redistance(phi: Tensor, grid: Grid, band_width: float | None = None) -> Tens
     cells where it meets the face at right angles (33^3; first order): keep S a few cells
     inside the box, as :class:`~torchsurf.ImplicitSurface` warns.
     Where the iteration does not settle (near the medial axis, at creases of ``phi``) a node
-    keeps its distance to the triangles.
+    keeps its distance to the triangles. Parts of S thinner than about a cell that pass between
+    nodes of one sign are not seen, and are lost: a tilted ellipsoid's quadric 0.8 / 1.6 cells
+    thick had 35% / 14% of its area over half a cell off afterwards (33^3); a ``RuntimeWarning``
+    counts the pairs of nodes of one sign between which the interpolant crosses zero.
     ``|grad phi| = 1`` in the band, except at the medial axis. Not differentiable: the result
     is detached from ``phi``'s graph. About four times the cost of the triangles alone (97^3:
     2.9 s against 0.65 s).
@@ -438,4 +443,15 @@ def redistance(phi: Tensor, grid: Grid, band_width: float | None = None) -> Tens
             entries.append(_isosurface.redistance(entry, grid, width))
         except ValueError as error:
             raise ValueError(f"phi batch entry {index}: {error}") from error
+        missed = _isosurface.missed_crossings(entry)
+        if missed:
+            where = "" if phi.shape[0] == 1 else f" (batch entry {index})"
+            warnings.warn(
+                f"phi{where}: its interpolant crosses zero between {missed} pairs of "
+                "neighbouring nodes of one sign: parts of S thinner than about a cell, or a phi "
+                "that varies too fast between nodes for its interpolant (a distance cubed "
+                "does). redistance sees S through the nodes' signs and leaves those crossings "
+                "out (a sheet 0.8 cells thick lost 14% of its area): sample phi on a finer grid",
+                RuntimeWarning, stacklevel=caller_stacklevel(),
+            )
     return torch.as_tensor(np.stack(entries)[:, None], dtype=phi.dtype, device=phi.device)
