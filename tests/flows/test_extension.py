@@ -362,3 +362,25 @@ def test_extension_takes_a_path_and_slicing_never_compiles(monkeypatch):
     assert "path='slicing'" in repr(ts.Extension(path="slicing"))
     with pytest.raises(ValueError, match="path"):
         ts.Extension(path="fast")
+
+
+def test_cubic_extension_keeps_its_stencil_while_phi_needs_no_gradient(monkeypatch):
+    """Its stencil was formed at every call: 7x its application at 64^3 (an audit)."""
+    from torchsurf.flows import extension
+
+    formed = []
+    original = extension.cubic_stencil
+    monkeypatch.setattr(extension, "cubic_stencil",
+                        lambda *args, **kwargs: formed.append(1) or original(*args, **kwargs))
+    grid = ts.Grid.cube(21, 1.5)
+    phi = ts.sdf.torus(grid, dtype=torch.float64)
+    u = torch.randn(1, 2, *grid.shape, dtype=torch.float64,
+                    generator=torch.Generator().manual_seed(3))
+    surface = ts.ImplicitSurface(phi, grid)
+    first = ts.flows.closest_point_extension(u, surface, interpolation="cubic")
+    assert torch.equal(ts.flows.closest_point_extension(u, surface, interpolation="cubic"), first)
+    assert len(formed) == 1
+    learned = ts.ImplicitSurface(phi.clone().requires_grad_(), grid)  # its weights in the graph
+    for _ in range(2):
+        again = ts.flows.closest_point_extension(u, learned, interpolation="cubic")
+    assert len(formed) == 3 and torch.equal(again.detach(), first)

@@ -21,7 +21,7 @@ from torch import Tensor
 
 from .. import backend
 from ..surface import ImplicitSurface
-from . import _limiter
+from . import _closest, _limiter
 from .extension import BrickCubicStencil, CubicStencil, _corner_base, cubic_stencil
 
 MIN_BAND_CELLS = 2.9
@@ -54,11 +54,22 @@ def kept_stencil(surface: ImplicitSurface, width: float | None, kind: str, mask:
     """The closest-point stencil of ``mask`` reading only ``region`` (the band of half-width
     ``width`` and its ring; ``kind`` names the mask, e.g. ``"ring"`` or ``"region"``), for the
     surface's storage; kept on the surface unless ``phi`` requires grad (its weights are then in
-    ``phi``'s graph)."""
+    ``phi``'s graph). The ring's is taken from the region's rows when that is kept (the stencils
+    of one width all read its region): forming it again took a third of a fresh surface's
+    stencils."""
     if surface.phi.requires_grad:
         return cubic_stencil(surface, mask, limited=limited, readable=region)
-    return surface.kept(stencil_key(width, kind, limited),
-                        lambda: cubic_stencil(surface, mask, limited=limited, readable=region))
+
+    def formed() -> Stencil:
+        if kind == "ring":  # within the region: its stencil's rows, where already formed
+            for whole in (stencil_key(width, "region", flag) for flag in (True, False)):
+                if surface.is_kept(whole):
+                    region_stencil = surface.kept(whole, lambda: None)
+                    return region_stencil.restricted(mask & _closest.has_direction(surface),
+                                                     limited)
+        return cubic_stencil(surface, mask, limited=limited, readable=region)
+
+    return surface.kept(stencil_key(width, kind, limited), formed)
 
 CHUNK = 2**15
 """Nodes whose taps are formed at once in backward (about 1 kB of temporaries a node)."""

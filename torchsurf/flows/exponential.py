@@ -267,9 +267,11 @@ class BandLaplacian:
         self.surface, self.scheme, self.path, self.width = surface, scheme, path, width
         self.band = surface.band_mask(width)
         self.region = with_ring(self.band, surface.layout)
-        self.ring = RingFill(surface, width, self.band, self.region, path)
+        # the region's stencil first: the ring's takes its rows (kept_stencil)
         self.extension = kept_stencil(surface, width, "region", self.region, self.region,
                                       limited=True)
+        self.ring = RingFill(surface, width, self.band, self.region, path)
+        self.packed()  # before the bound: its rows give it (kept_packing)
         self.bound = BOUND_MARGIN * laplace_beltrami_bound(surface, scheme, width)
 
     def packed(self) -> PackedBand | None:
