@@ -222,22 +222,29 @@ def _dense_tap_indices(corners: Tensor, height: int, width: int) -> Callable[[sl
 
 
 def _dense_part(surface: ImplicitSurface, index: Tensor, mask: Tensor, readable: Tensor | None,
-                entry: int) -> tuple[Tensor, Tensor, Tensor]:
+                entry: int) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
     """One volume's stencil: the masked nodes' closest points (``index`` ``(D, H, W, 3)``,
     first order) refined (:mod:`._closest`), without the nodes whose taps leave ``readable``
-    ``(D, H, W)`` (when given)."""
+    ``(D, H, W)`` (when given); and their 64 tap positions where :class:`CubicStencil` keeps
+    them (formed once, for that check too), else ``None``."""
     targets = mask.reshape(-1).nonzero().squeeze(1)
     distance = surface.signed_distance()[entry, 0] / surface.spacing
     read = _closest.dense_reader(distance, surface.normal[entry])
     at = _closest.refine(index.reshape(-1, 3)[targets], read)
     targets, corners, weights = _cubic_stencil(at, targets, mask.shape)
+    taps = _dense_tap_indices(corners, *mask.shape[1:])
+    sources = None
+    if len(targets) <= KEEP_SOURCES_NODES:
+        small = math.prod(mask.shape) < 2**31
+        sources = taps(slice(None)).to(torch.int32 if small else torch.long)
+        taps = sources.__getitem__
     if readable is None:
-        return targets, corners, weights
-    keep = _closest.taps_inside(readable.reshape(-1),
-                                _dense_tap_indices(corners, *mask.shape[1:]), len(targets))
+        return targets, corners, weights, sources
+    keep = _closest.taps_inside(readable.reshape(-1), taps, len(targets))
     if bool(keep.all()):
-        return targets, corners, weights
-    return targets[keep], corners[:, keep], weights[:, keep]
+        return targets, corners, weights, sources
+    return (targets[keep], corners[:, keep], weights[:, keep],
+            None if sources is None else sources[keep])
 
 
 def _interpolate_gathered(flat: Tensor, corners: Tensor, weights: Tensor, height: int,
@@ -347,14 +354,15 @@ class CubicStencil:
         self.limited = check_flag(limited, "limited")
         index = _closest_indices(surface, surface.phi.dtype)
         batch = max(index.shape[0], mask.shape[0])
-        self.parts = [
+        parts = [
             _dense_part(surface, index[min(b, index.shape[0] - 1)],
                         mask[min(b, mask.shape[0] - 1), 0],
                         None if readable is None else readable[min(b, readable.shape[0] - 1), 0],
                         min(b, surface.phi.shape[0] - 1))
             for b in range(batch)
         ]
-        self._lay_out(mask.shape, [None] * len(self.parts))
+        self.parts = [part[:3] for part in parts]
+        self._lay_out(mask.shape, [part[3] for part in parts])
 
     def restricted(self, mask: Tensor, limited: bool = False) -> CubicStencil:
         """This stencil at the nodes of ``mask`` alone (``(B or 1, 1, D, H, W)`` bool, within
