@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 import torch
@@ -70,6 +72,11 @@ def test_equalized_colours_use_the_whole_map():
     for single in (np.array([[5.0]]), np.array([[5.0], [np.nan], [np.nan]])):
         assert np.allclose(render.colours(single, equalize=True)[0], middle)
     assert np.allclose(middle, render.colours(np.array([[0.5]]), limits=(0.0, 1.0)))
+    with warnings.catch_warnings():  # their spread overflowed (a RuntimeWarning), an audit's
+        warnings.simplefilter("error")
+        huge = render.colours(np.array([[-1.7e308], [0.0], [1.7e308]]), "scalar", "gray",
+                              equalize=True)
+    assert np.allclose(huge[:, 0], [0.0, 0.5, 1.0], atol=0.01)  # the map's 256 steps
 
 
 def test_pictures_too_wide_to_draw_and_empty_meshes_are_refused(tmp_path):

@@ -200,8 +200,10 @@ def colours(values: np.ndarray, mode: str = "scalar", colormap: str = "viridis",
         scaled = np.zeros(len(values))
         # a constant (to ROUNDING_SPAN of its magnitude: float32 rounding): the map's middle
         # colour, as for default limits
-        spread = float(np.ptp(finite)) if len(finite) else 0.0
-        flat = spread <= ROUNDING_SPAN * float(np.abs(finite).max(initial=0.0))
+        largest = float(np.abs(finite).max(initial=0.0))
+        # in units of the largest magnitude: a spread near the float's range does not overflow
+        spread = float(np.ptp(finite / largest)) if largest > 0 else 0.0
+        flat = spread <= ROUNDING_SPAN
         scaled[~missing] = 0.5 if flat else mean_rank[inverse] / (len(finite) - 1)
     else:
         low, high = (bounds if limits is not None else
