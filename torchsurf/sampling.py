@@ -13,9 +13,10 @@ __all__ = [
     "FACE_CELLS",
     "INTERPOLATIONS",
     "SAMPLE_CHUNK",
+    "UNREAD_WEIGHT",
     "cubic_lagrange_weights",
     "sample",
-    "unread_zeroed",
+    "weighted_taps",
 ]
 
 INTERPOLATIONS = ("linear", "cubic")
@@ -173,18 +174,46 @@ def _interpolate(field: Tensor, index: Tensor, cubic: bool) -> Tensor:
         tap_weights = (wz[:, part, :, None, None] * wy[:, part, None, :, None]
                        * wx[:, part, None, None, :]).flatten(2)
         gathered = flat.gather(2, taps.flatten(1)[:, None].expand(-1, flat.shape[1], -1))
-        values = unread_zeroed(gathered.view(*flat.shape[:2], *taps.shape[1:]),
-                               tap_weights[:, None]) * tap_weights[:, None]
+        values = weighted_taps(gathered.view(*flat.shape[:2], *taps.shape[1:]),
+                               tap_weights[:, None], max(sizes) - 1)
         results.append(values.sum(dim=-1))
     return torch.cat(results, dim=-1)
 
 
-def unread_zeroed(values: Tensor, weights: Tensor) -> Tensor:
-    """``values`` with the non-finite ones of taps of weight zero set to zero (a point on a
-    node or a cell's face does not read them; times its zero weight, a NaN or inf beyond the
-    band a field marks would make the point's value NaN); finite values, and their gradients,
-    unchanged. ``weights`` broadcasts to ``values``."""
-    return torch.where(torch.isfinite(values) | (weights != 0), values, values.new_zeros(()))
+UNREAD_WEIGHT = 8.0
+"""A tap whose weight is within this many units of its dtype's rounding times the grid's
+largest index of zero is not read (:func:`weighted_taps`): a point on a node whose index
+``world_to_index`` rounds (spacing 0.08125) left weights of 1e-16, not 0."""
+
+
+def weighted_taps(values: Tensor, weights: Tensor, largest_index: int) -> Tensor:
+    """``values * weights`` (broadcast), with the products of non-finite values at taps whose
+    weight is zero to rounding (:data:`UNREAD_WEIGHT`) set to zero: a point on a node or a
+    cell's face does not read them, and a NaN or inf a field marks beyond its band would
+    otherwise make its value NaN. The backward is the plain product's: gradients of finite
+    values are unchanged, and the gradient to the weights (the points) at such a tap is NaN,
+    as the value beyond the point it would need is unknown."""
+    unread = UNREAD_WEIGHT * torch.finfo(weights.dtype).eps * max(largest_index, 1)
+    return _WeightedTaps.apply(values, weights, unread)
+
+
+class _WeightedTaps(torch.autograd.Function):
+    """:func:`weighted_taps`."""
+
+    @staticmethod
+    def forward(ctx, values: Tensor, weights: Tensor, unread: float) -> Tensor:  # noqa: ANN001
+        ctx.save_for_backward(values, weights)
+        skipped = ~torch.isfinite(values) & (weights.abs() <= unread)
+        return torch.where(skipped, values.new_zeros(()), values * weights)
+
+    @staticmethod
+    def backward(ctx, grad: Tensor) -> tuple[Tensor | None, Tensor | None, None]:  # noqa: ANN001
+        values, weights = ctx.saved_tensors
+        to_values = (grad * weights).sum_to_size(values.shape) if ctx.needs_input_grad[0] \
+            else None
+        to_weights = (grad * values).sum_to_size(weights.shape) if ctx.needs_input_grad[1] \
+            else None
+        return to_values, to_weights, None
 
 
 def _check_inside(points: Tensor, grid: Grid) -> None:

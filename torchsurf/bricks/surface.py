@@ -10,7 +10,7 @@ from torch import Tensor
 from .._checks import MismatchError, check_entry, check_finite, check_positive, check_tensor
 from .._inference import outside_inference
 from ..grid import Grid
-from ..sampling import unread_zeroed
+from ..sampling import weighted_taps
 from ..surface import CROSSING_CELLS, ImplicitSurface, check_eps
 from .layout import BRICK, BrickLayout
 
@@ -334,7 +334,7 @@ class BrickSurface(ImplicitSurface):
         value = None
         for offset, _, source in corners:
             weight = torch.where(offset.bool(), fraction, 1 - fraction).prod(dim=1)
-            term = unread_zeroed(flat[:, source], weight) * weight
+            term = weighted_taps(flat[:, source], weight, max(self.grids[entry].shape) - 1)
             value = term if value is None else value + term
         return value
 
