@@ -195,13 +195,21 @@ MISSED_DEPTH = 0.1
 """How far, in cells, :func:`missed_crossings` wants the interpolant past zero between two
 nodes of one sign before it counts the pair: a surface grazing a grid line dips by rounding."""
 
+MISSED_REACH = 100.0
+"""How far from zero, in cells, the four values an edge's interpolant reads may lie for
+:func:`missed_crossings` to count it: a sentinel value beyond the band (``-1e9``, ``1e3``)
+swings the interpolant far past zero beside it, with no part of S there (a thin quadric sheet
+reads values of tens of cells)."""
+
 
 def missed_crossings(volume: np.ndarray) -> int:
     """Pairs of neighbouring nodes of one sign (along any axis) between which ``volume``'s
     tricubic interpolant (:func:`torchsurf.sampling.sample`, ``"cubic"``) crosses zero and goes
-    more than :data:`MISSED_DEPTH` cells past it: parts of its zero set thinner than a cell,
-    which the nodes' signs, and so marching cubes, do not see. Cells are measured by the
-    volume's median difference across the edges S crosses."""
+    more than :data:`MISSED_DEPTH` cells past it, the four nodes it reads within
+    :data:`MISSED_REACH` cells of zero: parts of its zero set thinner than a cell, which the
+    nodes' signs, and so marching cubes, do not see. Cells are measured by the volume's median
+    difference across the edges S crosses. Only the middles of the grid's edges are read: a
+    wire thinner than a cell through the centres of cells' faces is not counted."""
     steps, missed = [], []
     for axis in range(3):
         def along(start: int, stop: int | None, axis: int = axis) -> np.ndarray:
@@ -215,13 +223,16 @@ def missed_crossings(volume: np.ndarray) -> int:
         middle = (9.0 * (low + high) - before - after) / 16.0  # the interpolant at mid-edge
         same = np.sign(low) == np.sign(high)
         steps.append(np.abs(high - low)[np.sign(low) * np.sign(high) < 0])
-        missed.append((same, middle, np.sign(low)))
+        farthest = np.maximum(np.maximum(np.abs(before), np.abs(low)),
+                              np.maximum(np.abs(high), np.abs(after)))
+        missed.append((same, middle, np.sign(low), farthest))
     crossing_steps = np.concatenate(steps) if steps else np.zeros(0)
     if len(crossing_steps) == 0:
         return 0
-    depth = MISSED_DEPTH * float(np.median(crossing_steps))
-    return int(sum(np.count_nonzero(same & (middle * side < -depth))
-                   for same, middle, side in missed))
+    cell = float(np.median(crossing_steps))
+    return int(sum(np.count_nonzero(same & (middle * side < -MISSED_DEPTH * cell)
+                                    & (farthest <= MISSED_REACH * cell))
+                   for same, middle, side, farthest in missed))
 
 
 def redistance(volume: np.ndarray, grid: Grid, band: float) -> np.ndarray:
