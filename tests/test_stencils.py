@@ -294,3 +294,33 @@ def test_the_padding_and_application_steps_refuse_other_layouts_naming_the_argum
         stencils.pad_mirrored(torch.ones(1, 3, 3, 3, 3, dtype=torch.uint8))
     assert stencils.pad_mirrored(volume[:, :3]).shape == (1, 3, 7, 7, 7)
     assert stencils.contract(torch.rand(1, 2, 3, 5, 5, 5), stencils.CENTRAL).shape == (1, 2, 3, 3, 3)
+
+
+@pytest.mark.parametrize("shape", [(5, 6, 7), (3, 3, 3), (1, 4, 4), (2, 2, 9)])
+def test_box_neighbours_equal_the_clamped_neighbours(shape):
+    """:class:`BoxNeighbours`' shortcut (no node on a face) and its fallback give what
+    ``neighbour_in_box`` and ``neighbourhood_column`` give, node by node."""
+    from torchsurf.stencils import (
+        NEIGHBOURHOOD,
+        BoxNeighbours,
+        neighbour_in_box,
+        neighbourhood_column,
+    )
+
+    z, y, x = torch.meshgrid(*(torch.arange(n) for n in shape), indexing="ij")
+    every = [a.reshape(-1) for a in (z, y, x)]
+    inner = [a[1:-1, 1:-1, 1:-1].reshape(-1) for a in (z, y, x)]
+    for at in (every, inner):
+        box = BoxNeighbours(at, shape)
+        for offset in NEIGHBOURHOOD:
+            flat, beyond = neighbour_in_box(at, offset, shape)
+            mine, my_beyond = box.neighbour(offset)
+            assert torch.equal(mine, flat)
+            column = box.column(offset)
+            expected = neighbourhood_column(offset, beyond)
+            if my_beyond is None:
+                assert not any(bool(b.any()) for b in beyond)
+                assert bool((expected == column).all())
+            else:
+                assert all(torch.equal(a, b) for a, b in zip(my_beyond, beyond, strict=True))
+                assert torch.equal(column, expected)

@@ -384,3 +384,34 @@ def test_cubic_extension_keeps_its_stencil_while_phi_needs_no_gradient(monkeypat
     for _ in range(2):
         again = ts.flows.closest_point_extension(u, learned, interpolation="cubic")
     assert len(formed) == 3 and torch.equal(again.detach(), first)
+
+
+@pytest.mark.parametrize("storage", ["dense", "bricks"])
+def test_a_restricted_stencil_is_the_one_formed_for_its_mask(storage):
+    """The ring's stencil is taken from the region's rows (``restricted``): it must be what
+    ``cubic_stencil`` forms for the ring with the same readable region, tensor for tensor."""
+    from torchsurf.flows.extension import cubic_stencil
+
+    grid = ts.Grid.cube(30, 2.0)
+    phi = torch.cat([ts.sdf.torus(grid, dtype=torch.float64),
+                     ts.sdf.sphere(grid, 0.9, dtype=torch.float64)])
+    surface = ts.ImplicitSurface(phi, grid)
+    if storage == "bricks":
+        surface = ts.bricks.from_dense(phi, grid)
+    band = surface.band_mask()
+    region = with_ring(band, surface.layout)
+    ring = region & ~band
+    whole = cubic_stencil(surface, region, limited=True, readable=region)
+    taken = whole.restricted(ring & ts.flows._closest.has_direction(surface), limited=False)
+    formed = cubic_stencil(surface, ring, limited=False, readable=region)
+    assert taken.limited is False
+    if storage == "bricks":
+        for name in ("targets", "bases", "second", "local", "weights", "sources"):
+            assert torch.equal(getattr(taken, name), getattr(formed, name))
+        return
+    assert len(taken.parts) == len(formed.parts) == 2
+    for mine, theirs in zip(taken.parts, formed.parts, strict=True):
+        assert all(torch.equal(a, b) for a, b in zip(mine, theirs, strict=True))
+    for name in ("sources", "anchors", "weights_by_offset"):
+        for a, b in zip(getattr(taken, name), getattr(formed, name), strict=True):
+            assert (a is None and b is None) or torch.equal(a, b)

@@ -276,11 +276,12 @@ class BandLaplacian:
 
     def packed(self) -> PackedBand | None:
         """The operator on packed band values (:class:`~torchsurf.flows._packed_band.PackedBand`),
-        assembled once and kept on the surface; ``None`` when ``phi`` requires grad (the
-        operator's weights are then in its graph), where compiled volume stencils are asked
-        for (``path="compiled"``, or ``"auto"`` under ``TORCHSURF_COMPILE=always``), or when
-        its matrices would not fit in a quarter of the memory available
-        (:data:`PACKED_NODE_BYTES`)."""
+        assembled once and kept on the surface (at construction, before the bound, which its
+        rows give: a ``BandLaplacian`` applied through volumes alone pays it too); ``None``
+        when ``phi`` requires grad (the operator's weights are then in its graph), where
+        compiled volume stencils are asked for (``path="compiled"``, or ``"auto"`` under
+        ``TORCHSURF_COMPILE=always``), or when its matrices would not fit in a quarter of the
+        memory available (:data:`PACKED_NODE_BYTES`)."""
         if self.differentiable or self.path == "compiled" or (
                 self.path == "auto" and backend.COMPILE == "always"):
             return None
