@@ -174,9 +174,11 @@ def _interpolate(field: Tensor, index: Tensor, cubic: bool) -> Tensor:
         tap_weights = (wz[:, part, :, None, None] * wy[:, part, None, :, None]
                        * wx[:, part, None, None, :]).flatten(2)
         gathered = flat.gather(2, taps.flatten(1)[:, None].expand(-1, flat.shape[1], -1))
-        values = weighted_taps(gathered.view(*flat.shape[:2], *taps.shape[1:]),
-                               tap_weights[:, None], max(sizes) - 1)
-        results.append(values.sum(dim=-1))
+        gathered = gathered.view(*flat.shape[:2], *taps.shape[1:])
+        values = (gathered * tap_weights[:, None]).sum(dim=-1)
+        if not bool(torch.isfinite(values.detach()).all()):  # read, or at a tap of weight 0?
+            values = weighted_taps(gathered, tap_weights[:, None], max(sizes) - 1).sum(dim=-1)
+        results.append(values)
     return torch.cat(results, dim=-1)
 
 
@@ -190,21 +192,30 @@ def weighted_taps(values: Tensor, weights: Tensor, largest_index: int) -> Tensor
     """``values * weights`` (broadcast), with the products of non-finite values at taps whose
     weight is zero to rounding (:data:`UNREAD_WEIGHT`) set to zero: a point on a node or a
     cell's face does not read them, and a NaN or inf a field marks beyond its band would
-    otherwise make its value NaN. The backward is the plain product's: gradients of finite
-    values are unchanged, and the gradient to the weights (the points) at such a tap is NaN,
-    as the value beyond the point it would need is unknown."""
+    otherwise make its value NaN. The samplers take it only where the plain products' sum is
+    not finite (it costs four more passes over the taps). The backward is the plain
+    product's: gradients of finite values are unchanged, and the gradient to the weights (the
+    points) at such a tap is NaN, as the value beyond the point it would need is unknown."""
     unread = UNREAD_WEIGHT * torch.finfo(weights.dtype).eps * max(largest_index, 1)
     return _WeightedTaps.apply(values, weights, unread)
 
 
 class _WeightedTaps(torch.autograd.Function):
-    """:func:`weighted_taps`."""
+    """:func:`weighted_taps`; its derivatives are the plain product's (also under
+    ``torch.func``'s transforms)."""
+
+    generate_vmap_rule = True
 
     @staticmethod
-    def forward(ctx, values: Tensor, weights: Tensor, unread: float) -> Tensor:  # noqa: ANN001
-        ctx.save_for_backward(values, weights)
+    def forward(values: Tensor, weights: Tensor, unread: float) -> Tensor:
         skipped = ~torch.isfinite(values) & (weights.abs() <= unread)
         return torch.where(skipped, values.new_zeros(()), values * weights)
+
+    @staticmethod
+    def setup_context(ctx, inputs: tuple, output: Tensor) -> None:  # noqa: ANN001
+        values, weights, _ = inputs
+        ctx.save_for_backward(values, weights)
+        ctx.save_for_forward(values, weights)
 
     @staticmethod
     def backward(ctx, grad: Tensor) -> tuple[Tensor | None, Tensor | None, None]:  # noqa: ANN001
@@ -214,6 +225,18 @@ class _WeightedTaps(torch.autograd.Function):
         to_weights = (grad * values).sum_to_size(weights.shape) if ctx.needs_input_grad[1] \
             else None
         return to_values, to_weights, None
+
+    @staticmethod
+    def jvp(ctx, values_tangent: Tensor | None, weights_tangent: Tensor | None,  # noqa: ANN001
+            _: object) -> Tensor:
+        values, weights = ctx.saved_tensors
+        tangent = torch.zeros(torch.broadcast_shapes(values.shape, weights.shape),
+                              dtype=values.dtype, device=values.device)
+        if values_tangent is not None:
+            tangent = tangent + values_tangent * weights
+        if weights_tangent is not None:
+            tangent = tangent + values * weights_tangent
+        return tangent
 
 
 def _check_inside(points: Tensor, grid: Grid) -> None:

@@ -408,6 +408,10 @@ def redistance(phi: Tensor, grid: Grid, band_width: float | None = None) -> Tens
     thick had 35% / 14% of its area over half a cell off afterwards (33^3); a ``RuntimeWarning``
     counts the pairs of neighbouring nodes of one sign between which the interpolant crosses
     zero (mid-edge points only: a wire through the centres of cells' faces is lost unwarned).
+    A distance's interpolant does not cross zero across a sheet thinner than a cell (``(6 -
+    8 t) / 16`` cells at mid-edge for a sheet ``t`` cells thick), so such a sheet in a
+    distance (``from_mesh``, unions of ``sdf`` shapes) is lost unwarned: only a smooth ``phi``
+    whose interpolant holds the sheet (a quadric) is warned of.
     ``|grad phi| = 1`` in the band, except at the medial axis. Not differentiable: the result
     is detached from ``phi``'s graph. About four times the cost of the triangles alone (97^3:
     2.9 s against 0.65 s).

@@ -331,9 +331,16 @@ class BrickSurface(ImplicitSurface):
             raise ValueError(_some_points(name, unstored, shown) + " lie next to a brick that "
                              "is not stored (farther from S than the band and its reach)")
         flat = field.transpose(0, 1).reshape(field.shape[1], -1)
+        weights = [torch.where(offset.bool(), fraction, 1 - fraction).prod(dim=1)
+                   for offset, _, _ in corners]
         value = None
-        for offset, _, source in corners:
-            weight = torch.where(offset.bool(), fraction, 1 - fraction).prod(dim=1)
+        for (_, _, source), weight in zip(corners, weights, strict=True):
+            term = flat[:, source] * weight
+            value = term if value is None else value + term
+        if bool(torch.isfinite(value.detach()).all()):
+            return value
+        value = None  # read, or at a tap of weight 0 (sampling.weighted_taps)?
+        for (_, _, source), weight in zip(corners, weights, strict=True):
             term = weighted_taps(flat[:, source], weight, max(self.grids[entry].shape) - 1)
             value = term if value is None else value + term
         return value
