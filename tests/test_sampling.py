@@ -259,3 +259,25 @@ def test_unknown_interpolation_is_refused() -> None:
 def test_a_packed_field_is_pointed_to_its_surface_s_sampler() -> None:
     with pytest.raises(ValueError, match=r"packed field of bricks\? sample it with its BrickSurface"):
         sample(torch.zeros(5, 1, 8, 8, 8), torch.zeros(1, 3), GRID)
+
+
+def test_torch_func_transforms_go_through_the_samplers() -> None:
+    """``torch.func.jvp`` and ``jacrev`` of the cubic sampler worked, then failed through its
+    unread-tap product (an autograd.Function without ``setup_context``; a review's)."""
+    grid = ts.Grid.cube(9, 1.0)
+    field = linear_field(grid, (2.0, 3.0, -1.0, 1.0))
+    marked = field.clone()
+    marked[..., 6:] = math.nan  # beyond x = 0.5
+    point = torch.tensor([[0.25, 0.0, 0.0]], dtype=torch.float64)
+    for volume, finite in ((field, True), (marked, False)):
+        def read(q: torch.Tensor, volume: torch.Tensor = volume) -> torch.Tensor:
+            return sample(volume, q, grid, "cubic")
+
+        assert float(read(point)) == pytest.approx(1.5)
+        _, along_x = torch.func.jvp(read, (point,), (torch.tensor([[1.0, 0.0, 0.0]]).double(),))
+        jacobian = torch.func.jacrev(read)(point).flatten()
+        if finite:
+            assert float(along_x) == pytest.approx(2.0)
+            assert torch.allclose(jacobian, torch.tensor([2.0, 3.0, -1.0]).double())
+        else:  # the derivative needs the marked values: unknown
+            assert not bool(jacobian.isfinite().any())
