@@ -553,7 +553,7 @@ def _formed_rows(surface: ImplicitSurface, scheme: str, storage: _Storage, rows:
     row_parts, column_parts, value_parts = [], [], []
     largest = 0.0
     with torch.no_grad():
-        for start in range(0, len(rows), ROWS_AT_ONCE):
+        for start in range(0, max(len(rows), 1), ROWS_AT_ONCE):  # one (empty) part for none
             part = rows[start: start + ROWS_AT_ONCE]
             coefficients = laplace_beltrami_rows(surface, part, scheme)
             neighbours = storage.neighbourhood(part)
