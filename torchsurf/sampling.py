@@ -230,13 +230,10 @@ class _WeightedTaps(torch.autograd.Function):
     def jvp(ctx, values_tangent: Tensor | None, weights_tangent: Tensor | None,  # noqa: ANN001
             _: object) -> Tensor:
         values, weights = ctx.saved_tensors
-        tangent = torch.zeros(torch.broadcast_shapes(values.shape, weights.shape),
-                              dtype=values.dtype, device=values.device)
-        if values_tangent is not None:
-            tangent = tangent + values_tangent * weights
-        if weights_tangent is not None:
-            tangent = tangent + values * weights_tangent
-        return tangent
+        terms = [tangent * other for tangent, other in ((values_tangent, weights),
+                                                         (weights_tangent, values))
+                 if tangent is not None]
+        return terms[0] if len(terms) == 1 else terms[0] + terms[1]
 
 
 def _check_inside(points: Tensor, grid: Grid) -> None:

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import torch
 from torch import Tensor
@@ -333,17 +333,20 @@ class BrickSurface(ImplicitSurface):
         flat = field.transpose(0, 1).reshape(field.shape[1], -1)
         weights = [torch.where(offset.bool(), fraction, 1 - fraction).prod(dim=1)
                    for offset, _, _ in corners]
-        value = None
-        for (_, _, source), weight in zip(corners, weights, strict=True):
-            term = flat[:, source] * weight
-            value = term if value is None else value + term
+
+        def summed(product: Callable[[Tensor, Tensor], Tensor]) -> Tensor:
+            value = None
+            for (_, _, source), weight in zip(corners, weights, strict=True):
+                term = product(flat[:, source], weight)
+                value = term if value is None else value + term
+            return value
+
+        value = summed(torch.mul)
         if bool(torch.isfinite(value.detach()).all()):
             return value
-        value = None  # read, or at a tap of weight 0 (sampling.weighted_taps)?
-        for (_, _, source), weight in zip(corners, weights, strict=True):
-            term = weighted_taps(flat[:, source], weight, max(self.grids[entry].shape) - 1)
-            value = term if value is None else value + term
-        return value
+        # read, or at a tap of weight 0 (sampling.weighted_taps)?
+        largest = max(self.grids[entry].shape) - 1
+        return summed(lambda values, weight: weighted_taps(values, weight, largest))
 
     def samplable(self, points: Tensor, entry: int = 0) -> Tensor:
         """``(V,)`` bool: ``points`` ``(V, 3)`` (world ``(x, y, z)``) that :meth:`sample` can

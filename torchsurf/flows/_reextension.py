@@ -22,7 +22,7 @@ from torch import Tensor
 from .. import backend
 from ..surface import ImplicitSurface
 from . import _closest, _limiter
-from .extension import BrickCubicStencil, CubicStencil, _corner_base, cubic_stencil
+from .extension import BrickCubicStencil, CubicStencil, _corner_base, cubic_stencil, stencil_key
 
 MIN_BAND_CELLS = 2.9
 """Narrowest band (in cells) that re-extension allows: the 4^3 nodes a tricubic stencil reads
@@ -42,11 +42,6 @@ def check_reextension_width(width: float, spacing: float, alternative: str = "")
         )
 
 Stencil = CubicStencil | BrickCubicStencil
-
-
-def stencil_key(width: float | None, kind: str, limited: bool) -> tuple:
-    """The key under which :func:`kept_stencil` keeps a stencil on its surface."""
-    return ("closest-point stencil", width, kind, bool(limited))
 
 
 def kept_stencil(surface: ImplicitSurface, width: float | None, kind: str, mask: Tensor,

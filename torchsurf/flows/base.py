@@ -96,9 +96,9 @@ from ._reextension import (
     check_reextension_width,
     kept_stencil,
     reextend,
-    stencil_key,
 )
 from ._solve import SolverOptions
+from .extension import stencil_key
 
 RANGE_SLACK = 0.25
 """How far, as a fraction of ``u0``'s range over the band and its ring, the result of a flow
