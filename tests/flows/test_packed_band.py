@@ -12,6 +12,7 @@ from torchsurf.flows._gather_matrix import GatherMatrix
 from torchsurf.flows.exponential import BandLaplacian, heat_semigroup
 from torchsurf.operators import functional, laplace_beltrami_bound
 
+from ._probed_reference import REACH, probed_by_colours
 from .test_stability import MESH_DIR
 
 
@@ -19,7 +20,7 @@ def _surface(kind: str) -> ts.ImplicitSurface:
     """Float64 surfaces with what the packed operator must get right: a batch of two shapes,
     a band reaching the box's faces (the probes' crop), ``phi`` not a distance (orphan ring
     nodes), a mesh's ``from_mesh`` phi (ring nodes chained through the ring), two shapes
-    stored as bricks."""
+    stored as bricks, a wavy quadric (not a distance) stored as bricks."""
     if kind == "two shapes":
         grid = ts.Grid.cube(23, 1.5)
         phi = torch.cat([ts.sdf.torus(grid, dtype=torch.float64),
@@ -32,6 +33,12 @@ def _surface(kind: str) -> ts.ImplicitSurface:
         phi = torch.cat([ts.sdf.torus(grid, dtype=torch.float64),
                          ts.sdf.sphere(grid, 0.9, dtype=torch.float64)])
         return ts.bricks.from_dense(phi, grid)
+    elif kind == "bricks quadric":
+        grid = ts.Grid.cube(30, 1.9)
+        x, y, z = grid.points(dtype=torch.float64).unbind(-1)
+        quadric = (x / 1.05) ** 2 + (y / 1.2) ** 2 + (z / 0.9) ** 2 - 1.0
+        return ts.bricks.from_dense((quadric * (1.0 + 0.3 * torch.sin(3.0 * x)))[None, None],
+                                    grid)
     elif kind == "tanh":
         grid = ts.Grid.cube(25, 2.4)
         phi = torch.tanh(ts.sdf.sphere(grid, 0.8, dtype=torch.float64) / grid.spacing)
@@ -105,7 +112,7 @@ def test_reach_holds_each_schemes_coefficients(scheme):
     ``A`` of single nodes on a torus (curved both ways) stays within it."""
     grid = ts.Grid.cube(21, 1.5)
     surface = ts.ImplicitSurface(ts.sdf.torus(grid, dtype=torch.float64), grid)
-    reach = _packed_band.REACH[scheme]
+    reach = REACH[scheme]
     for node in [(10, 10, 3), (10, 4, 10), (7, 8, 9), (10, 13, 3), (4, 6, 12)]:
         u = torch.zeros((1, 1, *grid.shape), dtype=torch.float64)
         u[(0, 0, *node)] = 1.0
@@ -155,10 +162,12 @@ def _odd_box_surface() -> ts.ImplicitSurface:
 
 
 @pytest.mark.parametrize("scheme", ["octant", "symmetric", "conservative"])
-@pytest.mark.parametrize("kind", ["two shapes", "at the faces", "tanh", "bunny", "odd box"])
-def test_dense_rows_equal_the_probes(kind, scheme):
-    """A dense surface's ``W^-1 A`` formed in closed form at the band's rows equals, entry by
-    entry, the one read off the volume operator by colour probes."""
+@pytest.mark.parametrize("kind", ["two shapes", "at the faces", "tanh", "bunny", "odd box",
+                                  "bricks", "bricks quadric"])
+def test_formed_rows_equal_the_probes(kind, scheme):
+    """``W^-1 A`` formed in closed form at the band's rows (a dense surface's geometry, or each
+    brick's haloed) equals, entry by entry, the one read off the volume operator by colour
+    probes; its bound is the float a fresh surface's ``laplace_beltrami_bound`` gives."""
     surface = _odd_box_surface() if kind == "odd box" else _surface(kind)
     operator = BandLaplacian(surface, scheme, path="slicing")
     packed = operator.packed().packing
@@ -166,10 +175,11 @@ def test_dense_rows_equal_the_probes(kind, scheme):
     count = len(packed.nodes)
     formed, bound = _packed_band._formed_rows(surface, scheme, storage, rows, packed.lookup,
                                               count, packed.band_count)
-    fresh = ts.ImplicitSurface(surface.phi.clone(), surface.grid)
+    fresh = (ts.ImplicitSurface(surface.phi.clone(), surface.grid) if surface.layout is None
+             else ts.bricks.BrickSurface(surface.phi.clone(), surface.layout))
     assert bound == laplace_beltrami_bound(fresh, scheme, operator.width)  # the same float
-    probed = _packed_band._probed_by_colours(surface, scheme, operator.region, storage, rows,
-                                             packed.lookup, count)
+    probed = probed_by_colours(surface, scheme, operator.region, storage, rows, packed.lookup,
+                               count)
     mine, reference = _sparse(formed), _sparse(probed)
     assert reference.values().abs().min() > 0 and len(reference.values()) > 19 * len(rows) // 2
     scale = float(reference.values().abs().max())

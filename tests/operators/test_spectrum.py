@@ -182,8 +182,60 @@ def test_dense_bound_from_rows_equals_the_probes(scheme):
         assert laplace_beltrami_bound(surface, scheme) == pytest.approx(probed, rel=1e-12)
 
 
+def _wavy_bricks(dtype: torch.dtype) -> ts.ImplicitSurface:
+    """Bricks of a batch of two: a torus and a wavy quadric (not a distance)."""
+    from torchsurf import bricks
+
+    grid = ts.Grid.cube(30, 1.9)
+    x, y, z = grid.points(dtype=dtype).unbind(-1)
+    quadric = (x / 1.05) ** 2 + (y / 1.2) ** 2 + (z / 0.9) ** 2 - 1.0
+    phi = torch.cat([ts.sdf.torus(grid, 0.8, 0.3, dtype=dtype),
+                     (quadric * (1.0 + 0.3 * torch.sin(3.0 * x)))[None, None]])
+    return bricks.from_dense(phi, grid)
+
+
+@pytest.mark.parametrize("scheme", ["octant", "symmetric", "conservative"])
+def test_brick_rows_are_the_brick_operators_matrix(scheme):
+    """On bricks each row, formed on its brick's haloed geometry, holds the brick operator's
+    coefficients: applied to a field, the rows give the operator's values at the band's nodes
+    (whose neighbours are all stored)."""
+    surface = _wavy_bricks(torch.float64)
+    layout = surface.layout
+    u = layout.rand(1, generator=torch.Generator().manual_seed(5), dtype=torch.float64)
+    nodes = surface.band_mask().reshape(-1).nonzero().squeeze(1)
+    rows = laplace_beltrami_rows(surface, nodes, scheme)
+    haloed = layout.halo(u, 1, "slicing").reshape(len(layout), -1)
+    side = 10
+    local = nodes % 512
+    at = (local // 64 + 1, (local // 8) % 8 + 1, local % 8 + 1)
+    values = torch.zeros(len(nodes), dtype=torch.float64)
+    for k, (dz, dy, dx) in enumerate(NEIGHBOURHOOD):
+        flat = ((at[0] + dz) * side + at[1] + dy) * side + at[2] + dx
+        values += rows[:, k] * haloed[nodes // 512, flat]
+    expected = ts.laplace_beltrami(u, surface, scheme, "slicing").reshape(-1)[nodes]
+    assert float((values - expected).abs().max()) < 1e-12 * float(expected.abs().max())
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("scheme", ["octant", "symmetric", "conservative"])
+def test_brick_bound_from_rows_equals_the_probes(scheme, dtype):
+    """The bricks' bound, from rows formed in closed form, is the colour probes' bound of the
+    brick operator (restricted to the band) to rounding."""
+    surface = _wavy_bricks(dtype)
+    mask = surface.band_mask()
+
+    def operator(x):
+        inside = torch.where(mask, x, 0.0)
+        return torch.where(mask, ts.laplace_beltrami(inside, surface, scheme, "slicing"), 0.0)
+
+    probed = gershgorin_bound(operator, mask, dtype, chunk=1,
+                              colour=surface.layout.colours())
+    tolerance = 1e-12 if dtype == torch.float64 else 1e-6
+    assert laplace_beltrami_bound(surface, scheme) == pytest.approx(probed, rel=tolerance)
+
+
 def test_rows_refuse_what_they_cannot_form():
-    """Bricks, a scheme without a divergence form and positions outside the volumes are
+    """A scheme without a divergence form and positions outside the volumes or bricks are
     named in the errors."""
     from torchsurf import bricks
 
@@ -198,8 +250,9 @@ def test_rows_refuse_what_they_cannot_form():
         laplace_beltrami_rows(surface, torch.tensor([[1, 2]]))
     grid = ts.Grid.cube(24, 2.0)
     packed = bricks.from_dense(ts.ImplicitSurface(ts.sdf.sphere(grid), grid))
-    with pytest.raises(ValueError, match="bricks"):
-        laplace_beltrami_rows(packed, torch.tensor([0]))
+    size = len(packed.layout) * 512
+    with pytest.raises(ValueError, match=rf"nodes must lie in \[0, {size}\).*bricks of 8\^3"):
+        laplace_beltrami_rows(packed, torch.tensor([size]))
     assert laplace_beltrami_rows(surface, torch.zeros(0, dtype=torch.int64)).shape == (0, 27)
 
 

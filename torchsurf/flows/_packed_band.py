@@ -8,13 +8,11 @@ fixed sparse matrices, assembled here once per surface as
 :class:`~torchsurf.flows._gather_matrix.GatherMatrix` es on the band and ring's nodes and applied
 to packed values ``(nodes, C, K)``:
 
-- :class:`PackedRegion`: the packing, and ``W^-1 A`` on the band's rows, read off the volume
-  operator itself: the operator applied to indicator volumes of the region's nodes of each of
-  ``(2 r + 1)^3`` colours (``r`` the scheme's reach), no two nodes of a colour within ``2 r``
-  of each other, gives each band node's coefficient for each of its neighbours (the heat flow's
-  rate, :meth:`torchsurf.flows.HeatFlow.packed_system`); a dense surface's rows are
-  formed at the band's nodes in closed form instead
-  (:func:`torchsurf.operators.spectrum.laplace_beltrami_rows`);
+- :class:`PackedRegion`: the packing, and ``W^-1 A`` on the band's rows, formed at the band's
+  nodes in closed form (:func:`torchsurf.operators.spectrum.laplace_beltrami_rows`; on bricks
+  from each brick's haloed geometry), with its Gershgorin bound (the heat flow's rate,
+  :meth:`torchsurf.flows.HeatFlow.packed_system`); tested entry by entry against the volume
+  operator applied to colour indicators (tests/flows/_probed_reference.py);
 - :class:`PackedStencil`: a limited closest-point stencil (the flows' re-extensions), from the
   stencil's own tap positions and weights;
 - :class:`PackedBand`: adds ``E``, the ring's first pass (the tricubic closest-point weights of
@@ -36,7 +34,6 @@ from torch import Tensor
 
 from .._inference import outside_inference
 from ..bricks.layout import BRICK
-from ..operators import functional
 from ..operators.spectrum import ROWS_AT_ONCE, gershgorin_sums, laplace_beltrami_rows
 from ..stencils import NEIGHBOURHOOD, BoxNeighbours
 from ..surface import ImplicitSurface
@@ -66,22 +63,10 @@ class RingFill(Protocol):
     orphans: Tensor | None
     neighbours: Tensor | None
 
-REACH = {"octant": 1, "symmetric": 1, "conservative": 1}
-"""How many nodes along each axis a scheme's weighted operator ``A`` couples on each side: 19
-(octant) and 13 (flux forms) of the 27 nodes of a 3x3x3 block (the flux forms' kernels pad by
-two nodes, but ``A``'s coefficients reach one; tests/flows/test_packed_band.py measures it)."""
 
 GATHER_ROWS = 2**14
 """Rows whose 64 taps the limiter's fallback (no C kernel) gathers at once: 64 values a row and
 column."""
-
-PROBES_AT_ONCE = 27
-"""Most colour indicators run through the volume operator in one call."""
-
-PROBE_VALUES = 2**22
-"""Most values of the indicators run at once (16 MB in float32, and as much for each of the
-operator's temporaries: with glibc's default allocator, larger blocks are returned to the system
-when freed and faulted in again, 4.2 against 3.1 s for four 64^3 entries)."""
 
 
 class PackedRegion:
@@ -113,8 +98,9 @@ class PackedRegion:
         index = torch.int32 if count < 2**31 else torch.long
         self.lookup = torch.full((band.numel(),), -1, dtype=index, device=band.device)
         self.lookup[self.nodes] = torch.arange(count, dtype=index, device=band.device)
-        self.weighted, self.band_bound = _probed(surface, scheme, region, self.storage,
-                                                 band_nodes, self.lookup, count)
+        self.weighted, self.band_bound = _formed_rows(surface, scheme, self.storage,
+                                                      band_nodes, self.lookup, count,
+                                                      self.band_count)
         self._band_mask: Tensor | None = None
         self._stencils: dict[int, tuple[Stencil, PackedStencil]] = {}
         self.shapes = self.entries if surface.layout is None else len(surface.layout.grids)
@@ -489,67 +475,15 @@ class _Storage:
         return torch.where(inside & (brick >= 0), brick * BRICK_NODES + local, -1)
 
 
-def _probe_reader(surface: ImplicitSurface, scheme: str, region: Tensor, storage: _Storage,
-                  rows: Tensor):  # noqa: ANN202
-    """``(colours) -> read``: the weighted operator applied to the indicators of the region's
-    nodes of each of ``colours``, and ``read(take, which)`` its values at ``rows[take]`` for
-    colour ``which``. A dense surface is probed on the box around its region, with a margin of
-    more than the stencil's reach (its rows see the geometry and box faces the whole volume
-    does): no longer on a flow's path (:func:`_formed_rows`), kept as the reference its rows
-    are tested against; bricks are probed whole."""
-    reach = REACH[scheme]
-    side = 2 * reach + 1
-    if storage.layout is not None:
-        if side != 3:
-            raise NotImplementedError(f"bricks are probed with 3 colours a axis, not {side}")
-        colour = storage.layout.colours().long()
-        brick, node = rows // BRICK_NODES, rows % BRICK_NODES
-        haloed, pad = surface.haloed(), storage.layout.halo
-
-        def bricks(colours: Tensor):  # noqa: ANN202
-            probes = (region & (colour == colours.view(1, -1, 1, 1, 1))).to(surface.phi.dtype)
-            # once per surface, never compiled: the octant's "auto" on bricks is the C kernel
-            response = functional.divergence_form(
-                probes, surface.normal, surface.weight, surface.spacing, scheme,
-                "auto" if scheme == "octant" else "slicing", weighted=True, haloed=haloed,
-                pad=pad)
-            response = response.reshape(len(probes), len(colours), -1)
-            return lambda take, which: response[brick[take], which, node[take]]
-
-        return bricks, len(region) * BRICK_NODES
-    shape = storage.volume_shape
-    occupied = [region[:, 0].any(dim=tuple(d for d in range(4) if d != axis)).nonzero()
-                .squeeze(1) for axis in (1, 2, 3)]
-    crop = [slice(max(0, int(o[0]) - reach - 2), min(n, int(o[-1]) + reach + 3))
-            for o, n in zip(occupied, shape, strict=True)]
-    cropped = tuple(c.stop - c.start for c in crop)
-    normal, weight = (field[(..., *crop)] for field in (surface.normal, surface.weight))
-    grids = torch.meshgrid(*(torch.arange(c.start, c.stop, device=rows.device) % side
-                             for c in crop), indexing="ij")
-    colour = (grids[0] * side + grids[1]) * side + grids[2]
-    inside = region[(slice(None), slice(None), *crop)]
-    entry, z, y, x = storage.coordinates(rows)
-    node = (((z - crop[0].start) * cropped[1] + y - crop[1].start) * cropped[2]
-            + x - crop[2].start)
-
-    def dense(colours: Tensor):  # noqa: ANN202
-        probes = (inside & (colour == colours.view(1, -1, 1, 1, 1))).to(surface.phi.dtype)
-        response = functional.divergence_form(
-            probes, normal, weight, surface.spacing, scheme, "slicing", weighted=True,
-        ).reshape(len(probes), len(colours), -1)
-        return lambda take, which: response[entry[take], which, node[take]]
-
-    return dense, len(region) * math.prod(cropped)
-
-
 def _formed_rows(surface: ImplicitSurface, scheme: str, storage: _Storage, rows: Tensor,
                  lookup: Tensor, count: int, band_count: int) -> tuple[GatherMatrix, float]:
-    """A dense surface's ``W^-1 A`` on the band's rows, formed at the rows in closed form
-    (:func:`torchsurf.operators.spectrum.laplace_beltrami_rows`) instead of probed over the
-    volume (at 200^3, the octant scheme's 27 eager volume passes took 12 of a flow's first
-    24 s), and its Gershgorin bound on the band (its first ``band_count`` columns), the same
-    float :func:`~torchsurf.operators.spectrum.laplace_beltrami_bound` gives. The entries come
-    row after row, so the matrix takes them without sorting."""
+    """``W^-1 A`` on the band's rows, formed at the rows in closed form
+    (:func:`torchsurf.operators.spectrum.laplace_beltrami_rows`, dense or bricks) instead of
+    probed over the volume (at 200^3, the octant scheme's 27 eager volume passes took 12 of a
+    flow's first 24 s; on a 64^3 bunny's bricks the probes took 0.3 of 0.7 s of setup), and its
+    Gershgorin bound on the band (its first ``band_count`` columns), the same float
+    :func:`~torchsurf.operators.spectrum.laplace_beltrami_bound` gives. The entries come row
+    after row, so the matrix takes them without sorting."""
     row_parts, column_parts, value_parts = [], [], []
     largest = 0.0
     with torch.no_grad():
@@ -569,48 +503,6 @@ def _formed_rows(surface: ImplicitSurface, scheme: str, storage: _Storage, rows:
     matrix = GatherMatrix(torch.cat(row_parts), torch.cat(column_parts), torch.cat(value_parts),
                           (len(rows), count))
     return matrix, largest
-
-
-def _probed(surface: ImplicitSurface, scheme: str, region: Tensor, storage: _Storage,
-            rows: Tensor, lookup: Tensor, count: int) -> tuple[GatherMatrix, float | None]:
-    """``W^-1 A`` on the band's rows (positions ``rows``) and the region's columns, read off
-    the volume operator applied to colour indicators of the region's nodes (module
-    docstring); a dense surface's in closed form (:func:`_formed_rows`), with its Gershgorin
-    bound on the band (``None`` on bricks)."""
-    if storage.layout is None:
-        return _formed_rows(surface, scheme, storage, rows, lookup, count, len(rows))
-    return _probed_by_colours(surface, scheme, region, storage, rows, lookup, count), None
-
-
-def _probed_by_colours(surface: ImplicitSurface, scheme: str, region: Tensor,
-                       storage: _Storage, rows: Tensor, lookup: Tensor, count: int
-                       ) -> GatherMatrix:
-    """:func:`_probed` read off the volume operator applied to colour indicators."""
-    reach = REACH[scheme]
-    side = 2 * reach + 1
-    probe, cells = _probe_reader(surface, scheme, region, storage, rows)
-    weight = surface.weight
-    inverse_weight = 1.0 / weight.expand(len(region), *weight.shape[1:]).reshape(-1)[rows]
-    _, z, y, x = storage.coordinates(rows)
-    at_once = max(1, min(PROBES_AT_ONCE, PROBE_VALUES // cells))
-    offsets = [(dz, dy, dx) for dz in range(-reach, reach + 1) for dy in range(-reach, reach + 1)
-               for dx in range(-reach, reach + 1)]
-    neighbours = [storage.neighbour(rows, offset) for offset in offsets]
-    columns = [torch.where(q >= 0, lookup[q.clamp(min=0)], -1) for q in neighbours]
-    colours = [(((z + dz) % side) * side + (y + dy) % side) * side + (x + dx) % side
-               for dz, dy, dx in offsets]
-    entries: list[tuple[Tensor, Tensor, Tensor]] = []
-    with torch.no_grad():
-        for first in range(0, side**3, at_once):
-            chunk = torch.arange(first, min(first + at_once, side**3), device=rows.device)
-            read = probe(chunk)
-            for column, colour in zip(columns, colours, strict=True):
-                which = colour - first
-                take = ((column >= 0) & (which >= 0) & (which < len(chunk))).nonzero().squeeze(1)
-                entries.append((take, column[take],
-                                read(take, which[take]) * inverse_weight[take]))
-    return GatherMatrix(*(torch.cat(part) for part in zip(*entries, strict=True)),
-                        (len(rows), count))
 
 
 def _stencil_entries(stencil: Stencil, storage: _Storage, lookup: Tensor

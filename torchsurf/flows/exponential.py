@@ -331,13 +331,13 @@ def kept_packing(surface: ImplicitSurface, scheme: str, width: float, band: Tens
     """The band of half-width ``width`` and its ring packed, with ``W^-1 A`` of ``scheme``
     (:class:`~torchsurf.flows._packed_band.PackedRegion`), assembled once and kept on the
     surface (shared by the heat semigroup and the heat flow), or ``None`` when it would not fit
-    (:func:`fits_packed`). On a dense surface the rows it forms give the band's Gershgorin
-    bound too, which it keeps for :func:`~torchsurf.operators.laplace_beltrami_bound`: asked
-    for first, the packing spares the bound its own pass over the rows."""
+    (:func:`fits_packed`). The rows it forms give the band's Gershgorin bound too, which it
+    keeps for :func:`~torchsurf.operators.laplace_beltrami_bound`: asked for first, the packing
+    spares the bound its own pass over the rows."""
     packing = surface.kept(
         ("packed region", scheme, width),
         lambda: PackedRegion(surface, scheme, band, region) if fits_packed(region) else None)
-    if packing is not None and packing.band_bound is not None:
+    if packing is not None:
         keep_laplace_beltrami_bound(surface, scheme, width, packing.band_bound)
     return packing
 
