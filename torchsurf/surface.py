@@ -40,6 +40,7 @@ __all__ = [
     "ImplicitSurface",
     "MAX_EPS",
     "MINIMUM_WEIGHT",
+    "OBLIQUE_NORMAL",
     "SATURATION_RATIO",
     "TANGENT_FLOOR",
     "WEIGHT_FLOOR",
@@ -343,22 +344,30 @@ FACE_LAYERS = 2
 cells of a face) where its level sets leave the box obliquely is warned about
 (:func:`_warn_oblique_at_faces`)."""
 
+OBLIQUE_NORMAL = math.sin(math.radians(3.0))
+"""A normal whose component across a face exceeds this (more than 3 degrees out of the face's
+plane) leaves it obliquely (:func:`_warn_oblique_at_faces`). The bound was 30 degrees: a sphere
+cut by a face at 5, 11 and 20 degrees went unwarned while its Laplace–Beltrami of degree-2
+harmonic data was 2.3 to 4.9 times its largest value off at the two outer layers (33^3-65^3),
+as wrong as at the angles warned about (an audit, 2026-12-07)."""
+
 
 def _warn_oblique_at_faces(crossing: Tensor, normal: Tensor) -> None:
     """Warn where S crosses the outer :data:`FACE_LAYERS` layers of nodes of a face (nodes of
     ``crossing`` ``(B, 1, D, H, W)``, a neighbour across S) with a normal ``(B, 3, D, H, W)``
-    more than 30 degrees out of the face's plane.
+    more than 3 degrees out of the face's plane (:data:`OBLIQUE_NORMAL`).
 
-    The stencils see no flux through the faces, which holds for level sets that meet them at
-    right angles (a cylinder along an axis) and not for those of a surface that turns back near
-    a face: the octant Laplace–Beltrami of a degree-2 harmonic on a unit sphere one cell from
-    the faces was 44% and 94% wrong over the 3-cell band at 25^3 and 49^3 (21% and 48% at two
-    cells, 1.4% and 0.2% at three; remeasured 2026-12-06, relative max). Read from
-    the zero set, not from ``|phi| / W``, which is no distance where ``phi`` is none."""
+    The stencils see no flux through the faces, which can hold for level sets that meet them at
+    right angles (a cylinder along an axis, with data symmetric about the face: README.md) and
+    not for those of a surface that turns back near a face or leaves it at any other angle:
+    the octant Laplace–Beltrami of a degree-2 harmonic on a unit sphere one cell from the faces
+    was 44% and 94% wrong over the 3-cell band at 25^3 and 49^3 (21% and 48% at two cells,
+    1.4% and 0.2% at three; remeasured 2026-12-06, relative max). Read from the zero set, not
+    from ``|phi| / W``, which is no distance where ``phi`` is none."""
     hits = torch.zeros(crossing.shape[0], dtype=torch.long, device=crossing.device)
     for axis in range(3):
         dim = 4 - axis  # normal channel x, y, z <-> dims W, H, D
-        oblique = crossing & (normal[:, axis: axis + 1].abs() > 0.5)
+        oblique = crossing & (normal[:, axis: axis + 1].abs() > OBLIQUE_NORMAL)
         layers = min(FACE_LAYERS, oblique.shape[dim])
         hits += oblique.narrow(dim, 0, layers).flatten(1).sum(dim=1)
         hits += oblique.narrow(dim, oblique.shape[dim] - layers, layers).flatten(1).sum(dim=1)
