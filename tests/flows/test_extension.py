@@ -193,6 +193,40 @@ def test_anchored_form_agrees_with_the_kept_sources(limited):
     torch.testing.assert_close(_anchored_terms(*arguments), kept, rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_limited_stencil_by_the_c_kernel_agrees_with_the_gathers(dtype):
+    """A limited dense stencil on the ``"auto"`` path runs the packed band's C kernel a channel
+    at a time: the same values as the eager gathers to rounding, on a batch of two surfaces
+    (one cut by the box's faces: clamped taps, no anchors), data with jumps, in place too."""
+    from torchsurf.flows import _native_gather
+    from torchsurf.flows.extension import CubicStencil
+
+    if _native_gather.LIBRARY.load() is None:
+        pytest.skip("no C compiler: the kernel does not run")
+    grid = ts.Grid.cube(26, 1.5)
+    phi = torch.cat([ts.sdf.torus(grid, 0.8, 0.3, dtype=dtype),
+                     ts.sdf.sphere(grid, 1.4, dtype=dtype)])
+    with pytest.warns(RuntimeWarning, match="faces"):
+        surface = ts.ImplicitSurface(phi, grid)
+    stencil = CubicStencil(surface, surface.band_mask(), limited=True)
+    generator = torch.Generator().manual_seed(4)
+    u = (torch.rand((2, 3, *grid.shape), dtype=dtype, generator=generator) > 0.5).to(dtype)
+    u = u + 0.1 * torch.randn(u.shape, dtype=dtype, generator=generator)
+    native = stencil.apply(u, "auto")
+    assert sorted(stencil._separable) == [0, 1]  # the kernel ran for both entries
+    eager = stencil.apply(u, "slicing")
+    tolerance = 1e-12 if dtype == torch.float64 else 2e-6
+    torch.testing.assert_close(native, eager, rtol=0, atol=tolerance)
+    assert not torch.equal(native, u)
+    written = u.clone()
+    assert stencil.apply(written, "auto", in_place=True) is written
+    assert torch.equal(written, native)
+    # recording a gradient takes the differentiable gathers
+    grad_u = u.clone().requires_grad_()
+    torch.testing.assert_close(stencil.apply(grad_u, "auto").detach(), eager, rtol=0,
+                               atol=tolerance)
+
+
 def test_limited_closest_point_stencil_is_the_same_in_a_scaled_and_moved_frame():
     """Closest points on faces aligned with the grid lie on node planes: the limiter's cell
     must not depend on how rounding falls in the frame the shape is given in."""

@@ -1182,15 +1182,32 @@ class SeparableStencil:
         return [self.corners[chosen].to(dtype).contiguous(), self.rows[chosen].contiguous()]
 
 
-def _limited_separable(z: Tensor, stencil: SeparableStencil) -> Tensor | None:
+def limited_rows(z: Tensor, stencil: SeparableStencil) -> Tensor | None:
+    """The values ``(R, F)`` of a :class:`SeparableStencil` whose rows are ``0 .. R - 1`` (not
+    rows of ``z`` ``(M, F)``, which its taps read): the limited tricubic values alone, with no
+    copy of ``z``. ``None`` where the kernel does not run: not the CPU, float32 or float64, a
+    gradient to record, while ``torch.compile`` traces, columns it does not take
+    (:meth:`SeparableStencil.parts`), or no compiler."""
+    if (z.device.type != "cpu" or z.dtype not in _SUFFIX or torch.compiler.is_compiling()
+            or (torch.is_grad_enabled() and z.requires_grad) or LIBRARY.load() is None):
+        return None
+    return _limited_separable(z.contiguous(), stencil, len(stencil.rows))
+
+
+def _limited_separable(z: Tensor, stencil: SeparableStencil, out_rows: int | None = None
+                       ) -> Tensor | None:
     """:func:`limited` by ``stencil``'s layout in one pass, or ``None`` where it does not take
-    ``z``'s columns (:meth:`SeparableStencil.parts`); no autograd."""
+    ``z``'s columns (:meth:`SeparableStencil.parts`); no autograd. With ``out_rows``, the
+    stencil's rows index a new ``(out_rows, F)`` tensor that it fills (:func:`limited_rows`)."""
     features = z.shape[1]
     parts = stencil.parts(features, z.dtype)
     if parts is None:
         return None
-    out = (torch.empty(z.shape, dtype=z.dtype) if len(stencil.rows) == len(z)  # rows distinct
-           else z.clone(memory_format=torch.contiguous_format))
+    if out_rows is not None:
+        out = torch.empty((out_rows, features), dtype=z.dtype)
+    else:
+        out = (torch.empty(z.shape, dtype=z.dtype) if len(stencil.rows) == len(z)  # distinct
+               else z.clone(memory_format=torch.contiguous_format))
     library = LIBRARY.load()
     for name, tensors, count in parts:
         kernel = getattr(library, f"{name}_{_SUFFIX[z.dtype]}")
