@@ -601,3 +601,21 @@ def test_a_forked_child_compiles_a_new_shape_instead_of_waiting_forever():
     with multiprocessing.get_context("fork").Pool(1) as pool:
         value = pool.apply_async(_compiled_in_a_child, (7,)).get(timeout=60)
     assert value == pytest.approx(3 * 7 * (scale * math.sin(1.0) + math.cos(1.0)), rel=1e-5)
+
+
+def test_the_ledger_of_variants_keeps_the_newest(monkeypatch):
+    """A diffusivity made anew for each call is a variant of its own: the ledger keeps at
+    most ``TIMED_VARIANTS`` of them (it grew by one a call, each call slower than the last)."""
+    monkeypatch.setattr(backend, "COMPILE", "never")
+    monkeypatch.setattr(backend, "TIMED_VARIANTS", 8)
+    monkeypatch.setattr(backend, "_TIMINGS", {})
+    grid = ts.Grid.cube(9, 1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid), grid)
+    u = torch.rand(1, 1, *grid.shape, generator=torch.Generator().manual_seed(0))
+    gs = [lambda magnitude, contrast, k=k: 1.0 / (1.0 + k + magnitude) for k in range(20)]
+    for g in gs:
+        ts.anisotropic_diffusion(u, surface, g, 0.7, path="auto")
+    assert len(backend._TIMINGS) == 8
+    newest = list(backend._TIMINGS)[-1]
+    ts.anisotropic_diffusion(u, surface, gs[-1], 0.7, path="auto")  # known: nothing dropped
+    assert list(backend._TIMINGS)[-1] == newest and len(backend._TIMINGS) == 8

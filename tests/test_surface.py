@@ -1062,3 +1062,53 @@ def test_a_sphere_around_one_node_is_not_called_saturated(radius):
     messages = [str(warning.message) for warning in caught]
     assert any("falls to" in message for message in messages)
     assert not any("grows over the cell" in message for message in messages), messages
+
+
+@pytest.mark.parametrize("layout", ["dense", "bricks"])
+def test_a_kept_mask_edited_in_place_is_formed_again(layout):
+    """``Flow.band_mask`` and ``region_mask`` return what the surface keeps: a caller that
+    narrows one in place must not change later flows (an anisotropic flow moved by 0.25, a
+    heat flow on bricks by 0.54)."""
+    grid = Grid.cube(28, 2.0)
+    dense = ImplicitSurface(sdf.torus(grid, 0.8, 0.35, dtype=torch.float64), grid)
+    surface = dense if layout == "dense" else ts.bricks.from_dense(dense)
+    generator = torch.Generator().manual_seed(2)
+    u = (torch.rand((1, 1, *grid.shape), dtype=torch.float64, generator=generator)
+         if layout == "dense" else
+         surface.layout.rand(1, generator=generator, dtype=torch.float64))
+    flows = [ts.AnisotropicFlow(2e-3, diffusivity="perona_malik"), ts.HeatFlow(2e-3)]
+    before = [flow(u, surface) for flow in flows]
+    for flow in flows:
+        band = flow.band_mask(surface)
+        band &= torch.rand(band.shape, generator=generator) < 0.5
+        flow.region_mask(surface).zero_()
+    for flow, expected in zip(flows, before, strict=True):
+        assert torch.equal(flow(u, surface), expected)
+        assert torch.equal(type(flow)(flow.time).band_mask(surface),
+                           surface.band_mask(flow.evolving_width(surface)))
+
+
+def test_methods_that_read_kept_geometry_refuse_a_phi_changed_in_place():
+    """``haloed`` and ``evolving_widths`` returned the former surface's values after
+    ``phi.copy_`` (normals up to 2.0 off), where the docstring promises a ``RuntimeError``."""
+    grid = Grid.cube(17, BOUND)
+    phi = sdf.sphere(grid, 1.0, dtype=torch.float64)
+    surface = ImplicitSurface(phi, grid)
+    surface.haloed(), surface.evolving_widths()
+    phi.copy_(sdf.torus(grid, 0.8, 0.3, dtype=torch.float64))
+    for read in (surface.haloed, surface.evolving_widths):
+        with pytest.raises(RuntimeError, match="modified in place"):
+            read()
+
+
+def test_clear_kept_drops_what_flows_kept_and_they_form_it_again():
+    grid = Grid.cube(20, BOUND)
+    surface = ImplicitSurface(sdf.sphere(grid, 1.0, dtype=torch.float64), grid)
+    u = torch.rand((1, 1, *grid.shape), dtype=torch.float64,
+                   generator=torch.Generator().manual_seed(1))
+    flow = ts.HeatFlow(1e-2)
+    first = flow(u, surface)
+    assert surface.is_kept(("flow band", flow.evolving_width(surface)))
+    surface.clear_kept()
+    assert not surface.is_kept(("flow band", flow.evolving_width(surface)))
+    assert torch.equal(flow(u, surface), first)

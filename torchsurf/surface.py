@@ -567,7 +567,7 @@ class ImplicitSurface(nn.Module):
         self.register_buffer("_mean_curvature", None, persistent=False)
         self.register_buffer("_haloed_normal", None, persistent=False)
         self.register_buffer("_haloed_weight", None, persistent=False)
-        self._kept: dict[tuple, object] = {}
+        self._kept: dict[tuple, tuple[object, int | None]] = {}
 
     @property
     def band_width(self) -> float:
@@ -730,14 +730,36 @@ class ImplicitSurface(nn.Module):
         guard on the position of the surface among a table's weak keys, which moves when
         another surface is collected (the guard then fails to build).
         """
-        if key not in self._kept:
+        compiling = torch.compiler.is_compiling()
+        if not compiling:
+            self._current_phi()  # what was kept belongs to phi as the surface was built
+        held = self._kept.get(key)
+        if held is None or (not compiling and isinstance(held[0], Tensor)
+                            and held[0]._version != held[1]):
+            # a kept tensor modified in place (a flow's band mask a caller narrowed) is
+            # computed again: later flows would otherwise read the caller's edit
             with outside_inference():
-                self._kept[key] = compute()
-        return self._kept[key]
+                value = compute()
+            held = (value, value._version if isinstance(value, Tensor) else None)
+            self._kept[key] = held
+        return held[0]
 
     def is_kept(self, key: tuple) -> bool:
         """Whether :meth:`kept` holds a value for ``key``."""
         return key in self._kept
+
+    def clear_kept(self) -> None:
+        """Drop what flows and layers kept on this surface (:meth:`kept`: bands, bounds,
+        closest-point stencils, packed operators); the next call forms them again.
+
+        They stay while the surface lives: one heat flow, one anisotropic flow and one
+        ``LearnedDiffusion`` call kept 36 / 55 / 77 MB on a torus at 32^3 / 40^3 / 48^3 (an
+        audit, 2026-12-07), so a dataset that holds hundreds of surfaces and flows each of
+        them holds that much per surface (:class:`~torchsurf.datasets.SignalDataset` keeps
+        the state of its last few). Call this on surfaces you keep but will not flow on
+        again soon.
+        """
+        self._forget_kept()
 
     def _pad(self, volume: Tensor, mode: str) -> Tensor:
         """``volume`` with a halo of one node (``mode`` at the box's faces)."""
@@ -856,6 +878,7 @@ class ImplicitSurface(nn.Module):
         read neighbours without padding (the compiled operators). Computed once and kept, on
         the same terms as :meth:`mean_curvature`.
         """
+        self._current_phi()
         if self._haloed_normal is not None:
             return self._haloed_normal, self._haloed_weight
         with outside_inference():

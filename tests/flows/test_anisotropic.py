@@ -178,3 +178,27 @@ def test_a_run_too_long_for_total_variations_eps_names_eps():
                                                    generator=torch.Generator().manual_seed(1)))
     with pytest.raises(ValueError, match=r"Or eps: .* diffusivity 1e\+06"):
         ts.HarmonicMapFlow(2e-3 * 1e-3, p=1, eps=1e-6)(unit, surface)
+
+
+def test_eps_and_diffusivity_set_after_building_set_the_steps_bound():
+    """The bound ``max g`` follows ``eps`` and ``diffusivity`` set on a built flow (it kept
+    the former bound: 0.06 and 0.42 from a flow built with the new settings)."""
+    grid = ts.Grid.cube(20, 1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, 1.0, dtype=torch.float64), grid)
+    u = torch.rand((1, 1, *grid.shape), dtype=torch.float64,
+                   generator=torch.Generator().manual_seed(3))
+    flow = AnisotropicFlow(4e-3, eps=1.0)
+    flow.eps = 0.1
+    assert flow.max_diffusivity == pytest.approx(10.0)
+    assert torch.equal(flow(u, surface), AnisotropicFlow(4e-3, eps=0.1)(u, surface))
+    flow.diffusivity = ts.operators.DIFFUSIVITIES["perona_malik"]
+    assert flow.max_diffusivity == 1.0 and flow.keeps_range
+    assert torch.equal(flow(u, surface),
+                       AnisotropicFlow(4e-3, diffusivity="perona_malik", eps=0.1)(u, surface))
+    with pytest.raises(ValueError, match="eps"):
+        flow.eps = -1.0
+    flow.diffusivity = lambda magnitude, contrast: 1.0 / (1.0 + magnitude)
+    with pytest.raises(ValueError, match="max_diffusivity"):
+        flow(u, surface)
+    flow.max_diffusivity = 1.0
+    assert not flow.keeps_range and flow.max_diffusivity == 1.0

@@ -64,7 +64,8 @@ class AnisotropicFlow(Flow):
         learn_contrast: make ``K`` an ``nn.Parameter`` (kept positive by softplus); refused
             for ``"total_variation"``, which reads no ``K``.
         eps: regularisation of ``|P grad u|``, units of ``u`` per world length.
-        max_diffusivity: upper bound of ``g`` for a callable ``diffusivity``.
+        max_diffusivity: upper bound of ``g`` for a callable ``diffusivity`` (else read
+            from ``diffusivity`` and ``eps``: :attr:`max_diffusivity`).
         scheme: ``"symmetric"`` (default), ``"conservative"`` or ``"octant"``.
         path: how stencils are applied.
         **kwargs: the integration settings of :class:`Flow` (no implicit methods: nonlinear).
@@ -74,7 +75,6 @@ class AnisotropicFlow(Flow):
 
     supports_bricks = True
     linear = False
-    keeps_range = True
 
     def __init__(
         self,
@@ -90,29 +90,63 @@ class AnisotropicFlow(Flow):
     ) -> None:
         super().__init__(time, **kwargs)
         self.diffusivity = stored_diffusivity(diffusivity)
-        # the library's own g by name or as the function itself
-        name = next((key for key, g in DIFFUSIVITIES.items() if self.diffusivity is g), None)
-        # a user's own g may be negative somewhere: no maximum principle to check then
-        self.keeps_range = name is not None
-        if name == "total_variation" and learn_contrast:
+        if self._name() == "total_variation" and learn_contrast:
             raise ValueError("learn_contrast=True: total variation's g(s) = 1 / s reads no "
                              "contrast, so its parameter would never get a gradient; learn "
                              "the time, or choose 'perona_malik' or 'charbonnier'")
         self.contrast = Positive(contrast, "contrast", learnable=learn_contrast)
-        self.eps = check_positive(eps, "eps")
-        if max_diffusivity is None:
-            if name == "total_variation":
-                max_diffusivity = 1.0 / self.eps
-            elif name in _BOUNDED:
-                max_diffusivity = 1.0
-            else:
-                raise ValueError(
-                    "max_diffusivity: give the upper bound of a callable diffusivity g "
-                    "(it sets the spectral bound max g * rho of the steps)"
-                )
-        self.max_diffusivity = check_positive(max_diffusivity, "max_diffusivity")
+        self.eps = eps
+        self.max_diffusivity = max_diffusivity
+        _ = self.max_diffusivity  # a callable g without a bound is refused here
         self.scheme = check_choice(scheme, "scheme", FLUX_SCHEMES)
         self.path = check_choice(path, "path", PATHS)
+
+    def _name(self) -> str | None:
+        """The library's name of :attr:`diffusivity` (given by name or as the function
+        itself), or ``None`` for a user's own ``g``."""
+        return next((key for key, g in DIFFUSIVITIES.items() if self.diffusivity is g), None)
+
+    @property
+    def keeps_range(self) -> bool:
+        """Whether the flow keeps ``u`` within the range of ``u0``: the library's own ``g``
+        (a user's own may be negative somewhere)."""
+        return self._name() is not None
+
+    @property
+    def eps(self) -> float:
+        """Regularisation of ``|P grad u|``, units of ``u`` per world length; settable (total
+        variation's bound follows it)."""
+        return self._eps
+
+    @eps.setter
+    def eps(self, value: float) -> None:
+        self._eps = check_positive(value, "eps")
+
+    @property
+    def max_diffusivity(self) -> float:
+        """The upper bound of ``g`` that the steps follow: the one given, else ``1 / eps``
+        for total variation and 1 for Perona–Malik and Charbonnier, read from the current
+        :attr:`diffusivity` and :attr:`eps` (settable; ``None`` for those defaults).
+
+        Raises:
+            ValueError: a callable ``diffusivity`` without a bound given.
+        """
+        if self._max_diffusivity is not None:
+            return self._max_diffusivity
+        name = self._name()
+        if name == "total_variation":
+            return 1.0 / self.eps
+        if name in _BOUNDED:
+            return 1.0
+        raise ValueError(
+            "max_diffusivity: give the upper bound of a callable diffusivity g "
+            "(it sets the spectral bound max g * rho of the steps)"
+        )
+
+    @max_diffusivity.setter
+    def max_diffusivity(self, value: float | None) -> None:
+        self._max_diffusivity = (None if value is None
+                                 else check_positive(value, "max_diffusivity"))
 
     def system(self, u0: Tensor, surface: ImplicitSurface, **inputs: Tensor) -> System:
         if inputs:
