@@ -834,7 +834,7 @@ def test_a_surface_that_turns_back_near_the_faces_is_warned_about(margin, warned
         assert "no flux" in messages[0] and "margin" in messages[0]
 
 
-def test_level_sets_that_meet_the_faces_at_right_angles_are_not_warned_about():
+def test_level_sets_that_meet_the_faces_at_right_angles_or_parallel_are_not_warned_about():
     grid = Grid.cube(21, BOUND)
     p = grid.points(dtype=torch.float64)
     cylinder = (p[..., :2].norm(dim=-1) - 0.8)[None, None]  # along z, through two faces
@@ -849,6 +849,11 @@ def test_level_sets_that_meet_the_faces_at_right_angles_are_not_warned_about():
     with pytest.warns(RuntimeWarning, match="obliquely"):
         ImplicitSurface((p[..., 0] * math.cos(tilt) + p[..., 2] * math.sin(tilt))[None, None],
                         grid)
+    # a plane parallel to a face, a cell from it: its normal lines run along the face's, as
+    # the replicated data do (its results equal the plane's in the middle of the box)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ImplicitSurface((p[..., 2] - (BOUND - 1.3 * grid.spacing))[None, None], grid)
 
 
 def test_phi_modified_in_place_after_building_is_refused():

@@ -41,6 +41,7 @@ __all__ = [
     "MAX_EPS",
     "MINIMUM_WEIGHT",
     "OBLIQUE_NORMAL",
+    "PARALLEL_NORMAL",
     "SATURATION_RATIO",
     "TANGENT_FLOOR",
     "WEIGHT_FLOOR",
@@ -346,16 +347,23 @@ cells of a face) where its level sets leave the box obliquely is warned about
 
 OBLIQUE_NORMAL = math.sin(math.radians(3.0))
 """A normal whose component across a face exceeds this (more than 3 degrees out of the face's
-plane) leaves it obliquely (:func:`_warn_oblique_at_faces`). The bound was 30 degrees: a sphere
-cut by a face at 5, 11 and 20 degrees went unwarned while its Laplace–Beltrami of degree-2
-harmonic data was 2.3 to 4.9 times its largest value off at the two outer layers (33^3-65^3),
-as wrong as at the angles warned about (an audit, 2026-12-07)."""
+plane), and is not within 3 degrees of the face's own normal, meets the face obliquely
+(:func:`_warn_oblique_at_faces`). The bound was 30 degrees: a sphere cut by a face at 5, 11
+and 20 degrees went unwarned while its Laplace–Beltrami of degree-2 harmonic data was 2.3 to
+4.9 times its largest value off at the two outer layers (33^3-65^3), as wrong as at the angles
+warned about; and a plane parallel to a face within its two outer layers was warned about
+though its results equal those of the plane in the middle of the box (its normal lines run
+along the face's, as the replicated data do; an audit, 2026-12-07)."""
+
+PARALLEL_NORMAL = math.cos(math.radians(3.0))
+"""See :data:`OBLIQUE_NORMAL`."""
 
 
 def _warn_oblique_at_faces(crossing: Tensor, normal: Tensor) -> None:
     """Warn where S crosses the outer :data:`FACE_LAYERS` layers of nodes of a face (nodes of
     ``crossing`` ``(B, 1, D, H, W)``, a neighbour across S) with a normal ``(B, 3, D, H, W)``
-    more than 3 degrees out of the face's plane (:data:`OBLIQUE_NORMAL`).
+    more than 3 degrees out of the face's plane and more than 3 degrees from the face's normal
+    (:data:`OBLIQUE_NORMAL`).
 
     The stencils see no flux through the faces, which can hold for level sets that meet them at
     right angles (a cylinder along an axis, with data symmetric about the face: README.md) and
@@ -367,7 +375,8 @@ def _warn_oblique_at_faces(crossing: Tensor, normal: Tensor) -> None:
     hits = torch.zeros(crossing.shape[0], dtype=torch.long, device=crossing.device)
     for axis in range(3):
         dim = 4 - axis  # normal channel x, y, z <-> dims W, H, D
-        oblique = crossing & (normal[:, axis: axis + 1].abs() > OBLIQUE_NORMAL)
+        across = normal[:, axis: axis + 1].abs()
+        oblique = crossing & (across > OBLIQUE_NORMAL) & (across < PARALLEL_NORMAL)
         layers = min(FACE_LAYERS, oblique.shape[dim])
         hits += oblique.narrow(dim, 0, layers).flatten(1).sum(dim=1)
         hits += oblique.narrow(dim, oblique.shape[dim] - layers, layers).flatten(1).sum(dim=1)
