@@ -26,6 +26,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import torch
+from torch.autograd import forward_ad
 
 from ._stack import caller_stacklevel
 
@@ -202,6 +203,20 @@ def _whole(library: Path) -> bool:
     entry_size = int.from_bytes(header[0x3A:0x3C], order)
     entries = int.from_bytes(header[0x3C:0x3E], order)
     return section_table + entry_size * entries <= size
+
+
+def carries_tangents(*tensors: torch.Tensor) -> bool:
+    """Whether any of ``tensors`` carries what a kernel reading its raw memory would drop: a
+    forward-mode tangent (:mod:`torch.autograd.forward_ad`) or a ``torch.func`` transform's
+    wrapper (``jvp``, ``vmap``, ``grad``). The kernels' callers then take their differentiable
+    paths, as for a tensor that requires grad."""
+    wrapped = getattr(torch._C._functorch, "is_functorch_wrapped_tensor", None)
+    for tensor in tensors:
+        if wrapped is not None and wrapped(tensor):
+            return True
+        if forward_ad.unpack_dual(tensor).tangent is not None:
+            return True
+    return False
 
 
 def in_parts(count: int, least: int) -> int:

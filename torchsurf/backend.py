@@ -392,7 +392,8 @@ class _Timings:
 
 _TIMINGS: dict[tuple, _Timings] = {}
 """What :func:`run` measured per compiled variant (:func:`_variant`) in this process, at most
-:data:`TIMED_VARIANTS` of them (the oldest dropped first)."""
+:data:`TIMED_VARIANTS` of them (the one run least recently dropped first), in the order they
+last ran."""
 
 TIMED_VARIANTS = 1024
 """Most variants :data:`_TIMINGS` holds. A diffusivity made anew for each call (a lambda in a
@@ -402,13 +403,15 @@ over 12,000 calls; an audit, 2026-12-07)."""
 
 
 def _timings(variant: tuple) -> _Timings:
-    """The ledger's entry for ``variant``, added (and the oldest dropped past
-    :data:`TIMED_VARIANTS`) if new."""
-    timings = _TIMINGS.get(variant)
+    """The ledger's entry for ``variant``, moved to the end (the most recently run), or added
+    there if new (the least recently run dropped past :data:`TIMED_VARIANTS`): a kernel run at
+    every call keeps its measured eager time while lambdas made anew come and go."""
+    timings = _TIMINGS.pop(variant, None)
     if timings is None:
         while len(_TIMINGS) >= TIMED_VARIANTS:
             del _TIMINGS[next(iter(_TIMINGS))]
-        timings = _TIMINGS[variant] = _Timings()
+        timings = _Timings()
+    _TIMINGS[variant] = timings
     return timings
 
 _COMPILE_FAILURE: list[str] = []

@@ -361,9 +361,10 @@ PARALLEL_NORMAL = math.cos(math.radians(3.0))
 
 def _warn_oblique_at_faces(crossing: Tensor, normal: Tensor) -> None:
     """Warn where S crosses the outer :data:`FACE_LAYERS` layers of nodes of a face (nodes of
-    ``crossing`` ``(B, 1, D, H, W)``, a neighbour across S) with a normal ``(B, 3, D, H, W)``
-    more than 3 degrees out of the face's plane and more than 3 degrees from the face's normal
-    (:data:`OBLIQUE_NORMAL`).
+    ``crossing`` ``(B, 1, D, H, W)``, a neighbour across S) whose normal ``(B, 3, D, H, W)``,
+    extrapolated linearly along the face's normal to the wall half a cell beyond the outer
+    nodes, lies more than 3 degrees out of the face's plane and more than 3 degrees from the
+    face's normal (:data:`OBLIQUE_NORMAL`).
 
     The stencils see no flux through the faces, which can hold for level sets that meet them at
     right angles (a cylinder along an axis, with data symmetric about the face: README.md) and
@@ -375,11 +376,19 @@ def _warn_oblique_at_faces(crossing: Tensor, normal: Tensor) -> None:
     hits = torch.zeros(crossing.shape[0], dtype=torch.long, device=crossing.device)
     for axis in range(3):
         dim = 4 - axis  # normal channel x, y, z <-> dims W, H, D
-        across = normal[:, axis: axis + 1].abs()
-        oblique = crossing & (across > OBLIQUE_NORMAL) & (across < PARALLEL_NORMAL)
-        layers = min(FACE_LAYERS, oblique.shape[dim])
-        hits += oblique.narrow(dim, 0, layers).flatten(1).sum(dim=1)
-        hits += oblique.narrow(dim, oblique.shape[dim] - layers, layers).flatten(1).sum(dim=1)
+        size = normal.shape[dim]
+        layers = min(FACE_LAYERS, size - 1)
+        component = normal[:, axis: axis + 1]
+        for layer in range(layers):
+            for node, inward in ((layer, layer + 1), (size - 1 - layer, size - 2 - layer)):
+                at = component.narrow(dim, node, 1)
+                # the component at the wall, half a cell beyond the outer nodes: S's curvature
+                # tilts the normals of nodes in from it (a sphere cut through its equator at
+                # the wall, whose nodes' normals lean 1.5 h / R out of the face's plane)
+                wall = (at + (layer + 0.5) * (at - component.narrow(dim, inward, 1))).abs()
+                oblique = ((wall > OBLIQUE_NORMAL) & (wall < PARALLEL_NORMAL)
+                           & crossing.narrow(dim, node, 1))
+                hits += oblique.flatten(1).sum(dim=1)
     if bool(hits.any()):
         which = _entries_named(hits.nonzero().flatten().tolist(), crossing.shape[0])
         warnings.warn(
@@ -576,7 +585,8 @@ class ImplicitSurface(nn.Module):
         self.register_buffer("_mean_curvature", None, persistent=False)
         self.register_buffer("_haloed_normal", None, persistent=False)
         self.register_buffer("_haloed_weight", None, persistent=False)
-        self._kept: dict[tuple, tuple[object, int | None]] = {}
+        self._kept: dict[tuple, object] = {}
+        self._kept_versions: dict[tuple, int | None] = {}
 
     @property
     def band_width(self) -> float:
@@ -604,6 +614,7 @@ class ImplicitSurface(nn.Module):
     def _forget_kept(self) -> None:
         """Drop what was derived from the band (its width changed)."""
         self.__dict__.get("_kept", {}).clear()
+        self.__dict__.get("_kept_versions", {}).clear()
 
     def get_extra_state(self) -> dict:
         """What :meth:`state_dict` holds of a surface (under ``"_extra_state"``): ``phi``
@@ -653,7 +664,7 @@ class ImplicitSurface(nn.Module):
         # what flows derived and kept (stencils, packed bands: 25 MB on a 24^3 trefoil after
         # a few flows, against 55 kB of phi) is derived again by the copy when it needs it;
         # a DataLoader's spawned workers receive the dataset's surfaces pickled
-        state["_kept"] = {}
+        state["_kept"], state["_kept_versions"] = {}, {}
         if self.phi.requires_grad:
             # the geometry is in phi's graph: a copy derives its own from the copied phi (a
             # copied normal would be a leaf cut off from the copy's phi, and deepcopy refuses
@@ -739,19 +750,17 @@ class ImplicitSurface(nn.Module):
         guard on the position of the surface among a table's weak keys, which moves when
         another surface is collected (the guard then fails to build).
         """
-        compiling = torch.compiler.is_compiling()
-        if not compiling:
-            self._current_phi()  # what was kept belongs to phi as the surface was built
-        held = self._kept.get(key)
-        if held is None or (not compiling and isinstance(held[0], Tensor)
-                            and held[0]._version != held[1]):
+        versions = self.__dict__.setdefault("_kept_versions", {})
+        version = versions.get(key)
+        if key not in self._kept or (version is not None and not torch.compiler.is_compiling()
+                                     and self._kept[key]._version != version):
             # a kept tensor modified in place (a flow's band mask a caller narrowed) is
             # computed again: later flows would otherwise read the caller's edit
             with outside_inference():
                 value = compute()
-            held = (value, value._version if isinstance(value, Tensor) else None)
-            self._kept[key] = held
-        return held[0]
+            self._kept[key] = value
+            versions[key] = value._version if isinstance(value, Tensor) else None
+        return self._kept[key]
 
     def is_kept(self, key: tuple) -> bool:
         """Whether :meth:`kept` holds a value for ``key``."""
@@ -762,8 +771,8 @@ class ImplicitSurface(nn.Module):
         closest-point stencils, packed operators); the next call forms them again.
 
         They stay while the surface lives: one heat flow, one anisotropic flow and one
-        ``LearnedDiffusion`` call kept 36 / 55 / 77 MB on a torus at 32^3 / 40^3 / 48^3 (an
-        audit, 2026-12-07), so a dataset that holds hundreds of surfaces and flows each of
+        ``LearnedDiffusion`` call grew the live memory by 36 / 55 / 77 MB on a torus at 32^3 /
+        40^3 / 48^3 (an audit, 2026-12-07), so a dataset that holds hundreds of surfaces and flows each of
         them holds that much per surface (:class:`~torchsurf.datasets.SignalDataset` keeps
         the state of its last few). Call this on surfaces you keep but will not flow on
         again soon.
@@ -857,6 +866,7 @@ class ImplicitSurface(nn.Module):
         5-cell distances, thin features, phi that is not a distance). Kept on the surface while
         ``phi`` needs no gradient.
         """
+        self._current_phi()  # the kept widths belong to phi as the surface was built
         if self.phi.requires_grad:
             return self._distance_widths()
         return self.kept(("evolving widths",), self._distance_widths)

@@ -197,8 +197,36 @@ def test_eps_and_diffusivity_set_after_building_set_the_steps_bound():
                        AnisotropicFlow(4e-3, diffusivity="perona_malik", eps=0.1)(u, surface))
     with pytest.raises(ValueError, match="eps"):
         flow.eps = -1.0
+    flow.diffusivity = "charbonnier"  # by name, as the constructor takes it
+    assert flow.max_diffusivity == 1.0 and flow.keeps_range
+    assert torch.equal(flow(u, surface),
+                       AnisotropicFlow(4e-3, diffusivity="charbonnier", eps=0.1)(u, surface))
+    flow.diffusivity = "total_varation"
+    with pytest.raises(ValueError, match="diffusivity"):
+        _ = flow.max_diffusivity
     flow.diffusivity = lambda magnitude, contrast: 1.0 / (1.0 + magnitude)
     with pytest.raises(ValueError, match="max_diffusivity"):
         flow(u, surface)
     flow.max_diffusivity = 1.0
     assert not flow.keeps_range and flow.max_diffusivity == 1.0
+
+
+def test_a_flow_pickled_with_plain_attributes_loads_and_runs():
+    """Flows pickled before ``eps`` and ``max_diffusivity`` became properties held them (and
+    ``keeps_range``) as plain attributes: loaded now, they run as they did."""
+    import pickle
+
+    grid = ts.Grid.cube(16, 1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, 1.0, dtype=torch.float64), grid)
+    u = torch.rand((1, 1, *grid.shape), dtype=torch.float64,
+                   generator=torch.Generator().manual_seed(3))
+    flow = AnisotropicFlow(4e-3, eps=0.5)
+    expected = flow(u, surface)
+    state = flow.__dict__.copy()
+    state["eps"], state["max_diffusivity"] = state.pop("_eps"), 2.0
+    del state["_max_diffusivity"]
+    state["keeps_range"] = True
+    old = AnisotropicFlow.__new__(AnisotropicFlow)
+    old.__setstate__(pickle.loads(pickle.dumps(state)))
+    assert old.eps == 0.5 and old.max_diffusivity == 2.0 and old.keeps_range
+    assert torch.equal(old(u, surface), expected)

@@ -28,7 +28,7 @@ import weakref
 import torch
 from torch import Tensor
 
-from .._native import NativeLibrary, in_threads
+from .._native import NativeLibrary, carries_tangents, in_threads
 
 BRICK = 8
 TILE = BRICK + 2
@@ -392,6 +392,7 @@ def octant(u: Tensor, haloed_normal: Tensor, haloed_weight: Tensor, neighbours: 
                                                              for t in tensors)
             or haloed_normal.dtype != u.dtype or haloed_weight.dtype != u.dtype
             or (torch.is_grad_enabled() and any(t.requires_grad for t in tensors))
+            or carries_tangents(*tensors)
             or haloed_normal.shape[0] != u.shape[0] or haloed_weight.shape[0] != u.shape[0]
             or (mask is not None and mask.shape != (u.shape[0], 1, BRICK, BRICK, BRICK))):
         return None

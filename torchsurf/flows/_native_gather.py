@@ -30,7 +30,7 @@ import torch
 from torch import Tensor
 
 from .._inference import outside_inference
-from .._native import NativeLibrary, in_parts, in_threads
+from .._native import NativeLibrary, carries_tangents, in_parts, in_threads
 from ._recompute import refuse_second_derivatives
 
 
@@ -770,7 +770,7 @@ def applies(offsets: Tensor, x: Tensor) -> bool:
         return False
     if torch.compiler.is_compiling():
         return TRACEABLE and _library_loaded()
-    return LIBRARY.load() is not None
+    return not carries_tangents(x) and LIBRARY.load() is not None
 
 
 LAYOUT_ROWS = 2**16
@@ -1189,7 +1189,8 @@ def limited_rows(z: Tensor, stencil: SeparableStencil) -> Tensor | None:
     gradient to record, while ``torch.compile`` traces, columns it does not take
     (:meth:`SeparableStencil.parts`), or no compiler."""
     if (z.device.type != "cpu" or z.dtype not in _SUFFIX or torch.compiler.is_compiling()
-            or (torch.is_grad_enabled() and z.requires_grad) or LIBRARY.load() is None):
+            or (torch.is_grad_enabled() and z.requires_grad) or carries_tangents(z)
+            or LIBRARY.load() is None):
         return None
     return _limited_separable(z.contiguous(), stencil, len(stencil.rows))
 
@@ -1327,7 +1328,8 @@ def brick_tricubic(flat: Tensor, bases: Tensor, second: Tensor, local: Tensor, w
     if (flat.device.type != "cpu" or flat.dtype not in _SUFFIX or bases.dtype != torch.int32
             or second.dtype != torch.bool or local.dtype != torch.int16
             or weights.dtype != flat.dtype or torch.compiler.is_compiling()
-            or (torch.is_grad_enabled() and (flat.requires_grad or weights.requires_grad))):
+            or (torch.is_grad_enabled() and (flat.requires_grad or weights.requires_grad))
+            or carries_tangents(flat, weights)):
         return None
     library = LIBRARY.load()
     if library is None:

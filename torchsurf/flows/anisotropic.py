@@ -102,9 +102,20 @@ class AnisotropicFlow(Flow):
         self.path = check_choice(path, "path", PATHS)
 
     def _name(self) -> str | None:
-        """The library's name of :attr:`diffusivity` (given by name or as the function
-        itself), or ``None`` for a user's own ``g``."""
+        """The library's name of :attr:`diffusivity` (a name, checked, or the library's
+        function itself), or ``None`` for a user's own ``g``."""
+        if isinstance(self.diffusivity, str):
+            return check_choice(self.diffusivity, "diffusivity", tuple(DIFFUSIVITIES))
         return next((key for key, g in DIFFUSIVITIES.items() if self.diffusivity is g), None)
+
+    def __setstate__(self, state: dict) -> None:
+        # a flow pickled before eps and max_diffusivity were properties (2026-12-07) holds
+        # them, and keeps_range, as plain attributes
+        for old, new in (("eps", "_eps"), ("max_diffusivity", "_max_diffusivity")):
+            if old in state:
+                state[new] = state.pop(old)
+        state.pop("keeps_range", None)
+        super().__setstate__(state)
 
     @property
     def keeps_range(self) -> bool:

@@ -48,6 +48,7 @@ from torch import Tensor, nn
 
 from .. import backend, stencils
 from .._checks import check_choice, check_count, check_finite, check_flag, check_positive
+from .._native import carries_tangents
 from ..bricks.layout import BRICK, BrickLayout
 from ..sampling import cubic_lagrange_weights
 from ..surface import ImplicitSurface, check_data
@@ -471,13 +472,14 @@ class CubicStencil:
         packed band's stencils (:func:`._native_gather.limited_rows`, a channel at a time:
         no copy of the volume), or ``None`` where it does not run (not limited, tap positions
         not kept in 32 bits, a gradient to record, to the data or from ``phi`` to the
-        weights, not the CPU, no compiler). The compiled
+        weights, or a forward-mode tangent, not the CPU, no compiler). The compiled
         gathers and the eager limiter took 0.8 of a reaction–diffusion step's re-extension
         (spots on a 48^3 bunny); the layout is formed at the first call and kept."""
         kept = self.sources[part]
         targets, _, weights = self.parts[part]
         if (not self.limited or kept is None or kept.dtype != torch.int32
-                or (torch.is_grad_enabled() and (flat.requires_grad or weights.requires_grad))):
+                or (torch.is_grad_enabled() and (flat.requires_grad or weights.requires_grad))
+                or carries_tangents(flat, weights)):
             return None
         if part not in self._separable:
             self._separable[part] = _native_gather.SeparableStencil(

@@ -13,6 +13,7 @@ from torch import Tensor
 
 from .. import backend
 from .._checks import check_choice, check_finite
+from .._native import carries_tangents
 from ..backend import PATHS
 from ..operators import functional, laplace_beltrami
 from ..operators.laplace_beltrami import SCHEMES
@@ -224,7 +225,10 @@ class HeatFlow(Flow):
         matrices, about 2 kB a node at their assembly, would strain the 4 GB the 512^3 bunny's
         flow keeps to; there the C kernel applies the octant rate on the band's bricks); and
         where compiled volume stencils are asked for (``path="compiled"``,
-        or ``"auto"`` under ``TORCHSURF_COMPILE=always``)."""
+        or ``"auto"`` under ``TORCHSURF_COMPILE=always``); and for data carrying a forward-mode
+        tangent or a ``torch.func`` wrapper, which the packed products would drop."""
+        if carries_tangents(u0):
+            return None
         packing = self._packing(surface)
         if packing is None:
             return None
