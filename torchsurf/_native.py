@@ -209,7 +209,10 @@ def carries_tangents(*tensors: torch.Tensor) -> bool:
     """Whether any of ``tensors`` carries what a kernel reading its raw memory would drop: a
     forward-mode tangent (:mod:`torch.autograd.forward_ad`) or a ``torch.func`` transform's
     wrapper (``jvp``, ``vmap``, ``grad``). The kernels' callers then take their differentiable
-    paths, as for a tensor that requires grad."""
+    paths, as for a tensor that requires grad. ``False`` while ``torch.compile`` traces (the
+    callers trace their own paths there)."""
+    if torch.compiler.is_compiling():
+        return False
     wrapped = getattr(torch._C._functorch, "is_functorch_wrapped_tensor", None)
     for tensor in tensors:
         if wrapped is not None and wrapped(tensor):

@@ -231,9 +231,11 @@ def _value(time: float | Tensor) -> float:
 def eps_stiffness(eps: float, largest: float, spacing: float) -> str:
     """:attr:`System.stiffness` of a flow whose diffusivity peaks at ``largest`` because of its
     regulariser ``eps`` (total variation: ``1 / eps``; a p-harmonic map: ``eps^(p-2)``)."""
-    # plain floats: a torch.compile'd flow whose eps was set anew traces them as symbols,
-    # which the format codes below do not take
-    eps, largest, spacing = float(eps), float(largest), float(spacing)
+    if torch.compiler.is_compiling():
+        # a compiled flow whose eps was set anew traces it as a symbol, which the format
+        # codes below do not take
+        return ("eps: rho holds the flow's largest diffusivity, set by eps (units of u per "
+                "world length); a larger eps takes fewer steps?")
     return (f"eps: rho holds the flow's largest diffusivity {largest:.3g}, set by eps={eps:g} "
             f"(units of u per world length, {eps * spacing:.3g} per cell of this grid); a "
             f"larger eps takes fewer steps?")

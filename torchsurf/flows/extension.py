@@ -475,6 +475,8 @@ class CubicStencil:
         weights, or a forward-mode tangent, not the CPU, no compiler). The compiled
         gathers and the eager limiter took 0.8 of a reaction–diffusion step's re-extension
         (spots on a 48^3 bunny); the layout is formed at the first call and kept."""
+        if torch.compiler.is_compiling():  # a traced flow traces the gathers
+            return None
         kept = self.sources[part]
         targets, _, weights = self.parts[part]
         if (not self.limited or kept is None or kept.dtype != torch.int32
