@@ -3,12 +3,14 @@ they ran on; shared by the scripts."""
 
 from __future__ import annotations
 
+import argparse
 import fcntl
 import hashlib
 import os
 import platform
 import re
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 
 NEW_FILE = ("# torchsurf benchmarks\n\nFigures measured by the scripts in `benchmarks/`; each "
@@ -121,3 +123,40 @@ def run_context() -> str:
     return (f"{cpu_model()}, {os.cpu_count()} CPUs, {torch.get_num_threads()} torch thread(s), "
             f"torch {torch.__version__}, allocator: "
             f"{os.environ.get('GLIBC_TUNABLES', 'glibc default')}, load average {load:.1f}, {when}")
+
+
+def alternated(roots: dict[str, Path], count: int,
+               run: Callable[[Path], dict[str, float]]) -> dict[str, list[dict[str, float]]]:
+    """``count`` runs of ``run(root)`` per checkout of ``roots`` (name -> root), the checkouts
+    taking turns, so that the machine's drift falls on each alike."""
+    runs: dict[str, list[dict[str, float]]] = {name: [] for name in roots}
+    for _ in range(count):
+        for name, root in roots.items():
+            runs[name].append(run(root))
+    return runs
+
+
+def figures(runs: list[dict[str, float]], key: str, digits: int) -> str:
+    """The runs' ``key`` figures, ``" / "`` between them."""
+    return " / ".join(f"{run[key]:.{digits}f}" for run in runs)
+
+
+def checksum_offsets(runs: list[dict[str, float]], reference: float) -> str:
+    """How far each run's ``"checksum"`` lies from ``reference``, relative."""
+    return " / ".join(f"{abs(run['checksum'] - reference) / max(abs(reference), 1e-300):.1e}"
+                      for run in runs)
+
+
+def add_alternation_arguments(parser: argparse.ArgumentParser, runs: int) -> None:
+    """``--runs`` (fresh processes per checkout, default ``runs``), ``--baseline`` (the root
+    of another checkout to alternate with), ``--output`` and the children's ``--worker``."""
+    parser.add_argument("--runs", type=int, default=runs, help="fresh processes per checkout")
+    parser.add_argument("--baseline", type=Path, default=None,
+                        help="root of another checkout to alternate with")
+    parser.add_argument("--output", type=Path, default=None)
+    parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
+
+
+def checkouts(root: Path, baseline: Path | None) -> dict[str, Path]:
+    """This checkout's root as ``"this"``, and ``baseline`` as ``"baseline"`` if given."""
+    return {"this": root} if baseline is None else {"this": root, "baseline": baseline}

@@ -30,7 +30,15 @@ import subprocess
 import sys
 from pathlib import Path
 
-from _report import cpu_model, write_section
+from _report import (
+    add_alternation_arguments,
+    alternated,
+    checkouts,
+    checksum_offsets,
+    cpu_model,
+    figures,
+    write_section,
+)
 from bench_mesh_heat import MESH_DIR
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -85,35 +93,27 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--meshes", nargs="+", default=["bunny_closed"])
     parser.add_argument("--resolution", type=int, default=200)
     parser.add_argument("--flows", nargs="+", choices=FLOWS, default=list(FLOWS))
-    parser.add_argument("--runs", type=int, default=2, help="fresh processes per checkout")
-    parser.add_argument("--baseline", type=Path, default=None,
-                        help="root of another checkout to alternate with")
-    parser.add_argument("--output", type=Path, default=None)
-    parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
+    add_alternation_arguments(parser, runs=2)
     args = parser.parse_args(argv)
     if args.worker:
         print(json.dumps(worker(args.meshes[0], args.resolution, args.flows[0])))
         return
-    roots = {"this": ROOT} if args.baseline is None else {"this": ROOT, "baseline": args.baseline}
+    roots = checkouts(ROOT, args.baseline)
     rows = ["| mesh | n | flow | checkout | first call s | second call s | resident peak GB "
             "| result's sum, off this checkout's first run by |",
             "|---|---:|---|---|---:|---:|---:|---:|"]
     for mesh in args.meshes:
         for flow in args.flows:
-            runs: dict[str, list[dict[str, float]]] = {name: [] for name in roots}
-            for _ in range(args.runs):
-                for name, root in roots.items():
-                    runs[name].append(run_once(root, mesh, args.resolution, flow))
+            runs = alternated(roots, args.runs,
+                              lambda root, mesh=mesh, flow=flow: run_once(
+                                  root, mesh, args.resolution, flow))
             reference = runs["this"][0]["checksum"]
             for name in roots:
-                firsts = " / ".join(f"{r['first']:.1f}" for r in runs[name])
-                seconds = " / ".join(f"{r['second']:.1f}" for r in runs[name])
-                peaks = " / ".join(f"{r['peak_gb']:.2f}" for r in runs[name])
-                offsets = " / ".join(
-                    f"{abs(r['checksum'] - reference) / max(abs(reference), 1e-300):.1e}"
-                    for r in runs[name])
-                rows.append(f"| {mesh} | {args.resolution} | {flow} | {name} | {firsts} "
-                            f"| {seconds} | {peaks} | {offsets} |")
+                rows.append(f"| {mesh} | {args.resolution} | {flow} | {name} "
+                            f"| {figures(runs[name], 'first', 1)} "
+                            f"| {figures(runs[name], 'second', 1)} "
+                            f"| {figures(runs[name], 'peak_gb', 2)} "
+                            f"| {checksum_offsets(runs[name], reference)} |")
                 print(rows[-1], flush=True)
             if "baseline" in runs:
                 ratio = (statistics.median(r["first"] for r in runs["this"])

@@ -27,7 +27,6 @@ Run with one thread and the team's allocator setting::
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 import os
 import statistics
@@ -35,7 +34,15 @@ import subprocess
 import sys
 from pathlib import Path
 
-from _report import cpu_model, write_section
+from _report import (
+    add_alternation_arguments,
+    alternated,
+    checkouts,
+    checksum_offsets,
+    figures,
+    run_context,
+    write_section,
+)
 from bench_mesh_heat import MESH_DIR
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -106,33 +113,24 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", nargs="+", choices=CASES, default=list(CASES))
     parser.add_argument("--resolution", type=int, default=48)
-    parser.add_argument("--runs", type=int, default=3, help="fresh processes per checkout")
-    parser.add_argument("--baseline", type=Path, default=None,
-                        help="root of another checkout to alternate with")
-    parser.add_argument("--output", type=Path, default=None)
-    parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
+    add_alternation_arguments(parser, runs=3)
     args = parser.parse_args(argv)
     if args.worker:
         print(json.dumps(worker(args.cases[0], args.resolution)))
         return
-    roots = {"this": ROOT} if args.baseline is None else {"this": ROOT, "baseline": args.baseline}
+    roots = checkouts(ROOT, args.baseline)
     rows = ["| case | n | checkout | first call s | second call s "
             "| result's sum, off this checkout's first run by |",
             "|---|---:|---|---:|---:|---:|"]
     for case in args.cases:
-        runs: dict[str, list[dict[str, float]]] = {name: [] for name in roots}
-        for _ in range(args.runs):
-            for name, root in roots.items():
-                runs[name].append(run_once(root, case, args.resolution))
+        runs = alternated(roots, args.runs,
+                          lambda root, case=case: run_once(root, case, args.resolution))
         reference = runs["this"][0]["checksum"]
         for name in roots:
-            firsts = " / ".join(f"{r['first']:.2f}" for r in runs[name])
-            seconds = " / ".join(f"{r['second']:.2f}" for r in runs[name])
-            offsets = " / ".join(
-                f"{abs(r['checksum'] - reference) / max(abs(reference), 1e-300):.1e}"
-                for r in runs[name])
-            rows.append(f"| {case} | {args.resolution} | {name} | {firsts} | {seconds} "
-                        f"| {offsets} |")
+            rows.append(f"| {case} | {args.resolution} | {name} "
+                        f"| {figures(runs[name], 'first', 2)} "
+                        f"| {figures(runs[name], 'second', 2)} "
+                        f"| {checksum_offsets(runs[name], reference)} |")
             print(rows[-1], flush=True)
         if "baseline" in runs:
             ratios = [statistics.median(r[key] for r in runs["this"])
@@ -140,13 +138,11 @@ def main(argv: list[str] | None = None) -> None:
                       for key in ("first", "second")]
             rows.append(f"| | | this ÷ baseline, medians | {ratios[0]:.2f} | {ratios[1]:.2f} | |")
             print(rows[-1], flush=True)
-    allocator = os.environ.get("GLIBC_TUNABLES", "glibc default")
     body = "\n".join([
-        f"{datetime.date.today()}, {cpu_model()}, {os.cpu_count()} cores, "
-        f"`OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', 'unset')}`, allocator: "
-        f"`{allocator}`. CPU seconds; each run one fresh process, the checkouts alternated. "
-        "The last column: how far each run's result, summed in float64, lies from this "
-        "checkout's first run's, relative.",
+        f"{run_context()}; the runs' `OMP_NUM_THREADS="
+        f"{os.environ.get('OMP_NUM_THREADS', 'unset')}`. CPU seconds; each run one fresh "
+        "process, the checkouts alternated. The last column: how far each run's result, "
+        "summed in float64, lies from this checkout's first run's, relative.",
         "",
         f"    python benchmarks/bench_nonlinear.py {' '.join(argv)}",
         "",
