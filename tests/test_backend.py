@@ -623,3 +623,23 @@ def test_the_ledger_of_variants_keeps_the_newest(monkeypatch):
     newest = list(backend._TIMINGS)[-1]
     ts.anisotropic_diffusion(u, surface, gs[-1], 0.7, path="auto")  # known: nothing dropped
     assert list(backend._TIMINGS)[-1] == newest and len(backend._TIMINGS) == 8
+
+
+def test_data_with_forward_tangents_stay_eager_on_auto(monkeypatch):
+    """A compiled kernel drops forward-mode tangents: ``"auto"`` keeps such data eager, even
+    where it would compile at once (the flows' tangents were 0.1-1.0 off)."""
+    import torch.autograd.forward_ad as forward_ad
+
+    monkeypatch.setattr(backend, "COMPILE", "always")
+    grid = ts.Grid.cube(12, 1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, dtype=torch.float64), grid)
+    generator = torch.Generator().manual_seed(0)
+    u = torch.rand((1, 1, *grid.shape), dtype=torch.float64, generator=generator)
+    direction = torch.rand(u.shape, dtype=torch.float64, generator=generator)
+    with backend.recorded_paths() as picks:
+        with forward_ad.dual_level():
+            out = ts.laplace_beltrami(forward_ad.make_dual(u, direction), surface, path="auto")
+            tangent = forward_ad.unpack_dual(out).tangent
+    assert picks and "compiled" not in picks
+    expected = ts.laplace_beltrami(direction, surface, path="slicing")  # the operator is linear
+    torch.testing.assert_close(tangent, expected, rtol=1e-12, atol=1e-12)

@@ -65,6 +65,7 @@ import torch
 from torch import Tensor
 
 from ._checks import check_choice
+from ._native import carries_tangents
 from ._stack import caller_stacklevel
 
 __all__ = [
@@ -631,10 +632,15 @@ def _resolve(path: str, volume: Tensor, kernel: Kernel | None, recording: bool, 
     check_choice(path, "path", PATHS)
     if path != "auto":
         return path, None
-    timed = (kernel is not None and kernel.fused is not None and volume.device.type == "cpu"
-             and not torch.compiler.is_compiling())
-    variant = _variant(kernel, volume, args, recording) if timed else None
-    chosen = _choose(volume, kernel, recording, variant)
+    if not torch.compiler.is_compiling() and carries_tangents(*_tensors(args)):
+        # a compiled kernel drops forward-mode tangents (the flows' tangents were 0.1-1.0
+        # off once "auto" had compiled their stencils): such data stay eager
+        chosen, variant = eager_path(volume), None
+    else:
+        timed = (kernel is not None and kernel.fused is not None
+                 and volume.device.type == "cpu" and not torch.compiler.is_compiling())
+        variant = _variant(kernel, volume, args, recording) if timed else None
+        chosen = _choose(volume, kernel, recording, variant)
     picks = _PICKS.get()
     if picks is not None:
         picks.append(chosen)

@@ -198,7 +198,7 @@ def test_eps_and_diffusivity_set_after_building_set_the_steps_bound():
     with pytest.raises(ValueError, match="eps"):
         flow.eps = -1.0
     flow.diffusivity = "charbonnier"  # by name, as the constructor takes it
-    assert flow.max_diffusivity == 1.0 and flow.keeps_range
+    assert flow.max_diffusivity == 1.0 and flow.keeps_range and "charbonnier" in repr(flow)
     assert torch.equal(flow(u, surface),
                        AnisotropicFlow(4e-3, diffusivity="charbonnier", eps=0.1)(u, surface))
     flow.diffusivity = "total_varation"

@@ -181,7 +181,7 @@ class AnisotropicFlow(Flow):
         # a g that is a module learns its parameters through the recomputed steps too
         learned = tuple(self.diffusivity.parameters()) if isinstance(self.diffusivity,
                                                                      nn.Module) else ()
-        set_by_eps = (self.diffusivity is DIFFUSIVITIES["total_variation"]
+        set_by_eps = (self._name() == "total_variation"
                       and self.max_diffusivity == 1.0 / self.eps)  # not a bound of the user's
         stiffness = (eps_stiffness(self.eps, self.max_diffusivity, surface.spacing)
                      if set_by_eps else None)
@@ -189,7 +189,6 @@ class AnisotropicFlow(Flow):
                       params=tensors(contrast, surface.normal, surface.weight, *learned))
 
     def extra_repr(self) -> str:
-        name = next((key for key, value in DIFFUSIVITIES.items() if value is self.diffusivity),
-                    getattr(self.diffusivity, "__name__", "custom"))
+        name = self._name() or getattr(self.diffusivity, "__name__", "custom")
         return (f"{super().extra_repr()}, diffusivity={name!r}, eps={self.eps:g}, "
                 f"scheme={self.scheme!r}")
