@@ -1186,7 +1186,7 @@ def limited_rows(z: Tensor, stencil: SeparableStencil) -> Tensor | None:
     """The values ``(R, F)`` of a :class:`SeparableStencil` whose rows are ``0 .. R - 1`` (not
     rows of ``z`` ``(M, F)``, which its taps read): the limited tricubic values alone, with no
     copy of ``z``. ``None`` where the kernel does not run: not the CPU, float32 or float64, a
-    gradient to record, while ``torch.compile`` traces, columns it does not take
+    gradient or a forward-mode tangent to carry, while ``torch.compile`` traces, columns it does not take
     (:meth:`SeparableStencil.parts`), or no compiler."""
     if (z.device.type != "cpu" or z.dtype not in _SUFFIX or torch.compiler.is_compiling()
             or (torch.is_grad_enabled() and z.requires_grad) or carries_tangents(z)

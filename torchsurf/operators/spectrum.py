@@ -96,7 +96,13 @@ def laplace_beltrami_rows(surface: ImplicitSurface, nodes: Tensor, scheme: str =
     if len(nodes) and (int(nodes.min()) < 0 or int(nodes.max()) >= size):
         raise ValueError(f"nodes must lie in [0, {size}) ({storage}), got values from "
                          f"{int(nodes.min())} to {int(nodes.max())}")
-    normal, weight, entry, at, _ = _row_frame(surface, nodes.long())
+    return _rows_in(surface, scheme, *_row_frame(surface, nodes.long())[:4])
+
+
+def _rows_in(surface: ImplicitSurface, scheme: str, normal: Tensor, weight: Tensor,
+             entry: Tensor, at: tuple[Tensor, Tensor, Tensor]) -> Tensor:
+    """The rows of ``scheme`` at the nodes ``entry, at`` of the volumes ``normal, weight``
+    (:func:`_row_frame`)."""
     if scheme == "octant":
         return octant_rows(normal, weight, surface.spacing, entry, at)
     return flux_form_rows(normal, weight, surface.spacing, scheme, entry, at)
@@ -321,8 +327,8 @@ def _bound_from_rows(surface: ImplicitSurface, mask: Tensor, scheme: str) -> flo
     with torch.no_grad():
         for start in range(0, len(nodes), ROWS_AT_ONCE):
             part = nodes[start: start + ROWS_AT_ONCE]
-            rows = laplace_beltrami_rows(surface, part, scheme)
-            _, _, entry, at, shape = _row_frame(surface, part)
+            normal, weight, entry, at, shape = _row_frame(surface, part)
+            rows = _rows_in(surface, scheme, normal, weight, entry, at)
             box = BoxNeighbours(at, shape)
             first = entry * math.prod(shape)
             evolving = [evolves[first + box.neighbour(offset)[0]] for offset in NEIGHBOURHOOD]
