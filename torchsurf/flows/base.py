@@ -60,6 +60,7 @@ from .._checks import (
     check_positive,
 )
 from .._stack import caller_stacklevel
+from .._transforms import refuse_transforms
 from ..bricks.layout import BRICK, BrickLayout
 from ..operators.spectrum import laplace_beltrami_bound
 from ..surface import (  # noqa: F401  (WIDE_BAND_CELLS, DISTANCE_TOLERANCE: documented here too)
@@ -783,6 +784,10 @@ class Flow(nn.Module):
                 steps on that surface (docs/band.md, section 5).
         """
         check_surface(surface)
+        refuse_transforms(type(self).__name__, u0, *inputs.values(),
+                          forward_mode=self.method in PACKED_METHODS,
+                          why=f"method={self.method!r}: the explicit methods 'euler', 'heun' and "
+                              "'rkc' have one")
         if surface.layout is not None and not self.supports_bricks:
             raise NotImplementedError(
                 f"{type(self).__name__} does not run on a BrickSurface (its supports_bricks "

@@ -49,6 +49,7 @@ from torch import Tensor, nn
 from .. import backend, stencils
 from .._checks import check_choice, check_count, check_finite, check_flag, check_positive
 from .._native import carries_tangents
+from .._transforms import refuse_transforms
 from ..bricks.layout import BRICK, BrickLayout
 from ..sampling import cubic_lagrange_weights
 from ..surface import ImplicitSurface, check_data
@@ -101,6 +102,7 @@ def closest_point_extension(
     about a hundred). :class:`Extension` and the flows refuse such ``u``, naming it.
     """
     check_data(u, "u", surface)
+    refuse_transforms("closest_point_extension", u)
     check_choice(interpolation, "interpolation", INTERPOLATIONS)
     check_choice(path, "path", backend.PATHS)
     if width is not None and mask is not None:
@@ -115,6 +117,9 @@ def closest_point_extension(
                             lambda: cubic_stencil(surface, band)).apply(u, path)
     if surface.layout is not None:
         return _brick_linear_extension(u, surface, band)
+    refuse_transforms("closest_point_extension(interpolation='linear') on a dense volume", u,
+                      refused=(), forward_mode=False,
+                      why="PyTorch's grid_sample has none; interpolation='cubic' has one")
     closest = _closest_indices(surface, u.dtype)
     batch = max(u.shape[0], closest.shape[0])
     last = closest.new_tensor([n - 1 for n in reversed(surface.grid.shape)])
@@ -1006,6 +1011,7 @@ def pde_extension(
         ``u``'s shape.
     """
     check_data(u, "u", surface)
+    refuse_transforms("pde_extension", u)
     check_positive(tolerance, "tolerance")
     h = surface.spacing
     width = surface.band_width if width is None else check_positive(width, "width")
@@ -1107,6 +1113,7 @@ class Extension(nn.Module):
                 it would spread through the extension silently).
         """
         check_data(u, "u", surface)
+        refuse_transforms(type(self).__name__, u)
         band = _band_to_extend(surface, self.width)
         if self.method == "closest_point" and self.interpolation == "cubic":
             stencil = cubic_stencil(surface, band, limited=self.limited)

@@ -14,6 +14,7 @@ from torch import Tensor
 from .. import backend
 from .._checks import check_choice, check_finite
 from .._native import carries_tangents
+from .._transforms import refuse_transforms
 from ..backend import PATHS
 from ..operators import functional, laplace_beltrami
 from ..operators.laplace_beltrami import SCHEMES
@@ -287,6 +288,9 @@ class HeatFlow(Flow):
                 f"scheme={self.scheme!r}"
             )
         check_surface(surface)
+        refuse_transforms("HeatFlow", u0, forward_mode=False,
+                          why="method='chebyshev': the explicit methods 'euler', 'heun' and 'rkc' "
+                              "have one")
         check_data(u0, "u0", surface)
         check_times_of_learned_time(self.time_value, times)
         separately = self._entries_apart(u0, surface, times, {})

@@ -10,6 +10,7 @@ import torch
 from torch import Tensor, nn
 
 from .._checks import MismatchError, check_count, check_flag
+from .._transforms import refuse_transforms
 from ..surface import ImplicitSurface, check_data, check_surface
 from .diffusion import LearnedDiffusion
 from .features import feature_count, gradient_features
@@ -71,6 +72,9 @@ class DiffusionBlock(nn.Module):
         """``u + MLP([d, features(d)])`` on the band, ``u`` beyond: ``(B, C, D, H, W)`` (or
         packed ``(N, C, 8, 8, 8)``) -> the same shape (the class's docstring)."""
         check_surface(surface)
+        refuse_transforms(type(self).__name__, u, forward_mode=False,
+                          why="its diffusion's exp(t L) is an autograd Function with a backward "
+                              "only")
         check_data(u, "u", surface, channels=self.channels)
         weight = self.mlp[0].weight
         if u.dtype != weight.dtype:

@@ -26,6 +26,7 @@ from .._checks import (
     check_flag,
     check_positive,
 )
+from .._transforms import refuse_transforms
 from ..backend import PATHS
 from ..flows._positive import HostMaximum, _inverse_softplus, range_note
 from ..flows.chebyshev import MAX_APPLICATIONS, TooManyApplications
@@ -164,6 +165,8 @@ class LearnedDiffusion(nn.Module):
     def forward(self, u: Tensor, surface: ImplicitSurface) -> Tensor:
         """Diffuse ``u`` ``(B, C, D, H, W)``; returns ``(B, C, D, H, W)`` (class docstring)."""
         check_surface(surface)
+        refuse_transforms(type(self).__name__, u, forward_mode=False,
+                          why="its exp(t L) is an autograd Function with a backward only")
         check_data(u, "u", surface, channels=self.channels)
         if self.learn_time and u.dtype != self.raw_time.dtype:
             raise MismatchError(

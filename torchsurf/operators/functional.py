@@ -34,6 +34,7 @@ from torch import Tensor
 
 from .. import backend, stencils
 from .._checks import SUPPORTED_DTYPES, check_alike, check_flag, check_positive
+from .._native import carries_tangents
 from .._vectors import tangential_part
 from ..stencils import masked
 from ._coupled import eager_coupled_rate, fused_coupled_rate
@@ -276,7 +277,7 @@ def divergence_form(
     """
     spacing = _check_inputs(u, normal, spacing, weight, scheme)
     _check_extras(u, normal, mask, haloed, weighted)
-    if normal.requires_grad or weight.requires_grad or not (
+    if normal.requires_grad or weight.requires_grad or carries_tangents(u) or not (
             torch.is_grad_enabled() and u.requires_grad):
         # no autograd node needed where autograd records nothing (a custom Function's call
         # costs as much as the stencil itself at 37^3)

@@ -1,0 +1,143 @@
+"""torch.func transforms and forward-mode AD: the operators run under each; the flows, the
+extensions and the learned layers run where documented and refuse the rest by name
+(``torchsurf._transforms``, docs/learning.md "Derivatives")."""
+
+import pytest
+import torch
+import torch.autograd.forward_ad as forward_ad
+
+import torchsurf as ts
+
+
+@pytest.fixture(scope="module")
+def ellipsoid():
+    grid = ts.Grid.cube(18, 1.6)
+    x, y, z = grid.points(dtype=torch.float64).unbind(-1)
+    # not a distance: |grad phi| varies over S
+    phi = ((x / 1.1) ** 2 + y**2 + (z / 0.8) ** 2 - 1.0)[None, None]
+    surface = ts.ImplicitSurface(phi, grid)
+    generator = torch.Generator().manual_seed(3)
+    u = torch.rand((2, 1, *grid.shape), dtype=torch.float64, generator=generator)
+    return surface, u
+
+
+@pytest.mark.parametrize("operator", ["octant", "symmetric", "anisotropic", "gradient"])
+def test_operators_run_under_torch_func(ellipsoid, operator):
+    """grad, vmap and jvp of an operator equal reverse-mode autograd, a loop over the batch
+    and a central difference (the octant scheme's autograd Function refused grad before)."""
+    surface, u = ellipsoid
+    apply = {
+        "octant": lambda v: ts.laplace_beltrami(v, surface),
+        "symmetric": lambda v: ts.laplace_beltrami(v, surface, scheme="symmetric"),
+        "anisotropic": lambda v: ts.anisotropic_diffusion(v, surface, "perona_malik",
+                                                          contrast=0.5),
+        "gradient": lambda v: ts.intrinsic_gradient(v, surface),
+    }[operator]
+    weights = torch.linspace(-1, 1, u.numel() // u.shape[0] * (3 if operator == "gradient" else 1),
+                             dtype=u.dtype)
+
+    def loss(v: torch.Tensor) -> torch.Tensor:
+        return (apply(v).reshape(-1) * weights.repeat(v.shape[0])).square().sum()
+
+    leaf = u.clone().requires_grad_()
+    expected = torch.autograd.grad(loss(leaf), leaf)[0]
+    assert torch.allclose(torch.func.grad(loss)(u), expected, rtol=1e-10, atol=1e-12)
+
+    mapped = torch.func.vmap(apply)(u[:, None])[:, 0]
+    assert torch.allclose(mapped, apply(u), rtol=1e-12, atol=1e-12)
+
+    direction = torch.rand(u.shape, dtype=u.dtype, generator=torch.Generator().manual_seed(4))
+    tangent = torch.func.jvp(apply, (u,), (direction,))[1]
+    difference = (apply(u + 1e-6 * direction) - apply(u - 1e-6 * direction)) / 2e-6
+    scale = float(difference.abs().max())
+    assert float((tangent - difference).abs().max()) < 1e-6 * scale
+    if operator != "anisotropic":  # linear: exactly the map of the direction
+        assert torch.allclose(tangent, apply(direction), rtol=1e-12, atol=1e-12 * scale)
+
+
+def _flows(surface):
+    h2 = surface.spacing**2
+    return {
+        "heat rkc": ts.HeatFlow(2 * h2),
+        "heat implicit": ts.HeatFlow(2 * h2, method="implicit"),
+        "heat chebyshev": ts.HeatFlow(2 * h2, method="chebyshev"),
+        "total variation": ts.AnisotropicFlow(2 * h2, diffusivity="total_variation"),
+        "learned": ts.nn.LearnedDiffusion(1).double(),
+        "block": ts.nn.DiffusionBlock(1).double(),
+        "extension": ts.flows.Extension(),
+        "closest_point_extension": lambda v, s: ts.flows.closest_point_extension(v, s),
+        "pde_extension": lambda v, s: ts.flows.pde_extension(v, s),
+    }
+
+
+_NAMES = {"heat rkc": "HeatFlow", "heat implicit": "HeatFlow", "heat chebyshev": "HeatFlow",
+          "total variation": "AnisotropicFlow", "learned": "LearnedDiffusion",
+          "block": "DiffusionBlock", "extension": "Extension",
+          "closest_point_extension": "closest_point_extension",
+          "pde_extension": "pde_extension"}
+
+
+@pytest.mark.parametrize("transform", ["grad", "vmap"])
+@pytest.mark.parametrize("kind", list(_NAMES))
+def test_flows_refuse_grad_and_vmap_by_name(ellipsoid, transform, kind):
+    """Under torch.func.grad or vmap a flow failed deep inside ("Cannot access data pointer of
+    Tensor that doesn't have storage", or a data-dependent control flow error); now it says
+    what it is and what to use instead."""
+    surface, u = ellipsoid
+    apply = _flows(surface)[kind]
+    if transform == "grad":
+        call = lambda: torch.func.grad(lambda v: apply(v, surface).sum())(u)  # noqa: E731
+        instead = "torch.autograd.grad"
+    else:
+        call = lambda: torch.func.vmap(lambda v: apply(v, surface))(u[:, None])  # noqa: E731
+        instead = "batch dimension"
+    with pytest.raises(NotImplementedError, match=f"{_NAMES[kind]} does not run under "
+                                                  f"torch.func.{transform}.*{instead}"):
+        call()
+
+
+@pytest.mark.parametrize("kind", ["heat implicit", "heat chebyshev", "learned", "block",
+                                  "extension", "closest_point_extension"])
+@pytest.mark.parametrize("mode", ["forward_ad", "jvp"])
+def test_forward_mode_refused_where_there_is_none(ellipsoid, kind, mode):
+    """Where a step has no forward derivative (autograd Functions with a backward only,
+    grid_sample in a dense trilinear extension), forward-mode AD names what refuses it."""
+    surface, u = ellipsoid
+    apply = _flows(surface)[kind]
+    direction = torch.ones_like(u)
+    with pytest.raises(NotImplementedError, match="has no forward-mode derivative"):
+        if mode == "jvp":
+            torch.func.jvp(lambda v: apply(v, surface), (u,), (direction,))
+        else:
+            with forward_ad.dual_level():
+                apply(forward_ad.make_dual(u, direction), surface)
+
+
+@pytest.mark.parametrize("kind", ["heat rkc", "perona_malik", "pde_extension",
+                                  "cubic extension"])
+def test_forward_mode_where_documented(ellipsoid, kind):
+    """The explicit methods, the PDE extension and the tricubic extension carry tangents:
+    equal to a central difference."""
+    surface, u = ellipsoid
+    flows = _flows(surface)
+    flows["cubic extension"] = ts.flows.Extension(interpolation="cubic")
+    flows["perona_malik"] = ts.AnisotropicFlow(2 * surface.spacing**2, "perona_malik", contrast=0.5)
+    apply = flows[kind]
+    direction = torch.rand(u.shape, dtype=u.dtype, generator=torch.Generator().manual_seed(5))
+    with torch.no_grad():
+        difference = (apply(u + 1e-6 * direction, surface)
+                      - apply(u - 1e-6 * direction, surface)) / 2e-6
+    with forward_ad.dual_level():
+        tangent = forward_ad.unpack_dual(apply(forward_ad.make_dual(u, direction),
+                                               surface)).tangent
+    assert float((tangent - difference).abs().max()) < 1e-6 * float(difference.abs().max())
+
+
+def test_no_transform_costs_nothing_outside():
+    from torchsurf._transforms import active_transforms, refuse_transforms
+
+    assert active_transforms() == set()
+    refuse_transforms("anything", torch.zeros(2), forward_mode=False)  # no transform: no error
+    names = []
+    torch.func.vmap(lambda v: names.append(active_transforms()) or v)(torch.zeros(2, 1))
+    assert names == [{"Vmap"}]

@@ -1,0 +1,55 @@
+"""Which derivatives an entry point can take beyond reverse-mode autograd, and a clear refusal
+of the others.
+
+Every operator runs under ``torch.func.grad``, ``vmap`` and ``jvp`` and forward-mode AD
+(:mod:`torch.autograd.forward_ad`). Flows, extensions and the learned layers read host values
+(step counts from bounds, masks through numpy) and call C kernels on raw memory, which
+``torch.func.grad`` and ``vmap`` wrap every tensor against: they refuse both, naming what to use
+instead (``torch.autograd.grad`` or ``loss.backward()``, and a batch dimension). Forward-mode AD
+runs through the flows whose steps are plain tensor operations (Euler, Heun, RKC) and is
+refused where a step is an autograd ``Function`` without a forward derivative (implicit solves,
+Chebyshev expansions, recomputed torchdiffeq pieces, the learned layers) or an operation
+PyTorch has none for (``grid_sample`` in a dense volume's closest-point extension).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+from torch.autograd import forward_ad
+
+_GUIDE = "docs/learning.md, 'Derivatives'"
+
+
+def active_transforms() -> set[str]:
+    """Names (``"Grad"``, ``"Vmap"``, ``"Jvp"``, ...) of the ``torch.func`` transforms the
+    call runs under; empty outside any (or on a PyTorch without the query)."""
+    functorch = getattr(torch._C, "_functorch", None)
+    stack = getattr(functorch, "get_interpreter_stack", None)
+    if stack is None:
+        return set()
+    return {interpreter.key().name for interpreter in (stack() or ())}
+
+
+def refuse_transforms(what: str, *tensors: Tensor, refused: tuple[str, ...] = ("grad", "vmap"),
+                      forward_mode: bool = True, why: str = "") -> None:
+    """Raise ``NotImplementedError`` naming ``what`` under the ``refused`` ``torch.func``
+    transforms (of ``"grad"`` and ``"vmap"``), and, unless ``forward_mode``, under
+    ``torch.func.jvp`` or for any of ``tensors`` carrying a forward-mode tangent (``why`` says
+    what stops it). A few microseconds; nothing while ``torch.compile`` traces."""
+    if torch.compiler.is_compiling():
+        return
+    active = active_transforms()
+    for name, instead in (("grad", "torch.autograd.grad(loss, inputs) or loss.backward()"),
+                          ("vmap", "a batch dimension: stack the inputs along B")):
+        if name in refused and name.capitalize() in active:
+            raise NotImplementedError(
+                f"{what} does not run under torch.func.{name}: it reads host values and "
+                f"calls kernels on raw memory, which the transform wraps; use {instead} ({_GUIDE})")
+    if forward_mode:
+        return
+    if "Jvp" in active or any(
+            isinstance(t, Tensor) and forward_ad.unpack_dual(t).tangent is not None for t in tensors):
+        raise NotImplementedError(
+            f"{what} has no forward-mode derivative{' (' + why + ')' if why else ''}: use "
+            f"reverse mode (torch.autograd.grad), or a method listed in {_GUIDE}")
