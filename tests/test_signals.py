@@ -79,6 +79,43 @@ def test_project_image_refuses_bad_input(sphere):
         signals.project_image(torch.rand(3, 8, 8), points, "triplanar", box)
 
 
+@pytest.mark.parametrize("case", ["nan box", "flat box", "two-entry box", "not a pair",
+                                  "float64 normal", "two-channel normal", "image list",
+                                  "empty image", "integer image", "nan image"])
+def test_project_image_names_what_is_wrong(sphere, case):
+    """A NaN box had projected a constant, a box with low == high every node to the image's
+    border, and float64 normals had promoted the float32 result, all silently; other cases
+    failed inside reshape or grid_sample."""
+    points = signals.closest_points(sphere)
+    image, box, normal = torch.rand(3, 8, 8), (-torch.ones(3), torch.ones(3)), sphere.normal
+    projection, expected = "planar", ValueError
+    if case == "nan box":
+        box, match = (torch.full((3,), math.nan), torch.ones(3)), "box's low"
+    elif case == "flat box":
+        box, match = (torch.zeros(3), torch.zeros(3)), "must lie below high"
+    elif case == "two-entry box":
+        box, match = (torch.zeros(2), torch.ones(2)), "three entries"
+    elif case == "not a pair":
+        box, match = torch.ones(3), "pair"
+    elif case in ("float64 normal", "two-channel normal"):
+        projection, expected, match = "triplanar", (ValueError, TypeError), "normal"
+        normal = normal.double() if case == "float64 normal" else normal[:, :2]
+    elif case == "image list":
+        image, expected, match = [[0.0]], TypeError, "image"
+    elif case == "empty image":
+        image, match = torch.rand(3, 0, 8), "image"
+    elif case == "integer image":
+        image, expected, match = torch.ones(3, 8, 8, dtype=torch.int64), TypeError, "image"
+    else:
+        image[0, 1, 1], match = math.nan, "image"
+    with pytest.raises(expected, match=match):
+        signals.project_image(image, points, projection, box, normal=normal)
+    # lists and arrays are boxes too
+    plain = signals.project_image(torch.rand(3, 8, 8, generator=torch.Generator().manual_seed(0)),
+                                  points, "planar", ([-1, -1, -1], np.ones(3)))
+    assert plain.dtype == points.dtype and bool(torch.isfinite(plain).all())
+
+
 def test_load_image_reads_a_png(tmp_path):
     from skimage import io
 
@@ -351,6 +388,17 @@ def test_noise_counts_and_seeds_are_checked_by_name():
     assert signals.generator(2**64 - 1).initial_seed() == 2**64 - 1
     with pytest.raises(ValueError, match=r"seed must be a whole number in \[0, 2\*\*64\)"):
         signals.gaussian_noise(torch.zeros(1, 1, 3, 3, 3), 1.0, 2**64)
+    # a grain of 1e-3 cells asked the allocator for 48 TB at 9^3 (RuntimeError from it)
+    with pytest.raises(MemoryError, match="surface_noise's lattice of grain 0.001"):
+        signals.surface_noise(surface, 1, 0, grain=1e-3)
+
+
+@pytest.mark.parametrize("centre, error", [((0.0, 0.0), ValueError), ("abc", TypeError),
+                                           ((0.0, math.nan, 0.0), ValueError)])
+def test_swirl_centre_is_checked_by_name(torus, centre, error):
+    """A NaN centre had made every value NaN; a short one failed inside a reshape."""
+    with pytest.raises(error, match="centre"):
+        signals.swirl_field(torus, "z", centre)
 
 
 def test_fields_and_parameters_that_would_broadcast_or_mislead_are_refused(torus):

@@ -20,6 +20,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from . import _memory
 from ._checks import (
     MismatchError,
     as_real_tensor,
@@ -27,7 +28,9 @@ from ._checks import (
     check_count,
     check_nonnegative,
     check_positive,
+    check_real,
     check_tensor,
+    check_triple,
     check_volume,
 )
 from .curvature import tangent_basis
@@ -214,17 +217,31 @@ def project_image(
     Returns:
         ``(B, C, D, H, W)``.
     """
-    if image.dim() != 3:
-        raise ValueError(f"image must have shape (C, H, W), got {tuple(image.shape)}")
+    image = check_tensor(image, "image")
+    if image.dim() != 3 or image.shape[1] < 1 or image.shape[2] < 1:
+        raise ValueError(f"image must have shape (C, H, W) with H, W >= 1, got "
+                         f"{tuple(image.shape)}")
+    if not image.is_floating_point():
+        raise TypeError(f"image must be a floating-point tensor, got {image.dtype}")
+    if not bool(torch.isfinite(image).all()):
+        raise ValueError("image holds NaN or infinity: every projected value would read it")
     check_volume(points, "points", channels=3)
     check_choice(projection, "projection", PROJECTIONS)
-    low, high = (b.to(points).view(1, 3, 1, 1, 1) for b in box)
-    local = (points - 0.5 * (low + high)) / (0.5 * (high - low)).clamp(min=1e-12)
+    low, high = _check_box(box, points)
+    local = (points - 0.5 * (low + high)) / (0.5 * (high - low))
     k = _axis_index(axis)
     i, j = [a for a in range(3) if a != k]
     if projection == "triplanar":
         if normal is None:
             raise ValueError("normal: the triplanar projection blends by the normals, give them")
+        check_volume(normal, "normal", channels=3)
+        if (normal.dtype, normal.device) != (points.dtype, points.device) or (
+                normal.shape[2:] != points.shape[2:]
+                or normal.shape[0] not in (1, points.shape[0])):
+            raise MismatchError(
+                f"normal must be (B or 1, 3, D, H, W) {points.dtype} on {points.device} like "
+                f"points {tuple(points.shape)}, got {tuple(normal.shape)} {normal.dtype} on "
+                f"{normal.device}")
         weights = normal**4
         weights = weights / weights.sum(dim=1, keepdim=True).clamp(min=1e-12)
         result = 0
@@ -241,6 +258,25 @@ def project_image(
     radius = centred.norm(dim=1).clamp(min=1e-12)
     latitude = torch.asin((centred[:, k] / radius).clamp(-1.0, 1.0)) / (0.5 * math.pi)
     return _lookup(image, longitude, latitude)
+
+
+def _check_box(box: object, points: Tensor) -> tuple[Tensor, Tensor]:
+    """``box`` = ``(low, high)``, each three finite world coordinates (tensors, arrays or
+    sequences) with ``low < high`` on every axis, as ``(1, 3, 1, 1, 1)`` tensors like
+    ``points``."""
+    try:
+        low, high = box
+    except (TypeError, ValueError):
+        raise ValueError(f"box must be a pair (low, high) of world (x, y, z) corners, got "
+                         f"{box!r}") from None
+    corners = []
+    for name, corner in (("box's low", low), ("box's high", high)):
+        if isinstance(corner, Tensor):
+            corner = corner.detach().cpu().reshape(-1).tolist() if corner.dim() <= 1 else corner
+        corners.append(check_triple(corner, name, check_real))
+    if any(a >= b for a, b in zip(*corners, strict=True)):
+        raise ValueError(f"box: low {corners[0]} must lie below high {corners[1]} on every axis")
+    return tuple(points.new_tensor(corner).view(1, 3, 1, 1, 1) for corner in corners)
 
 
 SEED_LIMIT = 2**64
@@ -332,6 +368,10 @@ def surface_noise(surface: ImplicitSurface, channels: int, seed: int, grain: flo
         raise ValueError(f"surface must hold one shape, got a batch of {surface.batch_size}")
     lattice = Grid(tuple(math.ceil((n - 1) / grain) + 1 for n in grid.shape),
                    grain * grid.spacing, grid.origin)
+    _memory.check_fits(channels * math.prod(lattice.shape) * surface.phi.dtype.itemsize,
+                       f"surface_noise's lattice of grain {grain:g} cells {lattice.shape} (a "
+                       "grain below 1 cell draws specks the grid cannot show)",
+                       surface.phi.device)
     values = _uniform_volume(channels, lattice, seed, surface.phi.dtype).to(surface.phi.device)
     low = torch.tensor(grid.origin, dtype=values.dtype, device=values.device)
     high = low + torch.tensor(grid.size, dtype=values.dtype, device=values.device)
@@ -359,6 +399,7 @@ def swirl_field(surface: ImplicitSurface, axis: str = "z",
     and unit: ``(B, 3, D, H, W)``. On a surface of revolution about that axis it is already
     tangent (the parallels: on a torus, the minor principal direction, oriented); it vanishes
     only on the axis."""
+    centre = check_triple(centre, "centre", check_real)
     points = node_points(surface)
     offset = points - points.new_tensor(centre).view(1, 3, 1, 1, 1)
     direction = torch.zeros_like(offset)

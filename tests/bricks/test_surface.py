@@ -404,3 +404,12 @@ def test_a_brick_batch_evaluated_under_inference_mode_then_trains():
     trained = u.clone().requires_grad_()
     flow(trained, both).sum().backward()
     assert torch.isfinite(trained.grad).all()
+
+
+@pytest.mark.parametrize("grids", ["g", 64, [None]])
+def test_from_mesh_names_grids_that_are_not_grids(grids):
+    """A string for the grid failed on "'str' object has no attribute 'spacing'"."""
+    import trimesh
+
+    with pytest.raises(TypeError, match="grids must be a torchsurf.Grid"):
+        bricks.from_mesh(trimesh.creation.icosphere(subdivisions=1), grids)

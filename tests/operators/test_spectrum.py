@@ -267,3 +267,23 @@ def test_bad_arguments_are_named(mask, operator, message):
     silently, a string operator raised "'str' object is not callable"."""
     with pytest.raises((TypeError, ValueError), match=message):
         gershgorin_bound(operator or (lambda x: x), mask, torch.float64)
+
+
+def test_the_bound_names_a_band_without_nodes_a_bad_width_and_a_bad_surface():
+    """A band of 1e-9 had given a bound of 0 (a step computed from it infinite), a width "0.3"
+    passed through float(), and a tensor for the surface failed on a missing attribute."""
+    from torchsurf import bricks
+    from torchsurf.operators import laplace_beltrami_bound
+
+    grid = ts.Grid.cube(24, 2.0)
+    dense = ts.ImplicitSurface(ts.sdf.sphere(grid, 0.93), grid)
+    for surface in (dense, bricks.from_dense(dense)):
+        with pytest.raises(ValueError, match="holds no node"):
+            laplace_beltrami_bound(surface, "octant", 1e-9)
+        assert laplace_beltrami_bound(surface, "octant") > 0  # the refusal was not kept
+    with pytest.raises(TypeError, match="width"):
+        laplace_beltrami_bound(dense, "octant", "0.3")
+    with pytest.raises(ValueError, match="width"):
+        laplace_beltrami_bound(dense, "octant", -1.0)
+    with pytest.raises(TypeError, match="surface must be"):
+        laplace_beltrami_bound(dense.phi)

@@ -126,7 +126,14 @@ def mesh_list(meshes: MeshLike | Sequence[MeshLike], grids: Grid | Sequence[Grid
         meshes = [meshes]
     if isinstance(grids, Grid):
         grids = [grids]
-    grids = list(grids)
+    try:
+        grids = list(grids)
+    except TypeError:
+        grids = [grids]
+    for b, grid in enumerate(grids):
+        if not isinstance(grid, Grid):
+            raise TypeError(f"grids must be a torchsurf.Grid or a sequence of one per mesh; "
+                            f"entry {b} is {type(grid).__name__}: {grid!r}")
     if len(meshes) == 0:
         raise ValueError("meshes must hold at least one mesh, got none")
     if len(grids) != len(meshes):

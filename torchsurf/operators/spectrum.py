@@ -25,10 +25,10 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor
 
-from .._checks import check_choice, check_count, check_dtype
+from .._checks import check_choice, check_count, check_dtype, check_positive
 from .._stack import caller_stacklevel
 from ..stencils import NEIGHBOURHOOD, BoxNeighbours
-from ..surface import ImplicitSurface
+from ..surface import ImplicitSurface, check_surface
 from ._flux_form import flux_form_rows
 from ._octant import octant_rows
 from .diffusion import directional_diffusion
@@ -215,10 +215,23 @@ def laplace_beltrami_bound(
 
     Returns:
         The bound, ``1 / world length^2``: one float, the largest over the batch's entries.
+
+    Raises:
+        ValueError: the band of ``width`` holds no node.
     """
-    width = surface.band_width if width is None else float(width)
-    return surface.kept(("laplace_beltrami_bound", scheme, width),
-                        lambda: _warned_if_wild(_band_bound(surface, scheme, width), surface))
+    check_surface(surface)
+    width = surface.band_width if width is None else check_positive(width, "width")
+
+    def formed() -> float:
+        bound = _band_bound(surface, scheme, width)
+        if bound == 0.0:
+            raise ValueError(
+                f"width: the band of half-width {width:g} (world units; h = "
+                f"{surface.spacing:g}) holds no node, so there is no bound to give: widen it to "
+                "a cell or more")
+        return _warned_if_wild(bound, surface)
+
+    return surface.kept(("laplace_beltrami_bound", scheme, width), formed)
 
 
 def keep_laplace_beltrami_bound(surface: ImplicitSurface, scheme: str, width: float,
