@@ -140,6 +140,31 @@ def test_faces_wound_against_their_neighbours_are_reoriented(which):
     torch.testing.assert_close(phi, clean, atol=1e-12, rtol=0)
 
 
+@pytest.mark.parametrize("which", ["random quarter", "every face"])
+@pytest.mark.parametrize("storage", ["dense", "bricks"])
+def test_a_triangle_soup_is_wound_and_closed_by_position(which, storage):
+    """A soup (three vertices of its own per face, as STL stores it) shares no vertex index:
+    its clashing faces went unseen (a quarter flipped: 4417 of 17,808 inside nodes signed
+    outside at 40^3, unwarned) and, every face flipped, it was refused as wound inward under
+    sign='auto'. Vertices are now matched by position: the soup's phi is the clean mesh's."""
+    mesh = trimesh.creation.icosphere(subdivisions=3)
+    vertices, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    chosen = (np.random.default_rng(1).random(len(faces)) < 0.25 if which == "random quarter"
+              else np.ones(len(faces), dtype=bool))
+    flipped = _flipped(faces, chosen)
+    soup = (vertices[flipped].reshape(-1, 3), np.arange(3 * len(faces)).reshape(-1, 3))
+    grid = ts.Grid.cube(24, 2.0)
+    build = ((lambda m: ts.sdf.from_mesh(m, grid, dtype=torch.float64)) if storage == "dense"
+             else (lambda m: ts.bricks.from_mesh(m, grid, dtype=torch.float64).phi))
+    clean = build((vertices, faces))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        phi = build(soup)
+    wound = [w for w in caught if "wound against their neighbours" in str(w.message)]
+    assert len(wound) == (1 if which == "random quarter" else 0)
+    torch.testing.assert_close(phi, clean, atol=1e-12, rtol=0)
+
+
 def test_faces_with_a_repeated_vertex_are_neither_clashes_nor_open_edges():
     """Faces ``[a, a, b]`` (zero area, no winding) added to a well-wound closed mesh had
     ``from_mesh`` warn that faces were wound against their neighbours and ask the user to fix

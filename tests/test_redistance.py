@@ -72,7 +72,8 @@ def test_batch_dtype_and_band() -> None:
     grid = ts.Grid.cube(25, bound=1.3)
     sphere = ts.sdf.sphere(grid, radius=0.8)
     batch = torch.cat((sphere, ellipsoid(grid).float()))
-    result = ts.sdf.redistance(batch, grid, band_width=0.2)
+    with pytest.warns(RuntimeWarning, match="band_width = 1.85 grid spacings"):
+        result = ts.sdf.redistance(batch, grid, band_width=0.2)
     assert result.shape == batch.shape and result.dtype == torch.float32
     assert result.abs().max() <= 0.2 + 1e-6
     assert not batch.requires_grad
