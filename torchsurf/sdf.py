@@ -342,12 +342,12 @@ def from_mesh(
     components still get a sensible inside; signs are right everywhere except in a thin shell
     around holes, where the winding number passes 1/2. An opening wider than the band is
     closed by a cap of phi's zero set on which phi jumps from ``-band_width`` to
-    ``+band_width`` (a ``RuntimeWarning``: operators and flows run on it too). A closed part wholly inside another and
-    wound like it (normals out: an eye modelled inside a head) is solid within solid, no part of
-    S, with a ``RuntimeWarning`` (wound inward, it is a cavity). Faces wound against their neighbours
-    (an edge of two faces that both traverse it the same way) are re-oriented first
-    (``trimesh.repair.fix_winding``, with a ``RuntimeWarning``): both sign methods need a
-    consistent winding. Vertices are matched by position, so a triangle soup (three vertices
+    ``+band_width`` (a ``RuntimeWarning``: operators and flows run on it too). A closed part
+    wholly inside another and wound like it (normals out: an eye modelled inside a head) is
+    solid within solid, no part of S, with a ``RuntimeWarning`` (wound inward, it is a
+    cavity). Faces wound against their neighbours (an edge of two faces that both traverse it
+    the same way) are re-oriented first (``trimesh.repair.fix_winding``, with a
+    ``RuntimeWarning``): both sign methods need a consistent winding. Vertices are matched by position, so a triangle soup (three vertices
     of its own per face, as STL stores it) is wound and closed like the indexed mesh.
 
     Args:
