@@ -347,8 +347,9 @@ def from_mesh(
     solid within solid, no part of S, with a ``RuntimeWarning`` (wound inward, it is a
     cavity). Faces wound against their neighbours (an edge of two faces that both traverse it
     the same way) are re-oriented first (``trimesh.repair.fix_winding``, with a
-    ``RuntimeWarning``): both sign methods need a consistent winding. Vertices are matched by position, so a triangle soup (three vertices
-    of its own per face, as STL stores it) is wound and closed like the indexed mesh.
+    ``RuntimeWarning``): both sign methods need a consistent winding. Vertices are matched by
+    position, so a triangle soup (three vertices of its own per face, as STL stores it) is
+    wound and closed like the indexed mesh.
 
     Args:
         mesh: a ``trimesh.Trimesh``, a path to any file trimesh reads, or a pair
