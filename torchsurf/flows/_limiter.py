@@ -110,11 +110,38 @@ def bounds_of_lists(low: list[Tensor], high: list[Tensor], weights: list[Tensor]
     return weighted_within(low), weighted_within(high)
 
 
+TIES = 64
+"""A value that leaves its bounds by at most this many units of roundoff of its taps' largest
+magnitude is clamped, but its derivative is the stencil's own (the 64 taps), not the bounds'
+(the taps holding the corners' extremes): on constant data the interpolant misses the constant
+by a few units of roundoff either way, and which nodes counted as clamped, hence where their
+gradient went, was decided by rounding (a heat flow's gradient at constant data 0.82 off a
+central difference at every step; the flow is linear, its gradient the same at any data).
+The same rule in the C kernels (``TIES`` there) and in the re-extension's backward
+(``_reextension._scatter_back``)."""
+
+
+def slack(magnitude: Tensor) -> Tensor:
+    """:data:`TIES` units of roundoff of ``magnitude`` (the taps' largest ``|u|``)."""
+    return magnitude * (TIES * torch.finfo(magnitude.dtype).eps)
+
+
+def limit(value: Tensor, lower: Tensor, upper: Tensor, magnitude: Tensor) -> Tensor:
+    """``value`` clamped to ``[lower, upper]`` (all broadcastable); where it leaves them by no
+    more than :func:`slack` of ``magnitude``, with ``value``'s derivative (:data:`TIES`). The
+    values are the clamp's, bit for bit."""
+    clamped = torch.minimum(torch.maximum(value, lower), upper)
+    margin = slack(magnitude)
+    tied = (value >= lower - margin) & (value <= upper + margin) & torch.isfinite(value)
+    return torch.where(tied, clamped.detach() + (value - value.detach()), clamped)
+
+
 def clamp(value: Tensor, low: Tensor, high: Tensor, weights: Tensor) -> Tensor:
-    """``value`` ``(C, N)`` clamped to the :func:`bounds` of the corners' extremes ``low,
-    high`` ``(C, N, 8)`` with the corners' ``weights`` ``(N, 8)``."""
+    """``value`` ``(C, N)`` limited (:func:`limit`) to the :func:`bounds` of the corners'
+    extremes ``low, high`` ``(C, N, 8)`` with the corners' ``weights`` ``(N, 8)``."""
     lower, upper = bounds(low, high, weights)
-    return torch.minimum(torch.maximum(value, lower), upper)
+    magnitude = torch.maximum(low.abs().amax(-1), high.abs().amax(-1))
+    return limit(value, lower, upper, magnitude)
 
 
 CELL = [16 * z + 4 * y + x for z in (1, 2) for y in (1, 2) for x in (1, 2)]

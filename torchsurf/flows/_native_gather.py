@@ -31,6 +31,7 @@ from torch import Tensor
 
 from .._inference import outside_inference
 from .._native import NativeLibrary, carries_tangents, in_parts, in_threads
+from . import _limiter
 from ._recompute import refuse_second_derivatives
 
 
@@ -312,13 +313,20 @@ static void bounds_SUFFIX(const REAL *u, const REAL *weight, REAL *low, REAL *hi
    makes v NaN, as torch's clamp keeps a NaN. */
 static uint8_t clamp_to_bounds_SUFFIX(REAL *v, const REAL *u, const REAL *corners)
 {
-    REAL low, high;
+    REAL low, high, magnitude = 0;
     int nan = 0;
-    for (int t = 0; t < 64; ++t) nan |= u[t] != u[t];
+    for (int t = 0; t < 64; ++t) {
+        nan |= u[t] != u[t];
+        magnitude = fabs(u[t]) > magnitude ? fabs(u[t]) : magnitude;
+    }
     bounds_SUFFIX(u, corners, &low, &high);
     if (nan) { *v = (REAL)NAN; return 0; }
-    if (*v < low) { *v = low; return 1; }
-    if (*v > high) { *v = high; return 2; }
+    /* a value within TIES units of roundoff of its bound is clamped with the code 0: its
+       gradient is the stencil's (torchsurf.flows._limiter.TIES) */
+    const REAL slack = magnitude * (REAL)TIES * (sizeof(REAL) == 4 ? (REAL)FLT_EPSILON
+                                                                   : (REAL)DBL_EPSILON);
+    if (*v < low) { const uint8_t code = *v < low - slack; *v = low; return code; }
+    if (*v > high) { const uint8_t code = *v > high + slack ? 2 : 0; *v = high; return code; }
     return 0;
 }
 
@@ -713,7 +721,8 @@ void brick_taps_readable(const int32_t *bases, const uint8_t *second, const int1
 
 
 def _source() -> str:
-    source = "#include <math.h>\n#include <stdint.h>\n#include <string.h>\n"
+    source = ("#include <float.h>\n#include <math.h>\n#include <stdint.h>\n#include <string.h>\n"
+              f"#define TIES {_limiter.TIES}\n")
     for real, suffix in (("float", "f32"), ("double", "f64")):
         source += _BODY.replace("REAL", real).replace("SUFFIX", suffix)
     return source + _TAPS_READABLE

@@ -314,7 +314,10 @@ def _summed_terms(tap: Callable[[int, int, int], Tensor], weights: Tensor, limit
         low, high = _limiter.corner_extremes_of_taps(taps)
         corners = _limiter.corner_weights(wx, wy, wz).t()
         lower, upper = _limiter.bounds_of_lists(low, high, list(corners))
-        value = torch.minimum(torch.maximum(value, lower), upper)
+        magnitude = low[0].abs()
+        for extreme in (*low[1:], *high):
+            magnitude = torch.maximum(magnitude, extreme.abs())
+        value = _limiter.limit(value, lower, upper, magnitude)
     return value
 
 
