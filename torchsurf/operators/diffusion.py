@@ -145,6 +145,12 @@ def anisotropic_diffusion(
     where it changes within a cell or two (a contrast ``K`` small against the data's gradients)
     the grid does not resolve it: on a torus function with Perona–Malik at ``K = 1.5`` the error
     stayed at 40-75% up to 64^3 (at ``K = 6``: orders 2.1-2.5; an audit, 2026-12-07).
+    ``|P grad u|`` is read from one-sided differences, off by about ``h |Hess u| / 2`` (the
+    Hessian's normal part too), so the second-order regime also needs ``h |Hess u|`` small
+    against ``eps`` (or ``K``): on a torus with data that varies along the normals, total
+    variation at ``eps = 0.5`` erred by 4-10% at 48^3-64^3 with no steady order, 2.8% at
+    ``eps = 1`` and 1.4% at ``eps = 2``, converging (an audit, 2026-12-07). Data constant along
+    the normals (the flows' re-extended data) feel it less (4.3% at ``eps = 0.5``, 64^3).
 
     Args:
         u: ``(B, C, D, H, W)``.
