@@ -281,6 +281,13 @@ def test_mesh_path_resolves_against_the_config_folder_then_the_mesh_dir(tmp_path
         # a picture wider than off-screen VTK draws was written black (exit 0)
         (["render.panels=[input,output,output,output,output]", "render.width=3300"],
          "render.width"),
+        # the CPU generator keeps 32 bits of a seed: 2**32 drew the noise of seed 0 (exit 0)
+        (["signal.seed=4294967296"], "signal.seed"),
+        # overflowed float32 into NaN once the surface was built (exit 1)
+        (["signal.noise=1e300"], "signal.noise"),
+        # interpolations half-worked: "not found" through --set, environment values recorded
+        (["render.height=${render.width}"], "render.height"),
+        (["description=${oc.env:HOME}"], "description"),
     ],
 )
 def test_bad_settings_are_refused_with_their_key(overrides, key, tmp_path, capsys):
@@ -289,6 +296,24 @@ def test_bad_settings_are_refused_with_their_key(overrides, key, tmp_path, capsy
     error = capsys.readouterr().err
     assert f"config error: {key}:" in error
     assert not (tmp_path / "out").exists(), "work was done before the config was refused"
+
+
+def test_interpolations_in_a_file_are_refused_with_their_key(tmp_path, capsys):
+    written = tmp_path / "interpolated.yaml"
+    written.write_text("name: x\nflow: {kind: heat}\nrender:\n  width: 64\n"
+                       "  height: ${render.width}\n")
+    assert cli.main(["run", str(written)]) == cli.EXIT_USAGE
+    assert "config error: render.height: interpolations are not supported" in capsys.readouterr().err
+
+
+def test_a_large_isotropic_weight_is_named_beside_the_time(tmp_path):
+    """flowvis_trefoil with flow.isotropic=1e6 was refused as "flow.time: ... likely unit
+    error", the time being the shipped one."""
+    from torchsurf import experiment
+
+    prepared = experiment.prepare("flowvis_trefoil", [*TINY, "flow.isotropic=1e6"])
+    with pytest.raises(config.ConfigError, match="flow.time: .*flow.isotropic = 1e\\+06"):
+        experiment.run(prepared, tmp_path, log=lambda message: None)
 
 
 def test_bad_config_files_are_refused(tmp_path, capsys):
@@ -602,6 +627,21 @@ def test_list_into_a_reader_that_stops_early_is_quiet(tmp_path):
     assert reader.stderr.read() == b""
 
 
+def test_a_run_into_a_reader_that_stops_early_still_writes_its_files(tmp_path):
+    """``torchsurf run ... | head -1``: the log's next line met a closed pipe, and the run
+    ended as failed (exit 1) with nothing written; losing the log no longer loses the run."""
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    out = tmp_path / "out"
+    runner = subprocess.Popen([sys.executable, "-m", "torchsurf", "run", "heat_sphere", "--set",
+                               *TINY, "--no-progress", "--out", str(out)],
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env,
+                              cwd=tmp_path)
+    assert runner.stdout.readline().startswith(b"heat_sphere:")
+    runner.stdout.close()
+    assert runner.wait(timeout=300) == cli.EXIT_OK, runner.stderr.read().decode()
+    assert sorted(p.name for p in out.iterdir()) == ["heat_sphere.json", "heat_sphere.png"]
+
+
 def test_usage_errors_exit_2(capsys):
     assert cli.main([]) == cli.EXIT_USAGE
     assert cli.main(["paint"]) == cli.EXIT_USAGE
@@ -731,6 +771,29 @@ def test_a_shape_far_from_the_origin_runs_as_at_the_origin(tmp_path):
     assert metrics[1] == pytest.approx(metrics[0], rel=1e-6)
     origin = json.loads((folder / "tv_torus.json").read_text())["grid"]["origin"]
     assert origin[0] == pytest.approx(5e5 - 1.3e-3, abs=1e-6)  # the record stays in world units
+
+
+def test_a_tiny_mesh_is_moved_where_the_record_says(tmp_path):
+    """trimesh's apply_translation skips a move within 1e-8 of the identity: a mesh 1e-9
+    across stayed in place while the record's origin assumed it had moved (9 cells off)."""
+    import json
+
+    import trimesh
+
+    from torchsurf import experiment, mesh
+
+    tiny = trimesh.creation.icosphere(subdivisions=2)
+    tiny.vertices = tiny.vertices * 5e-10 + 7e-10
+    path = tmp_path / "tiny.ply"  # binary: the coordinates kept exactly
+    tiny.export(path)
+    prepared = experiment.prepare("heat_bunny", [f"surface.mesh={path}", *TINY,
+                                                 "grid.layout=dense"])
+    experiment.run(prepared, tmp_path / "out", log=lambda message: None)
+    record = json.loads((tmp_path / "out" / "heat_bunny.json").read_text())
+    expected = mesh.fit_grid(tiny, 24, prepared.experiment.grid.margin)
+    spacing = record["grid"]["spacing"]
+    assert spacing == pytest.approx(expected.spacing, rel=1e-9)
+    assert record["grid"]["origin"] == pytest.approx(list(expected.origin), abs=1e-3 * spacing)
 
 
 def test_layout_auto_takes_bricks_on_large_grids():

@@ -13,7 +13,7 @@ import signal
 import sys
 import tempfile
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from ._signals import signals_held
@@ -127,13 +127,37 @@ def main(argv: Sequence[str] | None = None) -> int:
         try:
             print(list_configs(), flush=True)
         except BrokenPipeError:  # `torchsurf list | head`: the reader had what it wanted
-            devnull = os.open(os.devnull, os.O_WRONLY)
-            os.dup2(devnull, sys.stdout.fileno())  # so that the interpreter's exit flush is quiet
+            _silence_stdout()
         return EXIT_OK
     with warnings.catch_warnings():
         if args.quiet:  # "nothing but errors": the library's RuntimeWarnings too
             warnings.simplefilter("ignore")
         return _run(args, argv)
+
+
+def _silence_stdout() -> None:
+    """Point stdout at the null device, so that the interpreter's exit flush is quiet."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+
+
+def _console_log() -> Callable[[str], None]:
+    """``print``, until stdout fails (a closed pipe, ``| head -1``; a full disk): then nothing
+    more, stdout silenced. Losing the log does not lose the run: a failed ``print`` inside the
+    run had ended it as failed, with nothing written."""
+    failed = False
+
+    def log(message: str) -> None:
+        nonlocal failed
+        if failed:
+            return
+        try:
+            print(message, flush=True)
+        except OSError:
+            failed = True
+            _silence_stdout()
+
+    return log
 
 
 def _run(args: argparse.Namespace, argv: Sequence[str] | None) -> int:
@@ -165,7 +189,7 @@ def _run(args: argparse.Namespace, argv: Sequence[str] | None) -> int:
     except OSError as error:
         print(f"torchsurf: cannot write to {str(out)!r} (--out): {error}", file=sys.stderr)
         return EXIT_USAGE
-    log = (lambda message: None) if args.quiet else print
+    log = (lambda message: None) if args.quiet else _console_log()
     try:
         given = sys.argv[1:] if argv is None else list(argv)
         result = experiment.run(prepared, out,

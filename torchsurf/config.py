@@ -321,8 +321,13 @@ PICTURE_WIDTH_MAX = 16384
 """The widest picture, all panels side by side: :data:`torchsurf.render.PICTURE_WIDTH_MAX`
 (not imported from there, which would load matplotlib and trimesh with the config)."""
 
-SEED_MAX = 2**63 - 1
-"""The largest seed (torch's generators take 64-bit signed seeds)."""
+NOISE_MAX = 1e3
+"""The largest ``signal.noise``: a thousand times the data's range already buries any signal
+(``1e300`` overflowed float32 into NaN after the surface was built, exit 1)."""
+
+SEED_MAX = 2**32 - 1
+"""The largest seed (:data:`torchsurf.signals.SEED_LIMIT`: torch's CPU generator keeps 32 bits
+of a seed, so ``2^32`` repeated ``0``)."""
 
 NAME_MAX = 200
 """The longest run name: its files' temporary names add about 30 characters, and file
@@ -547,6 +552,22 @@ def _drop_replaced_mappings(raw: DictConfig, given: DictConfig, overrides: list[
             del node[last]
 
 
+def _refuse_interpolations(given: object, path: str = "") -> None:
+    """Raise naming the key of a value holding an omegaconf interpolation (``${...}``): they
+    half-worked (resolved in text settings, environment values copied into the record;
+    refused in numbers as quoted text, or "not found" through ``--set``)."""
+    if isinstance(given, dict):
+        for key, value in given.items():
+            _refuse_interpolations(value, f"{path}.{key}" if path else str(key))
+    elif isinstance(given, list):
+        for index, value in enumerate(given):
+            _refuse_interpolations(value, f"{path}[{index}]")
+    elif isinstance(given, str) and "${" in given:
+        raise ConfigError(path, f"interpolations are not supported, got {given!r}: write the "
+                          "value itself (a relative mesh path is looked for beside the config, "
+                          f"then in ${MESH_DIR_VARIABLE})")
+
+
 def _refuse_quoted_numbers(given: object, merged: DictConfig, path: str = "") -> None:
     """Raise naming the key of a value that omegaconf would convert to the setting's type: a
     number written as a string (``steps: '5'``), a number or a boolean where text belongs
@@ -610,6 +631,10 @@ def load(config: str | os.PathLike, overrides: list[str] | None = None) -> tuple
         raise ConfigError("", f"{path} must hold a mapping of settings, got a list")
     _refuse_unusual_numbers(yaml.compose(path.read_text(encoding="utf-8"), Loader=yaml.SafeLoader))
     overrides = parse_overrides(overrides or [])
+    _refuse_interpolations(OmegaConf.to_container(raw, resolve=False))
+    for item in overrides:
+        key, _, value = item.partition("=")
+        _refuse_interpolations(value, key.strip())
     try:
         given = _dotlist(overrides)
         _drop_replaced_mappings(raw, given, overrides)
@@ -717,6 +742,9 @@ def check(experiment: Experiment) -> None:
                           f"{(size - 1) / 2:g} cells (two specks across the grid), got "
                           f"{grain!r}")
     _at_least_zero(signal.noise, "signal.noise")
+    if signal.noise > NOISE_MAX:
+        raise ConfigError("signal.noise", f"must be at most {NOISE_MAX:g} (standard deviations "
+                          f"of the data's range 0-1), got {signal.noise!r}")
     if signal.noise > 0 and signal.kind in (SignalKind.noise, SignalKind.turk):
         raise ConfigError("signal.noise", f"must be 0 with signal.kind={signal.kind.name} "
                           f"(the signal is noise itself), got {signal.noise!r}")

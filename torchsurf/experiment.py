@@ -133,8 +133,12 @@ def prepare(config: str | os.PathLike, overrides: list[str] | None = None) -> Pr
         image = Path(image_name).expanduser()
         image = image if image.is_absolute() else folder / image
         if not image.is_file():
+            first = ("" if Path(image_name).expanduser().is_absolute() else
+                     "; a relative path is looked for in the folder of the config that names "
+                     f"it; one given with --set first in the current folder, {Path.cwd()}")
             raise ConfigError("signal.image", f"neither a built-in image "
-                              f"({', '.join(signals.IMAGES)}) nor a file: {str(image)!r}")
+                              f"({', '.join(signals.IMAGES)}) nor a file: {str(image)!r}"
+                              f"{first}")
         try:  # read now, so that a file that is no image fails before any work
             channels = signals.load_image(image).shape[0]
         except Exception as error:  # noqa: BLE001 (scikit-image raises its readers' errors)
@@ -267,7 +271,9 @@ def build_surface(prepared: Prepared) -> ImplicitSurface:
     if prepared.mesh_path is not None:
         mesh = prepared.mesh if prepared.mesh is not None else meshes.load(str(prepared.mesh_path))
         mesh = mesh.copy()
-        mesh.apply_translation(-centre)
+        # not apply_translation: trimesh skips a move within 1e-8 of the identity, and a mesh
+        # 1e-9 across was left in place while the record said it had moved (9 cells off)
+        mesh.vertices = np.asarray(mesh.vertices) - centre
         grid = meshes.fit_grid(mesh, size, margin)
         try:  # the mesh read, but no surface on the grid (one triangle, an open sheet)
             if packed:
@@ -404,11 +410,16 @@ def _time_named(experiment: Experiment, physical: dict[str, float]) -> Iterator[
         yield
     except flows.BeyondEquilibrium as error:
         unit = cfg.time_unit(experiment.flow).name
+        isotropic = experiment.flow.isotropic
+        faster = (f"; the diffusion includes flow.isotropic = {isotropic:g} times an isotropic "
+                  "term, which speeds it up as much: lower it or the time"
+                  if isotropic is not None and isotropic > 1.0 else "")
         raise ConfigError("flow.time", (
             f"{experiment.flow.time:g} ({unit}) is {physical['time']:.3g} in world units on "
             f"this shape, {error.crossings:.3g} times the time the diffusion takes to cross "
             f"the whole grid: the flow reaches its equilibrium long before, and more than "
-            f"{flows.EQUILIBRIUM_CROSSINGS} times is refused as a likely unit error")) from error
+            f"{flows.EQUILIBRIUM_CROSSINGS} times is refused as a likely unit error"
+            f"{faster}")) from error
 
 
 def build_flow(experiment: Experiment, physical: dict[str, float], progress: bool

@@ -279,8 +279,9 @@ def _check_box(box: object, points: Tensor) -> tuple[Tensor, Tensor]:
     return tuple(points.new_tensor(corner).view(1, 3, 1, 1, 1) for corner in corners)
 
 
-SEED_LIMIT = 2**64
-"""Seeds lie in ``[0, 2^64)``, the range of ``torch.Generator.manual_seed``."""
+SEED_LIMIT = 2**32
+"""Seeds lie in ``[0, 2^32)``: ``torch.Generator.manual_seed`` takes 64-bit seeds, but the CPU
+generator (mt19937) keeps their low 32 bits, so ``2^32`` drew what ``0`` draws."""
 
 
 def _drawn_as(dtype: torch.dtype) -> torch.dtype:
@@ -291,11 +292,12 @@ def _drawn_as(dtype: torch.dtype) -> torch.dtype:
 
 
 def generator(seed: int) -> torch.Generator:
-    """A CPU ``torch.Generator`` seeded with ``seed`` (a whole number in ``[0, 2^64)``): the
-    same seed gives the same noise."""
+    """A CPU ``torch.Generator`` seeded with ``seed`` (a whole number in ``[0, 2^32)``,
+    :data:`SEED_LIMIT`): the same seed gives the same noise, different seeds different noise."""
     seed = check_count(seed, "seed", minimum=0)
     if seed >= SEED_LIMIT:
-        raise ValueError(f"seed must be a whole number in [0, 2**64), got {seed}")
+        raise ValueError(f"seed must be a whole number in [0, 2**32) (the CPU generator keeps "
+                         f"32 bits of a seed: larger ones repeat smaller ones), got {seed}")
     return torch.Generator().manual_seed(seed)
 
 
