@@ -375,3 +375,5 @@ def test_a_band_narrower_than_the_operators_read_is_warned_of() -> None:
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         ts.sdf.from_mesh(mesh, grid, band_width=4 * grid.spacing)
+        # the adapters compute phi out to 5 cells whatever their data band: no clamp to warn of
+        ts.MeshAdapter(mesh, grid, band_width=2 * grid.spacing)

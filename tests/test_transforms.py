@@ -141,3 +141,60 @@ def test_no_transform_costs_nothing_outside():
     names = []
     torch.func.vmap(lambda v: names.append(active_transforms()) or v)(torch.zeros(2, 1))
     assert names == [{"Vmap"}]
+
+
+@pytest.mark.parametrize("storage", ["dense", "bricks"])
+def test_jvp_on_a_fresh_surface(storage):
+    """The surface's kept state (band, stencils) formed under torch.func.jvp had been wrapped
+    tensors, refused by the numpy and C code forming it: a first call failed ("Cannot access
+    data pointer"); it is now formed beneath the transform, and later plain calls reuse it."""
+    grid = ts.Grid.cube(22, 2.0)
+    x, y, z = grid.points(dtype=torch.float64).unbind(-1)
+    phi = (((x / 1.1) ** 2 + y**2 + (z / 0.8) ** 2).sqrt() - 1.0)[None, None]
+    surface = ts.ImplicitSurface(phi, grid)
+    if storage == "bricks":
+        surface = ts.bricks.from_dense(surface)
+    generator = torch.Generator().manual_seed(3)
+    u = torch.rand((1, 1, *grid.shape), dtype=torch.float64, generator=generator)
+    direction = torch.rand(u.shape, dtype=u.dtype, generator=generator)
+    if storage == "bricks":
+        u, direction = surface.from_dense(u), surface.from_dense(direction)
+    flow = ts.HeatFlow(2 * surface.spacing**2)
+    tangent = torch.func.jvp(lambda v: flow(v, surface), (u,), (direction,))[1]
+    assert not torch._C._functorch.is_functorch_wrapped_tensor(surface.band_mask())
+    with torch.no_grad():
+        difference = (flow(u + 1e-6 * direction, surface)
+                      - flow(u - 1e-6 * direction, surface)) / 2e-6
+    assert float((tangent - difference).abs().max()) < 1e-6 * float(difference.abs().max())
+
+
+def test_forward_mode_through_a_learned_time():
+    """A learned time records the steps in recomputed groups and re-extensions by autograd
+    Functions without forward derivatives: forward_ad failed inside them."""
+    grid = ts.Grid.cube(18, 1.6)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, dtype=torch.float64), grid)
+    u = torch.rand((1, 1, *grid.shape), dtype=torch.float64,
+                   generator=torch.Generator().manual_seed(1))
+    direction = torch.ones_like(u)
+    flow = ts.HeatFlow(2 * surface.spacing**2, learn_time=True).double()
+    with forward_ad.dual_level():
+        tangent = forward_ad.unpack_dual(flow(forward_ad.make_dual(u, direction),
+                                              surface)).tangent
+    with torch.no_grad():
+        difference = (flow(u + 1e-6 * direction, surface)
+                      - flow(u - 1e-6 * direction, surface)) / 2e-6
+    assert float((tangent - difference).abs().max()) < 1e-6 * float(difference.abs().max())
+
+
+def test_colour_denoising_and_brick_extensions_refuse_by_their_own_name():
+    grid = ts.Grid.cube(22, 2.0)
+    dense = ts.ImplicitSurface(ts.sdf.sphere(grid, 0.9), grid)
+    image = torch.rand((1, 3, *grid.shape))
+    with pytest.raises(NotImplementedError, match="ColorDenoise does not run under torch.func.vmap"):
+        torch.func.vmap(lambda v: ts.ColorDenoise(0.01)(v, dense))(image[:, None])
+    with pytest.raises(NotImplementedError, match="ColorDenoise does not run under torch.func.grad"):
+        torch.func.grad(lambda v: ts.ColorDenoise(0.01)(v, dense).sum())(image)
+    packed = ts.bricks.from_dense(dense)
+    field = packed.from_dense(image[:, :1])
+    with pytest.raises(NotImplementedError, match="Extension does not run under torch.func.vmap"):
+        torch.func.vmap(lambda v: ts.flows.Extension()(v, packed))(field[:, None])

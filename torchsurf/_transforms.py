@@ -14,6 +14,9 @@ PyTorch has none for (``grid_sample`` in a dense volume's closest-point extensio
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import ExitStack, contextmanager
+
 import torch
 from torch import Tensor
 from torch.autograd import forward_ad
@@ -53,3 +56,27 @@ def refuse_transforms(what: str, *tensors: Tensor, refused: tuple[str, ...] = ("
         raise NotImplementedError(
             f"{what} has no forward-mode derivative{' (' + why + ')' if why else ''}: use "
             f"reverse mode (torch.autograd.grad), or a method listed in {_GUIDE}")
+
+
+@contextmanager
+def outside_transforms(*reads: Tensor) -> Iterator[None]:
+    """Run the block beneath every active ``torch.func`` transform, so that what it computes
+    from ``reads`` (plain tensors: a surface's ``phi``) is plain too: a surface's kept state
+    formed under ``torch.func.jvp`` had been the transform's wrapped tensors, which the numpy
+    and C code forming it refused ("Cannot access data pointer of Tensor that doesn't have
+    storage") on a surface's first call. Nothing changes outside transforms, or where one of
+    ``reads`` is itself transformed (``phi`` under the transform: its state is the
+    transform's)."""
+    functorch = getattr(torch._C, "_functorch", None)
+    stack = getattr(functorch, "get_interpreter_stack", None)
+    depth = len((stack() if stack is not None else None) or ())
+    wrapped = getattr(functorch, "is_functorch_wrapped_tensor", None)
+    if depth == 0 or wrapped is None or any(wrapped(t) for t in reads):
+        yield
+        return
+    from torch._functorch.pyfunctorch import temporarily_pop_interpreter_stack
+
+    with ExitStack() as popped:
+        for _ in range(depth):
+            popped.enter_context(temporarily_pop_interpreter_stack())
+        yield

@@ -294,7 +294,7 @@ class MeshAdapter(nn.Module):
         self.order = check_decode_order(order)
         mesh = as_trimesh(mesh, "mesh")
         grid = fit_grid(mesh, resolution) if grid is None else grid
-        width = check_adapter_band(sdf._band(grid, band_width), grid.spacing)
+        width = check_adapter_band(sdf._band(grid, band_width, clamps=False), grid.spacing)
         reach = max(width, sdf.BAND_NODES * grid.spacing)
         _memory.check_fits(
             _memory.mesh_adapter_bytes(grid.shape, grid.spacing, reach, float(mesh.area), dtype,

@@ -309,13 +309,16 @@ them accuracy. Heat flow of ``z / r`` to ``t = 0.05`` on an icosphere (5 subdivi
 3.4e-3 with 3, 6.7e-3 with 2 (an exact sphere distance clamped alike gives the same)."""
 
 
-def _band(grid: Grid, band_width: float | None) -> float:
+def _band(grid: Grid, band_width: float | None, clamps: bool = True) -> float:
+    """``band_width`` checked (default :data:`BAND_NODES` cells); warned of below
+    :data:`NARROW_BAND_NODES` cells where it ``clamps`` phi (the adapters compute phi out to 5
+    cells whatever their band)."""
     if not isinstance(grid, Grid):
         raise TypeError(f"grid must be a torchsurf.Grid, got {type(grid).__name__}")
     if band_width is None:
         return BAND_NODES * grid.spacing
     width = check_positive(band_width, "band_width")
-    if width < NARROW_BAND_NODES * grid.spacing * (1 - 1e-9):
+    if clamps and width < NARROW_BAND_NODES * grid.spacing * (1 - 1e-9):
         warnings.warn(
             f"band_width = {width / grid.spacing:.3g} grid spacings clamps phi inside what the "
             f"operators on the surface's band read (about {NARROW_BAND_NODES:g} spacings and "

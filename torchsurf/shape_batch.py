@@ -249,7 +249,8 @@ class MeshBatchAdapter(nn.Module):
         order = check_decode_order(order)
         self.grid = Grid.cube(resolution, bound=0.5 * size * (1.0 + 2.0 * margin))
         if band_width is not None:
-            check_adapter_band(sdf._band(self.grid, band_width), self.grid.spacing)
+            check_adapter_band(sdf._band(self.grid, band_width, clamps=False),
+                               self.grid.spacing)
         phis, scales, centres, adapters = [], [], [], []
         for index, shape in enumerate(shapes):
             name = f"shapes[{index}]"

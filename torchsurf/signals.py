@@ -276,7 +276,9 @@ def _check_box(box: object, points: Tensor) -> tuple[Tensor, Tensor]:
         corners.append(check_triple(corner, name, check_real))
     if any(a >= b for a, b in zip(*corners, strict=True)):
         raise ValueError(f"box: low {corners[0]} must lie below high {corners[1]} on every axis")
-    return tuple(points.new_tensor(corner).view(1, 3, 1, 1, 1) for corner in corners)
+    # tensors as given: a box that requires grad keeps its gradient
+    return tuple((given.to(points) if isinstance(given, Tensor) else points.new_tensor(checked))
+                 .view(1, 3, 1, 1, 1) for given, checked in zip((low, high), corners, strict=True))
 
 
 SEED_LIMIT = 2**32

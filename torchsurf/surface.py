@@ -25,6 +25,7 @@ from ._checks import (
 )
 from ._inference import outside_inference
 from ._stack import caller_stacklevel
+from ._transforms import outside_transforms
 from ._vectors import tangential_part
 from .grid import Grid
 
@@ -756,7 +757,7 @@ class ImplicitSurface(nn.Module):
                                      and self._kept[key]._version != version):
             # a kept tensor modified in place (a flow's band mask a caller narrowed) is
             # computed again: later flows would otherwise read the caller's edit
-            with outside_inference():
+            with outside_inference(), outside_transforms(self.phi):
                 value = compute()
             self._kept[key] = value
             versions[key] = value._version if isinstance(value, Tensor) else None
@@ -900,7 +901,7 @@ class ImplicitSurface(nn.Module):
         self._current_phi()
         if self._haloed_normal is not None:
             return self._haloed_normal, self._haloed_weight
-        with outside_inference():
+        with outside_inference(), outside_transforms(self.phi):
             normal, weight = self._haloed_geometry()
         if torch.is_grad_enabled() or not self.phi.requires_grad:
             self._haloed_normal, self._haloed_weight = normal, weight
@@ -969,7 +970,7 @@ class ImplicitSurface(nn.Module):
         if kept is not None and (torch.compiler.is_compiling()
                                  or kept._version == self._mean_curvature_version):
             return kept
-        with outside_inference():
+        with outside_inference(), outside_transforms(self.phi):
             value = self._faded(curvature.mean_curvature(self._gradient(), self.hessian(),
                                                          self._directed_norm))
         if torch.is_grad_enabled() or not self.phi.requires_grad:

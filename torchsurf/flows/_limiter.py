@@ -110,12 +110,13 @@ def bounds_of_lists(low: list[Tensor], high: list[Tensor], weights: list[Tensor]
     return weighted_within(low), weighted_within(high)
 
 
-TIES = 64
+TIES = 8
 """A value that leaves its bounds by at most this many units of roundoff of its taps' largest
 magnitude is clamped, but its derivative is the stencil's own (the 64 taps), not the bounds'
 (the taps holding the corners' extremes): on constant data the interpolant misses the constant
-by a few units of roundoff either way, and which nodes counted as clamped, hence where their
-gradient went, was decided by rounding (a heat flow's gradient at constant data 0.82 off a
+by up to 2.6 units of roundoff either way (a review, 2026-12-07; 64 took real clamps of float32
+data offset by 10 for ties, gradients 4e-3 off), and which nodes counted as clamped, hence
+where their gradient went, was decided by rounding (a heat flow's gradient at constant data 0.82 off a
 central difference at every step; the flow is linear, its gradient the same at any data).
 The same rule in the C kernels (``TIES`` there) and in the re-extension's backward
 (``_reextension._scatter_back``)."""

@@ -20,6 +20,8 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor
 
+from .._native import carries_tangents
+
 
 def recomputed(function: Callable[[Tensor], Tensor], u: Tensor, reads: Sequence[Tensor]) -> Tensor:
     """``function(u)``, differentiable in ``u`` and ``reads``, keeping nothing but them.
@@ -34,7 +36,9 @@ def recomputed(function: Callable[[Tensor], Tensor], u: Tensor, reads: Sequence[
             needing gradients other than through them (a gradient would be lost).
     """
     reads = [t for t in reads if isinstance(t, Tensor) and t.requires_grad]
-    if not torch.is_grad_enabled() or not (u.requires_grad or reads):
+    # forward-mode tangents stores nothing per step: recorded plainly (the autograd Function
+    # has no forward derivative: a learned time's flow under forward_ad failed inside it)
+    if not torch.is_grad_enabled() or not (u.requires_grad or reads) or carries_tangents(u):
         return function(u)
     if torch.compiler.is_compiling():  # a traced graph recomputes what it checkpoints
         return torch.utils.checkpoint.checkpoint(function, u, use_reentrant=False)

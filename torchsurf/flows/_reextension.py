@@ -20,6 +20,7 @@ import torch
 from torch import Tensor
 
 from .. import backend
+from .._native import carries_tangents
 from ..surface import ImplicitSurface
 from . import _closest, _limiter
 from .extension import BrickCubicStencil, CubicStencil, _corner_base, cubic_stencil, stencil_key
@@ -84,7 +85,7 @@ def reextend(stencil: Stencil, u: Tensor, path: str = "auto") -> Tensor:
     """
     weights = stencil.parts[0][2] if isinstance(stencil, CubicStencil) else stencil.weights
     if (torch.is_grad_enabled() and u.requires_grad and not weights.requires_grad
-            and not torch.compiler.is_compiling()):
+            and not torch.compiler.is_compiling() and not carries_tangents(u)):
         # traced, the gather's own derivative: dynamo traces an autograd function's backward
         # with its forward, and this one's host-sized selections broke the graph there
         return _Reextend.apply(stencil, u, path)

@@ -6,6 +6,7 @@ import torch
 from torch import Tensor, nn
 
 from .._checks import check_finite, check_positive
+from .._transforms import refuse_transforms
 from ..surface import ImplicitSurface, check_data, check_surface
 from ._positive import check_learned_values
 from .anisotropic import AnisotropicFlow
@@ -111,6 +112,7 @@ class ColorDenoise(nn.Module):
     def forward(self, image: Tensor, surface: ImplicitSurface) -> Tensor:
         """The denoised ``image``: ``(B, C, D, H, W)`` (or packed ``(N, C, 8, 8, 8)`` on a
         :class:`~torchsurf.bricks.BrickSurface`), ``C >= 2``, in the same shape."""
+        refuse_transforms("ColorDenoise", image)  # its flows check forward mode themselves
         check_surface(surface)
         if surface.layout is not None and not self.supports_bricks:
             names = [type(flow).__name__ for flow in (self.chroma, self.brightness)

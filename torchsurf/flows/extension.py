@@ -101,8 +101,8 @@ def closest_point_extension(
     ``u`` reaches every node whose interpolation reads it (one node of a tricubic extension:
     about a hundred). :class:`Extension` and the flows refuse such ``u``, naming it.
     """
-    check_data(u, "u", surface)
     refuse_transforms("closest_point_extension", u)
+    check_data(u, "u", surface)
     check_choice(interpolation, "interpolation", INTERPOLATIONS)
     check_choice(path, "path", backend.PATHS)
     if width is not None and mask is not None:
@@ -1013,8 +1013,8 @@ def pde_extension(
     Returns:
         ``u``'s shape.
     """
-    check_data(u, "u", surface)
     refuse_transforms("pde_extension", u)
+    check_data(u, "u", surface)
     check_positive(tolerance, "tolerance")
     h = surface.spacing
     width = surface.band_width if width is None else check_positive(width, "width")
@@ -1115,8 +1115,8 @@ class Extension(nn.Module):
             ValueError: ``u`` holds NaN or infinity where it is read (the flows refuse it too:
                 it would spread through the extension silently).
         """
+        refuse_transforms(type(self).__name__, u)  # first: under vmap, u is one entry
         check_data(u, "u", surface)
-        refuse_transforms(type(self).__name__, u)
         band = _band_to_extend(surface, self.width)
         if self.method == "closest_point" and self.interpolation == "cubic":
             stencil = cubic_stencil(surface, band, limited=self.limited)
