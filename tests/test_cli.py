@@ -642,6 +642,22 @@ def test_a_run_into_a_reader_that_stops_early_still_writes_its_files(tmp_path):
     assert sorted(p.name for p in out.iterdir()) == ["heat_sphere.json", "heat_sphere.png"]
 
 
+def test_warnings_during_a_run_are_one_line_without_pythons_location(tmp_path, capsys):
+    """From the command line the library's warnings named ``<frozen runpy>:88`` (the first
+    frame outside torchsurf) and printed the source line; now ``torchsurf: <category>: ...``."""
+    import trimesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=3)
+    opened = trimesh.Trimesh(sphere.vertices, sphere.faces[sphere.triangles_center[:, 2] > 0])
+    opened.export(tmp_path / "opened.ply")
+    code = cli.main(["run", "heat_bunny", "--set", f"surface.mesh={tmp_path / 'opened.ply'}",
+                     *TINY, "--no-progress", "--out", str(tmp_path / "out")])
+    assert code == cli.EXIT_OK
+    err = capsys.readouterr().err
+    assert "torchsurf: RuntimeWarning: mesh: open, with an opening wider than the band" in err
+    assert "runpy" not in err and "warnings.warn" not in err
+
+
 def test_usage_errors_exit_2(capsys):
     assert cli.main([]) == cli.EXIT_USAGE
     assert cli.main(["paint"]) == cli.EXIT_USAGE

@@ -132,7 +132,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     with warnings.catch_warnings():
         if args.quiet:  # "nothing but errors": the library's RuntimeWarnings too
             warnings.simplefilter("ignore")
+        warnings.showwarning = _show_warning
         return _run(args, argv)
+
+
+def _show_warning(message: Warning | str, category: type[Warning], filename: str, lineno: int,
+                  file: object = None, line: str | None = None) -> None:
+    """A warning during a run as one line on stderr, ``torchsurf: <category>: <message>``: the
+    library names the frame outside it, which from the command line is Python's own
+    (``<frozen runpy>:88``)."""
+    try:
+        print(f"torchsurf: {category.__name__}: {message}", file=sys.stderr)
+    except OSError:
+        pass
 
 
 def _silence_stdout() -> None:
