@@ -642,7 +642,7 @@ def test_a_run_into_a_reader_that_stops_early_still_writes_its_files(tmp_path):
     assert sorted(p.name for p in out.iterdir()) == ["heat_sphere.json", "heat_sphere.png"]
 
 
-def test_warnings_during_a_run_are_one_line_without_pythons_location(tmp_path, capsys):
+def test_warnings_during_a_run_are_one_line_without_pythons_location(tmp_path):
     """From the command line the library's warnings named ``<frozen runpy>:88`` (the first
     frame outside torchsurf) and printed the source line; now ``torchsurf: <category>: ...``."""
     import trimesh
@@ -650,12 +650,20 @@ def test_warnings_during_a_run_are_one_line_without_pythons_location(tmp_path, c
     sphere = trimesh.creation.icosphere(subdivisions=3)
     opened = trimesh.Trimesh(sphere.vertices, sphere.faces[sphere.triangles_center[:, 2] > 0])
     opened.export(tmp_path / "opened.ply")
-    code = cli.main(["run", "heat_bunny", "--set", f"surface.mesh={tmp_path / 'opened.ply'}",
-                     *TINY, "--no-progress", "--out", str(tmp_path / "out")])
-    assert code == cli.EXIT_OK
-    err = capsys.readouterr().err
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    done = subprocess.run([sys.executable, "-m", "torchsurf", "run", "heat_bunny", "--set",
+                           f"surface.mesh={tmp_path / 'opened.ply'}", *TINY, "--no-progress",
+                           "--out", str(tmp_path / "out")], capture_output=True, text=True,
+                          env=env, cwd=tmp_path, timeout=300)
+    assert done.returncode == cli.EXIT_OK, done.stderr
+    err = done.stderr
     assert "torchsurf: RuntimeWarning: mesh: open, with an opening wider than the band" in err
     assert "runpy" not in err and "warnings.warn" not in err
+    quiet = subprocess.run([sys.executable, "-m", "torchsurf", "run", "heat_bunny", "--set",
+                            f"surface.mesh={tmp_path / 'opened.ply'}", *TINY, "--quiet",
+                            "--out", str(tmp_path / "out")], capture_output=True, text=True,
+                           env=env, cwd=tmp_path, timeout=300)
+    assert quiet.returncode == cli.EXIT_OK and quiet.stderr == "" and quiet.stdout == ""
 
 
 def test_usage_errors_exit_2(capsys):
@@ -821,6 +829,17 @@ def test_layout_auto_takes_bricks_on_large_grids():
     assert config.layout(experiment.grid) is config.Layout.bricks
     experiment.grid.layout = config.Layout.dense
     assert config.layout(experiment.grid) is config.Layout.dense
+    # below BRICKS_ALWAYS_FROM a margin too small for bricks keeps the dense volume; from
+    # there bricks, and the margin is refused naming grid.layout=dense
+    experiment.grid.layout = config.Layout.auto
+    experiment.grid.margin = 0.05
+    assert config.layout(experiment.grid) is config.Layout.dense
+    config.check(experiment)
+    experiment.grid.size = config.BRICKS_ALWAYS_FROM
+    experiment.grid.margin = 0.02
+    assert config.layout(experiment.grid) is config.Layout.bricks
+    with pytest.raises(config.ConfigError, match="grid.margin.*grid.layout=dense"):
+        config.check(experiment)
 
 
 @pytest.mark.parametrize("name", [

@@ -132,19 +132,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     with warnings.catch_warnings():
         if args.quiet:  # "nothing but errors": the library's RuntimeWarnings too
             warnings.simplefilter("ignore")
-        warnings.showwarning = _show_warning
-        return _run(args, argv)
+        previous, warnings.formatwarning = warnings.formatwarning, _format_warning
+        try:
+            return _run(args, argv)
+        finally:
+            warnings.formatwarning = previous
 
 
-def _show_warning(message: Warning | str, category: type[Warning], filename: str, lineno: int,
-                  file: object = None, line: str | None = None) -> None:
-    """A warning during a run as one line on stderr, ``torchsurf: <category>: <message>``: the
-    library names the frame outside it, which from the command line is Python's own
-    (``<frozen runpy>:88``)."""
-    try:
-        print(f"torchsurf: {category.__name__}: {message}", file=sys.stderr)
-    except OSError:
-        pass
+def _format_warning(message: Warning | str, category: type[Warning], filename: str,
+                    lineno: int, line: str | None = None) -> str:
+    """A warning during a run as one line, ``torchsurf: <category>: <message>``: the library
+    names the frame outside it, which from the command line is Python's own (``<frozen
+    runpy>:88``), with its source line."""
+    return f"torchsurf: {category.__name__}: {message}\n"
 
 
 def _silence_stdout() -> None:

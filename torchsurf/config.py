@@ -114,15 +114,24 @@ class TimeUnit(Enum):
 
 class Layout(Enum):
     """How the run stores its volumes (docs/bricks.md): the dense box, the band's 8^3 bricks,
-    or ``auto`` (bricks from :data:`BRICKS_FROM` nodes per axis)."""
+    or ``auto`` (bricks from :data:`BRICKS_FROM` nodes per axis where the margin allows)."""
 
     auto = "auto"
     dense = "dense"
     bricks = "bricks"
 
 
-BRICKS_FROM = 128
-"""Grid size from which ``layout: auto`` stores bricks."""
+BRICKS_FROM = 64
+"""Grid size from which ``layout: auto`` stores bricks, where ``grid.margin`` leaves them the
+:data:`BRICK_MARGIN_CELLS` they need (below :data:`BRICKS_ALWAYS_FROM`; from there always).
+At the shipped mesh configs' sizes (64^3-96^3) bricks ran the flow stage in 0.38-0.71 of the
+dense time (colour denoising of the teapot 0.38, spots 0.45, harmonic maps 0.66, Perona-Malik and
+total variation 0.71; the heat flow 1.37), with the same metrics; at 48^3 dense ran the built-in
+shapes 2-3x faster (docs/cli.md, "Dense or bricks")."""
+
+BRICKS_ALWAYS_FROM = 128
+"""Grid size from which ``layout: auto`` stores bricks whatever the margin (a margin too small
+for them is refused, naming ``grid.layout=dense``: a dense volume there is large)."""
 
 DENSE_MARGIN_CELLS = 2.0
 """Free cells dense volumes need around the shape's box: S two cells inside the box, where
@@ -158,7 +167,7 @@ class SurfaceConfig:
 class GridConfig:
     """``size``: nodes per axis (a cube); ``margin``: free space on each side of the shape's
     box, a fraction of its longest side; ``layout``: dense volumes, the band's bricks, or
-    ``auto`` (bricks from :data:`BRICKS_FROM` nodes per axis)."""
+    ``auto`` (bricks from :data:`BRICKS_FROM` nodes per axis where the margin allows)."""
 
     size: int = 64
     margin: float = 0.15
@@ -360,7 +369,7 @@ def _check_margin(grid: GridConfig, where: str) -> None:
     bricks = layout(grid) is Layout.bricks
     least = BRICK_MARGIN_CELLS if bricks else DENSE_MARGIN_CELLS
     size, margin = grid.size, grid.margin
-    cells = margin * (size - 1) / (1 + 2 * margin)
+    cells = _margin_cells(grid)
     if cells < least:
         needed = least / (size - 1 - 2 * least)
         advice = (f"use grid.margin >= {math.ceil(needed * 1000) / 1000:g}"
@@ -374,10 +383,20 @@ def _check_margin(grid: GridConfig, where: str) -> None:
 
 
 def layout(grid: GridConfig) -> Layout:
-    """``grid.layout`` with ``auto`` resolved: bricks from :data:`BRICKS_FROM` nodes per axis."""
+    """``grid.layout`` with ``auto`` resolved: bricks from :data:`BRICKS_FROM` nodes per axis
+    where the margin leaves :data:`BRICK_MARGIN_CELLS`, and from :data:`BRICKS_ALWAYS_FROM`."""
     if grid.layout is not Layout.auto:
         return grid.layout
-    return Layout.bricks if grid.size >= BRICKS_FROM else Layout.dense
+    if grid.size >= BRICKS_ALWAYS_FROM:
+        return Layout.bricks
+    if grid.size >= BRICKS_FROM and _margin_cells(grid) >= BRICK_MARGIN_CELLS:
+        return Layout.bricks
+    return Layout.dense
+
+
+def _margin_cells(grid: GridConfig) -> float:
+    """The free cells ``grid.margin`` leaves around the shape's box."""
+    return grid.margin * (grid.size - 1) / (1 + 2 * grid.margin)
 
 
 def builtin_folder() -> Path:
