@@ -117,6 +117,9 @@ def test_project_image_names_what_is_wrong(sphere, case):
     low = torch.full((3,), -1.0, requires_grad=True)  # a box requiring grad keeps its gradient
     signals.project_image(torch.rand(3, 8, 8), points, "planar", (low, torch.ones(3))).sum().backward()
     assert low.grad is not None and bool(low.grad.abs().sum() > 0)
+    entries = [torch.tensor(-1.0, requires_grad=True) for _ in range(3)]  # three 0-d entries
+    signals.project_image(torch.rand(3, 8, 8), points, "planar", (entries, torch.ones(3))).sum().backward()
+    assert entries[0].grad is not None
 
 
 def test_load_image_reads_a_png(tmp_path):

@@ -35,14 +35,23 @@ def active_transforms() -> set[str]:
 
 
 def refuse_transforms(what: str, *tensors: Tensor, refused: tuple[str, ...] = ("grad", "vmap"),
-                      forward_mode: bool = True, why: str = "") -> None:
+                      forward_mode: bool = True, why: str = "", phi: Tensor | None = None
+                      ) -> None:
     """Raise ``NotImplementedError`` naming ``what`` under the ``refused`` ``torch.func``
     transforms (of ``"grad"`` and ``"vmap"``), and, unless ``forward_mode``, under
     ``torch.func.jvp`` or for any of ``tensors`` carrying a forward-mode tangent (``why`` says
-    what stops it). A few microseconds; nothing while ``torch.compile`` traces."""
+    what stops it); and for a ``phi`` under any transform (its band and stencils are formed
+    from its values by numpy and C code). A few microseconds; nothing while ``torch.compile``
+    traces."""
     if torch.compiler.is_compiling():
         return
     active = active_transforms()
+    wrapped = getattr(getattr(torch._C, "_functorch", None), "is_functorch_wrapped_tensor", None)
+    if active and phi is not None and wrapped is not None and wrapped(phi):
+        raise NotImplementedError(
+            f"{what} does not run with phi under a torch.func transform (jvp, grad or vmap in "
+            "phi): its band and stencils are formed from phi's values by numpy and C code; use "
+            f"torch.autograd.forward_ad (a dual phi) or reverse mode ({_GUIDE})")
     for name, instead in (("grad", "torch.autograd.grad(loss, inputs) or loss.backward()"),
                           ("vmap", "a batch dimension: stack the inputs along B")):
         if name in refused and name.capitalize() in active:

@@ -458,6 +458,10 @@ def _run_compiled(kernel: Kernel, volume: Tensor, args: tuple, recording: bool) 
     runs without grad on detached inputs: the same inference graph whatever the grad mode and
     the inputs' ``requires_grad`` (dynamo guards on both).
     """
+    if carries_tangents(*_tensors(args)):
+        # compiled, forward-mode tangents were dropped (path="compiled": operators' tangents
+        # 0, flows' 0.5 off); the same one-pass form, eagerly, carries them
+        return kernel.fused_eagerly(*args)
     if not recording:  # before marking: a detached tensor is a new object, unmarked
         args = tuple(arg.detach() if isinstance(arg, Tensor) else arg for arg in args)
     # dynamo guards on the memory format: channels-last data compiled a kernel of its own

@@ -276,9 +276,16 @@ def _check_box(box: object, points: Tensor) -> tuple[Tensor, Tensor]:
         corners.append(check_triple(corner, name, check_real))
     if any(a >= b for a, b in zip(*corners, strict=True)):
         raise ValueError(f"box: low {corners[0]} must lie below high {corners[1]} on every axis")
-    # tensors as given: a box that requires grad keeps its gradient
-    return tuple((given.to(points) if isinstance(given, Tensor) else points.new_tensor(checked))
-                 .view(1, 3, 1, 1, 1) for given, checked in zip((low, high), corners, strict=True))
+    # tensors as given (a corner, or its three entries): a box that requires grad keeps it
+    def kept(given: object, checked: tuple[float, float, float]) -> Tensor:
+        if isinstance(given, Tensor):
+            return given.to(points)
+        if any(isinstance(entry, Tensor) for entry in given):
+            return torch.stack([torch.as_tensor(entry).to(points).reshape(()) for entry in given])
+        return points.new_tensor(checked)
+
+    return tuple(kept(given, checked).view(1, 3, 1, 1, 1)
+                 for given, checked in zip((low, high), corners, strict=True))
 
 
 SEED_LIMIT = 2**32

@@ -138,11 +138,13 @@ def test_the_gradient_at_constant_data_is_the_linear_stencils(storage, kind, dty
     assert difference < 1e-5
 
 
+@pytest.mark.parametrize("offset", [10.0, 100.0])
 @pytest.mark.parametrize("kind", ["extension", "heat"])
-def test_real_clamps_of_offset_float32_data_are_not_taken_for_ties(kind):
+def test_real_clamps_of_offset_float32_data_are_not_taken_for_ties(kind, offset):
     """A tie margin of 64 units of roundoff of the taps' magnitude took real clamps of float32
-    data offset by 10 for ties: gradients 2e-3 to 4e-3 off float64's (4e-7 before the
-    margin); 8 units hold constant data's ties (2.6 at most) and leave these."""
+    data offset by 10 for ties (gradients 2e-3 to 4e-3 off float64's; 4e-7 before the
+    margin), 8 units those of data offset by 20 to 100: ties are now only where the bounds
+    are one to rounding (data constant there), whatever the offset."""
     grid = ts.Grid.cube(24, 2.0)
     x, y, z = grid.points(dtype=torch.float64).unbind(-1)
     phi = ((((x - 0.07) / 1.1) ** 2 + (y + 0.03) ** 2 + (z / 0.85) ** 2).sqrt() - 0.9)[None, None]
@@ -152,9 +154,9 @@ def test_real_clamps_of_offset_float32_data_are_not_taken_for_ties(kind):
     apply = (ts.flows.Extension(interpolation="cubic", limited=True) if kind == "extension"
              else ts.HeatFlow(2 * grid.spacing**2))
     gradients = []
-    for dtype, offset in ((torch.float64, 0.0), (torch.float32, 10.0)):
+    for dtype, shift in ((torch.float64, 0.0), (torch.float32, offset)):
         surface = ts.ImplicitSurface(phi.to(dtype), grid)
-        u = (rough + offset).to(dtype).requires_grad_()
+        u = (rough + shift).to(dtype).requires_grad_()
         loss = ((weights * surface.band_mask()).to(dtype) * apply(u, surface)).sum()
         gradients.append(torch.autograd.grad(loss, u)[0].double())
     error = float((gradients[1] - gradients[0]).norm() / gradients[0].norm())

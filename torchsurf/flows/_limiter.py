@@ -111,12 +111,12 @@ def bounds_of_lists(low: list[Tensor], high: list[Tensor], weights: list[Tensor]
 
 
 TIES = 8
-"""A value that leaves its bounds by at most this many units of roundoff of its taps' largest
-magnitude is clamped, but its derivative is the stencil's own (the 64 taps), not the bounds'
-(the taps holding the corners' extremes): on constant data the interpolant misses the constant
-by up to 2.6 units of roundoff either way (a review, 2026-12-07; 64 took real clamps of float32
-data offset by 10 for ties, gradients 4e-3 off), and which nodes counted as clamped, hence
-where their gradient went, was decided by rounding (a heat flow's gradient at constant data 0.82 off a
+"""Where the bounds lie within this many units of roundoff of the taps' largest magnitude of
+each other (data constant there to rounding) and the value within as much of them, it is
+clamped, but its derivative is the stencil's own (the 64 taps), not the bounds' (the taps
+holding the corners' extremes): on constant data the interpolant misses the constant by up to
+2.6 units of roundoff either way (a review, 2026-12-07), and which nodes counted as clamped,
+hence where their gradient went, was decided by rounding (a heat flow's gradient at constant data 0.82 off a
 central difference at every step; the flow is linear, its gradient the same at any data).
 The same rule in the C kernels (``TIES`` there) and in the re-extension's backward
 (``_reextension._scatter_back``)."""
@@ -127,13 +127,19 @@ def slack(magnitude: Tensor) -> Tensor:
     return magnitude * (TIES * torch.finfo(magnitude.dtype).eps)
 
 
-def limit(value: Tensor, lower: Tensor, upper: Tensor, magnitude: Tensor) -> Tensor:
-    """``value`` clamped to ``[lower, upper]`` (all broadcastable); where it leaves them by no
-    more than :func:`slack` of ``magnitude``, with ``value``'s derivative (:data:`TIES`). The
-    values are the clamp's, bit for bit."""
-    clamped = torch.minimum(torch.maximum(value, lower), upper)
+def ties(value: Tensor, lower: Tensor, upper: Tensor, magnitude: Tensor) -> Tensor:
+    """Where ``value`` sits on bounds ``[lower, upper]`` that are one to rounding
+    (:data:`TIES`): a clamp there takes the stencil's derivative."""
     margin = slack(magnitude)
-    tied = (value >= lower - margin) & (value <= upper + margin) & torch.isfinite(value)
+    return ((upper - lower <= margin) & (value >= lower - margin) & (value <= upper + margin)
+            & torch.isfinite(value))
+
+
+def limit(value: Tensor, lower: Tensor, upper: Tensor, magnitude: Tensor) -> Tensor:
+    """``value`` clamped to ``[lower, upper]`` (all broadcastable); at :func:`ties`, with
+    ``value``'s derivative. The values are the clamp's, bit for bit."""
+    clamped = torch.minimum(torch.maximum(value, lower), upper)
+    tied = ties(value, lower, upper, magnitude)
     return torch.where(tied, clamped.detach() + (value - value.detach()), clamped)
 
 

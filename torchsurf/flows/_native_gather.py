@@ -321,12 +321,14 @@ static uint8_t clamp_to_bounds_SUFFIX(REAL *v, const REAL *u, const REAL *corner
     }
     bounds_SUFFIX(u, corners, &low, &high);
     if (nan) { *v = (REAL)NAN; return 0; }
-    /* a value within TIES units of roundoff of its bound is clamped with the code 0: its
-       gradient is the stencil's (torchsurf.flows._limiter.TIES) */
+    /* on bounds one to rounding (data constant there), a value within TIES units of roundoff
+       of them is clamped with the code 0: its gradient is the stencil's
+       (torchsurf.flows._limiter.TIES) */
     const REAL slack = magnitude * (REAL)TIES * (sizeof(REAL) == 4 ? (REAL)FLT_EPSILON
                                                                    : (REAL)DBL_EPSILON);
-    if (*v < low) { const uint8_t code = *v < low - slack; *v = low; return code; }
-    if (*v > high) { const uint8_t code = *v > high + slack ? 2 : 0; *v = high; return code; }
+    const int tie = high - low <= slack && *v >= low - slack && *v <= high + slack;
+    if (*v < low) { *v = low; return tie ? 0 : 1; }
+    if (*v > high) { *v = high; return tie ? 0 : 2; }
     return 0;
 }
 

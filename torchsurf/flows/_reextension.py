@@ -220,8 +220,8 @@ def _scatter_back(flat: Tensor, incoming: Tensor, targets: Tensor,
                 value = (gathered * taps[outside]).sum(dim=-1)
             corners = _limiter.corner_weights_of_taps(taps[outside])  # (k, 8)
             low, high, lowest, highest = _limiter.bounds_and_sources(gathered, corners)
-            margin = _limiter.slack(gathered.abs().amax(-1))  # ties are not clamps (TIES)
-            below, above = value < low - margin, value > high + margin
+            tied = _limiter.ties(value, low, high, gathered.abs().amax(-1))  # not clamps
+            below, above = (value < low) & ~tied, (value > high) & ~tied
             free[:, outside] = ~(below | above)
             clamps = [(below, lowest), (above, highest)]
         result.index_add_(1, sources.flatten(), ((moved * free)[..., None] * taps).flatten(1))

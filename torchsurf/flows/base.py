@@ -784,7 +784,7 @@ class Flow(nn.Module):
                 steps on that surface (docs/band.md, section 5).
         """
         check_surface(surface)
-        refuse_transforms(type(self).__name__, u0, *inputs.values(),
+        refuse_transforms(type(self).__name__, u0, *inputs.values(), phi=surface.phi,
                           forward_mode=self.method in PACKED_METHODS,
                           why=f"method={self.method!r}: the explicit methods 'euler', 'heun' and "
                               "'rkc' have one")

@@ -112,7 +112,8 @@ class ColorDenoise(nn.Module):
     def forward(self, image: Tensor, surface: ImplicitSurface) -> Tensor:
         """The denoised ``image``: ``(B, C, D, H, W)`` (or packed ``(N, C, 8, 8, 8)`` on a
         :class:`~torchsurf.bricks.BrickSurface`), ``C >= 2``, in the same shape."""
-        refuse_transforms("ColorDenoise", image)  # its flows check forward mode themselves
+        # its flows check forward mode themselves
+        refuse_transforms("ColorDenoise", image, phi=getattr(surface, "phi", None))
         check_surface(surface)
         if surface.layout is not None and not self.supports_bricks:
             names = [type(flow).__name__ for flow in (self.chroma, self.brightness)

@@ -101,7 +101,7 @@ def closest_point_extension(
     ``u`` reaches every node whose interpolation reads it (one node of a tricubic extension:
     about a hundred). :class:`Extension` and the flows refuse such ``u``, naming it.
     """
-    refuse_transforms("closest_point_extension", u)
+    refuse_transforms("closest_point_extension", u, phi=getattr(surface, "phi", None))
     check_data(u, "u", surface)
     check_choice(interpolation, "interpolation", INTERPOLATIONS)
     check_choice(path, "path", backend.PATHS)
@@ -1013,7 +1013,7 @@ def pde_extension(
     Returns:
         ``u``'s shape.
     """
-    refuse_transforms("pde_extension", u)
+    refuse_transforms("pde_extension", u, phi=getattr(surface, "phi", None))
     check_data(u, "u", surface)
     check_positive(tolerance, "tolerance")
     h = surface.spacing
@@ -1115,7 +1115,13 @@ class Extension(nn.Module):
             ValueError: ``u`` holds NaN or infinity where it is read (the flows refuse it too:
                 it would spread through the extension silently).
         """
-        refuse_transforms(type(self).__name__, u)  # first: under vmap, u is one entry
+        # first: under vmap, u is one entry
+        trilinear_dense = (self.method == "closest_point" and self.interpolation == "linear"
+                           and getattr(surface, "layout", None) is None)
+        refuse_transforms(type(self).__name__, u, phi=getattr(surface, "phi", None),
+                          forward_mode=not trilinear_dense,
+                          why="interpolation='linear' on a dense volume: PyTorch's grid_sample "
+                              "has none; interpolation='cubic' has one")
         check_data(u, "u", surface)
         band = _band_to_extend(surface, self.width)
         if self.method == "closest_point" and self.interpolation == "cubic":

@@ -228,7 +228,7 @@ class HeatFlow(Flow):
         where compiled volume stencils are asked for (``path="compiled"``,
         or ``"auto"`` under ``TORCHSURF_COMPILE=always``); and for data carrying a forward-mode
         tangent or a ``torch.func`` wrapper, which the packed products would drop."""
-        if carries_tangents(u0):
+        if carries_tangents(u0, surface.phi, *self.parameters()):
             return None
         packing = self._packing(surface)
         if packing is None:
@@ -288,7 +288,7 @@ class HeatFlow(Flow):
                 f"scheme={self.scheme!r}"
             )
         check_surface(surface)
-        refuse_transforms("HeatFlow", u0, forward_mode=False,
+        refuse_transforms("HeatFlow", u0, forward_mode=False, phi=surface.phi,
                           why="method='chebyshev': the explicit methods 'euler', 'heun' and 'rkc' "
                               "have one")
         check_data(u0, "u0", surface)

@@ -165,7 +165,7 @@ class LearnedDiffusion(nn.Module):
     def forward(self, u: Tensor, surface: ImplicitSurface) -> Tensor:
         """Diffuse ``u`` ``(B, C, D, H, W)``; returns ``(B, C, D, H, W)`` (class docstring)."""
         check_surface(surface)
-        refuse_transforms(type(self).__name__, u, forward_mode=False,
+        refuse_transforms(type(self).__name__, u, forward_mode=False, phi=surface.phi,
                           why="its exp(t L) is an autograd Function with a backward only")
         check_data(u, "u", surface, channels=self.channels)
         if self.learn_time and u.dtype != self.raw_time.dtype:
