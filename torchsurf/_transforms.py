@@ -9,7 +9,10 @@ instead (``torch.autograd.grad`` or ``loss.backward()``, and a batch dimension).
 runs through the flows whose steps are plain tensor operations (Euler, Heun, RKC) and is
 refused where a step is an autograd ``Function`` without a forward derivative (implicit solves,
 Chebyshev expansions, recomputed torchdiffeq pieces, the learned layers) or an operation
-PyTorch has none for (``grid_sample`` in a dense volume's closest-point extension).
+PyTorch has none for (``grid_sample`` in a dense volume's closest-point extension); ``phi``
+itself under a transform is refused by all of them (a dual ``phi`` of
+:mod:`torch.autograd.forward_ad` runs). A surface forms what it keeps beneath any transform
+(:func:`outside_transforms`).
 """
 
 from __future__ import annotations

@@ -36,8 +36,8 @@ def recomputed(function: Callable[[Tensor], Tensor], u: Tensor, reads: Sequence[
             needing gradients other than through them (a gradient would be lost).
     """
     reads = [t for t in reads if isinstance(t, Tensor) and t.requires_grad]
-    # forward-mode tangents stores nothing per step: recorded plainly (the autograd Function
-    # has no forward derivative: a learned time's flow under forward_ad failed inside it)
+    # forward mode stores nothing per step: data carrying tangents run plainly (the autograd
+    # Function has no forward derivative: a learned time's flow under forward_ad failed in it)
     if not torch.is_grad_enabled() or not (u.requires_grad or reads) or carries_tangents(u):
         return function(u)
     if torch.compiler.is_compiling():  # a traced graph recomputes what it checkpoints
