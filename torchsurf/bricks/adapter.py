@@ -64,7 +64,9 @@ class BrickMeshAdapter(nn.Module):
             ``5 * spacing``, as :class:`~torchsurf.mesh.MeshAdapter`).
         dtype, device: of the tensors (default dtype, CPU).
         sign: how ``phi`` is signed (:func:`torchsurf.sdf.from_mesh`).
-        order: ``2`` (default) or ``1``, the decoding.
+        order: ``2`` (default) or ``1``, the decoding. ``order=1`` samples at the vertices
+            as stored, in ``dtype``, and loses in float32 far from the origin what
+            :class:`~torchsurf.mesh.MeshAdapter`'s ``order=1`` loses there.
 
     Attributes:
         surface: the :class:`BrickSurface`, one entry per mesh, its own default band (3 cells).
