@@ -135,7 +135,7 @@ def test_forward_mode_where_documented(ellipsoid, kind):
     assert float((tangent - difference).abs().max()) < 1e-6 * float(difference.abs().max())
 
 
-def test_no_transform_costs_nothing_outside():
+def test_outside_any_transform_nothing_is_refused():
     from torchsurf._transforms import active_transforms, refuse_transforms
 
     assert active_transforms() == set()

@@ -114,11 +114,11 @@ TIES = 8
 """Where the bounds lie within this many units of roundoff of the taps' largest magnitude of
 each other (data constant there to rounding) and the value within as much of them, it is
 clamped, but its derivative is the stencil's own (the 64 taps), not the bounds' (the taps
-holding the corners' extremes): on constant data the interpolant misses the constant by up to
+holding the corners' extremes). On constant data the interpolant misses the constant by up to
 2.6 units of roundoff either way (a review, 2026-12-07), and which nodes counted as clamped,
-hence where their gradient went, was decided by rounding (a heat flow's gradient at constant data 0.82 off a
-central difference at every step; the flow is linear, its gradient the same at any data).
-The same rule in the C kernels (``TIES`` there) and in the re-extension's backward
+hence where their gradient went, was decided by rounding: a heat flow's gradient at constant
+data was 0.82 off a central difference at every step, though the flow is linear there. The
+same rule in the C kernels (``TIES`` there) and in the re-extension's backward
 (``_reextension._scatter_back``)."""
 
 
