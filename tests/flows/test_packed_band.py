@@ -186,6 +186,36 @@ def test_formed_rows_equal_the_probes(kind, scheme):
     assert float((mine - reference).coalesce().values().abs().max()) < 1e-13 * scale
 
 
+def test_brick_storage_reads_each_nodes_grid_neighbours():
+    """The packed positions of every node's 27 neighbours on bricks (the brick's neighbour
+    table and the node's local index, wrapped) equal those read from each entry's dense
+    volume of positions: -1 beyond the entry's box (boxes of 21 and 30 nodes, not whole
+    bricks) or in a brick that is not stored."""
+    grids = [ts.Grid(shape=(n, n, n), spacing=0.1, origin=(-0.05 * (n - 1),) * 3) for n in (21, 30)]
+    surface = ts.bricks.cat([ts.bricks.from_dense(ts.sdf.sphere(g, r, dtype=torch.float64), g)
+                             for g, r in zip(grids, (0.45, 0.85), strict=True)])
+    layout = surface.layout
+    count = len(layout) * ts.bricks.BRICK**3
+    positions = torch.arange(count, dtype=torch.float64).view(-1, 1, 8, 8, 8)
+    volumes = layout.to_dense(positions, fill=-1.0)
+    storage = _packed_band._Storage(surface, surface.band_mask())
+    nodes = torch.arange(count)
+    found = storage.neighbourhood(nodes)
+    entry = layout.batch[nodes // ts.bricks.BRICK**3]
+    at = layout.node_index().transpose(0, 1).reshape(3, -1)
+    for column, offset in enumerate(ts.stencils.NEIGHBOURHOOD):
+        expected = torch.full((count,), -1, dtype=torch.long)
+        for b, volume in enumerate(volumes):
+            moved = [a[entry == b] + o for a, o in zip(at, offset, strict=True)]
+            inside = torch.stack([(m >= 0) & (m < n) for m, n in
+                                  zip(moved, volume.shape[-3:], strict=True)]).all(0)
+            z, y, x = (m.clamp(0, n - 1) for m, n in zip(moved, volume.shape[-3:], strict=True))
+            expected[entry == b] = torch.where(inside, volume[0, 0, z, y, x].long(), -1)
+        assert torch.equal(found[:, column], expected), offset
+        assert torch.equal(storage.neighbour(nodes, offset), expected)
+    assert 0 < int((found < 0).sum()) < found.numel() // 2
+
+
 def _sparse(matrix: GatherMatrix) -> torch.Tensor:
     """A :class:`GatherMatrix` as a coalesced sparse COO tensor."""
     counts = (matrix.offsets[1:] - matrix.offsets[:-1]).long()

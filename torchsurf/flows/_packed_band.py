@@ -26,7 +26,7 @@ tests/flows/test_packed_flow.py).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Protocol
 
 import torch
@@ -423,9 +423,10 @@ class _Storage:
         self.volume_shape = tuple(band.shape[-3:])
         if self.layout is not None:
             self.index = self.layout.node_index().transpose(0, 1).reshape(3, -1)
-            self.shapes = torch.tensor([g.shape for g in self.layout.grids],
-                                       device=band.device)
-            self.extent = torch.tensor(self.layout.extent, device=band.device)
+            device = band.device
+            self.brick_neighbours = self.layout.neighbours.to(device)
+            self.brick_present = self.layout.present.to(device)
+            self.inside = self.layout.inside.reshape(-1).to(device)
 
     def coordinates(self, positions: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """Entry and grid ``(z, y, x)`` of ``positions``."""
@@ -441,38 +442,47 @@ class _Storage:
         """``(R, 27)``: :meth:`neighbour` of ``positions`` ``(R,)`` at each offset of
         :data:`~torchsurf.stencils.NEIGHBOURHOOD`; on a dense surface whose nodes ``positions``
         are all off the box's faces, each a fixed flat offset away."""
-        if self.layout is None:
-            _, *at = self.coordinates(positions)
-            box = BoxNeighbours(at, self.volume_shape)
-            if not box.on_faces:
-                deltas = torch.tensor([box.delta(offset) for offset in NEIGHBOURHOOD],
-                                      dtype=positions.dtype, device=positions.device)
-                return positions[:, None] + deltas
+        if self.layout is not None:
+            return self._brick_neighbours(positions, NEIGHBOURHOOD)
+        _, *at = self.coordinates(positions)
+        box = BoxNeighbours(at, self.volume_shape)
+        if not box.on_faces:
+            deltas = torch.tensor([box.delta(offset) for offset in NEIGHBOURHOOD],
+                                  dtype=positions.dtype, device=positions.device)
+            return positions[:, None] + deltas
         return torch.stack([self.neighbour(positions, offset) for offset in NEIGHBOURHOOD], 1)
 
     def neighbour(self, positions: Tensor, offset: tuple[int, int, int]) -> Tensor:
         """The positions of the nodes ``offset`` ``(dz, dy, dx)`` away, -1 beyond an entry's
         box or in a brick that is not stored."""
+        if self.layout is not None:
+            return self._brick_neighbours(positions, [offset])[:, 0]
         entry, *at = self.coordinates(positions)
         moved = [a + o for a, o in zip(at, offset, strict=True)]
-        if self.layout is None:
-            shape = self.volume_shape
-            inside = torch.ones_like(positions, dtype=torch.bool)
-            for m, n in zip(moved, shape, strict=True):
-                inside &= (m >= 0) & (m < n)
-            z, y, x = (m.clamp(0, n - 1) for m, n in zip(moved, shape, strict=True))
-            found = ((entry * shape[0] + z) * shape[1] + y) * shape[2] + x
-            return torch.where(inside, found, -1)
-        shape = self.shapes[entry]
+        shape = self.volume_shape
         inside = torch.ones_like(positions, dtype=torch.bool)
-        for axis, m in enumerate(moved):
-            inside &= (m >= 0) & (m < shape[:, axis])
-        z, y, x = (m.clamp(min=0) for m in moved)
-        bricks = [(m // BRICK).clamp(max=int(n) - 1) for m, n in zip((z, y, x), self.extent,
-                                                                     strict=True)]
-        brick = self.layout.lookup[entry, bricks[0], bricks[1], bricks[2]]
-        local = ((z % BRICK) * BRICK + y % BRICK) * BRICK + x % BRICK
-        return torch.where(inside & (brick >= 0), brick * BRICK_NODES + local, -1)
+        for m, n in zip(moved, shape, strict=True):
+            inside &= (m >= 0) & (m < n)
+        z, y, x = (m.clamp(0, n - 1) for m, n in zip(moved, shape, strict=True))
+        found = ((entry * shape[0] + z) * shape[1] + y) * shape[2] + x
+        return torch.where(inside, found, -1)
+
+    def _brick_neighbours(self, positions: Tensor, offsets: Sequence[tuple[int, int, int]]
+                          ) -> Tensor:
+        """``(R, K)`` packed positions ``offsets`` (each within one node along every axis) from
+        ``positions`` ``(R,)``, -1 in a brick that is not stored or beyond the entry's box:
+        the node's brick's neighbour (the layout's table) and the local index, wrapped."""
+        moves = torch.tensor(offsets, dtype=positions.dtype, device=positions.device)  # (K, 3)
+        brick, local = positions // BRICK_NODES, positions % BRICK_NODES
+        at = torch.stack([local // (BRICK * BRICK), (local // BRICK) % BRICK, local % BRICK], 1)
+        moved = at[:, None, :] + moves  # (R, K, 3), each in [-1, BRICK]
+        carry = torch.div(moved, BRICK, rounding_mode="floor") + 1  # 0, 1, 2 per axis
+        which = (carry[..., 0] * 3 + carry[..., 1]) * 3 + carry[..., 2]  # of layout.OFFSETS
+        wrapped = moved % BRICK
+        found = (self.brick_neighbours[brick].gather(1, which) * BRICK_NODES
+                 + (wrapped[..., 0] * BRICK + wrapped[..., 1]) * BRICK + wrapped[..., 2])
+        readable = self.brick_present[brick].gather(1, which) & self.inside[found]
+        return torch.where(readable, found, -1)
 
 
 def _formed_rows(surface: ImplicitSurface, scheme: str, storage: _Storage, rows: Tensor,

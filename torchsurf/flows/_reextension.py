@@ -23,7 +23,7 @@ from .. import backend
 from .._native import carries_tangents
 from ..surface import ImplicitSurface
 from . import _closest, _limiter
-from .extension import BrickCubicStencil, CubicStencil, _corner_base, cubic_stencil, stencil_key
+from .extension import BrickCubicStencil, CubicStencil, _brick_sources, cubic_stencil, stencil_key
 
 MIN_BAND_CELLS = 2.9
 """Narrowest band (in cells) that re-extension allows: the 4^3 nodes a tricubic stencil reads
@@ -170,13 +170,8 @@ def _brick_taps(stencil: BrickCubicStencil) -> Iterator[tuple[slice, Tensor, Ten
     """Chunks ``(nodes, sources (n, 64), taps (n, 64))`` of a brick stencil, packed indices."""
     for start in range(0, len(stencil.targets), CHUNK):
         nodes = slice(start, start + CHUNK)
-        bases = [b.long() for b in stencil.bases[:, nodes].unbind(0)]
-        bits = stencil.second[:, nodes].unbind(0)
-        zl, yl, xl = stencil.local[:, nodes].long().unbind(0)
-        sources = torch.stack([
-            _corner_base(bases, bits, k, j, i) + zl[:, k] + yl[:, j] + xl[:, i]
-            for k in range(4) for j in range(4) for i in range(4)
-        ], dim=1)
+        sources = _brick_sources(stencil.bases[:, nodes], stencil.second[:, nodes],
+                                 stencil.local[:, nodes])
         yield nodes, sources, _separable(stencil.weights[:, nodes])
 
 

@@ -546,14 +546,15 @@ def _corner_base(bases: list[Tensor], second: tuple[Tensor, Tensor, Tensor], k: 
 
 def _brick_sources(bases: Tensor, second: Tensor, local: Tensor) -> Tensor:
     """The packed index of each of the 64 taps of each node, ``(M, 64)`` in the order
-    ``16 z + 4 y + x``, from a :class:`BrickCubicStencil`'s ``bases``, ``second`` and ``local``."""
-    corners = [b.long() for b in bases.unbind(0)]
-    bits = second.unbind(0)
+    ``16 z + 4 y + x``, from a :class:`BrickCubicStencil`'s ``bases``, ``second`` and ``local``:
+    each tap's brick is the node's ``4 z + 2 y + x`` of its (at most) 8, picked by whether the
+    tap lies in the second brick per axis (as :func:`_corner_base`, in one gather)."""
+    z, y, x = (bit.long() for bit in second.unbind(0))
+    corner = 4 * z[:, :, None, None] + 2 * y[:, None, :, None] + x[:, None, None, :]
     zl, yl, xl = local.long().unbind(0)
-    return torch.stack([
-        _corner_base(corners, bits, k, j, i) + zl[:, k] + yl[:, j] + xl[:, i]
-        for k in range(4) for j in range(4) for i in range(4)
-    ], dim=1)
+    offset = zl[:, :, None, None] + yl[:, None, :, None] + xl[:, None, None, :]
+    count = corner.shape[0]
+    return bases.long().t().gather(1, corner.view(count, 64)) + offset.view(count, 64)
 
 
 def _brick_gathered(flat: Tensor, bases: Tensor, second: Tensor, local: Tensor, weights: Tensor,
