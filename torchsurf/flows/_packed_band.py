@@ -471,18 +471,30 @@ class _Storage:
                           ) -> Tensor:
         """``(R, K)`` packed positions ``offsets`` (each within one node along every axis) from
         ``positions`` ``(R,)``, -1 in a brick that is not stored or beyond the entry's box:
-        the node's brick's neighbour (the layout's table) and the local index, wrapped."""
-        moves = torch.tensor(offsets, dtype=positions.dtype, device=positions.device)  # (K, 3)
-        brick, local = positions // BRICK_NODES, positions % BRICK_NODES
-        at = torch.stack([local // (BRICK * BRICK), (local // BRICK) % BRICK, local % BRICK], 1)
-        moved = at[:, None, :] + moves  # (R, K, 3), each in [-1, BRICK]
-        carry = torch.div(moved, BRICK, rounding_mode="floor") + 1  # 0, 1, 2 per axis
-        which = (carry[..., 0] * 3 + carry[..., 1]) * 3 + carry[..., 2]  # of layout.OFFSETS
-        wrapped = moved % BRICK
-        found = (self.brick_neighbours[brick].gather(1, which) * BRICK_NODES
-                 + (wrapped[..., 0] * BRICK + wrapped[..., 1]) * BRICK + wrapped[..., 2])
-        readable = self.brick_present[brick].gather(1, which) & self.inside[found]
+        the brick's neighbour in the layout's table and the local index there, both read from
+        :func:`_local_moves` by the node's local index."""
+        which, local = _local_moves(offsets, positions.device)  # (512, K) each
+        brick, at = positions // BRICK_NODES, positions % BRICK_NODES
+        towards = which[at]
+        found = self.brick_neighbours[brick].gather(1, towards) * BRICK_NODES + local[at]
+        readable = self.brick_present[brick].gather(1, towards) & self.inside[found]
         return torch.where(readable, found, -1)
+
+
+def _local_moves(offsets: Sequence[tuple[int, int, int]], device: torch.device
+                 ) -> tuple[Tensor, Tensor]:
+    """For each local index of a brick's nodes and each of ``offsets`` ``(dz, dy, dx)`` (each
+    within one node), the brick it moves into (the column of the layout's neighbour table,
+    :data:`torchsurf.bricks.layout.OFFSETS`) and the local index there: ``(512, K)`` int64
+    each."""
+    moves = torch.tensor(offsets, dtype=torch.long, device=device)  # (K, 3)
+    local = torch.arange(BRICK_NODES, device=device)
+    at = torch.stack([local // (BRICK * BRICK), (local // BRICK) % BRICK, local % BRICK], 1)
+    moved = at[:, None, :] + moves  # (512, K, 3), each in [-1, BRICK]
+    carry = torch.div(moved, BRICK, rounding_mode="floor") + 1  # 0, 1, 2 along each axis
+    wrapped = moved % BRICK
+    return ((carry[..., 0] * 3 + carry[..., 1]) * 3 + carry[..., 2],
+            (wrapped[..., 0] * BRICK + wrapped[..., 1]) * BRICK + wrapped[..., 2])
 
 
 def _formed_rows(surface: ImplicitSurface, scheme: str, storage: _Storage, rows: Tensor,
