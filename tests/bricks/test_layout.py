@@ -109,6 +109,11 @@ def test_dense_round_trip_and_shapes():
         with pytest.raises(ValueError, match=rf"fill={fill!r} cannot be held by field's dtype"):
             layout.to_dense(integers.to(dtype), fill=fill)
     assert bool(layout.to_dense(integers.bool(), fill=False)[0].any())
+    with pytest.raises(ValueError, match=r"fill=1j cannot be held by field's dtype "
+                                         r"torch.float32 \(not complex\)"):
+        layout.to_dense(layout.from_dense(volume), fill=1j)  # math.isfinite's bare TypeError
+    with pytest.raises(ValueError, match=r"volume\[0\] must be one volume .* got \(2, 3, "):
+        layout.from_dense([torch.cat([volume, volume])])  # the second had been dropped
 
 
 def test_linear_fill_extends_affine_data_exactly_beyond_the_box():
@@ -175,6 +180,16 @@ def test_a_mask_not_of_its_grids_shape_is_named():
     for mask in (torch.ones(5, 5, 5, dtype=torch.bool), torch.ones(45, 35, 29, dtype=torch.bool)):
         with pytest.raises(ValueError, match=r"masks\[0\] must be a tensor of its grid's shape "
                                              r"\(29, 35, 45\), got \(" + str(mask.shape[0])):
+            bricks_of_mask([mask], [grid])
+
+
+def test_a_mask_that_is_not_bool_is_refused():
+    """A float mask of 0.5 or an integer one of 256 had stored nothing there (cast to uint8)."""
+    grid = Grid(shape=(16, 8, 8), spacing=0.1)
+    for dtype, value in ((torch.float32, 0.5), (torch.int64, 256)):
+        mask = torch.zeros(grid.shape, dtype=dtype)
+        mask[2, 2, 2] = mask[12, 2, 2] = value
+        with pytest.raises(TypeError, match=rf"masks\[0\] must be a bool tensor, got {dtype}"):
             bricks_of_mask([mask], [grid])
 
 

@@ -72,11 +72,18 @@ def test_band_is_the_dense_band_and_scale_free(torus):
 
 
 def test_a_band_that_reaches_the_box_faces_is_refused():
+    """A band one node from the faces asks for a grid that much wider; one on the faces cannot
+    say how much (the surface may leave the box: a sphere centred on a face was told "2 nodes
+    wider on each side", which was refused again), and asks for a grid holding the shape."""
     grid = Grid.cube(33, 1.5)
-    with pytest.raises(ValueError, match=r"within [01] nodes? of its grid's faces .* needs 2"):
-        bricks.from_dense(ts.sdf.torus(grid, 1.0, 0.45), grid)
-    with pytest.raises(ValueError, match="at least 2 nodes wider on each side .*fit_grids"):
-        bricks.from_dense(ts.sdf.sphere(grid, 1.45), grid)   # its band touches the faces
+    with pytest.raises(ValueError, match=r"within 1 node of its grid's faces .* needs 2.* at "
+                                         r"least 1 node wider on each side .*fit_grids"):
+        bricks.from_dense(ts.sdf.sphere(grid, 1.15), grid)
+    for phi in (ts.sdf.torus(grid, 1.0, 0.45), ts.sdf.sphere(grid, 1.45),
+                ts.sdf.sphere(grid, 0.8, center=(1.5, 0.0, 0.0))):
+        with pytest.raises(ValueError, match=r"reaches its grid's faces .* the surface may leave "
+                                             r"the box.* 2 nodes to spare .*fit_grids"):
+            bricks.from_dense(phi, grid)
 
 
 @pytest.mark.parametrize("scheme", ["octant", "symmetric", "conservative", "central"])

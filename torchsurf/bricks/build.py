@@ -223,6 +223,15 @@ def check_clear_of_faces(band_nodes: Tensor, grid: Grid, entry: int) -> None:
     :data:`REACH_CELLS` nodes of the faces of ``grid``'s box (bricks have no faces to stop the
     flux at: the dense and band results would differ there)."""
     clearance = _clearance(band_nodes, grid)
+    if clearance == 0:
+        raise ValueError(
+            f"the band of batch entry {entry} reaches its grid's faces (grid shape "
+            f"{grid.shape}): the surface may leave the box, and a wider grid must hold the "
+            f"whole shape and its band with {REACH_CELLS} nodes to spare on each side "
+            "(torchsurf.bricks.fit_grids fits a mesh's grid to it; torchsurf.mesh.fit_grid's "
+            "margin is a fraction of the mesh's size), or, if phi is not a distance (its band "
+            "then reaches far from S), torchsurf.sdf.redistance(phi, grid) first"
+        )
     if clearance < REACH_CELLS:
         wider = REACH_CELLS - clearance
         raise ValueError(

@@ -66,6 +66,9 @@ def _check_fill(fill: float, dtype: torch.dtype) -> None:
     """Refuse, naming ``fill``, a value that ``dtype`` cannot hold: a fraction, NaN or infinity
     in an integer dtype, one beyond its range (-1 in uint8 wrapped to 255), or anything but 0
     or 1 in bool (5 was taken as True)."""
+    if isinstance(fill, complex) and not dtype.is_complex:
+        raise ValueError(f"fill={fill!r} cannot be held by field's dtype {dtype} (not complex): "
+                         "give a real value")
     if dtype.is_floating_point:
         largest = torch.finfo(dtype).max
         if math.isfinite(fill) and abs(fill) > largest:  # inf and NaN fill as they are
@@ -443,6 +446,11 @@ class BrickLayout:
             entries = list(volume.unbind(0))
         else:
             entries = [check_tensor(v, f"{name}[{b}]") for b, v in enumerate(volume)]
+            for b, entry in enumerate(entries):
+                if entry.dim() == 5 and entry.shape[0] != 1:
+                    raise ValueError(
+                        f"{name}[{b}] must be one volume (1, C, D, H, W) or (C, D, H, W), got "
+                        f"{tuple(entry.shape)}: a batch of {entry.shape[0]} for one entry")
             entries = [v[0] if v.dim() == 5 else v for v in entries]
             for b, entry in enumerate(entries):
                 if (entry.dtype, entry.device) != (entries[0].dtype, entries[0].device):
@@ -509,6 +517,9 @@ def bricks_of_mask(masks: Sequence[Tensor], grids: Sequence[Grid]) -> BrickLayou
             shape = tuple(mask.shape) if isinstance(mask, Tensor) else type(mask).__name__
             raise ValueError(f"masks[{b}] must be a tensor of its grid's shape "
                              f"{tuple(grid.shape)}, got {shape}")
+        if mask.dtype != torch.bool:  # 0.5 would truncate to 0 and 256 wrap to 0, unseen
+            raise TypeError(f"masks[{b}] must be a bool tensor, got {mask.dtype} (compare it, "
+                            "e.g. mask > 0)")
         padded = F.pad(mask.to(torch.uint8), _far_padding(mask.shape))
         nz, ny, nx = (n // BRICK for n in padded.shape)
         occupied = padded.view(nz, BRICK, ny, BRICK, nx, BRICK).amax(dim=(1, 3, 5)) > 0
