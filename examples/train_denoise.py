@@ -399,13 +399,16 @@ def pictures(data: SignalSet, grid: ts.Grid, methods: dict[str, dict[str, Method
 
 def unwritable_folder(output: Path) -> str | None:
     """Why the results could not be written into the folder ``output`` (created with its
-    parents if missing), or ``None`` when they can."""
+    parents if missing), or ``None`` when they can: its first existing folder must take a new
+    folder (tried and removed; permission bits alone pass root on /proc)."""
     for folder in (output, *output.absolute().parents):
         if folder.exists():
             if not folder.is_dir():
                 return f"{folder} is not a folder"
-            if not os.access(folder, os.W_OK | os.X_OK):
-                return f"{folder} is not writable"
+            try:
+                os.rmdir(tempfile.mkdtemp(prefix=".train_denoise-", dir=folder))
+            except OSError as error:
+                return f"{folder} is not writable ({error.strerror or error})"
             return None
     return None
 

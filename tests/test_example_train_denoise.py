@@ -110,6 +110,16 @@ def test_an_output_that_cannot_be_a_folder_is_refused_before_the_run(example, ca
             example.parse(["--output", str(tmp_path / output)])
         assert "is not a folder" in capsys.readouterr().err
     assert example.parse(["--output", str(tmp_path / "new" / "folder")])  # made at the end
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["results.md"]  # the trial removed
+
+
+@pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs Linux's /proc")
+def test_an_output_on_a_pseudo_file_system_is_refused_before_the_run(example, capsys):
+    """Permission bits let root write into /proc; the run failed at its end, making the
+    folder."""
+    with pytest.raises(SystemExit):
+        example.parse(["--output", "/proc/torchsurf-results"])
+    assert "--output /proc/torchsurf-results: /proc is not writable" in capsys.readouterr().err
 
 
 def test_relative_mesh_without_folder_is_refused(example):

@@ -195,6 +195,37 @@ def test_pyvista_draws_the_panels_the_size_asked(tmp_path):
     assert picture[:, :80, :3].std() > 0.05 and picture[:, 80:, :3].std() > 0.05
 
 
+@pytest.mark.parametrize("renderer", ["matplotlib", "pyvista"])
+def test_a_tiny_shape_is_drawn_as_the_same_shape_at_unit_size(tmp_path, renderer):
+    """A sphere of radius 1e-7 is the unit sphere's picture: pyvista drew it black (trimesh's
+    normals are zero below an absolute face area of 1e-13)."""
+    if renderer == "pyvista" and render.resolve_renderer("auto")[0] != "pyvista":
+        pytest.skip(render.resolve_renderer("auto")[1])
+    pictures = []
+    for radius in (1.0, 1e-7):
+        mesh = trimesh.creation.icosphere(subdivisions=3, radius=radius)
+        grey = np.full((len(mesh.vertices), 3), 0.6)
+        path = render.render_panels(mesh, [("", grey)], tmp_path / f"{radius}.png", 60, 60,
+                                    renderer=renderer)
+        pictures.append(mpimg.imread(path)[..., :3])
+    assert pictures[0][20:40, 20:40].mean() > 0.3  # lit, not black
+    assert np.abs(pictures[1] - pictures[0]).mean() < 0.01
+
+
+def test_a_mesh_not_finite_or_a_path_not_png_is_refused(tmp_path):
+    mesh = trimesh.creation.icosphere(subdivisions=1)
+    grey = np.full((len(mesh.vertices), 3), 0.6)
+    broken = trimesh.Trimesh(mesh.vertices.copy(), mesh.faces, process=False)
+    broken.vertices[5] = np.nan
+    with pytest.raises(ValueError, match=r"mesh has 1 of 42 vertices that are NaN or infinite, "
+                                         r"e.g. vertex 5"):
+        render.render_panels(broken, [("a", grey)], tmp_path / "a.png", renderer="matplotlib")
+    for name in ("a.jpg", "a.pdf"):  # PNG bytes had been written under those names
+        with pytest.raises(ValueError, match=r"give a path ending in .png, not '\.(jpg|pdf)'"):
+            render.render_panels(mesh, [("a", grey)], tmp_path / name, renderer="matplotlib")
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_colours_refuse_what_they_would_misdraw():
     """Equal values share a colour under equalize (they had ranks by vertex order); the
     channel count and limits are checked (a scalar of 3 channels showed the first; limits

@@ -354,7 +354,7 @@ def _pyvista_image(mesh: trimesh.Trimesh, panels: list[tuple[str, np.ndarray]],
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
     faces = np.asarray(mesh.faces)
     cells = np.hstack((np.full((len(faces), 1), 3), faces)).ravel()
-    normals = np.asarray(trimesh.Trimesh(vertices, faces, process=False).vertex_normals)
+    normals = _vertex_normals(vertices, faces)
     x0, x1, y0, y1 = camera.window
     depth = float((vertices @ camera.towards).max())
     extent = float(np.ptp(vertices @ camera.towards)) + (x1 - x0)
@@ -387,6 +387,23 @@ def _pyvista_image(mesh: trimesh.Trimesh, panels: list[tuple[str, np.ndarray]],
         plotter.close()
 
 
+def _vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Unit normals ``(V, 3)`` at the vertices: the sum of their faces' area vectors, from the
+    faces' winding, on the vertices scaled to a unit box first. trimesh's take no face below
+    an absolute area of 1e-13: a shape of cells under about 3e-7 world units came out with
+    every normal zero, drawn black."""
+    low, high = vertices.min(axis=0), vertices.max(axis=0)
+    size = float((high - low).max())
+    scaled = (vertices - low) / (size if size > 0 else 1.0)
+    corners = scaled[faces]
+    areas = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    normals = np.zeros_like(scaled)
+    for corner in range(3):
+        np.add.at(normals, faces[:, corner], areas)
+    length = np.linalg.norm(normals, axis=1, keepdims=True)
+    return normals / np.where(length > 0, length, 1.0)
+
+
 def render_panels(mesh: trimesh.Trimesh, panels: list[tuple[str, np.ndarray]], path: str | Path,
                   width: int = 400, height: int = 400, elevation: float = 25.0,
                   azimuth: float = -60.0, up: str = "z", renderer: str = "auto") -> Path:
@@ -415,6 +432,13 @@ def render_panels(mesh: trimesh.Trimesh, panels: list[tuple[str, np.ndarray]], p
                          "rendering draws black")
     if len(mesh.vertices) == 0:
         raise ValueError("mesh has no vertices: nothing to draw")
+    finite = np.isfinite(np.asarray(mesh.vertices, dtype=np.float64)).all(axis=1)
+    if not finite.all():
+        raise ValueError(f"mesh has {int((~finite).sum())} of {len(finite)} vertices that are "
+                         f"NaN or infinite, e.g. vertex {int(np.flatnonzero(~finite)[0])}")
+    if Path(path).suffix.lower() not in ("", ".png"):
+        raise ValueError(f"path {str(path)!r}: the picture is a PNG, give a path ending in "
+                         f".png, not {Path(path).suffix!r}")
     used, _ = resolve_renderer(renderer)
     Figure, FigureCanvasAgg, PolyCollection = _matplotlib()
     for index, (_, vertex_colours) in enumerate(panels):
