@@ -187,3 +187,21 @@ def test_float32_times_at_a_pieces_end_and_times_that_round_together_are_each_re
     # a time that is 0 in float32 is the start: one more time of the solve equal to it
     tiny = flow(case.u, surface, times=[1e-46, 1e-30, TIME])
     torch.testing.assert_close(tiny[0], tiny[1], rtol=0, atol=1e-6)
+
+
+def test_scipy_solver_takes_its_explicit_solvers_and_refuses_the_dense_jacobians(sphere):
+    """scipy's default LSODA formed a dense Jacobian of the volume: an IndexError after
+    'lsoda: Illegal input detected' on a 25^3 harmonic map, numpy's 91 GiB MemoryError on a
+    48^3 heat flow. Refused by name before any work; RK45 runs to the heat flow's accuracy."""
+    pytest.importorskip("scipy")
+    surface, u0, near = sphere
+    for options in (None, {"solver": "LSODA"}, {"solver": "BDF"}):
+        named = "(the default)" if options is None else options["solver"]
+        with pytest.raises(ValueError, match=rf"method='scipy_solver' with options\['solver'\]"
+                                             rf"=.*{named}.*dense Jacobian.*'RK45'"):
+            HeatFlow(TIME, method="scipy_solver", options=options)
+    flow = HeatFlow(TIME, method="scipy_solver", options={"solver": "RK45"})
+    result = flow(u0, surface)
+    exact = math.exp(-2 * TIME) * u0
+    assert float((result - exact)[near].abs().max()) < 2 * float(
+        (HeatFlow(TIME)(u0, surface) - exact)[near].abs().max())

@@ -453,7 +453,8 @@ class Flow(nn.Module):
             ``floor(6 (w - 2 sqrt(3))^2 / (rho dt))`` on a band of ``w`` cells), and into each
             result at the requested times (docs/band.md). Between
             re-extensions, RKC and torchdiffeq methods re-extend the ring around the band at
-            every evaluation of the rate (Euler and Heun need not: docs/band.md). ``None``:
+            every evaluation of the rate (Euler and Heun need not where the band can hold it
+            and the rate has no reaction term: docs/band.md). ``None``:
             never (the ring keeps ``u0``: only right for a band as wide as the diffusion
             length).
         band_width: half-width of the evolving band, world units. Default: on a surface
@@ -635,11 +636,13 @@ class Flow(nn.Module):
         return tqdm(total=total, desc=type(self).__name__, unit="step", leave=False)
 
     def _reextension_steps(self, schedule: Schedule, longest: float, band_cells: float,
-                           rho: float) -> tuple[Callable[[int], bool] | None, int]:
+                           rho: float, reaction: bool = False
+                           ) -> tuple[Callable[[int], bool] | None, int]:
         """Which steps (from 1) end with a re-extension of the band (``None``: none), and
         the most steps between two: ``longest`` the planned step (the integrator's time;
         requested times split some), ``band_cells`` the band's width in cells, ``rho`` the
-        spectral radius of the rate the steps integrate (:meth:`_share_of_planned_rate`)."""
+        spectral radius of the rate the steps integrate (:meth:`_share_of_planned_rate`),
+        ``reaction`` :attr:`System.reaction`."""
         if self.reextend_every is None:
             return None, 1
         if self.reextend_every != "auto":
@@ -649,7 +652,8 @@ class Flow(nn.Module):
             return (lambda k: True), 1
         shortest = shortest_step(schedule)
         crossing = 12.0 / rho  # the time the fastest diffusion takes to cross one cell
-        if self.method == "rkc" and ring_held("rkc", longest * rho, band_cells):
+        if self.method == "rkc" and ring_held("rkc", longest * rho, band_cells,
+                                               reaction=reaction):
             # the ring is held as long as one step could hold it (held_ring_bound): short
             # steps, taken for their time error, share one re-extension, once every
             # steps_held planned steps by the time reached, not by the steps counted (requested
@@ -859,12 +863,13 @@ class Flow(nn.Module):
         # (0.39 off the fixed flow on a 40^3 bunny)
         rho = system.spectral_radius * self._share_of_planned_rate()
         reextends, gap = self._reextension_steps(schedule, plan.step, width / surface.spacing,
-                                                 rho)
+                                                 rho, system.reaction)
         schedule.after_step, schedule.output = self._after_step(surface, region, bar, reextends,
                                                                 packing)
         schedule.segment = torchdiffeq_segment(width / surface.spacing, rho)
         schedule.checkpoint = self._checkpointing(u0, surface, system)
-        held = ring_held(self.method, plan.step * rho, width / surface.spacing, period=gap)
+        held = ring_held(self.method, plan.step * rho, width / surface.spacing, period=gap,
+                         reaction=system.reaction)
         if self.reextend_every is not None and not held:
             ring = kept_stencil(surface, width, "ring", region & ~band, region, limited=True)
             path = self.path

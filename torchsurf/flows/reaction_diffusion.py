@@ -139,7 +139,7 @@ class ReactionDiffusion(Flow):
                       # phi, is not declared where phi needs gradients (_recompute.independent)
                       params=tensors(surface.normal, surface.weight, direction,
                                      haloed_direction, given),
-                      growth=s * max(reaction, TURK_SUPPLY))
+                      growth=s * max(reaction, TURK_SUPPLY), reaction=True)
 
     def _entries_apart(self, u0: Tensor, surface: ImplicitSurface, times: object,
                        inputs: dict[str, Tensor]) -> Tensor | None:
