@@ -255,6 +255,28 @@ def test_a_phi_viewing_part_of_a_batch_being_filled_is_not_taken_for_changed():
         moved.hessian()
 
 
+def test_a_phi_written_in_place_under_torch_distributed_names_ddps_buffer_broadcast(tmp_path):
+    """DistributedDataParallel copies rank 0's buffers into every rank's before each forward,
+    a submodule surface's phi among them: the refusal named no cause a user could find."""
+    import torch.distributed as dist
+
+    if not dist.is_available() or not dist.is_gloo_available():
+        pytest.skip("torch.distributed with gloo is not available")
+    grid = Grid.cube(12, bound=1.5)
+    surface = ImplicitSurface(sdf.sphere(grid, 1.0), grid)
+    surface.phi.add_(0.0)
+    with pytest.raises(RuntimeError, match=r"phi\)$|a phi you will change\)$"):
+        surface.hessian()  # no process group: no word of DDP
+    dist.init_process_group("gloo", init_method=f"file://{tmp_path / 'store'}", rank=0,
+                            world_size=1)
+    try:
+        with pytest.raises(RuntimeError, match="modified in place.*broadcast_buffers=True.*"
+                                               "pass the surface to forward instead"):
+            surface.hessian()
+    finally:
+        dist.destroy_process_group()
+
+
 def test_plane_exact_at_every_node():
     """An affine ``phi`` (a plane): ``phi`` is extrapolated linearly beyond the grid, so the
     normal is exact and the Hessian and curvatures vanish on every node, faces included."""

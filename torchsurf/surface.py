@@ -440,6 +440,17 @@ def check_eps(eps: object) -> float:
     return value
 
 
+def _ddp_hint() -> str:
+    """Where processes run together, what writes a module's buffers in place unasked."""
+    distributed = torch.distributed
+    if not (distributed.is_available() and distributed.is_initialized()):
+        return ""
+    return ("; DistributedDataParallel writes rank 0's buffers into every rank's before each "
+            "forward (broadcast_buffers=True), a surface's phi among them if the surface is a "
+            "submodule of the wrapped model: pass the surface to forward instead, or give "
+            "broadcast_buffers=False")
+
+
 class ImplicitSurface(nn.Module):
     """The zero level set of ``phi`` on ``grid``, with its normals, band and curvatures.
 
@@ -927,7 +938,7 @@ class ImplicitSurface(nn.Module):
             raise RuntimeError(
                 "phi was modified in place after this surface was built: its normals and "
                 "weight belong to the former values; build a new surface from the new phi "
-                "(or pass phi.clone() to keep a phi you will change)"
+                "(or pass phi.clone() to keep a phi you will change)" + _ddp_hint()
             )
         if self.phi.requires_grad and not self._phi_required_grad:
             raise RuntimeError(
