@@ -408,7 +408,7 @@ def unwritable_folder(output: Path) -> str | None:
             try:
                 os.rmdir(tempfile.mkdtemp(prefix=".train_denoise-", dir=folder))
             except OSError as error:
-                return f"{folder} is not writable ({error.strerror or error})"
+                return f"cannot make a folder in {folder} ({error.strerror or error})"
             return None
     return None
 

@@ -221,7 +221,8 @@ def test_a_mesh_not_finite_or_a_path_not_png_is_refused(tmp_path):
                                          r"e.g. vertex 5"):
         render.render_panels(broken, [("a", grey)], tmp_path / "a.png", renderer="matplotlib")
     for name in ("a.jpg", "a.pdf"):  # PNG bytes had been written under those names
-        with pytest.raises(ValueError, match=r"give a path ending in .png, not '\.(jpg|pdf)'"):
+        with pytest.raises(ValueError, match=r"give a path ending in .png \(or with no suffix\), "
+                                             r"not '\.(jpg|pdf)'"):
             render.render_panels(mesh, [("a", grey)], tmp_path / name, renderer="matplotlib")
     assert list(tmp_path.iterdir()) == []
 

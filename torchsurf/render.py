@@ -388,20 +388,14 @@ def _pyvista_image(mesh: trimesh.Trimesh, panels: list[tuple[str, np.ndarray]],
 
 
 def _vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Unit normals ``(V, 3)`` at the vertices: the sum of their faces' area vectors, from the
-    faces' winding, on the vertices scaled to a unit box first. trimesh's take no face below
-    an absolute area of 1e-13: a shape of cells under about 3e-7 world units came out with
-    every normal zero, drawn black."""
+    """Unit normals ``(V, 3)`` at the vertices, from the faces' winding: trimesh's (weighted
+    by each face's angle at the vertex), on the vertices scaled to a unit box first. trimesh
+    takes no face below an absolute area of 1e-13: a shape of cells under about 3e-7 world
+    units came out with every normal zero, drawn black."""
     low, high = vertices.min(axis=0), vertices.max(axis=0)
     size = float((high - low).max())
     scaled = (vertices - low) / (size if size > 0 else 1.0)
-    corners = scaled[faces]
-    areas = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-    normals = np.zeros_like(scaled)
-    for corner in range(3):
-        np.add.at(normals, faces[:, corner], areas)
-    length = np.linalg.norm(normals, axis=1, keepdims=True)
-    return normals / np.where(length > 0, length, 1.0)
+    return np.asarray(trimesh.Trimesh(scaled, faces, process=False).vertex_normals)
 
 
 def render_panels(mesh: trimesh.Trimesh, panels: list[tuple[str, np.ndarray]], path: str | Path,
@@ -412,7 +406,8 @@ def render_panels(mesh: trimesh.Trimesh, panels: list[tuple[str, np.ndarray]], p
     Args:
         mesh: the surface (e.g. :func:`torchsurf.mesh.extract`), outward normals.
         panels: ``(title, vertex colours (V, 3) in [0, 1])`` for each panel, left to right.
-        path: the PNG's path; its folder is created.
+        path: the PNG's path, ending in ``.png`` or with no suffix (another, such as
+            ``.jpg``, raises ``ValueError``: the bytes would be a PNG's); its folder is created.
         width, height: pixels of one panel (the picture is ``len(panels) * width`` by
             ``height``).
         elevation, azimuth, up: the view (:func:`fit_camera`).
@@ -438,7 +433,7 @@ def render_panels(mesh: trimesh.Trimesh, panels: list[tuple[str, np.ndarray]], p
                          f"NaN or infinite, e.g. vertex {int(np.flatnonzero(~finite)[0])}")
     if Path(path).suffix.lower() not in ("", ".png"):
         raise ValueError(f"path {str(path)!r}: the picture is a PNG, give a path ending in "
-                         f".png, not {Path(path).suffix!r}")
+                         f".png (or with no suffix), not {Path(path).suffix!r}")
     used, _ = resolve_renderer(renderer)
     Figure, FigureCanvasAgg, PolyCollection = _matplotlib()
     for index, (_, vertex_colours) in enumerate(panels):

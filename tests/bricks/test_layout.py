@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
@@ -112,6 +113,8 @@ def test_dense_round_trip_and_shapes():
     with pytest.raises(ValueError, match=r"fill=1j cannot be held by field's dtype "
                                          r"torch.float32 \(not complex\)"):
         layout.to_dense(layout.from_dense(volume), fill=1j)  # math.isfinite's bare TypeError
+    with pytest.raises(ValueError, match=r"not complex"):  # its imaginary part was dropped
+        layout.to_dense(layout.from_dense(volume), fill=np.complex64(1j))
     with pytest.raises(ValueError, match=r"volume\[0\] must be one volume .* got \(2, 3, "):
         layout.from_dense([torch.cat([volume, volume])])  # the second had been dropped
 
@@ -181,6 +184,9 @@ def test_a_mask_not_of_its_grids_shape_is_named():
         with pytest.raises(ValueError, match=r"masks\[0\] must be a tensor of its grid's shape "
                                              r"\(29, 35, 45\), got \(" + str(mask.shape[0])):
             bricks_of_mask([mask], [grid])
+    mask = torch.zeros(grid.shape, dtype=torch.uint8)
+    mask[2, 2, 2] = mask[12, 2, 2] = 1
+    assert len(bricks_of_mask([mask], [grid])) == 2
 
 
 def test_a_mask_that_is_not_bool_is_refused():
@@ -189,7 +195,8 @@ def test_a_mask_that_is_not_bool_is_refused():
     for dtype, value in ((torch.float32, 0.5), (torch.int64, 256)):
         mask = torch.zeros(grid.shape, dtype=dtype)
         mask[2, 2, 2] = mask[12, 2, 2] = value
-        with pytest.raises(TypeError, match=rf"masks\[0\] must be a bool tensor, got {dtype}"):
+        with pytest.raises(TypeError, match=rf"masks\[0\] must be a bool \(or uint8\) tensor, "
+                                            rf"got {dtype}"):
             bricks_of_mask([mask], [grid])
 
 

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import numbers
 from collections.abc import Sequence
 
 import torch
@@ -66,7 +67,8 @@ def _check_fill(fill: float, dtype: torch.dtype) -> None:
     """Refuse, naming ``fill``, a value that ``dtype`` cannot hold: a fraction, NaN or infinity
     in an integer dtype, one beyond its range (-1 in uint8 wrapped to 255), or anything but 0
     or 1 in bool (5 was taken as True)."""
-    if isinstance(fill, complex) and not dtype.is_complex:
+    if isinstance(fill, numbers.Complex) and not isinstance(fill, numbers.Real) \
+            and not dtype.is_complex:
         raise ValueError(f"fill={fill!r} cannot be held by field's dtype {dtype} (not complex): "
                          "give a real value")
     if dtype.is_floating_point:
@@ -517,9 +519,9 @@ def bricks_of_mask(masks: Sequence[Tensor], grids: Sequence[Grid]) -> BrickLayou
             shape = tuple(mask.shape) if isinstance(mask, Tensor) else type(mask).__name__
             raise ValueError(f"masks[{b}] must be a tensor of its grid's shape "
                              f"{tuple(grid.shape)}, got {shape}")
-        if mask.dtype != torch.bool:  # 0.5 would truncate to 0 and 256 wrap to 0, unseen
-            raise TypeError(f"masks[{b}] must be a bool tensor, got {mask.dtype} (compare it, "
-                            "e.g. mask > 0)")
+        if mask.dtype not in (torch.bool, torch.uint8):  # 0.5 and 256 cast to 0, unseen
+            raise TypeError(f"masks[{b}] must be a bool (or uint8) tensor, got {mask.dtype} "
+                            "(compare it, e.g. mask > 0)")
         padded = F.pad(mask.to(torch.uint8), _far_padding(mask.shape))
         nz, ny, nx = (n // BRICK for n in padded.shape)
         occupied = padded.view(nz, BRICK, ny, BRICK, nx, BRICK).amax(dim=(1, 3, 5)) > 0
