@@ -205,3 +205,33 @@ def test_scipy_solver_takes_its_explicit_solvers_and_refuses_the_dense_jacobians
     exact = math.exp(-2 * TIME) * u0
     assert float((result - exact)[near].abs().max()) < 2 * float(
         (HeatFlow(TIME)(u0, surface) - exact)[near].abs().max())
+
+
+def test_scipy_solver_classes_names_and_a_solve_that_stops_early(sphere, monkeypatch):
+    """An explicit solver given as its class runs; a name scipy lacks is not called stiff;
+    a solve that stopped on the way had returned u0 as u(T) (or an IndexError with times)."""
+    pytest.importorskip("scipy")
+    from scipy.integrate import RK45
+
+    surface, u0, near = sphere
+    HeatFlow(TIME, method="scipy_solver", options={"solver": RK45})
+    with pytest.raises(ValueError, match=r"'rk45'\]?.*not one of scipy's explicit"):
+        HeatFlow(TIME, method="scipy_solver", options={"solver": "rk45"})
+    flow = HeatFlow(TIME, method="scipy_solver", options={"solver": "RK45"})
+    system = flow.system
+    calls = []
+
+    def failing(*args, **kwargs):
+        built = system(*args, **kwargs)
+        rate = built.rate
+
+        def turning_nan(u):
+            calls.append(1)
+            return rate(u) * (float("nan") if len(calls) > 20 else 1.0)
+
+        built.rate = turning_nan
+        return built
+
+    monkeypatch.setattr(flow, "system", failing)
+    with pytest.raises(RuntimeError, match=r"stopped at 1 of the 2 times .*solve_ivp gave up"):
+        flow(u0, surface)

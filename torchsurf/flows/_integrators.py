@@ -137,8 +137,8 @@ class System:
         reaction: the rate moves values pointwise besides diffusing them (a reaction term):
             the ring, set from S's values, must follow at every evaluation and is never held
             between re-extensions (:func:`ring_held`). Held, it pulled a reaction-diffusion
-            flow's band back: constant data, whose exact flow is the reaction's ODE, erred
-            1e-4 (Heun) to 2.6e-3 (Euler) at every grid size and step count.
+            flow's band back: on constant data, whose exact flow is the reaction's ODE, Heun
+            stayed 1.1e-4-1.4e-4 off at 287-800 steps (24^3; 2.4e-5 and 3.0e-6 now).
     """
 
     rate: Rate
@@ -426,7 +426,8 @@ def plan_steps(method: str, system: System, end: float, steps: int | None,
             count = max(min(RKC_STEPS, explicit), whole_steps(end, longest * per_rho, end),
                         math.ceil(end * system.growth / RKC_GROWTH * (1 - 1e-9)))
             # with a reaction too, whose ring is refreshed instead: these steps bound its time
-            # error (Turk's ODE from a = 6, b = 3 at 24^3: 1.0e-3 in 37 steps, 4.9e-3 in 16)
+            # error (Turk's ODE from a = 6, b = 3 at 24^3, T = 200, the larger of a's and b's
+            # on S: 1.2e-3 in these 37 steps, 5.8e-3 in 16)
             if band_cells > HELD_RING_CELLS:
                 holding = whole_steps(end, held_ring_bound(band_cells) * per_rho, end)
                 allowed = math.inf if system.linear is not None else HELD_RING_STEPS
@@ -813,9 +814,12 @@ def _torchdiffeq(method: str) -> Callable[[System, Tensor, Schedule], list[Tenso
             points, which = _distinct_times(start, inner,
                                             TIME_ROUNDING * _value(schedule.times[-1]))
             solution = solve(u, [*points, stop])
-            if len(solution) == 0:  # scipy's solvers return none after printing why
-                raise RuntimeError(f"method={method!r} returned no solution (its solver's own "
-                                   "message, printed above, says why)")
+            if len(solution) != len(points) + 1:  # scipy's solve_ivp stopped on the way
+                raise RuntimeError(
+                    f"method={method!r} stopped at {len(solution)} of the {len(points) + 1} "
+                    f"times of its solve up to t = {stop:.4g}: scipy's solve_ivp gave up (its "
+                    "step fell below the float spacing, most often from a rate that turned NaN "
+                    "or infinite); a torchdiffeq method such as 'dopri5' names the step")
             out.extend(_returned(system, schedule, _finish(system, solution[k]), None)
                        for k in which)
             u, start, done = solution[-1], stop, done + 1
@@ -924,6 +928,36 @@ SCIPY_EXPLICIT = ("RK45", "RK23", "DOP853")
 """scipy's explicit solvers, the ones ``method="scipy_solver"`` takes (:func:`check_options`)."""
 
 
+SCIPY_STIFF = ("LSODA", "BDF", "Radau")
+"""scipy's stiff solvers, refused by ``method="scipy_solver"`` (:func:`check_options`)."""
+
+
+def _check_scipy_solver(solver: object, default: bool) -> None:
+    """Refuse a ``scipy_solver`` solver that is not one of scipy's explicit Runge-Kutta
+    methods: a stiff one (a dense Jacobian of the whole volume) or a name scipy lacks."""
+    if isinstance(solver, type):  # a solve_ivp OdeSolver class
+        try:
+            from scipy.integrate._ivp.rk import RungeKutta
+        except ImportError:
+            return
+        if issubclass(solver, RungeKutta):
+            return
+        name = solver.__name__
+    else:
+        name = solver
+    if name in SCIPY_EXPLICIT:
+        return
+    given = f"method='scipy_solver' with options['solver']={solver!r}"
+    advice = (f"give options={{'solver': 'RK45'}} (or one of {list(SCIPY_EXPLICIT)}), or a "
+              "torchdiffeq method such as 'dopri5'")
+    if name in SCIPY_STIFF:
+        raise ValueError(
+            f"{given}{' (the default)' if default else ''}: scipy's stiff solvers form a dense "
+            "Jacobian of the whole volume, (D H W C)^2 numbers (91 GiB for one channel at "
+            f"48^3; LSODA's work array overflows first); {advice}")
+    raise ValueError(f"{given}: not one of scipy's explicit solve_ivp methods; {advice}")
+
+
 def check_options(options: object, method: str) -> dict:
     """torchdiffeq's ``options`` of ``method`` as a new dict; raises naming the option whose
     value is not a number of its range (``step_size``, ``first_step``: positive; ``rtol``,
@@ -958,15 +992,7 @@ def check_options(options: object, method: str) -> dict:
         raise ValueError("options['rtol'] and options['atol'] are both 0: no step can meet "
                          "them (the steps would shrink until refused)")
     if method == "scipy_solver":
-        solver = checked.get("solver", "LSODA")  # torchdiffeq's default
-        if solver not in SCIPY_EXPLICIT:
-            raise ValueError(
-                f"method='scipy_solver' with options['solver']={solver!r}"
-                f"{' (the default)' if 'solver' not in checked else ''}: scipy's stiff solvers "
-                "form a dense Jacobian of the whole volume, (D H W C)^2 numbers (91 GiB for one "
-                "channel at 48^3; LSODA's work array overflows first); give options={'solver': "
-                f"'RK45'}} (or one of {list(SCIPY_EXPLICIT)}), or a torchdiffeq method such as "
-                "'dopri5'")
+        _check_scipy_solver(checked.get("solver", "LSODA"), "solver" not in checked)
     if "norm" in checked and not callable(checked["norm"]):
         raise TypeError(f"options['norm'] must be a function of a tensor (torchdiffeq's error "
                         f"norm), got {type(checked['norm']).__name__}")

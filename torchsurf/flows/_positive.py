@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
@@ -166,6 +167,9 @@ class Positive(nn.Module):
         elif tensor.dim() == 0:
             self.fixed = check_positive(value, name)
         else:
+            if isinstance(value, (Tensor, np.ndarray)) and value.dtype in (torch.float64,
+                                                                           np.float64):
+                tensor = torch.as_tensor(value).detach().to(torch.float64).clone()  # unrounded
             self.register_buffer("values", tensor.detach().clone())
             self._largest = HostMaximum(name, self.values)
             self.register_load_state_dict_post_hook(_reread_largest)

@@ -441,6 +441,9 @@ class Flow(nn.Module):
             :func:`~torchsurf.flows._integrators.band_norm`; torchdiffeq's own, over the whole
             box, counted the nodes that never change, so that the tolerance was missed more
             the more room the box had). ``steps=`` and a ``step_size`` together are refused.
+            ``method="scipy_solver"`` takes scipy's explicit solvers only,
+            ``{"solver": "RK45"}`` (or ``"RK23"``, ``"DOP853"``): the stiff ones, LSODA (its
+            default) among them, form a dense Jacobian of the whole volume and are refused.
         adjoint: integrate with ``torchdiffeq.odeint_adjoint``.
         progress: show a tqdm progress bar over the steps (tqdm is optional).
         reextend_every: re-extend the band and its ring along normals (closest point,
