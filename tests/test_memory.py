@@ -71,6 +71,29 @@ def test_flows_refuse_before_any_work(monkeypatch):
         flow(u0, surface)
 
 
+def test_chebyshev_heat_and_extension_check_too(little_memory):
+    """HeatFlow(method="chebyshev") and Extension ran whatever the memory (10^5 channels went
+    straight to a 104 GB allocation)."""
+    grid = ts.Grid.cube(17, 1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid), grid)
+    u0 = torch.zeros(16, 3, *grid.shape)  # 1.8 MiB of working volumes at least
+    with pytest.raises(MemoryError, match=r"HeatFlow on u0 of shape \(16, 3, 17, 17, 17\)"):
+        HeatFlow(0.01, method="chebyshev")(u0, surface)
+    for extension in (ts.flows.Extension(), ts.flows.Extension(method="pde")):
+        with pytest.raises(MemoryError, match=r"Extension on u of shape \(16, 3, 17, 17, 17\)"):
+            extension(u0, surface)
+
+
+@pytest.mark.parametrize("value", ["false", "off", "00", "no"])
+def test_a_switch_value_that_is_not_0_or_1_is_refused(monkeypatch, value):
+    """Only 0 turned the check off; other values kept it on without a word."""
+    monkeypatch.setenv(_memory.ENVIRONMENT_SWITCH, value)
+    with pytest.raises(ValueError, match=rf"TORCHSURF_MEMORY_CHECK must be 0 .* got '{value}'"):
+        _memory.check_fits(1, "work")
+    monkeypatch.setenv(_memory.ENVIRONMENT_SWITCH, " 1 ")
+    _memory.check_fits(1, "work")
+
+
 def test_the_results_of_requested_times_are_counted(monkeypatch):
     """200 requested times return 200 results, stacked: they were not counted, and such a call
     passed the check and died in the allocator after the whole flow (an audit, 48^3)."""

@@ -2,16 +2,17 @@
 
 The rule: an entry point that allocates whole volumes (:func:`torchsurf.sdf.from_function` and
 the shapes, :func:`torchsurf.sdf.from_mesh`, :class:`torchsurf.MeshAdapter`,
-:class:`torchsurf.ImplicitSurface`, every flow's call) first estimates the bytes it will hold at
-once, and raises ``MemoryError`` stating that estimate and the memory available when the
-estimate exceeds it. The estimates are lower bounds, counted from the arrays the algorithm must
+:class:`torchsurf.ImplicitSurface`, every flow's call, :class:`~torchsurf.flows.Extension`) first
+estimates the bytes it will hold at once, and raises ``MemoryError`` stating that estimate and
+the memory available when the estimate exceeds it. The estimates are lower bounds, counted from the arrays the algorithm must
 keep at the same time (listed by each function below), so a refusal is always right; a run that
 passes may still need more (temporaries, ``torch.compile``).
 
 "Available" is ``MemAvailable`` from ``/proc/meminfo`` (Linux) for work on the CPU: the memory
 the kernel can hand out without swapping, after what the process already holds (the surface,
 ``u0``). On other systems and devices nothing is checked. Setting the environment variable
-``TORCHSURF_MEMORY_CHECK=0`` turns the check off.
+``TORCHSURF_MEMORY_CHECK=0`` turns the check off (``1``, the default, keeps it; other values
+raise ``ValueError``).
 """
 
 from __future__ import annotations
@@ -63,8 +64,12 @@ def check_fits(estimate: float, what: str, device: torch.device | str | None = N
         what: the work, for the message (e.g. ``"sdf.from_mesh on a (3000, 3000, 3000) grid"``).
         device: where the work allocates (default CPU).
     """
-    if os.environ.get(ENVIRONMENT_SWITCH, "1").strip() == "0":
+    switch = os.environ.get(ENVIRONMENT_SWITCH, "1").strip()
+    if switch == "0":
         return
+    if switch not in ("1", ""):  # "false" or "off" had left the check on without a word
+        raise ValueError(f"{ENVIRONMENT_SWITCH} must be 0 (no check) or 1 (the default), got "
+                         f"{switch!r}")
     available = available_bytes(device)
     if available is None or estimate <= available:
         return

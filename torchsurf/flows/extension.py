@@ -46,7 +46,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .. import backend, stencils
+from .. import _memory, backend, stencils
 from .._checks import check_choice, check_count, check_finite, check_flag, check_positive
 from .._native import carries_tangents
 from .._transforms import refuse_transforms
@@ -1125,6 +1125,14 @@ class Extension(nn.Module):
                               "has none; interpolation='cubic' has one")
         check_data(u, "u", surface)
         band = _band_to_extend(surface, self.width)
+        if not torch.compiler.is_compiling():  # the band's size and the memory: host reads
+            # the result and the values read (the flows' two working volumes) and, for the
+            # tricubic stencil formed at each call, the band's closest points and taps
+            cubic = self.method == "closest_point" and self.interpolation == "cubic"
+            _memory.check_fits(
+                _memory.flow_bytes(tuple(u.shape), surface.batch_size, u.dtype, False,
+                                   int(band.sum()) if cubic else None),
+                f"{type(self).__name__} on u of shape {tuple(u.shape)}", u.device)
         if self.method == "closest_point" and self.interpolation == "cubic":
             stencil = cubic_stencil(surface, band, limited=self.limited)
             check_finite(torch.where(band | _read_by(stencil, band), u.detach(), 0.0),
