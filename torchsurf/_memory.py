@@ -4,9 +4,10 @@ The rule: an entry point that allocates whole volumes (:func:`torchsurf.sdf.from
 the shapes, :func:`torchsurf.sdf.from_mesh`, :class:`torchsurf.MeshAdapter`,
 :class:`torchsurf.ImplicitSurface`, every flow's call, :class:`~torchsurf.flows.Extension`) first
 estimates the bytes it will hold at once, and raises ``MemoryError`` stating that estimate and
-the memory available when the estimate exceeds it. The estimates are lower bounds, counted from the arrays the algorithm must
-keep at the same time (listed by each function below), so a refusal is always right; a run that
-passes may still need more (temporaries, ``torch.compile``).
+the memory available when the estimate exceeds it. The estimates are lower bounds, counted from
+the arrays the algorithm must keep at the same time (listed by each function below), so a
+refusal is always right; a run that passes may still need more (temporaries,
+``torch.compile``).
 
 "Available" is ``MemAvailable`` from ``/proc/meminfo`` (Linux) for work on the CPU: the memory
 the kernel can hand out without swapping, after what the process already holds (the surface,
