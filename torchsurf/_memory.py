@@ -12,8 +12,8 @@ refusal is always right; a run that passes may still need more (temporaries,
 "Available" is ``MemAvailable`` from ``/proc/meminfo`` (Linux) for work on the CPU: the memory
 the kernel can hand out without swapping, after what the process already holds (the surface,
 ``u0``). On other systems and devices nothing is checked. Setting the environment variable
-``TORCHSURF_MEMORY_CHECK=0`` turns the check off (``1``, the default, keeps it; other values
-raise ``ValueError``).
+``TORCHSURF_MEMORY_CHECK=0`` turns the check off (``1``, the default, or empty keeps it; other
+values raise ``ValueError``).
 """
 
 from __future__ import annotations

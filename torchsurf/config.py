@@ -126,7 +126,7 @@ BRICKS_FROM = 64
 :data:`BRICK_MARGIN_CELLS` they need (below :data:`BRICKS_ALWAYS_FROM`; from there always).
 At the shipped mesh configs' sizes (64^3-96^3) bricks ran the flow stage in 0.37-0.75 of the
 dense time (flow visualisation on the trefoil 0.37, colour denoising of the teapot 0.39, spots
-0.45, harmonic maps 0.65-0.66, Perona-Malik and total variation 0.71; the heat flow 1.02-1.11), with
+0.45, harmonic maps 0.65-0.66, Perona-Malik and total variation 0.71; the heat flow 1.03-1.11), with
 the same metrics to 1e-6; at 48^3 dense ran the built-in shapes 2-3x faster (docs/cli.md,
 "Dense or bricks")."""
 

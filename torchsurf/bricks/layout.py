@@ -64,9 +64,9 @@ _HALO_GATHER = backend.Kernel("brick_halo", _halo_gather_eager, _halo_gather_fus
 
 
 def _check_fill(fill: float, dtype: torch.dtype) -> None:
-    """Refuse, naming ``fill``, a value that ``dtype`` cannot hold: a fraction, NaN or infinity
-    in an integer dtype, one beyond its range (-1 in uint8 wrapped to 255), or anything but 0
-    or 1 in bool (5 was taken as True)."""
+    """Refuse, naming ``fill``, a value that ``dtype`` cannot hold: a complex number in a real
+    dtype, a fraction, NaN or infinity in an integer dtype, one beyond its range (-1 in uint8
+    wrapped to 255), or anything but 0 or 1 in bool (5 was taken as True)."""
     if isinstance(fill, numbers.Complex) and not isinstance(fill, numbers.Real) \
             and not dtype.is_complex:
         raise ValueError(f"fill={fill!r} cannot be held by field's dtype {dtype} (not complex): "

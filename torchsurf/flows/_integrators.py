@@ -781,7 +781,11 @@ def _torchdiffeq(method: str) -> Callable[[System, Tensor, Schedule], list[Tenso
 
         def solve(u: Tensor, times: list[float | Tensor]) -> Tensor:
             try:
-                return solve_piece(u, times)
+                with warnings.catch_warnings():
+                    # torchdiffeq hands scipy's explicit solvers a min_step they do not read
+                    warnings.filterwarnings("ignore", message=".*have no effect for a chosen "
+                                            "solver: `min_step`", category=UserWarning)
+                    return solve_piece(u, times)
             except AssertionError as error:  # torchdiffeq's way of stopping a run
                 if "max_num_steps" not in str(error):
                     raise RuntimeError(
@@ -938,9 +942,9 @@ def _check_scipy_solver(solver: object, default: bool) -> None:
     if isinstance(solver, type):  # a solve_ivp OdeSolver class
         try:
             from scipy.integrate._ivp.rk import RungeKutta
-        except ImportError:
-            return
-        if issubclass(solver, RungeKutta):
+        except ImportError:  # a private module: judged by the class's name instead
+            RungeKutta = None  # noqa: N806
+        if RungeKutta is not None and issubclass(solver, RungeKutta):
             return
         name = solver.__name__
     else:

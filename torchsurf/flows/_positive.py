@@ -169,7 +169,9 @@ class Positive(nn.Module):
         else:
             if isinstance(value, (Tensor, np.ndarray)) and value.dtype in (torch.float64,
                                                                            np.float64):
-                tensor = torch.as_tensor(value).detach().to(torch.float64).clone()  # unrounded
+                # a float64 tensor or array kept unrounded (a list takes the default dtype,
+                # as torch.tensor gives it)
+                tensor = torch.as_tensor(value).detach().to(torch.float64)
             self.register_buffer("values", tensor.detach().clone())
             self._largest = HostMaximum(name, self.values)
             self.register_load_state_dict_post_hook(_reread_largest)

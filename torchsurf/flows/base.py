@@ -24,7 +24,8 @@ default, widened to 5 cells on a dense surface whose phi is a distance that far,
 and independent of the time. The ring of nodes its stencils read around it is refreshed by
 closest-point re-extension (tricubic, limited) at every evaluation of the rate of RKC,
 Euler, Heun and the torchdiffeq methods (RKC, Euler and Heun: only between re-extensions of
-the band where the band is wide enough to hold the ring that long), and the whole band
+the band where the band is wide enough to hold the ring that long and the rate has no
+reaction term), and the whole band
 with it after each step, or, where steps are shorter than the time the fastest diffusion takes
 to cross a cell, after as many steps as that takes (RKC steps that hold the ring: as many as
 one step could hold it for; torchdiffeq methods: after each piece of
@@ -455,9 +456,9 @@ class Flow(nn.Module):
             as one step could hold it for,
             ``floor(6 (w - 2 sqrt(3))^2 / (rho dt))`` on a band of ``w`` cells), and into each
             result at the requested times (docs/band.md). Between
-            re-extensions, RKC and torchdiffeq methods re-extend the ring around the band at
-            every evaluation of the rate (Euler and Heun need not where the band can hold it
-            and the rate has no reaction term: docs/band.md). ``None``:
+            re-extensions, the torchdiffeq methods re-extend the ring around the band at every
+            evaluation of the rate, and RKC, Euler and Heun too unless the band can hold it
+            and the rate has no reaction term (docs/band.md). ``None``:
             never (the ring keeps ``u0``: only right for a band as wide as the diffusion
             length).
         band_width: half-width of the evolving band, world units. Default: on a surface

@@ -84,11 +84,10 @@ class LearnedDiffusion(nn.Module):
             it whole (docs/learning.md). ``None`` (default): the length follows the largest
             current time, read on the host at each call (one graph break). Costs what the time
             ``max_time`` costs, whatever the times: ``sqrt(max_time)`` operator applications up
-            to about ``45 h^2``, then ``max_time`` (pieces). A setting of the layer, not of its
-            ``state_dict`` (which holds ``raw_time`` only, as of any constructor argument):
-            give the same ``max_time`` to the layer a state is loaded into, since an optimiser's
-            momentum may have moved ``raw_time`` beyond the clamp, and without it that time
-            applies.
+            to about ``45 h^2``, then ``max_time`` (pieces). A constructor argument, so not in
+            the ``state_dict`` (which holds ``raw_time`` only): give the same ``max_time`` to
+            the layer a state is loaded into, since an optimiser's momentum may have moved
+            ``raw_time`` beyond the clamp, and without it that time applies.
         scheme: ``"octant"`` (default), ``"symmetric"`` or ``"conservative"``
             (:func:`torchsurf.laplace_beltrami`).
         path: how the stencils run (:mod:`torchsurf.backend`).
