@@ -79,6 +79,8 @@ def test_chebyshev_heat_and_extension_check_too(little_memory):
     u0 = torch.zeros(16, 3, *grid.shape)  # 1.8 MiB of working volumes at least
     with pytest.raises(MemoryError, match=r"HeatFlow on u0 of shape \(16, 3, 17, 17, 17\)"):
         HeatFlow(0.01, method="chebyshev")(u0, surface)
+    with pytest.raises(TypeError, match="times must be a sequence"):  # checked before its len
+        HeatFlow(0.01, method="chebyshev")(u0, surface, times=0.005)
     for extension in (ts.flows.Extension(), ts.flows.Extension(method="pde")):
         with pytest.raises(MemoryError, match=r"Extension on u of shape \(16, 3, 17, 17, 17\)"):
             extension(u0, surface)

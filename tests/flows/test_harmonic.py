@@ -152,3 +152,21 @@ def test_an_entry_of_data_runs_as_it_would_alone():
     both = flow(torch.cat([smooth, random]), surface)
     alone = flow(smooth, surface)
     torch.testing.assert_close(both[:1], alone, rtol=0, atol=1e-12)
+
+
+def test_the_energy_factor_stays_finite_in_float32_where_u_varies_along_the_normal():
+    """The p = 1 rate's factor (E + eps^2)^(-1/2) formed E as |g|^2 - (g . n)^2, which fell
+    below -eps^2 in float32 for unit vectors rotating along n: 24 NaN in the rate, and the flow
+    refused as diverged (a review). E is now |P g|^2 from P g itself."""
+    from torchsurf.flows.harmonic import power_diffusivity
+
+    grid = ts.Grid.cube(40, 1.5)
+    phi = ts.sdf.sphere(grid)
+    surface = ts.ImplicitSurface(phi, grid)
+    band = surface.band_mask()
+    u = torch.cat([torch.cos(20 * phi), torch.sin(20 * phi), torch.zeros_like(phi)], 1)
+    rate = ts.operators.functional.harmonic_map_rate(
+        u, surface.normal, surface.weight, grid.spacing, power_diffusivity, -1.0, 1e-3, 0.5,
+        "symmetric", "slicing", band)
+    assert bool(torch.isfinite(rate).all())
+    assert bool(torch.isfinite(ts.HarmonicMapFlow(1e-4, p=1.0, eps=1e-3)(u, surface)).all())

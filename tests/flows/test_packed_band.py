@@ -214,6 +214,8 @@ def test_brick_storage_reads_each_nodes_grid_neighbours():
         assert torch.equal(found[:, column], expected), offset
         assert torch.equal(storage.neighbour(nodes, offset), expected)
     assert 0 < int((found < 0).sum()) < found.numel() // 2
+    with pytest.raises(ValueError, match="within one node"):  # 9 along x had read wrong nodes
+        storage.neighbour(nodes, (0, 0, 9))
 
 
 def _sparse(matrix: GatherMatrix) -> torch.Tensor:

@@ -509,8 +509,8 @@ def _pad_to_bricks(volume: Tensor, fill: str) -> Tensor:
 
 
 def bricks_of_mask(masks: Sequence[Tensor], grids: Sequence[Grid]) -> BrickLayout:
-    """The layout of the bricks that hold a node of each ``(D_b, H_b, W_b)`` bool mask, the
-    shape of ``grids[b]``."""
+    """The layout of the bricks that hold a node of each ``(D_b, H_b, W_b)`` bool (or uint8)
+    mask, the shape of ``grids[b]``."""
     coords, batch = [], []
     if len(masks) != len(grids):
         raise ValueError(f"masks and grids must pair up, got {len(masks)} and {len(grids)}")

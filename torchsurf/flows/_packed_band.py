@@ -487,10 +487,10 @@ def _local_moves(offsets: Sequence[tuple[int, int, int]], device: torch.device
     within one node), the brick it moves into (the column of the layout's neighbour table,
     :data:`torchsurf.bricks.layout.OFFSETS`) and the local index there: ``(512, K)`` int64
     each."""
-    moves = torch.tensor(offsets, dtype=torch.long, device=device)  # (K, 3)
-    if bool((moves.abs() > 1).any()):
+    if any(abs(step) > 1 for offset in offsets for step in offset):
         raise ValueError(f"offsets must each lie within one node along every axis, got "
                          f"{[tuple(o) for o in offsets]}")
+    moves = torch.tensor(offsets, dtype=torch.long, device=device)  # (K, 3)
     local = torch.arange(BRICK_NODES, device=device)
     at = torch.stack([local // (BRICK * BRICK), (local // BRICK) % BRICK, local % BRICK], 1)
     moved = at[:, None, :] + moves  # (512, K, 3), each in [-1, BRICK]

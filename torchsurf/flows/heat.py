@@ -293,12 +293,13 @@ class HeatFlow(Flow):
                               "have one")
         check_data(u0, "u0", surface)
         check_times_of_learned_time(self.time_value, times)
-        width = self.evolving_width(surface)
-        self._check_memory(u0, surface, surface.band_mask(width),
-                           0 if times is None else len(times))
         separately = self._entries_apart(u0, surface, times, {})
         if separately is not None:
             return separately
+        width = self.evolving_width(surface)
+        wanted = None if times is None else _check_times(times, self.time_value.maximum())
+        self._check_memory(u0, surface, surface.band_mask(width),
+                           0 if wanted is None else len(wanted))  # each entry before its work
         operator = BandLaplacian(surface, self.scheme, width, self.path)
         if not torch.compiler.is_compiling():  # a host read: it would break a compiled graph
             check_finite(torch.where(operator.band, u0, 0.0), "u0 (in the band)")

@@ -91,9 +91,15 @@ def _energy_factor(channels: Sequence[Tensor], haloed_normal: Tensor, spacing: f
         u = u[..., 1:-1, 1:-1, 1:-1]
         gradient = [0.5 * shifted(u, stencils.unit(a, 1)) - 0.5 * shifted(u, stencils.unit(a, -1))
                     for a in range(3)]
-        along = gradient[0] * normal[0] + gradient[1] * normal[1] + gradient[2] * normal[2]
-        squared.append(_squared_sum(gradient) - along * along)
+        squared.append(_tangential_squared(gradient, normal))
     return (_channel_sum(squared) / (spacing * spacing) + eps * eps) ** power
+
+
+def _tangential_squared(gradient: list[Tensor], normal: list[Tensor]) -> Tensor:
+    """``|P g|^2`` from ``P g`` itself: ``|g|^2 - (g . n)^2`` cancels where ``g`` lies along
+    ``n`` (float32: below zero, and a NaN energy factor for ``p = 1``)."""
+    along = gradient[0] * normal[0] + gradient[1] * normal[1] + gradient[2] * normal[2]
+    return _squared_sum([g - along * n for g, n in zip(gradient, normal, strict=True)])
 
 
 def _finish(total: Tensor, u: Tensor, energy: Tensor | None, mask: Tensor | None) -> Tensor:
@@ -151,8 +157,7 @@ def _face_products(
         for u in channels:
             central = [0.5 * _haloed_slice(u, stencils.unit(a, 1))
                        - 0.5 * _haloed_slice(u, stencils.unit(a, -1)) for a in range(3)]
-            along = central[0] * normal[0] + central[1] * normal[1] + central[2] * normal[2]
-            squared.append(_squared_sum(central) - along * along)
+            squared.append(_tangential_squared(central, normal))
         energy = (_sum(squared) / (spacing * spacing) + eps * eps) ** power
     return scales, products, energy
 
@@ -342,11 +347,7 @@ def eager_coupled_rate(
         central = [0.5 * differences[a][_window(a, 2, -1, interior)]
                    + 0.5 * differences[a][_window(a, 1, -2, interior)] for a in range(3)]
         normal = [n[..., 1:-1, 1:-1, 1:-1] for n in normal]
-        along = central[0] * normal[0]
-        along = along.addcmul_(central[1], normal[1]).addcmul_(central[2], normal[2])
-        squared = central[0] * central[0]
-        squared = squared.addcmul_(central[1], central[1]).addcmul_(central[2], central[2])
-        squared = squared.addcmul_(along, along, value=-1.0)
+        squared = _tangential_squared(central, normal)
         energy = (squared.sum(dim=1, keepdim=True) / (spacing * spacing) + eps * eps) ** power
     total = result / (spacing * spacing * len(sides) * grad_norm)
     return _finish(total, padded_u[..., 2:-2, 2:-2, 2:-2], energy, mask)
