@@ -195,3 +195,5 @@ def test_a_float64_vector_setting_is_kept_unrounded():
         scalar = ts.HeatFlow(time, diffusivity=1 / 3)(u, surface)
         torch.testing.assert_close(flow(u, surface), scalar, rtol=0, atol=1e-14)
     assert ts.HeatFlow(time, diffusivity=[0.5, 1.0]).diffusivity.values.dtype == torch.float32
+    tiny = Positive(torch.tensor([1e-50, 1.0], dtype=torch.float64), "diffusivity")
+    assert float(tiny.values[0]) == 1e-50  # checked unrounded: it had "rounded to 0" in float32

@@ -147,11 +147,16 @@ class Positive(nn.Module):
         expected = ("a finite positive number or a vector (C,) of them" if vector
                     else "a single finite positive number")
         tensor = as_real_tensor(value, name, expected)
+        self.learnable = check_flag(learnable, "learnable")
+        if (not self.learnable and isinstance(value, (Tensor, np.ndarray))
+                and value.dtype in (torch.float64, np.float64)):
+            # a fixed float64 tensor or array kept, and checked, unrounded (a list takes the
+            # default dtype, as torch.tensor gives it)
+            tensor = torch.as_tensor(value).detach().to(torch.float64).clone()
         valid = torch.isfinite(tensor) & (tensor > 0)
         if (tensor.dim() > int(vector) or tensor.numel() == 0 or not bool(valid.all())):
             raise ValueError(f"{name} must be {expected}, got {value!r}"
                              f"{range_note(value, tensor)}")
-        self.learnable = check_flag(learnable, "learnable")
         self.bound = None if bound is None else check_positive(bound, bound_name)
         if self.bound is not None and not self.learnable:
             raise ValueError(f"{bound_name} bounds a learnable {name}; {name} is fixed here")
@@ -167,11 +172,6 @@ class Positive(nn.Module):
         elif tensor.dim() == 0:
             self.fixed = check_positive(value, name)
         else:
-            if isinstance(value, (Tensor, np.ndarray)) and value.dtype in (torch.float64,
-                                                                           np.float64):
-                # a float64 tensor or array kept unrounded (a list takes the default dtype,
-                # as torch.tensor gives it)
-                tensor = torch.as_tensor(value).detach().to(torch.float64)
             self.register_buffer("values", tensor.detach().clone())
             self._largest = HostMaximum(name, self.values)
             self.register_load_state_dict_post_hook(_reread_largest)
