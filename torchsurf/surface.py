@@ -117,6 +117,8 @@ distance was computed all fall outside it."""
 
 def _crossing(inside: Tensor) -> Tensor:
     """Nodes of a dense ``(B, 1, D, H, W)`` bool volume with a neighbour on the other side."""
+    if torch.compiler.is_compiling():
+        return _crossing_traced(inside)
     crossing = torch.zeros_like(inside)
     for dim in (2, 3, 4):
         change = inside.narrow(dim, 1, inside.shape[dim] - 1) != inside.narrow(
@@ -125,6 +127,22 @@ def _crossing(inside: Tensor) -> Tensor:
         crossing.narrow(dim, 1, inside.shape[dim] - 1).logical_or_(change)
         crossing.narrow(dim, 0, inside.shape[dim] - 1).logical_or_(change)
     return crossing
+
+
+def _crossing_traced(inside: Tensor) -> Tensor:
+    """:func:`_crossing` for a traced graph: in ``uint8`` and without in-place ORs of views,
+    whose masked bool loads inductor's CPU code generation did not compile in torch 2.13
+    (``VecMask<int,1>`` against ``VecMask<float,1>``)."""
+    side = inside.to(torch.uint8)
+    crossing = torch.zeros_like(side)
+    for dim in (2, 3, 4):
+        length = side.shape[dim]
+        if length < 2:
+            continue
+        before = torch.cat([side.narrow(dim, 0, 1), side.narrow(dim, 0, length - 1)], dim)
+        after = torch.cat([side.narrow(dim, 1, length - 1), side.narrow(dim, length - 1, 1)], dim)
+        crossing = crossing | (before ^ side) | (after ^ side)
+    return crossing > 0
 
 
 def _squared_slope(padded: Tensor) -> Tensor:
@@ -768,11 +786,18 @@ class ImplicitSurface(nn.Module):
                                      and self._kept[key]._version != version):
             # a kept tensor modified in place (a flow's band mask a caller narrowed) is
             # computed again: later flows would otherwise read the caller's edit
-            with outside_inference(), outside_transforms(self.phi):
-                value = compute()
-            self._kept[key] = value
-            versions[key] = value._version if isinstance(value, Tensor) else None
+            self._keep(key, compute)
         return self._kept[key]
+
+    @torch.compiler.disable
+    def _keep(self, key: tuple, compute: Callable[[], object]) -> None:
+        """:meth:`kept`'s computation, run as is even inside a trace: a surface's bands and
+        stencils are formed once, and compiling them cost a fresh surface's first compiled
+        call more than the layer itself (a graph break there, no recompile later)."""
+        with outside_inference(), outside_transforms(self.phi):
+            value = compute()
+        self._kept[key] = value
+        self.__dict__["_kept_versions"][key] = value._version if isinstance(value, Tensor) else None
 
     def is_kept(self, key: tuple) -> bool:
         """Whether :meth:`kept` holds a value for ``key``."""

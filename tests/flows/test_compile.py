@@ -157,6 +157,51 @@ def test_inductor_compiles_a_flow_whole(sphere):
     torch.testing.assert_close(result, expected, rtol=1e-5, atol=1e-6)
 
 
+def test_inductor_compiles_a_flow_on_a_fresh_surface():
+    """Compiled before any eager call, the surface's sign-change nodes are traced too: as
+    in-place ORs of bool views they generated the same C++ that did not compile."""
+    grid = ts.Grid.cube(9, 1.5)
+    u = torch.rand(1, 1, *grid.shape, generator=torch.Generator().manual_seed(3))
+    flow = HeatFlow(grid.spacing**2 / 40, method="euler", steps=1)
+    with torch.no_grad():
+        torch._dynamo.reset()
+        try:
+            result = torch.compile(flow)(u, ts.ImplicitSurface(ts.sdf.sphere(grid), grid))
+        finally:
+            torch._dynamo.reset()
+        expected = flow(u, ts.ImplicitSurface(ts.sdf.sphere(grid), grid))
+    torch.testing.assert_close(result, expected, rtol=1e-5, atol=1e-6)
+
+
+def test_inductor_compiles_an_edge_stopping_flow_with_heun_steps(sphere):
+    """A Heun step re-extends the band between its two rates; the replicated halo of the second
+    rate, read through that gather, stopped inductor's range analysis in torch 2.13 (``vr must
+    not be None``) until the halo was traced as concatenated copies of the faces."""
+    u, surface = sphere
+    flow = AnisotropicFlow(surface.spacing**2 / 40, "perona_malik", method="heun", steps=1)
+    with torch.no_grad():
+        expected = flow(u, surface)
+        torch._dynamo.reset()
+        try:
+            result = torch.compile(flow)(u, surface)
+        finally:
+            torch._dynamo.reset()
+    torch.testing.assert_close(result, expected, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("shape", [(1, 1, 7, 5, 6), (2, 1, 1, 4, 3), (1, 1, 3, 1, 1)])
+def test_traced_sign_changes_and_halo_equal_the_eager_ones(shape):
+    from torchsurf.operators.functional import _replicated, _replicated_traced
+    from torchsurf.surface import _crossing, _crossing_traced
+
+    values = torch.randn(shape, generator=torch.Generator().manual_seed(2))
+    torch.testing.assert_close(_crossing_traced(values < 0), _crossing(values < 0), rtol=0, atol=0)
+    assert _crossing(values < 0).any() or min(shape[2:]) == 1
+    for width in (1, 2):
+        torch.testing.assert_close(_replicated_traced(values, width), _replicated(values, width),
+                                   rtol=0, atol=0)
+
+
 @pytest.mark.parametrize("shape", [(1, 1, 7, 5, 6), (2, 1, 1, 4, 3), (1, 1, 3, 1, 1)])
 def test_traced_ring_dilation_equals_the_eager_one(shape):
     from torchsurf.flows._integrators import _with_ring_traced, with_ring

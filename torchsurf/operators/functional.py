@@ -144,7 +144,18 @@ the octant scheme by that method where it applies (:mod:`torchsurf.bricks._nativ
 
 
 def _replicated(volume: Tensor, width: int) -> Tensor:
+    if torch.compiler.is_compiling():
+        return _replicated_traced(volume, width)
     return F.pad(volume, (width,) * 6, mode="replicate")
+
+
+def _replicated_traced(volume: Tensor, width: int) -> Tensor:
+    """:func:`_replicated` for a traced graph, by concatenating each face's copies."""
+    for dim in (2, 3, 4):
+        first = volume.narrow(dim, 0, 1).expand(*volume.shape[:dim], width, *volume.shape[dim + 1:])
+        last = volume.narrow(dim, volume.shape[dim] - 1, 1).expand_as(first)
+        volume = torch.cat([first, volume, last], dim)
+    return volume
 
 
 def _geometry_halo(normal: Tensor, weight: Tensor, haloed: Haloed) -> tuple[Tensor, Tensor]:
