@@ -88,7 +88,10 @@ def sphere_harmonic(degree: int, n: int, dtype: torch.dtype = torch.float64) -> 
 
 
 def torus_coordinates(points: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """``(theta, v, rho, ring)``: azimuth, tube angle, tube radius, distance from the z axis."""
+    """``(theta, v, rho, ring)`` of ``points`` ``(..., 3)`` world ``(x, y, z)`` about the torus
+    of :data:`TORUS_RADII` centred at the origin, each ``(...)``: azimuth and tube angle
+    (radians, ``v = 0`` on the outer equator), distance from the tube's core circle and from the
+    z axis (world units)."""
     x, y, z = points.unbind(-1)
     ring = torch.sqrt(x**2 + y**2)
     radial = ring - TORUS_RADII[0]

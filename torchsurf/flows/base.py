@@ -609,7 +609,11 @@ class Flow(nn.Module):
         return laplace_beltrami_bound(surface, scheme, self.evolving_width(surface))
 
     def system(self, u0: Tensor, surface: ImplicitSurface, **inputs: Tensor) -> System:
-        """The flow's equation for ``u0`` on ``surface``; subclasses implement it."""
+        """The flow's equation for ``u0`` ``(B, C, D, H, W)`` on ``surface``: a
+        :class:`~torchsurf.flows._integrators.System` whose ``rate`` maps volumes of ``u0``'s
+        shape to ``du/dt`` (units of ``u`` per unit of time), zero off the band, with the band,
+        its spectral bound and what the integrators read. ``inputs`` are the flow's extra inputs
+        of ``forward`` (e.g. ``direction=``). Subclasses implement it; ``forward`` calls it.""" 
         raise NotImplementedError
 
     def packed_system(self, system: System, u0: Tensor, surface: ImplicitSurface

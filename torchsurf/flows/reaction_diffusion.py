@@ -94,6 +94,9 @@ class ReactionDiffusion(Flow):
 
     def system(self, u0: Tensor, surface: ImplicitSurface, direction: Tensor | None = None,
                generator: torch.Generator | None = None) -> System:
+        """:meth:`Flow.system` of the two species ``u0`` ``(B, 2, D, H, W)``; ``direction``
+        ``(B or 1, 3, D, H, W)`` for the anisotropic variant (as in ``forward``), ``generator``
+        for the reaction's random ``beta``."""
         if u0.shape[1] != 2:
             raise ValueError(f"u0 must have 2 channels (a, b), got shape {tuple(u0.shape)}")
         check_generator(generator)

@@ -67,6 +67,8 @@ class FlowVisualization(Flow):
 
     def system(self, u0: Tensor, surface: ImplicitSurface, direction: Tensor | None = None,
                **inputs: Tensor) -> System:
+        """:meth:`Flow.system` of the noise ``u0`` ``(B, C, D, H, W)`` smeared along
+        ``direction`` ``(B or 1, 3, D, H, W)``, the tangent field ``T`` (required)."""
         if inputs:
             raise TypeError(f"FlowVisualization takes direction= only, got {sorted(inputs)} (its "
                             f"noise is the u0 given: FlowVisualization.noise(surface, "
