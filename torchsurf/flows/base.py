@@ -613,7 +613,7 @@ class Flow(nn.Module):
         :class:`~torchsurf.flows._integrators.System` whose ``rate`` maps volumes of ``u0``'s
         shape to ``du/dt`` (units of ``u`` per unit of time), zero off the band, with the band,
         its spectral bound and what the integrators read. ``inputs`` are the flow's extra inputs
-        of ``forward`` (e.g. ``direction=``). Subclasses implement it; ``forward`` calls it.""" 
+        of ``forward`` (e.g. ``direction=``). Subclasses implement it; ``forward`` calls it."""
         raise NotImplementedError
 
     def packed_system(self, system: System, u0: Tensor, surface: ImplicitSurface
