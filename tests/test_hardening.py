@@ -89,6 +89,48 @@ def test_meta_tensors_are_refused_by_name_and_device():
         HeatFlow(torch.tensor(0.01, device="meta"))
 
 
+def test_modules_build_under_a_meta_default_device_and_name_a_learned_one_on_meta():
+    """Under ``with torch.device("meta")`` a flow's settings became meta tensors whose checks
+    raised "Tensor.item() cannot be called on meta tensors"; a learned layer moved to another
+    device than its data's raised the same, where the flows name the mismatch."""
+    grid, surface = _sphere17()
+    with torch.device("meta"):
+        layers = [HeatFlow(0.01, diffusivity=[1.0, 2.0]), ts.AnisotropicFlow(0.01),
+                  ts.nn.LearnedDiffusion(2)]
+    u = torch.rand(1, 2, *grid.shape, generator=torch.Generator().manual_seed(0))
+    for layer in layers:
+        assert torch.isfinite(layer(u, surface)).all()
+    for layer in (ts.nn.LearnedDiffusion(2), ts.nn.DiffusionBlock(2)):
+        with pytest.raises(ts.MismatchError, match="on cpu but the learned times are .* on meta"):
+            layer.to("meta")(u, surface)
+    with pytest.raises(ValueError, match="device='meta' holds no values"):
+        ts.sdf.sphere(grid, device="meta")
+
+
+def test_a_first_use_under_inference_mode_leaves_no_inference_constants():
+    """The package imports its modules on first use: inside ``torch.inference_mode`` their
+    constant tensors became inference tensors, and every later training call with a ``phi``
+    that requires grad failed ('Inference tensors cannot be saved for backward')."""
+    import subprocess
+    import sys
+
+    script = """
+import torch, torchsurf as ts
+grid = ts.Grid.cube(13, 1.5)
+surface = ts.ImplicitSurface(ts.sdf.sphere(grid).requires_grad_(), grid)
+u = torch.rand(1, 1, *grid.shape)
+with torch.inference_mode():
+    ts.nn.LearnedDiffusion(1)(u, surface)
+ts.nn.LearnedDiffusion(1)(u, surface).square().sum().backward()
+from torchsurf.flows import _limiter
+assert not any(t.is_inference() for t in (_limiter.BLOCKS, _limiter._OFFSETS, _limiter._CELL_TAPS))
+print("trained")
+"""
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                            timeout=300)
+    assert result.returncode == 0 and "trained" in result.stdout, result.stderr[-2000:]
+
+
 @pytest.mark.parametrize(
     "times",
     [[0.05, 0.1], (0.05, 0.1), np.array([0.05, 0.1]), torch.tensor([0.05, 0.1]),

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import importlib
 import pkgutil
+import sys
 from typing import TYPE_CHECKING
 
 __version__ = "0.1.0"
@@ -78,13 +79,24 @@ __all__ = [
 
 def __getattr__(name: str) -> object:
     if name in _NAMES:
-        value = getattr(importlib.import_module(f"{__name__}.{_NAMES[name]}"), name)
+        value = getattr(_import(f"{__name__}.{_NAMES[name]}"), name)
     elif name in _public_submodules():
-        value = importlib.import_module(f"{__name__}.{name}")
+        value = _import(f"{__name__}.{name}")
     else:
         raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
     globals()[name] = value
     return value
+
+
+def _import(module: str) -> object:
+    """``module`` imported outside ``torch.inference_mode``: a first use inside an evaluation
+    loop would otherwise make the modules' constant tensors inference tensors, which every
+    later call that autograd records would fail to save."""
+    torch = sys.modules.get("torch")
+    if torch is None or not torch.is_inference_mode_enabled():
+        return importlib.import_module(module)
+    with torch.inference_mode(False):
+        return importlib.import_module(module)
 
 
 def _public_submodules() -> set[str]:

@@ -46,7 +46,8 @@ def check_dtype(dtype: object, name: str = "dtype") -> torch.dtype:
 
 def check_device(device: object, name: str = "device") -> torch.device | None:
     """``None``, or ``torch.device(device)``; raise ``ValueError`` naming ``name`` where torch
-    cannot read it (``"gpu"``) or has no such device (``"cuda"`` on a CPU build)."""
+    cannot read it (``"gpu"``), has no such device (``"cuda"`` on a CPU build), or it is
+    ``"meta"`` (no values to read)."""
     if device is None:
         return None
     try:
@@ -54,6 +55,9 @@ def check_device(device: object, name: str = "device") -> torch.device | None:
     except (RuntimeError, TypeError) as error:
         raise ValueError(f"{name} must name a torch device ('cpu', 'cuda', 'cuda:0', ...), got "
                          f"{device!r}") from error
+    if parsed.type == "meta":
+        raise ValueError(f"{name}={device!r} holds no values; torchsurf needs real data: use "
+                         "'cpu' or 'cuda'")
     if parsed.type == "cuda" and not torch.cuda.is_available():
         raise ValueError(f"{name}={device!r}: this torch has no CUDA device "
                          "(torch.cuda.is_available() is False); use 'cpu'")
@@ -223,14 +227,17 @@ def as_real_tensor(value: object, name: str, expected: str) -> Tensor:
     tensor, detached; bools, strings, ``None`` and complex numbers refused with ``TypeError``
     naming ``name`` and saying ``expected``."""
     if isinstance(value, (Tensor, np.ndarray)):
-        tensor = check_has_data(torch.as_tensor(value).detach(), name)
+        tensor = value if isinstance(value, Tensor) else torch.as_tensor(value, device="cpu")
+        tensor = check_has_data(tensor.detach(), name)
         if tensor.dtype == torch.bool or tensor.is_complex():
             raise TypeError(f"{name} must be {expected}, got a tensor of dtype {tensor.dtype}")
         return tensor.to(torch.get_default_dtype()).clone()
+    # numbers are settings, on the host even under a default device (``with torch.device``)
     if isinstance(value, Sequence) and not isinstance(value, str):
         entries = [as_float(v, f"{name}[{i}]", expected) for i, v in enumerate(value)]
-        return torch.tensor(entries, dtype=torch.get_default_dtype())
-    return torch.tensor(as_float(value, name, expected), dtype=torch.get_default_dtype())
+        return torch.tensor(entries, dtype=torch.get_default_dtype(), device="cpu")
+    return torch.tensor(as_float(value, name, expected), dtype=torch.get_default_dtype(),
+                        device="cpu")
 
 
 def check_triple(value: object, name: str, check: Callable[[object, str], T]) -> tuple[T, T, T]:

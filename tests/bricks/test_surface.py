@@ -413,6 +413,48 @@ def test_a_brick_batch_evaluated_under_inference_mode_then_trains():
     assert torch.isfinite(trained.grad).all()
 
 
+def test_edge_stopping_on_bricks_evaluated_under_inference_mode_then_trains():
+    """The layout's halo and kernel tables were kept as inference tensors by the first call:
+    the next training call raised 'Inference tensors cannot be saved for backward'."""
+    grid = Grid.cube(21, 1.5)
+    surface = bricks.from_dense(ts.sdf.sphere(grid, 0.6), grid)
+    x, y, z = grid.points().unbind(-1)
+    u = surface.from_dense((x + y * z)[None, None])
+    with torch.inference_mode():
+        expected = ts.anisotropic_diffusion(u, surface, "perona_malik", contrast=0.5)
+    trained = u.clone().requires_grad_()
+    result = ts.anisotropic_diffusion(trained, surface, "perona_malik", contrast=0.5)
+    result.square().sum().backward()
+    torch.testing.assert_close(result.detach(), expected, rtol=0, atol=0)
+    assert torch.isfinite(trained.grad).all() and trained.grad.abs().sum() > 0
+
+
+def test_bricks_of_a_phi_that_requires_grad_keep_its_graph_under_no_grad_and_inference():
+    """Built under no_grad the packed phi lost its graph (a silently missing part of phi's
+    gradient); a heat flow under inference_mode read the row bits' version counter of an
+    inference mask ('Inference tensors do not track version counter')."""
+    grid = Grid.cube(17, 1.6)
+    x, y, z = grid.points(dtype=torch.float64).unbind(-1)
+    data = (x + y * z)[None, None]
+
+    def phi_gradient(no_grad: bool) -> torch.Tensor:
+        phi = ts.sdf.sphere(grid, 0.5, dtype=torch.float64).requires_grad_()
+        with torch.no_grad() if no_grad else torch.enable_grad():
+            surface = bricks.from_dense(phi, grid)
+        assert surface.phi.requires_grad
+        ts.laplace_beltrami(surface.from_dense(data), surface).square().sum().backward()
+        return phi.grad
+
+    torch.testing.assert_close(phi_gradient(True), phi_gradient(False), rtol=0, atol=0)
+    phi = ts.sdf.sphere(grid, 0.5).requires_grad_()
+    surface = bricks.from_dense(phi, grid)
+    u = surface.from_dense(torch.rand(1, 1, *grid.shape, generator=torch.Generator().manual_seed(4)))
+    with torch.inference_mode():
+        inferred = ts.HeatFlow(0.01)(u, surface)
+    with torch.no_grad():
+        torch.testing.assert_close(inferred, ts.HeatFlow(0.01)(u, surface))
+
+
 @pytest.mark.parametrize("grids", ["g", 64, [None]])
 def test_from_mesh_names_grids_that_are_not_grids(grids):
     """A string for the grid failed on "'str' object has no attribute 'spacing'"."""

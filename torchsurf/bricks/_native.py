@@ -293,13 +293,20 @@ class _RowBits:
     def __call__(self, mask: Tensor | None, bricks: int) -> Tensor:
         if mask is None:
             return torch.full((bricks, BRICK, BRICK), 255, dtype=torch.uint8)
+        if mask.is_inference():  # no version counter: formed for this call only
+            return _row_bits(mask, bricks)
         if self._mask is not None and self._mask() is mask and mask._version == self._version:
             return self._bits  # type: ignore[return-value]
-        powers = 1 << torch.arange(BRICK, dtype=torch.int32)
-        bits = (mask.reshape(bricks, BRICK, BRICK, BRICK).to(torch.int32) * powers).sum(-1)
         self._mask, self._version = weakref.ref(mask), mask._version
-        self._bits = bits.to(torch.uint8).contiguous()
+        self._bits = _row_bits(mask, bricks)
         return self._bits
+
+
+def _row_bits(mask: Tensor, bricks: int) -> Tensor:
+    """:class:`_RowBits` of ``mask`` ``(N, 1, 8, 8, 8)`` bool: ``(N, 8, 8)`` uint8."""
+    powers = 1 << torch.arange(BRICK, dtype=torch.int32)
+    bits = (mask.reshape(bricks, BRICK, BRICK, BRICK).to(torch.int32) * powers).sum(-1)
+    return bits.to(torch.uint8).contiguous()
 
 
 class _GeometryPlan:
@@ -328,7 +335,10 @@ class _GeometryPlan:
                  weight: Tensor, weight_strides: tuple[int, int], bits: Tensor
                  ) -> tuple[Tensor, Tensor] | None:
         """``(offsets (N + 1,) int64, packed)``: brick ``n``'s rows from ``packed`` element
-        ``40 offsets[n]`` on; ``None`` the first time this geometry and band are seen."""
+        ``40 offsets[n]`` on; ``None`` the first time this geometry and band are seen, and
+        for geometry made under ``torch.inference_mode`` (no version counter to keep it by)."""
+        if normal.is_inference() or weight.is_inference():
+            return None
         seen = self._key is not None and self._holds(normal, weight, bits)
         self._bits = bits
         if seen and self._plan is not None:

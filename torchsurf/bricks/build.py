@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from contextlib import nullcontext
 
 import numpy as np
 import torch
@@ -11,6 +12,7 @@ from torch import Tensor
 
 from .. import _memory, _mesh_sdf
 from .._checks import MismatchError, check_choice, check_device, check_dtype, check_positive
+from .._inference import outside_inference
 from .._mesh_input import MeshLike, as_trimesh, is_array_pair, triangle_arrays
 from ..grid import Grid
 from ..surface import ImplicitSurface
@@ -79,7 +81,10 @@ def from_dense(phi: Tensor | ImplicitSurface, grid: Grid | None = None,
     masks = [_grown(bands[width][b, 0], REACH_CELLS) for b, width in enumerate(widths)]
     grids = [dense.grid] * dense.batch_size
     layout = bricks_of_mask(masks, grids)
-    packed = layout.from_dense(dense.phi, fill="quadratic")
+    # a phi that requires grad stays in the bricks' graph under no_grad or inference_mode,
+    # as a dense surface's geometry does (ImplicitSurface._assemble_kept)
+    with outside_inference(), torch.enable_grad() if dense.phi.requires_grad else nullcontext():
+        packed = layout.from_dense(dense.phi, fill="quadratic")
     return BrickSurface(packed, layout, dense.band_width, dense.eps, widths)
 
 

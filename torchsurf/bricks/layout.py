@@ -29,6 +29,7 @@ from torch import Tensor
 
 from .. import backend
 from .._checks import MismatchError, check_choice, check_generator, check_tensor
+from .._inference import outside_inference
 from ..grid import Grid
 from . import _native
 
@@ -257,8 +258,9 @@ class BrickLayout:
         halos in place and evaluates only the rows of ``mask`` (:mod:`torchsurf.bricks._native`),
         or ``None`` where that kernel does not apply. What ``path="auto"`` runs on bricks."""
         if "_native_tables" not in self.__dict__:
-            self._native_tables = (self.neighbours.contiguous(),
-                                   self.present.to(torch.uint8).contiguous())
+            with outside_inference():  # kept for later calls (an inference tensor would fail them)
+                self._native_tables = (self.neighbours.contiguous(),
+                                       self.present.to(torch.uint8).contiguous())
         return _native.octant(u, haloed_normal, haloed_weight, *self._native_tables,
                               self._row_bits, spacing, weighted, mask, self._geometry_plan)
 
@@ -269,6 +271,13 @@ class BrickLayout:
         cached = self._halo_indices.get(key)
         if cached is not None:
             return cached
+        with outside_inference():  # kept for later calls (an inference tensor would fail them)
+            cached = self._formed_halo_index(width, device)
+        self._halo_indices[key] = cached
+        return cached
+
+    def _formed_halo_index(self, width: int, device: torch.device) -> tuple[Tensor, Tensor]:
+        """:meth:`_halo_index`, formed."""
         along = torch.arange(-width, BRICK + width)
         offset = torch.where(along < 0, -1, torch.where(along >= BRICK, 1, 0))
         local = along - offset * BRICK
@@ -282,9 +291,7 @@ class BrickLayout:
         source += inside.to(dtype)
         missing = ~self.present[:, which]
         source.masked_fill_(missing, 0)
-        cached = (source.flatten().to(device), missing.flatten().to(device))
-        self._halo_indices[key] = cached
-        return cached
+        return source.flatten().to(device), missing.flatten().to(device)
 
     def entry_max(self, x: Tensor) -> Tensor:
         """The largest value of each batch entry and channel of a packed ``x``

@@ -24,7 +24,15 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-BLOCKS = torch.tensor([
+
+def _constant(values: list, dtype: torch.dtype | None = None) -> Tensor:
+    """A module constant, outside ``torch.inference_mode`` should this module be first
+    imported inside it (an inference tensor could not be saved for a later backward)."""
+    with torch.inference_mode(False):
+        return torch.tensor(values, dtype=dtype)
+
+
+BLOCKS = _constant([
     [16 * (cz + dz) + 4 * (cy + dy) + (cx + dx)
      for dz in (-1, 0, 1) for dy in (-1, 0, 1) for dx in (-1, 0, 1)]
     for cz in (1, 2) for cy in (1, 2) for cx in (1, 2)
@@ -32,8 +40,8 @@ BLOCKS = torch.tensor([
 """``(8, 27)``: the positions among the 4^3 taps (``16 z + 4 y + x``) of the 27 nodes around
 each corner of the cell (corners in ``(z, y, x)`` order, ``4 z + 2 y + x``)."""
 
-_OFFSETS = torch.tensor([[x - 1, y - 1, z - 1] for z in range(4) for y in range(4)
-                         for x in range(4)], dtype=torch.float64)
+_OFFSETS = _constant([[x - 1, y - 1, z - 1] for z in range(4) for y in range(4)
+                      for x in range(4)], dtype=torch.float64)
 """``(64, 3)``: each tap's ``(x, y, z)`` offset from the cell's first node."""
 
 
@@ -155,7 +163,7 @@ CELL = [16 * z + 4 * y + x for z in (1, 2) for y in (1, 2) for x in (1, 2)]
 """Positions, among the 4^3 taps, of the 8 nodes of the cell that holds the point: the bounds
 hold their range, so a value inside it is not clamped."""
 
-_CELL_TAPS = torch.tensor(CELL)
+_CELL_TAPS = _constant(CELL)
 
 
 def cell_values(gathered: Tensor) -> Tensor:

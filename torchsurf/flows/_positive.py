@@ -97,7 +97,7 @@ def range_note(value: object, tensor: Tensor) -> str:
     """``""``, or why ``value``, whose entries are all finite and > 0, is not in ``tensor``
     (``value`` in ``tensor``'s dtype): an entry rounded to 0 or overflowed to infinity."""
     try:
-        exact = torch.as_tensor(value, dtype=torch.float64)
+        exact = torch.as_tensor(value, dtype=torch.float64, device=tensor.device)
     except (TypeError, ValueError, RuntimeError):
         return ""
     if exact.shape != tensor.shape or not bool((torch.isfinite(exact) & (exact > 0)).all()):
@@ -152,7 +152,8 @@ class Positive(nn.Module):
                 and value.dtype in (torch.float64, np.float64)):
             # a fixed float64 tensor or array kept, and checked, unrounded (a list takes the
             # default dtype, as torch.tensor gives it)
-            tensor = torch.as_tensor(value).detach().to(torch.float64).clone()
+            tensor = (value if isinstance(value, Tensor) else torch.as_tensor(value, device="cpu")
+                      ).detach().to(torch.float64).clone()
         valid = torch.isfinite(tensor) & (tensor > 0)
         if (tensor.dim() > int(vector) or tensor.numel() == 0 or not bool(valid.all())):
             raise ValueError(f"{name} must be {expected}, got {value!r}"

@@ -62,7 +62,8 @@ def _largest(a: Tensor, groups: Tensor | None = None) -> Tensor:
     if groups is None:
         return rows
     entries = rows.new_zeros((int(groups.max()) + 1, *rows.shape[1:]))
-    return entries.index_reduce(0, groups, rows, "amax")[groups]
+    index = groups.reshape(-1, *[1] * (rows.dim() - 1)).expand_as(rows)
+    return entries.scatter_reduce(0, index, rows, "amax")[groups]
 
 
 def _check_residual(energy: Tensor, iteration: int) -> None:

@@ -171,10 +171,11 @@ class LearnedDiffusion(nn.Module):
         refuse_transforms(type(self).__name__, u, forward_mode=False, phi=surface.phi,
                           why="its exp(t L) is an autograd Function with a backward only")
         check_data(u, "u", surface, channels=self.channels)
-        if self.learn_time and u.dtype != self.raw_time.dtype:
+        if self.learn_time and (u.dtype, u.device) != (self.raw_time.dtype, self.raw_time.device):
             raise MismatchError(
-                f"u is {u.dtype} but the learned times are {self.raw_time.dtype}: convert one of "
-                f"them (layer.to({u.dtype}) or u.to({self.raw_time.dtype}))")
+                f"u is {u.dtype} on {u.device} but the learned times are {self.raw_time.dtype} on "
+                f"{self.raw_time.device}: move one of them (layer.to(u.device, u.dtype) or "
+                f"u.to(...))")
         operator = BandLaplacian(surface, self.scheme, path=self.path)
         check_finite(torch.where(operator.band, u.detach(), 0.0), "u (in the band)")
         area = surface.spacing**2
