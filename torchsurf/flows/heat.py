@@ -70,7 +70,9 @@ class HeatFlow(Flow):
     With the second-order schemes (the default octant, or symmetric), sampled on S, the flow
     is second order in ``h`` without any re-extension (octant scheme, explicit Euler, sphere of
     radius 1 on ``[-1.4, 1.4]^3``, l = 2, t = 0.05: relative error 1.4e-3, 5.8e-4, 3.4e-4 at
-    65^3, 97^3, 129^3, sampled at 2000 points on S; docs/benchmarks.md).
+    65^3, 97^3, 129^3, sampled trilinearly at 2000 points on S, docs/benchmarks.md; most of it
+    the trilinear read's own, 1.41e-3 on the exact solution at 65^3: read tricubically,
+    ``sample(..., interpolation="cubic")``, the flow's error there is 1.2e-4).
 
     The default integrator is Runge–Kutta–Chebyshev (:class:`Flow`), with stages from a
     Gershgorin bound ``rho`` of the operator assembled on the band (close to ``10 / h^2`` on a
@@ -86,7 +88,12 @@ class HeatFlow(Flow):
     nearly -1 instead of damping them, so few steps keep noise (an audit: noise on the 64^3
     unit sphere to 22 h^2, mean ``|grad_S u|`` near S 0.055 with 10 steps and 2.6 with 3, against
     0.025 for the default RKC and 0.027 for ``"implicit"`` with 10 steps). Smooth data lose
-    nothing; to smooth noise in few steps use ``"implicit"`` (backward Euler).
+    nothing; to smooth noise in few steps use ``"implicit"`` (backward Euler). Where the band
+    cannot hold its ring through a step (a 3-cell band), the ring is re-extended before each
+    step and held through it, and Crank–Nicolson is then about first order in time: a sphere
+    at 24^3 (3-cell band), l = 2, ``T = 0.03``, 10 / 20 / 40 / 80 / 160 steps 4.6e-4, 1.7e-4,
+    6.7e-5, 3.0e-5, 1.5e-5 from the converged flow; with ``reextend_every=None`` order 2.00
+    (an audit, 2026-12-07).
 
     With those schemes and ``phi`` fixed (not requiring grad), the explicit integrators
     (``"rkc"``, ``"euler"``, ``"heun"``) run on the band and ring's values alone: the rate is
