@@ -793,7 +793,8 @@ class ImplicitSurface(nn.Module):
     def _keep(self, key: tuple, compute: Callable[[], object]) -> None:
         """:meth:`kept`'s computation, run as is even inside a trace: a surface's bands and
         stencils are formed once, and compiling them cost a fresh surface's first compiled
-        call more than the layer itself (a graph break there, no recompile later)."""
+        call more than the layer itself (a graph break there; docs/learning.md, "A model compiled
+        whole")."""
         with outside_inference(), outside_transforms(self.phi):
             value = compute()
         self._kept[key] = value

@@ -132,6 +132,18 @@ def test_bound_is_refused_below_the_value_or_for_a_fixed_one():
         HeatFlow(1.0, learn_diffusivity=True, max_diffusivity=-1.0)
 
 
+def test_a_bound_may_equal_the_initial_value(sphere):
+    """float32(0.1) exceeds 0.1: a learned time at its bound, which the docs advise for
+    compiling, was refused as "max_time=0.1 is below the initial time 0.1"."""
+    u, surface = sphere
+    for layer in (HeatFlow(0.1, learn_time=True, max_time=0.1, method="euler"),
+                  ts.nn.LearnedDiffusion(2, time=0.1, max_time=0.1)):
+        layer(u, surface).sum().backward()
+        assert all(torch.isfinite(p.grad).all() for p in layer.parameters())
+    with pytest.raises(ValueError, match="below the initial time"):
+        HeatFlow(0.1, learn_time=True, max_time=0.1 * (1 - 1e-6))
+
+
 def test_fixed_vector_maximum_is_kept_on_the_host_and_follows_a_loaded_state():
     flow = HeatFlow(0.1, diffusivity=[1.0, 2.0])
     assert flow.diffusivity.maximum() == 2.0

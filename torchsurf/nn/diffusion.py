@@ -131,7 +131,8 @@ class LearnedDiffusion(nn.Module):
         self.max_time = None if max_time is None else check_positive(max_time, "max_time")
         if self.max_time is not None and not self.learn_time:
             raise ValueError("max_time bounds learned times; learn_time=False here")
-        if self.max_time is not None and float(initial.max()) > self.max_time:
+        if (self.max_time is not None  # within float rounding: a time at its bound is allowed
+                and float(initial.max()) > self.max_time * (1 + torch.finfo(initial.dtype).eps)):
             raise ValueError(
                 f"max_time={self.max_time:g} is below the initial time {time!r}; it must be at "
                 "least as large"
