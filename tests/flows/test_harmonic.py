@@ -170,3 +170,20 @@ def test_the_energy_factor_stays_finite_in_float32_where_u_varies_along_the_norm
         "symmetric", "slicing", band)
     assert bool(torch.isfinite(rate).all())
     assert bool(torch.isfinite(ts.HarmonicMapFlow(1e-4, p=1.0, eps=1e-3)(u, surface)).all())
+
+
+@pytest.mark.parametrize("magnitude", [1e-30, 1e-15, 1e20, 1e30])
+def test_vectors_of_any_length_are_made_unit_at_the_start(magnitude):
+    """Their squares overflowed or underflowed in float32: vectors of length 1e20 came out zero
+    without a word, 1e-15 ones 0.06 off the unit start's flow, 1e-19 ones were refused as zero."""
+    grid = ts.Grid.cube(17, 1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, 1.0), grid)
+    x, y, z = grid.points().unbind(-1)
+    v = torch.stack([torch.cos(3 * x + y), torch.sin(3 * x + y) * torch.cos(2 * z),
+                     torch.sin(3 * x + y) * torch.sin(2 * z)])[None]
+    flow = HarmonicMapFlow(0.01, p=1, eps=0.1)
+    band = surface.band_mask().expand_as(v)
+    torch.testing.assert_close(flow(magnitude * v, surface)[band], flow(v, surface)[band],
+                               rtol=0, atol=2e-6)
+    with pytest.raises(ValueError, match="zero vectors"):
+        flow(torch.zeros_like(v), surface)

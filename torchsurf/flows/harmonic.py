@@ -24,8 +24,15 @@ power_diffusivity.exponent_contrast = True  # type: ignore[attr-defined]  (torch
 
 
 def normalize(u: Tensor, eps: float = 1e-12) -> Tensor:
-    """``u / |u|`` over the channels of ``(B, C, D, H, W)``."""
-    return u / torch.sqrt((u**2).sum(dim=1, keepdim=True) + eps**2)
+    """``u / |u|`` over the channels of ``(B, C, D, H, W)`` (zero vectors stay zero).
+
+    Each vector is first divided by its largest component (a constant to autograd: the result
+    does not depend on it), so that its squares neither overflow nor underflow: vectors of
+    length 1e20 or 1e-20 in float32 came out zero or not unit; ``eps`` then only keeps zero
+    vectors finite."""
+    largest = u.detach().abs().amax(dim=1, keepdim=True)
+    scaled = u / torch.where(largest > 0, largest, torch.ones_like(largest))
+    return scaled / torch.sqrt((scaled**2).sum(dim=1, keepdim=True) + eps**2)
 
 
 class HarmonicMapFlow(Flow):
@@ -105,8 +112,8 @@ class HarmonicMapFlow(Flow):
         band = self.band_mask(surface)
         region = with_ring(band, surface.layout)
         if not torch.compiler.is_compiling():
-            length = torch.where(region, u0.detach().norm(dim=1, keepdim=True), 1.0)
-            if bool((length <= torch.finfo(u0.dtype).tiny ** 0.5).any()):
+            largest = torch.where(region, u0.detach().abs().amax(dim=1, keepdim=True), 1.0)
+            if bool((largest == 0).any()):
                 raise ValueError("u0 must be unit vectors in the band and its ring; it has zero "
                                  "vectors there, which no renormalisation can make unit")
             if self.tangent:  # P u / |P u| would follow rounding: the directions are noise
