@@ -37,7 +37,7 @@ def available_bytes(device: torch.device | str | None = None) -> int | None:
 
     CPU on Linux: ``MemAvailable`` of ``/proc/meminfo``. Anything else: ``None`` (no check).
     """
-    if device is not None and check_device(device).type != "cpu":
+    if device is not None and (str(device) == "meta" or check_device(device).type != "cpu"):
         return None
     try:
         with open("/proc/meminfo", encoding="ascii") as meminfo:
