@@ -103,27 +103,35 @@ def test_modules_build_under_a_meta_default_device_and_name_a_learned_one_on_met
     for layer in (ts.nn.LearnedDiffusion(2), ts.nn.DiffusionBlock(2)):
         with pytest.raises(ts.MismatchError, match="on cpu but the learned times are .* on meta"):
             layer.to("meta")(u, surface)
+    flow = HeatFlow(0.01, diffusivity=[1.0, 2.0], learn_diffusivity=True, max_diffusivity=5.0)
+    with pytest.raises(ts.MismatchError, match="learned diffusivity is torch.float32 on meta"):
+        flow.to("meta")(u, surface)
     with pytest.raises(ValueError, match="device='meta' holds no values"):
         ts.sdf.sphere(grid, device="meta")
 
 
-def test_a_first_use_under_inference_mode_leaves_no_inference_constants():
+@pytest.mark.parametrize("first_use", ["torch.inference_mode()", 'torch.device("meta")'])
+def test_a_first_use_under_a_mode_leaves_usable_constants(first_use):
     """The package imports its modules on first use: inside ``torch.inference_mode`` their
     constant tensors became inference tensors, and every later training call with a ``phi``
-    that requires grad failed ('Inference tensors cannot be saved for backward')."""
+    that requires grad failed ('Inference tensors cannot be saved for backward'); under
+    ``with torch.device("meta")`` they became meta tensors, and every later flow failed."""
     import subprocess
     import sys
 
-    script = """
+    script = f"""
 import torch, torchsurf as ts
 grid = ts.Grid.cube(13, 1.5)
 surface = ts.ImplicitSurface(ts.sdf.sphere(grid).requires_grad_(), grid)
 u = torch.rand(1, 1, *grid.shape)
-with torch.inference_mode():
-    ts.nn.LearnedDiffusion(1)(u, surface)
+with {first_use}:
+    layer = ts.nn.LearnedDiffusion(1)
+    if not torch.empty(0).is_meta:
+        layer(u, surface)
 ts.nn.LearnedDiffusion(1)(u, surface).square().sum().backward()
 from torchsurf.flows import _limiter
-assert not any(t.is_inference() for t in (_limiter.BLOCKS, _limiter._OFFSETS, _limiter._CELL_TAPS))
+constants = (_limiter.BLOCKS, _limiter._OFFSETS, _limiter._CELL_TAPS)
+assert not any(t.is_inference() or t.is_meta for t in constants)
 print("trained")
 """
     result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,

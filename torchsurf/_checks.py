@@ -232,12 +232,19 @@ def as_real_tensor(value: object, name: str, expected: str) -> Tensor:
         if tensor.dtype == torch.bool or tensor.is_complex():
             raise TypeError(f"{name} must be {expected}, got a tensor of dtype {tensor.dtype}")
         return tensor.to(torch.get_default_dtype()).clone()
-    # numbers are settings, on the host even under a default device (``with torch.device``)
     if isinstance(value, Sequence) and not isinstance(value, str):
         entries = [as_float(v, f"{name}[{i}]", expected) for i, v in enumerate(value)]
-        return torch.tensor(entries, dtype=torch.get_default_dtype(), device="cpu")
+        return torch.tensor(entries, dtype=torch.get_default_dtype(), device=_settings_device())
     return torch.tensor(as_float(value, name, expected), dtype=torch.get_default_dtype(),
-                        device="cpu")
+                        device=_settings_device())
+
+
+def _settings_device() -> torch.device:
+    """Where numbers given as settings become tensors: the default device (``with
+    torch.device("cuda")`` puts a layer's parameters there, as ``nn.Linear``'s), the CPU
+    when that is ``meta`` (whose tensors hold no values to check)."""
+    default = torch.empty(0).device
+    return torch.device("cpu") if default.type == "meta" else default
 
 
 def check_triple(value: object, name: str, check: Callable[[object, str], T]) -> tuple[T, T, T]:

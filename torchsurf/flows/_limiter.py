@@ -26,10 +26,11 @@ from torch import Tensor
 
 
 def _constant(values: list, dtype: torch.dtype | None = None) -> Tensor:
-    """A module constant, outside ``torch.inference_mode`` should this module be first
-    imported inside it (an inference tensor could not be saved for a later backward)."""
+    """A module constant on the CPU (callers move it), outside ``torch.inference_mode`` should
+    this module be first imported inside it (an inference tensor could not be saved for a later
+    backward) or under ``with torch.device(...)`` (a meta constant holds no values)."""
     with torch.inference_mode(False):
-        return torch.tensor(values, dtype=dtype)
+        return torch.tensor(values, dtype=dtype, device="cpu")
 
 
 BLOCKS = _constant([

@@ -813,6 +813,10 @@ class Flow(nn.Module):
         check_data(u0, "u0", surface)
         check_learned_values(self, u0, "u0", type(self).__name__)
         check_times_of_learned_time(self.time_value, times)
+        if surface.phi.requires_grad and torch.is_grad_enabled():
+            # kept on the surface before the steps: formed first inside a traced checkpoint
+            # segment, its part of phi's gradient was counted twice (compiled whole)
+            surface.haloed()
         separately = self._entries_apart(u0, surface, times, inputs)
         if separately is not None:
             return separately

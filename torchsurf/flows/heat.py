@@ -29,7 +29,7 @@ from ._integrators import (
     zero_outside,
 )
 from ._packed_band import FusedStage, PackedRegion
-from ._positive import ChannelOf, Positive
+from ._positive import ChannelOf, Positive, check_learned_values
 from ._recompute import declared, recomputed
 from .base import (
     PACKED_METHODS,
@@ -282,6 +282,8 @@ class HeatFlow(Flow):
         times: Sequence[float] | Tensor | np.ndarray | None = None, **inputs: Tensor,
     ) -> Tensor:
         """Integrate from ``u0`` to the end time (:meth:`Flow.forward`; ``"chebyshev"`` here)."""
+        if isinstance(u0, Tensor):  # before the groups read the diffusivity on its device
+            check_learned_values(self, u0, "u0", type(self).__name__)
         groups = self._diffusivity_groups(u0)
         if groups is not None:
             return self._channels_apart(u0, surface, times, groups, inputs)

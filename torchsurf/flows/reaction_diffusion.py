@@ -102,13 +102,7 @@ class ReactionDiffusion(Flow):
         check_generator(generator)
         band = self.band_mask(surface)
         d_a, d_b = self._diffusivities(surface)
-        # drawn in float64 whatever u0's dtype: a seed gives one pattern in float32 and float64
-        if surface.layout is None:
-            noise = torch.rand((u0.shape[0], 1, *u0.shape[2:]), generator=generator,
-                               dtype=torch.float64, device="cpu").to(u0.device, u0.dtype)
-        else:
-            noise = surface.layout.rand(1, generator, torch.float64).to(u0.dtype)
-        beta = self.beta + self.noise * (2.0 * noise - 1.0)
+        beta = self.beta + self.noise * (2.0 * _uniform_noise(u0, surface, generator) - 1.0)
         given = None
         if direction is not None:
             region = with_ring(band, surface.layout)
@@ -197,3 +191,18 @@ def _nonnegative_b(u: Tensor) -> Tensor:
     """
     lowest = u.new_tensor([-torch.inf, 0.0]).view(1, 2, 1, 1, 1)
     return u.clamp(min=lowest)
+
+
+@torch.compiler.disable
+def _uniform_noise(u0: Tensor, surface: ImplicitSurface, generator: torch.Generator | None
+                   ) -> Tensor:
+    """Uniform ``[0, 1)`` noise of one channel shaped like ``u0`` (dense or packed), in its
+    dtype. Drawn in float64 whatever that dtype, so that a seed gives one pattern in float32
+    and float64, and drawn as is under ``torch.compile``: inductor would draw its own numbers
+    for a ``torch.rand`` in its graph, and ``torch.manual_seed`` would not give the pattern of
+    the call as is."""
+    if surface.layout is None:
+        return torch.rand((u0.shape[0], 1, *u0.shape[2:]), generator=generator,
+                          dtype=torch.float64, device="cpu").to(u0.device, u0.dtype)
+    return surface.layout.rand(1, generator, torch.float64).to(u0.dtype)
+
