@@ -786,15 +786,18 @@ class ImplicitSurface(nn.Module):
                                      and self._kept[key]._version != version):
             # a kept tensor modified in place (a flow's band mask a caller narrowed) is
             # computed again: later flows would otherwise read the caller's edit
-            self._keep(key, compute)
+            if torch.compiler.is_compiling():
+                # run as is inside a trace: a surface's bands and stencils are formed once, and
+                # compiling them cost a fresh surface's first compiled call more than the layer
+                # (a graph break; docs/learning.md, "A model compiled whole"). Disabled here,
+                # not by a decorator, which would import torch._dynamo with this module
+                torch.compiler.disable(self._keep)(key, compute)
+            else:
+                self._keep(key, compute)
         return self._kept[key]
 
-    @torch.compiler.disable
     def _keep(self, key: tuple, compute: Callable[[], object]) -> None:
-        """:meth:`kept`'s computation, run as is even inside a trace: a surface's bands and
-        stencils are formed once, and compiling them cost a fresh surface's first compiled
-        call more than the layer itself (a graph break there; docs/learning.md, "A model compiled
-        whole")."""
+        """:meth:`kept`'s computation: ``compute()`` kept under ``key``."""
         with outside_inference(), outside_transforms(self.phi):
             value = compute()
         self._kept[key] = value
