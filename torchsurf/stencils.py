@@ -252,6 +252,17 @@ def _check_layout(value: object, name: str, layout: str, ndim: int,
     return value
 
 
+def replicated_shifts(volume: Tensor, dim: int) -> tuple[Tensor, Tensor]:
+    """Each node's neighbours before and after it along ``dim``, the first and last node
+    standing for their missing ones: two tensors shaped like ``volume``, formed by
+    concatenation (traced graphs fuse it; inductor did not compile in-place ORs of bool
+    views)."""
+    length = volume.shape[dim]
+    before = torch.cat([volume.narrow(dim, 0, 1), volume.narrow(dim, 0, length - 1)], dim)
+    after = torch.cat([volume.narrow(dim, 1, length - 1), volume.narrow(dim, length - 1, 1)], dim)
+    return before, after
+
+
 def pad(volume: Tensor, mode: str = "replicate") -> Tensor:
     """Add a halo of one node on every side of the last three axes.
 

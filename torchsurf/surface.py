@@ -136,11 +136,9 @@ def _crossing_traced(inside: Tensor) -> Tensor:
     side = inside.to(torch.uint8)
     crossing = torch.zeros_like(side)
     for dim in (2, 3, 4):
-        length = side.shape[dim]
-        if length < 2:
+        if side.shape[dim] < 2:
             continue
-        before = torch.cat([side.narrow(dim, 0, 1), side.narrow(dim, 0, length - 1)], dim)
-        after = torch.cat([side.narrow(dim, 1, length - 1), side.narrow(dim, length - 1, 1)], dim)
+        before, after = stencils.replicated_shifts(side, dim)
         crossing = crossing | (before ^ side) | (after ^ side)
     return crossing > 0
 

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field, replace
 import torch
 from torch import Tensor
 
-from .. import backend
+from .. import backend, stencils
 from .._checks import check_count, check_nonnegative, check_positive
 from .._stack import caller_stacklevel
 from ..bricks.layout import BrickLayout
@@ -64,11 +64,9 @@ def _with_ring_traced(band: Tensor) -> Tensor:
     generation vectorises (the in-place ORs of bool views did not compile in torch 2.13)."""
     grown = band.to(torch.uint8)
     for dim in (2, 3, 4):
-        length = grown.shape[dim]
-        if length < 2:
+        if grown.shape[dim] < 2:
             continue
-        before = torch.cat([grown.narrow(dim, 0, 1), grown.narrow(dim, 0, length - 1)], dim)
-        after = torch.cat([grown.narrow(dim, 1, length - 1), grown.narrow(dim, length - 1, 1)], dim)
+        before, after = stencils.replicated_shifts(grown, dim)
         grown = torch.maximum(torch.maximum(before, after), grown)
     return grown > 0
 
