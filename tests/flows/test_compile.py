@@ -140,6 +140,12 @@ def test_a_bound_may_equal_the_initial_value(sphere):
                   ts.nn.LearnedDiffusion(2, time=0.1, max_time=0.1)):
         layer(u, surface).sum().backward()
         assert all(torch.isfinite(p.grad).all() for p in layer.parameters())
+    for value in (1e-3, 0.01, 0.05, 0.2, 0.3, 1.5):  # clamped a step above: no gradient
+        flow = HeatFlow(value, learn_time=True, max_time=value)
+        layer = ts.nn.LearnedDiffusion(1, time=value, max_time=value)
+        time = flow.time_value.value()
+        grads = torch.autograd.grad(time + layer.time.sum(), [flow.time_value.raw, layer.raw_time])
+        assert time <= value and layer.time.max() <= value and all(g.abs().min() > 0 for g in grads)
     with pytest.raises(ValueError, match="below the initial time"):
         HeatFlow(0.1, learn_time=True, max_time=0.1 * (1 - 1e-6))
 
@@ -316,16 +322,19 @@ def test_the_compiled_path_is_kept_by_the_heat_semigroup(sphere, monkeypatch):
     assert BandLaplacian(surface, path="slicing").packed() is not None
 
 
-def test_phi_gradient_through_a_compiled_flow_is_the_eager_one():
+@pytest.mark.parametrize("method", ["euler", pytest.param("chebyshev", marks=pytest.mark.slow)])
+def test_phi_gradient_through_a_compiled_flow_is_the_eager_one(method):
     """The surface's haloed geometry, first formed inside a traced checkpoint segment, was kept
-    with that segment's graph: phi's gradient came out twice the eager one (aot_eager, and
-    inductor once the flow compiled)."""
+    with that segment's graph: phi's gradient came out twice the eager one (Euler steps;
+    aot_eager, and inductor once the flow compiled), and ``chebyshev``'s recomputed pieces
+    saved other tensors than their forward (``CheckpointError``)."""
     grid = ts.Grid.cube(11, 1.5)
     u = torch.rand(1, 1, *grid.shape, generator=torch.Generator().manual_seed(3),
                    dtype=torch.float64)
     phi0 = ts.sdf.sphere(grid, 0.6, center=(0.031, -0.017, 0.043), dtype=torch.float64)
-    flow = AnisotropicFlow(grid.spacing**2 / 8, "perona_malik", method="euler", steps=1,
-                           reextend_every=None)
+    flow = (AnisotropicFlow(grid.spacing**2 / 8, "perona_malik", method="euler", steps=1,
+                            reextend_every=None) if method == "euler"
+            else HeatFlow(2 * grid.spacing**2, method="chebyshev"))
 
     def phi_gradient(compiled: bool) -> torch.Tensor:
         phi = phi0.clone().requires_grad_()

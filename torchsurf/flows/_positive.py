@@ -88,6 +88,21 @@ def _reread_largest(module: Positive, _: object) -> None:
     module._largest.of(module.values)
 
 
+def raw_within(value: Tensor, floor: float, bound: float | None) -> Tensor:
+    """The raw parameter ``x`` with ``softplus(x) + floor == value``, stepped down where the
+    round trip lands above ``bound``: ``torch.clamp(max=bound)`` passes no gradient there, and
+    a value started at its bound (accepted within the dtype's rounding) would never move."""
+    raw = _inverse_softplus(value - floor)
+    if bound is None:
+        return raw
+    for _ in range(64):
+        above = F.softplus(raw) + floor > bound
+        if not bool(above.any()):
+            break
+        raw = torch.where(above, torch.nextafter(raw, torch.full_like(raw, -math.inf)), raw)
+    return raw
+
+
 def _inverse_softplus(value: Tensor) -> Tensor:
     """``x`` with ``softplus(x) == value`` for ``value > 0`` (stable for large values)."""
     return value + torch.log(-torch.expm1(-value))
@@ -172,7 +187,7 @@ class Positive(nn.Module):
         self.fixed: float | Tensor | None = None
         self.floor = max(FLOOR * float(tensor.min()), torch.finfo(tensor.dtype).tiny)
         if self.learnable:
-            self.raw = nn.Parameter(_inverse_softplus(tensor.clone() - self.floor))
+            self.raw = nn.Parameter(raw_within(tensor.clone(), self.floor, self.bound))
         elif tensor.dim() == 0:
             self.fixed = check_positive(value, name)
         else:

@@ -384,6 +384,15 @@ def _learned_time(system: System, time: float | Tensor, nominal: float) -> None:
     system.params = (*system.params, scale)
 
 
+
+def keep_geometry_before_steps(surface: ImplicitSurface) -> None:
+    """Form the surface's haloed geometry before a flow's steps where ``phi`` requires grad:
+    formed first inside a traced checkpoint segment, it was kept with that segment's graph, and
+    phi's gradient through a compiled flow came out twice the eager one (Euler steps) or the
+    recomputation saved other tensors than the forward (``chebyshev``'s pieces)."""
+    if surface.phi.requires_grad and torch.is_grad_enabled():
+        surface.haloed()
+
 class Flow(nn.Module):
     """Base of the surface flows: integration settings and the call ``flow(u0, surface)``.
 
@@ -813,10 +822,7 @@ class Flow(nn.Module):
         check_data(u0, "u0", surface)
         check_learned_values(self, u0, "u0", type(self).__name__)
         check_times_of_learned_time(self.time_value, times)
-        if surface.phi.requires_grad and torch.is_grad_enabled():
-            # kept on the surface before the steps: formed first inside a traced checkpoint
-            # segment, its part of phi's gradient was counted twice (compiled whole)
-            surface.haloed()
+        keep_geometry_before_steps(surface)
         separately = self._entries_apart(u0, surface, times, inputs)
         if separately is not None:
             return separately

@@ -40,6 +40,7 @@ from .base import (
     _range_excess,
     _warn_range_left,
     check_times_of_learned_time,
+    keep_geometry_before_steps,
     placed,
 )
 from .exponential import BandLaplacian, heat_semigroup, kept_packing
@@ -309,6 +310,7 @@ class HeatFlow(Flow):
         wanted = None if times is None else _check_times(times, self.time_value.maximum())
         self._check_memory(u0, surface, surface.band_mask(width),
                            0 if wanted is None else len(wanted))  # each entry before its work
+        keep_geometry_before_steps(surface)
         operator = BandLaplacian(surface, self.scheme, width, self.path)
         if not torch.compiler.is_compiling():  # a host read: it would break a compiled graph
             check_finite(torch.where(operator.band, u0, 0.0), "u0 (in the band)")

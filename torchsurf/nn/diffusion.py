@@ -28,7 +28,7 @@ from .._checks import (
 )
 from .._transforms import refuse_transforms
 from ..backend import PATHS
-from ..flows._positive import HostMaximum, _inverse_softplus, range_note
+from ..flows._positive import HostMaximum, range_note, raw_within
 from ..flows.chebyshev import MAX_APPLICATIONS, TooManyApplications
 from ..flows.exponential import BandLaplacian, heat_semigroup
 from ..operators import functional
@@ -143,7 +143,7 @@ class LearnedDiffusion(nn.Module):
                     f"learned times must be at least {2 * FLOOR:g} (h^2 units; softplus keeps "
                     f"them above {FLOOR:g}), got {time!r}"
                 )
-            self.raw_time = nn.Parameter(_inverse_softplus(initial - FLOOR))
+            self.raw_time = nn.Parameter(raw_within(initial, FLOOR, self.max_time))
         else:
             self.register_buffer("fixed_time", initial)
             self._largest = HostMaximum("fixed_time", self.fixed_time, shape=(channels,))
