@@ -263,6 +263,26 @@ def replicated_shifts(volume: Tensor, dim: int) -> tuple[Tensor, Tensor]:
     return before, after
 
 
+def replicated_halo(volume: Tensor, width: int) -> Tensor:
+    """``volume`` ``(B, C, D, H, W)`` with a halo of ``width`` copies of its edge nodes on
+    every side of the last three axes: ``(B, C, D + 2 width, H + 2 width, W + 2 width)``.
+    While traced, by concatenating each face's copies: ``F.pad(mode="replicate")``'s clamped
+    indices, read through a gather (the band's re-extension), stopped inductor's range
+    analysis in torch 2.13 (``vr must not be None``)."""
+    if not torch.compiler.is_compiling():
+        return F.pad(volume, (width,) * 6, mode="replicate")
+    return _replicated_halo_traced(volume, width)
+
+
+def _replicated_halo_traced(volume: Tensor, width: int) -> Tensor:
+    """:func:`replicated_halo` by concatenation."""
+    for dim in (2, 3, 4):
+        first = volume.narrow(dim, 0, 1).expand(*volume.shape[:dim], width, *volume.shape[dim + 1:])
+        last = volume.narrow(dim, volume.shape[dim] - 1, 1).expand_as(first)
+        volume = torch.cat([first, volume, last], dim)
+    return volume
+
+
 def pad(volume: Tensor, mode: str = "replicate") -> Tensor:
     """Add a halo of one node on every side of the last three axes.
 

@@ -209,15 +209,15 @@ def test_inductor_compiles_an_edge_stopping_flow_with_heun_steps(sphere):
 
 @pytest.mark.parametrize("shape", [(1, 1, 7, 5, 6), (2, 1, 1, 4, 3), (1, 1, 3, 1, 1)])
 def test_traced_sign_changes_and_halo_equal_the_eager_ones(shape):
-    from torchsurf.operators.functional import _replicated, _replicated_traced
+    from torchsurf.stencils import _replicated_halo_traced, replicated_halo
     from torchsurf.surface import _crossing, _crossing_traced
 
     values = torch.randn(shape, generator=torch.Generator().manual_seed(2))
     torch.testing.assert_close(_crossing_traced(values < 0), _crossing(values < 0), rtol=0, atol=0)
     assert _crossing(values < 0).any() or min(shape[2:]) == 1
     for width in (1, 2):
-        torch.testing.assert_close(_replicated_traced(values, width), _replicated(values, width),
-                                   rtol=0, atol=0)
+        torch.testing.assert_close(_replicated_halo_traced(values, width),
+                                   replicated_halo(values, width), rtol=0, atol=0)
 
 
 @pytest.mark.parametrize("shape", [(1, 1, 7, 5, 6), (2, 1, 1, 4, 3), (1, 1, 3, 1, 1)])

@@ -29,14 +29,13 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from .. import backend, stencils
 from .._checks import SUPPORTED_DTYPES, check_alike, check_flag, check_positive
 from .._native import carries_tangents
 from .._vectors import tangential_part
-from ..stencils import masked
+from ..stencils import masked, replicated_halo
 from ._coupled import eager_coupled_rate, fused_coupled_rate
 from ._flux_form import (
     SIDES,
@@ -143,21 +142,6 @@ bound to an object with a ``native_octant`` method (a brick layout) lets ``path=
 the octant scheme by that method where it applies (:mod:`torchsurf.bricks._native`)."""
 
 
-def _replicated(volume: Tensor, width: int) -> Tensor:
-    if torch.compiler.is_compiling():
-        return _replicated_traced(volume, width)
-    return F.pad(volume, (width,) * 6, mode="replicate")
-
-
-def _replicated_traced(volume: Tensor, width: int) -> Tensor:
-    """:func:`_replicated` for a traced graph, by concatenating each face's copies."""
-    for dim in (2, 3, 4):
-        first = volume.narrow(dim, 0, 1).expand(*volume.shape[:dim], width, *volume.shape[dim + 1:])
-        last = volume.narrow(dim, volume.shape[dim] - 1, 1).expand_as(first)
-        volume = torch.cat([first, volume, last], dim)
-    return volume
-
-
 def _geometry_halo(normal: Tensor, weight: Tensor, haloed: Haloed) -> tuple[Tensor, Tensor]:
     if haloed is not None:
         return haloed
@@ -177,7 +161,7 @@ def _octant_eager(u, normal, weight, spacing, weighted, haloed, mask, *, path): 
 
 
 def _octant_halo(u, normal, weight, spacing, weighted, haloed, mask):  # noqa: ANN001, ANN202
-    return (_replicated(u, 1), *_geometry_halo(normal, weight, haloed), weight, spacing, weighted,
+    return (replicated_halo(u, 1), *_geometry_halo(normal, weight, haloed), weight, spacing, weighted,
             mask)
 
 
@@ -198,7 +182,7 @@ def _flux_lb_fused(padded_u, haloed_normal, haloed_weight, weight, spacing, sche
 
 
 def _flux_lb_halo(u, normal, weight, spacing, scheme, weighted, haloed):  # noqa: ANN001, ANN202
-    return (_replicated(u, 2), *_geometry_halo(normal, weight, haloed), weight, spacing, scheme,
+    return (replicated_halo(u, 2), *_geometry_halo(normal, weight, haloed), weight, spacing, scheme,
             weighted)
 
 
@@ -365,7 +349,7 @@ def _edge_fused(padded_u, haloed_normal, haloed_weight, weight, spacing, diffusi
 
 def _edge_halo(u, normal, weight, spacing, diffusivity, contrast, eps, coupled, scheme, haloed,  # noqa: ANN001, ANN202
                mask=None):
-    return (_replicated(u, 2), *_geometry_halo(normal, weight, haloed), weight, spacing,
+    return (replicated_halo(u, 2), *_geometry_halo(normal, weight, haloed), weight, spacing,
             diffusivity, contrast, eps, coupled, scheme, mask)
 
 
@@ -448,7 +432,7 @@ def _coupled_eager(u, normal, weight, spacing, diffusivity, contrast, eps, power
 
 def _coupled_halo(u, normal, weight, spacing, diffusivity, contrast, eps, power, scheme, mask,  # noqa: ANN001, ANN202
                   haloed):
-    return (_replicated(u, 2), *_geometry_halo(normal, weight, haloed), weight, spacing,
+    return (replicated_halo(u, 2), *_geometry_halo(normal, weight, haloed), weight, spacing,
             diffusivity, contrast, eps, scheme, power, mask)
 
 
@@ -571,8 +555,8 @@ def _directional_flux(direction: Tensor, normal: Tensor, tangent: bool
 
 
 def _directional_halo(u, normal, weight, spacing, direction, scheme, weighted, tangent, haloed):  # noqa: ANN001, ANN202
-    return (_replicated(u, 2), *_geometry_halo(normal, weight, haloed), weight, spacing,
-            _replicated(direction, 1), scheme, weighted, tangent)
+    return (replicated_halo(u, 2), *_geometry_halo(normal, weight, haloed), weight, spacing,
+            replicated_halo(direction, 1), scheme, weighted, tangent)
 
 
 _DIRECTIONAL = backend.Kernel("directional", _directional_eager, _directional_fused, _directional_halo)
