@@ -27,14 +27,14 @@ FLOOR = 1e-12
 """The smallest value a learnable parameter can take, relative to its smallest initial entry."""
 
 
-class HostMaximum:
-    """The largest entry of a fixed tensor as a host float, read again at every call outside
+class HostValues:
+    """The entries of a small fixed tensor as host floats, read again at every call outside
     ``torch.compile`` (a few values: microseconds), so that a tensor changed in any way, in
     place, replaced, or through ``.data`` (which leaves no trace in ``_version``), is seen;
-    under ``torch.compile`` the value read last is used (a host read would break its graph),
-    and the compiled code is specialised on it: its owners read it again in
-    ``load_state_dict`` (a checkpoint's values then recompile), but a value edited in place
-    between compiled calls is not seen until an eager call reads it.
+    under ``torch.compile`` the entries read last are used (a host read would break its graph),
+    and the compiled code is specialised on them: their owners read them again in
+    ``load_state_dict`` (a checkpoint's values then recompile), but values edited in place
+    between compiled calls are not seen until an eager call reads them.
 
     Args:
         name: the tensor's name in errors.
@@ -45,28 +45,32 @@ class HostMaximum:
     def __init__(self, name: str, tensor: Tensor, shape: tuple[int, ...] | None = None) -> None:
         self.name = name
         self.shape = shape
-        self._value = math.nan
-        self.of(tensor)
+        self._entries: tuple[float, ...] = ()
+        self.entries_of(tensor)
+
+    def entries_of(self, tensor: Tensor) -> tuple[float, ...]:
+        """The entries of ``tensor`` (the one watched), flattened; raises ``ValueError`` naming
+        it if it was changed to hold a value that is not finite and positive, or to another
+        shape."""
+        if not torch.compiler.is_compiling():
+            self._entries = self.check(tensor)
+        return self._entries
 
     def of(self, tensor: Tensor) -> float:
-        """The largest entry of ``tensor`` (the one watched); raises ``ValueError`` naming it if
-        it was changed to hold a value that is not finite and positive, or to another shape."""
-        if torch.compiler.is_compiling():
-            return self._value
-        self._value = self.check(tensor)
-        return self._value
+        """The largest entry of ``tensor`` (see :meth:`entries_of`)."""
+        return max(self.entries_of(tensor))
 
-    def check(self, tensor: Tensor) -> float:
-        """The largest entry of ``tensor``, which must hold finite positive values (of
+    def check(self, tensor: Tensor) -> tuple[float, ...]:
+        """The entries of ``tensor``, flattened, which must be finite and positive (of
         ``shape``); raises ``ValueError`` naming it otherwise. Keeps nothing."""
         if self.shape is not None and tuple(tensor.shape) != self.shape:
             raise ValueError(f"{self.name} must have shape {self.shape}, got "
                              f"{tuple(tensor.shape)}")
-        largest = float(tensor.max()) if tensor.numel() else math.nan
-        if not (math.isfinite(largest) and float(tensor.min()) > 0):
+        entries = tuple(float(entry) for entry in tensor.detach().reshape(-1).tolist())
+        if not entries or not all(math.isfinite(entry) and entry > 0 for entry in entries):
             raise ValueError(f"{self.name} must hold finite positive values, got "
                              f"{tensor.tolist()!r}")
-        return largest
+        return entries
 
     def check_loaded(self, state_dict: dict, key: str) -> None:
         """Refuse ``state_dict[key]``, if present, before ``load_state_dict`` writes anything:
@@ -83,9 +87,9 @@ def check_learned_values(module: nn.Module, data: Tensor, data_name: str, owner:
             value.check_learned_like(data, data_name, owner)
 
 
-def _reread_largest(module: Positive, _: object) -> None:
-    """After ``load_state_dict``: the loaded values' maximum (see :class:`HostMaximum`)."""
-    module._largest.of(module.values)
+def _reread_entries(module: Positive, _: object) -> None:
+    """After ``load_state_dict``: the loaded values, read on the host (see :class:`HostValues`)."""
+    module._entries.entries_of(module.values)
 
 
 def raw_within(value: Tensor, floor: float, bound: float | None) -> Tensor:
@@ -192,8 +196,8 @@ class Positive(nn.Module):
             self.fixed = check_positive(value, name)
         else:
             self.register_buffer("values", tensor.detach().clone())
-            self._largest = HostMaximum(name, self.values)
-            self.register_load_state_dict_post_hook(_reread_largest)
+            self._entries = HostValues(name, self.values)
+            self.register_load_state_dict_post_hook(_reread_entries)
 
     @property
     def channels(self) -> int | None:
@@ -219,7 +223,7 @@ class Positive(nn.Module):
         parameter. Fixed values changed in place or replaced are read again.
         """
         if not self.learnable:  # a single fixed number exactly as given, not rounded
-            return self.fixed if self.fixed is not None else self._largest.of(self.values)
+            return self.fixed if self.fixed is not None else self._entries.of(self.values)
         if self.bound is not None:
             return self.bound
         largest = float(self.value().detach().max())
@@ -230,6 +234,14 @@ class Positive(nn.Module):
                 "diverged"
             )
         return largest
+
+    def fixed_entries(self) -> tuple[float, ...] | None:
+        """A fixed value's entries as host floats, ``(value,)`` for a single number; ``None``
+        for a learnable value. Read again at every call as is, the entries read last under
+        ``torch.compile`` (:class:`HostValues`)."""
+        if self.learnable:
+            return None
+        return (self.fixed,) if self.fixed is not None else self._entries.entries_of(self.values)
 
     def share_of_bound(self) -> float:
         """For a learnable value with ``bound``: its largest entry over the bound, in
@@ -269,7 +281,7 @@ class Positive(nn.Module):
     def _load_from_state_dict(self, state_dict: dict, prefix: str, *args: object,
                               **kwargs: object) -> None:
         if not self.learnable and self.fixed is None:
-            self._largest.check_loaded(state_dict, prefix + "values")
+            self._entries.check_loaded(state_dict, prefix + "values")
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def extra_repr(self) -> str:

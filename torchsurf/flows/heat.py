@@ -128,9 +128,9 @@ class HeatFlow(Flow):
         time: physical end time, world units squared (with ``D = 1``).
         diffusivity: ``D``, a positive number or one per channel ``(C,)``. Per-channel
             values run each distinct value's channels (a learned vector's current values) with
-            their own steps and re-extensions: each channel's result is its own flow's (under
-            ``torch.compile`` the channels run together, planned for the largest value or
-            ``max_diffusivity``).
+            their own steps and re-extensions: each channel's result is its own flow's (fixed
+            values under ``torch.compile`` too; a learned vector's channels run together there,
+            planned for its largest value or ``max_diffusivity``).
         learn_diffusivity: make ``D`` an ``nn.Parameter`` (kept positive by softplus).
         max_diffusivity: with ``learn_diffusivity``, the largest ``D``: ``D`` is clamped to it
             and the steps are planned for it (no host read of the parameter, as ``max_time``).
@@ -369,28 +369,43 @@ class HeatFlow(Flow):
     def _diffusivity_groups(self, u0: Tensor) -> list[tuple[Positive, list[int]]] | None:
         """The diffusivity of each group of channels that runs alone, ``[(D, channels), ...]``:
         the channels of each distinct value together (a learned vector's in the graph of its
-        parameter: :class:`~torchsurf.flows._positive.ChannelOf`), a learned vector's grouped
-        by its current values, read on the host. ``None`` where all channels run together: one
-        diffusivity, one distinct value, and under ``torch.compile`` (the values are a host
-        read; a learned vector's steps then follow its largest entry or ``max_diffusivity``).
+        parameter: :class:`~torchsurf.flows._positive.ChannelOf`). ``None`` where all channels
+        run together: one diffusivity, one distinct value, and a learned vector under
+        ``torch.compile`` (its values are a host read; its steps then follow its largest entry
+        or ``max_diffusivity``). A fixed vector's values are kept on the host, so its channels
+        run apart traced too (until 2026-12-07 they ran together: ``[1.0, 0.5]``, ``h^2 / 2`` at
+        12^3, the second channel 1.5e-2 off the call as is with Heun steps, now 1.8e-7).
         Apart, C channels cost about C runs' fixed costs: 8 channels of 8 values at 33^3,
         batch 2, forward and backward, 1.20 against 0.68 s together. ``"chebyshev"`` is split too: its
         expansion is exact in each channel's time, but its pieces, and the band's
         re-extensions between them, follow the largest (a channel of ``D = 1`` beside one of
         ``D = 30`` moved by 3.7e-2 on noise)."""
         channels = self.diffusivity.channels
-        if channels is None or channels == 1 or torch.compiler.is_compiling() \
-                or not isinstance(u0, Tensor):
+        if channels is None or channels == 1 or not isinstance(u0, Tensor):
             return None
+        values = self.diffusivity.fixed_entries()
+        if values is None:
+            if torch.compiler.is_compiling():
+                return None
+            values = tuple(self.diffusivity.value().detach().cpu().tolist())
         self.diffusivity.volume(u0)  # the channel count checked against u0
         groups: dict[float, list[int]] = {}
-        for channel, value in enumerate(self.diffusivity.value().detach().cpu().tolist()):
+        for channel, value in enumerate(values):
             groups.setdefault(value, []).append(channel)
         if len(groups) == 1:
             return None
         if self.diffusivity.learnable:
             return [(ChannelOf(self.diffusivity, group), group) for group in groups.values()]
-        return [(Positive(value, "diffusivity"), group) for value, group in groups.items()]
+        return self._fixed_groups(groups)
+
+    def _fixed_groups(self, groups: dict[float, list[int]]) -> list[tuple[Positive, list[int]]]:
+        """One fixed :class:`Positive` per distinct value, kept for the values last grouped."""
+        key = tuple((value, tuple(channels)) for value, channels in groups.items())
+        kept = self.__dict__.get("_fixed_group_values")
+        if kept is None or kept[0] != key:
+            kept = self.__dict__["_fixed_group_values"] = (key, [
+                (Positive(value, "diffusivity"), channels) for value, channels in groups.items()])
+        return kept[1]
 
     def _channels_apart(self, u0: Tensor, surface: ImplicitSurface, times: object,
                         groups: list[tuple[Positive, list[int]]], inputs: dict[str, Tensor]

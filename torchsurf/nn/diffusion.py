@@ -28,7 +28,7 @@ from .._checks import (
 )
 from .._transforms import refuse_transforms
 from ..backend import PATHS
-from ..flows._positive import HostMaximum, range_note, raw_within
+from ..flows._positive import HostValues, range_note, raw_within
 from ..flows.chebyshev import MAX_APPLICATIONS, TooManyApplications
 from ..flows.exponential import BandLaplacian, heat_semigroup
 from ..operators import functional
@@ -49,7 +49,7 @@ def check_times(times: Tensor) -> None:
 
 
 def _reread_largest_time(module: LearnedDiffusion, _: object) -> None:
-    """After ``load_state_dict``: the loaded fixed times' maximum (see ``HostMaximum``)."""
+    """After ``load_state_dict``: the loaded fixed times' maximum (see ``HostValues``)."""
     module._largest.of(module.fixed_time)
 
 
@@ -146,7 +146,7 @@ class LearnedDiffusion(nn.Module):
             self.raw_time = nn.Parameter(raw_within(initial, FLOOR, self.max_time))
         else:
             self.register_buffer("fixed_time", initial)
-            self._largest = HostMaximum("fixed_time", self.fixed_time, shape=(channels,))
+            self._largest = HostValues("fixed_time", self.fixed_time, shape=(channels,))
             self.register_load_state_dict_post_hook(_reread_largest_time)
         self.scheme = check_choice(scheme, "scheme", functional.SCHEMES)
         self.path = check_choice(path, "path", PATHS)
