@@ -897,6 +897,64 @@ def test_phi_modified_in_place_after_building_is_refused():
             operator(u, surface)
 
 
+@pytest.mark.parametrize("layout", ["dense", "bricks"])
+def test_phi_replaced_after_building_is_refused(layout):
+    """Assigned, or swapped in by torch.func.functional_call, a new phi kept the former's normals
+    and band: Laplace-Beltrami gave the torus's result on a sphere's phi (13.7 off), and a flow
+    called so kept its band for later calls on the surface's own phi (an audit, 2026-12-07)."""
+    grid = Grid.cube(21, 2.0)
+    torus, sphere = sdf.torus(grid, 0.8, 0.35), sdf.sphere(grid, 1.0)
+    build = ImplicitSurface if layout == "dense" else ts.bricks.from_dense
+    u = torch.rand(1, 1, *grid.shape, generator=torch.Generator().manual_seed(0))
+    holder = torch.nn.Module()
+    holder.surface = build(torus.clone(), grid)
+    if layout == "bricks":
+        u = holder.surface.layout.from_dense(u)
+    flow = ts.flows.HeatFlow(grid.spacing**2)
+    expected = flow(u, holder.surface)
+    swapped = sphere.clone() if layout == "dense" else holder.surface.layout.from_dense(sphere)
+    for call in (lambda surface: ts.laplace_beltrami(u, surface), lambda surface: flow(u, surface),
+                 lambda surface: surface.mean_curvature(), lambda surface: surface.band_mask()):
+        with pytest.raises(RuntimeError, match="phi was replaced"):
+            torch.func.functional_call(_Reading(holder.surface, call), {"surface.phi": swapped}, ())
+    assert torch.equal(flow(u, holder.surface), expected)  # its own phi again: as before
+    # the same tensors swapped in (functional_call of a model's own buffers) are its phi
+    same = torch.func.functional_call(_Reading(holder.surface, lambda surface: flow(u, surface)),
+                                      dict(holder.named_buffers()), ())
+    assert torch.equal(same, expected)
+    holder.surface.phi = swapped
+    with pytest.raises(RuntimeError, match="phi was replaced"):
+        ts.laplace_beltrami(u, holder.surface)
+    with pytest.raises(AttributeError, match="grid is fixed once built"):
+        holder.surface.grid = Grid.cube(21, 2.5)
+
+
+class _Reading(torch.nn.Module):
+    """A module holding ``surface`` whose forward is ``call(surface)``."""
+
+    def __init__(self, surface: ImplicitSurface, call) -> None:  # noqa: ANN001
+        super().__init__()
+        self.surface = surface
+        self.call = call
+
+    def forward(self) -> torch.Tensor:
+        return self.call(self.surface)
+
+
+def test_a_move_that_changes_nothing_keeps_what_flows_kept():
+    """``model.to(its device)`` at every step derived the geometry again and dropped the kept
+    bands and stencils (a training step 3x slower, an audit, 2026-12-07)."""
+    grid = Grid.cube(17, BOUND)
+    surface = ImplicitSurface(sdf.sphere(grid, 1.0), grid)
+    u = torch.rand(1, 1, *grid.shape, generator=torch.Generator().manual_seed(0))
+    ts.flows.HeatFlow(grid.spacing**2)(u, surface)
+    kept, normal = dict(surface._kept), surface.normal
+    surface.to("cpu").float()
+    assert surface._kept == kept and surface.normal is normal
+    surface.double()
+    assert not surface._kept and surface.normal.dtype == torch.float64
+
+
 def test_phi_made_to_require_grad_after_building_is_refused():
     """The normals and weight were derived outside phi's graph: a layer's gradient to phi missed
     their part (6.06 off a largest entry of 6.17), silently."""

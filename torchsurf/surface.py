@@ -482,8 +482,9 @@ class ImplicitSurface(nn.Module):
     afterwards (``phi.copy_``, ``phi.mul_``) makes every method raise ``RuntimeError``; changes
     that leave no trace in its version counter are not seen: writes through ``phi.data``,
     and in-place changes between calls of code compiled by an outer ``torch.compile``
-    (the check is a host read, which compiled code skips). Build a new surface from a new
-    ``phi`` instead.
+    (the check is a host read, which compiled code skips). Replacing ``phi`` (assigning
+    ``surface.phi``, or swapping it in with ``torch.func.functional_call``) raises too, and
+    :attr:`grid` cannot be set. Build a new surface from a new ``phi`` instead.
 
     Its ``state_dict`` holds ``phi`` and where it lies (:meth:`get_extra_state`; everything
     else is derived): loading another surface's state of the same shape, alone or inside a
@@ -565,6 +566,20 @@ class ImplicitSurface(nn.Module):
         self.eps = check_eps(eps)
         self._assemble_kept(phi)
 
+    @property
+    def grid(self) -> Grid:
+        """Where the nodes lie (:class:`~torchsurf.Grid`). Fixed once the surface is built: the
+        normals, weight and band are derived on it (build a new surface for another grid)."""
+        return self._grid
+
+    @grid.setter
+    def grid(self, value: Grid) -> None:
+        if "phi" in self._buffers:
+            raise AttributeError(
+                f"{type(self).__name__}.grid is fixed once built: its normals, weight and band "
+                f"were derived on it; build a new surface, {type(self).__name__}(phi, grid)")
+        self._grid = value
+
     layout = None
     """How the fields are stored: ``None`` for dense volumes (a :class:`torchsurf.bricks.BrickSurface`
     has its :class:`~torchsurf.bricks.BrickLayout`)."""
@@ -581,6 +596,8 @@ class ImplicitSurface(nn.Module):
         unit_gradient = gradient / magnitude
         squared = (unit_gradient**2).sum(dim=1, keepdim=True)
         self.register_buffer("phi", phi, persistent=False)
+        # the tensor itself, not registered (phi may be a Parameter): a phi assigned or swapped in
+        self.__dict__["_phi_assembled"] = phi
         # the median of the squares, then its root: no sqrt of zeros in phi's graph
         crossing = self._crossing_nodes(phi.detach())
         scale = self._gradient_scale(crossing, squared).sqrt()
@@ -678,7 +695,7 @@ class ImplicitSurface(nn.Module):
     def _place(self, state: dict) -> None:
         grid = Grid(state["shape"], state["spacing"], state["origin"])
         check_spatial_shape(self.phi, "the loaded phi", grid.shape, "its grid")
-        self.grid = grid
+        self._grid = grid
 
     def forward(self, *args: object, **kwargs: object) -> Tensor:
         """Not called: a surface is the geometry operators, flows and layers are given
@@ -708,6 +725,7 @@ class ImplicitSurface(nn.Module):
                     RuntimeWarning, stacklevel=caller_stacklevel())
                 phi = phi.detach().requires_grad_()
             state["_buffers"] = {name: phi if name == "phi" else None for name in self._buffers}
+            state["_phi_assembled"] = phi
             state[_DERIVE_ON_LOAD] = True
         return state
 
@@ -741,8 +759,10 @@ class ImplicitSurface(nn.Module):
             result = super()._apply(lambda tensor: tensor.to(device), recurse)
             self._reassemble()
             return result
+        before = dict(self._buffers)
         result = super()._apply(fn, recurse)
-        self._reassemble()
+        if any(self._buffers[name] is not tensor for name, tensor in before.items()):
+            self._reassemble()  # a move that changed nothing (.to(its device)) keeps all
         return result
 
     def _reassemble(self) -> None:
@@ -949,11 +969,17 @@ class ImplicitSurface(nn.Module):
         return stencils.pad_mirrored(self.normal), stencils.pad(self.weight, "replicate")
 
     def _current_phi(self) -> Tensor:
-        """``phi``, unless it was modified in place after the normals and weight were derived
-        from it (they would then belong to another surface), or made to require grad after
-        them (they would then be outside its graph, and its gradient would miss their part)."""
+        """``phi``, unless it was modified in place or replaced after the normals and weight
+        were derived from it (they would then belong to another surface), or made to require
+        grad after them (they would then be outside its graph, and its gradient would miss their part)."""
         if torch.compiler.is_compiling():
             return self.phi
+        if self.phi is not self.__dict__.get("_phi_assembled"):
+            raise RuntimeError(
+                "phi was replaced after this surface was built (assigned, or swapped in by "
+                "torch.func.functional_call): its normals, weight and band belong to the former "
+                "phi; build a new surface from the new phi, ImplicitSurface(phi, grid) (in a "
+                "model's forward, to learn or swap phi: the surface is differentiable in it)")
         source = self.__dict__.get("_phi_source")
         changed = self.phi._version != self._phi_version
         if not changed and source is not None and source[0]._version != source[1]:
@@ -1073,8 +1099,8 @@ class ImplicitSurface(nn.Module):
 
 def check_surface(surface: object) -> ImplicitSurface:
     """Raise ``TypeError`` unless ``surface`` is an :class:`ImplicitSurface`, and
-    ``RuntimeError`` if its ``phi`` was modified in place after it was built (its normals and
-    weight would belong to the former ``phi``)."""
+    ``RuntimeError`` if its ``phi`` was modified in place or replaced after it was built (its
+    normals and weight would belong to the former ``phi``)."""
     if not isinstance(surface, ImplicitSurface):
         raise TypeError(
             f"surface must be a torchsurf.ImplicitSurface, got {type(surface).__name__}"

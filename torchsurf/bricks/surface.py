@@ -169,6 +169,10 @@ class BrickSurface(ImplicitSurface):
             )
         return self.layout.grids[0]
 
+    @grid.setter
+    def grid(self, value: Grid) -> None:
+        ImplicitSurface.grid.fset(self, value)  # refused once built
+
     @property
     def batch_size(self) -> int:
         """Number of batch entries ``B`` (shapes), whatever the number of bricks."""
