@@ -12,6 +12,7 @@ import torch
 from torch import Tensor
 
 from ._checks import check_alike, check_positive, check_tensor
+from ._precision import in_data_dtype
 from ._vectors import tangential_part
 
 __all__ = [
@@ -39,7 +40,8 @@ def _matrix(hessian: Tensor) -> Tensor:
 
 def _quadratic(matrix: Tensor, a: Tensor, b: Tensor) -> Tensor:
     """``a^T M b`` per voxel: ``M`` ``(B, 3, 3, ...)``, ``a``, ``b`` ``(B, 3, ...)`` -> ``(B, 1, ...)``."""
-    return torch.einsum("bi...,bij...,bj...->b...", a, matrix, b)[:, None]
+    with in_data_dtype(a):
+        return torch.einsum("bi...,bij...,bj...->b...", a, matrix, b)[:, None]
 
 
 def mean_curvature(gradient: Tensor, hessian: Tensor, grad_norm: Tensor) -> Tensor:

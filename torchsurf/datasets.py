@@ -23,6 +23,7 @@ from torch import Tensor
 from torch.utils.data import Dataset
 
 from ._checks import check_choice, check_count, check_nonnegative, check_positive
+from ._precision import in_data_dtype
 from .shape_batch import MeshBatchAdapter
 from .signals import closest_points, gaussian_noise, generator
 from .surface import ImplicitSurface, check_surface
@@ -138,7 +139,8 @@ def smooth_signal(surface: ImplicitSurface, channels: int = 1, frequency: float 
     points = closest_points(surface)  # (B, 3, D, H, W), or packed
     values = torch.zeros(_field_shape(surface, channels), dtype=dtype, device=device)
     for m in range(modes):  # one wave at a time: memory of one (B, C, D, H, W) volume
-        angle = torch.einsum("bck,bkdhw->bcdhw", wave[:, :, m], points)
+        with in_data_dtype(points):
+            angle = torch.einsum("bck,bkdhw->bcdhw", wave[:, :, m], points)
         values += amplitude[:, :, m, None, None, None] * torch.sin(
             angle + phase[:, :, m, None, None, None])
     return _rescale(values, surface.band_mask(), surface)

@@ -29,6 +29,7 @@ from ._checks import (
     check_volume,
 )
 from ._mesh_input import MeshLike, as_trimesh, triangle_arrays
+from ._precision import in_data_dtype
 from ._stack import caller_stacklevel
 from .grid import Grid
 
@@ -203,7 +204,8 @@ def capsule(
 
     def distance(local: Tensor) -> Tensor:
         axis = local.new_tensor(axis64)
-        t = ((local @ axis) / torch.dot(axis, axis)).clamp(0.0, 1.0)
+        with in_data_dtype(local):
+            t = ((local @ axis) / torch.dot(axis, axis)).clamp(0.0, 1.0)
         return (local - t[..., None] * axis).norm(dim=-1) - radius
 
     return _sampled(grid, distance, dtype, device, start)

@@ -23,6 +23,7 @@ from torch import Tensor
 
 from . import backend
 from ._checks import check_choice
+from ._precision import in_data_dtype
 
 __all__ = [
     "BACKWARD",
@@ -450,7 +451,8 @@ def apply(padded: Tensor, bank: Sequence[Stencil], path: str = "auto") -> Tensor
         return torch.stack([_sliced(padded, stencil) for stencil in bank], dim=2)
     batch, channels = padded.shape[:2]
     weight = _bank_kernel(bank, padded)[:, None]
-    out = F.conv3d(padded.reshape(batch * channels, 1, *padded.shape[2:]), weight)
+    with in_data_dtype(padded):
+        out = F.conv3d(padded.reshape(batch * channels, 1, *padded.shape[2:]), weight)
     return out.view(batch, channels, len(bank), *out.shape[2:])
 
 
@@ -475,5 +477,6 @@ def contract(padded: Tensor, bank: Sequence[Stencil], path: str = "auto") -> Ten
         return result
     batch, channels, components = padded.shape[:3]
     weight = _bank_kernel(bank, padded)[None]
-    out = F.conv3d(padded.reshape(batch * channels, components, *padded.shape[3:]), weight)
+    with in_data_dtype(padded):
+        out = F.conv3d(padded.reshape(batch * channels, components, *padded.shape[3:]), weight)
     return out.view(batch, channels, *out.shape[2:])

@@ -24,6 +24,8 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
+from .._precision import in_data_dtype
+
 
 def _constant(values: list, dtype: torch.dtype | None = None) -> Tensor:
     """A module constant on the CPU (callers move it), outside ``torch.inference_mode`` should
@@ -58,7 +60,8 @@ def corner_weights(wx: Tensor, wy: Tensor, wz: Tensor) -> Tensor:
 
 def corner_weights_of_taps(taps: Tensor) -> Tensor:
     """:func:`corner_weights` from the 64 tap weights ``(N, 64)`` (their products)."""
-    fractions = (taps @ _OFFSETS.to(taps)).clamp(0, 1)
+    with in_data_dtype(taps):
+        fractions = (taps @ _OFFSETS.to(taps)).clamp(0, 1)
     x, y, z = (torch.stack([1 - s, s], dim=1) for s in fractions.unbind(1))
     return (z[:, :, None, None] * y[:, None, :, None] * x[:, None, None, :]).flatten(1)
 
