@@ -264,6 +264,36 @@ def test_a_part_wound_inward_gives_no_surface_at_the_band_edge() -> None:
         assert float(phi[16, 16, 6]) < 0  # the solid's centre
 
 
+@pytest.mark.parametrize("sign", ["auto", "pseudonormal"])
+def test_a_larger_part_wound_inward_does_not_turn_the_mesh_inside_out(sign: str) -> None:
+    """The whole mesh was flipped for its negative total volume before the pseudonormals: a
+    sphere wound inward, larger than its correctly wound neighbour, became the solid and the
+    neighbour vanished (phi +0.77 at its centre, an audit, 2026-12-07). As 'winding' signs it:
+    a cavity in nothing beside the solid. A mesh inside out as a whole (a hollow shell whose
+    outer sphere is wound inward and inner one outward) is still turned the right way."""
+    import trimesh
+
+    solid = trimesh.creation.icosphere(subdivisions=2, radius=0.5).apply_translation([-0.9, 0, 0])
+    inverted = trimesh.creation.icosphere(subdivisions=2, radius=0.7).apply_translation([0.7, 0, 0])
+    inverted.invert()
+    mesh = trimesh.util.concatenate([solid, inverted])
+    grid = ts.Grid.cube(33, bound=1.6)
+    with pytest.warns(RuntimeWarning, match="wound"):
+        phi = ts.sdf.from_mesh(mesh, grid, dtype=torch.float64, sign=sign)
+    with pytest.warns(RuntimeWarning, match="wound"):
+        expected = ts.sdf.from_mesh(mesh, grid, dtype=torch.float64, sign="winding")
+    assert torch.equal(phi, expected)
+    assert float(ts.sample(phi, torch.tensor([[-0.9, 0.0, 0.0]], dtype=torch.float64), grid)) < 0
+
+    outer = trimesh.creation.icosphere(subdivisions=2, radius=1.2)
+    inner = trimesh.creation.icosphere(subdivisions=2, radius=0.6)
+    outer.invert()  # the shell inside out: outer wound inward, inner (its cavity) outward
+    shell = ts.sdf.from_mesh(trimesh.util.concatenate([outer, inner]), grid, dtype=torch.float64,
+                             sign=sign)
+    radii = torch.tensor([[0.0, 0.0, 0.0], [0.9, 0.0, 0.0], [1.5, 0.0, 0.0]], dtype=torch.float64)
+    assert (ts.sample(shell, radii, grid).flatten() * torch.tensor([1, -1, 1]) > 0).all()
+
+
 def test_auto_sign_of_closed_parts_that_intersect_is_the_winding_number():
     """Two overlapping closed spheres: every edge is shared by two faces, so 'auto' takes the
     pseudonormals, whose buried faces point out of the solid (888 nodes inside signed outside,

@@ -486,6 +486,31 @@ def _warn_nested(vertices: np.ndarray, faces: np.ndarray) -> None:
             RuntimeWarning, stacklevel=caller_stacklevel())
 
 
+def _inside_out(vertices: np.ndarray, faces: np.ndarray) -> bool:
+    """Whether a closed mesh is wound inward as a whole: every outermost part (one that no
+    other part encloses) has a negative signed volume. Meshes of one part, or of more than
+    :data:`NESTED_PARTS`, by the sign of their total volume. A part wound inward beside
+    others wound outward is not the mesh inside out (it bounds a cavity, as ``sign="winding"``
+    takes it): flipped for the whole mesh's negative volume, a sphere wound inward and larger
+    than its correctly wound neighbour became the solid and the neighbour vanished (an audit,
+    2026-12-07)."""
+    labels = _parts(vertices, faces)
+    parts = np.unique(labels)
+    if not 2 <= len(parts) <= NESTED_PARTS:
+        return _signed_volume(vertices, faces) < 0
+    outermost = []
+    for part in parts:
+        own = labels == part
+        chosen = np.flatnonzero(own)[:: max(1, -(-int(own.sum()) // NESTED_SAMPLES))]
+        centres = vertices[faces[chosen]].mean(axis=1)
+        # outside the rest somewhere (parts that intersect each reach out of the other)
+        if (np.abs(_winding_numbers(vertices, faces[~own], centres)) < 0.5).any():
+            outermost.append(_signed_volume(vertices, faces[own]))
+    if not outermost:
+        return _signed_volume(vertices, faces) < 0
+    return all(volume < 0 for volume in outermost)
+
+
 @dataclass
 class SignedBand:
     """Signed distances near the mesh and the sides of the bricks beyond.
@@ -523,7 +548,7 @@ def signed_near(vertices: np.ndarray, faces: np.ndarray, grid: Grid, band: float
     faces = consistently_wound(vertices, faces)
     if sign == "auto":
         sign = "pseudonormal" if _is_closed(faces, len(vertices)) else "winding"
-    if sign == "pseudonormal" and _signed_volume(vertices, faces) < 0:
+    if sign == "pseudonormal" and _inside_out(vertices, faces):
         faces = faces[:, ::-1].copy()
     found, points = _refine(vertices, faces, grid, band)
     centres = [_world(grid, corners + 0.5 * (size - 1)) for size, corners in found.far_corners]

@@ -371,6 +371,9 @@ def from_mesh(
             faces, else ``"winding"``; it also takes ``"winding"`` where the winding number at
             up to 40,000 band nodes (at the band's edge and spread over it) disagrees with the
             pseudonormals (closed parts that intersect, or one wound against the others).
+            A closed mesh wound inward as a whole (every outermost part's normals pointing
+            in) is turned outward first for ``"pseudonormal"`` and ``"auto"``;
+            ``"winding"`` refuses it.
             Beyond the band the sign is always the winding number's: node by node where a
             far brick's centre has one between 0.1 and 0.9 (across a hole), else the
             centre's for the whole brick.
