@@ -36,6 +36,38 @@ def test_degenerate_faces_on_the_surface_change_nothing(icosphere):
     assert adapter.encode(values).shape == (1, 1, *GRID.shape)
 
 
+@pytest.mark.parametrize("layout", ["dense", "bricks"])
+def test_zero_area_faces_on_the_edges_encode_as_the_clean_mesh(layout):
+    """A zero-area face on an edge may be the closest face of points on that edge (libigl
+    returns either face of a tie); its weights went all to the nearest corner, and vertex data
+    read there stepped by half an edge: 0.14 at 3% of a sphere's band at 40^3 (an audit,
+    2026-12-07). Now linear along the edge, as the edge's own faces give."""
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    vertices, faces, edges = np.asarray(mesh.vertices), np.asarray(mesh.faces), mesh.edges_unique
+    slivers = np.stack([edges[:, 0], edges[:, 0], edges[:, 1]], axis=1)  # (a, a, b)
+    flat = np.stack([edges[:, 0], edges[:, 1], edges[:, 0]], axis=1)[::2]  # (a, b, a)
+    dirty = (vertices, np.concatenate([faces, slivers, flat]))
+    values = torch.from_numpy(vertices.T[None].copy())  # x, y, z: linear data, (1, 3, V)
+    if layout == "bricks":
+        values = [values[0].T]  # one (V, C) per mesh
+    grid = ts.Grid.cube(40, 2.2)  # 5 cells between the band and the faces, as bricks need
+    adapter = ts.MeshAdapter if layout == "dense" else ts.bricks.BrickMeshAdapter
+    clean, with_slivers = (adapter(m, grid, dtype=torch.float64) for m in (mesh, dirty))
+    torch.testing.assert_close(with_slivers.encode(values), clean.encode(values),
+                               rtol=0, atol=1e-12)
+
+
+def test_weights_on_a_zero_area_face_are_linear_along_its_longest_edge():
+    corners = np.array([[[0.0, 0, 0], [0.0, 0, 0], [2.0, 0, 0]],   # two corners coincide
+                        [[0.0, 0, 0], [2.0, 0, 0], [0.5, 0, 0]],   # three collinear corners
+                        [[1.0, 1, 1], [1.0, 1, 1], [1.0, 1, 1]]])  # a point
+    points = np.array([[0.5, 0, 0], [1.5, 0, 0], [1.0, 1, 1]])
+    weights = _mesh_sdf._on_longest_edge(corners, points)
+    np.testing.assert_allclose((weights[:, :, None] * corners).sum(axis=1), points)
+    assert (weights >= 0).all() and np.allclose(weights.sum(axis=1), 1.0)
+    np.testing.assert_allclose(weights[1], [0.25, 0.75, 0.0])  # between the far ends only
+
+
 @pytest.mark.parametrize(
     "arrays",
     [(np.eye(3), np.array([[0, 0, 1], [1, 2, 2]])),

@@ -282,15 +282,39 @@ def barycentric(vertices: np.ndarray, faces: np.ndarray, face: np.ndarray, point
 
     For points on their triangle (closest points) the coordinates lie in ``[0, 1]`` and sum to 1.
     Returns the coordinates and a boolean ``(N,)`` that marks degenerate (zero-area)
-    triangles, where the coordinates put all weight on the nearest corner.
+    triangles, where the coordinates are those of the point on the triangle's longest edge
+    (:func:`_on_longest_edge`).
     """
     columns, degenerate = _barycentric(_triangles(vertices, faces), face, points)
     weights = np.stack(columns, axis=1)
     if degenerate.any():
-        corner = vertices[faces[face[degenerate]]]
-        nearest = np.linalg.norm(corner - points[degenerate, None], axis=2).argmin(1)
-        weights[degenerate] = np.eye(3)[nearest]
+        weights[degenerate] = _on_longest_edge(vertices[faces[face[degenerate]]],
+                                               points[degenerate])
     return weights, degenerate
+
+
+_EDGES = np.array([[0, 1], [1, 2], [2, 0]])
+
+
+def _on_longest_edge(corners: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Weights ``(M, 3)`` of the corners ``(M, 3, 3)`` of zero-area triangles at ``points``
+    ``(M, 3)``: linear along the longest edge, which spans all three corners of a flat
+    triangle (all on the first corner where they coincide). The nearest corner alone, as
+    before, made steps of half an edge in vertex data read at points of an edge that such a
+    face shares (libigl may return either face of a tie): 0.14 at 3% of a sphere's band,
+    an audit, 2026-12-07."""
+    rows = np.arange(len(points))
+    ends = corners[:, _EDGES]  # (M, 3 edges, 2 ends, 3)
+    along = ends[:, :, 1] - ends[:, :, 0]
+    longest = (along**2).sum(axis=2).argmax(axis=1)
+    start, edge = ends[rows, longest, 0], along[rows, longest]
+    length2 = (edge**2).sum(axis=1)
+    fraction = np.where(length2 > 0, ((points - start) * edge).sum(axis=1)
+                        / np.where(length2 > 0, length2, 1.0), 0.0).clip(0.0, 1.0)
+    weights = np.zeros((len(points), 3))
+    weights[rows, _EDGES[longest, 0]] = 1.0 - fraction
+    weights[rows, _EDGES[longest, 1]] += fraction
+    return weights
 
 
 def _pseudonormals(vertices: np.ndarray, faces: np.ndarray

@@ -360,7 +360,15 @@ class MeshAdapter(nn.Module):
 
     def encode(self, values: Tensor) -> Tensor:
         """Vertex values ``(B, C, V)`` -> volume ``(B, C, D, H, W)``, constant along normals.
-        ``values`` must have the adapter's dtype and device (:class:`MismatchError`)."""
+        ``values`` must have the adapter's dtype and device (:class:`MismatchError`).
+
+        Each node takes the mesh's piecewise-linear interpolant at its closest point, which
+        bends at every edge: second derivatives of the encoded field (Laplace-Beltrami, a
+        layer's gradient features of it) carry an error of about the edge length over ``h``
+        times the data's second derivative, growing as the grid is refined under a fixed mesh
+        (``x`` on unit icospheres, where ``Lap_S x = -2 x``: 0.97 off at edges of ``0.94 h``,
+        2.2 at ``2.0 h``, 0.53 at ``0.5 h``). A short heat flow first smooths the bends: after
+        ``HeatFlow(h^2)``, 0.15, 0.58 and 0.08 (the mesh's own polygonal error remains)."""
         check_module_dtype(check_tensor(values, "values"), "values", self.vertices, "adapter")
         return _scatter_to_band(
             values, self._band_index, self._corners, self._weights, self.grid, len(self.vertices)

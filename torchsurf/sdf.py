@@ -387,7 +387,8 @@ def from_mesh(
             or larger than the grid).
         MemoryError: before any work, if the grid cannot fit (:mod:`torchsurf._memory`).
 
-    Faces of zero area are kept: the distance to them is exact and they change no sign.
+    Faces of zero area are kept: the distance to them is exact and they change no sign (vertex
+    data read on one, :class:`~torchsurf.MeshAdapter`, interpolate along its longest edge).
 
     Example:
         >>> import trimesh
