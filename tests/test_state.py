@@ -193,6 +193,32 @@ def test_a_tensor_contrast_is_module_state_and_must_match_the_datas_dtype():
         ts.anisotropic_diffusion(u, surface, "perona_malik", torch.tensor([0.5, 0.7]).double())
 
 
+def test_fixed_settings_keep_their_dtype_when_the_model_changes_its_own():
+    """``model.half()`` rounded a flow's fixed diffusivities and a layer's fixed times to
+    float16 (1.3 -> 1.2998; the float32 flow 5.9e-5 off), and ``.float()`` did not undo it:
+    they are settings, cast to the data's dtype where they are used."""
+    grid = ts.Grid.cube(16, 1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid), grid)
+    u = torch.rand(1, 2, *grid.shape, generator=torch.Generator().manual_seed(6))
+
+    def model() -> torch.nn.Sequential:
+        return torch.nn.Sequential(
+            ts.flows.HeatFlow(grid.spacing**2, diffusivity=torch.tensor([1.3, 2.7])),
+            ts.flows.AnisotropicFlow(1e-3, "perona_malik", contrast=[0.3, 0.7]),
+            ts.nn.LearnedDiffusion(2, time=[1.3, 2.7], learn_time=False))
+
+    def run(layers: torch.nn.Sequential, data: torch.Tensor, on: ts.ImplicitSurface):
+        return layers[2](layers[1](layers[0](data, on), on), on)
+
+    expected = run(model(), u, surface)
+    converted = model().half().float()
+    assert converted[0].diffusivity.values.dtype == torch.float32
+    assert torch.equal(run(converted, u, surface), expected)
+    doubled = ts.ImplicitSurface(ts.sdf.sphere(grid, dtype=torch.float64), grid)
+    result = run(model().double(), u.double(), doubled)
+    torch.testing.assert_close(result.float(), expected, rtol=1e-5, atol=1e-5)
+
+
 def test_a_refused_state_leaves_the_surface_as_it_was():
     grid = ts.Grid.cube(16, 1.5)
     other = ts.Grid((16, 16, 16), grid.spacing, (-1.4, -1.5, -1.5))

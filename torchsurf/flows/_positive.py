@@ -15,6 +15,7 @@ only a learnable value without a bound is read from its parameter (a graph break
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -78,6 +79,23 @@ class HostValues:
         value = state_dict.get(key)
         if isinstance(value, Tensor):
             self.check(value)
+
+
+def apply_keeping_dtype(module: nn.Module, names: tuple[str, ...],
+                        apply: Callable[[], nn.Module]) -> nn.Module:
+    """``apply()`` (the module's ``nn.Module._apply``), with its buffers ``names`` moved to
+    the device it moves them to but kept in their own dtype: fixed settings, cast to the
+    data's dtype where they are used. ``model.half()`` had rounded them for float32 data
+    (a diffusivity of 1.3 to 1.2998, the flow 5.9e-5 off; an audit, 2026-12-07), and
+    ``.float()`` rounded a float64 setting kept unrounded."""
+    before = {name: module._buffers[name] for name in names
+              if module._buffers.get(name) is not None}
+    result = apply()
+    for name, tensor in before.items():
+        moved = module._buffers[name]
+        if moved.dtype != tensor.dtype:
+            module._buffers[name] = tensor.to(device=moved.device)
+    return result
 
 
 def check_learned_values(module: nn.Module, data: Tensor, data_name: str, owner: str) -> None:
@@ -277,6 +295,10 @@ class Positive(nn.Module):
             )
         value = value.to(dtype=like.dtype, device=like.device)
         return value.view(1, -1, 1, 1, 1) if value.dim() == 1 else value
+
+    def _apply(self, fn, recurse=True):  # noqa: ANN001, ANN202
+        return apply_keeping_dtype(self, ("values",), lambda: super(Positive, self)._apply(
+            fn, recurse))
 
     def _load_from_state_dict(self, state_dict: dict, prefix: str, *args: object,
                               **kwargs: object) -> None:

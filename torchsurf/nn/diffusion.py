@@ -28,7 +28,7 @@ from .._checks import (
 )
 from .._transforms import refuse_transforms
 from ..backend import PATHS
-from ..flows._positive import HostValues, range_note, raw_within
+from ..flows._positive import HostValues, apply_keeping_dtype, range_note, raw_within
 from ..flows.chebyshev import MAX_APPLICATIONS, TooManyApplications
 from ..flows.exponential import BandLaplacian, heat_semigroup
 from ..operators import functional
@@ -196,6 +196,10 @@ class LearnedDiffusion(nn.Module):
                 f"{error.time * error.bound:.3g}), hours of work and a likely unit error: the "
                 "layer's times are in units of h^2"
             ) from error
+
+    def _apply(self, fn, recurse=True):  # noqa: ANN001, ANN202
+        return apply_keeping_dtype(self, ("fixed_time",), lambda: super(LearnedDiffusion, self)
+                                   ._apply(fn, recurse))
 
     def _load_from_state_dict(self, state_dict: dict, prefix: str, *args: object,
                               **kwargs: object) -> None:
