@@ -238,3 +238,62 @@ def test_forward_mode_in_phi():
     assert float((tangent - difference).norm() / difference.norm()) < 1e-5
     with pytest.raises(NotImplementedError, match="HeatFlow does not run with phi under"):
         torch.func.jvp(lambda p: flow(u, ts.ImplicitSurface(p, grid)), (phi,), (shift,))
+
+
+def test_a_phi_batched_by_vmap_is_refused_by_the_surface_by_name():
+    """functorch's "data-dependent control flow" error had named nothing of torchsurf's."""
+    grid = ts.Grid.cube(12, 1.6)
+    phis = torch.stack([ts.sdf.sphere(grid, 0.8), ts.sdf.sphere(grid, 0.6)])
+    with pytest.raises(NotImplementedError, match="ImplicitSurface does not take a phi batched"):
+        torch.func.vmap(lambda p: ts.ImplicitSurface(p, grid).mean_curvature())(phis)
+
+
+def test_band_functions_run_with_phi_under_jvp():
+    """The band's cells to the nearest crossing are read by numpy: under jvp in phi they had
+    failed ("Cannot access data pointer of Tensor that doesn't have storage")."""
+    grid = ts.Grid.cube(16, 1.6)
+    phi = ts.sdf.sphere(grid, 0.8, dtype=torch.float64)
+    shift = torch.rand(phi.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
+    u = torch.rand((1, 2, *grid.shape), dtype=torch.float64,
+                   generator=torch.Generator().manual_seed(1))
+
+    def features(p: torch.Tensor) -> torch.Tensor:
+        return ts.nn.gradient_features(u, ts.ImplicitSurface(p, grid))
+
+    value, tangent = torch.func.jvp(features, (phi,), (shift,))
+    difference = (features(phi + 1e-6 * shift) - features(phi - 1e-6 * shift)) / 2e-6
+    assert torch.equal(value, features(phi))
+    assert float((tangent - difference).norm() / difference.norm()) < 1e-6
+    mask, mask_tangent = torch.func.jvp(
+        lambda p: ts.ImplicitSurface(p, grid).band_mask().double(), (phi,), (shift,))
+    assert torch.equal(mask.bool(), ts.ImplicitSurface(phi, grid).band_mask())
+    assert not mask_tangent.any()
+
+
+def test_export_keeps_nothing_on_the_surface_and_flows_refuse_it_by_name():
+    """torch.export's fake tensors were kept on the surface (its haloed normals, its mean
+    curvature): later calls as is returned them and failed on reading them."""
+    grid = ts.Grid.cube(14, 1.6)
+    u = torch.rand(1, 1, *grid.shape, generator=torch.Generator().manual_seed(0))
+
+    class Holder(torch.nn.Module):
+        def __init__(self, layer: torch.nn.Module | None = None) -> None:
+            super().__init__()
+            self.surface = ts.ImplicitSurface(ts.sdf.sphere(grid, 1.0) + 0.013, grid)
+            self.layer = layer
+
+        def forward(self, u: torch.Tensor) -> torch.Tensor:
+            if self.layer is not None:
+                return self.layer(u, self.surface)
+            return ts.laplace_beltrami(u, self.surface, scheme="central")
+
+    model = Holder()
+    expected = model(u)
+    model.surface.clear_kept()
+    exported = torch.export.export(model, (u,))
+    torch.testing.assert_close(exported.module()(u), expected)
+    after = model(u)
+    assert type(after) is torch.Tensor and torch.equal(after, expected)
+    assert type(model.surface.mean_curvature()) is torch.Tensor
+    with pytest.raises(NotImplementedError, match="HeatFlow does not run under torch.export"):
+        torch.export.export(Holder(ts.HeatFlow(grid.spacing**2)), (u,))

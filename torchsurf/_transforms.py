@@ -37,6 +37,41 @@ def active_transforms() -> set[str]:
     return {interpreter.key().name for interpreter in (stack() or ())}
 
 
+def exporting() -> bool:
+    """Whether ``torch.export`` traces the call (``False`` on a PyTorch without the query)."""
+    query = getattr(torch.compiler, "is_exporting", None)
+    return bool(query()) if query is not None else False
+
+
+def _wrappers(tensor: Tensor) -> Iterator[Tensor]:
+    """``tensor`` and the tensors beneath its ``torch.func`` wrappers, outermost first."""
+    functorch = getattr(torch._C, "_functorch", None)
+    wrapped = getattr(functorch, "is_functorch_wrapped_tensor", None)
+    yield tensor
+    while wrapped is not None and wrapped(tensor):
+        tensor = functorch.get_unwrapped(tensor)
+        yield tensor
+
+
+def refuse_vmapped_phi(phi: Tensor, owner: str) -> None:
+    """Raise ``NotImplementedError`` naming ``owner`` for a ``phi`` batched by
+    ``torch.func.vmap``: a surface's band and bounds are formed from its values on the host
+    (functorch's own "data-dependent control flow" error had named none of it)."""
+    batched = getattr(getattr(torch._C, "_functorch", None), "is_batchedtensor", None)
+    if batched is not None and any(batched(t) for t in _wrappers(phi)):
+        raise NotImplementedError(
+            f"{owner} does not take a phi batched by torch.func.vmap: its band and bounds are "
+            "formed from phi's values on the host; stack the phis along B instead "
+            f"({owner}(torch.cat(phis), grid) is a batch of surfaces; {_GUIDE})")
+
+
+def plain_values(tensor: Tensor) -> Tensor:
+    """``tensor``'s values, detached, beneath any ``torch.func`` wrapper (``jvp``, ``grad``):
+    what numpy and C code can read (a wrapped ``phi``'s band mask had failed with "Cannot
+    access data pointer of Tensor that doesn't have storage"). Not for a batched tensor."""
+    return list(_wrappers(tensor.detach()))[-1]
+
+
 def refuse_transforms(what: str, *tensors: Tensor, refused: tuple[str, ...] = ("grad", "vmap"),
                       forward_mode: bool = True, why: str = "", phi: Tensor | None = None
                       ) -> None:
@@ -44,8 +79,15 @@ def refuse_transforms(what: str, *tensors: Tensor, refused: tuple[str, ...] = ("
     transforms (of ``"grad"`` and ``"vmap"``), and, unless ``forward_mode``, under
     ``torch.func.jvp`` or for any of ``tensors`` carrying a forward-mode tangent (``why`` says
     what stops it); and for a ``phi`` under any transform (its band and stencils are formed
-    from its values by numpy and C code). A few microseconds; nothing while ``torch.compile``
-    traces."""
+    from its values by numpy and C code); and under ``torch.export``, which traces with fake
+    tensors that hold no values to plan steps from. A few microseconds; nothing while
+    ``torch.compile`` traces."""
+    if exporting():
+        raise NotImplementedError(
+            f"{what} does not run under torch.export: its band, steps and stencils are planned "
+            "from the values of phi and the settings, which export's fake tensors do not hold; "
+            "torch.compile(model) compiles it (docs/learning.md, 'A model compiled whole'); "
+            "the operators (laplace_beltrami, ...) export")
     if torch.compiler.is_compiling():
         return
     active = active_transforms()

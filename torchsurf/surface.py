@@ -25,7 +25,7 @@ from ._checks import (
 )
 from ._inference import outside_inference
 from ._stack import caller_stacklevel
-from ._transforms import outside_transforms
+from ._transforms import exporting, outside_transforms, plain_values, refuse_vmapped_phi
 from ._vectors import tangential_part
 from .grid import Grid
 
@@ -545,6 +545,7 @@ class ImplicitSurface(nn.Module):
         if not isinstance(grid, Grid):
             raise TypeError(f"grid must be a torchsurf.Grid, got {type(grid).__name__}")
         check_volume(phi, "phi", channels=1)
+        refuse_vmapped_phi(phi, type(self).__name__)
         check_spatial_shape(phi, "phi", grid.shape, "grid")
         _memory.check_fits(
             _memory.surface_bytes(phi.shape[0], grid.shape, phi.dtype),
@@ -796,8 +797,12 @@ class ImplicitSurface(nn.Module):
         closest-point stencils). Kept on the surface, not in a module-level table keyed by
         surfaces: ``torch.compile`` then guards on an attribute of its input, where it would
         guard on the position of the surface among a table's weak keys, which moves when
-        another surface is collected (the guard then fails to build).
+        another surface is collected (the guard then fails to build). Under ``torch.export``
+        nothing is kept: its fake tensors hold no values, and later calls as is read them.
         """
+        if exporting():  # export's fake tensors are no values to keep for later calls
+            with outside_inference(), outside_transforms(self.phi):
+                return compute()
         versions = self.__dict__.setdefault("_kept_versions", {})
         version = versions.get(key)
         if key not in self._kept or (version is not None and not torch.compiler.is_compiling()
@@ -943,8 +948,15 @@ class ImplicitSurface(nn.Module):
         """Nodes within ``cells`` (chessboard distance) of a node with a neighbour across S,
         ``(B, 1, D, H, W)`` bool; ``cells`` at most :data:`CROSSING_CELLS` (:meth:`band_mask`
         caps it: compared as ``uint8``, 256 would wrap to 0)."""
-        found = self.kept(("cells_to_crossing",), lambda: _cells_to_crossing(self.phi.detach()))
+        found = self.kept(("cells_to_crossing",), self._crossing_cells)
         return found <= cells
+
+    def _crossing_cells(self) -> Tensor:
+        """:func:`_cells_to_crossing` of ``phi``'s values, beneath any ``torch.func`` transform
+        (numpy reads them: a ``phi`` under ``jvp`` has no storage of its own)."""
+        values = plain_values(self.phi)
+        with outside_transforms():
+            return _cells_to_crossing(values)
 
     def haloed(self) -> tuple[Tensor, Tensor]:
         """``normal`` and ``weight`` with a halo of one node on every side.
@@ -961,7 +973,7 @@ class ImplicitSurface(nn.Module):
             return self._haloed_normal, self._haloed_weight
         with outside_inference(), outside_transforms(self.phi):
             normal, weight = self._haloed_geometry()
-        if torch.is_grad_enabled() or not self.phi.requires_grad:
+        if (torch.is_grad_enabled() or not self.phi.requires_grad) and not exporting():
             self._haloed_normal, self._haloed_weight = normal, weight
         return normal, weight
 
@@ -1037,7 +1049,7 @@ class ImplicitSurface(nn.Module):
         with outside_inference(), outside_transforms(self.phi):
             value = self._faded(curvature.mean_curvature(self._gradient(), self.hessian(),
                                                          self._directed_norm))
-        if torch.is_grad_enabled() or not self.phi.requires_grad:
+        if (torch.is_grad_enabled() or not self.phi.requires_grad) and not exporting():
             self._mean_curvature = value
             self._mean_curvature_version = value._version
         return value

@@ -9,6 +9,7 @@ from torch import Tensor
 
 from .._checks import MismatchError, check_entry, check_finite, check_positive, check_tensor
 from .._inference import outside_inference
+from .._transforms import refuse_vmapped_phi
 from ..grid import Grid
 from ..sampling import weighted_taps
 from ..surface import CROSSING_CELLS, ImplicitSurface, check_eps
@@ -65,6 +66,7 @@ class BrickSurface(ImplicitSurface):
             raise TypeError(f"layout must be a torchsurf.bricks.BrickLayout, got "
                             f"{type(layout).__name__}")
         check_tensor(phi, "phi")
+        refuse_vmapped_phi(phi, "BrickSurface")
         layout.check_field(phi, "phi")
         if phi.shape[1] != 1:
             raise ValueError(f"phi must have 1 channel, got shape {tuple(phi.shape)}")
