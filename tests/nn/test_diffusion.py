@@ -110,6 +110,27 @@ def test_heat_flow_chebyshev_matches_rkc(sphere33):
     assert difference < 1e-2, difference
 
 
+@pytest.mark.parametrize("layer", ["chebyshev", "LearnedDiffusion"])
+def test_an_expansion_reads_its_data_near_the_surface_only(layer):
+    """One expansion spans the whole time, and from data varying along the normals it read the
+    data off S into the result (2.8e-3 / 1.1e-2 of the range at 32^3, ``5 h^2``, against
+    7.6e-5 for RKC; an audit, 2026-12-07): the data is re-extended first."""
+    grid = ts.Grid.cube(28, 1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, dtype=torch.float64), grid)
+    x, y, z = grid.points(torch.float64).unbind(-1)
+    raw = (torch.sin(2 * x) * torch.cos(y) + 0.5 * z * y + 0.6 * x * x + 0.2)[None, None]
+    along = ts.flows.Extension(interpolation="cubic", width=6.5 * grid.spacing)(raw, surface)
+    time = 5 * grid.spacing**2
+    reference = ts.HeatFlow(time, method="heun", steps=200)(along, surface)
+    if layer == "chebyshev":
+        result = ts.HeatFlow(time, method="chebyshev")(raw, surface)
+    else:
+        result = ts.nn.LearnedDiffusion(1, time=5.0, learn_time=False).double()(raw, surface)
+    near = surface.distance() <= 0.5 * grid.spacing
+    scale = float(along[near].max() - along[near].min())
+    assert float((result - reference)[near].abs().max()) < 5e-4 * scale
+
+
 def test_heat_flow_chebyshev_times_and_diffusivity(sphere33):
     u0, surface = sphere33
     flow = ts.HeatFlow(0.02, diffusivity=[1.0, 2.0, 1.0, 0.5], method="chebyshev")

@@ -334,10 +334,11 @@ class HeatFlow(Flow):
         def semigroup(fraction: float) -> Tensor:
             pieces = max(1, math.ceil(largest * fraction / piece * (1 - 1e-9)))
 
-            def run(u: Tensor, count: int) -> Tensor:
-                for _ in range(count):
+            def run(u: Tensor, count: int, first: bool) -> Tensor:
+                for piece in range(count):  # u0 read near S only (heat_semigroup)
                     u = heat_semigroup(u, operator, horizon * (fraction / pieces),
-                                       largest * fraction / pieces)
+                                       largest * fraction / pieces,
+                                       extend_first=first and piece == 0)
                 return u
 
             # sqrt(pieces) pieces at a time recomputed in backward: autograd kept every
@@ -348,8 +349,8 @@ class HeatFlow(Flow):
             group = math.ceil(math.sqrt(pieces))
             u = u0
             for start in range(0, pieces, group):
-                u = recomputed(functools.partial(run, count=min(group, pieces - start)), u,
-                               reads)
+                u = recomputed(functools.partial(run, count=min(group, pieces - start),
+                                                 first=start == 0), u, reads)
             return u
 
         if times is None:

@@ -184,11 +184,11 @@ class LearnedDiffusion(nn.Module):
         times = self.time
         bound = None if largest is None else largest * area
         if torch.compiler.is_compiling():  # traced whole: no host reads, no handler
-            return heat_semigroup(u, operator, times.to(u.dtype) * area, bound)
+            return heat_semigroup(u, operator, times.to(u.dtype) * area, bound, extend_first=True)
         if self.learn_time:
             check_times(times)
         try:
-            return heat_semigroup(u, operator, times.to(u.dtype) * area, bound)
+            return heat_semigroup(u, operator, times.to(u.dtype) * area, bound, extend_first=True)
         except TooManyApplications as error:
             raise ValueError(
                 f"time: {error.time / area:g} h^2 needs {error.applications} applications of the "
