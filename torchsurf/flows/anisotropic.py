@@ -67,6 +67,9 @@ class AnisotropicFlow(Flow):
         max_diffusivity: upper bound of ``g`` for a callable ``diffusivity`` (else read
             from ``diffusivity`` and ``eps``: :attr:`max_diffusivity`).
         scheme: ``"symmetric"`` (default), ``"conservative"`` or ``"octant"``.
+            ``"symmetric"`` is not mirror-symmetric: data even in ``x`` on a sphere (32^3) is
+            not even after a total-variation flow (3.3e-2 of the range on noise; Perona-Malik
+            1.0e-2); ``"octant"`` keeps the grid's mirrors and quarter turns to rounding.
         path: how stencils are applied.
         **kwargs: the integration settings of :class:`Flow` (no implicit methods: nonlinear).
 

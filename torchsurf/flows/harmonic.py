@@ -68,7 +68,8 @@ class HarmonicMapFlow(Flow):
         eps: regularisation of ``|P grad u|``, units of ``u`` per world length.
         tangent: constrain ``u`` (3 channels) to the tangent plane of the level sets; a
             ``u0`` with no tangent part over most of the band (the normals) is refused.
-        scheme: ``"symmetric"`` (default), ``"conservative"`` or ``"octant"``.
+        scheme: ``"symmetric"`` (default), ``"conservative"`` or ``"octant"`` (``"symmetric"``
+            is not mirror-symmetric; see :class:`AnisotropicFlow`).
         path: how stencils are applied.
         **kwargs: integration settings of :class:`Flow` (explicit or torchdiffeq).
 

@@ -124,6 +124,13 @@ class HeatFlow(Flow):
     ``checkpoint`` do not apply. It is opt-in: the
     other methods' results and options stay as they were.
 
+    The flow is linear in ``u0`` but for the re-extension's limiter, which clamps each value to
+    the range of its cell: scaling, negation and added constants give the scaled, negated and
+    shifted flow to rounding, sums not quite (``flow(u + 2 v) - flow(u) - 2 flow(v)``, 2.8e-4
+    of the largest value on a torus at 32^3 with every stepping method, 2e-15 with
+    ``reextend_every=None``; ``"chebyshev"``, whose ring fill is unlimited, to 1e-15; an
+    audit, 2026-12-07).
+
     Args:
         time: physical end time, world units squared (with ``D = 1``).
         diffusivity: ``D``, a positive number or one per channel ``(C,)``. Per-channel
