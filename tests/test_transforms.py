@@ -297,3 +297,25 @@ def test_export_keeps_nothing_on_the_surface_and_flows_refuse_it_by_name():
     assert type(model.surface.mean_curvature()) is torch.Tensor
     with pytest.raises(NotImplementedError, match="HeatFlow does not run under torch.export"):
         torch.export.export(Holder(ts.HeatFlow(grid.spacing**2)), (u,))
+
+
+def test_a_batched_backward_is_refused_by_name_where_kernels_read_raw_memory():
+    """jacobian(vectorize=True) through a flow failed with "Cannot access data pointer of
+    Tensor that doesn't have storage" (or a missing batching rule) naming nothing of the
+    flow's; operators and extensions run batched and equal the loop."""
+    grid = ts.Grid.cube(10, 1.6)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, 1.0, dtype=torch.float64) + 0.013, grid)
+    u = torch.rand(1, 1, *grid.shape, dtype=torch.float64,
+                   generator=torch.Generator().manual_seed(0))
+    rows = surface.band_mask().reshape(-1).nonzero()[:3, 0]
+    h2 = grid.spacing**2
+    for layer in (ts.HeatFlow(2 * h2), ts.HeatFlow(2 * h2, method="implicit"),
+                  ts.nn.LearnedDiffusion(1).double()):
+        with pytest.raises(NotImplementedError, match="has no batched backward"):
+            torch.autograd.functional.jacobian(
+                lambda v, layer=layer: layer(v, surface).reshape(-1)[rows], u, vectorize=True)
+    extension = ts.flows.Extension(interpolation="cubic")
+    def read(v: torch.Tensor) -> torch.Tensor:
+        return extension(v, surface).reshape(-1)[rows]
+    torch.testing.assert_close(torch.autograd.functional.jacobian(read, u, vectorize=True),
+                               torch.autograd.functional.jacobian(read, u), rtol=0, atol=0)

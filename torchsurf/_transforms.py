@@ -72,6 +72,23 @@ def plain_values(tensor: Tensor) -> Tensor:
     return list(_wrappers(tensor.detach()))[-1]
 
 
+def refuse_batched_backward(what: str, grad: Tensor) -> None:
+    """Raise ``NotImplementedError`` naming ``what`` in a ``backward`` that autograd runs on a
+    batch of gradients (``torch.autograd.grad(..., is_grads_batched=True)``,
+    ``torch.autograd.functional.jacobian(..., vectorize=True)``, ``torch.func.vmap`` over a
+    backward): ``what``'s backward runs C kernels on raw memory, or host-planned solves, which
+    batched tensors do not have ("Cannot access data pointer of Tensor that doesn't have
+    storage" had named nothing)."""
+    functorch = getattr(torch._C, "_functorch", None)
+    checks = [getattr(functorch, name, None)
+              for name in ("is_legacy_batchedtensor", "is_batchedtensor")]
+    if any(check is not None and check(grad) for check in checks) or "Vmap" in active_transforms():
+        raise NotImplementedError(
+            f"{what} has no batched backward: take each gradient apart (jacobian(..., "
+            "vectorize=False), autograd.grad without is_grads_batched, a loop over the "
+            f"outputs' gradients) ({_GUIDE})")
+
+
 def refuse_transforms(what: str, *tensors: Tensor, refused: tuple[str, ...] = ("grad", "vmap"),
                       forward_mode: bool = True, why: str = "", phi: Tensor | None = None
                       ) -> None:

@@ -31,6 +31,7 @@ from torch import Tensor
 
 from .._inference import outside_inference
 from .._native import NativeLibrary, carries_tangents, in_parts, in_threads
+from .._transforms import refuse_batched_backward
 from . import _limiter
 from ._recompute import refuse_second_derivatives
 
@@ -971,6 +972,7 @@ class _Product(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, g):  # noqa: ANN001, ANN205
+        refuse_batched_backward("the packed band's gathers (C kernels)", g)
         return None, None, None, _Scatter.apply(*ctx.matrix, g, ctx.count), None, None
 
 
@@ -985,6 +987,7 @@ class _Scatter(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, x):  # noqa: ANN001, ANN205
+        refuse_batched_backward("the packed band's gathers (C kernels)", x)
         return None, None, None, _Product.apply(*ctx.matrix, x, ctx.rows), None
 
 
@@ -1042,7 +1045,7 @@ class _Limited(torch.autograd.Function):
         # once_differentiable's refusal is not reached by autograd.grad(loss, parameters) after
         # create_graph=True (its node hangs off a detached copy): the penalty's part would be
         # left out silently
-        refuse_second_derivatives("the packed band's limited re-extension (its C kernels)")
+        refuse_second_derivatives("the packed band's limited re-extension (its C kernels)", g)
         codes, extremes = ctx.saved_tensors
         matrix = ctx.matrix
         grad = _clamped_back(g, ctx.taps, ctx.corners, ctx.rows, codes, extremes,

@@ -33,6 +33,7 @@ import torch
 from torch import Tensor
 
 from .._inference import outside_inference
+from .._transforms import refuse_batched_backward
 from ..bricks.layout import BRICK
 from ..operators.spectrum import ROWS_AT_ONCE, gershgorin_sums, laplace_beltrami_rows
 from ..stencils import NEIGHBOURHOOD, BoxNeighbours
@@ -355,6 +356,7 @@ class Fill(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad_output):  # noqa: ANN001, ANN205
+        refuse_batched_backward("the packed band's ring fill", grad_output)
         return None, ctx.packed.fill_transpose(grad_output)
 
 

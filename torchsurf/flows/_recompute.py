@@ -21,6 +21,7 @@ import torch
 from torch import Tensor
 
 from .._native import carries_tangents
+from .._transforms import refuse_batched_backward
 
 
 def recomputed(function: Callable[[Tensor], Tensor], u: Tensor, reads: Sequence[Tensor]) -> Tensor:
@@ -49,10 +50,12 @@ def recomputed(function: Callable[[Tensor], Tensor], u: Tensor, reads: Sequence[
     return _Recompute.apply(function, result, u, *reads)
 
 
-def refuse_second_derivatives(what: str) -> None:
+def refuse_second_derivatives(what: str, grad: Tensor) -> None:
     """Raise in a ``backward`` that autograd runs with ``create_graph=True`` (grad mode on):
     ``what`` computes its gradient without a graph, so a second derivative through it (a
-    gradient penalty, a Hessian-vector product) would silently miss its part."""
+    gradient penalty, a Hessian-vector product) would silently miss its part; and on a batch
+    of gradients ``grad`` (:func:`~torchsurf._transforms.refuse_batched_backward`)."""
+    refuse_batched_backward(what, grad)
     if torch.is_grad_enabled():
         raise RuntimeError(
             f"{what} has no second derivative: autograd.grad(..., create_graph=True) through it "
@@ -70,7 +73,7 @@ class _Recompute(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad):
-        refuse_second_derivatives("a checkpointed flow segment (recomputed in backward)")
+        refuse_second_derivatives("a checkpointed flow segment (recomputed in backward)", grad)
         u, *reads = ctx.saved_tensors
         with torch.enable_grad():
             x = u.detach().requires_grad_(u.requires_grad)

@@ -21,6 +21,7 @@ from torch import Tensor
 
 from .. import backend
 from .._native import carries_tangents
+from .._transforms import refuse_batched_backward
 from ..surface import ImplicitSurface
 from . import _closest, _limiter
 from .extension import BrickCubicStencil, CubicStencil, _brick_sources, cubic_stencil, stencil_key
@@ -106,6 +107,8 @@ class _Reextend(torch.autograd.Function):
     @backend.part_of_recorded
     def backward(ctx, grad_output):  # noqa: ANN001, ANN205
         u, *written = ctx.saved_tensors
+        if ctx.stencil.limited:  # the limiter's scatter of clamped taps has no batching rule
+            refuse_batched_backward("the band's limited re-extension", grad_output)
         return None, _vector_jacobian(ctx.stencil, u.detach(), grad_output, written or None), None
 
 

@@ -170,7 +170,7 @@ class _SymmetricSolve(torch.autograd.Function):
     @staticmethod
     @backend.part_of_recorded
     def backward(ctx, grad_solution):  # noqa: ANN001, ANN205
-        refuse_second_derivatives("the implicit steps' conjugate-gradient solve")
+        refuse_second_derivatives("the implicit steps' conjugate-gradient solve", grad_solution)
         solution, *params = ctx.saved_tensors
 
         def apply(x: Tensor) -> Tensor:

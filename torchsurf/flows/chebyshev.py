@@ -267,7 +267,7 @@ class _Expansion(torch.autograd.Function):
     @backend.part_of_recorded
     def backward(ctx, grad_output):  # noqa: ANN001, ANN205
         refuse_second_derivatives("the Chebyshev expansion (LearnedDiffusion, "
-                                  "HeatFlow(method='chebyshev'))")
+                                  "HeatFlow(method='chebyshev'))", grad_output)
         x, weight, times = ctx.saved_tensors
         want_x, want_times = ctx.needs_input_grad[6], ctx.needs_input_grad[8]
         grad_x = grad_times = None
