@@ -386,3 +386,33 @@ def test_a_compiled_reaction_diffusion_draws_the_eager_noise_under_a_global_seed
         finally:
             torch._dynamo.reset()
     torch.testing.assert_close(result, expected, rtol=0, atol=2e-5)
+
+
+@pytest.mark.parametrize("kind", ["heat", "anisotropic"])
+def test_a_fresh_surface_is_prepared_as_is_once_and_then_traced_whole(kind):
+    """What a flow keeps on a surface was formed where each piece was first read inside the
+    trace: about 20 graph breaks on a fresh surface (an Euler heat step), each piece compiled
+    apart, and a recompile on the second call. The flow now runs as is once, outside the
+    trace, and the rest is one graph; the next call compiles nothing."""
+    from torch._dynamo.testing import CompileCounter
+
+    grid = ts.Grid.cube(9, 1.5)
+    u = torch.rand(1, 1, *grid.shape, generator=torch.Generator().manual_seed(3))
+    flow = (HeatFlow(grid.spacing**2 / 40, method="euler", steps=1) if kind == "heat"
+            else AnisotropicFlow(1e-3, method="euler", steps=1))
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid), grid)
+    counter = CompileCounter()
+    with torch.no_grad():
+        torch._dynamo.reset()
+        try:
+            compiled = torch.compile(flow, backend=counter)
+            first = compiled(u, surface)
+            graphs = counter.frame_count
+            second = compiled(u, surface)
+        finally:
+            torch._dynamo.reset()
+        expected = flow(u, ts.ImplicitSurface(ts.sdf.sphere(grid), grid))
+    assert graphs <= 2, graphs
+    assert counter.frame_count == graphs  # the second call compiled nothing
+    torch.testing.assert_close(first, expected, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(second, expected, rtol=1e-5, atol=1e-6)

@@ -42,6 +42,7 @@ from .base import (
     check_times_of_learned_time,
     keep_geometry_before_steps,
     placed,
+    run_as_is_first,
 )
 from .exponential import BandLaplacian, heat_semigroup, kept_packing
 
@@ -290,6 +291,7 @@ class HeatFlow(Flow):
         times: Sequence[float] | Tensor | np.ndarray | None = None, **inputs: Tensor,
     ) -> Tensor:
         """Integrate from ``u0`` to the end time (:meth:`Flow.forward`; ``"chebyshev"`` here)."""
+        run_as_is_first(self, u0, surface, lambda: self(u0, surface, times, **inputs), inputs)
         if isinstance(u0, Tensor):  # before the groups read the diffusivity on its device
             check_learned_values(self, u0, "u0", type(self).__name__)
         groups = self._diffusivity_groups(u0)

@@ -11,6 +11,7 @@ from torch import Tensor, nn
 
 from .._checks import MismatchError, check_count, check_flag
 from .._transforms import refuse_transforms
+from ..flows.base import run_as_is_first
 from ..surface import ImplicitSurface, check_data, check_surface
 from .diffusion import LearnedDiffusion
 from .features import feature_count, gradient_features
@@ -71,6 +72,7 @@ class DiffusionBlock(nn.Module):
     def forward(self, u: Tensor, surface: ImplicitSurface) -> Tensor:
         """``u + MLP([d, features(d)])`` on the band, ``u`` beyond: ``(B, C, D, H, W)`` (or
         packed ``(N, C, 8, 8, 8)``) -> the same shape (the class's docstring)."""
+        run_as_is_first(self, u, surface, lambda: self(u, surface))
         check_surface(surface)
         refuse_transforms(type(self).__name__, u, forward_mode=False, phi=surface.phi,
                           why="its diffusion's exp(t L) is an autograd Function with a backward "

@@ -29,6 +29,7 @@ from .._checks import (
 from .._transforms import refuse_transforms
 from ..backend import PATHS
 from ..flows._positive import HostValues, apply_keeping_dtype, range_note, raw_within
+from ..flows.base import run_as_is_first
 from ..flows.chebyshev import MAX_APPLICATIONS, TooManyApplications
 from ..flows.exponential import BandLaplacian, heat_semigroup
 from ..operators import functional
@@ -168,6 +169,7 @@ class LearnedDiffusion(nn.Module):
 
     def forward(self, u: Tensor, surface: ImplicitSurface) -> Tensor:
         """Diffuse ``u`` ``(B, C, D, H, W)``; returns ``(B, C, D, H, W)`` (class docstring)."""
+        run_as_is_first(self, u, surface, lambda: self(u, surface))
         check_surface(surface)
         refuse_transforms(type(self).__name__, u, forward_mode=False, phi=surface.phi,
                           why="its exp(t L) is an autograd Function with a backward only")
