@@ -294,6 +294,39 @@ def test_a_larger_part_wound_inward_does_not_turn_the_mesh_inside_out(sign: str)
     assert (ts.sample(shell, radii, grid).flatten() * torch.tensor([1, -1, 1]) > 0).all()
 
 
+def test_meshes_of_many_parts_are_turned_outward_only_when_inside_out_as_a_whole() -> None:
+    """Beyond NESTED_PARTS parts the outermost ones are told by their boxes: with 17 parts the
+    total volume had decided again, and a large part wound inward turned the mesh inside out
+    (a review, 2026-12-07)."""
+    import trimesh
+
+    from torchsurf import _mesh_sdf
+
+    def parts(big_inward: bool, small_inward: bool, count: int = 18) -> tuple:
+        big = trimesh.creation.icosphere(subdivisions=1, radius=1.0)
+        if big_inward:
+            big.invert()
+        smalls = []
+        for i in range(count - 1):
+            small = trimesh.creation.icosphere(subdivisions=0, radius=0.1)
+            small.apply_translation([2.0 + 0.3 * (i % 6), 0.3 * (i // 6), 0.0])
+            if small_inward:
+                small.invert()
+            smalls.append(small)
+        mesh = trimesh.util.concatenate([big, *smalls])
+        return np.asarray(mesh.vertices), np.asarray(mesh.faces)
+
+    assert _mesh_sdf.NESTED_PARTS < 18
+    assert not _mesh_sdf._inside_out(*parts(big_inward=True, small_inward=False))
+    assert _mesh_sdf._inside_out(*parts(big_inward=True, small_inward=True))
+    assert not _mesh_sdf._inside_out(*parts(big_inward=False, small_inward=False))
+    shell = [trimesh.creation.icosphere(subdivisions=1, radius=r) for r in (1.0, 0.5)]
+    shell[0].invert()  # a shell inside out, among 17 small parts wound inward too
+    vertices, faces = parts(big_inward=True, small_inward=True)
+    nested = trimesh.util.concatenate([trimesh.Trimesh(vertices, faces), shell[1]])
+    assert _mesh_sdf._inside_out(np.asarray(nested.vertices), np.asarray(nested.faces))
+
+
 def test_auto_sign_of_closed_parts_that_intersect_is_the_winding_number():
     """Two overlapping closed spheres: every edge is shared by two faces, so 'auto' takes the
     pseudonormals, whose buried faces point out of the solid (888 nodes inside signed outside,

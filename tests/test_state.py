@@ -205,10 +205,12 @@ def test_fixed_settings_keep_their_dtype_when_the_model_changes_its_own():
         return torch.nn.Sequential(
             ts.flows.HeatFlow(grid.spacing**2, diffusivity=torch.tensor([1.3, 2.7])),
             ts.flows.AnisotropicFlow(1e-3, "perona_malik", contrast=[0.3, 0.7]),
-            ts.nn.LearnedDiffusion(2, time=[1.3, 2.7], learn_time=False))
+            ts.nn.LearnedDiffusion(2, time=[1.3, 2.7], learn_time=False),
+            ts.AnisotropicDiffusion("perona_malik", contrast=torch.tensor([0.3, 0.7])))
 
     def run(layers: torch.nn.Sequential, data: torch.Tensor, on: ts.ImplicitSurface):
-        return layers[2](layers[1](layers[0](data, on), on), on)
+        flowed = layers[2](layers[1](layers[0](data, on), on), on)
+        return flowed + 1e-3 * layers[3](flowed, on)
 
     expected = run(model(), u, surface)
     converted = model().half().float()

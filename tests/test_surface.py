@@ -925,6 +925,12 @@ def test_phi_replaced_after_building_is_refused(layout):
     holder.surface.phi = swapped
     with pytest.raises(RuntimeError, match="phi was replaced"):
         ts.laplace_beltrami(u, holder.surface)
+    torch._dynamo.reset()
+    try:  # traced too (the check is no host read): it had used the former geometry, 27 off
+        with pytest.raises(RuntimeError, match="phi was replaced"):
+            torch.compile(lambda v: ts.laplace_beltrami(v, holder.surface), backend="eager")(u)
+    finally:
+        torch._dynamo.reset()
     with pytest.raises(AttributeError, match="grid is fixed once built"):
         holder.surface.grid = Grid.cube(21, 2.5)
 

@@ -512,16 +512,19 @@ def _warn_nested(vertices: np.ndarray, faces: np.ndarray) -> None:
 
 def _inside_out(vertices: np.ndarray, faces: np.ndarray) -> bool:
     """Whether a closed mesh is wound inward as a whole: every outermost part (one that no
-    other part encloses) has a negative signed volume. Meshes of one part, or of more than
-    :data:`NESTED_PARTS`, by the sign of their total volume. A part wound inward beside
+    other part encloses) has a negative signed volume. A mesh of one part by the sign of its
+    volume; of more than :data:`NESTED_PARTS`, the outermost parts are those whose bounding
+    box lies in no other part's (:func:`_inside_out_by_boxes`). A part wound inward beside
     others wound outward is not the mesh inside out (it bounds a cavity, as ``sign="winding"``
     takes it): flipped for the whole mesh's negative volume, a sphere wound inward and larger
     than its correctly wound neighbour became the solid and the neighbour vanished (an audit,
     2026-12-07)."""
     labels = _parts(vertices, faces)
     parts = np.unique(labels)
-    if not 2 <= len(parts) <= NESTED_PARTS:
+    if len(parts) < 2:
         return _signed_volume(vertices, faces) < 0
+    if len(parts) > NESTED_PARTS:
+        return _inside_out_by_boxes(vertices, faces, labels)
     outermost = []
     for part in parts:
         own = labels == part
@@ -533,6 +536,33 @@ def _inside_out(vertices: np.ndarray, faces: np.ndarray) -> bool:
     if not outermost:
         return _signed_volume(vertices, faces) < 0
     return all(volume < 0 for volume in outermost)
+
+
+BOXED_PARTS = 4096
+"""Meshes of more connected parts than this are oriented by their total volume (the boxes'
+pairwise test holds ``parts^2`` entries)."""
+
+
+def _inside_out_by_boxes(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray) -> bool:
+    """:func:`_inside_out` for many parts: a part whose bounding box lies in no other part's
+    box is outermost (a part inside another lies in its box); every such part wound inward
+    makes the mesh inside out."""
+    order = np.argsort(labels, kind="stable")
+    sorted_labels = labels[order]
+    starts = np.flatnonzero(np.r_[True, sorted_labels[1:] != sorted_labels[:-1]])
+    if len(starts) > BOXED_PARTS:
+        return _signed_volume(vertices, faces) < 0
+    corner = (vertices - _centre(vertices))[faces[order]]  # (F, 3, 3)
+    lows = np.minimum.reduceat(corner.min(axis=1), starts)
+    highs = np.maximum.reduceat(corner.max(axis=1), starts)
+    volumes = np.add.reduceat(
+        np.einsum("ij,ij->i", corner[:, 0], np.cross(corner[:, 1], corner[:, 2])), starts)
+    within = ((lows[None] <= lows[:, None]) & (highs[:, None] <= highs[None])).all(axis=2)
+    np.fill_diagonal(within, False)
+    outermost = ~within.any(axis=1)
+    if not outermost.any():  # parts of one box each inside the other's
+        return _signed_volume(vertices, faces) < 0
+    return bool((volumes[outermost] < 0).all())
 
 
 @dataclass

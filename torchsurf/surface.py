@@ -478,7 +478,9 @@ class ImplicitSurface(nn.Module):
     one surface raises PyTorch's "backward through the graph a second time"), or pass
     ``retain_graph=True`` to all but the last.
     ``surface.to(...)`` (``.double()``, a device) moves ``phi`` and derives the rest again from
-    it: the same numbers as a surface built from the moved ``phi``. Changing ``phi`` in place
+    it: the same numbers as a surface built from the moved ``phi``; a move that changes
+    nothing keeps everything, what flows kept included (unless ``phi`` requires grad: its
+    geometry is derived again, in a new graph). Changing ``phi`` in place
     afterwards (``phi.copy_``, ``phi.mul_``) makes every method raise ``RuntimeError``; changes
     that leave no trace in its version counter are not seen: writes through ``phi.data``,
     and in-place changes between calls of code compiled by an outer ``torch.compile``
@@ -734,6 +736,9 @@ class ImplicitSurface(nn.Module):
         # a copy (copy.deepcopy, pickle) holds fresh tensors, copied with the geometry derived
         # from them: it starts a new record of in-place changes
         derive = state.pop(_DERIVE_ON_LOAD, False)
+        if "grid" in state and "_grid" not in state:  # pickled before 2026-12-07
+            state["_grid"] = state.pop("grid")
+        state.setdefault("_phi_assembled", state.get("_buffers", {}).get("phi"))
         super().__setstate__(state)
         if derive:
             self._reassemble()
@@ -762,8 +767,11 @@ class ImplicitSurface(nn.Module):
             return result
         before = dict(self._buffers)
         result = super()._apply(fn, recurse)
-        if any(self._buffers[name] is not tensor for name, tensor in before.items()):
-            self._reassemble()  # a move that changed nothing (.to(its device)) keeps all
+        # a move that changed nothing (.to(its device)) keeps what flows kept; a phi that
+        # requires grad gets its geometry in a new graph, as it always did
+        if self.phi.requires_grad or any(self._buffers[name] is not tensor
+                                         for name, tensor in before.items()):
+            self._reassemble()
         return result
 
     def _reassemble(self) -> None:
@@ -798,9 +806,12 @@ class ImplicitSurface(nn.Module):
         surfaces: ``torch.compile`` then guards on an attribute of its input, where it would
         guard on the position of the surface among a table's weak keys, which moves when
         another surface is collected (the guard then fails to build). Under ``torch.export``
-        nothing is kept: its fake tensors hold no values, and later calls as is read them.
+        what is kept is read, and nothing new is kept: its fake tensors hold no values, and
+        later calls as is read them.
         """
         if exporting():  # export's fake tensors are no values to keep for later calls
+            if key in self.__dict__.get("_kept", {}):
+                return self._kept[key]
             with outside_inference(), outside_transforms(self.phi):
                 return compute()
         versions = self.__dict__.setdefault("_kept_versions", {})
@@ -984,14 +995,17 @@ class ImplicitSurface(nn.Module):
         """``phi``, unless it was modified in place or replaced after the normals and weight
         were derived from it (they would then belong to another surface), or made to require
         grad after them (they would then be outside its graph, and its gradient would miss their part)."""
-        if torch.compiler.is_compiling():
-            return self.phi
-        if self.phi is not self.__dict__.get("_phi_assembled"):
+        if not torch.compiler.is_compiling():
+            refuse_vmapped_phi(self.phi, type(self).__name__)  # stack_module_state's phis
+        # traced too (no host read); torch.export swaps every buffer for a fake of its own
+        if self.phi is not self.__dict__.get("_phi_assembled") and not exporting():
             raise RuntimeError(
                 "phi was replaced after this surface was built (assigned, or swapped in by "
                 "torch.func.functional_call): its normals, weight and band belong to the former "
                 "phi; build a new surface from the new phi, ImplicitSurface(phi, grid) (in a "
                 "model's forward, to learn or swap phi: the surface is differentiable in it)")
+        if torch.compiler.is_compiling():
+            return self.phi
         source = self.__dict__.get("_phi_source")
         changed = self.phi._version != self._phi_version
         if not changed and source is not None and source[0]._version != source[1]:

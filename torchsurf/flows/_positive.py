@@ -15,7 +15,6 @@ only a learnable value without a bound is read from its parameter (a graph break
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -23,6 +22,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .._checks import MismatchError, as_real_tensor, check_flag, check_positive
+from .._precision import apply_keeping_dtype
 
 FLOOR = 1e-12
 """The smallest value a learnable parameter can take, relative to its smallest initial entry."""
@@ -80,22 +80,13 @@ class HostValues:
         if isinstance(value, Tensor):
             self.check(value)
 
+    def __setstate__(self, state: dict) -> None:
+        state.setdefault("_entries", ())  # a HostMaximum pickled before 2026-12-07
+        self.__dict__.update(state)
 
-def apply_keeping_dtype(module: nn.Module, names: tuple[str, ...],
-                        apply: Callable[[], nn.Module]) -> nn.Module:
-    """``apply()`` (the module's ``nn.Module._apply``), with its buffers ``names`` moved to
-    the device it moves them to but kept in their own dtype: fixed settings, cast to the
-    data's dtype where they are used. ``model.half()`` had rounded them for float32 data
-    (a diffusivity of 1.3 to 1.2998, the flow 5.9e-5 off; an audit, 2026-12-07), and
-    ``.float()`` rounded a float64 setting kept unrounded."""
-    before = {name: module._buffers[name] for name in names
-              if module._buffers.get(name) is not None}
-    result = apply()
-    for name, tensor in before.items():
-        moved = module._buffers[name]
-        if moved.dtype != tensor.dtype:
-            module._buffers[name] = tensor.to(device=moved.device)
-    return result
+
+HostMaximum = HostValues
+"""The former name (modules pickled before 2026-12-07 name it)."""
 
 
 def check_learned_values(module: nn.Module, data: Tensor, data_name: str, owner: str) -> None:
@@ -108,6 +99,9 @@ def check_learned_values(module: nn.Module, data: Tensor, data_name: str, owner:
 def _reread_entries(module: Positive, _: object) -> None:
     """After ``load_state_dict``: the loaded values, read on the host (see :class:`HostValues`)."""
     module._entries.entries_of(module.values)
+
+
+_reread_largest = _reread_entries  # the hook's former name, in modules pickled before
 
 
 def raw_within(value: Tensor, floor: float, bound: float | None) -> Tensor:
@@ -299,6 +293,11 @@ class Positive(nn.Module):
     def _apply(self, fn, recurse=True):  # noqa: ANN001, ANN202
         return apply_keeping_dtype(self, ("values",), lambda: super(Positive, self)._apply(
             fn, recurse))
+
+    def __setstate__(self, state: dict) -> None:
+        if "_largest" in state and "_entries" not in state:  # pickled before 2026-12-07
+            state["_entries"] = state.pop("_largest")
+        super().__setstate__(state)
 
     def _load_from_state_dict(self, state_dict: dict, prefix: str, *args: object,
                               **kwargs: object) -> None:

@@ -26,9 +26,10 @@ from .._checks import (
     check_flag,
     check_positive,
 )
+from .._precision import apply_keeping_dtype
 from .._transforms import refuse_transforms
 from ..backend import PATHS
-from ..flows._positive import HostValues, apply_keeping_dtype, range_note, raw_within
+from ..flows._positive import HostValues, range_note, raw_within
 from ..flows.base import run_as_is_first
 from ..flows.chebyshev import MAX_APPLICATIONS, TooManyApplications
 from ..flows.exponential import BandLaplacian, heat_semigroup

@@ -20,6 +20,7 @@ from torch import Tensor, nn
 
 from .. import backend
 from .._checks import MismatchError, check_choice, check_flag, check_positive, check_positive_tensor
+from .._precision import apply_keeping_dtype
 from ..surface import ImplicitSurface, check_data, check_direction_batch
 from . import functional
 from .diffusivity import DIFFUSIVITIES, Diffusivity
@@ -281,6 +282,10 @@ class AnisotropicDiffusion(nn.Module):
         self.coupled = check_flag(coupled, "coupled")
         self.scheme = check_choice(scheme, "scheme", FLUX_SCHEMES)
         self.path = check_choice(path, "path", backend.PATHS)
+
+    def _apply(self, fn, recurse=True):  # noqa: ANN001, ANN202
+        return apply_keeping_dtype(self, ("contrast",), lambda: super(AnisotropicDiffusion, self)
+                                   ._apply(fn, recurse))
 
     def forward(self, u: Tensor, surface: ImplicitSurface) -> Tensor:
         """``(1/W) div(W g(|P grad u|) P grad u)``: ``(B, C, D, H, W) -> (B, C, D, H, W)``, units
