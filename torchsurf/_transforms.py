@@ -78,7 +78,10 @@ def refuse_batched_backward(what: str, grad: Tensor) -> None:
     ``torch.autograd.functional.jacobian(..., vectorize=True)``, ``torch.func.vmap`` over a
     backward): ``what``'s backward runs C kernels on raw memory, or host-planned solves, which
     batched tensors do not have ("Cannot access data pointer of Tensor that doesn't have
-    storage" had named nothing)."""
+    storage" had named nothing). Nothing while ``torch.compile`` traces (the queries are C
+    functions dynamo cannot trace: they broke a compiled backward's graph)."""
+    if torch.compiler.is_compiling():
+        return
     functorch = getattr(torch._C, "_functorch", None)
     checks = [getattr(functorch, name, None)
               for name in ("is_legacy_batchedtensor", "is_batchedtensor")]
