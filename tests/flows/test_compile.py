@@ -416,3 +416,34 @@ def test_a_fresh_surface_is_prepared_as_is_once_and_then_traced_whole(kind):
     assert counter.frame_count == graphs  # the second call compiled nothing
     torch.testing.assert_close(first, expected, rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(second, expected, rtol=1e-5, atol=1e-6)
+
+
+def test_a_layer_compiled_in_place_runs_as_is_first_without_recursing():
+    """``Module.compile()`` compiles the module's call: the run as is went back into it, without
+    end (RecursionError, a review, 2026-12-07); ``times`` as an iterator was used up by it."""
+    grid = ts.Grid.cube(9, 1.5)
+    u = torch.rand(1, 1, *grid.shape, generator=torch.Generator().manual_seed(3))
+    h2 = grid.spacing**2
+    calls = []
+    for layer in (HeatFlow(h2, method="euler"), ts.nn.LearnedDiffusion(1, max_time=2.0)):
+        layer.register_forward_hook(lambda *_: calls.append(1))
+        expected = layer(u, ts.ImplicitSurface(ts.sdf.sphere(grid), grid))
+        calls.clear()
+        torch._dynamo.reset()
+        try:
+            layer.compile(backend="aot_eager")
+            with torch.no_grad():
+                result = layer(u, ts.ImplicitSurface(ts.sdf.sphere(grid), grid))
+        finally:
+            torch._dynamo.reset()
+        torch.testing.assert_close(result, expected.detach(), rtol=1e-5, atol=1e-6)
+        assert len(calls) == 1  # the run as is calls no hooks
+    flow = HeatFlow(h2, method="euler")
+    torch._dynamo.reset()
+    try:
+        with torch.no_grad():
+            several = torch.compile(flow, backend="aot_eager")(
+                u, ts.ImplicitSurface(ts.sdf.sphere(grid), grid), times=iter([0.3 * h2, h2]))
+    finally:
+        torch._dynamo.reset()
+    assert several.shape == (2, *u.shape)

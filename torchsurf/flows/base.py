@@ -394,36 +394,39 @@ def keep_geometry_before_steps(surface: ImplicitSurface) -> None:
         surface.haloed()
 
 
-def run_as_is_first(layer: nn.Module, u0: object, surface: object,
-                    run: Callable[[], object], inputs: dict[str, object] | None = None) -> None:
-    """While ``torch.compile`` traces ``layer`` on a surface it has not run on: ``run()`` (the
-    layer's own call) as is, once, outside the trace and without autograd, so that what the
-    layer keeps on the surface (its bands, stencils, bounds, packed operators:
-    :meth:`ImplicitSurface.kept`) is formed in one graph break. Formed where each is first
-    read, they broke the traced graph about 20 times on a fresh surface (an Euler heat step:
-    its first compiled call at 9^3 took 37 s, now 14.5 s) and each piece compiled apart.
-    A call as is marks the surface (the layer's class, method and scheme, the data's batch,
-    channels and dtype); a traced call on a marked surface traces whole. The run leaves the
-    random state as it found it, the global one and any generator among ``inputs`` (a
-    reaction's noise is then the pattern of the traced call's own draw)."""
-    if not isinstance(surface, ImplicitSurface) or not isinstance(u0, Tensor) or exporting():
-        return
-    marker = ("ran as is", type(layer).__name__, getattr(layer, "method", None),
-              getattr(layer, "scheme", None), u0.shape[0], u0.shape[1], u0.dtype)
+def run_as_is_first(layer: nn.Module, u0: object, surface: object, *args: object,
+                    **inputs: object) -> None:
+    """While ``torch.compile`` traces ``layer`` on a surface it has not run on:
+    ``layer.forward(u0, surface, *args, **inputs)`` as is, once, outside the trace, without
+    autograd, hooks or warnings, so that what the layer keeps on the surface (its bands,
+    stencils, bounds, packed operators: :meth:`ImplicitSurface.kept`) is formed in one graph
+    break. Formed where each is first read, they broke the traced graph about 20 times on a
+    fresh surface (an Euler heat step: its first compiled call at 9^3 took 37 s, now 14.5 s)
+    and each piece compiled apart. A call as is marks the surface for this layer (the layer
+    object, the data's batch, channels and dtype); a traced call on a marked surface traces
+    whole. The run leaves the random state as it found it, the global one and any generator
+    among ``inputs`` (a reaction's noise is then the pattern of the traced call's own draw)."""
+    if (not isinstance(surface, ImplicitSurface) or not isinstance(u0, Tensor) or u0.dim() < 2
+            or exporting()):
+        return  # the layer's own checks name what is wrong
+    marker = ("ran as is", id(layer), u0.shape[0], u0.shape[1], u0.dtype)
     if not torch.compiler.is_compiling():
         surface.kept(marker, lambda: True)  # this call forms what the layer keeps
     elif not surface.is_kept(marker):
-        generators = [value for value in (inputs or {}).values()
-                      if isinstance(value, torch.Generator)]
-        torch.compiler.disable(_run_without_grad)(run, u0.device, generators)
+        generators = [value for value in inputs.values() if isinstance(value, torch.Generator)]
+        torch.compiler.disable(_run_without_grad)(layer, u0, surface, args, inputs, generators)
 
 
-def _run_without_grad(run: Callable[[], object], device: torch.device,
-                      generators: list[torch.Generator]) -> None:
+def _run_without_grad(layer: nn.Module, u0: Tensor, surface: ImplicitSurface, args: tuple,
+                      inputs: dict, generators: list[torch.Generator]) -> None:
+    surface.kept(("ran as is", id(layer), u0.shape[0], u0.shape[1], u0.dtype), lambda: True)
     states = [generator.get_state() for generator in generators]
-    devices = [device] if device.type == "cuda" else []
-    with torch.random.fork_rng(devices=devices), torch.no_grad():
-        run()
+    devices = [u0.device] if u0.device.type == "cuda" else []
+    # forward, not the module's call: no hooks, and no compiled call (Module.compile) to
+    # recurse into; the traced call gives the warnings
+    with torch.random.fork_rng(devices=devices), torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        layer.forward(u0, surface, *args, **inputs)
     for generator, state in zip(generators, states, strict=True):
         generator.set_state(state)
 
@@ -843,7 +846,8 @@ class Flow(nn.Module):
                 (:attr:`keeps_range`) left it by more than :data:`RANGE_SLACK` of it: unstable
                 steps on that surface (docs/band.md, section 5).
         """
-        run_as_is_first(self, u0, surface, lambda: self(u0, surface, times, **inputs), inputs)
+        times = list(times) if isinstance(times, Iterator) else times  # read once
+        run_as_is_first(self, u0, surface, times, **inputs)
         check_surface(surface)
         refuse_transforms(type(self).__name__, u0, *inputs.values(), phi=surface.phi,
                           forward_mode=self.method in PACKED_METHODS,

@@ -1117,6 +1117,9 @@ class Extension(nn.Module):
             ValueError: ``u`` holds NaN or infinity where it is read (the flows refuse it too:
                 it would spread through the extension silently).
         """
+        from .base import run_as_is_first  # base imports this module (through _packed_band)
+
+        run_as_is_first(self, u, surface)
         # first: under vmap, u is one entry
         trilinear_dense = (self.method == "closest_point" and self.interpolation == "linear"
                            and getattr(surface, "layout", None) is None)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import replace
 
 import numpy as np
@@ -291,7 +291,8 @@ class HeatFlow(Flow):
         times: Sequence[float] | Tensor | np.ndarray | None = None, **inputs: Tensor,
     ) -> Tensor:
         """Integrate from ``u0`` to the end time (:meth:`Flow.forward`; ``"chebyshev"`` here)."""
-        run_as_is_first(self, u0, surface, lambda: self(u0, surface, times, **inputs), inputs)
+        times = list(times) if isinstance(times, Iterator) else times  # read once
+        run_as_is_first(self, u0, surface, times, **inputs)
         if isinstance(u0, Tensor):  # before the groups read the diffusivity on its device
             check_learned_values(self, u0, "u0", type(self).__name__)
         groups = self._diffusivity_groups(u0)

@@ -72,7 +72,7 @@ class DiffusionBlock(nn.Module):
     def forward(self, u: Tensor, surface: ImplicitSurface) -> Tensor:
         """``u + MLP([d, features(d)])`` on the band, ``u`` beyond: ``(B, C, D, H, W)`` (or
         packed ``(N, C, 8, 8, 8)``) -> the same shape (the class's docstring)."""
-        run_as_is_first(self, u, surface, lambda: self(u, surface))
+        run_as_is_first(self, u, surface)
         check_surface(surface)
         refuse_transforms(type(self).__name__, u, forward_mode=False, phi=surface.phi,
                           why="its diffusion's exp(t L) is an autograd Function with a backward "

@@ -170,7 +170,7 @@ class LearnedDiffusion(nn.Module):
 
     def forward(self, u: Tensor, surface: ImplicitSurface) -> Tensor:
         """Diffuse ``u`` ``(B, C, D, H, W)``; returns ``(B, C, D, H, W)`` (class docstring)."""
-        run_as_is_first(self, u, surface, lambda: self(u, surface))
+        run_as_is_first(self, u, surface)
         check_surface(surface)
         refuse_transforms(type(self).__name__, u, forward_mode=False, phi=surface.phi,
                           why="its exp(t L) is an autograd Function with a backward only")
