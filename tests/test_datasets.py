@@ -227,3 +227,16 @@ def test_derived_seeds_tell_keys_apart_but_trailing_zeros_as_documented():
     assert derived_seed(5, 3) == derived_seed(5, 3, 0) == derived_seed(5, 3, 0, 0)
     assert len({derived_seed(5, 3), derived_seed(5, 3, 1), derived_seed(5, 4),
                 derived_seed(6, 3)}) == 4
+
+
+def test_a_dataset_keeps_as_many_batch_surfaces_as_asked():
+    """Batches of 3 over 5 shapes in order cycle through 5 distinct batches: with 4 kept,
+    every batch built its surface again (a training step 3.2x slower, an audit, 2026-12-07)."""
+    grid = ts.Grid.cube(13, 1.5)
+    phis = torch.cat([ts.sdf.sphere(grid, r) for r in (0.5, 0.6, 0.7, 0.8, 0.9)])
+    data = datasets.SignalDataset(ts.ImplicitSurface(phis, grid), length=15, kept_surfaces=5)
+    order = [[(3 * b + k) % 5 for k in range(3)] for b in range(5)]
+    first = [data.surface(shapes) for shapes in order]
+    assert all(data.surface(shapes) is kept for shapes, kept in zip(order, first, strict=True))
+    with pytest.raises(ValueError, match="kept_surfaces"):
+        datasets.SignalDataset(ts.ImplicitSurface(phis, grid), length=15, kept_surfaces=0)

@@ -314,6 +314,9 @@ class SignalDataset(Dataset):
         seed: the run's seed, a whole number in ``[0, 2^32)``.
         smooth, piecewise_constant: options of :func:`smooth_signal` and
             :func:`piecewise_constant_signal` (``frequency``, ``modes``; ``cells``).
+        kept_surfaces: how many batch surfaces :meth:`surface` keeps, the most recently used
+            (default :data:`KEPT_SURFACES`); at least the number of distinct batches a fixed
+            order of shapes cycles through, for each to be reused.
 
     Items are dicts: ``"noisy"`` and ``"clean"`` ``(C, D, H, W)``, ``"shape"`` the shape's
     index (an ``int``), ``"kind"`` the kind. A ``DataLoader`` stacks them into ``(N, C, D, H, W)``;
@@ -338,6 +341,7 @@ class SignalDataset(Dataset):
         seed: int = 0,
         smooth: dict | None = None,
         piecewise_constant: dict | None = None,
+        kept_surfaces: int = KEPT_SURFACES,
     ) -> None:
         surface = shapes.surface if isinstance(shapes, MeshBatchAdapter) else shapes
         if not isinstance(surface, ImplicitSurface):
@@ -357,6 +361,7 @@ class SignalDataset(Dataset):
         self.channels = check_count(channels, "channels")
         self.noise = check_nonnegative(noise, "noise")
         self.seed = check_count(seed, "seed", minimum=0)
+        self.kept_surfaces = check_count(kept_surfaces, "kept_surfaces")
         derived_seed(self.seed, 0)  # refuses a seed outside [0, 2^32) by name
         self.options = {"smooth": _signal_options(smooth, "smooth", smooth_signal),
                         "piecewise_constant": _signal_options(
@@ -401,11 +406,14 @@ class SignalDataset(Dataset):
         """The surfaces of a batch of items, ``shapes`` their ``"shape"`` indices ``(N,)``.
 
         The same surface object is returned for the same indices while they are among the
-        :data:`KEPT_SURFACES` most recently asked for: what the layers derive from a surface
+        ``kept_surfaces`` most recently asked for: what the layers derive from a surface
         once (its stencils, band Laplacian and band nodes) is kept on it, and a new surface
         derives them again (10x the cost of a ``LearnedDiffusion`` forward and backward at
         32^3). Batches that repeat their shapes (items of one shape, or a fixed order of
-        shapes, as ``examples/train_denoise.py`` draws them) reuse their surface.
+        shapes, as ``examples/train_denoise.py`` draws them) reuse their surface while they
+        are no more than ``kept_surfaces`` distinct batches: batches of 3 over 5 shapes in
+        order cycle through 5, and with the default 4 every one was built again (a training
+        step 3.2x slower; an audit, 2026-12-07): pass ``kept_surfaces=5`` there.
         """
         index = self._shape_indices(shapes)
         key = tuple(index.flatten().tolist())
@@ -413,7 +421,7 @@ class SignalDataset(Dataset):
         if surface is None:
             surface = ImplicitSurface(self.phi[index], self.grid, self._band_width, self._eps)
         self._batch_surfaces[key] = surface  # the most recent last
-        while len(self._batch_surfaces) > KEPT_SURFACES:
+        while len(self._batch_surfaces) > self.kept_surfaces:
             self._batch_surfaces.pop(next(iter(self._batch_surfaces)))
         return surface
 
