@@ -6,9 +6,12 @@ from __future__ import annotations
 import argparse
 import fcntl
 import hashlib
+import json
 import os
 import platform
 import re
+import subprocess
+import sys
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
@@ -160,3 +163,15 @@ def add_alternation_arguments(parser: argparse.ArgumentParser, runs: int) -> Non
 def checkouts(root: Path, baseline: Path | None) -> dict[str, Path]:
     """This checkout's root as ``"this"``, and ``baseline`` as ``"baseline"`` if given."""
     return {"this": root} if baseline is None else {"this": root, "baseline": baseline}
+
+
+def worker_result(script: str, root: Path, arguments: list[str],
+                  environment: dict[str, str] | None = None) -> dict[str, float]:
+    """What a benchmark's ``script`` run with ``--worker`` and ``arguments`` prints last (a JSON
+    object), in a fresh process importing torchsurf from ``root``, its working directory the
+    benchmarks folder, with ``environment`` added to this process's."""
+    variables = {**os.environ, **(environment or {}), "PYTHONPATH": str(root)}
+    command = [sys.executable, script, "--worker", *arguments]
+    output = subprocess.run(command, env=variables, check=True, capture_output=True, text=True,
+                            cwd=Path(script).resolve().parent).stdout
+    return json.loads(output.strip().splitlines()[-1])

@@ -27,12 +27,18 @@ import datetime
 import json
 import os
 import statistics
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
-from _report import add_alternation_arguments, alternated, checkouts, cpu_model, write_section
+from _report import (
+    add_alternation_arguments,
+    alternated,
+    checkouts,
+    cpu_model,
+    worker_result,
+    write_section,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 SECTION = "bench_compile_fresh"
@@ -89,12 +95,9 @@ def run_once(root: Path, case: str, route: str, size: int) -> dict[str, float]:
     """:func:`worker` in a fresh process importing torchsurf from ``root``, inductor's cache
     in a new directory."""
     with tempfile.TemporaryDirectory(prefix="inductor-") as cache:
-        environment = {**os.environ, "PYTHONPATH": str(root), "TORCHINDUCTOR_CACHE_DIR": cache}
-        command = [sys.executable, __file__, "--worker", "--cases", case, "--route", route,
-                   "--size", str(size)]
-        output = subprocess.run(command, env=environment, check=True, capture_output=True,
-                                text=True).stdout
-    return json.loads(output.strip().splitlines()[-1])
+        return worker_result(__file__, root, ["--cases", case, "--route", route,
+                                              "--size", str(size)],
+                             {"TORCHINDUCTOR_CACHE_DIR": cache})
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -26,7 +26,6 @@ import datetime
 import json
 import os
 import statistics
-import subprocess
 import sys
 from pathlib import Path
 
@@ -37,6 +36,7 @@ from _report import (
     checksum_offsets,
     cpu_model,
     figures,
+    worker_result,
     write_section,
 )
 from bench_mesh_heat import MESH_DIR
@@ -79,12 +79,8 @@ def worker(mesh: str, resolution: int, flow_name: str) -> dict[str, float]:
 
 def run_once(root: Path, mesh: str, resolution: int, flow: str) -> dict[str, float]:
     """:func:`worker` in a fresh process importing torchsurf from ``root``."""
-    environment = {**os.environ, "PYTHONPATH": str(root)}
-    command = [sys.executable, __file__, "--worker", "--meshes", mesh, "--resolution",
-               str(resolution), "--flows", flow]
-    output = subprocess.run(command, env=environment, check=True, capture_output=True,
-                            text=True).stdout
-    return json.loads(output.strip().splitlines()[-1])
+    return worker_result(__file__, root, ["--meshes", mesh, "--resolution", str(resolution),
+                                          "--flows", flow])
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -30,7 +30,6 @@ import argparse
 import json
 import os
 import statistics
-import subprocess
 import sys
 from pathlib import Path
 
@@ -41,6 +40,7 @@ from _report import (
     checksum_offsets,
     figures,
     run_context,
+    worker_result,
     write_section,
 )
 from bench_mesh_heat import MESH_DIR
@@ -100,12 +100,7 @@ def worker(case: str, resolution: int) -> dict[str, float]:
 
 def run_once(root: Path, case: str, resolution: int) -> dict[str, float]:
     """:func:`worker` in a fresh process importing torchsurf from ``root``."""
-    environment = {**os.environ, "PYTHONPATH": str(root)}
-    command = [sys.executable, __file__, "--worker", "--cases", case, "--resolution",
-               str(resolution)]
-    output = subprocess.run(command, env=environment, check=True, capture_output=True,
-                            text=True, cwd=Path(__file__).resolve().parent).stdout
-    return json.loads(output.strip().splitlines()[-1])
+    return worker_result(__file__, root, ["--cases", case, "--resolution", str(resolution)])
 
 
 def main(argv: list[str] | None = None) -> None:
