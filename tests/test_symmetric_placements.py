@@ -163,13 +163,15 @@ def test_refinement_reads_no_normal_where_there_is_no_direction():
 
 
 @pytest.mark.parametrize(("method", "bound", "before"), [("euler", 2e4, 2.6e5),
-                                                          ("chebyshev", 1e3, 5.5e3)])
+                                                          ("chebyshev", 2e3, 5.5e3)])
 def test_the_derivative_in_phi_is_moderate_around_a_centre_without_direction(method, bound,
                                                                               before):
     """A torus centred on a node: the centre (1.5 cells from S, no direction) sat in the
     interpolated normals of its neighbours' refined closest points. The largest derivative in
     ``phi`` of a random projection of the flow was ``before``; what is left comes from the
-    axis's nodes, whose closest point is any point of a circle (docs/learning.md)."""
+    axis's nodes, whose closest point is any point of a circle (docs/learning.md). Chebyshev's
+    bound is 2e3 since it reads ``u0`` (noise) at the closest points first (1.55e3; 0.9e3
+    before, which read ``u0`` as given)."""
     grid = ts.Grid.cube(11, bound=1.0)
     phi = ts.sdf.torus(grid, 0.6, 0.3, dtype=torch.float64).requires_grad_(True)
     generator = torch.Generator().manual_seed(0)
