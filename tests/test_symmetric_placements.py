@@ -170,7 +170,7 @@ def test_the_derivative_in_phi_is_moderate_around_a_centre_without_direction(met
     interpolated normals of its neighbours' refined closest points. The largest derivative in
     ``phi`` of a random projection of the flow was ``before``; what is left comes from the
     axis's nodes, whose closest point is any point of a circle (docs/learning.md). Chebyshev's
-    bound is 2e3 since it reads ``u0`` (noise) at the closest points first (1.55e3; 0.9e3
+    bound is 2e3 since it reads ``u0`` (noise) at the closest points first (1.55e3; below 1e3
     before, which read ``u0`` as given)."""
     grid = ts.Grid.cube(11, bound=1.0)
     phi = ts.sdf.torus(grid, 0.6, 0.3, dtype=torch.float64).requires_grad_(True)
