@@ -409,7 +409,7 @@ def run_as_is_first(layer: nn.Module, u0: object, surface: object, *args: object
     if (not isinstance(surface, ImplicitSurface) or not isinstance(u0, Tensor) or u0.dim() < 2
             or exporting()):
         return  # the layer's own checks name what is wrong
-    marker = ("ran as is", id(layer), u0.shape[0], u0.shape[1], u0.dtype)
+    marker = _ran_as_is(layer, u0)
     if not torch.compiler.is_compiling():
         surface.kept(marker, lambda: True)  # this call forms what the layer keeps
     elif not surface.is_kept(marker):
@@ -417,9 +417,14 @@ def run_as_is_first(layer: nn.Module, u0: object, surface: object, *args: object
         torch.compiler.disable(_run_without_grad)(layer, u0, surface, args, inputs, generators)
 
 
+def _ran_as_is(layer: nn.Module, u0: Tensor) -> tuple:
+    """The mark a call of ``layer`` on ``u0`` as is leaves on its surface."""
+    return ("ran as is", id(layer), u0.shape[0], u0.shape[1], u0.dtype)
+
+
 def _run_without_grad(layer: nn.Module, u0: Tensor, surface: ImplicitSurface, args: tuple,
                       inputs: dict, generators: list[torch.Generator]) -> None:
-    surface.kept(("ran as is", id(layer), u0.shape[0], u0.shape[1], u0.dtype), lambda: True)
+    surface.kept(_ran_as_is(layer, u0), lambda: True)  # first: a nested call of it returns
     states = [generator.get_state() for generator in generators]
     devices = [u0.device] if u0.device.type == "cuda" else []
     # forward, not the module's call: no hooks, and no compiled call (Module.compile) to
