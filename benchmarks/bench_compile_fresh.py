@@ -1,7 +1,7 @@
 """First compiled calls of a flow on a surface it has not run on, against one warmed by a call.
 
 ``torch.compile(flow)`` on a fresh surface: a flow traced on a surface it has not run on runs
-once as is first, outside the trace (``torchsurf.flows.base.run_as_is_first``), and the rest
+once as is first, outside the trace (``torchsurf._as_is.run_as_is_first``), and the rest
 is one graph. The baseline in the same run is the route the docs advised before: one call as
 is on the surface, then the compiled calls. Each figure is one fresh process with a fresh
 ``TORCHINDUCTOR_CACHE_DIR`` (inductor's cache cold), three compiled calls timed, and the graphs

@@ -52,6 +52,7 @@ import torch
 from torch import Tensor, nn
 
 from .. import _memory
+from .._as_is import run_as_is_first
 from .._checks import (
     check_count,
     check_finite,
@@ -61,7 +62,7 @@ from .._checks import (
     check_positive,
 )
 from .._stack import caller_stacklevel
-from .._transforms import exporting, refuse_transforms
+from .._transforms import refuse_transforms
 from ..bricks.layout import BRICK, BrickLayout
 from ..operators.spectrum import laplace_beltrami_bound
 from ..surface import (  # noqa: F401  (WIDE_BAND_CELLS, DISTANCE_TOLERANCE: documented here too)
@@ -392,48 +393,6 @@ def keep_geometry_before_steps(surface: ImplicitSurface) -> None:
     recomputation saved other tensors than the forward (``chebyshev``'s pieces)."""
     if surface.phi.requires_grad and torch.is_grad_enabled():
         surface.haloed()
-
-
-def run_as_is_first(layer: nn.Module, u0: object, surface: object, *args: object,
-                    **inputs: object) -> None:
-    """While ``torch.compile`` traces ``layer`` on a surface it has not run on:
-    ``layer.forward(u0, surface, *args, **inputs)`` as is, once, outside the trace, without
-    autograd, hooks or warnings, so that what the layer keeps on the surface (its bands,
-    stencils, bounds, packed operators: :meth:`ImplicitSurface.kept`) is formed in one graph
-    break. Formed where each is first read, they broke the traced graph about 20 times on a
-    fresh surface (an Euler heat step: its first compiled call at 9^3 took 37 s, now 14.5 s)
-    and each piece compiled apart. A call as is marks the surface for this layer (the layer
-    object, the data's batch, channels and dtype); a traced call on a marked surface traces
-    whole. The run leaves the random state as it found it, the global one and any generator
-    among ``inputs`` (a reaction's noise is then the pattern of the traced call's own draw)."""
-    if (not isinstance(surface, ImplicitSurface) or not isinstance(u0, Tensor) or u0.dim() < 2
-            or exporting()):
-        return  # the layer's own checks name what is wrong
-    marker = _ran_as_is(layer, u0)
-    if not torch.compiler.is_compiling():
-        surface.kept(marker, lambda: True)  # this call forms what the layer keeps
-    elif not surface.is_kept(marker):
-        generators = [value for value in inputs.values() if isinstance(value, torch.Generator)]
-        torch.compiler.disable(_run_without_grad)(layer, u0, surface, args, inputs, generators)
-
-
-def _ran_as_is(layer: nn.Module, u0: Tensor) -> tuple:
-    """The mark a call of ``layer`` on ``u0`` as is leaves on its surface."""
-    return ("ran as is", id(layer), u0.shape[0], u0.shape[1], u0.dtype)
-
-
-def _run_without_grad(layer: nn.Module, u0: Tensor, surface: ImplicitSurface, args: tuple,
-                      inputs: dict, generators: list[torch.Generator]) -> None:
-    surface.kept(_ran_as_is(layer, u0), lambda: True)  # first: a nested call of it returns
-    states = [generator.get_state() for generator in generators]
-    devices = [u0.device] if u0.device.type == "cuda" else []
-    # forward, not the module's call: no hooks, and no compiled call (Module.compile) to
-    # recurse into; the traced call gives the warnings
-    with torch.random.fork_rng(devices=devices), torch.no_grad(), warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        layer.forward(u0, surface, *args, **inputs)
-    for generator, state in zip(generators, states, strict=True):
-        generator.set_state(state)
 
 
 class Flow(nn.Module):

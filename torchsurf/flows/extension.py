@@ -47,6 +47,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .. import _memory, backend, stencils
+from .._as_is import run_as_is_first
 from .._checks import check_choice, check_count, check_finite, check_flag, check_positive
 from .._native import carries_tangents
 from .._transforms import refuse_transforms
@@ -1117,8 +1118,6 @@ class Extension(nn.Module):
             ValueError: ``u`` holds NaN or infinity where it is read (the flows refuse it too:
                 it would spread through the extension silently).
         """
-        from .base import run_as_is_first  # base imports this module (through _packed_band)
-
         run_as_is_first(self, u, surface)
         # first: under vmap, u is one entry
         trilinear_dense = (self.method == "closest_point" and self.interpolation == "linear"

@@ -12,6 +12,7 @@ import torch
 from torch import Tensor
 
 from .. import backend
+from .._as_is import run_as_is_first
 from .._checks import check_choice, check_finite
 from .._native import carries_tangents
 from .._transforms import refuse_transforms
@@ -42,7 +43,6 @@ from .base import (
     check_times_of_learned_time,
     keep_geometry_before_steps,
     placed,
-    run_as_is_first,
 )
 from .exponential import BandLaplacian, heat_semigroup, kept_packing
 

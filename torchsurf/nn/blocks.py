@@ -9,9 +9,9 @@ import math
 import torch
 from torch import Tensor, nn
 
+from .._as_is import run_as_is_first
 from .._checks import MismatchError, check_count, check_flag
 from .._transforms import refuse_transforms
-from ..flows.base import run_as_is_first
 from ..surface import ImplicitSurface, check_data, check_surface
 from .diffusion import LearnedDiffusion
 from .features import feature_count, gradient_features

@@ -17,6 +17,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from .._as_is import run_as_is_first
 from .._checks import (
     MismatchError,
     as_real_tensor,
@@ -30,7 +31,6 @@ from .._precision import apply_keeping_dtype
 from .._transforms import refuse_transforms
 from ..backend import PATHS
 from ..flows._positive import HostValues, range_note, raw_within
-from ..flows.base import run_as_is_first
 from ..flows.chebyshev import MAX_APPLICATIONS, TooManyApplications
 from ..flows.exponential import BandLaplacian, heat_semigroup
 from ..operators import functional
