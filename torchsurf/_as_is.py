@@ -2,27 +2,34 @@
 
 from __future__ import annotations
 
-import warnings
-
 import torch
 from torch import Tensor, nn
 
 from ._transforms import exporting
 from .surface import ImplicitSurface
 
+SETTINGS = ("method", "scheme", "path", "band_width", "reextend_every", "steps",
+            "interpolation", "width", "limited")
+"""The layer attributes that decide what it keeps on a surface, in its mark (with its class)."""
 
-def run_as_is_first(layer: nn.Module, u0: object, surface: object, *args: object,
+
+def run_as_is_first(layer: nn.Module, u0: object, surface: object, /, *args: object,
                     **inputs: object) -> None:
     """While ``torch.compile`` traces ``layer`` on a surface it has not run on:
-    ``layer.forward(u0, surface, *args, **inputs)`` as is, once, outside the trace, without
-    autograd, hooks or warnings, so that what the layer keeps on the surface (its bands,
-    stencils, bounds, packed operators: :meth:`ImplicitSurface.kept`) is formed in one graph
-    break. Formed where each is first read, they broke the traced graph about 20 times on a
-    fresh surface (an Euler heat step: its first compiled call at 9^3 took 37 s, now 14.5 s)
-    and each piece compiled apart. A call as is marks the surface for this layer (the layer
-    object, the data's batch, channels and dtype); a traced call on a marked surface traces
-    whole. The run leaves the random state as it found it, the global one and any generator
-    among ``inputs`` (a reaction's noise is then the pattern of the traced call's own draw)."""
+    ``layer.forward(u0, surface, *args, **inputs)`` as is, once, outside the trace and without
+    autograd (nor the layer's own hooks; its submodules' run), so that what the layer keeps on
+    the surface (its bands, stencils, bounds, packed operators: :meth:`ImplicitSurface.kept`)
+    is formed in one graph break. Formed where each is first read, they broke the traced graph
+    about 20 times on a fresh surface (an Euler heat step: its first compiled call at 9^3 took
+    37 s, now 14.5 s) and each piece compiled apart.
+
+    A call as is marks the surface for layers like this one (its class and :data:`SETTINGS`,
+    the data's batch, channels and dtype; not the layer object, whose identity a compiled
+    function would guard on, recompiling for each layer); a traced call on a marked surface
+    traces whole. The run gives its warnings (the traced call skips the checks that give some:
+    a flow that left the range of ``u0``), and leaves the random state as it found it, the
+    global one and any generator among ``inputs`` (a reaction's noise is then the pattern of
+    the traced call's own draw)."""
     if (not isinstance(surface, ImplicitSurface) or not isinstance(u0, Tensor) or u0.dim() < 2
             or exporting()):
         return  # the layer's own checks name what is wrong
@@ -36,7 +43,8 @@ def run_as_is_first(layer: nn.Module, u0: object, surface: object, *args: object
 
 def _ran_as_is(layer: nn.Module, u0: Tensor) -> tuple:
     """The mark a call of ``layer`` on ``u0`` as is leaves on its surface."""
-    return ("ran as is", id(layer), u0.shape[0], u0.shape[1], u0.dtype)
+    settings = tuple(getattr(layer, name, None) for name in SETTINGS)
+    return ("ran as is", type(layer).__qualname__, settings, u0.shape[0], u0.shape[1], u0.dtype)
 
 
 def _run_without_grad(layer: nn.Module, u0: Tensor, surface: ImplicitSurface, args: tuple,
@@ -44,10 +52,8 @@ def _run_without_grad(layer: nn.Module, u0: Tensor, surface: ImplicitSurface, ar
     surface.kept(_ran_as_is(layer, u0), lambda: True)  # first: a nested call of it returns
     states = [generator.get_state() for generator in generators]
     devices = [u0.device] if u0.device.type == "cuda" else []
-    # forward, not the module's call: no hooks, and no compiled call (Module.compile) to
-    # recurse into; the traced call gives the warnings
-    with torch.random.fork_rng(devices=devices), torch.no_grad(), warnings.catch_warnings():
-        warnings.simplefilter("ignore")
+    # forward, not the module's call: no compiled call (Module.compile) to recurse into
+    with torch.random.fork_rng(devices=devices), torch.no_grad():
         layer.forward(u0, surface, *args, **inputs)
     for generator, state in zip(generators, states, strict=True):
         generator.set_state(state)

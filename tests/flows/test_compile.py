@@ -447,3 +447,34 @@ def test_a_layer_compiled_in_place_runs_as_is_first_without_recursing():
     finally:
         torch._dynamo.reset()
     assert several.shape == (2, *u.shape)
+
+
+def test_layers_of_one_class_share_the_mark_and_the_range_warning_is_given():
+    """Marked by the layer object, one compiled function given four layers of one class
+    recompiled for each; the run as is had silenced its warnings, and the range warning, which
+    a traced call skips, was lost; a flow input named ``layer`` clashed with the run's own
+    argument (a review, 2026-12-07)."""
+    from torch._dynamo.testing import CompileCounter
+
+    grid = ts.Grid.cube(9, 1.5)
+    u = torch.rand(1, 1, *grid.shape, generator=torch.Generator().manual_seed(3))
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid), grid)
+    layers = [ts.nn.LearnedDiffusion(1, max_time=2.0) for _ in range(4)]
+    for layer in layers:
+        layer(u, surface)
+    counter = CompileCounter()
+    torch._dynamo.reset()
+    try:
+        compiled = torch.compile(lambda layer, v: layer(v, surface), backend=counter)
+        with torch.no_grad():
+            for layer in layers:
+                compiled(layer, u)
+        assert counter.frame_count == 1
+        unstable = HeatFlow(2 * grid.spacing**2, method="euler", steps=1)
+        with pytest.warns(RuntimeWarning, match="left the range of u0"), torch.no_grad():
+            torch.compile(unstable, backend="aot_eager")(
+                u, ts.ImplicitSurface(ts.sdf.sphere(grid), grid))
+    finally:
+        torch._dynamo.reset()
+    from torchsurf._as_is import run_as_is_first
+    run_as_is_first(layers[0], u, surface, layer=1)  # an input of that name is passed on
