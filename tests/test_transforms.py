@@ -319,3 +319,31 @@ def test_a_batched_backward_is_refused_by_name_where_kernels_read_raw_memory():
         return extension(v, surface).reshape(-1)[rows]
     torch.testing.assert_close(torch.autograd.functional.jacobian(read, u, vectorize=True),
                                torch.autograd.functional.jacobian(read, u), rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("interpolation", ["linear", "cubic"])
+def test_sample_refuses_vmap_by_name_and_runs_the_rest(interpolation):
+    """Under vmap sample failed with PyTorch's "data-dependent control flow" naming nothing of
+    sample's; a linear read's tangent with grid_sample's message. grad and the cubic read's
+    forward mode run and agree with reverse mode and the batch along B."""
+    grid = ts.Grid.cube(9, 1.2)
+    generator = torch.Generator().manual_seed(4)
+    field = torch.rand(3, 1, *grid.shape, dtype=torch.float64, generator=generator)
+    points = torch.rand(3, 6, 3, dtype=torch.float64, generator=generator) * 2 - 1
+    with pytest.raises(NotImplementedError, match="sample does not run under torch.func.vmap"):
+        torch.func.vmap(lambda f, p: ts.sample(f[None], p, grid, interpolation))(field, points)
+    weights = torch.rand(3, 1, 6, dtype=torch.float64, generator=generator)
+    grad = torch.func.grad(lambda p: (ts.sample(field, p, grid, interpolation) * weights).sum())(points)
+    moved = points.clone().requires_grad_(True)
+    (ts.sample(field, moved, grid, interpolation) * weights).sum().backward()
+    torch.testing.assert_close(grad, moved.grad, rtol=0, atol=0)
+    tangent = torch.rand_like(points)
+    read = lambda p: ts.sample(field, p, grid, interpolation)  # noqa: E731
+    if interpolation == "linear":
+        with pytest.raises(NotImplementedError, match="interpolation='cubic'"):
+            torch.func.jvp(read, (points,), (tangent,))
+        return
+    _, derivative = torch.func.jvp(read, (points,), (tangent,))
+    step = 1e-6
+    central = (read(points + step * tangent) - read(points - step * tangent)) / (2 * step)
+    torch.testing.assert_close(derivative, central, rtol=1e-6, atol=1e-8)

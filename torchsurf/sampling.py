@@ -5,8 +5,10 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 from torch import Tensor
+from torch.autograd import forward_ad
 
 from ._checks import MismatchError, check_batch, check_choice, check_finite, check_tensor, check_volume
+from ._transforms import active_transforms
 from .grid import Grid
 
 __all__ = [
@@ -80,6 +82,10 @@ def sample(field: Tensor, points: Tensor, grid: Grid, interpolation: str = "line
         ValueError: a point lies outside the grid's box by more than 1e-4 of a cell and the
             rounding of world points in their dtype (:meth:`~torchsurf.Grid.world_rounding`:
             cells in float32 far from the origin).
+        NotImplementedError: under ``torch.func.vmap`` (the box check and the choice of
+            points read near a face are host decisions: batch along ``B`` instead, with
+            ``points`` ``(B, V, 3)``); forward mode with ``"linear"`` (``grid_sample`` has no
+            forward derivative; ``"cubic"`` has). ``torch.func.grad`` and reverse mode run.
 
     Example:
         >>> import torch
@@ -109,6 +115,7 @@ def sample(field: Tensor, points: Tensor, grid: Grid, interpolation: str = "line
             f"points ({points.dtype}, {points.device}) must have the dtype and device of "
             f"field ({field.dtype}, {field.device})"
         )
+    _refuse_transforms(interpolation, field, points)
     check_finite(points, "points")
     _check_inside(points, grid)
     if points.dim() == 2:
@@ -132,6 +139,26 @@ def sample(field: Tensor, points: Tensor, grid: Grid, interpolation: str = "line
     if len(columns) == 0:
         return values
     return values.index_copy(2, columns, _interpolate(field, index[:, columns], cubic=False))
+
+
+def _refuse_transforms(interpolation: str, field: Tensor, points: Tensor) -> None:
+    """Name :func:`sample` where a transform would fail inside it with PyTorch's generic
+    message (vmap: "data-dependent control flow"; a linear read's tangent: grid_sample's).
+    Nothing while ``torch.compile`` traces (the queries are C functions dynamo cannot trace)."""
+    if torch.compiler.is_compiling():
+        return
+    active = active_transforms()
+    if "Vmap" in active:
+        raise NotImplementedError(
+            "sample does not run under torch.func.vmap: which points lie in the box, and which "
+            "are read near its faces, are decided on the host; batch along B instead (field "
+            "(B, C, D, H, W) with points (B, V, 3); docs/learning.md, 'Derivatives')")
+    if interpolation == "linear" and ("Jvp" in active or any(
+            forward_ad.unpack_dual(t).tangent is not None for t in (field, points))):
+        raise NotImplementedError(
+            "sample(interpolation='linear') has no forward-mode derivative (PyTorch's "
+            "grid_sample has none): use interpolation='cubic', or reverse mode "
+            "(docs/learning.md, 'Derivatives')")
 
 
 def _interpolate(field: Tensor, index: Tensor, cubic: bool) -> Tensor:

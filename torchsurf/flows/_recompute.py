@@ -23,8 +23,12 @@ from torch import Tensor
 from .._native import carries_tangents
 from .._transforms import refuse_batched_backward
 
+SEGMENT = "a checkpointed flow segment (recomputed in backward)"
+"""What :func:`recomputed` names in its refusals unless told."""
 
-def recomputed(function: Callable[[Tensor], Tensor], u: Tensor, reads: Sequence[Tensor]) -> Tensor:
+
+def recomputed(function: Callable[[Tensor], Tensor], u: Tensor, reads: Sequence[Tensor],
+               what: str = SEGMENT) -> Tensor:
     """``function(u)``, differentiable in ``u`` and ``reads``, keeping nothing but them.
 
     Args:
@@ -35,6 +39,8 @@ def recomputed(function: Callable[[Tensor], Tensor], u: Tensor, reads: Sequence[
             computed from another (:func:`independent`: each gradient is delivered once).
             Backward checks the recomputed graph and raises if ``function`` reached a leaf
             needing gradients other than through them (a gradient would be lost).
+        what: the segment as the user knows it, named where backward refuses a second
+            derivative or a batch of gradients.
     """
     reads = [t for t in reads if isinstance(t, Tensor) and t.requires_grad]
     # forward mode stores nothing per step: data carrying tangents run plainly (the autograd
@@ -47,7 +53,7 @@ def recomputed(function: Callable[[Tensor], Tensor], u: Tensor, reads: Sequence[
         result = function(u)
     if result is u:  # nothing to recompute (an autograd Function must not return its input)
         return u
-    return _Recompute.apply(function, result, u, *reads)
+    return _Recompute.apply(function, what, result, u, *reads)
 
 
 def refuse_second_derivatives(what: str, grad: Tensor) -> None:
@@ -66,27 +72,27 @@ def refuse_second_derivatives(what: str, grad: Tensor) -> None:
 
 class _Recompute(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, function, result, u, *reads):
-        ctx.function = function
+    def forward(ctx, function, what, result, u, *reads):
+        ctx.function, ctx.what = function, what
         ctx.save_for_backward(u, *reads)  # saved: an in-place change before backward raises
         return result
 
     @staticmethod
     def backward(ctx, grad):
-        refuse_second_derivatives("a checkpointed flow segment (recomputed in backward)", grad)
+        refuse_second_derivatives(ctx.what, grad)
         u, *reads = ctx.saved_tensors
         with torch.enable_grad():
             x = u.detach().requires_grad_(u.requires_grad)
             out = ctx.function(x)
         wanted = ([x] if u.requires_grad else []) + list(reads)
         if out.grad_fn is None:
-            return None, None, None, *(None for _ in reads)
+            return None, None, None, None, *(None for _ in reads)
         _check_reads(out, wanted)
         # retain: reaching a read may run nodes of the forward's graph (a surface's geometry
         # from phi) that its own backward, and the other segments, run again
         grads = list(torch.autograd.grad(out, wanted, grad, allow_unused=True, retain_graph=True))
         grad_u = grads.pop(0) if u.requires_grad else None
-        return None, None, grad_u, *grads
+        return None, None, None, grad_u, *grads
 
 
 def _node(tensor: Tensor):

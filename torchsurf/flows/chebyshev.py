@@ -335,7 +335,7 @@ def _checkpointed(operator: Callable[..., Tensor], x: Tensor, c: Tensor, bound: 
         chunk = c[:, first: min(first + group, terms)]
         state = recomputed(
             functools.partial(_stacked_group, operator, scale, chunk, first, params), state,
-            inputs,
+            inputs, what="the Chebyshev expansion (LearnedDiffusion, HeatFlow(method='chebyshev'))",
         )
     return state[2]
 

@@ -360,7 +360,8 @@ class HeatFlow(Flow):
             u = u0
             for start in range(0, pieces, group):
                 u = recomputed(functools.partial(run, count=min(group, pieces - start),
-                                                 first=start == 0), u, reads)
+                                                 first=start == 0), u, reads,
+                               what="HeatFlow(method='chebyshev')")
             return u
 
         if times is None:
