@@ -155,7 +155,7 @@ def test_chebyshev_expansion_with_a_learned_phi_recomputes_its_groups(monkeypatc
     for recorded in (True, False):
         if recorded:
             for module in (chebyshev, heat):
-                monkeypatch.setattr(module, "recomputed", lambda function, u, reads: function(u))
+                monkeypatch.setattr(module, "recomputed", lambda function, u, reads, what="": function(u))
         else:
             monkeypatch.undo()
         flow = ts.HeatFlow(6 * grid.spacing**2, method="chebyshev", learn_time=True).double()
