@@ -56,6 +56,7 @@ import contextvars
 import functools
 import math
 import os
+import threading
 import time
 import warnings
 from collections.abc import Callable, Iterator
@@ -407,13 +408,18 @@ def _timings(variant: tuple) -> _Timings:
     """The ledger's entry for ``variant``, moved to the end (the most recently run), or added
     there if new (the least recently run dropped past :data:`TIMED_VARIANTS`): a kernel run at
     every call keeps its measured eager time while lambdas made anew come and go."""
-    timings = _TIMINGS.pop(variant, None)
-    if timings is None:
-        while len(_TIMINGS) >= TIMED_VARIANTS:
-            del _TIMINGS[next(iter(_TIMINGS))]
-        timings = _Timings()
-    _TIMINGS[variant] = timings
-    return timings
+    with _TIMINGS_LOCK:  # threads calling kernels at once had both dropped one entry: KeyError
+        timings = _TIMINGS.pop(variant, None)
+        if timings is None:
+            while len(_TIMINGS) >= TIMED_VARIANTS:
+                del _TIMINGS[next(iter(_TIMINGS))]
+            timings = _Timings()
+        _TIMINGS[variant] = timings
+        return timings
+
+
+_TIMINGS_LOCK = threading.Lock()
+"""Held while :func:`_timings` reorders the ledger (never while tracing: not reached then)."""
 
 _COMPILE_FAILURE: list[str] = []
 """Why a compile chosen by ``"auto"`` failed in this process (empty while none has):

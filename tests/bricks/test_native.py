@@ -248,10 +248,10 @@ def test_the_band_reads_its_geometry_packed_with_the_numbers_of_the_haloed_plane
         return _native.octant(u, normal, weight, *tables, _native._RowBits(), surface.spacing,
                               False, band, plan)
 
-    assert torch.equal(packed(), planes) and plan._plan is None   # one application: no packing
-    assert torch.equal(packed(), planes) and plan._plan is not None
+    assert torch.equal(packed(), planes) and _kept_plan(plan) is None   # one application: no packing
+    assert torch.equal(packed(), planes) and _kept_plan(plan) is not None
     assert torch.equal(packed(), planes)
-    offsets, rows = plan._plan
+    offsets, rows = _kept_plan(plan)
     assert len(layout) >= 3 * 8   # three parts, for the packing and for the kernel
     assert offsets.shape == (len(layout) + 1,) and rows.numel() == 40 * int(offsets[-1])
     assert rows.numel() < 0.8 * (normal.numel() + weight.numel())
@@ -265,9 +265,9 @@ def test_the_packed_geometry_is_kept_for_the_same_band_and_follows_changes(torus
     band = surface.band_mask()
     _octant(surface, u, "auto", band)
     first = _octant(surface, u, "auto", band)
-    kept = layout._geometry_plan._plan[1]
+    kept = _kept_plan(layout._geometry_plan)[1]
     again = _octant(surface, u, "auto", surface.band_mask())   # a new mask, the same band
-    assert layout._geometry_plan._plan[1] is kept
+    assert _kept_plan(layout._geometry_plan)[1] is kept
     assert torch.equal(again, first)
 
     narrower = band.clone()
@@ -275,8 +275,8 @@ def test_the_packed_geometry_is_kept_for_the_same_band_and_follows_changes(torus
     for _ in range(2):
         assert torch.allclose(_octant(surface, u, "auto", narrower),
                               _octant(surface, u, "slicing", narrower), atol=1e-12)
-    assert layout._geometry_plan._plan is not None
-    assert layout._geometry_plan._plan[1] is not kept
+    assert _kept_plan(layout._geometry_plan) is not None
+    assert _kept_plan(layout._geometry_plan)[1] is not kept
 
     normal, weight = (t.clone() for t in surface.haloed())
     tables = (layout.neighbours.contiguous(), layout.present.to(torch.uint8).contiguous())
@@ -288,15 +288,52 @@ def test_the_packed_geometry_is_kept_for_the_same_band_and_follows_changes(torus
 
     octant()
     before = octant()
-    assert plan._plan is not None
+    assert _kept_plan(plan) is not None
     normal[:, :, 5:] = 0.0   # written in place: the plan kept must not be read
     after = octant()
     assert not torch.allclose(after, before)
     assert torch.equal(octant(), after)   # packed again, from the new geometry
-    assert plan._plan is not None
+    assert _kept_plan(plan) is not None
     fresh = _native.octant(u, normal, weight, *tables, _native._RowBits(), surface.spacing,
                            False, band, None)
     assert torch.equal(after, fresh)
+
+
+def _kept_plan(plan: _native._GeometryPlan) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """The packed rows ``plan`` keeps, or ``None``."""
+    return None if plan._kept is None else plan._kept[2]
+
+
+def test_threads_sharing_a_layout_never_read_one_bands_plan_with_anothers_bits(
+        torus, native_available, monkeypatch):
+    """Threads applying the kernel to one layout with two bands: the plan's key, bits and
+    packed rows were kept apart, and a call for band B landing while band A's rows were packed
+    left A's rows kept beside B's bits; B's next call read them (values 17 times the result's
+    size, NaN in a flow). Here B's call is made to land inside A's packing, deterministically."""
+    _, surface = torus
+    layout = surface.layout
+    layout._geometry_plan = _native._GeometryPlan()   # nothing kept from other tests
+    u = torch.randn(len(layout), 1, 8, 8, 8, dtype=torch.float64)
+    wide, narrow = surface.band_mask(), surface.band_mask(1.5 * surface.spacing)
+    expected = {id(mask): _octant(surface, u, "slicing", mask) for mask in (wide, narrow)}
+    packing_in_threads = _native.in_threads
+    interleaved = []
+
+    def with_the_other_band_landing(run, count, least):
+        # the first work split over threads that is a packing (the wide band's second call)
+        if not interleaved and _kept_plan(layout._geometry_plan) is None and \
+                layout._geometry_plan._kept is not None and "pack" in run.__code__.co_freevars:
+            interleaved.append(None)
+            interleaved[0] = _octant(surface, u, "auto", narrow)
+        return packing_in_threads(run, count, least)
+
+    monkeypatch.setattr(_native, "in_threads", with_the_other_band_landing)
+    for _ in range(2):
+        torch.testing.assert_close(_octant(surface, u, "auto", wide), expected[id(wide)])
+    assert interleaved
+    for mask in (narrow, narrow, wide, wide, narrow):
+        torch.testing.assert_close(_octant(surface, u, "auto", mask), expected[id(mask)])
+    torch.testing.assert_close(interleaved[0], expected[id(narrow)])
 
 
 def test_a_surface_pickles_after_the_kernel_ran_on_a_band(torus, native_available):
@@ -309,12 +346,12 @@ def test_a_surface_pickles_after_the_kernel_ran_on_a_band(torus, native_availabl
     band = surface.band_mask()
     _octant(surface, u, "auto", band)
     expected = _octant(surface, u, "auto", band)
-    assert surface.layout._geometry_plan._plan is not None
+    assert _kept_plan(surface.layout._geometry_plan) is not None
     copied = pickle.loads(pickle.dumps(surface))
-    assert copied.layout._geometry_plan._plan is None
+    assert _kept_plan(copied.layout._geometry_plan) is None
     for _ in range(2):
         assert torch.equal(_octant(copied, u, "auto", copied.band_mask()), expected)
-    assert copied.layout._geometry_plan._plan is not None
+    assert _kept_plan(copied.layout._geometry_plan) is not None
 
 
 @pytest.mark.parametrize("cached", ["empty", "another library"])

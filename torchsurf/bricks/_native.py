@@ -277,12 +277,12 @@ def unavailable_reason() -> str | None:
 
 class _RowBits:
     """Per brick and row ``(z, y)`` of a mask ``(N, 1, 8, 8, 8)``, its nodes along x as the
-    bits of a byte ``(N, 8, 8)``; kept while the mask lives and is not written to."""
+    bits of a byte ``(N, 8, 8)``; kept while the mask lives and is not written to. What is kept
+    is one tuple, replaced whole: threads sharing a layout read a mask's bits with its own
+    version, never one's reference with another's bits."""
 
     def __init__(self) -> None:
-        self._mask: weakref.ref | None = None
-        self._version = -1
-        self._bits: Tensor | None = None
+        self._kept: tuple[weakref.ref, int, Tensor] | None = None
 
     def __getstate__(self) -> dict:
         return {}   # a cache: pickled empty (a weak reference cannot be pickled)
@@ -295,11 +295,13 @@ class _RowBits:
             return torch.full((bricks, BRICK, BRICK), 255, dtype=torch.uint8)
         if mask.is_inference():  # no version counter: formed for this call only
             return _row_bits(mask, bricks)
-        if self._mask is not None and self._mask() is mask and mask._version == self._version:
-            return self._bits  # type: ignore[return-value]
-        self._mask, self._version = weakref.ref(mask), mask._version
-        self._bits = _row_bits(mask, bricks)
-        return self._bits
+        kept = self._kept
+        if kept is not None and kept[0]() is mask and mask._version == kept[1]:
+            return kept[2]
+        version = mask._version
+        bits = _row_bits(mask, bricks)
+        self._kept = (weakref.ref(mask), version, bits)
+        return bits
 
 
 def _row_bits(mask: Tensor, bricks: int) -> Tensor:
@@ -321,9 +323,7 @@ class _GeometryPlan:
     """
 
     def __init__(self) -> None:
-        self._key: tuple | None = None
-        self._bits: Tensor | None = None
-        self._plan: tuple[Tensor, Tensor] | None = None
+        self._kept: tuple[tuple, Tensor, tuple[Tensor, Tensor] | None] | None = None
 
     def __getstate__(self) -> dict:
         return {}   # a cache: pickled empty (a weak reference cannot be pickled)
@@ -336,18 +336,25 @@ class _GeometryPlan:
                  ) -> tuple[Tensor, Tensor] | None:
         """``(offsets (N + 1,) int64, packed)``: brick ``n``'s rows from ``packed`` element
         ``40 offsets[n]`` on; ``None`` the first time this geometry and band are seen, and
-        for geometry made under ``torch.inference_mode`` (no version counter to keep it by)."""
+        for geometry made under ``torch.inference_mode`` (no version counter to keep it by).
+
+        What is kept, ``(geometry's key, row bits, plan packed for them or None)``, is one
+        tuple replaced whole: threads sharing a layout with other bands had read one band's
+        plan with another's bits (garbage, NaN) when the three were kept apart."""
         if normal.is_inference() or weight.is_inference():
             return None
-        seen = self._key is not None and self._holds(normal, weight, bits)
-        self._bits = bits
-        if seen and self._plan is not None:
-            return self._plan
-        self._plan = None   # let the former plan go before the new one is allocated
-        if not seen:
-            self._key = (weakref.ref(normal), normal._version, weakref.ref(weight),
-                         weight._version)
+        kept = self._kept
+        if kept is None or not _holds(kept, normal, weight, bits):
+            # seen once: the former plan let go before a new one would be allocated
+            self._kept = ((weakref.ref(normal), normal._version, weakref.ref(weight),
+                           weight._version), bits, None)
             return None
+        key, kept_bits, plan = kept
+        if plan is not None:
+            if kept_bits is not bits:  # equal bits: the next call compares by identity
+                self._kept = (key, bits, plan)
+            return plan
+        self._kept = (key, bits, None)
         bricks = bits.shape[0]
         offsets = torch.empty(bricks + 1, dtype=torch.int64)
         compiled.geometry_offsets(bits.data_ptr(), bricks, offsets.data_ptr())
@@ -360,15 +367,18 @@ class _GeometryPlan:
                  bits.data_ptr(), offsets.data_ptr(), packed.data_ptr(), first, stop)
 
         in_threads(run, bricks, THREAD_MIN_BRICKS)
-        self._plan = (offsets, packed)
-        return self._plan
+        plan = (offsets, packed)
+        self._kept = (key, bits, plan)
+        return plan
 
-    def _holds(self, normal: Tensor, weight: Tensor, bits: Tensor) -> bool:
-        """The geometry and row bits seen last are these, the geometry unchanged since."""
-        normal_ref, normal_version, weight_ref, weight_version = self._key  # type: ignore[misc]
-        return (normal_ref() is normal and normal._version == normal_version
-                and weight_ref() is weight and weight._version == weight_version
-                and (self._bits is bits or torch.equal(self._bits, bits)))
+
+def _holds(kept: tuple, normal: Tensor, weight: Tensor, bits: Tensor) -> bool:
+    """The geometry and row bits of ``kept`` (:class:`_GeometryPlan`) are these, the geometry
+    unchanged since."""
+    (normal_ref, normal_version, weight_ref, weight_version), kept_bits, _ = kept
+    return (normal_ref() is normal and normal._version == normal_version
+            and weight_ref() is weight and weight._version == weight_version
+            and (kept_bits is bits or torch.equal(kept_bits, bits)))
 
 
 def _strides(tensor: Tensor, side: int) -> tuple[int, int] | None:

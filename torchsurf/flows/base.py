@@ -46,6 +46,7 @@ import math
 import numbers
 import warnings
 from collections.abc import Callable, Iterable, Iterator, Sequence
+from contextvars import ContextVar, Token
 
 import numpy as np
 import torch
@@ -110,6 +111,12 @@ warns. The projected stencils are not monotone on curved surfaces, so a stable f
 overshoot: a heat flow of 0/1 data by up to 17% on coarse ellipsoids
 (``tests/test_properties.py``), flow visualisation of noise without re-extension by 10%; an
 unstable one grows without bound (docs/band.md, section 5)."""
+
+
+_GATHERED_EXCESSES: ContextVar[tuple[tuple[Flow, list[tuple[float, Plan | str]]], ...]] = (
+    ContextVar("torchsurf_gathered_excesses", default=()))
+"""The flows whose runs apart this thread's call gathers range excesses for, with their lists
+(:meth:`Flow._gather_excesses`)."""
 
 
 RANGE_ROUNDING = 1024
@@ -507,8 +514,6 @@ class Flow(nn.Module):
     surface. The range is each batch entry's and channel's, and at least
     :data:`RANGE_ROUNDING` rounding units of its magnitude. Checked for every method,
     ``HeatFlow(method="chebyshev")``'s semigroup too."""
-
-    _entry_excesses: list[tuple[float, Plan | str]] | None = None
 
     extra_methods: tuple[str, ...] = ()
     """Methods the flow integrates itself, beyond the built-in integrators and torchdiffeq's."""
@@ -941,8 +946,9 @@ class Flow(nn.Module):
                 excess = (_range_excess(u0, result, region, band, surface.layout is not None)
                           if checked is None
                           else _packed_range_excess(*checked, packing.band_count))
-                if self._entry_excesses is not None:  # one entry of a batch: its caller warns
-                    self._entry_excesses.append((excess, plan))
+                gathered = self._gathered_excesses()
+                if gathered is not None:  # one entry of a batch: its caller warns
+                    gathered.append((excess, plan))
                 elif excess > RANGE_SLACK:
                     _warn_range_left(self, excess, plan)
         return result[-1] if times is None else torch.stack(initial + result)
@@ -977,7 +983,7 @@ class Flow(nn.Module):
         alone with its own band, steps and stages: each entry's result is what it would be
         without the others. A ``ValueError`` of an entry is raised naming the entry."""
         result = None
-        excesses, outer = self._gather_excesses()
+        excesses, gathering = self._gather_excesses()
         try:
             for index, (rows, entry) in enumerate(entries):
                 own = {name: value[rows] if isinstance(value, Tensor)
@@ -989,29 +995,39 @@ class Flow(nn.Module):
                     raise ValueError(f"batch entry {index}: {error}") from error
                 result = placed(result, part, rows, count, -5)
         finally:
-            self._stop_gathering(outer)
-        self._warn_gathered(excesses, outer)
+            self._stop_gathering(gathering)
+        self._warn_gathered(excesses, gathering)
         return result
 
-    def _gather_excesses(self) -> tuple[list[tuple[float, Plan | str]], bool]:
+    def _gather_excesses(self) -> tuple[list[tuple[float, Plan | str]], Token | None]:
         """Start gathering the range excesses of the runs a call makes apart (batch entries,
-        channels) for one warning: the list, and whether this call started it (a caller that
-        runs parts apart may already gather them)."""
-        outer = self._entry_excesses is None
-        if outer:
-            self._entry_excesses = []
-        return self._entry_excesses, outer
+        channels) for one warning: the list, and the token ending it where this call started
+        it (``None`` where a caller running parts apart already gathers them, or while
+        ``torch.compile`` traces: traced calls check no range). The lists live in a context
+        variable of this thread's, not on the module, which other threads may be calling."""
+        gathered = self._gathered_excesses()
+        if gathered is not None or torch.compiler.is_compiling():
+            return ([] if gathered is None else gathered), None
+        excesses: list[tuple[float, Plan | str]] = []
+        return excesses, _GATHERED_EXCESSES.set((*_GATHERED_EXCESSES.get(), (self, excesses)))
 
-    def _stop_gathering(self, outer: bool) -> None:
+    def _gathered_excesses(self) -> list[tuple[float, Plan | str]] | None:
+        """The list this flow's runs gather their excesses into, or ``None`` outside such a
+        run (:meth:`_gather_excesses`)."""
+        return next((excesses for flow, excesses in _GATHERED_EXCESSES.get() if flow is self),
+                    None)
+
+    def _stop_gathering(self, token: Token | None) -> None:
         """End what :meth:`_gather_excesses` started, where this call started it."""
-        if outer:
-            self._entry_excesses = None
+        if token is not None:
+            _GATHERED_EXCESSES.reset(token)
 
-    def _warn_gathered(self, excesses: list[tuple[float, Plan | str]], outer: bool) -> None:
+    def _warn_gathered(self, excesses: list[tuple[float, Plan | str]], token: Token | None
+                       ) -> None:
         """Where this call gathered the excesses, warn once for the worst past
         :data:`RANGE_SLACK`."""
         worst = max(excesses, key=lambda pair: pair[0], default=None)
-        if outer and worst is not None and worst[0] > RANGE_SLACK:
+        if token is not None and worst is not None and worst[0] > RANGE_SLACK:
             _warn_range_left(self, *worst)
 
     def extra_repr(self) -> str:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Iterator, Sequence
+from contextvars import ContextVar
 from dataclasses import replace
 
 import numpy as np
@@ -64,6 +65,11 @@ PACKED_BRICK_NODES = 2**20
 a node at the peak: the 256^3 bunny's 1.1 M nodes, packed, ran 1.5x faster than on the C kernel
 (7.0 against 10.7 s to (8 h)^2) but peaked at 3.7 GB against 1.6 GB; the 512^3 bunny's 4.6 M
 would not keep to its 4 GB."""
+
+_GROUP_DIFFUSIVITY: ContextVar[tuple[HeatFlow, Positive] | None] = ContextVar(
+    "torchsurf_group_diffusivity", default=None)
+"""The flow and the diffusivity of the group of channels this thread's call runs
+(:meth:`HeatFlow._forward_with`)."""
 
 
 class HeatFlow(Flow):
@@ -194,7 +200,7 @@ class HeatFlow(Flow):
         if inputs:
             raise TypeError(f"HeatFlow takes no inputs besides u0 and surface, got {sorted(inputs)}")
         band = self.band_mask(surface)
-        d = self.diffusivity.volume(u0)
+        d = self._current_diffusivity().volume(u0)
         unit = isinstance(d, float) and d == 1.0
         scheme, path = self.scheme, self.path
         pad = None if surface.layout is None else surface.layout.halo
@@ -227,7 +233,7 @@ class HeatFlow(Flow):
             geometry = (surface.weight, surface.normal, haloed_weight, haloed_normal)
             linear = Linear(operator, geometry + ((d,) if isinstance(d, Tensor) else ()))
         self._packing(surface)  # first: its rows give the bound too (kept_packing)
-        rho = self.diffusivity.maximum() * self.operator_bound(surface, self.scheme)
+        rho = self._current_diffusivity().maximum() * self.operator_bound(surface, self.scheme)
         params = tensors(d, surface.normal, surface.weight)
         return System(rate, band, rho, linear=linear, params=params, isotropic=True)
 
@@ -249,7 +255,7 @@ class HeatFlow(Flow):
         packing = self._packing(surface)
         if packing is None:
             return None
-        d = self.diffusivity.volume(u0)
+        d = self._current_diffusivity().volume(u0)
         unit = isinstance(d, float) and d == 1.0
 
         def rate(z: Tensor) -> Tensor:
@@ -284,7 +290,7 @@ class HeatFlow(Flow):
     def _share_of_planned_rate(self) -> float:
         """:meth:`Flow._share_of_planned_rate`, times the share of ``max_diffusivity`` a
         learned diffusivity takes (the steps are planned for the bound's ``rho``)."""
-        return super()._share_of_planned_rate() * self.diffusivity.share_of_bound()
+        return super()._share_of_planned_rate() * self._current_diffusivity().share_of_bound()
 
     def forward(
         self, u0: Tensor, surface: ImplicitSurface,
@@ -324,12 +330,12 @@ class HeatFlow(Flow):
         operator = BandLaplacian(surface, self.scheme, width, self.path)
         if not torch.compiler.is_compiling():  # a host read: it would break a compiled graph
             check_finite(torch.where(operator.band, u0, 0.0), "u0 (in the band)")
-        d = self.diffusivity.volume(u0)
+        d = self._current_diffusivity().volume(u0)
         rate = (d.reshape(-1) if isinstance(d, Tensor) else u0.new_tensor(d)).expand(u0.shape[1])
         horizon = self.time * rate
         # host floats (read from the parameters only when learned without a bound)
         end = self.time_value.maximum()
-        largest = end * self.diffusivity.maximum()
+        largest = end * self._current_diffusivity().maximum()
         bound = float(operator.bound)
         check_before_equilibrium(largest, bound, _diagonal_cells(surface))
         # re-extended once a piece of the diffusion's own time, not of the bounds' (a learned
@@ -372,8 +378,9 @@ class HeatFlow(Flow):
             excess = _range_excess(u0, results, operator.region, operator.band,
                                    surface.layout is not None)
             applications = f"{outer * inner * (terms - 1)} applications of the operator"
-            if self._entry_excesses is not None:  # one entry of a batch: its caller warns
-                self._entry_excesses.append((excess, applications))
+            gathered = self._gathered_excesses()
+            if gathered is not None:  # one entry of a batch: its caller warns
+                gathered.append((excess, applications))
             elif excess > RANGE_SLACK:
                 _warn_range_left(self, excess, applications)
         return results[0] if times is None else torch.stack(results)
@@ -392,21 +399,21 @@ class HeatFlow(Flow):
         expansion is exact in each channel's time, but its pieces, and the band's
         re-extensions between them, follow the largest (a channel of ``D = 1`` beside one of
         ``D = 30`` moved by 3.7e-2 on noise)."""
-        channels = self.diffusivity.channels
+        channels = self._current_diffusivity().channels
         if channels is None or channels == 1 or not isinstance(u0, Tensor):
             return None
-        values = self.diffusivity.fixed_entries()
+        values = self._current_diffusivity().fixed_entries()
         if values is None:
             if torch.compiler.is_compiling():
                 return None
-            values = tuple(self.diffusivity.value().detach().cpu().tolist())
-        self.diffusivity.volume(u0)  # the channel count checked against u0
+            values = tuple(self._current_diffusivity().value().detach().cpu().tolist())
+        self._current_diffusivity().volume(u0)  # the channel count checked against u0
         groups: dict[float, list[int]] = {}
         for channel, value in enumerate(values):
             groups.setdefault(value, []).append(channel)
         if len(groups) == 1:
             return None
-        if self.diffusivity.learnable:
+        if self._current_diffusivity().learnable:
             return [(ChannelOf(self.diffusivity, group), group) for group in groups.values()]
         return self._fixed_groups(groups)
 
@@ -428,20 +435,47 @@ class HeatFlow(Flow):
         cell-crossing time of the fastest channel, each add a little), and a learned ``D = 1``
         beside ``D = 10`` on a 40^3 bunny at ``5 h^2`` was 0.39 off its own flow (data of
         range 2)."""
-        whole = self._modules["diffusivity"]
-        excesses, outer = self._gather_excesses()
+        excesses, gathering = self._gather_excesses()
         result = None
         try:
             for diffusivity, channels in groups:
-                self._modules["diffusivity"] = diffusivity
                 index = torch.tensor(channels, device=u0.device)
-                part = self.forward(u0.index_select(-4, index), surface, times, **inputs)
+                part = self._forward_with(diffusivity, u0.index_select(-4, index), surface, times,
+                                          inputs)
                 result = placed(result, part, index, u0.shape[-4], -4)
         finally:
-            self._modules["diffusivity"] = whole
-            self._stop_gathering(outer)
-        self._warn_gathered(excesses, outer)
+            self._stop_gathering(gathering)
+        self._warn_gathered(excesses, gathering)
         return result
+
+    def _forward_with(self, diffusivity: Positive, u0: Tensor, surface: ImplicitSurface,
+                      times: object, inputs: dict[str, Tensor]) -> Tensor:
+        """:meth:`forward` with one group's ``diffusivity``: named in a context variable of
+        this thread's, not set on the module, which other threads may be calling (the swapped
+        submodule had run their channels with this group's value, 10 of 15 concurrent calls
+        0.27 off, and could be left in place for good). Traced, the swap is the graph's own:
+        nothing changes while it runs."""
+        if torch.compiler.is_compiling():  # dynamo cannot trace a context variable's set
+            whole = self._modules["diffusivity"]
+            self._modules["diffusivity"] = diffusivity
+            try:
+                return self.forward(u0, surface, times, **inputs)
+            finally:
+                self._modules["diffusivity"] = whole
+        token = _GROUP_DIFFUSIVITY.set((self, diffusivity))
+        try:
+            return self.forward(u0, surface, times, **inputs)
+        finally:
+            _GROUP_DIFFUSIVITY.reset(token)
+
+    def _current_diffusivity(self) -> Positive:
+        """The diffusivity this call runs with: its group's while :meth:`_forward_with` runs
+        one, else the flow's own."""
+        if not torch.compiler.is_compiling():
+            group = _GROUP_DIFFUSIVITY.get()
+            if group is not None and group[0] is self:
+                return group[1]
+        return self._modules["diffusivity"]
 
     def extra_repr(self) -> str:
         return f"{super().extra_repr()}, scheme={self.scheme!r}"
