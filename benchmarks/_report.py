@@ -172,6 +172,9 @@ def worker_result(script: str, root: Path, arguments: list[str],
     benchmarks folder, with ``environment`` added to this process's."""
     variables = {**os.environ, **(environment or {}), "PYTHONPATH": str(root)}
     command = [sys.executable, script, "--worker", *arguments]
-    output = subprocess.run(command, env=variables, check=True, capture_output=True, text=True,
-                            cwd=Path(script).resolve().parent).stdout
-    return json.loads(output.strip().splitlines()[-1])
+    finished = subprocess.run(command, env=variables, capture_output=True, text=True,
+                              cwd=Path(script).resolve().parent)
+    if finished.returncode != 0:  # the worker's own error, not only its exit status
+        raise RuntimeError(f"{' '.join(command)} (torchsurf from {root}) failed with exit status "
+                           f"{finished.returncode}:\n{finished.stderr.strip()[-4000:]}")
+    return json.loads(finished.stdout.strip().splitlines()[-1])

@@ -360,6 +360,7 @@ def main(argv: list[str] | None = None) -> None:
                     record.write(json.dumps([asdict(cold), warm and asdict(warm)]) + "\n")
             print(table([rows[-1]]).splitlines()[-1], flush=True)
     load_end = os.getloadavg()[0]
+    warmed = [path for path in args.warm_paths if any(path in paths for _, paths in jobs)]
     command = " ".join(["python", "benchmarks/bench_compile.py", *map(shlex.quote, argv or sys.argv[1:])])
     body = "\n".join([
         f"Date: {started}. Machine: {machine(args)}; load average {load_start:.1f} at the "
@@ -371,8 +372,8 @@ def main(argv: list[str] | None = None) -> None:
         f"Unit sphere on `Grid.cube({args.size}, 1.5)`, data `({args.batch}, C, {args.size}, "
         f"{args.size}, {args.size})` {args.dtype} (C = 1 unless named). Every row is a fresh "
         "process with an empty `TORCHINDUCTOR_CACHE_DIR` (`cold`)"
-        + (f", and for {', '.join(args.warm_paths)} a second one with the cache the first left "
-           "(`warm`). " if args.warm_paths else ". ") +
+        + (f", and for {', '.join(warmed)} a second one with the cache the first left "
+           "(`warm`). " if warmed else ". ") +
         "`first fwd`: the process's first call, no grad; `first train`: the "
         "first forward + backward after it; steady: the fastest of "
         f"{args.repeats} calls once warm. `picked`: the kernel calls of one steady forward + "

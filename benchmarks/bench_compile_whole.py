@@ -4,7 +4,7 @@ Called as is, a layer runs its operators on ``path="auto"`` (warmed here with
 ``torchsurf.backend.warm_up()``, so its kernels are compiled where that pays) and its packed
 products and clamped re-extension in C. Wrapped whole, the traced graph calls the same C kernels
 as custom operators (``torch.ops.torchsurf``) and inductor compiles the rest. Each row: the first
-compiled call (trace and compile, plus backward with ``--grad``), then the median of
+compiled call (trace and compile; a forward alone, then a forward and backward), then the median of
 ``--pairs`` alternated steady calls of each and their ratio, and the largest difference of the
 outputs. A table is printed; ``--write`` puts it into docs/benchmarks.md::
 
@@ -109,7 +109,8 @@ def main(argv: list[str] | None = None) -> None:
                f"{torch.get_num_threads()} thread(s), torch {torch.__version__}, "
                f"GLIBC_TUNABLES={os.environ.get('GLIBC_TUNABLES', 'unset')}, "
                f"inductor cache {cache}")
-    body = (f"`bench_compile_whole.py --size {args.size} --batch {args.batch}`, "
+    body = (f"`bench_compile_whole.py --size {args.size} --batch {args.batch} "
+            f"--pairs {args.pairs}`, "
             f"{time.strftime('%Y-%m-%d')}, {machine}. \"As is\": the layer called directly "
             "after `torchsurf.backend.warm_up()`; \"compiled whole\": `torch.compile(layer)` with "
             "the default backend (inductor), whose graph calls the C kernels as custom operators "

@@ -178,6 +178,8 @@ def main() -> None:
         parser.error(f"--cells must be at least 12 cells per radius, got {min(args.cells)}")
     warnings.simplefilter("ignore", RuntimeWarning)  # the former bound's steps warn of nothing
     if args.sweep or args.phis:
+        if args.output is not None:
+            parser.error("--output writes the main table only; --sweep and --phis print theirs")
         if args.sweep:
             print("| surface | cells per radius | period P (1 / rho) | heun | rkc, dt rho = 4 "
                   "| rkc, dt rho = P |\n|---|---:|---:|---:|---:|---:|", flush=True)

@@ -133,9 +133,13 @@ def main(argv: list[str] | None = None) -> None:
                       for key in ("first", "second")]
             rows.append(f"| | | this ÷ baseline, medians | {ratios[0]:.2f} | {ratios[1]:.2f} | |")
             print(rows[-1], flush=True)
+    import torch
+
+    torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1")))  # the workers' count
     body = "\n".join([
         f"{run_context()}; the runs' `OMP_NUM_THREADS="
-        f"{os.environ.get('OMP_NUM_THREADS', 'unset')}`. CPU seconds; each run one fresh "
+        f"{os.environ.get('OMP_NUM_THREADS', 'unset')}` (one thread where unset). CPU "
+        "seconds; each run one fresh "
         "process, the checkouts alternated. The last column: how far each run's result, "
         "summed in float64, lies from this checkout's first run's, relative.",
         "",

@@ -234,6 +234,18 @@ def test_concurrent_writers_keep_every_section_and_a_lone_marker_is_refused(tmp_
     assert path.read_text().endswith("half\n")
 
 
+def test_a_failing_worker_names_its_own_error(tmp_path):
+    """A worker's failure had shown only "returned non-zero exit status 1"; the worker's error
+    (a mesh not found, say) is now part of the message."""
+    report = load_benchmark("_report")
+    script = tmp_path / "bench_failing.py"
+    script.write_text("raise FileNotFoundError('mesh: no mesh file at nowhere.obj')\n")
+    with pytest.raises(RuntimeError, match="(?s)exit status 1.*no mesh file at nowhere.obj"):
+        report.worker_result(str(script), tmp_path, [])
+    script.write_text("print('{\"first\": 1.5}')\n")
+    assert report.worker_result(str(script), tmp_path, []) == {"first": 1.5}
+
+
 def test_narrow_band_bench_runs_its_four_rows_and_the_bound_holds():
     """benchmarks/bench_narrow_band.py at 12 cells per radius on both surfaces: the default RKC's
     steps last at most 12 / rho, the baseline's are the former count."""
