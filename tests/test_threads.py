@@ -2,6 +2,7 @@
 needs for itself lives in the call (context variables, locals), not on the shared module, so
 concurrent calls give the serial calls' numbers and leave the module as it was."""
 
+import warnings
 from concurrent.futures import ThreadPoolExecutor
 
 import pytest
@@ -78,3 +79,51 @@ def test_brick_surfaces_shared_by_threads_with_other_bands():
         for results in _concurrent(lambda flow: flow(u, surface), flows):
             for result, expected in zip(results, serial, strict=True):
                 torch.testing.assert_close(result, expected, rtol=0, atol=1e-5)
+
+
+def test_no_call_leaves_a_warnings_filter_behind():
+    """A dense batch's entry surfaces were built under warnings.catch_warnings with a filter
+    ignoring RuntimeWarning: global, so threads overlapping in it left the filter in place for
+    good (10 of 10 processes), and every later RuntimeWarning of the process, torchsurf's and
+    numpy's, was silenced. They now skip their checks by a context variable of their thread."""
+    grid = ts.Grid.cube(16, 1.5)
+    flow = ts.HeatFlow(2 * grid.spacing**2)
+    u = torch.rand(2, 1, *grid.shape, generator=torch.Generator().manual_seed(3))
+
+    def request(radius: float) -> torch.Tensor:
+        phi = torch.cat([ts.sdf.sphere(grid, radius), ts.sdf.torus(grid, 0.8, 0.3)])
+        return flow(u, ts.ImplicitSurface(phi, grid))
+
+    before = list(warnings.filters)
+    _concurrent(request, [0.9, 1.0, 1.1], rounds=2)
+    assert warnings.filters == before
+    with pytest.warns(RuntimeWarning, match="stays torch.float32"):  # warnings still reach
+        ts.ImplicitSurface(ts.sdf.sphere(grid, 1.0), grid).half()
+
+
+def test_scipy_solvers_run_without_touching_the_warnings_filters(monkeypatch):
+    """torchdiffeq hands scipy's explicit solvers a min_step they do not read; scipy's warning
+    of it was silenced by a global filter for the whole solve. The solver class now takes the
+    argument itself: no filter, and no warning."""
+    torchdiffeq = pytest.importorskip("torchdiffeq")
+    grid = ts.Grid.cube(12, 1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, 1.0, dtype=torch.float64), grid)
+    u = torch.rand(1, 1, *grid.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(4))
+    filters_at_solve = []
+    solve = torchdiffeq.odeint
+
+    def recording(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        filters_at_solve.append(list(warnings.filters))
+        return solve(*args, **kwargs)
+
+    monkeypatch.setattr(torchdiffeq, "odeint", recording)
+    flow = ts.HeatFlow(grid.spacing**2, method="scipy_solver",
+                       options={"solver": "RK45", "rtol": 1e-6, "atol": 1e-8})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")   # scipy's min_step warning would raise here
+        outside = list(warnings.filters)
+        result = flow(u, surface)
+    assert filters_at_solve and all(filters == outside for filters in filters_at_solve)
+    reference = ts.HeatFlow(grid.spacing**2)(u, surface)
+    band = surface.band_mask().expand_as(u)
+    assert (result - reference)[band].abs().max() < 1e-2

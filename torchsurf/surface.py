@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import math
 import warnings
-from collections.abc import Callable
-from contextlib import nullcontext
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager, nullcontext
+from contextvars import ContextVar
 from typing import TYPE_CHECKING, TypeVar
 
 import numpy as np
@@ -172,6 +173,24 @@ def _per_entry(mask: Tensor, layout: BrickLayout | None) -> Tensor:
         return counts
     batch = layout.batch.to(counts.device)
     return counts.new_zeros(layout.batch_size).index_add_(0, batch, counts)
+
+
+_WARNED_ALREADY: ContextVar[bool] = ContextVar("torchsurf_surface_warned_already", default=False)
+"""Set by :func:`warned_already` while this thread builds surfaces whose ``phi`` was checked."""
+
+
+@contextmanager
+def warned_already() -> Iterator[None]:
+    """Surfaces built in this block skip the checks that warn of their ``phi`` (a batch's
+    entry, whose batch surface warned already). Only this thread's: a ``warnings`` filter had
+    done it, which is global, and threads overlapping in it left it in place for good, every
+    later ``RuntimeWarning`` of the process silenced. Not for use while ``torch.compile``
+    traces (a context variable's set breaks the graph; surfaces built then skip the checks)."""
+    token = _WARNED_ALREADY.set(True)
+    try:
+        yield
+    finally:
+        _WARNED_ALREADY.reset(token)
 
 
 def _warn_floored_on_surface(crossing: Tensor, grad_norm: Tensor, scale: Tensor,
@@ -621,7 +640,7 @@ class ImplicitSurface(nn.Module):
         weight = torch.maximum(unit_norm, WEIGHT_FLOOR * slope)
         weight = torch.maximum(weight, MINIMUM_WEIGHT * scale) * magnitude
         self.register_buffer("weight", weight, persistent=False)
-        if not torch.compiler.is_compiling():
+        if not torch.compiler.is_compiling() and not _WARNED_ALREADY.get():
             _warn_floored_on_surface(crossing, unit_norm.detach(), scale.detach(), self.layout)
             if self.layout is None:  # bricks keep their band off the box's faces
                 _warn_oblique_at_faces(crossing, self.normal.detach())
@@ -985,7 +1004,8 @@ class ImplicitSurface(nn.Module):
         with outside_inference(), outside_transforms(self.phi):
             normal, weight = self._haloed_geometry()
         if (torch.is_grad_enabled() or not self.phi.requires_grad) and not exporting():
-            self._haloed_normal, self._haloed_weight = normal, weight
+            self._haloed_weight = weight  # first: readers test the normal
+            self._haloed_normal = normal
         return normal, weight
 
     def _haloed_geometry(self) -> tuple[Tensor, Tensor]:
@@ -1064,8 +1084,8 @@ class ImplicitSurface(nn.Module):
             value = self._faded(curvature.mean_curvature(self._gradient(), self.hessian(),
                                                          self._directed_norm))
         if (torch.is_grad_enabled() or not self.phi.requires_grad) and not exporting():
+            self._mean_curvature_version = value._version  # first: readers test the value
             self._mean_curvature = value
-            self._mean_curvature_version = value._version
         return value
 
     def gaussian_curvature(self) -> Tensor:

@@ -391,7 +391,7 @@ def check_before_equilibrium(end: float, rho: float, diagonal_cells: float) -> N
 
 def plan_steps(method: str, system: System, end: float, steps: int | None,
                band_cells: float = 3.0, diagonal_cells: float | None = None,
-               step_size: float | None = None) -> Plan:
+               step_size: float | None = None, warn: bool = True) -> Plan:
     """The steps of ``method`` over ``[0, end]``; raises before work when they are absurd.
 
     ``steps`` given: ``end / steps`` (explicit steps above the stable step warn; an adaptive
@@ -411,7 +411,8 @@ def plan_steps(method: str, system: System, end: float, steps: int | None,
 
     Refused (``ValueError``): more than :data:`MAX_STEPS` steps or evaluations of the rate; for
     a linear flow, a time above :data:`EQUILIBRIUM_CROSSINGS` times the time its diffusion
-    takes to cross ``diagonal_cells`` cells. Warned: more than :data:`LONG_RUN` evaluations.
+    takes to cross ``diagonal_cells`` cells. Warned (unless not ``warn``: a plan made only
+    to bound another's steps): more than :data:`LONG_RUN` evaluations.
     """
     rho = system.spectral_radius
     per_rho = 1.0 / rho if rho > 0 else math.inf  # a time per unit of dt rho
@@ -490,7 +491,7 @@ def plan_steps(method: str, system: System, end: float, steps: int | None,
             f"of the rate (more than {MAX_STEPS}): {advice}; time * rho = {end * rho:.3g} "
             f"(rho = {rho:.3g}, the operator's bound)"
         )
-    if evaluations is not None and evaluations > LONG_RUN:
+    if warn and evaluations is not None and evaluations > LONG_RUN:
         warnings.warn(
             f"time={end:g} needs {count} steps of method={method!r}, {evaluations} evaluations "
             f"of the rate (more than {LONG_RUN}; time * rho = {end * rho:.3g}); a diffusion "
@@ -777,13 +778,12 @@ def _torchdiffeq(method: str) -> Callable[[System, Tensor, Schedule], list[Tenso
         def func(t: Tensor, u: Tensor) -> Tensor:
             return system.rate(u)
 
+        if method == "scipy_solver":
+            options["solver"] = _reading_no_min_step(options["solver"])
+
         def solve(u: Tensor, times: list[float | Tensor]) -> Tensor:
             try:
-                with warnings.catch_warnings():
-                    # torchdiffeq hands scipy's explicit solvers a min_step they do not read
-                    warnings.filterwarnings("ignore", message=".*have no effect for a chosen "
-                                            "solver: `min_step`", category=UserWarning)
-                    return solve_piece(u, times)
+                return solve_piece(u, times)
             except AssertionError as error:  # torchdiffeq's way of stopping a run
                 if "max_num_steps" not in str(error):
                     raise RuntimeError(
@@ -932,6 +932,24 @@ SCIPY_EXPLICIT = ("RK45", "RK23", "DOP853")
 
 SCIPY_STIFF = ("LSODA", "BDF", "Radau")
 """scipy's stiff solvers, refused by ``method="scipy_solver"`` (:func:`check_options`)."""
+
+
+@functools.cache
+def _reading_no_min_step(solver: str | type) -> type:
+    """scipy's explicit ``solver`` (a ``solve_ivp`` name or class) taking the ``min_step`` that
+    torchdiffeq hands every scipy solver and the explicit ones do not read. scipy warned of it
+    at every solve; the warnings filter that silenced it is global, and threads overlapping in
+    it left it in place for good."""
+    import scipy.integrate
+
+    base = getattr(scipy.integrate, solver) if isinstance(solver, str) else solver
+
+    class Solver(base):  # type: ignore[valid-type, misc]
+        def __init__(self, *args: object, min_step: float = 0.0, **options: object) -> None:
+            super().__init__(*args, **options)
+
+    Solver.__name__ = Solver.__qualname__ = base.__name__
+    return Solver
 
 
 def _check_scipy_solver(solver: object, default: bool) -> None:

@@ -1154,9 +1154,11 @@ class SeparableStencil:
         found = [(runs[low:low + LAYOUT_ROWS] - runs[low:low + LAYOUT_ROWS, :, :1] == step)
                  .flatten(1).all(1) for low in range(0, len(runs), LAYOUT_ROWS)]
         with outside_inference():
-            self._side_by_side = (torch.cat(found) if found
-                                  else torch.zeros(0, dtype=torch.bool, device=self.taps.device))
-        self._runs_share = float(self._side_by_side.float().mean()) if found else 1.0
+            side_by_side = (torch.cat(found) if found
+                            else torch.zeros(0, dtype=torch.bool, device=self.taps.device))
+        # the share first: readers test the rows (another thread's read had found no share)
+        self._runs_share = float(side_by_side.float().mean()) if found else 1.0
+        self._side_by_side = side_by_side
 
     def parts(self, columns: int, dtype: torch.dtype) -> list | None:
         """The kernels' arguments for ``columns`` columns of ``dtype`` values: for each part, its

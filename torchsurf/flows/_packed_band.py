@@ -197,9 +197,10 @@ class PackedRegion:
         """``(nodes, 1, 1)`` bool, true on the band's nodes (a packed flow's band)."""
         if self._band_mask is None:
             with outside_inference():
-                self._band_mask = torch.zeros((len(self.nodes), 1, 1), dtype=torch.bool,
-                                              device=self.nodes.device)
-                self._band_mask[:self.band_count] = True
+                mask = torch.zeros((len(self.nodes), 1, 1), dtype=torch.bool,
+                                   device=self.nodes.device)
+                mask[:self.band_count] = True
+            self._band_mask = mask  # whole: another thread may read it at once
         return self._band_mask
 
     def weighted_apply(self, z: Tensor) -> Tensor:

@@ -72,6 +72,7 @@ from ..surface import (  # noqa: F401  (WIDE_BAND_CELLS, DISTANCE_TOLERANCE: doc
     ImplicitSurface,
     check_data,
     check_surface,
+    warned_already,
 )
 from ._integrators import (
     IMPLICIT,
@@ -169,9 +170,8 @@ def _fewest_steps(method: str, system: System, band_cells: float, length: float,
     """The steps of an interval of ``length`` that ends at the requested time ``end``: none
     longer than those ``method`` plans for a flow to ``end`` alone (:func:`plan_steps`; its
     warnings are the whole run's, given once by the run's own plan)."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        longest = end / plan_steps(method, system, end, None, band_cells=band_cells).count
+    longest = end / plan_steps(method, system, end, None, band_cells=band_cells,
+                               warn=False).count
     return whole_steps(length, longest, end)
 
 
@@ -298,10 +298,14 @@ def _entry_surface(surface: ImplicitSurface, entry: int) -> ImplicitSurface:
     ``phi``'s graph), kept on ``surface`` unless ``phi`` requires grad."""
 
     def build() -> ImplicitSurface:
-        with warnings.catch_warnings():  # the batch's surface warned about this phi already
-            warnings.simplefilter("ignore", RuntimeWarning)
+        def entry_surface() -> ImplicitSurface:
             return ImplicitSurface(surface.phi[entry:entry + 1], surface.grid,
                                    band_width=surface.band_width, eps=surface.eps)
+
+        if torch.compiler.is_compiling():  # traced: no checks that warn, no context to set
+            return entry_surface()
+        with warned_already():  # the batch's surface warned about this phi already
+            return entry_surface()
 
     if surface.phi.requires_grad:
         return build()
