@@ -1011,13 +1011,16 @@ class Flow(nn.Module):
         variable of this thread's, not on the module, which other threads may be calling."""
         gathered = self._gathered_excesses()
         if gathered is not None or torch.compiler.is_compiling():
-            return ([] if gathered is None else gathered), None
+            return ([] if gathered is None else gathered), None  # gathered by an outer call
         excesses: list[tuple[float, Plan | str]] = []
         return excesses, _GATHERED_EXCESSES.set((*_GATHERED_EXCESSES.get(), (self, excesses)))
 
     def _gathered_excesses(self) -> list[tuple[float, Plan | str]] | None:
         """The list this flow's runs gather their excesses into, or ``None`` outside such a
-        run (:meth:`_gather_excesses`)."""
+        run (:meth:`_gather_excesses`), and while ``torch.compile`` traces (dynamo cannot trace
+        a context variable's get; traced calls check no range)."""
+        if torch.compiler.is_compiling():
+            return None
         return next((excesses for flow, excesses in _GATHERED_EXCESSES.get() if flow is self),
                     None)
 
