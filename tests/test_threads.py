@@ -2,6 +2,7 @@
 needs for itself lives in the call (context variables, locals), not on the shared module, so
 concurrent calls give the serial calls' numbers and leave the module as it was."""
 
+import threading
 import warnings
 from concurrent.futures import ThreadPoolExecutor
 
@@ -10,6 +11,7 @@ import torch
 
 import torchsurf as ts
 from torchsurf import bricks
+from torchsurf.flows import base
 
 
 def _concurrent(call, requests, rounds=3):
@@ -37,30 +39,34 @@ def test_a_diffusivity_per_channel_from_several_threads(method):
     assert torch.equal(flow.diffusivity.value(), torch.tensor([1.0, 0.25]))  # left as it was
 
 
-def test_the_range_excesses_of_one_threads_entries_stay_its_own():
-    """A batch's entries run apart gather their range excesses for one warning; the list was
-    the flow's attribute, so a concurrent call on the same flow added to it, or took its
-    warning. Now each call's list is its own: a call whose entries stay in range gives no
-    warning while another thread's call leaves its range."""
-    grid = ts.Grid.cube(16, 1.5)
-    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, 1.0).expand(2, -1, -1, -1, -1), grid)
-    flow = ts.HeatFlow(2 * grid.spacing**2)
-    assert flow._gathered_excesses() is None
-    excesses, token = flow._gather_excesses()
-    try:
-        with ThreadPoolExecutor(1) as pool:   # another thread sees no gathering of this call's
-            assert pool.submit(flow._gathered_excesses).result() is None
-        assert flow._gathered_excesses() is excesses
-        assert ts.HeatFlow(1.0)._gathered_excesses() is None   # another flow: not gathering
-    finally:
-        flow._stop_gathering(token)
-    assert flow._gathered_excesses() is None
-    u = torch.rand(2, 1, *grid.shape, generator=torch.Generator().manual_seed(1))
-    with torch.no_grad():
-        serial = flow(u, surface)
-        for results in _concurrent(lambda v: flow(v, surface), [u, u]):
-            for result in results:
-                torch.testing.assert_close(result, serial, rtol=0, atol=1e-5)
+def test_range_warnings_one_per_call_and_each_threads_own(monkeypatch):
+    """A call whose runs go apart (batch entries, channel groups) gathers their range excesses
+    for one warning. The list was the flow's attribute, so a concurrent call on the same flow
+    could add to it or take its warning; and a group run by a copy of the flow must still
+    count as its call's. One unstable Euler step on noise leaves the range (one warning per
+    call, for a batch of two surfaces and two channel groups); on constants it does not."""
+    grid = ts.Grid.cube(12, 1.5)
+    h2 = grid.spacing**2
+    batch = ts.ImplicitSurface(torch.cat([ts.sdf.sphere(grid, 1.0), ts.sdf.sphere(grid, 0.8)]),
+                               grid)
+    flow = ts.HeatFlow(2 * h2, diffusivity=torch.tensor([1.0, 0.25]), method="euler", steps=1)
+    noise = torch.rand(2, 2, *grid.shape, generator=torch.Generator().manual_seed(0))
+    constant = torch.full_like(noise, 0.5)
+    warned = []
+    monkeypatch.setattr(base, "_warn_range_left",
+                        lambda *args: warned.append(threading.get_ident()))
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore")   # the step's own warning (beyond the stable step)
+        flow(noise, batch)
+        assert len(warned) == 1
+        warned.clear()
+        requests = [noise, constant, noise, constant]
+        with ThreadPoolExecutor(len(requests)) as pool:
+            calls = list(pool.map(lambda u: (threading.get_ident(), bool(u.std() > 0),
+                                             flow(u, batch)), requests))
+    # threads may serve several requests: each noisy request warned once, no constant one did
+    noisy = sorted(ident for ident, is_noise, _ in calls if is_noise)
+    assert sorted(warned) == noisy
 
 
 def test_brick_surfaces_shared_by_threads_with_other_bands():

@@ -332,6 +332,11 @@ def test_sample_refuses_vmap_by_name_and_runs_the_rest(interpolation):
     points = torch.rand(3, 6, 3, dtype=torch.float64, generator=generator) * 2 - 1
     with pytest.raises(NotImplementedError, match="sample does not run under torch.func.vmap"):
         torch.func.vmap(lambda f, p: ts.sample(f[None], p, grid, interpolation))(field, points)
+    scales = torch.rand(4, dtype=torch.float64, generator=generator)  # transforms around a call
+    read = ts.sample(field, points, grid, interpolation).sum()
+    around = lambda x: x * ts.sample(field, points, grid, interpolation).sum()  # noqa: E731
+    torch.testing.assert_close(torch.func.vmap(around)(scales), scales * read)
+    torch.testing.assert_close(torch.func.jvp(around, (scales,), (scales,))[1], scales * read)
     weights = torch.rand(3, 1, 6, dtype=torch.float64, generator=generator)
     grad = torch.func.grad(lambda p: (ts.sample(field, p, grid, interpolation) * weights).sum())(points)
     moved = points.clone().requires_grad_(True)
@@ -347,3 +352,22 @@ def test_sample_refuses_vmap_by_name_and_runs_the_rest(interpolation):
     step = 1e-6
     central = (read(points + step * tangent) - read(points - step * tangent)) / (2 * step)
     torch.testing.assert_close(derivative, central, rtol=1e-6, atol=1e-8)
+
+
+def test_jit_trace_is_refused_by_the_layers_and_runs_the_operators():
+    """torch.jit.trace of a HeatFlow gave no error and replayed uninitialised memory (6.5e27
+    off); the operators' batch check compared traced sizes as tensors ("the batch sizes of u,
+    normal, weight must be equal or 1, got [tensor(1), tensor(1), tensor(1)]")."""
+    grid = ts.Grid.cube(24, 1.7)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, 1.0), grid)
+    u = torch.rand(1, 1, *grid.shape, generator=torch.Generator().manual_seed(6))
+    for layer in (ts.HeatFlow(2 * grid.spacing**2), ts.nn.LearnedDiffusion(1), ts.flows.Extension()):
+        with pytest.raises(NotImplementedError, match=f"{type(layer).__name__} does not run under "
+                                                      "torch.jit.trace"):
+            torch.jit.trace(lambda v, layer=layer: layer(v, surface), (u,), check_trace=False)
+    bricks = ts.bricks.from_dense(surface.phi, grid)
+    packed = torch.rand(len(bricks.layout), 1, 8, 8, 8, generator=torch.Generator().manual_seed(7))
+    for on, data in ((surface, u), (bricks, packed)):
+        operator = lambda v, on=on: ts.laplace_beltrami(v, on)  # noqa: E731
+        traced = torch.jit.trace(operator, (data,), check_trace=False)
+        torch.testing.assert_close(traced(data), operator(data), rtol=1e-5, atol=1e-4)

@@ -193,7 +193,7 @@ def check_alike(fields: Sequence[tuple[str, Tensor | None, int | None]]) -> None
         if value.device != first.device:
             raise MismatchError(f"{name} is on {value.device} but {first_name} is on "
                                 f"{first.device}: they must be on one device")
-    batches = {value.shape[0] for _, value, _ in given} - {1}
+    batches = {int(value.shape[0]) for _, value, _ in given} - {1}  # traced sizes are tensors
     if len(batches) > 1:
         names = ", ".join(name for name, _, _ in given)
         raise ValueError(f"the batch sizes of {names} must be equal or 1, got {sorted(batches)}")

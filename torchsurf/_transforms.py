@@ -37,13 +37,25 @@ def active_transforms() -> set[str]:
     return {interpreter.key().name for interpreter in (stack() or ())}
 
 
+def saving_through_hooks() -> bool:
+    """Whether autograd saves tensors through default hooks here: a non-reentrant
+    ``torch.utils.checkpoint`` region (whose recomputation must save what its forward saved,
+    so nothing in ``phi``'s graph formed there may be kept for later calls), or
+    ``torch.autograd.graph.save_on_cpu``. ``False`` while ``torch.compile`` traces and on a
+    PyTorch without the query."""
+    if torch.compiler.is_compiling():
+        return False
+    top = getattr(torch._C._autograd, "_top_saved_tensors_default_hooks", None)
+    return top is not None and top(False) is not None
+
+
 def exporting() -> bool:
     """Whether ``torch.export`` traces the call (``False`` on a PyTorch without the query)."""
     query = getattr(torch.compiler, "is_exporting", None)
     return bool(query()) if query is not None else False
 
 
-def _wrappers(tensor: Tensor) -> Iterator[Tensor]:
+def functorch_levels(tensor: Tensor) -> Iterator[Tensor]:
     """``tensor`` and the tensors beneath its ``torch.func`` wrappers, outermost first."""
     functorch = getattr(torch._C, "_functorch", None)
     wrapped = getattr(functorch, "is_functorch_wrapped_tensor", None)
@@ -53,12 +65,18 @@ def _wrappers(tensor: Tensor) -> Iterator[Tensor]:
         yield tensor
 
 
+def batched_by_vmap(tensor: Tensor) -> bool:
+    """Whether ``tensor``, or a tensor beneath its ``torch.func`` wrappers, is a batch of
+    ``torch.func.vmap``."""
+    batched = getattr(getattr(torch._C, "_functorch", None), "is_batchedtensor", None)
+    return batched is not None and any(batched(t) for t in functorch_levels(tensor))
+
+
 def refuse_vmapped_phi(phi: Tensor, owner: str) -> None:
     """Raise ``NotImplementedError`` naming ``owner`` for a ``phi`` batched by
     ``torch.func.vmap``: a surface's band and bounds are formed from its values on the host
     (functorch's own "data-dependent control flow" error had named none of it)."""
-    batched = getattr(getattr(torch._C, "_functorch", None), "is_batchedtensor", None)
-    if batched is not None and any(batched(t) for t in _wrappers(phi)):
+    if batched_by_vmap(phi):
         raise NotImplementedError(
             f"{owner} does not take a phi batched by torch.func.vmap: its band and bounds are "
             "formed from phi's values on the host; stack the phis along B instead "
@@ -69,7 +87,7 @@ def plain_values(tensor: Tensor) -> Tensor:
     """``tensor``'s values, detached, beneath any ``torch.func`` wrapper (``jvp``, ``grad``):
     what numpy and C code can read (a wrapped ``phi``'s band mask had failed with "Cannot
     access data pointer of Tensor that doesn't have storage"). Not for a batched tensor."""
-    return list(_wrappers(tensor.detach()))[-1]
+    return list(functorch_levels(tensor.detach()))[-1]
 
 
 def refuse_batched_backward(what: str, grad: Tensor) -> None:
@@ -110,6 +128,12 @@ def refuse_transforms(what: str, *tensors: Tensor, refused: tuple[str, ...] = ("
             "the operators (laplace_beltrami, ...) export")
     if torch.compiler.is_compiling():
         return
+    if torch.jit.is_tracing() or torch.jit.is_scripting():
+        raise NotImplementedError(
+            f"{what} does not run under torch.jit.trace or torch.jit.script (nor torch.onnx's "
+            "export by tracing): its steps and stencils run C kernels and host decisions a trace "
+            "cannot record (a traced HeatFlow replayed uninitialised memory); torch.compile "
+            "compiles it (docs/learning.md, 'A model compiled whole')")
     active = active_transforms()
     wrapped = getattr(getattr(torch._C, "_functorch", None), "is_functorch_wrapped_tensor", None)
     if active and phi is not None and wrapped is not None and wrapped(phi):

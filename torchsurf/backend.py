@@ -404,6 +404,10 @@ reused addresses hash alike, each call took longer than the one before (1.3 to 1
 over 12,000 calls; an audit, 2026-12-07)."""
 
 
+_TIMINGS_LOCK = threading.Lock()
+"""Held while :func:`_timings` reorders the ledger (never while tracing: not reached then)."""
+
+
 def _timings(variant: tuple) -> _Timings:
     """The ledger's entry for ``variant``, moved to the end (the most recently run), or added
     there if new (the least recently run dropped past :data:`TIMED_VARIANTS`): a kernel run at
@@ -417,9 +421,6 @@ def _timings(variant: tuple) -> _Timings:
         _TIMINGS[variant] = timings
         return timings
 
-
-_TIMINGS_LOCK = threading.Lock()
-"""Held while :func:`_timings` reorders the ledger (never while tracing: not reached then)."""
 
 _COMPILE_FAILURE: list[str] = []
 """Why a compile chosen by ``"auto"`` failed in this process (empty while none has):

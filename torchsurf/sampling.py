@@ -8,7 +8,7 @@ from torch import Tensor
 from torch.autograd import forward_ad
 
 from ._checks import MismatchError, check_batch, check_choice, check_finite, check_tensor, check_volume
-from ._transforms import active_transforms
+from ._transforms import batched_by_vmap, functorch_levels
 from .grid import Grid
 
 __all__ = [
@@ -142,19 +142,20 @@ def sample(field: Tensor, points: Tensor, grid: Grid, interpolation: str = "line
 
 
 def _refuse_transforms(interpolation: str, field: Tensor, points: Tensor) -> None:
-    """Name :func:`sample` where a transform would fail inside it with PyTorch's generic
-    message (vmap: "data-dependent control flow"; a linear read's tangent: grid_sample's).
-    Nothing while ``torch.compile`` traces (the queries are C functions dynamo cannot trace)."""
+    """Name :func:`sample` where a transform of its inputs would fail inside it with PyTorch's
+    generic message ("data-dependent control flow" for a batch of ``vmap``; grid_sample's for a
+    linear read's tangent); transforms of other tensors around a call pass. Nothing while
+    ``torch.compile`` traces (the queries are C functions dynamo cannot trace)."""
     if torch.compiler.is_compiling():
         return
-    active = active_transforms()
-    if "Vmap" in active:
+    if any(batched_by_vmap(tensor) for tensor in (field, points)):
         raise NotImplementedError(
             "sample does not run under torch.func.vmap: which points lie in the box, and which "
             "are read near its faces, are decided on the host; batch along B instead (field "
             "(B, C, D, H, W) with points (B, V, 3); docs/learning.md, 'Derivatives')")
-    if interpolation == "linear" and ("Jvp" in active or any(
-            forward_ad.unpack_dual(t).tangent is not None for t in (field, points))):
+    if interpolation == "linear" and any(
+            forward_ad.unpack_dual(level).tangent is not None
+            for tensor in (field, points) for level in functorch_levels(tensor)):
         raise NotImplementedError(
             "sample(interpolation='linear') has no forward-mode derivative (PyTorch's "
             "grid_sample has none): use interpolation='cubic', or reverse mode "

@@ -26,7 +26,13 @@ from ._checks import (
 )
 from ._inference import outside_inference
 from ._stack import caller_stacklevel
-from ._transforms import exporting, outside_transforms, plain_values, refuse_vmapped_phi
+from ._transforms import (
+    exporting,
+    outside_transforms,
+    plain_values,
+    refuse_vmapped_phi,
+    saving_through_hooks,
+)
 from ._vectors import tangential_part
 from .grid import Grid
 
@@ -816,6 +822,12 @@ class ImplicitSurface(nn.Module):
             if view or not tracing and phi.is_inference():
                 phi = phi.clone()
             self._assemble(phi)
+            if phi.requires_grad:
+                # formed here, in phi's graph as built: formed first inside a user's
+                # torch.utils.checkpoint region (use_reentrant=False), it was kept with that
+                # region's graph, the recomputation saved fewer tensors than the forward
+                # (CheckpointError), and every later call through the surface failed so
+                self.haloed()
 
     def kept(self, key: tuple, compute: Callable[[], T]) -> T:
         """``compute()``, computed on the first call with ``key`` and kept on this surface.
@@ -1083,7 +1095,8 @@ class ImplicitSurface(nn.Module):
         with outside_inference(), outside_transforms(self.phi):
             value = self._faded(curvature.mean_curvature(self._gradient(), self.hessian(),
                                                          self._directed_norm))
-        if (torch.is_grad_enabled() or not self.phi.requires_grad) and not exporting():
+        if ((torch.is_grad_enabled() or not self.phi.requires_grad) and not exporting()
+                and not (self.phi.requires_grad and saving_through_hooks())):
             self._mean_curvature_version = value._version  # first: readers test the value
             self._mean_curvature = value
         return value

@@ -302,3 +302,31 @@ def test_requested_times_do_not_multiply_the_checkpoints():
         _, saved[count] = _saved_bytes(lambda flow=flow, times=times: flow(u0, surface,
                                                                              times=times))
     assert saved[16] < 4 * saved[1], saved
+
+
+@pytest.mark.parametrize("make", [lambda: ts.nn.LearnedDiffusion(1, time=1.5),
+                                  lambda: ts.HeatFlow(0.02, learn_time=True),
+                                  lambda: ts.HeatFlow(0.02, scheme="central")])
+def test_a_users_checkpoint_around_a_layer_on_a_learned_phi(make):
+    """torch.utils.checkpoint(layer, u, surface, use_reentrant=False) on a surface whose phi
+    requires grad: the surface's haloed geometry (and mean curvature) was first formed inside
+    the region and kept with its graph, so the recomputation saved fewer tensors than the
+    forward (CheckpointError), and every later call through the surface, plain ones too,
+    failed the same way. Now the same gradients as a plain call, before and after."""
+    grid = ts.Grid.cube(14, 1.7)
+    phi = ts.sdf.sphere(grid, 1.0, center=(0.03, -0.02, 0.05), dtype=torch.float64)
+    phi.requires_grad_(True)
+    u = torch.rand(1, 1, *grid.shape, dtype=torch.float64,
+                   generator=torch.Generator().manual_seed(0))
+    layer = make().double()
+
+    def phi_gradient(call) -> torch.Tensor:  # the surface's geometry is read again: retained
+        (gradient,) = torch.autograd.grad(call().square().sum(), phi, retain_graph=True)
+        return gradient
+
+    expected = phi_gradient(lambda: layer(u, ts.ImplicitSurface(phi, grid)))
+    surface = ts.ImplicitSurface(phi, grid)
+    for call in (lambda: torch.utils.checkpoint.checkpoint(layer, u, surface, use_reentrant=False),
+                 lambda: torch.utils.checkpoint.checkpoint(layer, u, surface, use_reentrant=False),
+                 lambda: layer(u, surface)):
+        torch.testing.assert_close(phi_gradient(call), expected, rtol=1e-10, atol=1e-10)

@@ -394,6 +394,25 @@ def test_gradcheck_data_diffusivity_and_time(method):
     assert torch.autograd.gradcheck(run, inputs, eps=1e-6, atol=1e-7, fast_mode=True)
 
 
+def test_fixed_values_per_channel_swapped_in_with_grad_get_their_gradient():
+    """functional_call swapping a fixed diffusivity per channel for values that require grad:
+    the channels of each value ran apart with each value rebuilt from host floats, and the
+    values' gradient was None without a word (where the values were equal it arrived)."""
+    u0, surface = small_case(9)
+    basis = directions(2, seed=5)
+    flow = HeatFlow(0.01, diffusivity=[1.0, 2.0], method="euler", band_width=1.1).double()
+
+    def run(values, coefficients):
+        u = u0.expand(-1, 2, -1, -1, -1) + (coefficients[:, None, None, None, None, None]
+                                             * basis).sum(0)
+        return torch.func.functional_call(flow, {"diffusivity.values": values}, (u, surface))
+
+    values = torch.tensor([3.0, 0.5], dtype=torch.float64, requires_grad=True)
+    coefficients = torch.zeros(2, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(run, (values, coefficients), eps=1e-6, atol=1e-7,
+                                    fast_mode=True)
+
+
 def test_a_learned_time_gets_its_gradient_with_a_given_torchdiffeq_step_size():
     """A step_size given to a fixed-step torchdiffeq method ended torchdiffeq's grid with a
     partial step, whose length depends on the time outside autograd's graph: d/dtime came

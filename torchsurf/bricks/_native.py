@@ -354,7 +354,6 @@ class _GeometryPlan:
             if kept_bits is not bits:  # equal bits: the next call compares by identity
                 self._kept = (key, bits, plan)
             return plan
-        self._kept = (key, bits, None)
         bricks = bits.shape[0]
         offsets = torch.empty(bricks + 1, dtype=torch.int64)
         compiled.geometry_offsets(bits.data_ptr(), bricks, offsets.data_ptr())
@@ -408,7 +407,8 @@ def octant(u: Tensor, haloed_normal: Tensor, haloed_weight: Tensor, neighbours: 
             and band), not from the haloed planes.
     """
     tensors = (u, haloed_normal, haloed_weight) + (() if mask is None else (mask,))
-    if (u.dtype not in (torch.float32, torch.float64) or any(t.device.type != "cpu"
+    if (torch.jit.is_tracing()  # a trace would replay the empty output, not the kernel
+            or u.dtype not in (torch.float32, torch.float64) or any(t.device.type != "cpu"
                                                              for t in tensors)
             or haloed_normal.dtype != u.dtype or haloed_weight.dtype != u.dtype
             or (torch.is_grad_enabled() and any(t.requires_grad for t in tensors))

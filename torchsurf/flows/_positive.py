@@ -255,6 +255,12 @@ class Positive(nn.Module):
             return None
         return (self.fixed,) if self.fixed is not None else self._entries.entries_of(self.values)
 
+    def values_require_grad(self) -> bool:
+        """A fixed per-channel value whose tensor requires grad while autograd records: one
+        swapped in by ``torch.func.functional_call``, whose gradient the flow must deliver."""
+        values = None if self.learnable or self.fixed is not None else self.values
+        return isinstance(values, Tensor) and values.requires_grad and torch.is_grad_enabled()
+
     def share_of_bound(self) -> float:
         """For a learnable value with ``bound``: its largest entry over the bound, in
         ``(0, 1]``, read on the host (the steps are planned for the bound; what they span in
@@ -316,15 +322,16 @@ class Positive(nn.Module):
 
 
 class ChannelOf(Positive):
-    """Entries ``indices`` of a learnable per-channel :class:`Positive` ``whole``, a vector
-    ``(len(indices),)`` in the graph of ``whole``'s parameter: what a flow that runs those
+    """Entries ``indices`` of a per-channel :class:`Positive` ``whole`` that is learnable, or
+    fixed with values that require grad (swapped in by ``torch.func.functional_call``), a
+    vector ``(len(indices),)`` in the graph of those values: what a flow that runs those
     channels apart from the others reads, so that its steps and re-extensions follow their
-    values (and the gradient reaches each entry of the parameter through its own channel).
-    Holds no parameter of its own; ``bound`` is ``whole``'s."""
+    values (and the gradient reaches each entry through its own channel). Holds no parameter
+    of its own; ``bound`` is ``whole``'s."""
 
     def __init__(self, whole: Positive, indices: list[int]) -> None:
         nn.Module.__init__(self)
-        if not whole.learnable or whole.channels is None:
+        if not (whole.learnable or whole.values_require_grad()) or whole.channels is None:
             raise ValueError(f"ChannelOf takes a learnable per-channel value, got {whole!r}")
         self.whole = whole
         self.indices = list(indices)

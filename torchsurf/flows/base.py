@@ -1013,7 +1013,8 @@ class Flow(nn.Module):
         if gathered is not None or torch.compiler.is_compiling():
             return ([] if gathered is None else gathered), None  # gathered by an outer call
         excesses: list[tuple[float, Plan | str]] = []
-        return excesses, _GATHERED_EXCESSES.set((*_GATHERED_EXCESSES.get(), (self, excesses)))
+        owner = self.__dict__.get("_part_of", self)
+        return excesses, _GATHERED_EXCESSES.set((*_GATHERED_EXCESSES.get(), (owner, excesses)))
 
     def _gathered_excesses(self) -> list[tuple[float, Plan | str]] | None:
         """The list this flow's runs gather their excesses into, or ``None`` outside such a
@@ -1021,7 +1022,8 @@ class Flow(nn.Module):
         a context variable's get; traced calls check no range)."""
         if torch.compiler.is_compiling():
             return None
-        return next((excesses for flow, excesses in _GATHERED_EXCESSES.get() if flow is self),
+        owner = self.__dict__.get("_part_of", self)  # a copy running part of a call
+        return next((excesses for flow, excesses in _GATHERED_EXCESSES.get() if flow is owner),
                     None)
 
     def _stop_gathering(self, token: Token | None) -> None:

@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
+import copy
 import functools
 import math
 from collections.abc import Iterator, Sequence
-from contextvars import ContextVar
 from dataclasses import replace
 
 import numpy as np
@@ -65,11 +65,6 @@ PACKED_BRICK_NODES = 2**20
 a node at the peak: the 256^3 bunny's 1.1 M nodes, packed, ran 1.5x faster than on the C kernel
 (7.0 against 10.7 s to (8 h)^2) but peaked at 3.7 GB against 1.6 GB; the 512^3 bunny's 4.6 M
 would not keep to its 4 GB."""
-
-_GROUP_DIFFUSIVITY: ContextVar[tuple[HeatFlow, Positive] | None] = ContextVar(
-    "torchsurf_group_diffusivity", default=None)
-"""The flow and the diffusivity of the group of channels this thread's call runs
-(:meth:`HeatFlow._forward_with`)."""
 
 
 class HeatFlow(Flow):
@@ -200,7 +195,7 @@ class HeatFlow(Flow):
         if inputs:
             raise TypeError(f"HeatFlow takes no inputs besides u0 and surface, got {sorted(inputs)}")
         band = self.band_mask(surface)
-        d = self._current_diffusivity().volume(u0)
+        d = self.diffusivity.volume(u0)
         unit = isinstance(d, float) and d == 1.0
         scheme, path = self.scheme, self.path
         pad = None if surface.layout is None else surface.layout.halo
@@ -233,7 +228,7 @@ class HeatFlow(Flow):
             geometry = (surface.weight, surface.normal, haloed_weight, haloed_normal)
             linear = Linear(operator, geometry + ((d,) if isinstance(d, Tensor) else ()))
         self._packing(surface)  # first: its rows give the bound too (kept_packing)
-        rho = self._current_diffusivity().maximum() * self.operator_bound(surface, self.scheme)
+        rho = self.diffusivity.maximum() * self.operator_bound(surface, self.scheme)
         params = tensors(d, surface.normal, surface.weight)
         return System(rate, band, rho, linear=linear, params=params, isotropic=True)
 
@@ -255,7 +250,7 @@ class HeatFlow(Flow):
         packing = self._packing(surface)
         if packing is None:
             return None
-        d = self._current_diffusivity().volume(u0)
+        d = self.diffusivity.volume(u0)
         unit = isinstance(d, float) and d == 1.0
 
         def rate(z: Tensor) -> Tensor:
@@ -290,7 +285,7 @@ class HeatFlow(Flow):
     def _share_of_planned_rate(self) -> float:
         """:meth:`Flow._share_of_planned_rate`, times the share of ``max_diffusivity`` a
         learned diffusivity takes (the steps are planned for the bound's ``rho``)."""
-        return super()._share_of_planned_rate() * self._current_diffusivity().share_of_bound()
+        return super()._share_of_planned_rate() * self.diffusivity.share_of_bound()
 
     def forward(
         self, u0: Tensor, surface: ImplicitSurface,
@@ -330,12 +325,12 @@ class HeatFlow(Flow):
         operator = BandLaplacian(surface, self.scheme, width, self.path)
         if not torch.compiler.is_compiling():  # a host read: it would break a compiled graph
             check_finite(torch.where(operator.band, u0, 0.0), "u0 (in the band)")
-        d = self._current_diffusivity().volume(u0)
+        d = self.diffusivity.volume(u0)
         rate = (d.reshape(-1) if isinstance(d, Tensor) else u0.new_tensor(d)).expand(u0.shape[1])
         horizon = self.time * rate
         # host floats (read from the parameters only when learned without a bound)
         end = self.time_value.maximum()
-        largest = end * self._current_diffusivity().maximum()
+        largest = end * self.diffusivity.maximum()
         bound = float(operator.bound)
         check_before_equilibrium(largest, bound, _diagonal_cells(surface))
         # re-extended once a piece of the diffusion's own time, not of the bounds' (a learned
@@ -399,22 +394,22 @@ class HeatFlow(Flow):
         expansion is exact in each channel's time, but its pieces, and the band's
         re-extensions between them, follow the largest (a channel of ``D = 1`` beside one of
         ``D = 30`` moved by 3.7e-2 on noise)."""
-        channels = self._current_diffusivity().channels
-        if channels is None or channels == 1 or not isinstance(u0, Tensor):
+        whole = self.diffusivity
+        if whole.channels is None or whole.channels == 1 or not isinstance(u0, Tensor):
             return None
-        values = self._current_diffusivity().fixed_entries()
+        values = whole.fixed_entries()
         if values is None:
             if torch.compiler.is_compiling():
                 return None
-            values = tuple(self._current_diffusivity().value().detach().cpu().tolist())
-        self._current_diffusivity().volume(u0)  # the channel count checked against u0
+            values = tuple(whole.value().detach().cpu().tolist())
+        whole.volume(u0)  # the channel count checked against u0
         groups: dict[float, list[int]] = {}
         for channel, value in enumerate(values):
             groups.setdefault(value, []).append(channel)
         if len(groups) == 1:
             return None
-        if self._current_diffusivity().learnable:
-            return [(ChannelOf(self.diffusivity, group), group) for group in groups.values()]
+        if whole.learnable or whole.values_require_grad():  # the groups in the values' graph
+            return [(ChannelOf(whole, group), group) for group in groups.values()]
         return self._fixed_groups(groups)
 
     def _fixed_groups(self, groups: dict[float, list[int]]) -> list[tuple[Positive, list[int]]]:
@@ -450,32 +445,26 @@ class HeatFlow(Flow):
 
     def _forward_with(self, diffusivity: Positive, u0: Tensor, surface: ImplicitSurface,
                       times: object, inputs: dict[str, Tensor]) -> Tensor:
-        """:meth:`forward` with one group's ``diffusivity``: named in a context variable of
-        this thread's, not set on the module, which other threads may be calling (the swapped
-        submodule had run their channels with this group's value, 10 of 15 concurrent calls
-        0.27 off, and could be left in place for good). Traced, the swap is the graph's own:
-        nothing changes while it runs."""
-        if torch.compiler.is_compiling():  # dynamo cannot trace a context variable's set
+        """:meth:`forward` with one group's ``diffusivity``, run by a shallow copy of this flow
+        that holds it (its submodules and settings shared): the module itself is not changed,
+        as other threads may be calling it (the swapped submodule had run their channels with
+        this group's value, 10 of 15 concurrent calls 0.27 off, and could be left in place for
+        good); a subclass's own :meth:`system` reads the group's value as ``self.diffusivity``.
+        Traced, the submodule is swapped instead (dynamo cannot copy a module), as the graph's
+        own change: nothing changes while the compiled code runs."""
+        if torch.compiler.is_compiling():
             whole = self._modules["diffusivity"]
             self._modules["diffusivity"] = diffusivity
             try:
                 return self.forward(u0, surface, times, **inputs)
             finally:
                 self._modules["diffusivity"] = whole
-        token = _GROUP_DIFFUSIVITY.set((self, diffusivity))
-        try:
-            return self.forward(u0, surface, times, **inputs)
-        finally:
-            _GROUP_DIFFUSIVITY.reset(token)
-
-    def _current_diffusivity(self) -> Positive:
-        """The diffusivity this call runs with: its group's while :meth:`_forward_with` runs
-        one, else the flow's own."""
-        if not torch.compiler.is_compiling():
-            group = _GROUP_DIFFUSIVITY.get()
-            if group is not None and group[0] is self:
-                return group[1]
-        return self._modules["diffusivity"]
+        part = copy.copy(self)
+        part._modules = {**self._modules, "diffusivity": diffusivity}
+        part.__dict__["_part_of"] = self  # its runs' range excesses are this call's
+        result = part.forward(u0, surface, times, **inputs)
+        self.last_plan = part.last_plan
+        return result
 
     def extra_repr(self) -> str:
         return f"{super().extra_repr()}, scheme={self.scheme!r}"
