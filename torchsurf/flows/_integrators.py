@@ -314,13 +314,23 @@ many short steps between re-extensions held 28 / rho apart, +4.5e-4, against +1.
 HELD_RING_STEPS = 3.0
 """A nonlinear flow's RKC takes up to this many times the steps it would otherwise when that
 lets it hold the ring (:func:`ring_held`); a linear one (:attr:`System.linear`: heat, flow
-visualisation) always does. The stages grow as the square root of the step count, and each
+visualisation) up to :data:`HELD_RING_LINEAR_STEPS` times.
+The stages grow as the square root of the step count, and each
 costs about half as much without the ring's re-extension; steps that re-extend the ring at
 every stage lose the time order, which shows over long times: a sphere's l = 1 heat flow to
 ``t = R^2`` (``t / h^2`` 106-238) stayed 0.9-1.7 % off at 33^3-49^3 in 8 such steps, and is
 2.7e-3, 1.3e-3, 5.4e-4 of the decayed amplitude holding the ring, for 1.5-2.4 times the time.
 The nonlinear flows' bound grows as their regularisation shrinks (total variation: ``1 / eps``),
 and holding the ring over their usual times would multiply their steps tenfold."""
+
+
+HELD_RING_LINEAR_STEPS = 24.0
+"""A linear flow's RKC takes up to this many times the steps it would otherwise to hold the
+ring; beyond, its stages re-extend the ring as on a band too narrow to hold it. The bound a step
+may hold it for, ``6 (w - 2 sqrt(3))^2 / rho`` on a band of ``w`` cells, vanishes as ``w``
+nears ``2 sqrt(3)``: with no limit a heat flow on a band of 3.47 cells took 51,070 steps
+(18 s, against 0.14 s at 3.6 and 0.23 s at 3.4 cells; an audit, 32^3), and at 3.465 cells it
+refused the time. The default 5-cell band asks at most 21 times the steps, and keeps holding."""
 
 
 def ring_held(method: str, step_times_rho: float, band_cells: float, period: int = 1,
@@ -403,8 +413,8 @@ def plan_steps(method: str, system: System, end: float, steps: int | None,
     ``12 band_cells^2 / rho``: about the time the diffusion takes to cross a band
     ``band_cells`` cells wide, after which the data must be re-extended (docs/band.md), nor
     than ``RKC_GROWTH / growth`` (:data:`RKC_GROWTH`); and more where that lets each step hold
-    the ring (:func:`ring_held`): as many as it takes for a linear flow, up to
-    :data:`HELD_RING_STEPS` times as many for a nonlinear one; where the steps cannot hold it,
+    the ring (:func:`ring_held`): up to :data:`HELD_RING_LINEAR_STEPS` times as many for a
+    linear flow, :data:`HELD_RING_STEPS` times for a nonlinear one; where the steps cannot hold it,
     at least :data:`RKC_REFRESHED_STEPS` (or Euler's count), and for an isotropic rate
     (:attr:`System.isotropic`) none longer than ``RKC_REFRESHED_STEP / rho``
     (:data:`RKC_REFRESHED_STEP`).
@@ -429,7 +439,7 @@ def plan_steps(method: str, system: System, end: float, steps: int | None,
             # on S: 1.2e-3 in these 37 steps, 5.8e-3 in 16)
             if band_cells > HELD_RING_CELLS:
                 holding = whole_steps(end, held_ring_bound(band_cells) * per_rho, end)
-                allowed = math.inf if system.linear is not None else HELD_RING_STEPS
+                allowed = HELD_RING_LINEAR_STEPS if system.linear is not None else HELD_RING_STEPS
                 if count < holding <= allowed * count:
                     count = holding
             if not ring_held("rkc", end / count * rho, band_cells, reaction=system.reaction):
