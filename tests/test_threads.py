@@ -44,7 +44,9 @@ def test_range_warnings_one_per_call_and_each_threads_own(monkeypatch):
     for one warning. The list was the flow's attribute, so a concurrent call on the same flow
     could add to it or take its warning; and a group run by a copy of the flow must still
     count as its call's. One unstable Euler step on noise leaves the range (one warning per
-    call, for a batch of two surfaces and two channel groups); on constants it does not."""
+    call, for a batch of two surfaces and two channel groups); on constants it does not. The
+    threads' half catches the former race only when calls overlap (3 of 5 runs failed on
+    c3416b4); the first half checks the groups' copies count as their call."""
     grid = ts.Grid.cube(12, 1.5)
     h2 = grid.spacing**2
     batch = ts.ImplicitSurface(torch.cat([ts.sdf.sphere(grid, 1.0), ts.sdf.sphere(grid, 0.8)]),

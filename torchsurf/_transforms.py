@@ -128,10 +128,10 @@ def refuse_transforms(what: str, *tensors: Tensor, refused: tuple[str, ...] = ("
             "the operators (laplace_beltrami, ...) export")
     if torch.compiler.is_compiling():
         return
-    if torch.jit.is_tracing() or torch.jit.is_scripting():
+    if torch.jit.is_tracing():
         raise NotImplementedError(
-            f"{what} does not run under torch.jit.trace or torch.jit.script (nor torch.onnx's "
-            "export by tracing): its steps and stencils run C kernels and host decisions a trace "
+            f"{what} does not run under torch.jit.trace (nor torch.onnx's export by tracing): "
+            "its steps and stencils run C kernels and host decisions a trace "
             "cannot record (a traced HeatFlow replayed uninitialised memory); torch.compile "
             "compiles it (docs/learning.md, 'A model compiled whole')")
     active = active_transforms()

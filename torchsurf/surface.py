@@ -822,7 +822,7 @@ class ImplicitSurface(nn.Module):
             if view or not tracing and phi.is_inference():
                 phi = phi.clone()
             self._assemble(phi)
-            if phi.requires_grad:
+            if phi.requires_grad and not tracing:  # traced, it would break the graph
                 # formed here, in phi's graph as built: formed first inside a user's
                 # torch.utils.checkpoint region (use_reentrant=False), it was kept with that
                 # region's graph, the recomputation saved fewer tensors than the forward

@@ -306,7 +306,8 @@ def test_requested_times_do_not_multiply_the_checkpoints():
 
 @pytest.mark.parametrize("make", [lambda: ts.nn.LearnedDiffusion(1, time=1.5),
                                   lambda: ts.HeatFlow(0.02, learn_time=True),
-                                  lambda: ts.HeatFlow(0.02, scheme="central")])
+                                  lambda: ts.HeatFlow(0.02, scheme="central"),
+                                  lambda: _Operator(scheme="central")])  # mean curvature kept
 def test_a_users_checkpoint_around_a_layer_on_a_learned_phi(make):
     """torch.utils.checkpoint(layer, u, surface, use_reentrant=False) on a surface whose phi
     requires grad: the surface's haloed geometry (and mean curvature) was first formed inside
@@ -330,3 +331,15 @@ def test_a_users_checkpoint_around_a_layer_on_a_learned_phi(make):
                  lambda: torch.utils.checkpoint.checkpoint(layer, u, surface, use_reentrant=False),
                  lambda: layer(u, surface)):
         torch.testing.assert_close(phi_gradient(call), expected, rtol=1e-10, atol=1e-10)
+
+
+class _Operator(torch.nn.Module):
+    """``laplace_beltrami(u, surface, scheme)`` as a module (the central scheme reads the
+    surface's kept mean curvature)."""
+
+    def __init__(self, scheme: str) -> None:
+        super().__init__()
+        self.scheme = scheme
+
+    def forward(self, u: torch.Tensor, surface: ts.ImplicitSurface) -> torch.Tensor:
+        return ts.laplace_beltrami(u, surface, scheme=self.scheme)

@@ -332,7 +332,8 @@ class ChannelOf(Positive):
     def __init__(self, whole: Positive, indices: list[int]) -> None:
         nn.Module.__init__(self)
         if not (whole.learnable or whole.values_require_grad()) or whole.channels is None:
-            raise ValueError(f"ChannelOf takes a learnable per-channel value, got {whole!r}")
+            raise ValueError("ChannelOf takes a per-channel value, learnable or with values "
+                             f"that require grad, got {whole!r}")
         self.whole = whole
         self.indices = list(indices)
         self.name = whole.name

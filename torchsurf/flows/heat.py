@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import copy
 import functools
 import math
 from collections.abc import Iterator, Sequence
@@ -450,8 +449,10 @@ class HeatFlow(Flow):
         as other threads may be calling it (the swapped submodule had run their channels with
         this group's value, 10 of 15 concurrent calls 0.27 off, and could be left in place for
         good); a subclass's own :meth:`system` reads the group's value as ``self.diffusivity``.
-        Traced, the submodule is swapped instead (dynamo cannot copy a module), as the graph's
-        own change: nothing changes while the compiled code runs."""
+        What a subclass writes on ``self`` in a group's run lands on the copy. Traced, the
+        submodule is swapped instead (dynamo cannot copy a module), as the graph's own change:
+        nothing changes while the compiled code runs, unless the group's run breaks the graph
+        (eager code then sees the group's value on the module)."""
         if torch.compiler.is_compiling():
             whole = self._modules["diffusivity"]
             self._modules["diffusivity"] = diffusivity
@@ -459,7 +460,8 @@ class HeatFlow(Flow):
                 return self.forward(u0, surface, times, **inputs)
             finally:
                 self._modules["diffusivity"] = whole
-        part = copy.copy(self)
+        part = object.__new__(type(self))  # not copy.copy: no __reduce_ex__ or __getstate__
+        part.__dict__.update(self.__dict__)  # (a parametrized module refuses to be copied so)
         part._modules = {**self._modules, "diffusivity": diffusivity}
         part.__dict__["_part_of"] = self  # its runs' range excesses are this call's
         result = part.forward(u0, surface, times, **inputs)
