@@ -894,4 +894,4 @@ def test_a_band_just_wider_than_the_ring_bound_takes_no_flood_of_steps():
         result = flow(u, surface)
         assert flow.last_plan.count <= integrators.HELD_RING_LINEAR_STEPS * integrators.RKC_STEPS
         near = surface.band_mask(1.5 * h).expand_as(u)
-        assert (result - expected)[near].abs().max() < 2e-2
+        assert (result - expected)[near].abs().max() < 5e-3  # measured 6.2e-4 to 3.2e-3
