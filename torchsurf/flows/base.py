@@ -63,7 +63,7 @@ from .._checks import (
     check_positive,
 )
 from .._stack import caller_stacklevel
-from .._transforms import refuse_transforms
+from .._transforms import refuse_transforms, saved_plainly_in_checkpoints
 from ..bricks.layout import BRICK, BrickLayout
 from ..operators.spectrum import laplace_beltrami_bound
 from ..surface import (  # noqa: F401  (WIDE_BAND_CELLS, DISTANCE_TOLERANCE: documented here too)
@@ -772,6 +772,7 @@ class Flow(nn.Module):
             f"{type(self).__name__} on u0 of shape {tuple(u0.shape)}", u0.device,
         )
 
+    @saved_plainly_in_checkpoints
     def forward(
         self, u0: Tensor, surface: ImplicitSurface,
         times: Sequence[float] | Tensor | np.ndarray | None = None,

@@ -15,7 +15,7 @@ from .. import backend
 from .._as_is import run_as_is_first
 from .._checks import check_choice, check_finite
 from .._native import carries_tangents
-from .._transforms import refuse_transforms
+from .._transforms import refuse_transforms, saved_plainly_in_checkpoints
 from ..backend import PATHS
 from ..operators import functional, laplace_beltrami
 from ..operators.laplace_beltrami import SCHEMES
@@ -286,6 +286,7 @@ class HeatFlow(Flow):
         learned diffusivity takes (the steps are planned for the bound's ``rho``)."""
         return super()._share_of_planned_rate() * self.diffusivity.share_of_bound()
 
+    @saved_plainly_in_checkpoints
     def forward(
         self, u0: Tensor, surface: ImplicitSurface,
         times: Sequence[float] | Tensor | np.ndarray | None = None, **inputs: Tensor,

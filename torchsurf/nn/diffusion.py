@@ -28,7 +28,7 @@ from .._checks import (
     check_positive,
 )
 from .._precision import apply_keeping_dtype
-from .._transforms import refuse_transforms
+from .._transforms import refuse_transforms, saved_plainly_in_checkpoints
 from ..backend import PATHS
 from ..flows._positive import HostValues, range_note, raw_within
 from ..flows.chebyshev import MAX_APPLICATIONS, TooManyApplications
@@ -168,6 +168,7 @@ class LearnedDiffusion(nn.Module):
         ``max_time``. Fixed times are read again at every call (outside torch.compile)."""
         return self.max_time if self.learn_time else self._largest.of(self.fixed_time)
 
+    @saved_plainly_in_checkpoints
     def forward(self, u: Tensor, surface: ImplicitSurface) -> Tensor:
         """Diffuse ``u`` ``(B, C, D, H, W)``; returns ``(B, C, D, H, W)`` (class docstring)."""
         run_as_is_first(self, u, surface)
