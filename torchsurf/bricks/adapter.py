@@ -19,6 +19,7 @@ from .._checks import (
     check_tensor,
 )
 from .._mesh_input import MeshLike, warn_unused_vertices
+from .._precision import apply_keeping_dtype
 from ..grid import Grid
 from ..mesh import check_adapter_band, check_decode_order
 from .build import EXACT_REACH, MeshBand, mesh_list, signed_bricks
@@ -210,6 +211,13 @@ class BrickMeshAdapter(nn.Module):
 
     def __len__(self) -> int:
         return len(self._counts)
+
+    def _apply(self, fn, recurse=True):  # noqa: ANN001, ANN202
+        # model.half(): the vertices and weights stay in their dtype, as the surface does
+        names = (*(f"_vertices_{b}" for b in range(len(self._counts))), "_weights",
+                 "_decode_weights")
+        return apply_keeping_dtype(self, names,
+                                   lambda: super(BrickMeshAdapter, self)._apply(fn, recurse))
 
     def encode(self, values: Sequence[Tensor]) -> Tensor:
         """Vertex values of every mesh -> packed field.
