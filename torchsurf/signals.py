@@ -120,7 +120,7 @@ def checkerboard(points: Tensor, tile: float, origin: tuple[float, float, float]
     corner = corner.to(points)
     tile = check_positive(tile, "tile")
     cells = torch.floor((points - corner.view(1, 3, 1, 1, 1)) / tile)
-    return torch.remainder(cells.sum(dim=1, keepdim=True), 2.0)
+    return torch.remainder(cells.sum(dim=1, keepdim=True), 2.0) + 0.0  # no -0.0
 
 
 def builtin_image(name: str, size: int = 256) -> Tensor:

@@ -86,7 +86,7 @@ def fit_grids(meshes: Sequence[MeshLike], resolutions: int | Sequence[int],
     Args:
         meshes: a sequence of meshes (as in :func:`torchsurf.mesh.load`).
         resolutions: nodes along each axis of each mesh's grid (one number for all, or one per
-            mesh), each above ``2 margin + 2``.
+            mesh), each at least ``2 margin + 2``.
         margin: free cells on each side of a mesh's box (default :data:`MARGIN_CELLS`): its
             longest side spans ``resolutions[b] - 1 - 2 margin`` cells.
         spacing: the common spacing, batch units (default ``1 / (max(resolutions) - 1)``: the

@@ -163,6 +163,8 @@ class AnisotropicFlow(Flow):
                                  else check_positive(value, "max_diffusivity"))
 
     def system(self, u0: Tensor, surface: ImplicitSurface, **inputs: Tensor) -> System:
+        """:meth:`Flow.system` of the edge-stopping flow: its rate in the band, ``u0``
+        ``(B, C, D, H, W)`` (packed on bricks), no inputs besides."""
         if inputs:
             raise TypeError(f"AnisotropicFlow takes no extra inputs, got {sorted(inputs)}")
         band = self.band_mask(surface)

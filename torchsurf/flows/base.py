@@ -421,8 +421,8 @@ class Flow(nn.Module):
             the fastest diffusion takes to cross the band (:func:`plan_steps`); for
             ``"euler"`` and ``"heun"``, ``1.8 / rho``, 0.9 of the stable step ``2 / rho``,
             rounded so that the steps end exactly at ``time``; for ``"implicit"`` and
-            ``"crank_nicolson"``, Euler's stable step ``2 / rho``, as many steps as explicit
-            Euler, each a CG solve: give fewer for longer steps, which they take stably, at
+            ``"crank_nicolson"``, Euler's stable step ``2 / rho``, 0.9 of explicit Euler's
+            count, each a CG solve: give fewer for longer steps, which they take stably, at
             their time error (backward Euler's 2.4x the others' at its default steps on a
             sphere harmonic of degree 3, 33^3), and on a 3-cell band (``from_mesh``, phi
             not a distance) at the error of a ring held stale through each step, which grows

@@ -989,7 +989,9 @@ def pde_extension(
     """``u_t + sign(phi) n . grad u = 0`` marched in the band (upwind, CFL 1/2): the paper's
     extension, information carried away from S along the normals.
 
-    ``sign(phi)`` is smoothed as ``phi / sqrt(phi^2 + h^2)``. The step is ``dt = h / 6``
+    ``sign(phi)`` is smoothed as ``d / sqrt(d^2 + h^2)``, ``d`` the signed distance
+    (:meth:`~torchsurf.surface.ImplicitSurface.signed_distance`, world units whatever the
+    scale of ``phi``). The step is ``dt = h / 6``
     (``|n|_1 <= sqrt 3``, so the CFL number is at most 1/2). Each volume and channel stops
     when the largest change of a step is at most ``tolerance`` times the range of ``u`` over
     its band (so ``u + c`` is extended as ``u``, plus ``c``); the loop ends when all have, or

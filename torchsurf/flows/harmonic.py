@@ -103,6 +103,8 @@ class HarmonicMapFlow(Flow):
         self.path = check_choice(path, "path", PATHS)
 
     def system(self, u0: Tensor, surface: ImplicitSurface, **inputs: Tensor) -> System:
+        """:meth:`Flow.system` of the harmonic map flow of unit vectors ``u0``
+        ``(B, C, D, H, W)``, ``C >= 2`` (3 with ``tangent``), no inputs besides."""
         if inputs:
             raise TypeError(f"HarmonicMapFlow takes no extra inputs, got {sorted(inputs)}")
         if self.tangent and u0.shape[1] != 3:

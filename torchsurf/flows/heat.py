@@ -191,6 +191,8 @@ class HeatFlow(Flow):
         self.path = check_choice(path, "path", PATHS)
 
     def system(self, u0: Tensor, surface: ImplicitSurface, **inputs: Tensor) -> System:
+        """:meth:`Flow.system` of the heat flow: ``D L u`` in the band, ``u0``
+        ``(B, C, D, H, W)`` (packed on bricks), no inputs besides."""
         if inputs:
             raise TypeError(f"HeatFlow takes no inputs besides u0 and surface, got {sorted(inputs)}")
         band = self.band_mask(surface)

@@ -77,7 +77,8 @@ class LearnedDiffusion(nn.Module):
     Args:
         channels: ``C``, the number of channels (one time each).
         time: initial times, ``h^2`` units: a positive number or ``C`` of them (learned times
-            at least ``2e-6``).
+            at least ``2e-6`` at construction; trained, they stay above ``1e-6``, the
+            softplus's floor).
         learn_time: make the times an ``nn.Parameter`` (``softplus(raw) + 1e-6``); otherwise
             they are a buffer (``fixed_time``, which may be changed in place or replaced).
         max_time: with ``learn_time``, the largest time, ``h^2`` units: the times are clamped
