@@ -248,6 +248,22 @@ def test_adapters_keep_their_weights_dtype_when_the_model_changes_its_own(kind):
                            fresh.decode(fresh.encode(xyz)))
 
 
+def test_a_refused_setting_names_its_key():
+    """A model of several flows refused a loaded setting as 'diffusivity must hold finite
+    positive values', without saying which flow's."""
+    model = torch.nn.Sequential(ts.flows.HeatFlow(1e-3, diffusivity=torch.tensor([1.0, 2.0])),
+                                ts.flows.HeatFlow(1e-3, diffusivity=torch.tensor([1.0, 2.0])),
+                                ts.nn.LearnedDiffusion(2, time=[1.0, 2.0], learn_time=False))
+    for key, value in (("1.diffusivity.values", [1.0, -0.5]),
+                       ("2.fixed_time", [1.0, 2.0, 3.0])):
+        state = model.state_dict()
+        state[key] = torch.tensor(value)
+        with pytest.raises(ValueError, match=f"loading '{key}': "):
+            model.load_state_dict(state)
+    assert model[1].diffusivity.values.tolist() == [1.0, 2.0]  # refused before written
+    assert model[2].fixed_time.tolist() == [1.0, 2.0]
+
+
 def test_a_refused_state_leaves_the_surface_as_it_was():
     grid = ts.Grid.cube(16, 1.5)
     other = ts.Grid((16, 16, 16), grid.spacing, (-1.4, -1.5, -1.5))

@@ -74,11 +74,15 @@ class HostValues:
         return entries
 
     def check_loaded(self, state_dict: dict, key: str) -> None:
-        """Refuse ``state_dict[key]``, if present, before ``load_state_dict`` writes anything:
-        a failed load would otherwise leave the module holding the refused values."""
+        """Refuse ``state_dict[key]``, if present, before ``load_state_dict`` writes this
+        module's values (a failed load would otherwise leave it holding the refused ones),
+        naming the key: a model holds several flows."""
         value = state_dict.get(key)
         if isinstance(value, Tensor):
-            self.check(value)
+            try:
+                self.check(value)
+            except ValueError as error:
+                raise ValueError(f"loading {key!r}: {error}") from None
 
     def __setstate__(self, state: dict) -> None:
         state.setdefault("_entries", ())  # a HostMaximum pickled before 2026-12-07
