@@ -117,16 +117,18 @@ def sample(field: Tensor, points: Tensor, grid: Grid, interpolation: str = "line
         )
     _refuse_transforms(interpolation, field, points)
     check_finite(points, "points")
-    _check_inside(points, grid)
+    index = grid.world_to_index(points)  # once: the box's test and both reads derive from it
+    _check_inside(points, index, grid)
     if points.dim() == 2:
-        points = points[None]
+        points, index = points[None], index[None]
     check_batch(points, "points", field.shape[0], "field")
     batch = max(field.shape[0], points.shape[0])
     field = field.expand(batch, -1, -1, -1, -1)
-    index = grid.world_to_index(points).expand(batch, -1, -1)
+    index = index.expand(batch, -1, -1)
     if interpolation == "cubic":
         return _interpolate(field, index, cubic=True)
-    normalized = grid.world_to_normalized(points).expand(batch, -1, -1)
+    # grid.world_to_normalized(points), from the index it computes
+    normalized = 2.0 * index / index.new_tensor(field.shape[:1:-1]).sub(1) - 1.0
     values = F.grid_sample(field, normalized[:, :, None, None, :], mode="bilinear",
                            padding_mode="border", align_corners=True)[:, :, :, 0, 0]
     # grid_sample clamps a point on a face (or rounded onto it) into the box, with no gradient
@@ -264,8 +266,11 @@ class _WeightedTaps(torch.autograd.Function):
         return terms[0] if len(terms) == 1 else terms[0] + terms[1]
 
 
-def _check_inside(points: Tensor, grid: Grid) -> None:
-    outside = ~grid.contains(points.detach(), tolerance=_OUTSIDE_TOLERANCE)
+def _check_inside(points: Tensor, index: Tensor, grid: Grid) -> None:
+    """Raise ``ValueError`` naming a point of ``points`` ``(V, 3)`` or ``(B, V, 3)`` (world;
+    ``index``, their node indices) outside the grid's box (:meth:`Grid.contains`)."""
+    index = index.detach()
+    outside = ~grid.contains_index(index, _OUTSIDE_TOLERANCE + grid.world_rounding(index.dtype))
     if bool(outside.any()):
         first = tuple(int(i) for i in outside.nonzero()[0])
         low = grid.origin

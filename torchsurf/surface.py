@@ -1030,22 +1030,23 @@ class ImplicitSurface(nn.Module):
         """``phi``, unless it was modified in place or replaced after the normals and weight
         were derived from it (they would then belong to another surface), or made to require
         grad after them (they would then be outside its graph, and its gradient would miss their part)."""
+        phi = self.phi  # once: a buffer's read goes through nn.Module.__getattr__
         if not torch.compiler.is_compiling():
-            refuse_vmapped_phi(self.phi, type(self).__name__)  # stack_module_state's phis
+            refuse_vmapped_phi(phi, type(self).__name__)  # stack_module_state's phis
         # traced too (no host read); torch.export swaps every buffer for a fake of its own
-        if self.phi is not self.__dict__.get("_phi_assembled") and not exporting():
+        if phi is not self.__dict__.get("_phi_assembled") and not exporting():
             raise RuntimeError(
                 "phi was replaced after this surface was built (assigned, or swapped in by "
                 "torch.func.functional_call): its normals, weight and band belong to the former "
                 "phi; build a new surface from the new phi, ImplicitSurface(phi, grid) (in a "
                 "model's forward, to learn or swap phi: the surface is differentiable in it)")
         if torch.compiler.is_compiling():
-            return self.phi
+            return phi
         source = self.__dict__.get("_phi_source")
-        changed = self.phi._version != self._phi_version
+        changed = phi._version != self._phi_version
         if not changed and source is not None and source[0]._version != source[1]:
-            view = source[0].to(dtype=self.phi.dtype, device=self.phi.device)
-            changed = not torch.equal(view, self.phi)  # or the rest of its base was
+            view = source[0].to(dtype=phi.dtype, device=phi.device)
+            changed = not torch.equal(view, phi)  # or the rest of its base was
             if not changed:
                 self._phi_source = (source[0], source[0]._version)
         if changed:
@@ -1054,13 +1055,13 @@ class ImplicitSurface(nn.Module):
                 "weight belong to the former values; build a new surface from the new phi "
                 "(or pass phi.clone() to keep a phi you will change)" + _ddp_hint()
             )
-        if self.phi.requires_grad and not self._phi_required_grad:
+        if phi.requires_grad and not self._phi_required_grad:
             raise RuntimeError(
                 "phi was made to require grad after this surface was built: its normals and "
                 "weight are not in phi's graph, and phi's gradient would miss their part; call "
                 "phi.requires_grad_() before building the surface (or build a new one)"
             )
-        return self.phi
+        return phi
 
     def hessian(self) -> Tensor:
         """Second derivatives of ``phi``, ``(B, 6, D, H, W)`` in the order xx, yy, zz, xy, xz, yz.
@@ -1182,10 +1183,11 @@ def check_data(value: object, name: str, surface: object, channels: int | None =
     """
     surface = check_surface(surface)
     volume = surface.check_field(value, name, channels)
-    if volume.dtype != surface.phi.dtype or volume.device != surface.phi.device:
+    phi = surface.phi
+    if volume.dtype != phi.dtype or volume.device != phi.device:
         raise MismatchError(
             f"{name} has dtype {volume.dtype} on {volume.device} but surface has "
-            f"{surface.phi.dtype} on {surface.phi.device}; move one of them with .to()"
+            f"{phi.dtype} on {phi.device}; move one of them with .to()"
         )
     return volume
 
