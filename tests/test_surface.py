@@ -264,7 +264,7 @@ def test_a_phi_written_in_place_under_torch_distributed_names_ddps_buffer_broadc
         pytest.skip("torch.distributed with gloo is not available")
     grid = Grid.cube(12, bound=1.5)
     surface = ImplicitSurface(sdf.sphere(grid, 1.0), grid)
-    surface.phi.add_(0.0)
+    surface.phi.add_(0.01)  # another rank's phi
     with pytest.raises(RuntimeError, match=r"phi\)$|a phi you will change\)$"):
         surface.hessian()  # no process group: no word of DDP
     dist.init_process_group("gloo", init_method=f"file://{tmp_path / 'store'}", rank=0,
@@ -275,6 +275,38 @@ def test_a_phi_written_in_place_under_torch_distributed_names_ddps_buffer_broadc
             surface.hessian()
     finally:
         dist.destroy_process_group()
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_a_phi_written_with_its_own_values_is_kept(dtype):
+    """An averaged model's buffers (AveragedModel(use_buffers=True)) and DDP's broadcast write
+    a submodule surface's phi in place with the values it held: the surface refused it as
+    modified ('build a new surface'). Values that differ are refused as before, moved ones
+    too."""
+    from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
+
+    grid = Grid((12, 13, 14), 0.3, (-1.65, -1.8, -1.95))
+    phi = sdf.sphere(grid, 0.7, center=(0.05, 0.0, -0.1), dtype=dtype)
+    phi[0, 0, 0, 0, 0] = -0.0
+    original = phi.clone()
+    model = torch.nn.ModuleDict({"surface": ImplicitSurface(phi, grid)})
+    u = torch.rand(1, 1, *grid.shape, generator=torch.Generator().manual_seed(1), dtype=dtype)
+    expected = laplace_beltrami(u, model["surface"])
+    averaged = AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(0.9), use_buffers=True)
+    averaged.update_parameters(model)
+    assert averaged.module["surface"].phi._version > 0
+    assert torch.equal(laplace_beltrami(u, averaged.module["surface"]), expected)
+    surface = model["surface"]
+    surface.phi[0, 0, 0, 0, 0] = 0.0  # equal to -0.0
+    assert torch.equal(laplace_beltrami(u, surface), expected)
+    changes = (lambda p: p.copy_(p.flip(2)), lambda p: p.copy_(p.roll(1, 4)),
+               lambda p: p.view(-1)[100].add_(1e-3))
+    for change in changes:
+        surface.phi.copy_(original)  # its own values again: kept
+        assert torch.equal(laplace_beltrami(u, surface), expected)
+        change(surface.phi)
+        with pytest.raises(RuntimeError, match="modified in place"):
+            laplace_beltrami(u, surface)
 
 
 def test_plane_exact_at_every_node():
