@@ -7,7 +7,7 @@ import warnings
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager, nullcontext
 from contextvars import ContextVar
-from typing import TYPE_CHECKING, TypeVar
+from typing import TYPE_CHECKING, NamedTuple, TypeVar
 
 import numpy as np
 import torch
@@ -246,6 +246,95 @@ FLAT_SAMPLES = 4096
 """At most this many node pairs across S are read for :func:`_warn_flat_at_surface`."""
 
 
+class _Pairs(NamedTuple):
+    """Nodes next to S that :func:`_warn_flat_at_surface` reads, each with its neighbour one node
+    towards S along the axis of the normal's largest component; every field ``(M,)``, in the
+    order of the nodes (so by batch entry). Indices are into ``phi`` flattened."""
+
+    entry: Tensor
+    """The node's batch entry, long."""
+    node: Tensor
+    """The node's index, long."""
+    step: Tensor
+    """``node + step`` is the neighbour towards S, long (``±`` the axis's stride)."""
+    ahead: Tensor
+    """How many nodes lie beyond the node in the direction of ``step``, long."""
+    behind: Tensor
+    """How many lie beyond it the other way, long."""
+    along: Tensor
+    """The normal's component on the axis, phi's dtype."""
+
+
+def _sampled_crossing(crossing: Tensor) -> Tensor:
+    """The indices into ``crossing`` ``(B, 1, D, H, W)`` flattened of its true nodes, ``(M,)``
+    long, ascending: up to :data:`FLAT_SAMPLES` of each entry's, as an even stride over them (a
+    stride over the batch left a small entry beside large ones too few to judge)."""
+    nodes = crossing.reshape(-1).nonzero()[:, 0]
+    if len(nodes) < 2 * FLAT_SAMPLES:  # no entry holds enough to stride over
+        return nodes
+    entry = nodes // crossing[0].numel()
+    counts = torch.bincount(entry, minlength=crossing.shape[0])
+    first = torch.cumsum(counts, 0) - counts
+    rank = torch.arange(len(nodes), device=nodes.device) - first[entry]
+    return nodes[rank % (counts // FLAT_SAMPLES).clamp_min(1)[entry] == 0]
+
+
+def _pairs_across(phi: Tensor, nodes: Tensor, normal: Tensor) -> _Pairs:
+    """:class:`_Pairs` of ``nodes`` ``(M,)`` (indices into ``phi`` ``(B, 1, D, H, W)``
+    flattened) and their normals ``(B, 3, D, H, W)``: the axis of each normal's largest
+    component, and the step along it towards S (the normal's way outside S, against it
+    inside)."""
+    depth, height, width = phi.shape[2:]
+    volume = depth * height * width
+    entry = nodes // volume
+    channels = torch.arange(3, device=nodes.device) * volume
+    n = torch.take(normal, (nodes + 2 * volume * entry)[:, None] + channels)  # (M, 3): x, y, z
+    axis = n.abs().argmax(dim=1)
+    along = n.gather(1, axis[:, None])[:, 0]
+    inside = torch.take(phi, nodes) < 0
+    towards = inside == (along > 0)
+    stride, size = torch.tensor([[1, width, height * width], [width, height, depth]],
+                                device=nodes.device)[:, axis]
+    coordinate = nodes // stride % size  # an entry's volume is a multiple of stride * size
+    last = size - 1 - coordinate
+    return _Pairs(entry=entry, node=nodes, step=torch.where(towards, stride, -stride),
+                  ahead=torch.where(towards, last, coordinate),
+                  behind=torch.where(towards, coordinate, last), along=along)
+
+
+def _entry_spans(entry: Tensor, batch: int) -> list[slice]:
+    """Each batch entry's run of ``entry`` ``(M,)`` (ascending): its elements' slice."""
+    if batch == 1:
+        return [slice(0, len(entry))]
+    ends = torch.cumsum(torch.bincount(entry, minlength=batch), 0).tolist()
+    return [slice(start, end) for start, end in zip([0, *ends[:-1]], ends, strict=True)]
+
+
+def _count_per_entry(masks: Tensor, entry: Tensor, batch: int) -> Tensor:
+    """The true elements of each of ``masks`` ``(G, M, ...)`` per batch entry (``entry``
+    ``(M,)``): ``(G, batch)`` long."""
+    per_node = masks.reshape(len(masks), len(entry), -1).sum(dim=2)
+    if batch == 1:
+        return per_node.sum(dim=1, keepdim=True)
+    return per_node.new_zeros(len(masks), batch).index_add_(1, entry, per_node)
+
+
+def _reduce_per_entry(values: Tensor, entry: Tensor, batch: int, how: str) -> Tensor:
+    """``amin`` or ``amax`` (``how``) of ``values`` ``(M, k)`` per batch entry: ``(batch,)``;
+    an entry of no elements gets ``values``' own extreme's opposite (never read)."""
+    reduce = torch.amin if how == "amin" else torch.amax
+    per_node = reduce(values, dim=1)
+    if batch == 1:
+        return reduce(per_node, dim=0, keepdim=True)
+    return per_node.new_zeros(batch).scatter_reduce_(0, entry, per_node, how, include_self=False)
+
+
+def _lower_median(values: Tensor, mask: Tensor, count: int) -> Tensor:
+    """What ``values[mask].median()`` is (the lower middle value), ``count`` being
+    ``mask.sum()`` (at least 1) and every value of ``mask`` finite: 0-d."""
+    return torch.where(mask, values, math.inf).flatten().kthvalue((count + 1) // 2).values
+
+
 def _warn_flat_at_surface(phi: Tensor, crossing: Tensor, grad_norm: Tensor, floor: Tensor,
                           normal: Tensor, spacing: float) -> None:
     """Warn when ``phi`` ``(B, 1, D, H, W)`` flattens at S (``phi = g(d)`` with ``g'(0) = 0``,
@@ -260,49 +349,43 @@ def _warn_flat_at_surface(phi: Tensor, crossing: Tensor, grad_norm: Tensor, floo
     and with its neighbour away from S on that axis, whose ``|phi|`` exceeds the node's by
     ``|grad phi| h |n_a|`` for a distance (warned when the median share is below
     :data:`SATURATION_RATIO`). ``floor``: ``(B, 1, 1, 1, 1)``, the least ``|grad phi|`` the
-    distances divide by."""
-    nodes = crossing[:, 0].nonzero()  # (M, 4): b, k, j, i, sorted by b
+    distances divide by. Both checks read the same pairs (those reaching out of the box left
+    out), and each reads its counts and its medians for the whole batch at once."""
+    nodes = _sampled_crossing(crossing)
     if len(nodes) == 0:
         return
-    # up to FLAT_SAMPLES of each entry's (a stride over the batch left a small entry beside
-    # large ones too few to judge)
-    counts = torch.bincount(nodes[:, 0], minlength=phi.shape[0])
-    first = torch.cumsum(counts, 0) - counts
-    rank = torch.arange(len(nodes), device=nodes.device) - first[nodes[:, 0]]
-    nodes = nodes[rank % (counts // FLAT_SAMPLES).clamp_min(1)[nodes[:, 0]] == 0]
-    b, k, j, i = nodes.unbind(1)
-    n = normal[b, :, k, j, i]  # (M, 3): x, y, z
-    axis = n.abs().argmax(dim=1)
-    along = n.gather(1, axis[:, None])[:, 0]
-    inside = phi[b, 0, k, j, i] < 0
-    step = torch.where(inside == (along > 0), 1, -1)  # towards S along the normal
-    other = nodes[:, 1:].clone()
-    other[torch.arange(len(nodes)), 2 - axis] += step  # x, y, z are dims i, j, k
-    shape = torch.tensor(phi.shape[2:], device=phi.device)
-    kept = ((other >= 0) & (other < shape)).all(dim=1)
-    b, nodes, other, along = b[kept], nodes[kept], other[kept], along[kept]
-    _warn_saturated(phi, b, nodes, other, along, grad_norm, spacing)
-    far = phi[b, 0, other[:, 0], other[:, 1], other[:, 2]]
-    near = phi[b, 0, nodes[:, 1], nodes[:, 2], nodes[:, 3]]
-    kept = (far < 0) != (near < 0)
-    if int(kept.sum()) < 8:
+    pairs = _pairs_across(phi, nodes, normal)
+    across = torch.where(pairs.ahead >= 1, pairs.node + pairs.step, pairs.node)  # in the box
+    ends = torch.stack((pairs.node, across), dim=1)  # (M, 2)
+    ends_phi, ends_norm = torch.take(phi, ends), torch.take(grad_norm, ends)
+    separated = (pairs.ahead >= 1) & ((ends_phi[:, 0] < 0) != (ends_phi[:, 1] < 0))
+    spans = _entry_spans(pairs.entry, phi.shape[0])
+    _warn_saturated(pairs, phi, ends_phi, ends_norm, separated, spans, spacing)
+    _warn_flat_pairs(pairs, ends_phi, ends_norm, separated, spans,
+                     torch.take(floor, pairs.entry), spacing)
+
+
+def _warn_flat_pairs(pairs: _Pairs, ends_phi: Tensor, ends_norm: Tensor, separated: Tensor,
+                     spans: list[slice], floor: Tensor, spacing: float) -> None:
+    """The first check of :func:`_warn_flat_at_surface`, per batch entry (``spans``, their
+    pairs): ``ends_phi`` and ``ends_norm`` ``(M, 2)``, phi and ``|grad phi|`` at each node and
+    its neighbour towards S; ``separated`` ``(M,)``, the pairs S separates; ``floor`` ``(M,)``,
+    the least ``|grad phi|`` of each pair's entry."""
+    distances = ends_phi.abs() / torch.maximum(ends_norm, floor[:, None])
+    ratio = (distances[:, 0] + distances[:, 1]) / (spacing * pairs.along.abs())
+    kept = separated & torch.isfinite(ratio)  # a normal with no component on its axis: 0 / 0
+    counts = _count_per_entry(kept[None], pairs.entry, len(spans))[0].tolist()
+    judged = [index for index, count in enumerate(counts) if count >= 8]
+    if not judged:
         return
-
-    def distance(values: Tensor, at: tuple[Tensor, ...]) -> Tensor:
-        norm = grad_norm[b, 0, at[0], at[1], at[2]]
-        return values.abs() / torch.maximum(norm, floor[b, 0, 0, 0, 0])
-
-    total = (distance(near, nodes[:, 1:].unbind(1)) + distance(far, other.unbind(1)))
-    ratio = total / (spacing * along.abs())
-    kept = kept & torch.isfinite(ratio)  # a normal with no component on its axis: 0 / 0
-    flat = []  # per batch entry: a flat entry beside distances is not averaged away
-    for index in range(phi.shape[0]):
-        mine = ratio[kept & (b == index)]
-        if len(mine) >= 8 and float(mine.median()) < FLAT_RATIO:
-            flat.append((index, float(mine.median())))
+    medians = torch.stack([_lower_median(ratio[spans[index]], kept[spans[index]], counts[index])
+                           for index in judged]).tolist()
+    # per batch entry: a flat entry beside distances is not averaged away
+    flat = [(index, median) for index, median in zip(judged, medians, strict=True)
+            if median < FLAT_RATIO]
     if flat:
         share = min(share for _, share in flat)
-        which = _entries_named([index for index, _ in flat], phi.shape[0])
+        which = _entries_named([index for index, _ in flat], len(spans))
         warnings.warn(
             f"phi{which}: its distances next to S (|phi| / |grad phi|) add up, across S, to "
             f"{', '.join(f'{s:.2f}' for _, s in flat)} of the nodes' spacing along the normal "
@@ -313,49 +396,34 @@ def _warn_flat_at_surface(phi: Tensor, crossing: Tensor, grad_norm: Tensor, floo
         )
 
 
-def _warn_saturated(phi: Tensor, b: Tensor, nodes: Tensor, across: Tensor, along: Tensor,
-                    grad_norm: Tensor, spacing: float) -> None:
-    """The second check of :func:`_warn_flat_at_surface`, per batch entry: ``nodes`` ``(M, 4)``
-    next to S, ``across`` ``(M, 3)`` their neighbours towards S along the normal's axis
-    (``along``, its component there); the neighbours beyond each node of a pair that S
-    separates, away from S, are read, on both sides of S."""
-    shape = torch.tensor(phi.shape[2:], device=phi.device)
-    sign = phi[b, 0, nodes[:, 1], nodes[:, 2], nodes[:, 3]] < 0
-    separated = sign != (phi[b, 0, across[:, 0], across[:, 1], across[:, 2]] < 0)
-    growths, entries, insides, slopes = [], [], [], []
-    for near, toward, kept in ((nodes[:, 1:], across, torch.ones_like(sign)),
-                               (across, nodes[:, 1:], separated)):
-        outer = 2 * near - toward
-        kept = kept & ((outer >= 0) & (outer < shape)).all(dim=1)
-        k, j, i = near[kept].unbind(1)
-        beyond, entry = outer[kept], b[kept]
-        values = phi[entry, 0, k, j, i]
-        far = phi[entry, 0, beyond[:, 0], beyond[:, 1], beyond[:, 2]].abs()
-        growth = (far - values.abs()) / (grad_norm[entry, 0, k, j, i] * spacing
-                                         * along[kept].abs())
-        finite = torch.isfinite(growth)  # a normal with no component on its axis: 0 / 0
-        growths.append(growth[finite])
-        entries.append(entry[finite])
-        insides.append((values < 0)[finite])
-        slopes.append((grad_norm[entry, 0, k, j, i] * along[kept].abs())[finite])
-    growth, entry, inside = torch.cat(growths), torch.cat(entries), torch.cat(insides)
-    slope = torch.cat(slopes)
-    flattened = []
-    for index in range(phi.shape[0]):
-        mine = entry == index
-        if bool(mine.any()):  # a node whose slope along the axis collapsed (a sphere's
-            # centre: the weight check warns of it) says nothing (radius 0.6 h: -2e5)
-            mine &= slope >= MINIMUM_WEIGHT * torch.quantile(slope[mine], 0.5)
-        share = _saturation_share(growth[mine], inside[mine])
-        if share is not None and share < SATURATION_RATIO:
-            flattened.append((index, share))
+def _warn_saturated(pairs: _Pairs, phi: Tensor, ends_phi: Tensor, ends_norm: Tensor,
+                    separated: Tensor, spans: list[slice], spacing: float) -> None:
+    """The second check of :func:`_warn_flat_at_surface`, per batch entry (``spans``, their
+    pairs) of ``phi`` ``(B, 1, D, H, W)``: ``ends_phi`` and ``ends_norm`` ``(M, 2)``, phi and
+    ``|grad phi|`` at each node and its neighbour towards S; ``separated`` ``(M,)``, the pairs
+    S separates. The neighbours beyond each node of a pair, away from S (beyond the node: any
+    pair's; beyond its neighbour: a separated pair's), are read, on both sides of S."""
+    beyond = torch.stack((pairs.node - pairs.step, pairs.node + 2 * pairs.step), dim=1)
+    kept = torch.stack(((pairs.ahead >= 1) & (pairs.behind >= 1),
+                        separated & (pairs.ahead >= 2)), dim=1)  # (M, 2), in the box
+    far = torch.take(phi, torch.where(kept, beyond, pairs.node[:, None])).abs()
+    growth = (far - ends_phi.abs()) / (ends_norm * spacing * pairs.along.abs()[:, None])
+    kept &= torch.isfinite(growth)  # a normal with no component on its axis: 0 / 0
+    slope = ends_norm * pairs.along.abs()[:, None]
+    mine = _steep_enough(slope, kept, pairs.entry, spans)
+    inside = ends_phi < 0
+    sides = torch.stack((mine & inside, mine & ~inside))
+    counts = _count_per_entry(sides, pairs.entry, len(spans)).T.tolist()  # (B, 2)
+    shares = _saturation_shares(growth, mine, sides, counts, spans)
+    flattened = [(index, share) for index, share in enumerate(shares)
+                 if share is not None and share < SATURATION_RATIO]
     if not flattened:
         return
-    shares = ", ".join(f"{share:.2f}" for _, share in flattened)
-    which = _entries_named([index for index, _ in flattened], phi.shape[0])
+    described = ", ".join(f"{share:.2f}" for _, share in flattened)
+    which = _entries_named([index for index, _ in flattened], len(spans))
     warnings.warn(
-        f"phi{which}: |phi| grows over the cell beyond the nodes next to S by {shares} of what "
-        "a distance's would: phi flattens away from S (as tanh(d / eps) does with eps "
+        f"phi{which}: |phi| grows over the cell beyond the nodes next to S by {described} of "
+        "what a distance's would: phi flattens away from S (as tanh(d / eps) does with eps "
         "below a cell or two), so the band's outer normals and weights are those of a "
         "nearly constant phi and the flows lose accuracy; make phi a distance near S "
         "first (torchsurf.sdf.redistance)",
@@ -363,23 +431,53 @@ def _warn_saturated(phi: Tensor, b: Tensor, nodes: Tensor, across: Tensor, along
     )
 
 
+def _steep_enough(slope: Tensor, kept: Tensor, entry: Tensor, spans: list[slice]) -> Tensor:
+    """``kept`` ``(M, 2)`` less the samples whose ``slope`` (``|grad phi| |n_a|``) is below
+    :data:`MINIMUM_WEIGHT` of its entry's median (``torch.quantile``'s): a node whose slope
+    along the axis collapsed (a sphere's centre: the weight check warns of it) says nothing
+    (radius 0.6 h: -2e5). Only entries whose least slope is below twice that fraction of their
+    largest can lose any, and only theirs are read."""
+    batch = len(spans)
+    lowest = _reduce_per_entry(torch.where(kept, slope, math.inf), entry, batch, "amin")
+    highest = _reduce_per_entry(torch.where(kept, slope, -math.inf), entry, batch, "amax")
+    spread = (lowest < 2 * MINIMUM_WEIGHT * highest).nonzero()[:, 0].tolist()
+    if not spread:
+        return kept
+    kept = kept.clone()
+    for index in spread:
+        mine, steep = kept[spans[index]], slope[spans[index]]
+        mine &= steep >= MINIMUM_WEIGHT * torch.quantile(steep[mine], 0.5)
+    return kept
+
+
+def _saturation_shares(growth: Tensor, mine: Tensor, sides: Tensor, counts: list[list[int]],
+                       spans: list[slice]) -> list[float | None]:
+    """Each entry's share for :func:`_warn_saturated` (``None`` below 8 samples): the larger of
+    the two sides' median ``growth`` (a side of fewer than 8 samples left out). A phi that
+    saturates flattens on both sides of S; a distance grows less only on one, towards a thin
+    part's axis (a tube a cell thick: inside 0 to 0.9, outside 1.05 to 1.16), and so does a phi
+    scaled along the normal (a plane's distance times ``exp(s x)``: less on one side by what it
+    grows more on the other). ``growth``, ``mine`` ``(M, 2)``; ``sides`` ``(2, M, 2)``, the
+    samples of ``mine`` inside S and outside; ``counts``, theirs per entry ``(B, 2)``."""
+    medians: list[Tensor] = []
+    owners: list[int] = []
+    for index, (span, (inner, outer)) in enumerate(zip(spans, counts, strict=True)):
+        judged = [(side, count) for side, count in zip(sides[:, span], (inner, outer), strict=True)
+                  if count >= 8]
+        if not judged and inner + outer >= 8:
+            judged = [(mine[span], inner + outer)]
+        medians += [_lower_median(growth[span], side, count) for side, count in judged]
+        owners += [index] * len(judged)
+    shares: list[float | None] = [None] * len(spans)
+    read = torch.stack(medians).tolist() if medians else []
+    for index, median in zip(owners, read, strict=True):
+        shares[index] = median if shares[index] is None else max(shares[index], median)
+    return shares
+
+
 def _entries_named(entries: list[int], batch: int) -> str:
     """`` (batch entries [...])`` naming ``entries`` in a batch of several, else nothing."""
     return "" if batch == 1 else f" (batch entries {entries})"
-
-
-def _saturation_share(growth: Tensor, inside: Tensor) -> float | None:
-    """One entry's share for :func:`_warn_saturated` (``None`` below 8 samples): the larger of
-    the two sides' medians (a side of fewer than 8 samples left out). A phi that saturates
-    flattens on both sides of S; a distance grows less only on one, towards a thin part's axis
-    (a tube a cell thick: inside 0 to 0.9, outside 1.05 to 1.16), and so does a phi scaled
-    along the normal (a plane's distance times ``exp(s x)``: less on one side by what it
-    grows more on the other)."""
-    medians = [float(growth[side].median()) for side in (inside, ~inside)
-               if int(side.sum()) >= 8]
-    if not medians:
-        return None if len(growth) < 8 else float(growth.median())
-    return max(medians)
 
 
 FACE_LAYERS = 2
@@ -415,22 +513,9 @@ def _warn_oblique_at_faces(crossing: Tensor, normal: Tensor) -> None:
     was 44% and 94% wrong over the 3-cell band at 25^3 and 49^3 (21% and 48% at two cells,
     1.4% and 0.2% at three; remeasured 2026-12-06, relative max). Read from the zero set, not
     from ``|phi| / W``, which is no distance where ``phi`` is none."""
-    hits = torch.zeros(crossing.shape[0], dtype=torch.long, device=crossing.device)
-    for axis in range(3):
-        dim = 4 - axis  # normal channel x, y, z <-> dims W, H, D
-        size = normal.shape[dim]
-        layers = min(FACE_LAYERS, size - 1)
-        component = normal[:, axis: axis + 1]
-        for layer in range(layers):
-            for node, inward in ((layer, layer + 1), (size - 1 - layer, size - 2 - layer)):
-                at = component.narrow(dim, node, 1)
-                # the component at the wall, half a cell beyond the outer nodes: S's curvature
-                # tilts the normals of nodes in from it (a sphere cut through its equator at
-                # the wall, whose nodes' normals lean 1.5 h / R out of the face's plane)
-                wall = (at + (layer + 0.5) * (at - component.narrow(dim, inward, 1))).abs()
-                oblique = ((wall > OBLIQUE_NORMAL) & (wall < PARALLEL_NORMAL)
-                           & crossing.narrow(dim, node, 1))
-                hits += oblique.flatten(1).sum(dim=1)
+    if not _reaches_faces(crossing):
+        return
+    hits = sum(_oblique_across(crossing, normal, axis) for axis in range(3))
     if bool(hits.any()):
         which = _entries_named(hits.nonzero().flatten().tolist(), crossing.shape[0])
         warnings.warn(
@@ -441,6 +526,48 @@ def _warn_oblique_at_faces(crossing: Tensor, normal: Tensor) -> None:
             "(Grid.cube's bound, mesh.fit_grid's margin)",
             RuntimeWarning, stacklevel=caller_stacklevel(),
         )
+
+
+def _face_layers(size: int) -> int:
+    """How many of an axis's outer layers of ``size`` nodes :func:`_warn_oblique_at_faces`
+    reads at each of its two faces."""
+    return min(FACE_LAYERS, size - 1)
+
+
+def _reaches_faces(crossing: Tensor) -> bool:
+    """Whether any node of ``crossing`` ``(B, 1, D, H, W)`` lies in the outer layers that
+    :func:`_warn_oblique_at_faces` reads (S kept off the faces: none, and nothing to read)."""
+    inner = crossing
+    for dim in (2, 3, 4):
+        layers = _face_layers(crossing.shape[dim])
+        inner = inner.narrow(dim, layers, max(crossing.shape[dim] - 2 * layers, 0))
+    return bool(crossing.sum() != inner.sum())
+
+
+def _oblique_across(crossing: Tensor, normal: Tensor, axis: int) -> Tensor:
+    """The nodes of ``crossing`` ``(B, 1, D, H, W)`` in the outer layers at the two faces across
+    ``axis`` (normal channel x, y, z <-> dims W, H, D) whose normal's component across them,
+    extrapolated to the wall, is oblique (:func:`_warn_oblique_at_faces`), counted per batch
+    entry: ``(B,)`` long. The layers of both faces are read at once, with each layer's inward
+    neighbours."""
+    dim = 4 - axis
+    size = normal.shape[dim]
+    layers = range(_face_layers(size))  # 0: the outermost
+    nodes = [*layers, *(size - 1 - layer for layer in layers)]
+    inward = [*(layer + 1 for layer in layers), *(size - 2 - layer for layer in layers)]
+    index = torch.tensor([nodes, inward], device=normal.device)
+    # the wall lies layer + 1/2 cells beyond the nodes of each layer
+    beyond = torch.tensor([layer + 0.5 for layer in layers] * 2, dtype=normal.dtype,
+                          device=normal.device).view([-1 if d == dim else 1 for d in range(5)])
+    component = normal[:, axis: axis + 1]
+    at = component.index_select(dim, index[0])
+    # the component at the wall, half a cell beyond the outer nodes: S's curvature tilts the
+    # normals of nodes in from it (a sphere cut through its equator at the wall, whose nodes'
+    # normals lean 1.5 h / R out of the face's plane)
+    wall = (at + beyond * (at - component.index_select(dim, index[1]))).abs()
+    oblique = ((wall > OBLIQUE_NORMAL) & (wall < PARALLEL_NORMAL)
+               & crossing.index_select(dim, index[0]))
+    return oblique.flatten(1).sum(dim=1)
 
 
 def _cells_to_crossing(phi: Tensor) -> Tensor:
