@@ -301,13 +301,12 @@ def test_each_entry_is_held_to_its_own_range_and_a_call_warns_once():
     phi = ts.sdf.sphere(grid, 0.8)
     noise = torch.rand((2, 1, *grid.shape), generator=torch.Generator().manual_seed(0))
     z = grid.points()[..., 2][None, None].float()
-    flow = ts.HeatFlow(0.05, method="euler", steps=14)
     batches = [(ts.ImplicitSurface(phi, grid), torch.cat([noise[:1], 10 * z])),
                (ts.ImplicitSurface(torch.cat([phi, 0.3 * torch.tanh(phi / 0.3)]), grid), noise)]
     for surface, u0 in batches:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            flow(u0, surface)
+            ts.HeatFlow(0.05, method="euler", steps=14)(u0, surface)  # a flow warns once
         assert len(_range_warnings(caught)) == 1, [str(w.message)[:80] for w in caught]
         assert _range_warnings(caught)[0].filename == __file__
 
@@ -360,7 +359,7 @@ def test_the_semigroup_warns_when_it_leaves_its_range_too():
     assert float(u.max()) > 1.25
     pair = ts.ImplicitSurface(torch.cat([surface.phi, surface.phi]), surface.grid)
     with pytest.warns(RuntimeWarning, match="method='chebyshev'") as caught:
-        flow(torch.cat([u0, u0]), pair)
+        ts.HeatFlow(60 * surface.spacing**2, method="chebyshev")(torch.cat([u0, u0]), pair)
     assert [w.filename for w in _range_warnings(caught)] == [__file__]
 
 
@@ -464,3 +463,28 @@ def test_learned_per_channel_diffusivities_of_equal_values_run_together(monkeypa
     assert runs == [[[0, 2], [1]]]
     grads = torch.autograd.grad(out[:, 0].sum() + 2 * out[:, 2].sum(), flow.diffusivity.raw)[0]
     assert grads[1] == 0 and grads[0] != 0 and grads[2] != 0 and grads[0] != grads[2]
+
+
+def test_a_training_loop_warns_of_its_steps_once():
+    """A learned time's steps warned at every call with that call's numbers (a step of 0.0567,
+    then 0.0557, ...), which Python's filter, once per text and line, printed each iteration:
+    100 warnings in 50 iterations of Euler beyond its stable step. Each kind is now given once
+    a flow."""
+    grid = ts.Grid.cube(20, 1.5)
+    x, y, z = grid.points().unbind(-1)
+    surface = ts.ImplicitSurface((x**2 + y**2 + z**2 - 0.8)[None, None], grid)
+    clean = (z / (x**2 + y**2 + z**2).sqrt().clamp(min=1e-6))[None, None]
+    generator = torch.Generator().manual_seed(3)
+    flow = ts.HeatFlow(10 * grid.spacing**2, method="euler", steps=3, learn_time=True)
+    optimizer = torch.optim.Adam(flow.parameters(), lr=0.02)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("default")
+        for _ in range(6):
+            noisy = clean + 0.1 * torch.randn(clean.shape, generator=generator)
+            loss = ts.nn.band_mse(flow(noisy, surface), clean, surface)
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+    texts = [str(w.message) for w in caught]
+    assert sum("exceeds the stable explicit step" in text for text in texts) == 1, texts
+    assert sum("left the range of u0" in text for text in texts) <= 1, texts

@@ -399,9 +399,23 @@ def check_before_equilibrium(end: float, rho: float, diagonal_cells: float) -> N
         )
 
 
+def first_warning(warned: set[str] | None, kind: str) -> bool:
+    """Whether to give a warning of ``kind``: always without ``warned``; else once, the kinds
+    given kept in ``warned`` (a flow's own: its messages hold the call's numbers, which a
+    learned time changes at every call, so Python's filter, once per text and line, printed
+    one a training iteration)."""
+    if warned is None:
+        return True
+    if kind in warned:
+        return False
+    warned.add(kind)
+    return True
+
+
 def plan_steps(method: str, system: System, end: float, steps: int | None,
                band_cells: float = 3.0, diagonal_cells: float | None = None,
-               step_size: float | None = None, warn: bool = True) -> Plan:
+               step_size: float | None = None, warn: bool = True,
+               warned: set[str] | None = None) -> Plan:
     """The steps of ``method`` over ``[0, end]``; raises before work when they are absurd.
 
     ``steps`` given: ``end / steps`` (explicit steps above the stable step warn; an adaptive
@@ -422,7 +436,8 @@ def plan_steps(method: str, system: System, end: float, steps: int | None,
     Refused (``ValueError``): more than :data:`MAX_STEPS` steps or evaluations of the rate; for
     a linear flow, a time above :data:`EQUILIBRIUM_CROSSINGS` times the time its diffusion
     takes to cross ``diagonal_cells`` cells. Warned (unless not ``warn``: a plan made only
-    to bound another's steps): more than :data:`LONG_RUN` evaluations.
+    to bound another's steps): more than :data:`LONG_RUN` evaluations. ``warned``: the kinds of
+    warning the caller's flow gave already, each given once (:func:`first_warning`).
     """
     rho = system.spectral_radius
     per_rho = 1.0 / rho if rho > 0 else math.inf  # a time per unit of dt rho
@@ -459,7 +474,8 @@ def plan_steps(method: str, system: System, end: float, steps: int | None,
     else:  # an adaptive torchdiffeq method chooses its own steps
         count = None
     if steps is not None:
-        if method in ("euler", "heun") and end / steps > system.stable_step * (1 + 1e-6):
+        if (method in ("euler", "heun") and end / steps > system.stable_step * (1 + 1e-6)
+                and first_warning(warned, "unstable step")):
             warnings.warn(
                 f"steps={steps}: a step of {end / steps:.3g} exceeds the stable explicit step "
                 f"{system.stable_step:.3g} of this surface's operator (2 / rho); the flow may "
@@ -467,15 +483,17 @@ def plan_steps(method: str, system: System, end: float, steps: int | None,
                 RuntimeWarning, stacklevel=caller_stacklevel(),
             )
     if steps is not None and method in IMPLICIT and end / steps * rho > 12.0 * band_cells**2:
-        warnings.warn(
-            f"steps={steps}: each {method} step outlasts the time the diffusion takes to cross "
-            f"the {band_cells:.1f}-cell band ({12.0 * band_cells**2 / rho:.3g}), whose ring is "
-            f"re-extended only between steps; expect errors from the band's edge. Use steps >= "
-            f"{math.ceil(end * rho / (12.0 * band_cells**2))} or a wider band_width",
-            RuntimeWarning, stacklevel=caller_stacklevel(),
-        )
+        if first_warning(warned, "step outlasting the band"):
+            warnings.warn(
+                f"steps={steps}: each {method} step outlasts the time the diffusion takes to cross "
+                f"the {band_cells:.1f}-cell band ({12.0 * band_cells**2 / rho:.3g}), whose ring is "
+                f"re-extended only between steps; expect errors from the band's edge. Use steps >= "
+                f"{math.ceil(end * rho / (12.0 * band_cells**2))} or a wider band_width",
+                RuntimeWarning, stacklevel=caller_stacklevel(),
+            )
     elif (steps is not None and method in IMPLICIT and end / steps * rho > RKC_REFRESHED_STEP
-          and band_cells <= HELD_RING_CELLS):  # a band that never holds its ring
+          and band_cells <= HELD_RING_CELLS  # a band that never holds its ring
+          and first_warning(warned, "step holding the ring")):
         warnings.warn(
             f"steps={steps}: each {method} step holds the ring of this {band_cells:.1f}-cell "
             f"band, re-extended before it, for {end / steps * rho:.3g} / rho, longer than the "
@@ -501,7 +519,8 @@ def plan_steps(method: str, system: System, end: float, steps: int | None,
             f"of the rate (more than {MAX_STEPS}): {advice}; time * rho = {end * rho:.3g} "
             f"(rho = {rho:.3g}, the operator's bound)"
         )
-    if warn and evaluations is not None and evaluations > LONG_RUN:
+    if (warn and evaluations is not None and evaluations > LONG_RUN
+            and first_warning(warned, "long run")):
         warnings.warn(
             f"time={end:g} needs {count} steps of method={method!r}, {evaluations} evaluations "
             f"of the rate (more than {LONG_RUN}; time * rho = {end * rho:.3g}); a diffusion "

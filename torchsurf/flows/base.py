@@ -84,6 +84,7 @@ from ._integrators import (
     System,
     check_method,
     check_options,
+    first_warning,
     held_ring_bound,
     integrate,
     plan_steps,
@@ -217,6 +218,8 @@ def _warn_range_left(flow: Flow, excess: float, plan: Plan | str) -> None:
     """The warning of a flow that keeps ``u`` within the range of ``u0`` and left it by
     ``excess`` of that range (more than :data:`RANGE_SLACK`); ``plan`` its steps, or what it
     did in words."""
+    if not first_warning(flow._warned_kinds(), "range left"):
+        return
     steps = plan if isinstance(plan, str) else _steps_taken(plan)
     remedy = ("a finer grid" if flow.method in ("rkc", "chebyshev")
               else "method='rkc' (stable there in every case measured) or a finer grid")
@@ -710,6 +713,13 @@ class Flow(nn.Module):
         ``torch.compile`` traces (:meth:`Positive.share_of_bound`)."""
         return self.time_value.share_of_bound()
 
+    def _warned_kinds(self) -> set[str] | None:
+        """The kinds of warning this flow gave (:func:`~torchsurf.flows._integrators.first_warning`):
+        each once a flow. ``None`` (every one given) while ``torch.compile`` traces."""
+        if torch.compiler.is_compiling():
+            return None
+        return self.__dict__.setdefault("_warned", set())
+
     def _checkpointing(self, u0: Tensor, surface: ImplicitSurface, system: System) -> bool:
         if self.checkpoint != "auto":
             return self.checkpoint
@@ -818,7 +828,10 @@ class Flow(nn.Module):
         Warns:
             RuntimeWarning: a flow that keeps ``u`` within the range of ``u0``
                 (:attr:`keeps_range`) left it by more than :data:`RANGE_SLACK` of it: unstable
-                steps on that surface (docs/band.md, section 5).
+                steps on that surface (docs/band.md, section 5). This and the warnings of the
+                steps' plan (an unstable or too long step, a long run) are each given once a
+                flow: their numbers change with a learned time, and Python's filter, once per
+                text, printed one a training iteration.
         """
         times = list(times) if isinstance(times, Iterator) else times  # read once
         run_as_is_first(self, u0, surface, times, **inputs)
@@ -879,7 +892,7 @@ class Flow(nn.Module):
         plan = plan_steps(self.method, system, end, self.steps,
                           band_cells=width / surface.spacing,
                           diagonal_cells=_diagonal_cells(surface),
-                          step_size=self.options.get("step_size"))
+                          step_size=self.options.get("step_size"), warned=self._warned_kinds())
         schedule = self._schedule(end, wanted, None)
         schedule.step = plan.step
         # torchdiffeq's equal steps do not stop at requested times: its count stands
