@@ -715,10 +715,12 @@ class Flow(nn.Module):
 
     def _warned_kinds(self) -> set[str] | None:
         """The kinds of warning this flow gave (:func:`~torchsurf.flows._integrators.first_warning`):
-        each once a flow. ``None`` (every one given) while ``torch.compile`` traces."""
+        each once a flow (a channel group's copy: the flow's own). ``None`` (every one given)
+        while ``torch.compile`` traces."""
         if torch.compiler.is_compiling():
             return None
-        return self.__dict__.setdefault("_warned", set())
+        owner = self.__dict__.get("_part_of", self)
+        return owner.__dict__.setdefault("_warned", set())
 
     def _checkpointing(self, u0: Tensor, surface: ImplicitSurface, system: System) -> bool:
         if self.checkpoint != "auto":
