@@ -243,7 +243,9 @@ cells, against 1e-3 on the distance. Not warned: a phi that saturates on one sid
 thin part's axis; nor a distance truncated beyond the cell next to S."""
 
 FLAT_SAMPLES = 4096
-"""At most this many node pairs across S are read for :func:`_warn_flat_at_surface`."""
+"""Each batch entry's node pairs across S are read for :func:`_warn_flat_at_surface` at an
+even stride of ``count // FLAT_SAMPLES`` (all of them below twice this many): between this many
+and twice this many of an entry with more."""
 
 
 class _Pairs(NamedTuple):
@@ -267,7 +269,7 @@ class _Pairs(NamedTuple):
 
 def _sampled_crossing(crossing: Tensor) -> Tensor:
     """The indices into ``crossing`` ``(B, 1, D, H, W)`` flattened of its true nodes, ``(M,)``
-    long, ascending: up to :data:`FLAT_SAMPLES` of each entry's, as an even stride over them (a
+    long, ascending: each entry's at an even stride (:data:`FLAT_SAMPLES`) over them (a
     stride over the batch left a small entry beside large ones too few to judge)."""
     nodes = crossing.reshape(-1).nonzero()[:, 0]
     if len(nodes) < 2 * FLAT_SAMPLES:  # no entry holds enough to stride over
@@ -321,7 +323,7 @@ def _count_per_entry(masks: Tensor, entry: Tensor, batch: int) -> Tensor:
 
 def _reduce_per_entry(values: Tensor, entry: Tensor, batch: int, how: str) -> Tensor:
     """``amin`` or ``amax`` (``how``) of ``values`` ``(M, k)`` per batch entry: ``(batch,)``;
-    an entry of no elements gets ``values``' own extreme's opposite (never read)."""
+    an entry of no elements gets 0."""
     reduce = torch.amin if how == "amin" else torch.amax
     per_node = reduce(values, dim=1)
     if batch == 1:
@@ -331,8 +333,9 @@ def _reduce_per_entry(values: Tensor, entry: Tensor, batch: int, how: str) -> Te
 
 def _lower_median(values: Tensor, mask: Tensor, count: int) -> Tensor:
     """What ``values[mask].median()`` is (the lower middle value), ``count`` being
-    ``mask.sum()`` (at least 1) and every value of ``mask`` finite: 0-d."""
-    return torch.where(mask, values, math.inf).flatten().kthvalue((count + 1) // 2).values
+    ``mask.sum()`` (at least 1) and every value of ``mask`` finite: 0-d (a zero as ``0.0``,
+    never ``-0.0``: zeros of both signs tie)."""
+    return torch.where(mask, values, math.inf).flatten().kthvalue((count + 1) // 2).values + 0.0
 
 
 def _warn_flat_at_surface(phi: Tensor, crossing: Tensor, grad_norm: Tensor, floor: Tensor,
