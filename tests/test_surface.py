@@ -221,6 +221,7 @@ def test_a_copy_of_a_surface_whose_phi_requires_grad_keeps_phi_s_gradient(copy_o
                   else pickle.loads(pickle.dumps(surface)))
     computed = [w for w in caught if "phi is computed from other tensors" in str(w.message)]
     assert len(computed) == (layout == "bricks")
+    assert all(w.filename == __file__ for w in computed)  # not copy.py's line
     u = torch.rand(1, 1, *grid.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
     if layout == "bricks":
         u = surface.layout.from_dense(u)

@@ -633,6 +633,11 @@ def _same_values(phi: Tensor, fingerprint: Tensor | None) -> bool:
             and bool(torch.equal(_fingerprint(phi), fingerprint)))
 
 
+def _article(name: str) -> str:
+    """``name`` with its indefinite article ("an ImplicitSurface", "a BrickSurface")."""
+    return f"{'an' if name[:1].lower() in 'aeiou' else 'a'} {name}"
+
+
 def _ddp_hint() -> str:
     """Where processes run together, what writes a module's buffers in place unasked."""
     distributed = torch.distributed
@@ -902,7 +907,7 @@ class ImplicitSurface(nn.Module):
             phi = self.phi
             if not phi.is_leaf:
                 warnings.warn(
-                    f"copying a {type(self).__name__} whose phi is computed from other tensors "
+                    f"copying {_article(type(self).__name__)} whose phi is computed from other tensors "
                     "(it has a graph): the copy's phi is a leaf of its own, and gradients "
                     "through the copy stop there, not at what phi was computed from (copied "
                     "parameters included); build the surface from them in forward instead",
