@@ -684,6 +684,27 @@ def test_a_diverged_torchdiffeq_run_names_its_steps_as_torchdiffeq_took_them():
         assert torch.isfinite(HeatFlow(time=end, method="rk4")(u, surface)).all()
 
 
+def test_an_unstable_torchdiffeq_step_given_by_steps_asks_for_more_steps():
+    """Its advice was options={'step_size': ...}, which is refused beside steps=."""
+    pytest.importorskip("torchdiffeq")
+    grid = ts.Grid.cube(16, 1.5)
+    surface = ts.ImplicitSurface(ts.sdf.sphere(grid, 0.9), grid)
+    u = torch.rand(1, 1, 16, 16, 16, generator=torch.Generator().manual_seed(0))
+    end = 20 * grid.spacing**2
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            HeatFlow(time=end, method="midpoint", steps=2)(u, surface)
+        except FloatingPointError:
+            pass
+    advice = [str(w.message) for w in caught if "midpoint step" in str(w.message)]
+    assert len(advice) == 1 and "step_size" not in advice[0], advice
+    needed = int(advice[0].split("Use steps >= ")[1].split(",")[0])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)  # the advice holds: stable, no warning
+        assert torch.isfinite(HeatFlow(time=end, method="midpoint", steps=needed)(u, surface)).all()
+
+
 @pytest.mark.parametrize(("options", "message"), [
     (dict(method="chebyshev"), "re-extension reads closest points up to 2.9 cells"),
     (dict(method="euler", reextend_every=None), "band holds no node"),

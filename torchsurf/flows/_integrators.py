@@ -798,7 +798,8 @@ def _torchdiffeq(method: str) -> Callable[[System, Tensor, Schedule], list[Tenso
             count = fixed_step_count(method, system, end, schedule.steps,
                                      options.get("step_size"))
             options["step_size"] = end / count
-            _warn_unstable_step(method, options["step_size"], system.spectral_radius)
+            _warn_unstable_step(method, options["step_size"], system.spectral_radius,
+                                end if schedule.steps is not None else None)
         elif method in ADAPTIVE_STEPS:
             options.setdefault("max_num_steps", MAX_STEPS)
             options.setdefault("norm", band_norm(system.band))
@@ -1048,16 +1049,21 @@ def check_options(options: object, method: str) -> dict:
     return checked
 
 
-def _warn_unstable_step(method: str, step: float, rho: float) -> None:
+def _warn_unstable_step(method: str, step: float, rho: float, end: float | None = None
+                        ) -> None:
     """Warn before the run when a fixed-step torchdiffeq method's step is past its stable step
-    on this operator (``method="euler"`` with ``steps=`` warns the same way)."""
+    on this operator (``method="euler"`` with ``steps=`` warns the same way); ``end``: the
+    time, when the steps were given by ``steps=`` (the remedy is then more steps: ``steps``
+    and ``options['step_size']`` are refused together)."""
     interval = _STABLE_INTERVAL.get(method)
     if interval is None or step * rho <= interval * (1 + 1e-6):
         return
+    remedy = (f"options={{'step_size': {interval / rho:.3g}}} or less" if end is None
+              else f"steps >= {math.ceil(end * rho / interval * (1 - 1e-9))}")
     warnings.warn(
         f"a {method} step of {step:.3g} exceeds its stable step {interval / rho:.3g} on this "
         f"surface's operator ({interval:g} / rho, rho = {rho:.3g}); the flow may blow up. Use "
-        f"options={{'step_size': {interval / rho:.3g}}} or less, or method='rkc'",
+        f"{remedy}, or method='rkc'",
         RuntimeWarning, stacklevel=caller_stacklevel(),
     )
 
